@@ -1,0 +1,267 @@
+"""Loading and validating rig profiles (TOML) into frozen :class:`~rt_runtime.rig.model.Rig`.
+
+``load_rig("scale_model")`` loads a shipped profile by name; ``load_rig("path/to/rig.toml")``
+loads a file. Every field is checked (type, finiteness, range, min < max, unknown keys) and any
+error names the key path and what is allowed. Values no source gives must be listed in the
+profile's ``[assumed]`` table with a one-line reason; the loader checks that each listed key
+exists.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from rt_runtime.errors import RigProfileError
+from rt_runtime.rig._schema import Table
+from rt_runtime.rig.cylinders import parse_cylinders
+from rt_runtime.rig.model import (
+    ARM_JOINTS,
+    Bucket,
+    Can,
+    FluidSoil,
+    Joint,
+    Link,
+    Planning,
+    Rig,
+    Soil,
+    Swing,
+    YaoSoil,
+)
+
+PROFILE_DIR = Path(__file__).parent / "profiles"
+DEFAULT_RIG = "scale_model"
+
+
+def profile_names() -> list[str]:
+    """Names of the shipped profiles."""
+    return sorted(p.stem for p in PROFILE_DIR.glob("*.toml"))
+
+
+def load_rig(name_or_path: str | Path = DEFAULT_RIG) -> Rig:
+    """Load and validate a rig profile.
+
+    Args:
+        name_or_path: A shipped profile name (see :func:`profile_names`) or a TOML file path.
+
+    Returns:
+        The validated rig.
+
+    Raises:
+        RigProfileError: Unknown name, unreadable file, bad TOML, or an invalid field (the
+            message names the key path and the allowed range).
+    """
+    text = str(name_or_path)
+    path = Path(text)
+    if not (text.endswith(".toml") or path.exists()):
+        candidate = PROFILE_DIR / f"{text}.toml"
+        if not candidate.exists():
+            raise RigProfileError(
+                "name", f"no rig profile {text!r}; shipped: {', '.join(profile_names())}"
+            )
+        path = candidate
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as e:
+        raise RigProfileError("file", f"cannot read {path}: not found") from e
+    except OSError as e:
+        raise RigProfileError("file", f"cannot read {path}: {e.strerror}") from e
+    except tomllib.TOMLDecodeError as e:
+        raise RigProfileError("file", f"{path} is not valid TOML: {e}") from e
+    return parse_rig(raw, source=str(path))
+
+
+def parse_rig(raw: dict[str, Any], source: str = "") -> Rig:
+    """Validate an already parsed profile document.
+
+    Raises:
+        RigProfileError: An invalid field, naming its key path.
+    """
+    root = Table(raw, "", source)
+    name = root.string("name")
+    description = root.string("description")
+    sources = root.strings("sources")
+    gravity = root.number("gravity_m_s2", gt=0.0, le=20.0)
+
+    ground = root.table("ground")
+    ground_y = ground.number("y_m", ge=-100.0, le=100.0)
+    ground.finish()
+
+    joints_t = root.table("joints")
+    links_t = root.table("links")
+    joints = tuple(_joint(joints_t.table(n), n) for n in ARM_JOINTS)
+    links = tuple(_link(links_t.table(n), n) for n in ARM_JOINTS)
+    joints_t.finish()
+    links_t.finish()
+
+    swing_t = root.optional_table("swing")
+    swing = _swing(swing_t) if swing_t is not None else None
+
+    bucket = _bucket(root.table("bucket"))
+    soil = _soil(root.table("soil"))
+    cylinders = parse_cylinders(root.table("cylinders"))
+    planning_t = root.optional_table("planning")
+    planning = _planning(planning_t) if planning_t is not None else None
+    can = _can(root.table("can"), swing is not None)
+    assumed = _assumed(root.table("assumed"), raw)
+    root.finish()
+
+    return Rig(
+        name=name,
+        description=description,
+        sources=sources,
+        source_path=source,
+        gravity_m_s2=gravity,
+        ground_y_m=ground_y,
+        joints=(joints[0], joints[1], joints[2]),
+        links=(links[0], links[1], links[2]),
+        swing=swing,
+        bucket=bucket,
+        soil=soil,
+        cylinders=cylinders,
+        planning=planning,
+        can=can,
+        assumed=assumed,
+    )
+
+
+def _joint(t: Table, name: str) -> Joint:
+    lo = t.number("min_deg", ge=-360.0, le=360.0)
+    hi = t.number("max_deg", ge=-360.0, le=360.0)
+    t.ordered("min_deg", lo, "max_deg", hi)
+    joint = Joint(
+        name=name,
+        min_rad=math.radians(lo),
+        max_rad=math.radians(hi),
+        velocity_max_rad_s=math.radians(t.number("velocity_max_deg_s", gt=0.0, le=3600.0)),
+        acceleration_max_rad_s2=math.radians(
+            t.number("acceleration_max_deg_s2", gt=0.0, le=36000.0)
+        ),
+        jerk_max_rad_s3=math.radians(t.number("jerk_max_deg_s3", gt=0.0, le=360000.0)),
+        torque_max_nm=t.number("torque_max_nm", gt=0.0),
+    )
+    t.finish()
+    return joint
+
+
+def _link(t: Table, name: str) -> Link:
+    length = t.number("length_m", gt=0.0, le=50.0)
+    com = t.numbers("com_m", 2, ge=-50.0, le=50.0)
+    link = Link(
+        name=name,
+        length_m=length,
+        mass_kg=t.number("mass_kg", gt=0.0),
+        com_m=(com[0], com[1]),
+        inertia_kgm2=t.number("inertia_kgm2", gt=0.0),
+    )
+    t.finish()
+    return link
+
+
+def _swing(t: Table) -> Swing:
+    offset = t.number("base_offset_m", ge=0.0, le=50.0)
+    height = t.number("base_height_m", ge=-50.0, le=50.0)
+    joint = _joint(t, "swing")  # the same limit keys as an arm joint; finish() ran there
+    return Swing(joint=joint, base_offset_m=offset, base_height_m=height)
+
+
+def _bucket(t: Table) -> Bucket:
+    width = t.number("width_m", gt=0.0, le=10.0)
+    capacity = t.number("capacity_l", gt=0.0) * 1e-3
+    raw = t.raw("profile_m")
+    if not isinstance(raw, list) or len(raw) < 3:
+        raise t.error("profile_m", "must list at least 3 points [along, normal] (tip first)")
+    points: list[tuple[float, float]] = []
+    for i, p in enumerate(raw):
+        sub = Table({"point": p}, t.key_path(f"profile_m[{i}]"), "")
+        x, y = sub.numbers("point", 2, ge=-50.0, le=50.0)
+        points.append((x, y))
+    if points[0] != (0.0, 0.0):
+        raise t.error("profile_m", f"must start at the tip [0, 0] (got {list(points[0])})")
+    t.finish()
+    return Bucket(width_m=width, capacity_m3=capacity, profile_m=tuple(points))
+
+
+def _soil(t: Table) -> Soil:
+    y = t.table("yao")
+    yao = YaoSoil(k0_n_m2=y.number("k0_n_cm2", gt=0.0) * 1e4, mu=y.number("mu", ge=0.0, le=5.0))
+    y.finish()
+    f = t.table("fluid")
+    fluid = []
+    for soil_name in f.keys():
+        s = f.table(soil_name)
+        fluid.append(
+            FluidSoil(
+                name=soil_name,
+                density_kg_m3=s.number("density_kg_m3", gt=0.0, le=10000.0),
+                kp=s.number("kp", ge=0.0),
+                kv=s.number("kv", ge=0.0),
+                ks=s.number("ks", ge=0.0, le=5.0),
+            )
+        )
+        s.finish()
+    if not fluid:
+        raise t.error("fluid", "must define at least one soil (e.g. [soil.fluid.soft])")
+    f.finish()
+    t.finish()
+    return Soil(yao=yao, fluid=tuple(fluid))
+
+
+def _planning(t: Table) -> Planning:
+    t_lo, t_hi = t.range("t_s", ge=0.01, le=1000.0)
+    v_lo, v_hi = t.range("volume_l", ge=0.0)
+    e_lo, e_hi = t.range("energy_wh", ge=0.0)
+    weights = t.numbers("weights", 3, ge=0.0, le=1.0)
+    if not math.isclose(sum(weights), 1.0, abs_tol=1e-9):
+        raise t.error("weights", f"must sum to 1 (got {sum(weights):g})")
+    down = t.range("theta_p_downward_deg", ge=0.0, le=90.0)
+    back = t.range("theta_p_backward_deg", ge=0.0, le=90.0)
+    planning = Planning(
+        t_min_s=t_lo,
+        t_max_s=t_hi,
+        volume_min_m3=v_lo * 1e-3,
+        volume_max_m3=v_hi * 1e-3,
+        energy_min_j=e_lo * 3600.0,
+        energy_max_j=e_hi * 3600.0,
+        power_max_w=t.number("power_max_w", gt=0.0),
+        weights=(weights[0], weights[1], weights[2]),
+        theta_p_downward_rad=(math.radians(down[0]), math.radians(down[1])),
+        theta_p_backward_rad=(math.radians(back[0]), math.radians(back[1])),
+    )
+    t.finish()
+    return planning
+
+
+def _can(t: Table, has_swing: bool) -> Can:
+    bitrate = t.integer("bitrate", ge=10_000, le=1_000_000)
+    ids_t = t.table("node_ids")
+    wanted = (("swing",) if has_swing else ()) + ARM_JOINTS
+    ids = tuple((n, ids_t.integer(n, ge=1, le=127)) for n in wanted)
+    ids_t.finish()
+    vcu = t.integer("vcu_node_id", ge=1, le=127)
+    seen: dict[int, str] = {}
+    for n, i in (*ids, ("vcu", vcu)):
+        if i in seen:
+            key = f"node_ids.{n}" if n != "vcu" else "vcu_node_id"
+            raise t.error(key, f"node id {i} is already used by {seen[i]}; ids must be unique")
+        seen[i] = n
+    t.finish()
+    return Can(bitrate=bitrate, node_ids=ids, vcu_node_id=vcu)
+
+
+def _assumed(t: Table, raw: dict[str, Any]) -> tuple[tuple[str, str], ...]:
+    out = []
+    for key in t.keys():
+        reason = t.string(key)
+        if not reason.strip():
+            raise t.error(key, "needs a one-line reason")
+        node: Any = raw
+        for part in key.split("."):
+            if not isinstance(node, dict) or part not in node:
+                raise t.error(key, "names a key that the profile does not have")
+            node = node[part]
+        out.append((key, reason))
+    t.finish()
+    return tuple(out)

@@ -1,0 +1,276 @@
+"""Frozen dataclasses describing a rig: geometry, limits, masses, bucket, soil, planning, CAN.
+
+A :class:`Rig` is built only by :func:`rt_runtime.rig.load_rig`, which validates every field.
+Everything is SI (m, rad, s, kg, N, N*m, W, J, m^3); the profile's edge units (deg, L, Wh,
+N/cm^2) are converted by the loader.
+
+Frames: the arm frame has its origin at the boom foot pin, x forward (away from the cab), y up.
+Joint angles are counter-clockwise positive: theta1 boom from +x, theta2 stick relative to boom,
+theta3 bucket relative to stick; the tip attitude is zeta = theta1 + theta2 + theta3. Link frame
+i has its origin at joint i and its x axis along the link towards the next joint (for the bucket:
+towards the tip), so centres of mass are given as (along, normal) in that frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rt_runtime.rig.cylinders import Cylinders
+
+ARM_JOINTS: tuple[str, str, str] = ("boom", "stick", "bucket")
+
+
+@dataclass(frozen=True, slots=True)
+class Joint:
+    """Limits of one revolute joint.
+
+    Attributes:
+        name: ``boom``, ``stick``, ``bucket`` or ``swing``.
+        min_rad: Lower angle limit.
+        max_rad: Upper angle limit.
+        velocity_max_rad_s: Largest allowed |angular velocity|.
+        acceleration_max_rad_s2: Largest allowed |angular acceleration|.
+        jerk_max_rad_s3: Largest allowed |angular jerk| (used by the limit guard).
+        torque_max_nm: Largest allowed |joint torque|.
+    """
+
+    name: str
+    min_rad: float
+    max_rad: float
+    velocity_max_rad_s: float
+    acceleration_max_rad_s2: float
+    jerk_max_rad_s3: float
+    torque_max_nm: float
+
+
+@dataclass(frozen=True, slots=True)
+class Link:
+    """Geometry and mass of one arm link (planar).
+
+    Attributes:
+        name: Joint name the link hangs on.
+        length_m: Joint-to-next-joint distance (bucket: pivot-to-tip).
+        mass_kg: Link mass.
+        com_m: Centre of mass (along, normal) in the link frame.
+        inertia_kgm2: Moment of inertia about the centre of mass, axis normal to the arm plane.
+    """
+
+    name: str
+    length_m: float
+    mass_kg: float
+    com_m: tuple[float, float]
+    inertia_kgm2: float
+
+
+@dataclass(frozen=True, slots=True)
+class Swing:
+    """Swing joint and the boom foot's offsets from the swing axis (Zhao Table I).
+
+    Attributes:
+        joint: Limits of the swing joint theta0 (about the vertical axis).
+        base_offset_m: a1, horizontal distance from the swing axis to the boom foot pin.
+        base_height_m: d1, height of the boom foot pin above the swing frame origin.
+    """
+
+    joint: Joint
+    base_offset_m: float
+    base_height_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class Bucket:
+    """Bucket dimensions.
+
+    Attributes:
+        width_m: Cutting width b.
+        capacity_m3: Struck (heaped-free) capacity.
+        profile_m: Bucket outline for the Yang/Pan soil model as points (along, normal) in the
+            bucket link frame shifted to the tip: the tip is (0, 0), the first segment is the
+            separation (bottom) plane, the second the back plane. Shape (n_points, 2).
+    """
+
+    width_m: float
+    capacity_m3: float
+    profile_m: tuple[tuple[float, float], ...]
+
+
+@dataclass(frozen=True, slots=True)
+class YaoSoil:
+    """Digging resistance of Yao eq 8.
+
+    Attributes:
+        k0_n_m2: Specific digging resistance K0.
+        mu: Ratio of normal to tangential resistance.
+    """
+
+    k0_n_m2: float
+    mu: float
+
+
+@dataclass(frozen=True, slots=True)
+class FluidSoil:
+    """Soil of the Yang/Pan fluid model (their Table 2).
+
+    Attributes:
+        name: ``soft``, ``hard`` or a user name.
+        density_kg_m3: Soil density rho.
+        kp: Scale of the hydrostatic pressure term.
+        kv: Scale of the velocity term (N*s/m^3).
+        ks: Friction coefficient.
+    """
+
+    name: str
+    density_kg_m3: float
+    kp: float
+    kv: float
+    ks: float
+
+
+@dataclass(frozen=True, slots=True)
+class Soil:
+    """Soil models available for this rig."""
+
+    yao: YaoSoil
+    fluid: tuple[FluidSoil, ...]
+
+    def fluid_named(self, name: str) -> FluidSoil:
+        """The fluid-model soil called ``name``.
+
+        Raises:
+            KeyError: No such soil; the message lists the known ones.
+        """
+        for s in self.fluid:
+            if s.name == name:
+                return s
+        raise KeyError(f"no soil {name!r}; known: {', '.join(s.name for s in self.fluid)}")
+
+
+@dataclass(frozen=True, slots=True)
+class Planning:
+    """Thresholds and weights of the one-shot optimisation (Yao Table 2, eq 11-12).
+
+    Attributes:
+        t_min_s, t_max_s: Digging time range.
+        volume_min_m3, volume_max_m3: Excavated volume range V_p.
+        energy_min_j, energy_max_j: Energy thresholds for normalisation.
+        power_max_w: Largest allowed driving power.
+        weights: lambda1..3 for time, energy and unfilled volume.
+        theta_p_downward_rad: Initial digging angle range of downward digs.
+        theta_p_backward_rad: Initial digging angle range of backward digs.
+    """
+
+    t_min_s: float
+    t_max_s: float
+    volume_min_m3: float
+    volume_max_m3: float
+    energy_min_j: float
+    energy_max_j: float
+    power_max_w: float
+    weights: tuple[float, float, float]
+    theta_p_downward_rad: tuple[float, float]
+    theta_p_backward_rad: tuple[float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class Can:
+    """CAN bus settings.
+
+    Attributes:
+        bitrate: Bus bitrate in bit/s.
+        node_ids: Drive node id per joint name.
+        vcu_node_id: Node id of the vehicle control unit (travel and swing motors).
+    """
+
+    bitrate: int
+    node_ids: tuple[tuple[str, int], ...]
+    vcu_node_id: int
+
+    def node_id(self, joint: str) -> int:
+        """Node id of ``joint``'s drive."""
+        return dict(self.node_ids)[joint]
+
+
+def _readonly(values: list[float]) -> NDArray[np.float64]:
+    a = np.array(values, dtype=np.float64)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, slots=True)
+class Rig:
+    """A validated rig profile.
+
+    Attributes:
+        name: Profile name.
+        description: One line about the machine.
+        sources: Where the values come from.
+        source_path: File it was loaded from.
+        gravity_m_s2: Gravitational acceleration (acts along -y).
+        ground_y_m: Height of the ground the machine stands on, in the arm frame.
+        joints: Arm joints (boom, stick, bucket).
+        links: Arm links, same order.
+        swing: Swing joint and base offsets, or None for a planar rig.
+        bucket: Bucket dimensions.
+        soil: Soil model parameters.
+        cylinders: Cylinder and linkage geometry.
+        planning: One-shot planning thresholds, or None where the rig has none.
+        can: CAN settings.
+        assumed: (key path, reason) for every value no source gives.
+    """
+
+    name: str
+    description: str
+    sources: tuple[str, ...]
+    source_path: str
+    gravity_m_s2: float
+    ground_y_m: float
+    joints: tuple[Joint, Joint, Joint]
+    links: tuple[Link, Link, Link]
+    swing: Swing | None
+    bucket: Bucket
+    soil: Soil
+    cylinders: Cylinders
+    planning: Planning | None
+    can: Can
+    assumed: tuple[tuple[str, str], ...]
+    lengths_m: NDArray[np.float64] = field(init=False, repr=False, compare=False)
+    q_min_rad: NDArray[np.float64] = field(init=False, repr=False, compare=False)
+    q_max_rad: NDArray[np.float64] = field(init=False, repr=False, compare=False)
+    qd_max_rad_s: NDArray[np.float64] = field(init=False, repr=False, compare=False)
+    qdd_max_rad_s2: NDArray[np.float64] = field(init=False, repr=False, compare=False)
+    qddd_max_rad_s3: NDArray[np.float64] = field(init=False, repr=False, compare=False)
+    tau_max_nm: NDArray[np.float64] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        # Arrays over the three arm joints, precomputed once for the batched physics.
+        put = object.__setattr__
+        put(self, "lengths_m", _readonly([lk.length_m for lk in self.links]))
+        put(self, "q_min_rad", _readonly([j.min_rad for j in self.joints]))
+        put(self, "q_max_rad", _readonly([j.max_rad for j in self.joints]))
+        put(self, "qd_max_rad_s", _readonly([j.velocity_max_rad_s for j in self.joints]))
+        put(self, "qdd_max_rad_s2", _readonly([j.acceleration_max_rad_s2 for j in self.joints]))
+        put(self, "qddd_max_rad_s3", _readonly([j.jerk_max_rad_s3 for j in self.joints]))
+        put(self, "tau_max_nm", _readonly([j.torque_max_nm for j in self.joints]))
+
+    @property
+    def has_swing(self) -> bool:
+        """Whether the rig has a swing joint (4 DOF)."""
+        return self.swing is not None
+
+    @property
+    def dof(self) -> int:
+        """Number of joints including swing."""
+        return 4 if self.swing is not None else 3
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """Joint names, swing first where present."""
+        arm = tuple(j.name for j in self.joints)
+        return ("swing", *arm) if self.swing is not None else arm
+
+    def is_assumed(self, key_path: str) -> bool:
+        """Whether ``key_path`` is marked assumed in the profile."""
+        return any(k == key_path for k, _ in self.assumed)

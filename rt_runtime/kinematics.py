@@ -1,19 +1,32 @@
-"""Forward and inverse kinematics of the excavator arm, and the tip Jacobian (Yao eq 1-4).
+"""Forward and inverse kinematics of the excavator arm and its tip Jacobian (Yao, Gao, Zhao).
 
 Planar functions work on the three arm joints ``q_rad = (theta1, theta2, theta3)`` shaped
 ``(..., 3)`` in the arm frame (origin at the boom foot pin, x forward, y up); every rig digs in
-such a plane. The pose of the bucket tip is ``(x_m, y_m, attitude_rad)`` with
-``attitude = theta1 + theta2 + theta3`` (Yao eq 2). All functions are batched over leading axes,
-allocate only their outputs, and are safe to call outside the loop; ``forward`` and ``jacobian``
-are cheap enough for the loop at batch size 1.
+such a plane, including the arm of a rig with swing. The pose of the bucket tip is
+``(x_m, y_m, attitude_rad)`` with ``attitude = theta1 + theta2 + theta3`` (Yao eq 2).
+
+Rigs with swing (``rig.swing`` set) also have 3-D functions on ``q_rad = (theta0, theta1,
+theta2, theta3)`` shaped ``(..., 4)`` (Zhao eq 1). Their swing frame has its origin on the swing
+axis at the D-H base of Zhao Table I (d1 below the boom foot pin), y up the axis, x forward at
+theta0 = 0 and z = x cross y; theta0 is counter-clockwise seen from above, i.e. positive about
++y. Zhao's base frame (X, Y, Z) has Z up, so ``(x, y, z) = (X, Z, -Y)``. The boom foot pin sits
+at ``(a1, d1, 0)`` for theta0 = 0 (``rig.swing.base_offset_m``, ``rig.swing.base_height_m``).
+
+All functions are batched over leading axes, allocate only their outputs and temporaries, and
+are safe to call outside the loop; ``forward`` and ``jacobian`` are cheap enough for the loop at
+batch size 1. The inverse functions raise on unreachable targets, so they belong to planning,
+not to the loop.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rt_runtime.rig import Rig
+from rt_runtime.errors import ConfigurationError, JointLimitError, UnreachableError
+from rt_runtime.rig import Rig, Swing
 
 FloatArray = NDArray[np.float64]
 
@@ -83,3 +96,252 @@ def jacobian(rig: Rig, q_rad: ArrayLike) -> FloatArray:
 def tip_velocity(rig: Rig, q_rad: ArrayLike, qd_rad_s: ArrayLike) -> FloatArray:
     """Tip twist (vx_m_s, vy_m_s, omega_rad_s) from joint angles and velocities, ``(..., 3)``."""
     return np.einsum("...ij,...j->...i", jacobian(rig, q_rad), np.asarray(qd_rad_s, np.float64))
+
+
+_TWO_PI = 2.0 * np.pi
+# A pose computed by forward() at full extension or full fold lands a few ulp outside the
+# boom+stick annulus; this much (relative to l1 + l2) is rounding, anything more is a miss.
+_REACH_REL_TOL = 1e-9
+# Likewise a solution this close outside a joint limit is a pose on the limit, not a violation.
+_LIMIT_TOL_RAD = 1e-9
+
+
+def _targets(values: Mapping[str, ArrayLike]) -> dict[str, FloatArray]:
+    """Broadcast the named target components together as float64; reject non-finite values."""
+    arrays = {name: np.asarray(v, dtype=np.float64) for name, v in values.items()}
+    try:
+        shaped = np.broadcast_arrays(*arrays.values())
+    except ValueError as exc:
+        shapes = ", ".join(f"{name} {a.shape}" for name, a in arrays.items())
+        raise ValueError(f"target components must broadcast together; got {shapes}") from exc
+    out = dict(zip(arrays, shaped, strict=True))
+    for name, a in out.items():
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} must be finite; got {a[~np.isfinite(a)].flat[0]}")
+    return out
+
+
+def _describe(targets: Mapping[str, FloatArray], flat_index: int) -> str:
+    """One target of a batch as text, with its batch index when there is a batch."""
+    shape = next(iter(targets.values())).shape
+    values = ", ".join(f"{name}={a.flat[flat_index]:.6g}" for name, a in targets.items())
+    if not shape:
+        return f"target ({values})"
+    index = tuple(int(i) for i in np.unravel_index(flat_index, shape))
+    return f"target ({values}) at batch index {index}"
+
+
+def _wrap_to_range(q: FloatArray, q_min: FloatArray, q_max: FloatArray) -> FloatArray:
+    """Representative of ``q`` modulo 2*pi in the 2*pi window centred on ``[q_min, q_max]``.
+
+    That window holds the whole range, and a value outside the range lands on the side it is
+    nearer to: a bucket range of -160..5 deg turns +190 deg into -170 deg, not +190.
+    Values already in the window come back bit-identical.
+    """
+    low = 0.5 * (q_min + q_max) - np.pi
+    return q - _TWO_PI * np.floor((q - low) / _TWO_PI)
+
+
+def _enforce_limits(
+    q: FloatArray,
+    q_min: FloatArray,
+    q_max: FloatArray,
+    names: tuple[str, ...],
+    targets: Mapping[str, FloatArray],
+) -> FloatArray:
+    """Raise for the first joint outside its limits; clip rounding-sized excursions onto them."""
+    bad = (q < q_min - _LIMIT_TOL_RAD) | (q > q_max + _LIMIT_TOL_RAD)
+    if np.any(bad):
+        rows = bad.reshape(-1, q.shape[-1])
+        i = int(np.argmax(rows.any(axis=-1)))
+        j = int(np.argmax(rows[i]))
+        err = JointLimitError(
+            names[j], float(q.reshape(-1, q.shape[-1])[i, j]), float(q_min[j]), float(q_max[j])
+        )
+        err.add_note(f"inverse kinematics of {_describe(targets, i)}")
+        raise err
+    return np.clip(q, q_min, q_max)
+
+
+def _solve_arm(
+    rig: Rig,
+    x_m: FloatArray,
+    y_m: FloatArray,
+    attitude_rad: FloatArray,
+    targets: Mapping[str, FloatArray],
+) -> FloatArray:
+    """Planar IK on the excavator branch, neither wrapped nor checked against limits.
+
+    ``targets`` only serves the error message (the caller's own coordinates).
+    """
+    l1, l2, l3 = (float(v) for v in rig.lengths_m)
+    pivot_x = x_m - l3 * np.cos(attitude_rad)
+    pivot_y = y_m - l3 * np.sin(attitude_rad)
+    r = np.hypot(pivot_x, pivot_y)
+    outer = l1 + l2
+    inner = abs(l1 - l2)
+    tol = _REACH_REL_TOL * outer
+    miss = (r > outer + tol) | (r < inner - tol)
+    if np.any(miss):
+        i = int(np.argmax(miss.reshape(-1)))
+        raise UnreachableError(
+            f"bucket pivot of {_describe(targets, i)} is {float(r.flat[i]):.6g} m from the boom "
+            f"foot pin; boom and stick reach [{inner:.6g}, {outer:.6g}] m"
+        )
+    # Law of cosines in half-angle form: tan^2(theta2 / 2) = ((l1+l2)^2 - r^2) / (r^2 - (l1-l2)^2).
+    # The factored differences stay exact near full extension and full fold, where acos of the
+    # cosine loses half the digits; clipping only absorbs the tolerance admitted above.
+    far = np.sqrt(np.maximum((outer - r) * (outer + r), 0.0))
+    near = np.sqrt(np.maximum((r - inner) * (r + inner), 0.0))
+    theta2 = -2.0 * np.arctan2(far, near)
+    elbow = np.arctan2(l2 * np.sin(theta2), l1 + l2 * np.cos(theta2))
+    theta1 = np.arctan2(pivot_y, pivot_x) - elbow
+    q = np.empty((*r.shape, 3), dtype=np.float64)
+    q[..., 0] = theta1
+    q[..., 1] = theta2
+    q[..., 2] = attitude_rad - theta1 - theta2
+    return q
+
+
+def inverse(
+    rig: Rig,
+    x_m: ArrayLike,
+    y_m: ArrayLike,
+    attitude_rad: ArrayLike,
+    *,
+    check_limits: bool = True,
+) -> FloatArray:
+    """Arm joint angles that put the bucket tip at a pose (closed form; Yao eq 4, Gao eq 4).
+
+    The bucket pivot is ``tip - l3 * (cos, sin)(attitude)``; boom and stick then form a
+    two-link arm reaching it. Of its two solutions this returns the excavator branch
+    ``theta2 in [-pi, 0]``: the stick folds clockwise from the boom, so the boom-stick joint
+    lies above the line from the boom foot to the bucket pivot. (Gao eq 4 prints ``2 a1 a1``
+    where ``2 a1 a2`` belongs; this derivation does not use it.) A rig whose stick range
+    reaches above 0 (the scale model's, to +10 deg) has poses only the other branch reaches
+    within limits; for those this returns the mirrored configuration.
+
+    Angles come back wrapped into the 2*pi window centred on each joint's range, so a value
+    outside the range is the representative nearest to it (bucket -160..5 deg: -170, not +190).
+
+    Args:
+        rig: The rig (a swing rig's arm joints, in its arm plane).
+        x_m: Tip x in the arm frame; broadcasts with the others.
+        y_m: Tip y in the arm frame.
+        attitude_rad: Tip attitude theta1 + theta2 + theta3 (any multiple of 2*pi).
+        check_limits: Raise for a solution outside the joint limits. Values within 1e-9 rad
+            outside a limit count as on it and are clipped onto it.
+
+    Returns:
+        ``(..., 3)`` joint angles (boom, stick, bucket), ``...`` the broadcast input shape.
+
+    Raises:
+        UnreachableError: A bucket pivot lies outside the annulus ``[|l1 - l2|, l1 + l2]``
+            (beyond a 1e-9 relative tolerance); names the first such target, its batch index,
+            the distance and the reachable range.
+        JointLimitError: With ``check_limits``, the first target (in C order) whose solution
+            leaves a joint's range; names that joint, and a note gives the target and index.
+        ValueError: Inputs that do not broadcast, or are not finite.
+    """
+    targets = _targets({"x_m": x_m, "y_m": y_m, "attitude_rad": attitude_rad})
+    q = _solve_arm(rig, targets["x_m"], targets["y_m"], targets["attitude_rad"], targets)
+    q = _wrap_to_range(q, rig.q_min_rad, rig.q_max_rad)
+    if check_limits:
+        names = tuple(j.name for j in rig.joints)
+        q = _enforce_limits(q, rig.q_min_rad, rig.q_max_rad, names, targets)
+    return q
+
+
+def _swing(rig: Rig, function: str) -> Swing:
+    if rig.swing is None:
+        raise ConfigurationError(
+            f"{function} needs a rig with a swing joint; rig {rig.name!r} is planar "
+            "(3 DOF): use the planar functions, or a profile with a [swing] table"
+        )
+    return rig.swing
+
+
+def forward_3d(rig: Rig, q_rad: ArrayLike) -> FloatArray:
+    """Bucket tip pose in the swing frame from swing and arm joint angles (Zhao eq 1).
+
+    Args:
+        rig: A rig with swing.
+        q_rad: ``(..., 4)``: theta0 (swing), theta1, theta2, theta3.
+
+    Returns:
+        ``(..., 4)``: tip ``x_m``, ``y_m`` (up), ``z_m`` in the swing frame (see the module
+        docstring) and ``attitude_rad`` = theta1 + theta2 + theta3.
+
+    Raises:
+        ConfigurationError: The rig has no swing joint.
+        ValueError: ``q_rad`` is not shaped ``(..., 4)``.
+    """
+    swing = _swing(rig, "forward_3d")
+    q = np.asarray(q_rad, dtype=np.float64)
+    if q.ndim == 0 or q.shape[-1] != 4:
+        raise ValueError(
+            f"q_rad must have shape (..., 4) (swing, boom, stick, bucket); got {q.shape}"
+        )
+    arm = forward(rig, q[..., 1:])
+    radial = swing.base_offset_m + arm[..., 0]
+    out = np.empty(q.shape, dtype=np.float64)
+    out[..., 0] = radial * np.cos(q[..., 0])
+    out[..., 1] = swing.base_height_m + arm[..., 1]
+    out[..., 2] = -radial * np.sin(q[..., 0])
+    out[..., 3] = arm[..., 2]
+    return out
+
+
+def inverse_3d(
+    rig: Rig,
+    x_m: ArrayLike,
+    y_m: ArrayLike,
+    z_m: ArrayLike,
+    attitude_rad: ArrayLike,
+    *,
+    check_limits: bool = True,
+) -> FloatArray:
+    """Swing and arm joint angles that put the bucket tip at a pose in the swing frame.
+
+    The swing angle turns the arm plane through the tip: ``theta0 = atan2(-z, x)``, with the
+    tip in front of the swing axis (its horizontal distance from the axis along the arm's
+    heading is >= 0). A tip the arm could also reach folded back over the axis (theta0 + pi,
+    tip behind the boom foot by more than a1) comes back as the front solution, or as
+    UnreachableError when the front one does not exist. On the axis itself every swing angle
+    solves and 0 is returned. The arm angles are those of :func:`inverse` (excavator branch,
+    wrapped to the ranges) at arm-frame ``(hypot(x, z) - a1, y - d1)``.
+
+    Args:
+        rig: A rig with swing.
+        x_m, y_m, z_m: Tip position in the swing frame; broadcast together.
+        attitude_rad: Tip attitude theta1 + theta2 + theta3.
+        check_limits: As for :func:`inverse`; the swing joint is checked first.
+
+    Returns:
+        ``(..., 4)``: theta0 (swing), theta1, theta2, theta3.
+
+    Raises:
+        ConfigurationError: The rig has no swing joint.
+        UnreachableError: As for :func:`inverse`.
+        JointLimitError: As for :func:`inverse` (joint ``swing`` included).
+        ValueError: Inputs that do not broadcast, or are not finite.
+    """
+    swing = _swing(rig, "inverse_3d")
+    targets = _targets({"x_m": x_m, "y_m": y_m, "z_m": z_m, "attitude_rad": attitude_rad})
+    x, z = targets["x_m"], targets["z_m"]
+    radial = np.hypot(x, z)
+    q_min = np.concatenate(([swing.joint.min_rad], rig.q_min_rad))
+    q_max = np.concatenate(([swing.joint.max_rad], rig.q_max_rad))
+    q = np.empty((*radial.shape, 4), dtype=np.float64)
+    q[..., 0] = np.where(radial > 0.0, np.arctan2(-z, x), 0.0)
+    q[..., 1:] = _solve_arm(
+        rig,
+        radial - swing.base_offset_m,
+        targets["y_m"] - swing.base_height_m,
+        targets["attitude_rad"],
+        targets,
+    )
+    q = _wrap_to_range(q, q_min, q_max)
+    if check_limits:
+        q = _enforce_limits(q, q_min, q_max, rig.joint_names, targets)
+    return q

@@ -1,0 +1,264 @@
+"""Command-line interface: ``excavator-rt <command> ...``.
+
+Each command is a function taking parsed arguments and returning an exit code; every command
+that reports numbers has ``--json`` (one JSON object on stdout). Degrees and millimetres appear
+only here, at the edge; the library is SI.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from rt_runtime import __version__
+from rt_runtime.errors import ExcavatorRtError
+from rt_runtime.rig import DEFAULT_RIG, Rig, load_rig, profile_names
+
+Handler = Callable[[argparse.Namespace], int]
+
+
+def _print_json(obj: Any) -> None:
+    print(json.dumps(obj, indent=2, sort_keys=False))
+
+
+def _deg(x: float) -> float:
+    return round(math.degrees(x), 6)
+
+
+def rig_summary(rig: Rig, samples: int = 200_000, seed: int = 0) -> dict[str, Any]:
+    """A JSON-ready description of a rig: profile, reach envelope and cylinder stroke ranges."""
+    from rt_runtime import actuation, workspace
+
+    env = workspace.envelope(rig, samples=samples, seed=seed)
+    lo = np.array([j.min_rad for j in rig.joints])
+    hi = np.array([j.max_rad for j in rig.joints])
+    s_lo = actuation.joint_to_stroke(rig, lo)
+    s_hi = actuation.joint_to_stroke(rig, hi)
+    s_min, s_max = actuation.stroke_limits(rig)
+    cyl_kind = rig.cylinders.kind
+    joints = [
+        {
+            "name": j.name,
+            "min_deg": _deg(j.min_rad),
+            "max_deg": _deg(j.max_rad),
+            "velocity_max_deg_s": _deg(j.velocity_max_rad_s),
+            "acceleration_max_deg_s2": _deg(j.acceleration_max_rad_s2),
+            "jerk_max_deg_s3": _deg(j.jerk_max_rad_s3),
+            "torque_max_nm": j.torque_max_nm,
+        }
+        for j in ((rig.swing.joint,) if rig.swing is not None else ()) + rig.joints
+    ]
+    links = [
+        {
+            "name": lk.name,
+            "length_m": lk.length_m,
+            "mass_kg": lk.mass_kg,
+            "com_m": list(lk.com_m),
+            "inertia_kgm2": lk.inertia_kgm2,
+        }
+        for lk in rig.links
+    ]
+    cylinders = [
+        {
+            "name": name,
+            "kind": cyl_kind,
+            "stroke_at_joint_min_mm": round(float(s_lo[i]) * 1e3, 3),
+            "stroke_at_joint_max_mm": round(float(s_hi[i]) * 1e3, 3),
+            "stroke_limits_mm": [round(float(s_min[i]) * 1e3, 3), round(float(s_max[i]) * 1e3, 3)],
+        }
+        for i, name in enumerate(("boom", "stick", "bucket"))
+    ]
+    out: dict[str, Any] = {
+        "name": rig.name,
+        "description": rig.description,
+        "sources": list(rig.sources),
+        "dof": rig.dof,
+        "ground_y_m": rig.ground_y_m,
+        "joints": joints,
+        "links": links,
+        "bucket": {
+            "width_m": rig.bucket.width_m,
+            "capacity_L": round(rig.bucket.capacity_m3 * 1e3, 6),
+        },
+        "envelope": {
+            "max_height_m": env.max_height_m,
+            "max_radius_m": env.max_radius_m,
+            "max_reach_x_m": env.max_reach_x_m,
+            "max_depth_m": env.max_depth_m,
+            "max_depth_below_ground_m": env.max_depth_below_ground_m,
+            "samples": env.samples,
+            "seed": env.seed,
+        },
+        "cylinders": cylinders,
+        "assumed": [{"key": k, "reason": r} for k, r in rig.assumed],
+    }
+    if rig.swing is not None:
+        out["swing"] = {
+            "base_offset_m": rig.swing.base_offset_m,
+            "base_height_m": rig.swing.base_height_m,
+        }
+    return out
+
+
+def _print_rig(summary: dict[str, Any]) -> None:
+    print(f"rig {summary['name']}: {summary['description']}")
+    for s in summary["sources"]:
+        print(f"  source: {s}")
+    print(f"  degrees of freedom: {summary['dof']}; ground at y = {summary['ground_y_m']:+.3f} m")
+    print("  joint     range [deg]          vel [deg/s]  acc [deg/s2]  jerk [deg/s3]  torque [N m]")
+    for j in summary["joints"]:
+        print(
+            f"  {j['name']:<8} [{j['min_deg']:8.2f}, {j['max_deg']:7.2f}]  {j['velocity_max_deg_s']:10.2f}"
+            f"  {j['acceleration_max_deg_s2']:12.2f}  {j['jerk_max_deg_s3']:13.2f}  {j['torque_max_nm']:12.1f}"
+        )
+    print("  link      length [m]  mass [kg]  com [m]            inertia [kg m2]")
+    for lk in summary["links"]:
+        com = ", ".join(f"{c:.4f}" for c in lk["com_m"])
+        print(
+            f"  {lk['name']:<8} {lk['length_m']:10.4f} {lk['mass_kg']:10.3f}  ({com})  {lk['inertia_kgm2']:14.5f}"
+        )
+    b = summary["bucket"]
+    print(f"  bucket: width {b['width_m']:.3f} m, struck capacity {b['capacity_L']:.2f} L")
+    e = summary["envelope"]
+    print(
+        f"  reach envelope (Monte Carlo, {e['samples']} samples, seed {e['seed']}): "
+        f"max height {e['max_height_m']:.3f} m, max radius {e['max_radius_m']:.3f} m, "
+        f"max depth {e['max_depth_m']:.3f} m below the boom pin "
+        f"({e['max_depth_below_ground_m']:.3f} m below ground)"
+    )
+    print("  cylinder  stroke at joint min..max [mm]   stroke limits [mm]")
+    for c in summary["cylinders"]:
+        print(
+            f"  {c['name']:<8} {c['stroke_at_joint_min_mm']:10.2f} .. {c['stroke_at_joint_max_mm']:<10.2f}"
+            f"        {c['stroke_limits_mm'][0]:.1f} .. {c['stroke_limits_mm'][1]:.1f} ({c['kind']})"
+        )
+    print(f"  assumed values ({len(summary['assumed'])}, no source gives them):")
+    for a in summary["assumed"]:
+        print(f"    {a['key']}: {a['reason']}")
+
+
+def cmd_rig_show(args: argparse.Namespace) -> int:
+    """``excavator-rt rig show NAME [--json]``."""
+    summary = rig_summary(load_rig(args.name), samples=args.samples, seed=args.seed)
+    if args.json:
+        _print_json(summary)
+    else:
+        _print_rig(summary)
+    return 0
+
+
+def cmd_rig_list(args: argparse.Namespace) -> int:
+    """``excavator-rt rig list``."""
+    names = profile_names()
+    if args.json:
+        _print_json({"rigs": names, "default": DEFAULT_RIG})
+    else:
+        for n in names:
+            mark = " (default)" if n == DEFAULT_RIG else ""
+            print(f"{n}{mark}: {load_rig(n).description}")
+    return 0
+
+
+def kinematics_table(rig: Rig) -> list[dict[str, Any]]:
+    """Tip pose, cylinder strokes and static gravity torques at representative poses.
+
+    The poses are the joint-range midpoint and, per joint, that joint at its limits with the
+    others at mid-range: the table a rig integrator checks against the machine with a tape.
+    """
+    from rt_runtime import actuation, dynamics, kinematics
+
+    lo, hi = rig.q_min_rad, rig.q_max_rad
+    mid = 0.5 * (lo + hi)
+    poses = [("mid-range", mid)]
+    for i, j in enumerate(rig.joints):
+        for label, v in (("min", lo[i]), ("max", hi[i])):
+            q = mid.copy()
+            q[i] = v
+            poses.append((f"{j.name} {label}", q))
+    q_all = np.array([q for _, q in poses])
+    tip = kinematics.forward(rig, q_all)
+    stroke = actuation.joint_to_stroke(rig, q_all)
+    tau_g = dynamics.gravity_torque(rig, q_all)
+    rows = []
+    for k, (label, q) in enumerate(poses):
+        rows.append(
+            {
+                "pose": label,
+                "q_deg": [_deg(v) for v in q],
+                "tip_x_m": round(float(tip[k, 0]), 6),
+                "tip_y_m": round(float(tip[k, 1]), 6),
+                "attitude_deg": _deg(float(tip[k, 2])),
+                "stroke_mm": [round(float(s) * 1e3, 3) for s in stroke[k]],
+                "gravity_torque_nm": [round(float(t), 3) for t in tau_g[k]],
+            }
+        )
+    return rows
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """``excavator-rt demo``: the rig summary and its kinematics table."""
+    rig = load_rig(args.rig)
+    summary = rig_summary(rig)
+    table = kinematics_table(rig)
+    if args.json:
+        _print_json({"rig": summary, "kinematics": table})
+        return 0
+    _print_rig(summary)
+    print()
+    print(f"kinematics of {rig.name} (tip in the arm frame, strokes, static gravity torques)")
+    print("  pose          q [deg]                     tip x,y [m]       attitude [deg]  stroke [mm]               gravity torque [N m]")
+    for r in table:
+        q = ", ".join(f"{v:7.2f}" for v in r["q_deg"])
+        s = ", ".join(f"{v:7.1f}" for v in r["stroke_mm"])
+        t = ", ".join(f"{v:9.2f}" for v in r["gravity_torque_nm"])
+        print(
+            f"  {r['pose']:<13} ({q})  ({r['tip_x_m']:6.3f}, {r['tip_y_m']:6.3f})  {r['attitude_deg']:10.2f}"
+            f"      ({s})  ({t})"
+        )
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser with every subcommand."""
+    p = argparse.ArgumentParser(prog="excavator-rt", description=__doc__.splitlines()[0])
+    p.add_argument("--version", action="version", version=f"excavator-rt {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    rig = sub.add_parser("rig", help="rig profiles")
+    rig_sub = rig.add_subparsers(dest="rig_command", required=True, metavar="SUBCOMMAND")
+    show = rig_sub.add_parser("show", help="print a profile, its reach envelope and strokes")
+    show.add_argument("name", help=f"profile name ({', '.join(profile_names())}) or a TOML path")
+    show.add_argument("--samples", type=int, default=200_000, help="Monte Carlo samples")
+    show.add_argument("--seed", type=int, default=0)
+    show.add_argument("--json", action="store_true")
+    show.set_defaults(handler=cmd_rig_show)
+    lst = rig_sub.add_parser("list", help="list the shipped profiles")
+    lst.add_argument("--json", action="store_true")
+    lst.set_defaults(handler=cmd_rig_list)
+
+    demo = sub.add_parser("demo", help="the main demonstration")
+    demo.add_argument("--rig", default=DEFAULT_RIG)
+    demo.add_argument("--json", action="store_true")
+    demo.set_defaults(handler=cmd_demo)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``excavator-rt``; returns the exit code."""
+    args = build_parser().parse_args(argv)
+    handler: Handler = args.handler
+    try:
+        return handler(args)
+    except ExcavatorRtError as e:
+        print(f"excavator-rt: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,143 @@
+"""Rig profiles: the shipped files load, carry their sources, and bad files name the bad key."""
+
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from rt_runtime.errors import ConfigurationError, RigProfileError
+from rt_runtime.rig import load_rig, parse_rig, profile_names
+from rt_runtime.rig.loader import PROFILE_DIR
+
+
+def _raw(name: str) -> dict[str, Any]:
+    return tomllib.loads((PROFILE_DIR / f"{name}.toml").read_text())
+
+
+def test_four_profiles_ship() -> None:
+    assert profile_names() == ["field_excavator", "scale_model", "test_bench", "yang_pan_excavator"]
+
+
+@pytest.mark.parametrize("name", profile_names())
+def test_profiles_load_and_mark_assumptions(name: str) -> None:
+    rig = load_rig(name)
+    assert rig.name == name
+    assert rig.sources
+    assert rig.assumed, "every profile assumes something no paper gives"
+    for key, reason in rig.assumed:
+        assert reason.strip(), key
+    assert all(rig.q_min_rad < rig.q_max_rad)
+    assert rig.lengths_m.shape == (3,)
+    with pytest.raises(ValueError):
+        rig.lengths_m[0] = 1.0  # arrays are read-only like the dataclass
+
+
+def test_scale_model_values_match_yao_tables() -> None:
+    rig = load_rig("scale_model")
+    assert rig.lengths_m.tolist() == [0.740, 0.350, 0.220]
+    deg = [d for j in rig.joints for d in (math.degrees(j.min_rad), math.degrees(j.max_rad))]
+    assert deg == pytest.approx([-20, 65, -160, 10, -160, 5])
+    assert [math.degrees(v) for v in rig.qd_max_rad_s] == pytest.approx([15, 28, 30])
+    assert [math.degrees(v) for v in rig.qdd_max_rad_s2] == pytest.approx([10, 10, 10])
+    p = rig.planning
+    assert p is not None
+    assert (p.t_min_s, p.t_max_s) == (5.0, 10.0)
+    assert p.volume_min_m3 == pytest.approx(3.74e-3)
+    assert p.volume_max_m3 == pytest.approx(5.72e-3)
+    assert p.energy_min_j == pytest.approx(0.025 * 3600)
+    assert p.energy_max_j == pytest.approx(0.110 * 3600)
+    assert p.power_max_w == 400.0
+    assert p.weights == (0.5, 0.2, 0.3)
+    assert rig.soil.yao.k0_n_m2 == pytest.approx(5e4)  # 5 N/cm^2
+    assert rig.soil.yao.mu == 0.40
+    assert rig.bucket.width_m == 0.22
+    assert rig.ground_y_m == -0.25
+    assert rig.can.node_id("boom") == 1 and rig.can.node_id("bucket") == 3
+    assert not rig.has_swing and rig.dof == 3
+
+
+def test_field_excavator_has_swing_and_errata_applied() -> None:
+    rig = load_rig("field_excavator")
+    assert rig.has_swing and rig.dof == 4
+    assert rig.joint_names == ("swing", "boom", "stick", "bucket")
+    assert rig.swing is not None
+    assert rig.swing.base_offset_m == 0.860 and rig.swing.base_height_m == 1.125
+    assert math.degrees(rig.joints[0].velocity_max_rad_s) == pytest.approx(45.0)  # not 845
+    assert rig.is_assumed("joints.stick.min_deg")
+    assert rig.can.node_id("swing") == 4
+
+
+def test_yang_pan_soils_from_table_2() -> None:
+    soil = load_rig("yang_pan_excavator").soil
+    soft, hard = soil.fluid_named("soft"), soil.fluid_named("hard")
+    assert (soft.density_kg_m3, soft.kp, soft.kv, soft.ks) == (1000, 1, 300, 0.5)
+    assert (hard.density_kg_m3, hard.kp, hard.kv, hard.ks) == (2500, 3, 1000, 0.8)
+    with pytest.raises(KeyError, match="known: soft, hard"):
+        soil.fluid_named("clay")
+
+
+def _set(doc: dict[str, Any], path: str, value: Any) -> None:
+    *parents, last = path.split(".")
+    node = doc
+    for p in parents:
+        node = node[p]
+    if value is _DELETE:
+        del node[last]
+    else:
+        node[last] = value
+
+
+_DELETE = object()
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "message"),
+    [
+        ("links.boom.length_m", -0.74, r"links\.boom\.length_m: must be > 0 and <= 50 \(got -0\.74\)"),
+        ("links.stick.mass_kg", float("nan"), r"links\.stick\.mass_kg: must be a finite number"),
+        ("joints.bucket.min_deg", 30.0, r"joints\.bucket\.min_deg: must be < joints\.bucket\.max_deg"),
+        ("joints.boom.velocity_max_deg_s", _DELETE, r"joints\.boom\.velocity_max_deg_s: missing"),
+        ("links.boom.length_m", "long", r"links\.boom\.length_m: must be a number"),
+        ("planning.t_s", [10.0, 5.0], r"planning\.t_s: min must be < max"),
+        ("planning.weights", [0.5, 0.5, 0.5], r"planning\.weights: must sum to 1"),
+        ("links.boom.lenght_m", 1.0, r"links\.boom\.lenght_m: unknown key; allowed here: .*length_m"),
+        ("can.node_ids.stick", 1, r"can\.node_ids\.stick: node id 1 is already used by boom"),
+        ("bucket.profile_m", [[0.1, 0.0], [0, 1], [1, 1]], r"bucket\.profile_m: must start at the tip"),
+        ("ground", _DELETE, r"ground: missing"),
+        ("links.bucket.com_m", [0.1], r"links\.bucket\.com_m: must have exactly 2 numbers"),
+    ],
+)
+def test_bad_profile_names_the_key(path: str, value: Any, message: str) -> None:
+    doc = copy.deepcopy(_raw("scale_model"))
+    _set(doc, path, value)
+    with pytest.raises(RigProfileError, match=message) as info:
+        parse_rig(doc, source="bad.toml")
+    assert str(info.value).startswith("bad.toml: ")
+    assert isinstance(info.value, ConfigurationError)
+
+
+def test_assumed_must_name_existing_keys() -> None:
+    doc = copy.deepcopy(_raw("scale_model"))
+    doc["assumed"]["links.boom.colour"] = "made up"
+    with pytest.raises(RigProfileError, match=r"assumed\.links\.boom\.colour: names a key"):
+        parse_rig(doc)
+
+
+def test_load_by_path_and_errors_for_missing(tmp_path: Path) -> None:
+    src = (PROFILE_DIR / "test_bench.toml").read_text()
+    f = tmp_path / "my_rig.toml"
+    f.write_text(src)
+    assert load_rig(f).name == "test_bench"
+    with pytest.raises(RigProfileError, match="no rig profile 'moon_digger'; shipped: field_excavator"):
+        load_rig("moon_digger")
+    with pytest.raises(RigProfileError, match="not found"):
+        load_rig(tmp_path / "absent.toml")
+    bad = tmp_path / "broken.toml"
+    bad.write_text("name = [unclosed")
+    with pytest.raises(RigProfileError, match="not valid TOML"):
+        load_rig(bad)

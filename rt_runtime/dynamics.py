@@ -22,21 +22,23 @@ How it is computed: in absolute angles ``phi = T q`` (``T`` lower-triangular one
 energy is ``1/2 phid^T D(phi) phid`` where ``D_jk`` (j != k) depends only on ``phi_j - phi_k``.
 That makes the absolute-angle Christoffel matrix ``C_phi[j, k] = -W_jk phid_k`` with
 ``W_jk = dD_jk/dphi_j``; joint quantities follow from ``M = T^T D T``, ``C = T^T C_phi T``,
-``tau = T^T Q_phi``. :func:`inverse_dynamics` evaluates this closed form per component without
-forming any 3x3 matrix (about 5x faster than ``M qdd + C qd`` by batched matrix products).
+``tau = T^T Q_phi``. :func:`inverse_dynamics` evaluates this closed form per component on
+cache-sized blocks without forming any 3x3 matrix: on a (2000, 200, 3) batch it measured about
+55 ms against about 350 ms for ``M qdd + C qd + G - J^T f`` by batched matrix products.
 
 Energy: Yao's energy consumption W_E is taken as the integral of the positive joint powers
 (drives that do not regenerate: braking a joint costs nothing and returns nothing); the
 ``absolute`` and ``net`` modes of :func:`energy_j` are the alternatives.
 
-All functions are pure numpy, batched over leading axes, allocate only temporaries and their
-outputs, and raise ``ValueError`` for wrong shapes. They are meant for planning and the HIL plant;
-at batch size 1 they are cheap enough for the loop, but validation may raise there.
+All functions are pure numpy, batched over leading axes, and raise ``ValueError`` for wrong
+shapes. They are for planning, training and the HIL plant, not for the fixed-rate loop: they
+raise instead of returning status, allocate temporaries, and a single-sample
+:func:`inverse_dynamics` call costs tens of microseconds.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -81,36 +83,55 @@ class _Chain:
         self.lengths = lengths
 
 
-def _trig(q: FloatArray) -> tuple[FloatArray, ...]:
-    """cos and sin of q2, q3, q2+q3 and of the absolute angles phi1..phi3, each ``(...)``."""
-    phi = np.cumsum(q, axis=-1)
-    c_phi, s_phi = np.cos(phi), np.sin(phi)
-    rel = np.empty_like(q)
-    rel[..., :2] = q[..., 1:]
-    rel[..., 2] = q[..., 1] + q[..., 2]
-    c_rel, s_rel = np.cos(rel), np.sin(rel)
-    return (
-        c_rel[..., 0], s_rel[..., 0], c_rel[..., 1], s_rel[..., 1], c_rel[..., 2], s_rel[..., 2],
-        c_phi[..., 0], s_phi[..., 0], c_phi[..., 1], s_phi[..., 1], c_phi[..., 2], s_phi[..., 2],
+class _Trig(NamedTuple):
+    """Cosines and sines the chain needs, from one cos and one sin of the joint angles.
+
+    ``c2, s2, c3, s3, c23, s23``: of q2, q3 and q2+q3 (``phi_j - phi_k`` up to sign);
+    ``cp0 .. sp2``: of the absolute angles phi1, phi2, phi3.
+    """
+
+    c2: FloatArray
+    s2: FloatArray
+    c3: FloatArray
+    s3: FloatArray
+    c23: FloatArray
+    s23: FloatArray
+    cp0: FloatArray
+    sp0: FloatArray
+    cp1: FloatArray
+    sp1: FloatArray
+    cp2: FloatArray
+    sp2: FloatArray
+
+
+def _trig(q1: FloatArray, q2: FloatArray, q3: FloatArray) -> _Trig:
+    # Angle-addition products are cheaper than four more transcendental calls per sample.
+    c1, s1, c2, s2, c3, s3 = np.cos(q1), np.sin(q1), np.cos(q2), np.sin(q2), np.cos(q3), np.sin(q3)
+    c12 = c1 * c2 - s1 * s2
+    s12 = s1 * c2 + c1 * s2
+    return _Trig(
+        c2, s2, c3, s3, c2 * c3 - s2 * s3, s2 * c3 + c2 * s3,
+        c1, s1, c12, s12, c12 * c3 - s12 * s3, s12 * c3 + c12 * s3,
     )
 
 
-def _coupling(
-    ch: _Chain, c2: FloatArray, s2: FloatArray, c3: FloatArray, s3: FloatArray,
-    c23: FloatArray, s23: FloatArray,
-) -> tuple[FloatArray, ...]:
+def _coupling(ch: _Chain, tr: _Trig) -> tuple[FloatArray, ...]:
     """Off-diagonal ``D_jk`` and ``W_jk = dD_jk/dphi_j`` (j < k) for (0,1), (0,2), (1,2).
 
     ``phi_j - phi_k`` is ``-q2``, ``-(q2+q3)``, ``-q3``; ``W_kj = -W_jk``.
     """
     h, b = ch.h, ch.b
-    d01 = ch.l0 * (h[1] * c2 - b[1] * s2)
-    w01 = ch.l0 * (b[1] * c2 + h[1] * s2)
-    d02 = ch.l0 * (h[2] * c23 - b[2] * s23)
-    w02 = ch.l0 * (b[2] * c23 + h[2] * s23)
-    d12 = ch.l1 * (h[2] * c3 - b[2] * s3)
-    w12 = ch.l1 * (b[2] * c3 + h[2] * s3)
+    d01 = ch.l0 * (h[1] * tr.c2 - b[1] * tr.s2)
+    w01 = ch.l0 * (b[1] * tr.c2 + h[1] * tr.s2)
+    d02 = ch.l0 * (h[2] * tr.c23 - b[2] * tr.s23)
+    w02 = ch.l0 * (b[2] * tr.c23 + h[2] * tr.s23)
+    d12 = ch.l1 * (h[2] * tr.c3 - b[2] * tr.s3)
+    w12 = ch.l1 * (b[2] * tr.c3 + h[2] * tr.s3)
     return d01, w01, d02, w02, d12, w12
+
+
+def _trig_of(q: FloatArray) -> _Trig:
+    return _trig(q[..., 0], q[..., 1], q[..., 2])
 
 
 def _joint_from_absolute(d_abs: FloatArray) -> FloatArray:
@@ -119,11 +140,10 @@ def _joint_from_absolute(d_abs: FloatArray) -> FloatArray:
     return np.cumsum(m[..., :, ::-1], axis=-1)[..., :, ::-1]
 
 
-def _absolute_matrices(rig: Rig, q: FloatArray) -> tuple[_Chain, FloatArray, FloatArray]:
-    """``D`` and ``W`` in absolute angles, each ``(..., 3, 3)``."""
+def _absolute_matrices(rig: Rig, q: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``D`` and ``W`` in absolute angles, each ``(..., 3, 3)``; ``D`` exactly symmetric."""
     ch = _Chain(rig)
-    c2, s2, c3, s3, c23, s23 = _trig(q)[:6]
-    d01, w01, d02, w02, d12, w12 = _coupling(ch, c2, s2, c3, s3, c23, s23)
+    d01, w01, d02, w02, d12, w12 = _coupling(ch, _trig_of(q))
     shape = (*q.shape[:-1], 3, 3)
     d_abs = np.empty(shape)
     w_abs = np.zeros(shape)
@@ -133,7 +153,7 @@ def _absolute_matrices(rig: Rig, q: FloatArray) -> tuple[_Chain, FloatArray, Flo
         d_abs[..., j, k] = d_abs[..., k, j] = dv
         w_abs[..., j, k] = wv
         w_abs[..., k, j] = -wv
-    return ch, d_abs, w_abs
+    return d_abs, w_abs
 
 
 def mass_matrix(rig: Rig, q_rad: ArrayLike) -> FloatArray:
@@ -144,13 +164,24 @@ def mass_matrix(rig: Rig, q_rad: ArrayLike) -> FloatArray:
         q_rad: Arm joint angles (theta1, theta2, theta3), shape ``(..., 3)``.
 
     Returns:
-        ``(..., 3, 3)`` in kg*m^2, symmetric positive definite.
+        ``(..., 3, 3)`` in kg*m^2, exactly symmetric and positive definite.
 
     Raises:
         ValueError: ``q_rad`` is not shaped ``(..., 3)``.
     """
-    _, d_abs, _ = _absolute_matrices(rig, _vec3("q_rad", q_rad))
-    return _joint_from_absolute(d_abs)
+    q = _vec3("q_rad", q_rad)
+    ch = _Chain(rig)
+    d01, _, d02, _, d12, _ = _coupling(ch, _trig_of(q))
+    d0, d1, d2 = ch.d
+    # M = T^T D T written out, each off-diagonal value stored twice so M is exactly symmetric.
+    m = np.empty((*q.shape[:-1], 3, 3))
+    m[..., 2, 2] = d2
+    m[..., 1, 2] = m[..., 2, 1] = d2 + d12
+    m[..., 0, 2] = m[..., 2, 0] = d2 + d12 + d02
+    m[..., 1, 1] = d1 + d2 + 2.0 * d12
+    m[..., 0, 1] = m[..., 1, 0] = d1 + d2 + 2.0 * d12 + d01 + d02
+    m[..., 0, 0] = d0 + d1 + d2 + 2.0 * (d01 + d02 + d12)
+    return m
 
 
 def coriolis_matrix(rig: Rig, q_rad: ArrayLike, qd_rad_s: ArrayLike) -> FloatArray:
@@ -171,7 +202,7 @@ def coriolis_matrix(rig: Rig, q_rad: ArrayLike, qd_rad_s: ArrayLike) -> FloatArr
     """
     q = _vec3("q_rad", q_rad)
     qd = _vec3("qd_rad_s", qd_rad_s)
-    _, _, w_abs = _absolute_matrices(rig, q)
+    _, w_abs = _absolute_matrices(rig, q)
     phid = np.cumsum(qd, axis=-1)
     # C_phi[j, k] = -W_jk * phid_k (see the module docstring).
     return _joint_from_absolute(-w_abs * phid[..., None, :])
@@ -197,6 +228,50 @@ def gravity_torque(rig: Rig, q_rad: ArrayLike) -> FloatArray:
     return np.cumsum(g_abs[..., ::-1], axis=-1)[..., ::-1]
 
 
+# Samples per block of the fast path: its ~40 temporaries then stay in cache, which measured
+# about 2x faster than one pass over a (2000, 200, 3) batch on the 2-core build machine.
+_BLOCK = 16384
+
+
+def _rows(x: FloatArray) -> FloatArray:
+    """``(n, 3)`` block as three contiguous ``(n,)`` rows (component-major)."""
+    return np.ascontiguousarray(x.T)
+
+
+def _inverse_block(
+    ch: _Chain, q: FloatArray, qd: FloatArray, qdd: FloatArray, f: FloatArray | None,
+    out: FloatArray,
+) -> None:
+    """:func:`inverse_dynamics` on ``(n, 3)`` inputs, written into ``out`` ``(n, 3)``."""
+    q1, q2, q3 = _rows(q)
+    tr = _trig(q1, q2, q3)
+    d01, w01, d02, w02, d12, w12 = _coupling(ch, tr)
+    w0, w1, w2 = np.cumsum(_rows(qd), axis=0)
+    a0, a1, a2 = np.cumsum(_rows(qdd), axis=0)
+    ww0, ww1, ww2 = w0 * w0, w1 * w1, w2 * w2
+    h, b, g, d = ch.h, ch.b, ch.g, ch.d
+    # Generalised forces on the absolute angles: D a - W w^2 + dE_p/dphi.
+    t0 = d[0] * a0 + d01 * a1 + d02 * a2 - w01 * ww1 - w02 * ww2
+    t0 += g * (h[0] * tr.cp0 - b[0] * tr.sp0)
+    t1 = d01 * a0 + d[1] * a1 + d12 * a2 + w01 * ww0 - w12 * ww2
+    t1 += g * (h[1] * tr.cp1 - b[1] * tr.sp1)
+    t2 = d02 * a0 + d12 * a1 + d[2] * a2 + w02 * ww0 + w12 * ww1
+    t2 += g * (h[2] * tr.cp2 - b[2] * tr.sp2)
+    if f is not None:
+        fx, fy, mz = _rows(f)
+        lens = ch.lengths
+        # J^T f on the absolute angles: l_k (-sin phi_k, cos phi_k) . (fx, fy), plus mz on phi3.
+        t0 -= lens[0] * (tr.cp0 * fy - tr.sp0 * fx)
+        t1 -= lens[1] * (tr.cp1 * fy - tr.sp1 * fx)
+        t2 -= lens[2] * (tr.cp2 * fy - tr.sp2 * fx) + mz
+    # tau = T^T Q_phi: joint i carries the generalised forces of links i and beyond.
+    t1 += t2
+    t0 += t1
+    out[:, 0] = t0
+    out[:, 1] = t1
+    out[:, 2] = t2
+
+
 def inverse_dynamics(
     rig: Rig,
     q_rad: ArrayLike,
@@ -206,7 +281,8 @@ def inverse_dynamics(
 ) -> FloatArray:
     """Joint torques tau = M qdd + C qd + G - J^T f_tip (eq 7 with F_L = -J^T f_tip).
 
-    The fast path for planning: a closed form evaluated per component, no per-sample matrices.
+    The fast path for planning: the closed form of the module docstring evaluated per
+    component on blocks of samples; no 3x3 matrix is formed.
 
     Args:
         rig: The rig.
@@ -223,35 +299,22 @@ def inverse_dynamics(
     Raises:
         ValueError: An input is not shaped ``(..., 3)`` or the batch shapes do not broadcast.
     """
-    q = _vec3("q_rad", q_rad)
-    qd = _vec3("qd_rad_s", qd_rad_s)
-    qdd = _vec3("qdd_rad_s2", qdd_rad_s2)
-    f = None if f_tip is None else _vec3("f_tip", f_tip)
-    shapes = [q.shape, qd.shape, qdd.shape] + ([] if f is None else [f.shape])
-    out = np.empty(np.broadcast_shapes(*shapes))
+    named = [("q_rad", q_rad), ("qd_rad_s", qd_rad_s), ("qdd_rad_s2", qdd_rad_s2)]
+    if f_tip is not None:
+        named.append(("f_tip", f_tip))
+    arrays = [_vec3(name, value) for name, value in named]
+    shape = np.broadcast_shapes(*(a.shape for a in arrays))
+    flat = [np.broadcast_to(a, shape).reshape(-1, 3) for a in arrays]
+    out = np.empty(shape)
+    out_flat = out.reshape(-1, 3)
     ch = _Chain(rig)
-    c2, s2, c3, s3, c23, s23, cp0, sp0, cp1, sp1, cp2, sp2 = _trig(q)
-    d01, w01, d02, w02, d12, w12 = _coupling(ch, c2, s2, c3, s3, c23, s23)
-    w = np.cumsum(qd, axis=-1)
-    a = np.cumsum(qdd, axis=-1)
-    w0, w1, w2 = w[..., 0], w[..., 1], w[..., 2]
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    ww0, ww1, ww2 = w0 * w0, w1 * w1, w2 * w2
-    h, b, g = ch.h, ch.b, ch.g
-    # Generalised forces on the absolute angles: D a - W w^2 + dE_p/dphi.
-    q0 = ch.d[0] * a0 + d01 * a1 + d02 * a2 - w01 * ww1 - w02 * ww2 + g * (h[0] * cp0 - b[0] * sp0)
-    q1 = d01 * a0 + ch.d[1] * a1 + d12 * a2 + w01 * ww0 - w12 * ww2 + g * (h[1] * cp1 - b[1] * sp1)
-    q2 = d02 * a0 + d12 * a1 + ch.d[2] * a2 + w02 * ww0 + w12 * ww1 + g * (h[2] * cp2 - b[2] * sp2)
-    if f is not None:
-        fx, fy = f[..., 0], f[..., 1]
-        lens = ch.lengths
-        # J^T f on the absolute angles: l_k (-sin phi_k, cos phi_k) . (fx, fy), plus mz on phi3.
-        q0 = q0 - lens[0] * (cp0 * fy - sp0 * fx)
-        q1 = q1 - lens[1] * (cp1 * fy - sp1 * fx)
-        q2 = q2 - lens[2] * (cp2 * fy - sp2 * fx) - f[..., 2]
-    out[..., 2] = q2
-    out[..., 1] = q1 + q2
-    out[..., 0] = q0 + out[..., 1]
+    # Blocks, not samples: at most a few dozen iterations for the planner's largest batches.
+    for start in range(0, out_flat.shape[0], _BLOCK):
+        rows = slice(start, start + _BLOCK)
+        _inverse_block(
+            ch, flat[0][rows], flat[1][rows], flat[2][rows],
+            flat[3][rows] if f_tip is not None else None, out_flat[rows],
+        )
     return out
 
 
@@ -271,9 +334,10 @@ def kinetic_energy(rig: Rig, q_rad: ArrayLike, qd_rad_s: ArrayLike) -> FloatArra
     """
     q = _vec3("q_rad", q_rad)
     qd = _vec3("qd_rad_s", qd_rad_s)
-    _, d_abs, _ = _absolute_matrices(rig, q)
+    d_abs, _ = _absolute_matrices(rig, q)
     w = np.cumsum(qd, axis=-1)
-    return 0.5 * np.einsum("...j,...jk,...k->...", w, d_abs, w)
+    ke: FloatArray = 0.5 * np.einsum("...j,...jk,...k->...", w, d_abs, w)
+    return ke
 
 
 def potential_energy(rig: Rig, q_rad: ArrayLike) -> FloatArray:
@@ -348,4 +412,7 @@ def energy_j(t_s: ArrayLike, power_w: ArrayLike, mode: EnergyMode = "positive") 
     else:
         total = p.sum(axis=-1)
     # By hand rather than np.trapezoid, which numpy < 2.0 (allowed by pyproject) lacks.
-    return 0.5 * np.sum((total[..., 1:] + total[..., :-1]) * np.diff(t, axis=-1), axis=-1)
+    energy: FloatArray = 0.5 * np.sum(
+        (total[..., 1:] + total[..., :-1]) * np.diff(t, axis=-1), axis=-1
+    )
+    return energy

@@ -1,0 +1,1 @@
+"""Joint-space trajectories: sextic (Yao), mixed-order interpolation (Gao), sampling."""

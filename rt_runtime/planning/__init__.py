@@ -1,0 +1,2 @@
+"""Planners: one-shot objective and constraints, PSO teacher, PINN, verification, trench,
+teach-and-plan, minimum torque."""

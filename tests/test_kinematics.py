@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+from rt_runtime import kinematics
 from rt_runtime.errors import ConfigurationError, JointLimitError, UnreachableError
 from rt_runtime.kinematics import (
     forward,
@@ -421,3 +422,14 @@ def test_shapes_3d(field: Rig) -> None:
         field, pose[..., 0], pose[..., 1], pose[..., 2], pose[..., 3], check_limits=False
     )
     assert back.shape == (5, 7, 4)
+
+
+@pytest.mark.parametrize("name", profile_names())
+def test_tip_state_equals_forward_and_tip_velocity(name: str) -> None:
+    rig = load_rig(name)
+    rng = np.random.default_rng(7)
+    q = rng.uniform(rig.q_min_rad, rig.q_max_rad, size=(4, 9, 3))
+    qd = rng.normal(size=(4, 9, 3))
+    pose, twist = kinematics.tip_state(rig, q, qd)
+    np.testing.assert_allclose(pose, kinematics.forward(rig, q), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(twist, kinematics.tip_velocity(rig, q, qd), rtol=0, atol=1e-12)

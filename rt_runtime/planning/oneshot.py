@@ -30,6 +30,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from rt_runtime import dynamics, kinematics, soil
 from rt_runtime.errors import ConfigurationError, PlanningError
+from rt_runtime.planning.pso import pso_minimize
+from rt_runtime.planning.reference import de_minimize
 from rt_runtime.rig import Planning, Rig
 from rt_runtime.trajectory import sextic
 
@@ -210,19 +212,388 @@ def _entry_angle(
     y: FloatArray,
     surface_y: FloatArray,
 ) -> FloatArray:
-    """theta_p: angle below the horizontal of the motion direction where the tip enters."""
-    below = y < surface_y[..., None]
-    starts_inside = ~np.any(below[..., :1], axis=-1) & below[..., 1]
-    has_entry = np.any(below, axis=-1)
-    k = np.argmax(below, axis=-1)  # first sample inside the material
-    k = np.clip(k, 1, y.shape[-1] - 1)
-    dx = np.take_along_axis(x, k[..., None], -1)[..., 0] - np.take_along_axis(x, k[..., None] - 1, -1)[..., 0]
-    dy = np.take_along_axis(y, k[..., None], -1)[..., 0] - np.take_along_axis(y, k[..., None] - 1, -1)[..., 0]
-    # On the surface at t = 0 the direction is the limit J(q0) a3 (qd = qdd = 0 there).
-    jac = kinematics.jacobian(rig, q_start)  # (..., 3, 3)
-    d0 = np.einsum("...ij,...pj->...pi", jac[..., :2, :], a3)
-    start_on_surface = starts_inside | (np.abs(y[..., 0] - surface_y) < 1e-9)
-    dx = np.where(start_on_surface, d0[..., 0], dx)
-    dy = np.where(start_on_surface, d0[..., 1], dy)
+    """theta_p: angle below the horizontal of the motion direction where the tip enters.
+
+    A dig that starts on or below the surface (within 1 mm) enters at t = 0, where velocity and
+    acceleration vanish: its direction is the limit J(q0) a3, the cubic term leading. A dig that
+    starts above the surface enters on the first path segment that reaches below it. A path
+    that never enters gets -90 deg, which violates every theta_p range.
+    """
+    h = surface_y[:, None]  # (B, 1) against paths (B, P, m)
+    below = y < h[..., None]
+    k = np.clip(np.argmax(below, axis=-1), 1, y.shape[-1] - 1)[..., None]
+    dx = (np.take_along_axis(x, k, -1) - np.take_along_axis(x, k - 1, -1))[..., 0]
+    dy = (np.take_along_axis(y, k, -1) - np.take_along_axis(y, k - 1, -1))[..., 0]
+    jac = kinematics.jacobian(rig, q_start)[..., :2, :]  # (B, 2, 3)
+    d0 = np.einsum("bij,bpj->bpi", jac, a3)
+    at_start = y[..., 0] <= h + 1e-3
+    dx = np.where(at_start, d0[..., 0], dx)
+    dy = np.where(at_start, d0[..., 1], dy)
     angle = np.arctan2(-dy, np.abs(dx))
-    return np.where(has_entry, angle, -np.pi / 2)  # never enters: maximally wrong, violates both
+    return np.where(np.any(below, axis=-1), angle, -0.5 * np.pi)
+
+
+def evaluate(
+    rig: Rig,
+    q_start_rad: ArrayLike,
+    q_end_rad: ArrayLike,
+    surface_y_m: ArrayLike,
+    dig_type: ArrayLike,
+    a6: ArrayLike,
+    T_s: ArrayLike,
+    n_samples: int = DEFAULT_SAMPLES,
+) -> Evaluation:
+    """Evaluate P candidate trajectories for each of B problems in one numpy pass.
+
+    Args:
+        rig: The rig; needs a ``[planning]`` table.
+        q_start_rad: Entry poses ``(B, 3)``.
+        q_end_rad: Exit poses ``(B, 3)``.
+        surface_y_m: Material surface height H per problem ``(B,)``.
+        dig_type: :class:`DigType` per problem ``(B,)`` (or one for all).
+        a6: Sixth-order coefficients ``(B, P, 3)`` in rad/s^6.
+        T_s: Digging times ``(B, P)``.
+        n_samples: Samples per trajectory (uniform in time, ends included) at which limits,
+            torque and power are checked and the path is taken.
+
+    Returns:
+        The :class:`Evaluation`, arrays ``(B, P)``.
+
+    Raises:
+        ConfigurationError: The rig has no planning table.
+        PlanningError: Non-finite inputs or T <= 0 (from the sextic).
+    """
+    planning = require_planning(rig)
+    qs = np.asarray(q_start_rad, dtype=np.float64)
+    qe = np.asarray(q_end_rad, dtype=np.float64)
+    h = np.asarray(surface_y_m, dtype=np.float64)
+    T = np.asarray(T_s, dtype=np.float64)
+    coeffs = sextic.sextic_coefficients(qs[:, None, :], qe[:, None, :], a6, T)  # (B, P, 3, 7)
+    t, q, qd, qdd, _ = sextic.evaluate(coeffs, T, n_samples)
+    pose, twist = kinematics.tip_state(rig, q, qd)  # (B, P, m, 3) each
+    f_tip = soil.yao_resistance(rig, pose, twist, h[:, None, None])
+    tau = dynamics.inverse_dynamics(rig, q, qd, qdd, f_tip)
+    p_joint = dynamics.joint_power(tau, qd)
+    # Servo drives do not regenerate: power and energy count each joint's positive part.
+    power = np.sum(np.maximum(p_joint, 0.0), axis=-1)
+    energy = dynamics.energy_j(t, p_joint, mode="positive")
+    volume = excavated_area_m2(pose[..., 0], pose[..., 1], h[:, None]) * rig.bucket.width_m
+    theta_p = _entry_angle(rig, qs, coeffs[..., 3], pose[..., 0], pose[..., 1], h)
+
+    span = rig.q_max_rad - rig.q_min_rad
+    v = np.empty((*T.shape, len(CONSTRAINT_NAMES)), dtype=np.float64)
+    v[..., 0:3] = (rig.q_min_rad - np.min(q, axis=-2)) / span
+    v[..., 3:6] = (np.max(q, axis=-2) - rig.q_max_rad) / span
+    v[..., 6:9] = np.max(np.abs(qd), axis=-2) / rig.qd_max_rad_s - 1.0
+    v[..., 9:12] = np.max(np.abs(qdd), axis=-2) / rig.qdd_max_rad_s2 - 1.0
+    peak_tau = np.max(np.abs(tau), axis=-2)
+    v[..., 12:15] = peak_tau / rig.tau_max_nm - 1.0
+    peak_power = np.max(power, axis=-1)
+    v[..., 15] = peak_power / planning.power_max_w - 1.0
+    lo, hi = theta_p_range(planning, np.broadcast_to(np.asarray(dig_type), h.shape))
+    tp_span = (hi - lo)[:, None]
+    v[..., 16] = (lo[:, None] - theta_p) / tp_span
+    v[..., 17] = (theta_p - hi[:, None]) / tp_span
+    v_span = planning.volume_max_m3 - planning.volume_min_m3
+    v[..., 18] = (planning.volume_min_m3 - volume) / v_span
+    v[..., 19] = (volume - planning.volume_max_m3) / v_span
+    t_span = planning.t_max_s - planning.t_min_s
+    v[..., 20] = (planning.t_min_s - T) / t_span
+    v[..., 21] = (T - planning.t_max_s) / t_span
+    total = np.sum(np.maximum(v, 0.0), axis=-1)
+
+    return Evaluation(
+        T_s=T,
+        volume_m3=volume,
+        energy_j=energy,
+        theta_p_rad=theta_p,
+        peak_power_w=peak_power,
+        peak_torque_nm=peak_tau,
+        objective=objective(planning, T, energy, volume),
+        violations=v,
+        total_violation=total,
+    )
+
+
+def objective(planning: Planning, T_s: ArrayLike, energy_j: ArrayLike, volume_m3: ArrayLike) -> FloatArray:
+    """Yao eq 11: lambda1 T_t + lambda2 E_e + lambda3 V_v, each term normalised by its thresholds."""
+    l1, l2, l3 = planning.weights
+    t_t = (np.asarray(T_s) - planning.t_min_s) / (planning.t_max_s - planning.t_min_s)
+    e_e = (np.asarray(energy_j) - planning.energy_min_j) / (planning.energy_max_j - planning.energy_min_j)
+    v_v = (planning.volume_max_m3 - np.asarray(volume_m3)) / (planning.volume_max_m3 - planning.volume_min_m3)
+    return np.asarray(l1 * t_t + l2 * e_e + l3 * v_v, dtype=np.float64)
+
+
+# The optimiser searches K = -a6 T^6 (rad), the sextic's bulge away from the quintic path
+# (theta = theta1 + D q(s) + K p(s), p peaking at 1/64 at mid-time), instead of a6 itself: a6 is
+# ~1e-5 rad/s^6 for multi-second digs and its effect on the path depends on T, while K fixes the
+# path's shape and T only its timing. The bound lets the mid-path bulge reach a quarter of each
+# joint's range.
+K_BOUND_PER_RANGE = 16.0
+
+
+def search_bounds(rig: Rig) -> tuple[FloatArray, FloatArray]:
+    """Lower and upper bounds of the particle (K1, K2, K3, T_s)."""
+    planning = require_planning(rig)
+    k = K_BOUND_PER_RANGE * (rig.q_max_rad - rig.q_min_rad)
+    return (
+        np.array([*(-k), planning.t_min_s], dtype=np.float64),
+        np.array([*k, planning.t_max_s], dtype=np.float64),
+    )
+
+
+def a6_from_particle(x: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """``(a6 (..., 3) rad/s^6, T_s (...))`` from particles ``(K1, K2, K3, T_s)`` shaped (..., 4)."""
+    xa = np.asarray(x, dtype=np.float64)
+    T = xa[..., 3]
+    return -xa[..., :3] / T[..., None] ** 6, T
+
+
+def particle_from_a6(a6: ArrayLike, T_s: ArrayLike) -> FloatArray:
+    """Inverse of :func:`a6_from_particle`."""
+    a = np.asarray(a6, dtype=np.float64)
+    T = np.asarray(T_s, dtype=np.float64)
+    return np.concatenate([-a * T[..., None] ** 6, T[..., None]], axis=-1)
+
+
+@dataclass(frozen=True, slots=True)
+class Solution:
+    """The planned dig of one problem.
+
+    Attributes:
+        problem: What was solved.
+        a6: Sixth-order coefficients (3,) in rad/s^6.
+        T_s: Digging time.
+        volume_m3, energy_j, theta_p_rad, objective: Performance of the plan.
+        margins: (constraint name, margin) for every constraint of eq 12; a margin >= 0 holds
+            (it is the negated normalised violation).
+        feasible: Whether every constraint holds.
+        solve_s: Wall time of the solve (shared equally when solved in a batch).
+        method: ``pso`` or ``de``.
+    """
+
+    problem: Problem
+    a6: tuple[float, float, float]
+    T_s: float
+    volume_m3: float
+    energy_j: float
+    theta_p_rad: float
+    objective: float
+    margins: tuple[tuple[str, float], ...]
+    feasible: bool
+    solve_s: float
+    method: str
+
+    def trajectory(self) -> sextic.SexticTrajectory:
+        """The planned joint trajectory."""
+        return sextic.SexticTrajectory(
+            np.asarray(self.problem.q_start_rad),
+            np.asarray(self.problem.q_end_rad),
+            np.asarray(self.a6),
+            self.T_s,
+        )
+
+
+def _stack(problems: list[Problem]) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    qs = np.array([p.q_start_rad for p in problems], dtype=np.float64)
+    qe = np.array([p.q_end_rad for p in problems], dtype=np.float64)
+    h = np.array([p.surface_y_m for p in problems], dtype=np.float64)
+    kind = np.array([int(p.dig_type) for p in problems])
+    return qs, qe, h, kind
+
+
+def _solutions(
+    rig: Rig, problems: list[Problem], x: FloatArray, solve_s: float, method: str, n_samples: int
+) -> list[Solution]:
+    qs, qe, h, kind = _stack(problems)
+    a6, T = a6_from_particle(x[:, None, :])
+    ev = evaluate(rig, qs, qe, h, kind, a6, T, n_samples)
+    out = []
+    for b, p in enumerate(problems):
+        out.append(
+            Solution(
+                problem=p,
+                a6=(float(a6[b, 0, 0]), float(a6[b, 0, 1]), float(a6[b, 0, 2])),
+                T_s=float(T[b, 0]),
+                volume_m3=float(ev.volume_m3[b, 0]),
+                energy_j=float(ev.energy_j[b, 0]),
+                theta_p_rad=float(ev.theta_p_rad[b, 0]),
+                objective=float(ev.objective[b, 0]),
+                margins=tuple(
+                    (n, float(-ev.violations[b, 0, i])) for i, n in enumerate(CONSTRAINT_NAMES)
+                ),
+                feasible=bool(ev.feasible[b, 0]),
+                solve_s=solve_s,
+                method=method,
+            )
+        )
+    return out
+
+
+def solve_pso(
+    rig: Rig,
+    problems: list[Problem],
+    *,
+    n_particles: int = 40,
+    n_iterations: int = 60,
+    seed: int = 0,
+    n_samples: int = DEFAULT_SAMPLES,
+) -> list[Solution]:
+    """Plan each problem's dig with the batched PSO (all problems advance in lockstep).
+
+    Returns one :class:`Solution` per problem; ``feasible`` is False where no feasible point was
+    found (the solution is then the least violating one and must not be executed).
+
+    Raises:
+        ConfigurationError: The rig has no planning table.
+        PlanningError: A pose outside the joint limits, or NaN input.
+    """
+    import time
+
+    if not problems:
+        return []
+    qs, qe, h, kind = _stack(problems)
+    validate_problem(rig, qs, qe, h)
+    lo, hi = search_bounds(rig)
+
+    def batch(X: FloatArray) -> tuple[FloatArray, FloatArray]:
+        a6, T = a6_from_particle(X)
+        ev = evaluate(rig, qs, qe, h, kind, a6, T, n_samples)
+        return ev.objective, ev.total_violation
+
+    t0 = time.perf_counter()
+    res = pso_minimize(
+        batch,
+        lo,
+        hi,
+        n_particles=n_particles,
+        n_iterations=n_iterations,
+        seed=seed,
+        n_problems=len(problems),
+    )
+    elapsed = (time.perf_counter() - t0) / len(problems)
+    return _solutions(rig, problems, res.x_best, elapsed, "pso", n_samples)
+
+
+def solve_de(
+    rig: Rig, problem: Problem, *, seed: int = 0, n_samples: int = DEFAULT_SAMPLES, **options: float
+) -> Solution:
+    """Plan one dig with scipy's differential evolution on the same objective and constraints.
+
+    The reference the PSO is measured against; slower, thorough.
+    """
+    import time
+
+    qs, qe, h, kind = _stack([problem])
+    validate_problem(rig, qs, qe, h)
+    lo, hi = search_bounds(rig)
+
+    def batch(X: FloatArray) -> tuple[FloatArray, FloatArray]:
+        a6, T = a6_from_particle(X)
+        ev = evaluate(rig, qs, qe, h, kind, a6, T, n_samples)
+        return ev.objective, ev.total_violation
+
+    t0 = time.perf_counter()
+    res = de_minimize(batch, lo, hi, seed=seed, **options)  # type: ignore[arg-type]
+    elapsed = time.perf_counter() - t0
+    return _solutions(rig, [problem], res.x_best, elapsed, "de", n_samples)[0]
+
+
+@dataclass(frozen=True, slots=True)
+class SamplerRanges:
+    """Where :func:`sample_problems` draws digs from (arm frame, relative to the rig's ground).
+
+    The tip enters on the material surface H and leaves towards the machine (x decreasing),
+    at or a little above H, with the bucket curled. Yao samples a region 0.8 m long and 0.4 m
+    deep below the crawler (Fig. 9); the attitudes are those the scale model reaches there.
+
+    Attributes:
+        surface_below_ground_m: Range of ground_y - H (material surface below the ground).
+        entry_x_m: Range of the entry tip x.
+        length_m: Range of entry x - exit x.
+        exit_rise_m: Range of exit y - H.
+        entry_attitude_deg: Range of the bucket attitude at entry.
+        exit_attitude_deg: Range of the bucket attitude at exit.
+    """
+
+    surface_below_ground_m: tuple[float, float]
+    entry_x_m: tuple[float, float]
+    length_m: tuple[float, float]
+    exit_rise_m: tuple[float, float]
+    entry_attitude_deg: tuple[float, float]
+    exit_attitude_deg: tuple[float, float]
+
+
+SAMPLER_RANGES: dict[DigType, SamplerRanges] = {
+    DigType.DOWNWARD: SamplerRanges(
+        surface_below_ground_m=(0.0, 0.25),
+        entry_x_m=(0.60, 1.00),
+        length_m=(0.20, 0.35),
+        exit_rise_m=(0.0, 0.08),
+        entry_attitude_deg=(-120.0, -70.0),
+        exit_attitude_deg=(-180.0, -140.0),
+    ),
+    DigType.BACKWARD: SamplerRanges(
+        surface_below_ground_m=(0.10, 0.40),
+        entry_x_m=(0.60, 1.00),
+        length_m=(0.25, 0.40),
+        exit_rise_m=(0.0, 0.06),
+        entry_attitude_deg=(-140.0, -100.0),
+        exit_attitude_deg=(-185.0, -150.0),
+    ),
+}
+
+
+def sample_problems(
+    rig: Rig,
+    n: int,
+    dig_type: DigType,
+    seed: int = 0,
+    ranges: SamplerRanges | None = None,
+) -> list[Problem]:
+    """Draw ``n`` seeded one-shot problems whose entry and exit poses lie within the joint limits.
+
+    Candidates are drawn from :data:`SAMPLER_RANGES` (or ``ranges``) relative to the rig's
+    ground and scaled by the rig's reach against the scale model's; candidates whose inverse
+    kinematics fails or leaves the limits are redrawn, so the result is reproducible per seed.
+
+    Raises:
+        PlanningError: Fewer than ``n`` valid problems after 200 n draws (ranges unreachable).
+    """
+    from rt_runtime.errors import KinematicsError
+
+    r = ranges or SAMPLER_RANGES[DigType(dig_type)]
+    scale = float(np.sum(rig.lengths_m)) / 1.31  # ranges are given for the scale model's reach
+    rng = np.random.default_rng(seed)
+    out: list[Problem] = []
+    draws = 0
+    while len(out) < n:
+        draws += 1
+        if draws > 200 * n:
+            raise PlanningError(
+                f"only {len(out)} of {n} {DigType(dig_type).name.lower()} problems are reachable "
+                f"on {rig.name} after {draws - 1} draws; widen the sampler ranges"
+            )
+        u = rng.uniform(size=6)
+
+        def pick(rng_: tuple[float, float], v: float) -> float:
+            return rng_[0] + (rng_[1] - rng_[0]) * v
+
+        h = rig.ground_y_m - scale * pick(r.surface_below_ground_m, u[0])
+        xe = scale * pick(r.entry_x_m, u[1])
+        xx = xe - scale * pick(r.length_m, u[2])
+        yx = h + scale * pick(r.exit_rise_m, u[3])
+        try:
+            qs = kinematics.inverse(rig, xe, h, np.radians(pick(r.entry_attitude_deg, u[4])))
+            qe = kinematics.inverse(rig, xx, yx, np.radians(pick(r.exit_attitude_deg, u[5])))
+        except KinematicsError:
+            continue
+        out.append(
+            Problem(
+                q_start_rad=(float(qs[0]), float(qs[1]), float(qs[2])),
+                q_end_rad=(float(qe[0]), float(qe[1]), float(qe[2])),
+                surface_y_m=float(h),
+                dig_type=DigType(dig_type),
+            )
+        )
+    return out

@@ -224,6 +224,52 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_oneshot(args: argparse.Namespace) -> int:
+    """``excavator-rt oneshot``: plan one dig with the PSO teacher (or the DE reference)."""
+    from rt_runtime.planning import oneshot
+
+    rig = load_rig(args.rig)
+    problem = oneshot.Problem(
+        q_start_rad=tuple(math.radians(v) for v in args.start_deg),  # type: ignore[arg-type]
+        q_end_rad=tuple(math.radians(v) for v in args.end_deg),  # type: ignore[arg-type]
+        surface_y_m=args.surface_m,
+        dig_type=oneshot.DigType[args.type.upper()],
+    )
+    if args.method == "de":
+        sol = oneshot.solve_de(rig, problem, seed=args.seed)
+    else:
+        sol = oneshot.solve_pso(rig, [problem], seed=args.seed)[0]
+    out = {
+        "rig": rig.name,
+        "type": args.type,
+        "method": sol.method,
+        "feasible": sol.feasible,
+        "T_s": sol.T_s,
+        "a6": list(sol.a6),
+        "volume_L": sol.volume_m3 * 1e3,
+        "energy_Wh": sol.energy_j / 3600.0,
+        "theta_p_deg": math.degrees(sol.theta_p_rad),
+        "objective": sol.objective,
+        "margins": dict(sol.margins),
+        "solve_s": sol.solve_s,
+    }
+    if args.json:
+        _print_json(out)
+    else:
+        verdict = "feasible" if sol.feasible else "INFEASIBLE (do not execute)"
+        print(f"{args.type} dig on {rig.name} by {sol.method}: {verdict}")
+        print(f"  T = {sol.T_s:.3f} s, V_p = {out['volume_L']:.3f} L, W_E = {out['energy_Wh']:.4f} Wh, "
+              f"theta_p = {out['theta_p_deg']:.2f} deg")
+        print(f"  objective (Yao eq 11) = {sol.objective:.4f}; a6 = "
+              + ", ".join(f"{a:.4e}" for a in sol.a6) + " rad/s^6")
+        print(f"  solve time {sol.solve_s:.3f} s")
+        print("  constraint margins (normalised, >= 0 holds):")
+        for name, m in sol.margins:
+            flag = "" if m >= 0 else "   <- violated"
+            print(f"    {name:<22} {m:+.4f}{flag}")
+    return 0 if sol.feasible else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every subcommand."""
     p = argparse.ArgumentParser(prog="excavator-rt", description=__doc__.splitlines()[0])
@@ -241,6 +287,20 @@ def build_parser() -> argparse.ArgumentParser:
     lst = rig_sub.add_parser("list", help="list the shipped profiles")
     lst.add_argument("--json", action="store_true")
     lst.set_defaults(handler=cmd_rig_list)
+
+    one = sub.add_parser("oneshot", help="plan one digging cycle (Yao 4.2) with the PSO teacher")
+    one.add_argument("--rig", default=DEFAULT_RIG)
+    one.add_argument("--type", choices=("downward", "backward"), required=True)
+    one.add_argument("--start-deg", type=float, nargs=3, required=True, metavar=("B", "S", "K"),
+                     help="entry pose: boom, stick, bucket [deg]")
+    one.add_argument("--end-deg", type=float, nargs=3, required=True, metavar=("B", "S", "K"),
+                     help="exit pose: boom, stick, bucket [deg]")
+    one.add_argument("--surface-m", type=float, required=True,
+                     help="material surface height H in the arm frame [m]")
+    one.add_argument("--method", choices=("pso", "de"), default="pso")
+    one.add_argument("--seed", type=int, default=0)
+    one.add_argument("--json", action="store_true")
+    one.set_defaults(handler=cmd_oneshot)
 
     demo = sub.add_parser("demo", help="the main demonstration")
     demo.add_argument("--rig", default=DEFAULT_RIG)

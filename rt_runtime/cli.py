@@ -270,6 +270,31 @@ def cmd_oneshot(args: argparse.Namespace) -> int:
     return 0 if sol.feasible else 1
 
 
+def cmd_bench_oneshot(args: argparse.Namespace) -> int:
+    """``excavator-rt bench oneshot``: PSO solve time and quality against DE."""
+    from rt_runtime.bench import bench_oneshot
+
+    rig = load_rig(args.rig)
+    r = bench_oneshot(rig, n_problems=args.problems, seed=args.seed, de=not args.no_de)
+    if args.json:
+        _print_json(r)
+        return 0
+    print(f"one-shot PSO on {rig.name}: {r['problems']} seeded problems (half downward, half backward)")
+    print(f"  solve time single: p50 {r['solve_s']['p50']:.3f} s, p99 {r['solve_s']['p99']:.3f} s "
+          f"(goal p50 <= 0.3 s; Yao's PSO 69-71 s: {r['paper']['speedup_vs_yao_pso']:.0f}x faster)")
+    print(f"  batched: {r['batch_problems_per_s']:.1f} problems/s (goal >= 20)")
+    print(f"  feasible: {r['feasible']:.0%} single, {r['batch_feasible']:.0%} batched")
+    if "de_solve_s" in r:
+        print(f"  DE reference: p50 {r['de_solve_s']['p50']:.2f} s per problem; PSO within 1 % of DE "
+              f"on {r['within_1pct_of_de']:.0%} (goal >= 95 %); gap p50 {r['gap_to_de']['p50']:+.2%}, "
+              f"max {r['gap_to_de']['max']:+.2%}")
+    for kind, v in r["results"].items():
+        print(f"  {kind:<8} T {v['T_s'][0]:.2f}..{v['T_s'][1]:.2f} s, V_p {v['volume_L'][0]:.2f}..{v['volume_L'][1]:.2f} L, "
+              f"W_E {v['energy_Wh'][0]:.4f}..{v['energy_Wh'][1]:.4f} Wh, mean objective {v['objective_mean']:.3f} "
+              f"(Yao {r['paper']['yao_mean_objective'][kind]:.3f})")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every subcommand."""
     p = argparse.ArgumentParser(prog="excavator-rt", description=__doc__.splitlines()[0])
@@ -301,6 +326,16 @@ def build_parser() -> argparse.ArgumentParser:
     one.add_argument("--seed", type=int, default=0)
     one.add_argument("--json", action="store_true")
     one.set_defaults(handler=cmd_oneshot)
+
+    bench = sub.add_parser("bench", help="benchmarks (distributions, against the papers)")
+    bench_sub = bench.add_subparsers(dest="bench_command", required=True, metavar="BENCHMARK")
+    b1 = bench_sub.add_parser("oneshot", help="PSO solve time and quality against DE")
+    b1.add_argument("--rig", default=DEFAULT_RIG)
+    b1.add_argument("--problems", type=int, default=50)
+    b1.add_argument("--seed", type=int, default=0)
+    b1.add_argument("--no-de", action="store_true", help="skip the (slow) DE reference")
+    b1.add_argument("--json", action="store_true")
+    b1.set_defaults(handler=cmd_bench_oneshot)
 
     demo = sub.add_parser("demo", help="the main demonstration")
     demo.add_argument("--rig", default=DEFAULT_RIG)

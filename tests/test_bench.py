@@ -1,0 +1,34 @@
+"""Benchmarks run end to end on reduced sizes and keep their JSON keys (a contract)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from rt_runtime import bench
+from rt_runtime.cli import main
+from rt_runtime.rig import load_rig
+
+
+def test_percentiles() -> None:
+    p = bench.percentiles(np.arange(1001.0), tails=True)
+    assert p == {"p50": 500.0, "p99": 990.0, "p999": 999.0, "max": 1000.0}
+
+
+def test_bench_oneshot_keys_on_two_problems(capsys) -> None:  # type: ignore[no-untyped-def]
+    assert main(["bench", "oneshot", "--problems", "2", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["problems"] == 2
+    for key in ("solve_s", "de_solve_s"):
+        assert set(r[key]) == {"p50", "p99"} and r[key]["p50"] > 0
+    assert r["batch_problems_per_s"] > 0
+    assert 0.0 <= r["within_1pct_of_de"] <= 1.0
+    assert set(r["gap_to_de"]) == {"p50", "max"}
+    assert r["paper"]["yao_pso_solve_s"] == [69.0, 71.0]
+    assert len(r["per_problem"]) == 2
+
+
+def test_bench_oneshot_without_reference() -> None:
+    r = bench.bench_oneshot(load_rig("scale_model"), n_problems=2, de=False)
+    assert "de_solve_s" not in r and r["feasible"] == 1.0

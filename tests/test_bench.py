@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from rt_runtime import bench
 from rt_runtime.cli import main
@@ -13,7 +14,7 @@ from rt_runtime.rig import load_rig
 
 def test_percentiles() -> None:
     p = bench.percentiles(np.arange(1001.0), tails=True)
-    assert p == {"p50": 500.0, "p99": 990.0, "p999": 999.0, "max": 1000.0}
+    assert p == pytest.approx({"p50": 500.0, "p99": 990.0, "p999": 999.0, "max": 1000.0})
 
 
 def test_bench_oneshot_keys_on_two_problems(capsys) -> None:  # type: ignore[no-untyped-def]

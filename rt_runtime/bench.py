@@ -77,8 +77,14 @@ def bench_oneshot(rig: Rig, n_problems: int = 50, seed: int = 0, de: bool = True
         by_type[kind.name.lower()] = {
             "n": len(sols),
             "T_s": [min(s.T_s for s in sols), max(s.T_s for s in sols)],
-            "volume_L": [min(s.volume_m3 for s in sols) * 1e3, max(s.volume_m3 for s in sols) * 1e3],
-            "energy_Wh": [min(s.energy_j for s in sols) / 3600, max(s.energy_j for s in sols) / 3600],
+            "volume_L": [
+                min(s.volume_m3 for s in sols) * 1e3,
+                max(s.volume_m3 for s in sols) * 1e3,
+            ],
+            "energy_Wh": [
+                min(s.energy_j for s in sols) / 3600,
+                max(s.energy_j for s in sols) / 3600,
+            ],
             "objective_mean": float(np.mean([s.objective for s in sols])),
         }
     out["results"] = by_type

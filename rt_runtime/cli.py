@@ -212,7 +212,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     _print_rig(summary)
     print()
     print(f"kinematics of {rig.name} (tip in the arm frame, strokes, static gravity torques)")
-    print("  pose          q [deg]                     tip x,y [m]       attitude [deg]  stroke [mm]               gravity torque [N m]")
+    print(
+        "  pose          q [deg]                     tip x,y [m]       attitude [deg]  stroke [mm]               gravity torque [N m]"
+    )
     for r in table:
         q = ", ".join(f"{v:7.2f}" for v in r["q_deg"])
         s = ", ".join(f"{v:7.1f}" for v in r["stroke_mm"])
@@ -258,10 +260,15 @@ def cmd_oneshot(args: argparse.Namespace) -> int:
     else:
         verdict = "feasible" if sol.feasible else "INFEASIBLE (do not execute)"
         print(f"{args.type} dig on {rig.name} by {sol.method}: {verdict}")
-        print(f"  T = {sol.T_s:.3f} s, V_p = {out['volume_L']:.3f} L, W_E = {out['energy_Wh']:.4f} Wh, "
-              f"theta_p = {out['theta_p_deg']:.2f} deg")
-        print(f"  objective (Yao eq 11) = {sol.objective:.4f}; a6 = "
-              + ", ".join(f"{a:.4e}" for a in sol.a6) + " rad/s^6")
+        print(
+            f"  T = {sol.T_s:.3f} s, V_p = {out['volume_L']:.3f} L, W_E = {out['energy_Wh']:.4f} Wh, "
+            f"theta_p = {out['theta_p_deg']:.2f} deg"
+        )
+        print(
+            f"  objective (Yao eq 11) = {sol.objective:.4f}; a6 = "
+            + ", ".join(f"{a:.4e}" for a in sol.a6)
+            + " rad/s^6"
+        )
         print(f"  solve time {sol.solve_s:.3f} s")
         print("  constraint margins (normalised, >= 0 holds):")
         for name, m in sol.margins:
@@ -279,19 +286,27 @@ def cmd_bench_oneshot(args: argparse.Namespace) -> int:
     if args.json:
         _print_json(r)
         return 0
-    print(f"one-shot PSO on {rig.name}: {r['problems']} seeded problems (half downward, half backward)")
-    print(f"  solve time single: p50 {r['solve_s']['p50']:.3f} s, p99 {r['solve_s']['p99']:.3f} s "
-          f"(goal p50 <= 0.3 s; Yao's PSO 69-71 s: {r['paper']['speedup_vs_yao_pso']:.0f}x faster)")
+    print(
+        f"one-shot PSO on {rig.name}: {r['problems']} seeded problems (half downward, half backward)"
+    )
+    print(
+        f"  solve time single: p50 {r['solve_s']['p50']:.3f} s, p99 {r['solve_s']['p99']:.3f} s "
+        f"(goal p50 <= 0.3 s; Yao's PSO 69-71 s: {r['paper']['speedup_vs_yao_pso']:.0f}x faster)"
+    )
     print(f"  batched: {r['batch_problems_per_s']:.1f} problems/s (goal >= 20)")
     print(f"  feasible: {r['feasible']:.0%} single, {r['batch_feasible']:.0%} batched")
     if "de_solve_s" in r:
-        print(f"  DE reference: p50 {r['de_solve_s']['p50']:.2f} s per problem; PSO within 1 % of DE "
-              f"on {r['within_1pct_of_de']:.0%} (goal >= 95 %); gap p50 {r['gap_to_de']['p50']:+.2%}, "
-              f"max {r['gap_to_de']['max']:+.2%}")
+        print(
+            f"  DE reference: p50 {r['de_solve_s']['p50']:.2f} s per problem; PSO within 1 % of DE "
+            f"on {r['within_1pct_of_de']:.0%} (goal >= 95 %); gap p50 {r['gap_to_de']['p50']:+.2%}, "
+            f"max {r['gap_to_de']['max']:+.2%}"
+        )
     for kind, v in r["results"].items():
-        print(f"  {kind:<8} T {v['T_s'][0]:.2f}..{v['T_s'][1]:.2f} s, V_p {v['volume_L'][0]:.2f}..{v['volume_L'][1]:.2f} L, "
-              f"W_E {v['energy_Wh'][0]:.4f}..{v['energy_Wh'][1]:.4f} Wh, mean objective {v['objective_mean']:.3f} "
-              f"(Yao {r['paper']['yao_mean_objective'][kind]:.3f})")
+        print(
+            f"  {kind:<8} T {v['T_s'][0]:.2f}..{v['T_s'][1]:.2f} s, V_p {v['volume_L'][0]:.2f}..{v['volume_L'][1]:.2f} L, "
+            f"W_E {v['energy_Wh'][0]:.4f}..{v['energy_Wh'][1]:.4f} Wh, mean objective {v['objective_mean']:.3f} "
+            f"(Yao {r['paper']['yao_mean_objective'][kind]:.3f})"
+        )
     return 0
 
 
@@ -316,12 +331,28 @@ def build_parser() -> argparse.ArgumentParser:
     one = sub.add_parser("oneshot", help="plan one digging cycle (Yao 4.2) with the PSO teacher")
     one.add_argument("--rig", default=DEFAULT_RIG)
     one.add_argument("--type", choices=("downward", "backward"), required=True)
-    one.add_argument("--start-deg", type=float, nargs=3, required=True, metavar=("B", "S", "K"),
-                     help="entry pose: boom, stick, bucket [deg]")
-    one.add_argument("--end-deg", type=float, nargs=3, required=True, metavar=("B", "S", "K"),
-                     help="exit pose: boom, stick, bucket [deg]")
-    one.add_argument("--surface-m", type=float, required=True,
-                     help="material surface height H in the arm frame [m]")
+    one.add_argument(
+        "--start-deg",
+        type=float,
+        nargs=3,
+        required=True,
+        metavar=("B", "S", "K"),
+        help="entry pose: boom, stick, bucket [deg]",
+    )
+    one.add_argument(
+        "--end-deg",
+        type=float,
+        nargs=3,
+        required=True,
+        metavar=("B", "S", "K"),
+        help="exit pose: boom, stick, bucket [deg]",
+    )
+    one.add_argument(
+        "--surface-m",
+        type=float,
+        required=True,
+        help="material surface height H in the arm frame [m]",
+    )
     one.add_argument("--method", choices=("pso", "de"), default="pso")
     one.add_argument("--seed", type=int, default=0)
     one.add_argument("--json", action="store_true")

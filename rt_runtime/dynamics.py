@@ -71,12 +71,15 @@ class _Chain:
         links = rig.links
         lengths = [lk.length_m for lk in links]
         beyond = [links[1].mass_kg + links[2].mass_kg, links[2].mass_kg, 0.0]
-        self.h = [lk.mass_kg * lk.com_m[0] + m * lk.length_m for lk, m in zip(links, beyond)]
+        self.h = [
+            lk.mass_kg * lk.com_m[0] + m * lk.length_m
+            for lk, m in zip(links, beyond, strict=True)
+        ]
         self.b = [lk.mass_kg * lk.com_m[1] for lk in links]
         self.d = [
             lk.inertia_kgm2 + lk.mass_kg * (lk.com_m[0] ** 2 + lk.com_m[1] ** 2)
             + m * lk.length_m**2
-            for lk, m in zip(links, beyond)
+            for lk, m in zip(links, beyond, strict=True)
         ]
         self.g = rig.gravity_m_s2
         self.l0, self.l1 = lengths[0], lengths[1]

@@ -321,7 +321,7 @@ def test_out_of_range_angles_come_back_nearest_the_range() -> None:
     pose = forward(scale, q)
     back = inverse(scale, *pose, check_limits=False)
     assert np.degrees(back[2]) == pytest.approx(-170.0, abs=1e-9)
-    with pytest.raises(JointLimitError, match="bucket joint at -170.000 deg"):
+    with pytest.raises(JointLimitError, match=r"bucket joint at -170\.000 deg"):
         inverse(scale, *pose)
 
 

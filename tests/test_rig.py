@@ -98,16 +98,32 @@ _DELETE = object()
 @pytest.mark.parametrize(
     ("path", "value", "message"),
     [
-        ("links.boom.length_m", -0.74, r"links\.boom\.length_m: must be > 0 and <= 50 \(got -0\.74\)"),
+        (
+            "links.boom.length_m",
+            -0.74,
+            r"links\.boom\.length_m: must be > 0 and <= 50 \(got -0\.74\)",
+        ),
         ("links.stick.mass_kg", float("nan"), r"links\.stick\.mass_kg: must be a finite number"),
-        ("joints.bucket.min_deg", 30.0, r"joints\.bucket\.min_deg: must be < joints\.bucket\.max_deg"),
+        (
+            "joints.bucket.min_deg",
+            30.0,
+            r"joints\.bucket\.min_deg: must be < joints\.bucket\.max_deg",
+        ),
         ("joints.boom.velocity_max_deg_s", _DELETE, r"joints\.boom\.velocity_max_deg_s: missing"),
         ("links.boom.length_m", "long", r"links\.boom\.length_m: must be a number"),
         ("planning.t_s", [10.0, 5.0], r"planning\.t_s: min must be < max"),
         ("planning.weights", [0.5, 0.5, 0.5], r"planning\.weights: must sum to 1"),
-        ("links.boom.lenght_m", 1.0, r"links\.boom\.lenght_m: unknown key; allowed here: .*length_m"),
+        (
+            "links.boom.lenght_m",
+            1.0,
+            r"links\.boom\.lenght_m: unknown key; allowed here: .*length_m",
+        ),
         ("can.node_ids.stick", 1, r"can\.node_ids\.stick: node id 1 is already used by boom"),
-        ("bucket.profile_m", [[0.1, 0.0], [0, 1], [1, 1]], r"bucket\.profile_m: must start at the tip"),
+        (
+            "bucket.profile_m",
+            [[0.1, 0.0], [0, 1], [1, 1]],
+            r"bucket\.profile_m: must start at the tip",
+        ),
         ("ground", _DELETE, r"ground: missing"),
         ("links.bucket.com_m", [0.1], r"links\.bucket\.com_m: must have exactly 2 numbers"),
     ],
@@ -133,7 +149,9 @@ def test_load_by_path_and_errors_for_missing(tmp_path: Path) -> None:
     f = tmp_path / "my_rig.toml"
     f.write_text(src)
     assert load_rig(f).name == "test_bench"
-    with pytest.raises(RigProfileError, match="no rig profile 'moon_digger'; shipped: field_excavator"):
+    with pytest.raises(
+        RigProfileError, match="no rig profile 'moon_digger'; shipped: field_excavator"
+    ):
         load_rig("moon_digger")
     with pytest.raises(RigProfileError, match="not found"):
         load_rig(tmp_path / "absent.toml")

@@ -108,7 +108,7 @@ def parse_rig(raw: dict[str, Any], source: str = "") -> Rig:
     assumed = _assumed(root.table("assumed"), raw)
     root.finish()
 
-    return Rig(
+    rig = Rig(
         name=name,
         description=description,
         sources=sources,
@@ -125,6 +125,11 @@ def parse_rig(raw: dict[str, Any], source: str = "") -> Rig:
         can=can,
         assumed=assumed,
     )
+    # Imported here: actuation imports this package.
+    from rt_runtime.actuation import validate_cylinders
+
+    validate_cylinders(rig)
+    return rig
 
 
 def _joint(t: Table, name: str) -> Joint:

@@ -54,8 +54,14 @@ def test_volume_of_circular_arc_matches_the_circular_segment(depth_m: float) -> 
     radius = 0.350 + 0.220
     h = -radius + depth_m  # the lowest point of the arc lies depth_m below the surface
     ev = oneshot.evaluate(
-        RIG, qs[None], qe[None], np.array([h]), DigType.DOWNWARD,
-        np.zeros((1, 1, 3)), np.full((1, 1), 6.0), n_samples=4001,
+        RIG,
+        qs[None],
+        qe[None],
+        np.array([h]),
+        DigType.DOWNWARD,
+        np.zeros((1, 1, 3)),
+        np.full((1, 1), 6.0),
+        n_samples=4001,
     )
     d = radius - depth_m  # distance from the circle's centre to the chord y = H
     segment = radius**2 * math.acos(d / radius) - d * math.sqrt(radius**2 - d**2)
@@ -67,8 +73,13 @@ def test_entry_angle_of_circular_arc_is_its_tangent() -> None:
     qs, qe = _boom_swing((30.0, -110.0, -60.0), 0.0)
     tip0 = kinematics.forward(RIG, qs)
     ev = oneshot.evaluate(
-        RIG, qs[None], qe[None], np.array([tip0[1]]), DigType.DOWNWARD,
-        np.zeros((1, 1, 3)), np.full((1, 1), 6.0),
+        RIG,
+        qs[None],
+        qe[None],
+        np.array([tip0[1]]),
+        DigType.DOWNWARD,
+        np.zeros((1, 1, 3)),
+        np.full((1, 1), 6.0),
     )
     # Boom turning clockwise: velocity = omega x r with omega < 0 -> (y, -x) direction.
     vx, vy = tip0[1], -tip0[0]
@@ -84,8 +95,14 @@ def test_energy_is_the_integral_of_power_computed_independently() -> None:
         T = float(rng.uniform(5.0, 9.0))
         a6 = -k / T**6
         ev = oneshot.evaluate(
-            RIG, np.array([p.q_start_rad]), np.array([p.q_end_rad]), np.array([p.surface_y_m]),
-            p.dig_type, a6[None, None], np.array([[T]]), n_samples=2001,
+            RIG,
+            np.array([p.q_start_rad]),
+            np.array([p.q_end_rad]),
+            np.array([p.surface_y_m]),
+            p.dig_type,
+            a6[None, None],
+            np.array([[T]]),
+            n_samples=2001,
         )
         # Independently: the scalar trajectory sampler, then dynamics and soil per sample.
         traj = sextic.SexticTrajectory(np.array(p.q_start_rad), np.array(p.q_end_rad), a6, T)
@@ -122,10 +139,18 @@ def test_pso_plans_feasible_digs_in_yao_ranges_and_dense_grid_confirms() -> None
         # Ten times denser sampling finds no violation worth the name.
         p = s.problem
         ev = oneshot.evaluate(
-            RIG, np.array([p.q_start_rad]), np.array([p.q_end_rad]), np.array([p.surface_y_m]),
-            p.dig_type, np.array([[s.a6]]), np.array([[s.T_s]]), n_samples=1001,
+            RIG,
+            np.array([p.q_start_rad]),
+            np.array([p.q_end_rad]),
+            np.array([p.surface_y_m]),
+            p.dig_type,
+            np.array([[s.a6]]),
+            np.array([[s.T_s]]),
+            n_samples=1001,
         )
-        assert ev.total_violation[0, 0] < 1e-2, dict(zip(oneshot.CONSTRAINT_NAMES, ev.violations[0, 0], strict=True))
+        assert ev.total_violation[0, 0] < 1e-2, dict(
+            zip(oneshot.CONSTRAINT_NAMES, ev.violations[0, 0], strict=True)
+        )
         traj = s.trajectory()
         q_end, qd_end, _ = traj.sample(s.T_s)
         np.testing.assert_allclose(q_end, p.q_end_rad, atol=1e-9)
@@ -144,8 +169,12 @@ def test_pso_reports_an_impossible_dig_as_infeasible() -> None:
 
 def test_bad_inputs_raise_clear_errors() -> None:
     p = oneshot.sample_problems(RIG, 1, DigType.DOWNWARD, seed=4)[0]
-    bad_pose = Problem((math.radians(80.0), *p.q_start_rad[1:]), p.q_end_rad, p.surface_y_m, p.dig_type)  # type: ignore[arg-type]
-    with pytest.raises(PlanningError, match=r"start pose.*boom at 80\.000 deg is outside \[-20\.000, 65\.000\]"):
+    bad_pose = Problem(
+        (math.radians(80.0), *p.q_start_rad[1:]), p.q_end_rad, p.surface_y_m, p.dig_type
+    )  # type: ignore[arg-type]
+    with pytest.raises(
+        PlanningError, match=r"start pose.*boom at 80\.000 deg is outside \[-20\.000, 65\.000\]"
+    ):
         oneshot.solve_pso(RIG, [bad_pose])
     nan_pose = Problem(p.q_start_rad, (float("nan"), *p.q_end_rad[1:]), p.surface_y_m, p.dig_type)  # type: ignore[arg-type]
     with pytest.raises(PlanningError, match="end pose contains NaN"):

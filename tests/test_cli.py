@@ -1,0 +1,105 @@
+"""The command line: every command runs, --json prints one object, errors exit non-zero."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+
+from rt_runtime.cli import main
+from rt_runtime.rig import profile_names
+
+
+@pytest.mark.parametrize("name", profile_names())
+def test_rig_show_json(name: str, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["rig", "show", name, "--json", "--samples", "20000"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["name"] == name
+    env = r["envelope"]
+    assert 0 < env["max_radius_m"] <= sum(lk["length_m"] for lk in r["links"]) + 1e-9
+    assert env["max_depth_below_ground_m"] == pytest.approx(
+        env["max_depth_m"] + r["ground_y_m"], abs=1e-9
+    )
+    for c in r["cylinders"]:
+        lo, hi = c["stroke_limits_mm"]
+        for key in ("stroke_at_joint_min_mm", "stroke_at_joint_max_mm"):
+            assert lo <= c[key] <= hi
+    assert r["assumed"] and all(a["reason"] for a in r["assumed"])
+    assert r["dof"] == (4 if name == "field_excavator" else 3)
+
+
+def test_rig_show_text_and_list(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["rig", "show", "test_bench", "--samples", "5000"]) == 0
+    out = capsys.readouterr().out
+    assert "reach envelope" in out and "assumed values" in out and "hydraulic" in out
+    assert main(["rig", "list"]) == 0
+    assert "scale_model (default)" in capsys.readouterr().out
+
+
+def test_demo_json_kinematics_table(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["demo", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    rows = r["kinematics"]
+    assert rows[0]["pose"] == "mid-range" and len(rows) == 7
+    boom_min = next(row for row in rows if row["pose"] == "boom min")
+    assert boom_min["q_deg"][0] == pytest.approx(-20.0)
+    # The attitude column is the sum of the joint angles (Yao eq 2).
+    for row in rows:
+        assert row["attitude_deg"] == pytest.approx(sum(row["q_deg"]), abs=1e-6)
+
+
+def test_oneshot_json(capsys: pytest.CaptureFixture[str]) -> None:
+    args = [
+        "oneshot",
+        "--type",
+        "downward",
+        "--start-deg",
+        "1.78",
+        "-34.25",
+        "-71.94",
+        "--end-deg",
+        "2.03",
+        "-51.06",
+        "-114.04",
+        "--surface-m",
+        "-0.378",
+        "--json",
+    ]
+    assert main(args) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["feasible"] and 5.0 <= r["T_s"] <= 10.0 and 3.74 <= r["volume_L"] <= 5.72
+    assert all(m >= 0 for m in r["margins"].values()) and len(r["margins"]) == 22
+    assert 40.0 <= r["theta_p_deg"] <= 90.0 and math.isfinite(r["objective"])
+
+
+def test_errors_exit_non_zero_with_a_message(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["rig", "show", "moon_digger"]) == 2
+    assert "no rig profile 'moon_digger'" in capsys.readouterr().err
+    args = [
+        "oneshot",
+        "--type",
+        "downward",
+        "--start-deg",
+        "100",
+        "0",
+        "0",
+        "--end-deg",
+        "0",
+        "-50",
+        "-100",
+        "--surface-m",
+        "-0.3",
+    ]
+    assert main(args) == 2
+    assert "boom at 100.000 deg is outside" in capsys.readouterr().err
+
+
+def test_console_scripts_are_installed() -> None:
+    bindir = __import__("pathlib").Path(sys.executable).parent
+    out = subprocess.run([bindir / "excavator-rt", "--version"], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.startswith("excavator-rt ")
+    daemon = subprocess.run([bindir / "excavator-rtd"], capture_output=True, text=True)
+    assert daemon.returncode != 0 and "not available" in daemon.stderr

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from rt_runtime import __version__
-from rt_runtime.errors import ExcavatorRtError
+from rt_runtime.errors import ConfigurationError, ExcavatorRtError
 from rt_runtime.rig import DEFAULT_RIG, Rig, load_rig, profile_names
 
 Handler = Callable[[argparse.Namespace], int]
@@ -310,6 +310,137 @@ def cmd_bench_oneshot(args: argparse.Namespace) -> int:
     return 0
 
 
+# Gao/Yang Table 2: joint angles [deg] of the six key points of their digging path.
+GAO_TABLE2_JOINTS_DEG = (
+    (34.83, -40.32, -56.16),
+    (34.05, -50.52, -57.47),
+    (37.27, -65.58, -58.15),
+    (41.75, -77.73, -60.14),
+    (49.39, -89.13, -60.26),
+    (58.46, -92.13, -61.07),
+)
+
+
+def _triples(items: Sequence[str], flag: str) -> list[tuple[float, float, float]]:
+    out = []
+    for it in items:
+        parts = it.split(",")
+        try:
+            vals = tuple(float(p) for p in parts)
+        except ValueError:
+            vals = ()
+        if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
+            raise ConfigurationError(f"{flag} takes a,b,c triples of finite numbers; got {it!r}")
+        out.append((vals[0], vals[1], vals[2]))
+    return out
+
+
+def cmd_interp(args: argparse.Namespace) -> int:
+    """``excavator-rt interp``: mixed-order interpolation through key points (Gao/Yang)."""
+    from rt_runtime import actuation, kinematics
+    from rt_runtime.trajectory import mixed_order
+
+    rig = load_rig(args.rig)
+    if args.points:
+        pts = np.array(_triples(args.points, "--points"))
+        q_key = kinematics.inverse(rig, pts[:, 0], pts[:, 1], np.radians(pts[:, 2]))
+    else:
+        q_key = np.radians(_triples(args.joints_deg, "--joints-deg") if args.joints_deg else GAO_TABLE2_JOINTS_DEG)
+    n_seg = len(q_key) - 1
+    durations = args.durations or [3.0] * n_seg
+    if len(durations) != n_seg:
+        raise ConfigurationError(f"--durations needs {n_seg} values (one per segment); got {len(durations)}")
+    times = np.concatenate([[0.0], np.cumsum(durations)])
+    strategies = mixed_order.PAPER_STRATEGIES if args.orders == "auto" else (args.orders,)
+    cmp = mixed_order.compare_strategies(times, q_key, strategies)
+    if not cmp.results:
+        raise ConfigurationError(
+            "no order pattern applies: " + "; ".join(f"{n}: {why}" for n, why in cmp.skipped)
+        )
+    best = mixed_order.choose_smoothest(cmp) if args.orders == "auto" else cmp.results[0]
+    traj = best.trajectory
+    t = np.linspace(0.0, traj.duration_s, 1201)
+    q = traj.sample(t)
+    qd = traj.sample(t, 1)
+    stroke = actuation.joint_to_stroke(rig, q)
+    sd = actuation.stroke_velocity(rig, q, qd)
+    names = [j.name for j in rig.joints]
+    deg = 180.0 / math.pi
+    out = {
+        "rig": rig.name,
+        "knots_s": times.tolist(),
+        "key_points_deg": (q_key * deg).round(6).tolist(),
+        "chosen": best.name,
+        "rule": "smallest worst-joint peak jerk relative to the best strategy per joint; ties by acceleration",
+        "strategies": {
+            r.name: {
+                "peak_velocity_deg_s": dict(zip(names, (r.peak_velocity * deg).tolist(), strict=True)),
+                "peak_acceleration_deg_s2": dict(zip(names, (r.peak_acceleration * deg).tolist(), strict=True)),
+                "peak_jerk_deg_s3": dict(zip(names, (r.peak_jerk * deg).tolist(), strict=True)),
+            }
+            for r in cmp.results
+        },
+        "skipped": dict(cmp.skipped),
+        "coefficients_deg": {
+            name: [(traj.coefficients(seg, j) * deg).tolist() for seg in range(traj.n_segments)]
+            for j, name in enumerate(names)
+        },
+        "stroke_mm": {
+            name: {"min": float(stroke[:, j].min() * 1e3), "max": float(stroke[:, j].max() * 1e3),
+                   "peak_velocity_mm_s": float(np.abs(sd[:, j]).max() * 1e3)}
+            for j, name in enumerate(names)
+        },
+    }
+    if args.plot:
+        _plot_interp(args.plot, rig.name, best.name, t, q, qd, traj.sample(t, 2), stroke, names)
+        out["plot"] = args.plot
+    if args.json:
+        _print_json(out)
+        return 0
+    print(f"mixed-order interpolation on {rig.name}: {len(q_key)} key points, segments {durations} s")
+    for r in cmp.results:
+        mark = "  <- chosen" if r.name == best.name else ""
+        print(f"  {r.name:<12} peak |v| " + ", ".join(f"{v * deg:7.2f}" for v in r.peak_velocity)
+              + " deg/s   |a| " + ", ".join(f"{v * deg:7.2f}" for v in r.peak_acceleration)
+              + " deg/s2   |j| " + ", ".join(f"{v * deg:7.2f}" for v in r.peak_jerk) + f" deg/s3{mark}")
+    for n, why in cmp.skipped:
+        print(f"  {n:<12} skipped: {why}")
+    print(f"  coefficients of {best.name} (deg, global time t in s, highest power first):")
+    for j, name in enumerate(names):
+        for seg in range(traj.n_segments):
+            c = traj.coefficients(seg, j) * deg
+            print(f"    {name:<7} segment {seg + 1}: " + " ".join(f"{v:+.6g}" for v in c))
+    for name, v in out["stroke_mm"].items():
+        print(f"  {name} cylinder: {v['min']:.1f} .. {v['max']:.1f} mm, peak {v['peak_velocity_mm_s']:.1f} mm/s")
+    if args.plot:
+        print(f"  plot: {args.plot}")
+    return 0
+
+
+def _plot_interp(path: str, rig: str, name: str, t, q, qd, qdd, stroke, names) -> None:  # type: ignore[no-untyped-def]
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as e:
+        raise ConfigurationError("--plot needs matplotlib: pip install 'excavator-rt[plot]'") from e
+    deg = 180.0 / math.pi
+    fig, axes = plt.subplots(4, 1, figsize=(8, 10), sharex=True)
+    for data, ax, label in ((q * deg, axes[0], "angle [deg]"), (qd * deg, axes[1], "velocity [deg/s]"),
+                            (qdd * deg, axes[2], "acceleration [deg/s2]"), (stroke * 1e3, axes[3], "stroke [mm]")):
+        for j, n in enumerate(names):
+            ax.plot(t, data[:, j], label=n)
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    axes[0].legend()
+    axes[0].set_title(f"{name} interpolation on {rig} (Gao Fig. 8-10)")
+    axes[-1].set_xlabel("time [s]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every subcommand."""
     p = argparse.ArgumentParser(prog="excavator-rt", description=__doc__.splitlines()[0])
@@ -367,6 +498,18 @@ def build_parser() -> argparse.ArgumentParser:
     b1.add_argument("--no-de", action="store_true", help="skip the (slow) DE reference")
     b1.add_argument("--json", action="store_true")
     b1.set_defaults(handler=cmd_bench_oneshot)
+
+    ip = sub.add_parser("interp", help="mixed-order interpolation through key points (Gao/Yang)")
+    ip.add_argument("--rig", default="test_bench")
+    src = ip.add_mutually_exclusive_group()
+    src.add_argument("--points", nargs="+", metavar="X,Y,ATT_DEG", help="Cartesian key points (IK)")
+    src.add_argument("--joints-deg", nargs="+", metavar="B,S,K",
+                     help="joint-space key points (default: Gao Table 2)")
+    ip.add_argument("--orders", default="auto", help="e.g. 3-4-5-4-3, or auto (compare, choose smoothest)")
+    ip.add_argument("--durations", type=float, nargs="+", help="segment durations [s] (default 3 each)")
+    ip.add_argument("--plot", metavar="FILE.png")
+    ip.add_argument("--json", action="store_true")
+    ip.set_defaults(handler=cmd_interp)
 
     demo = sub.add_parser("demo", help="the main demonstration")
     demo.add_argument("--rig", default=DEFAULT_RIG)

@@ -103,3 +103,24 @@ def test_console_scripts_are_installed() -> None:
     assert out.returncode == 0 and out.stdout.startswith("excavator-rt ")
     daemon = subprocess.run([bindir / "excavator-rtd"], capture_output=True, text=True)
     assert daemon.returncode != 0 and "not available" in daemon.stderr
+
+
+def test_interp_gao_table2_chooses_3_4_5_4_3(capsys: pytest.CaptureFixture[str], tmp_path) -> None:  # type: ignore[no-untyped-def]
+    png = tmp_path / "interp.png"
+    assert main(["interp", "--json", "--plot", str(png)]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["chosen"] == "3-4-5-4-3"  # Gao's conclusion
+    assert set(r["strategies"]) == {"3-4-5-4-3", "3-4-7-4-3", "3-3-7-3-3"}
+    # Segment 5 of the boom holds the last key point at t = 15 s.
+    c = r["coefficients_deg"]["boom"][4]
+    assert sum(a * 15.0 ** (len(c) - 1 - i) for i, a in enumerate(c)) == pytest.approx(58.46, abs=1e-6)
+    assert png.stat().st_size > 10_000
+
+
+def test_interp_bad_input(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["interp", "--joints-deg", "1,2", "3,4,5"]) == 2
+    assert "takes a,b,c triples" in capsys.readouterr().err
+    assert main(["interp", "--durations", "3", "3"]) == 2
+    assert "--durations needs 5 values" in capsys.readouterr().err
+    assert main(["interp", "--points", "9,9,0", "2.1,0.2,-70"]) == 2
+    assert "error" in capsys.readouterr().err

@@ -113,7 +113,9 @@ def test_interp_gao_table2_chooses_3_4_5_4_3(capsys: pytest.CaptureFixture[str],
     assert set(r["strategies"]) == {"3-4-5-4-3", "3-4-7-4-3", "3-3-7-3-3"}
     # Segment 5 of the boom holds the last key point at t = 15 s.
     c = r["coefficients_deg"]["boom"][4]
-    assert sum(a * 15.0 ** (len(c) - 1 - i) for i, a in enumerate(c)) == pytest.approx(58.46, abs=1e-6)
+    assert sum(a * 15.0 ** (len(c) - 1 - i) for i, a in enumerate(c)) == pytest.approx(
+        58.46, abs=1e-6
+    )
     assert png.stat().st_size > 10_000
 
 

@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from rt_runtime.errors import ConfigurationError, PlanningError
-from rt_runtime.planning.pso import OptimResult, PsoResult, pso_minimize
+from rt_runtime.planning.pso import (
+    OptimResult,
+    PsoResult,
+    Topology,
+    deb_better,
+    pso_minimize,
+    slsqp_polish,
+)
 from rt_runtime.planning.reference import de_minimize
 from rt_runtime.trajectory.sextic import evaluate as sextic_evaluate
 from rt_runtime.trajectory.sextic import sextic_coefficients
@@ -35,6 +42,12 @@ class HalfspaceSpheres:
         f = np.sum((X - self.c[:, None, :]) ** 2, axis=-1)
         g = self.beta[:, None] - np.einsum("bpd,bd->bp", X, self.a)
         return f, np.maximum(g, 0.0)
+
+    def constraints(self, rows: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The polish interface: problems ``rows`` at points ``X (n, S, d)``, one constraint."""
+        f = np.sum((X - self.c[rows][:, None, :]) ** 2, axis=-1)
+        g = self.beta[rows][:, None] - np.einsum("nsd,nd->ns", X, self.a[rows])
+        return f, g[..., None]
 
     def one(self, b: int):
         """Problem b alone, through the same (1, S, d) interface."""
@@ -252,3 +265,261 @@ def test_pso_and_de_agree_on_a_minimum_time_sextic() -> None:
         f"PSO {pso.x_best[0].tolist()} f={pso.f_best[0]!r}; "
         f"DE {de.x_best[0].tolist()} f={de.f_best[0]!r}"
     )
+
+
+# --- ring topology, per-problem streams ---------------------------------------------------
+
+
+def test_ring_guide_is_the_deb_best_of_each_particle_and_its_two_neighbours() -> None:
+    from rt_runtime.planning.pso import _ring_best
+
+    rng = np.random.default_rng(21)
+    B, P, d = 4, 7, 3
+    p_x = rng.normal(size=(B, P, d))
+    p_f = rng.normal(size=(B, P))
+    p_v = np.where(rng.random((B, P)) < 0.4, rng.random((B, P)), 0.0)
+    guide = _ring_best(p_x, p_f, p_v, 0.0)
+    for b in range(B):
+        for i in range(P):
+            hood = [(i - 1) % P, i, (i + 1) % P]
+            best = i
+            for j in hood:
+                if deb_better(p_f[b, j], p_v[b, j], p_f[b, best], p_v[b, best], 0.0):
+                    best = j
+            np.testing.assert_array_equal(guide[b, i], p_x[b, best], err_msg=f"b={b} i={i}")
+
+
+def test_ring_topology_finds_the_boundary_optima() -> None:
+    B, d = 10, 4
+    problems = HalfspaceSpheres(seed=17, n_problems=B, d=d)
+    res = pso_minimize(problems, -5.0 * np.ones(d), 5.0 * np.ones(d), n_problems=B,
+                       n_particles=40, n_iterations=300, seed=3, topology=Topology.RING)
+    gbest = pso_minimize(problems, -5.0 * np.ones(d), 5.0 * np.ones(d), n_problems=B,
+                         n_particles=40, n_iterations=300, seed=3)
+    assert not np.array_equal(res.history_f_best, gbest.history_f_best)
+    # The ring spreads information slowly: on one basin it converges later than gbest, hence a
+    # looser tolerance here; the polish then lands on the boundary optimum.
+    polished = slsqp_polish(problems.constraints, -5.0 * np.ones(d), 5.0 * np.ones(d),
+                            res.x_best[:, None, :])
+    for b in range(B):
+        assert res.feasible[b], _report(res, problems, b)
+        assert res.f_best[b] - problems.f_star[b] <= 1e-2 * max(1.0, problems.f_star[b]), (
+            _report(res, problems, b)
+        )
+        assert polished.feasible[b, 0], _report(res, problems, b)
+        # Within what the constraint margin of 1e-7 costs (df/dg = 2 delta <= 4).
+        assert abs(polished.f_best[b, 0] - problems.f_star[b]) <= 1e-6, (
+            f"polished f={polished.f_best[b, 0]!r}; " + _report(res, problems, b)
+        )
+    # The swarm memory comes back: every personal best, the best of them is x_best.
+    assert res.swarm_x is not None and res.swarm_f is not None
+    assert res.swarm_x.shape == (B, 40, d)
+    np.testing.assert_array_equal(np.min(res.swarm_f, axis=1), res.f_best)
+
+
+def test_a_problems_result_does_not_depend_on_its_batch() -> None:
+    # Each problem has its own stream; with an evaluate that computes rows independently, a
+    # problem solved alone with its stream gives bitwise the batch's answer.
+    problems = HalfspaceSpheres(seed=18, n_problems=5, d=3)
+    streams = [np.random.default_rng(100 + b) for b in range(5)]
+    kwargs = dict(n_particles=12, n_iterations=40, topology=Topology.RING)
+    together = pso_minimize(problems, -5 * np.ones(3), 5 * np.ones(3), n_problems=5,
+                            seed=[np.random.default_rng(100 + b) for b in range(5)], **kwargs)
+    for b in range(5):
+        alone = pso_minimize(problems.one(b), -5 * np.ones(3), 5 * np.ones(3), n_problems=1,
+                             seed=[streams[b]], **kwargs)
+        np.testing.assert_array_equal(alone.x_best[0], together.x_best[b], err_msg=f"b={b}")
+        np.testing.assert_array_equal(alone.history_f_best[:, 0], together.history_f_best[:, b])
+    with pytest.raises(ValueError, match="2 random streams for 5 problems"):
+        pso_minimize(problems, -5 * np.ones(3), 5 * np.ones(3), n_problems=5,
+                     seed=streams[:2], **kwargs)
+
+
+# --- SLSQP polish ---------------------------------------------------------------------------
+
+
+class VertexLPs:
+    """B problems: min c.x s.t. A x <= b, box [-5, 5]^4, optimum at a vertex of 4 constraints.
+
+    The four constraint normals a_i are random and c = -sum lambda_i a_i with lambda_i > 0, so
+    x* (where all four are active) satisfies KKT and is the unique minimum: c.x >= c.x* on the
+    feasible cone. A few extra constraints are slack at x*. The feasible descent directions at
+    x* form a narrow cone, the situation where a swarm creeps.
+    """
+
+    def __init__(self, seed: int, n_problems: int) -> None:
+        rng = np.random.default_rng(seed)
+        B, d = n_problems, 4
+        self.x_star = rng.uniform(-2.0, 2.0, (B, d))
+        a = rng.normal(size=(B, d, d))
+        self.A = np.concatenate([a, rng.normal(size=(B, 2, d))], axis=1)  # (B, 6, d)
+        lam = rng.uniform(0.5, 2.0, (B, d))
+        self.c = -np.einsum("bi,bid->bd", lam, a)
+        slack = np.concatenate([np.zeros((B, d)), rng.uniform(0.5, 1.0, (B, 2))], axis=1)
+        self.b = np.einsum("bid,bd->bi", self.A, self.x_star) + slack
+        self.f_star = np.einsum("bd,bd->b", self.c, self.x_star)
+        self.calls = 0
+
+    def constraints(self, rows: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        self.calls += 1
+        f = np.einsum("nd,nsd->ns", self.c[rows], X)
+        g = np.einsum("nid,nsd->nsi", self.A[rows], X) - self.b[rows][:, None, :]
+        return f, g
+
+    def total(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        f, g = self.constraints(np.arange(self.c.shape[0]), X)
+        return f, np.sum(np.maximum(g, 0.0), axis=-1)
+
+
+def test_polish_lands_on_the_vertex_the_swarm_only_approaches() -> None:
+    B = 8
+    lps = VertexLPs(seed=31, n_problems=B)
+    lo, hi = -5.0 * np.ones(4), 5.0 * np.ones(4)
+    swarm = pso_minimize(lps.total, lo, hi, n_problems=B, n_particles=30, n_iterations=60,
+                         seed=2)
+    swarm_gap = swarm.f_best - lps.f_star
+    # The plain swarm is feasible but short of the vertex on most problems.
+    assert swarm.feasible.all()
+    assert np.sum(swarm_gap > 1e-3 * np.maximum(1.0, np.abs(lps.f_star))) >= B // 2, swarm_gap
+    res = slsqp_polish(lps.constraints, lo, hi, swarm.x_best[:, None, :])
+    assert res.x_best.shape == (B, 1, 4) and res.f_best.shape == (B, 1)
+    for b in range(B):
+        case = (f"problem {b}: start {swarm.x_best[b].tolist()} f={swarm.f_best[b]!r}; got "
+                f"{res.x_best[b, 0].tolist()} f={res.f_best[b, 0]!r}; want "
+                f"{lps.x_star[b].tolist()} f={lps.f_star[b]!r}")
+        assert res.feasible[b, 0] and res.violation_best[b, 0] == 0.0, case
+        assert res.improved[b, 0], case
+        assert abs(res.f_best[b, 0] - lps.f_star[b]) <= 1e-6 * max(1.0, abs(lps.f_star[b])), case
+        np.testing.assert_allclose(res.x_best[b, 0], lps.x_star[b], atol=1e-5, err_msg=case)
+        # Reported values are those of the returned point.
+        f, g = lps.constraints(np.array([b]), res.x_best[b][None])
+        assert f[0, 0] == res.f_best[b, 0] and np.all(g <= 0.0)
+    assert np.all(res.evaluations % 5 == 0)  # a point and its 4 probes per request
+
+
+def test_polish_batches_starts_in_lockstep_with_the_answers_of_solo_runs() -> None:
+    B, k = 5, 3
+    lps = VertexLPs(seed=32, n_problems=B)
+    lo, hi = -5.0 * np.ones(4), 5.0 * np.ones(4)
+    starts = np.random.default_rng(4).uniform(-5.0, 5.0, (B, k, 4))  # infeasible ones too
+    together = slsqp_polish(lps.constraints, lo, hi, starts)
+    calls_together = lps.calls
+    again = slsqp_polish(lps.constraints, lo, hi, starts)
+    for field in ("x_best", "f_best", "violation_best", "improved", "evaluations"):
+        np.testing.assert_array_equal(getattr(together, field), getattr(again, field))
+    # One evaluate call per round, not per start: far fewer calls than points requested.
+    assert calls_together <= int(np.max(together.evaluations)) // 5 + 1
+    for b in range(B):
+        for j in range(k):
+
+            def one(rows: np.ndarray, X: np.ndarray, b: int = b) -> tuple[np.ndarray, np.ndarray]:
+                return lps.constraints(np.full_like(rows, b), X)
+
+            solo = slsqp_polish(one, lo, hi, starts[b : b + 1, j : j + 1])
+            np.testing.assert_array_equal(solo.x_best[0, 0], together.x_best[b, j])
+            # Never worse than the start under Deb's rules.
+            f0, g0 = lps.constraints(np.array([b]), starts[b : b + 1, j : j + 1])
+            v0 = np.sum(np.maximum(g0, 0.0))
+            assert not deb_better(f0[0, 0], v0, together.f_best[b, j],
+                                  together.violation_best[b, j], 0.0)
+    # Random starts, even infeasible ones, end on the vertex (the problem is convex).
+    np.testing.assert_allclose(together.f_best, np.repeat(lps.f_star[:, None], k, 1),
+                               rtol=1e-6, atol=1e-6)
+
+
+def test_polish_releases_every_thread_when_evaluate_fails() -> None:
+    import threading
+
+    lps = VertexLPs(seed=33, n_problems=4)
+    before = threading.active_count()
+
+    def failing(rows: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if lps.calls >= 2:
+            raise RuntimeError("model broke")
+        return lps.constraints(rows, X)
+
+    with pytest.raises(RuntimeError, match="model broke"):
+        slsqp_polish(failing, -5 * np.ones(4), 5 * np.ones(4), np.zeros((4, 2, 4)))
+    assert threading.active_count() == before
+    with pytest.raises(ValueError, match=r"objective \(4, 5\)"):
+        slsqp_polish(lambda rows, X: (np.zeros(3), np.zeros((3, 1))), -np.ones(4), np.ones(4),
+                     np.zeros((4, 1, 4)))
+
+
+def test_polish_refuses_bad_arguments() -> None:
+    lps = VertexLPs(seed=34, n_problems=2)
+    lo, hi = -5 * np.ones(4), 5 * np.ones(4)
+    with pytest.raises(ValueError, match=r"x0 must be \(B, k, d\)"):
+        slsqp_polish(lps.constraints, lo, hi, np.zeros((2, 4)))
+    with pytest.raises(ConfigurationError, match=r"x0\[1, 0\] lies outside the bounds"):
+        slsqp_polish(lps.constraints, lo, hi, np.array([[[0.0] * 4], [[6.0, 0, 0, 0]]]))
+    with pytest.raises(ConfigurationError, match="step"):
+        slsqp_polish(lps.constraints, lo, hi, np.zeros((2, 1, 4)), step=0.0)
+    with pytest.raises(ConfigurationError, match="max_iterations"):
+        slsqp_polish(lps.constraints, lo, hi, np.zeros((2, 1, 4)), max_iterations=0)
+
+
+# --- the one-shot teacher -------------------------------------------------------------------
+
+
+def test_polish_model_splits_peaks_and_keeps_feasibility_identical() -> None:
+    from rt_runtime.planning import oneshot
+    from rt_runtime.planning.oneshot import _polish_model
+    from rt_runtime.rig import load_rig
+
+    rig = load_rig("scale_model")
+    problems = oneshot.sample_problems(rig, 3, oneshot.DigType.BACKWARD, seed=7)
+    qs = np.array([p.q_start_rad for p in problems])
+    qe = np.array([p.q_end_rad for p in problems])
+    h = np.array([p.surface_y_m for p in problems])
+    kind = np.array([int(p.dig_type) for p in problems])
+    lo, hi = oneshot.search_bounds(rig)
+    X = lo + np.random.default_rng(8).random((3, 200, 4)) * (hi - lo)
+    f, c = _polish_model(rig, qs, qe, h, kind, X, 51)
+    a6, T = oneshot.a6_from_particle(X)
+    ev = oneshot.evaluate(rig, qs, qe, h, kind, a6, T, 51)
+    np.testing.assert_array_equal(f, ev.objective)
+    assert c.shape == (3, 200, 28)
+    # max(positive peak, negative peak) is the peak magnitude that evaluate constrains.
+    np.testing.assert_allclose(np.maximum(c[..., 6:9], c[..., 9:12]), ev.violations[..., 6:9],
+                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.maximum(c[..., 12:15], c[..., 15:18]),
+                               ev.violations[..., 9:12], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(c[..., :6], ev.violations[..., :6])
+    np.testing.assert_array_equal(c[..., 18:], ev.violations[..., 12:])
+    feasible = np.all(c <= 0.0, axis=-1)
+    np.testing.assert_array_equal(feasible, ev.feasible)
+    assert 0 < feasible.sum() < feasible.size  # both kinds occur
+
+
+def test_solve_pso_polish_never_worse_deterministic_and_independent_of_workers() -> None:
+    from rt_runtime.planning import oneshot
+    from rt_runtime.rig import load_rig
+
+    rig = load_rig("scale_model")
+    problems = (oneshot.sample_problems(rig, 2, oneshot.DigType.DOWNWARD, seed=11)
+                + oneshot.sample_problems(rig, 1, oneshot.DigType.BACKWARD, seed=12))
+    small = dict(n_particles=16, n_iterations=15, seed=5)
+    swarm_only = oneshot.solve_pso(rig, problems, polish_starts=0, **small)
+    polished = oneshot.solve_pso(rig, problems, **small)
+    again = oneshot.solve_pso(rig, problems, **small)
+    split = oneshot.solve_pso(rig, problems, workers=2, **small)
+    alone = oneshot.solve_pso(rig, problems[1:2], **small)[0]
+    for i, (s0, s1, s2, s3) in enumerate(zip(swarm_only, polished, again, split, strict=True)):
+        case = f"problem {i}: {s1.problem}"
+        assert s1.method == "pso" and s1.feasible, case
+        # The polish adds candidates to the same swarm's: never worse on the default grid.
+        assert s1.objective <= s0.objective or not s0.feasible, case
+        # Feasible means feasible on the default grid, checked there.
+        assert all(m >= 0.0 for _, m in s1.margins), case
+        assert (s1.a6, s1.T_s) == (s2.a6, s2.T_s), case
+        assert s3.objective == pytest.approx(s1.objective, rel=1e-6), case
+    assert alone.objective == pytest.approx(polished[1].objective, rel=1e-6)
+    for bad, match in (
+        (dict(search_samples=1), "search_samples"),
+        (dict(polish_starts=17), "polish_starts"),
+        (dict(workers=0), "workers"),
+        (dict(seed=-1), "seed"),
+    ):
+        with pytest.raises(ConfigurationError, match=match):
+            oneshot.solve_pso(rig, problems, **{**small, **bad})

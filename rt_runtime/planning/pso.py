@@ -6,13 +6,19 @@ problems (e.g. many dig entry/exit pose pairs), solved in lockstep. The caller s
 batched function ``evaluate(X) -> (objective, violation)`` with ``X`` shaped ``(B, P, d)`` and
 both outputs ``(B, P)``; each iteration calls it once for every particle of every problem.
 
-The method (Yao gives no PSO settings, so these are the standard global-best PSO with the
-Shi-Eberhart linearly decreasing inertia weight):
+The method (Yao gives no PSO settings, so these are the standard PSO with the Shi-Eberhart
+linearly decreasing inertia weight):
 
 * 40 particles and 100 iterations by default (Yao's Fig. 7 converges by iteration 38 of 50);
-* velocity ``v <- w v + c1 r1 (pbest - x) + c2 r2 (gbest - x)`` with ``r1, r2 ~ U(0, 1)`` drawn
+* velocity ``v <- w v + c1 r1 (pbest - x) + c2 r2 (guide - x)`` with ``r1, r2 ~ U(0, 1)`` drawn
   per particle and dimension; ``w`` falls linearly from 0.9 to 0.4 over the run (broad search
   first, then refinement); ``c1 = c2 = 2.0``;
+* the guide is the best personal best of the whole swarm (:attr:`Topology.GLOBAL`, the default)
+  or of the particle and its two ring neighbours (:attr:`Topology.RING`, Kennedy and Mendes'
+  local best). Information spreads around the ring one neighbour per iteration, so the swarm
+  keeps several candidate regions alive for longer instead of collapsing on the first good one:
+  slower on a single basin, much less prone to premature convergence on multimodal landscapes
+  such as the dig problem, where different shape regions give different local optima;
 * each velocity component is clamped to ``+-0.2 (upper - lower)`` so that no particle crosses
   the box in fewer than five steps;
 * bounds by clipping with absorbing walls: a coordinate that leaves the box is put on the bound
@@ -29,18 +35,30 @@ Shi-Eberhart linearly decreasing inertia weight):
 The result says per problem whether a feasible point was found; an infeasible best is returned
 flagged (``feasible`` False), never silently, and :meth:`OptimResult.require_feasible` raises.
 
-Random numbers come from one ``numpy.random.Generator``: a run is reproducible for a fixed seed
-and batch, but a problem's result depends on the other problems of its batch, because they
-share the stream. Everything here runs outside the loop.
+Each problem draws its random numbers from its own stream (children spawned from the seed, one
+per problem in batch order, or given explicitly), so a problem's result does not depend on the
+other problems of its batch as far as ``evaluate`` computes each problem's row bitwise
+independently of the others: a batch can then be split over processes, each given its
+problems' streams, with the same answers. (Matrix products may round differently for other
+batch shapes; the answers then differ by rounding, or rarely by a solve steered elsewhere.)
+
+:func:`slsqp_polish` is an engineering addition beyond Yao's method, run after the swarm: the
+constrained optima of the dig problem sit on several constraint boundaries at once, where a
+swarm (which only sees the total violation) converges slowly and then creeps along the
+boundary; a few SQP steps on the individual constraints land on the vertex. Everything here
+runs outside the loop.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from enum import IntEnum
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import minimize
 
 from rt_runtime.errors import ConfigurationError, PlanningError
 
@@ -49,6 +67,22 @@ BoolArray = NDArray[np.bool_]
 
 BatchEvaluate = Callable[[FloatArray], tuple[ArrayLike, ArrayLike]]
 """``evaluate(X (B, P, d)) -> (objective (B, P), total violation (B, P) >= 0)``."""
+
+ConstraintEvaluate = Callable[[NDArray[np.intp], FloatArray], tuple[ArrayLike, ArrayLike]]
+"""``evaluate(rows (n,), X (n, S, d)) -> (objective (n, S), constraints (n, S, m))`` of the
+problems ``rows`` (indices into the batch), each constraint ``<= 0`` where it holds."""
+
+Seed = int | np.random.Generator | Sequence[np.random.Generator]
+"""A seed, a Generator to spawn per-problem streams from, or one Generator per problem."""
+
+
+class Topology(IntEnum):
+    """Whose personal best guides a particle (the social term)."""
+
+    GLOBAL = 0
+    """The best of the whole swarm (gbest)."""
+    RING = 1
+    """The best of the particle and its two neighbours on a ring of particle indices (lbest)."""
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -65,6 +99,10 @@ class OptimResult:
         evaluations: Points evaluated per problem, including the initial swarm/population.
         history_f_best: ``(iterations, B)`` objective of the best point after each iteration.
         history_violation_best: ``(iterations, B)`` its total violation.
+        swarm_x: ``(B, P, d)`` every particle's personal best at the end (PSO only, else None):
+            candidates for a refinement, e.g. re-ranked on a finer model.
+        swarm_f: ``(B, P)`` their objectives (PSO only).
+        swarm_violation: ``(B, P)`` their total violations (PSO only).
     """
 
     x_best: FloatArray
@@ -75,6 +113,9 @@ class OptimResult:
     evaluations: int
     history_f_best: FloatArray
     history_violation_best: FloatArray
+    swarm_x: FloatArray | None = None
+    swarm_f: FloatArray | None = None
+    swarm_violation: FloatArray | None = None
 
     def require_feasible(self) -> OptimResult:
         """Return self if every problem has a feasible best point.
@@ -126,7 +167,7 @@ def deb_argbest(f: FloatArray, v: FloatArray, violation_tol: float) -> NDArray[n
     feas = v <= violation_tol
     best_feasible = np.argmin(np.where(feas, f, np.inf), axis=-1)
     least_violating = np.argmin(v, axis=-1)
-    return np.where(np.any(feas, axis=-1), best_feasible, least_violating)
+    return np.asarray(np.where(np.any(feas, axis=-1), best_feasible, least_violating))
 
 
 def checked_evaluation(
@@ -208,7 +249,8 @@ def pso_minimize(
     *,
     n_particles: int = 40,
     n_iterations: int = 100,
-    seed: int | np.random.Generator = 0,
+    seed: Seed = 0,
+    topology: Topology = Topology.GLOBAL,
     inertia_start: float = 0.9,
     inertia_end: float = 0.4,
     cognitive: float = 2.0,
@@ -231,11 +273,14 @@ def pso_minimize(
         upper: ``(d,)`` or ``(B, d)`` upper bounds.
         n_particles: Particles P per problem, >= 2.
         n_iterations: Largest number of swarm updates, >= 1.
-        seed: Seed or Generator for reproducibility.
+        seed: An int or Generator, from which one child stream per problem is spawned (in batch
+            order), or a sequence of B Generators, one per problem, used as they are.
+        topology: Whose personal best guides each particle, see :class:`Topology`.
         inertia_start: Inertia weight w at the first update.
         inertia_end: Inertia weight at the last update (linear in between).
         cognitive: c1, pull towards the particle's own best.
-        social: c2, pull towards the problem's global best.
+        social: c2, pull towards the best personal best of the particle's neighbourhood (the
+            whole swarm for :attr:`Topology.GLOBAL`).
         velocity_max_fraction: Velocity clamp per dimension as a fraction of ``upper - lower``.
         violation_tol: Largest total violation counted as feasible.
         tol: Smallest change of a problem's best (objective while feasible, violation while
@@ -250,11 +295,12 @@ def pso_minimize(
             bounds or ``x0``.
 
     Returns:
-        :class:`OptimResult`; check ``feasible`` or call ``require_feasible()``.
+        :class:`OptimResult` with the final personal bests in ``swarm_*``; check ``feasible``
+        or call ``require_feasible()``.
 
     Raises:
         ValueError: Wrong shapes of bounds, ``x0`` or ``evaluate``'s outputs; a negative
-            violation.
+            violation; a sequence of streams whose length is not B.
         ConfigurationError: Invalid bounds or settings, or ``x0`` outside the bounds.
     """
     lo, hi = bounds_array(lower, upper)
@@ -282,16 +328,17 @@ def pso_minimize(
         hi = np.repeat(hi, n_problems // hi.shape[0], axis=0)
     B, d = lo.shape
     P = n_particles
-    rng = np.random.default_rng(seed)
+    streams = _problem_streams(seed, B)
 
     lo3 = lo[:, np.newaxis, :]
     hi3 = hi[:, np.newaxis, :]
     span = hi3 - lo3
     v_max = velocity_max_fraction * span
-    X = lo3 + rng.random((B, P, d)) * span
+    start = _draw(streams, (2, P, d))
+    X = lo3 + start[:, 0] * span
     if guesses is not None:
         _place_guesses(X, guesses, lo, hi)
-    V = v_max * (2.0 * rng.random((B, P, d)) - 1.0)
+    V = v_max * (2.0 * start[:, 1] - 1.0)
 
     f, v = checked_evaluation(evaluate(X.copy()), (B, P))
     p_x, p_f, p_v = X.copy(), f, v
@@ -306,12 +353,15 @@ def pso_minimize(
     iterations = 0
     for it in range(n_iterations):
         w = inertia_start + (inertia_end - inertia_start) * (it / last)
-        r1 = rng.random((B, P, d))
-        r2 = rng.random((B, P, d))
-        V = w * V + cognitive * r1 * (p_x - X) + social * r2 * (g_x[:, np.newaxis, :] - X)
+        r = _draw(streams, (2, P, d))
+        if topology == Topology.RING:
+            guide = _ring_best(p_x, p_f, p_v, violation_tol)
+        else:
+            guide = g_x[:, np.newaxis, :]
+        V = w * V + cognitive * r[:, 0] * (p_x - X) + social * r[:, 1] * (guide - X)
         np.clip(V, -v_max, v_max, out=V)
         X = X + V
-        outside = (X < lo3) | (X > hi3)
+        outside = (lo3 > X) | (hi3 < X)
         np.clip(X, lo3, hi3, out=X)
         V[outside] = 0.0
 
@@ -341,7 +391,358 @@ def pso_minimize(
         evaluations=P * (iterations + 1),
         history_f_best=np.array(hist_f),
         history_violation_best=np.array(hist_v),
+        swarm_x=p_x,
+        swarm_f=p_f,
+        swarm_violation=p_v,
     )
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PolishResult:
+    """Outcome of :func:`slsqp_polish` for k starts of each of B problems.
+
+    Attributes:
+        x_best: ``(B, k, d)`` per start, the Deb-best point its solve evaluated, the start
+            included, so it is never worse than the start.
+        f_best: ``(B, k)`` its objective.
+        violation_best: ``(B, k)`` its total violation (sum of the constraints' positive parts).
+        feasible: ``(B, k)`` whether ``violation_best <= violation_tol``.
+        improved: ``(B, k)`` whether ``x_best`` strictly beats the start under Deb's rules.
+        evaluations: ``(B, k)`` points evaluated per start (finite-difference probes included).
+    """
+
+    x_best: FloatArray
+    f_best: FloatArray
+    violation_best: FloatArray
+    feasible: BoolArray
+    improved: BoolArray
+    evaluations: NDArray[np.int64]
+
+
+def slsqp_polish(
+    evaluate: ConstraintEvaluate,
+    lower: ArrayLike,
+    upper: ArrayLike,
+    x0: ArrayLike,
+    *,
+    max_iterations: int = 30,
+    step: float = 1e-6,
+    margin: float = 1e-7,
+    violation_tol: float = 0.0,
+    max_concurrent: int = 256,
+) -> PolishResult:
+    """Refine k starting points of each of B problems with scipy's SLSQP, batched in lockstep.
+
+    An engineering addition beyond Yao's PSO (see the module docstring): where the swarm ends
+    near an optimum on several constraint boundaries, SQP steps on the linearised individual
+    constraints reach the vertex that the swarm only creeps towards. It is local: each start
+    keeps its basin, so polishing several distinct swarm members is a cheap multi-start.
+
+    Each start is an independent SLSQP solve in the unit cube of its box. Gradients are forward
+    differences of ``step`` (backward at the upper bound); the point and its d probes are
+    evaluated together. SLSQP is sequential, so the solves run in threads that only wait for
+    points: every round, the pending points of all waiting solves go to ``evaluate`` in one
+    batched call (no numerical work is done in parallel; the batching amortises the per-call
+    cost of ``evaluate``, which dominates for a handful of points). The rounds are formed the
+    same way on every run, so the result is reproducible; a solve's path depends on the other
+    solves only as far as ``evaluate`` rounds a row differently in another batch. Every
+    constraint is tightened by ``margin`` for SLSQP, so that its tolerance cannot leave the
+    result a hair infeasible; the answer is the Deb-best of every point the solve evaluated,
+    under the untightened constraints. SLSQP's failures (iteration limit, an incompatible
+    linearisation from an infeasible start) therefore cost time, never quality.
+
+    Constraints must be smooth for the gradients to mean something: a constraint that is the
+    maximum of smooth pieces (e.g. a peak ``|q''|`` reached with either sign) has a kink where
+    they cross, where SLSQP stalls; pass the pieces as separate constraints.
+
+    Args:
+        evaluate: ``evaluate(rows (n,), X (n, S, d)) -> (objective (n, S), constraints (n, S,
+            m))``: problem ``rows[i]`` (an index into the B problems, repeated for several
+            starts of one problem) at the S points ``X[i]``; a constraint holds where ``<= 0``.
+            Non-finite objectives and NaN constraints count as infinitely violating.
+        lower: ``(d,)`` or ``(B, d)`` lower bounds.
+        upper: ``(d,)`` or ``(B, d)`` upper bounds.
+        x0: ``(B, k, d)`` starting points inside the bounds.
+        max_iterations: SLSQP iterations per start, >= 1.
+        step: Finite-difference step as a fraction of each bound's span, in (0, 0.1].
+        margin: Tightening of every constraint seen by SLSQP, >= 0, in the constraints' units.
+        violation_tol: Largest total violation counted as feasible.
+        max_concurrent: Largest number of solves (threads) in flight, >= 1; more starts are
+            polished in successive groups.
+
+    Returns:
+        :class:`PolishResult`.
+
+    Raises:
+        ValueError: Wrong shapes of bounds, ``x0`` or ``evaluate``'s outputs.
+        ConfigurationError: Invalid bounds or settings, or ``x0`` outside the bounds.
+        Any exception ``evaluate`` raises, after every solve has stopped.
+    """
+    start = np.asarray(x0, dtype=np.float64)
+    lo2, hi2 = bounds_array(lower, upper)
+    if start.ndim != 3 or start.shape[2] != lo2.shape[1] or lo2.shape[0] not in (1, start.shape[0]):
+        raise ValueError(f"x0 must be (B, k, d) matching bounds {lo2.shape}; got {start.shape}")
+    if max_iterations < 1:
+        raise ConfigurationError(f"max_iterations must be >= 1; got {max_iterations}")
+    if not (0.0 < step <= 0.1):
+        raise ConfigurationError(f"step must be in (0, 0.1]; got {step!r}")
+    for name, value in (("margin", margin), ("violation_tol", violation_tol)):
+        if not (np.isfinite(value) and value >= 0.0):
+            raise ConfigurationError(f"{name} must be finite and >= 0; got {value!r}")
+    if max_concurrent < 1:
+        raise ConfigurationError(f"max_concurrent must be >= 1; got {max_concurrent}")
+    B, k, d = start.shape
+    lo = np.broadcast_to(lo2[:, np.newaxis, :], (B, k, d)).reshape(B * k, d)
+    hi = np.broadcast_to(hi2[:, np.newaxis, :], (B, k, d)).reshape(B * k, d)
+    flat = start.reshape(B * k, d)
+    if not np.all(np.isfinite(flat)):
+        raise ConfigurationError("x0 must be finite")
+    outside = np.argwhere((flat < lo) | (flat > hi))
+    if outside.size:
+        s, j = outside[0]
+        raise ConfigurationError(
+            f"x0[{s // k}, {s % k}] lies outside the bounds in dimension {j}: {flat[s, j]!r} "
+            f"not in [{lo[s, j]!r}, {hi[s, j]!r}]"
+        )
+
+    settings = _SolveSettings(max_iterations, step, margin, violation_tol)
+    rows = np.repeat(np.arange(B), k)
+    solved: list[tuple[FloatArray, float, float, bool, int]] = []
+    for first in range(0, B * k, max_concurrent):
+        group = np.arange(first, min(first + max_concurrent, B * k))
+        solved.extend(
+            _Lockstep(evaluate, rows[group], lo[group], hi[group], flat[group], settings).run()
+        )
+    x_best = np.array([s[0] for s in solved]).reshape(B, k, d)
+    v_best = np.array([s[2] for s in solved]).reshape(B, k)
+    return PolishResult(
+        x_best=x_best,
+        f_best=np.array([s[1] for s in solved]).reshape(B, k),
+        violation_best=v_best,
+        feasible=v_best <= violation_tol,
+        improved=np.array([s[3] for s in solved]).reshape(B, k),
+        evaluations=np.array([s[4] for s in solved], dtype=np.int64).reshape(B, k),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class _SolveSettings:
+    max_iterations: int
+    step: float
+    margin: float
+    violation_tol: float
+
+
+class _Lockstep:
+    """SLSQP solves in threads whose point requests are batched into one call per round.
+
+    The main thread evaluates; a solve thread only runs SLSQP's bookkeeping between requests.
+    A round starts once every unfinished solve waits for its points; each solve waits on its
+    own event, so a round wakes each thread once. If ``evaluate`` raises, the waiting solves
+    are released with the exception and stop; ``run`` then re-raises it.
+    """
+
+    def __init__(
+        self,
+        evaluate: ConstraintEvaluate,
+        rows: NDArray[np.intp],
+        lo: FloatArray,
+        hi: FloatArray,
+        x0: FloatArray,
+        settings: _SolveSettings,
+    ) -> None:
+        self._evaluate = evaluate
+        self._rows = rows
+        self._lo, self._hi, self._x0 = lo, hi, x0
+        self._settings = settings
+        n = rows.size
+        self._ready = threading.Condition()  # guards the fields below; only run() waits on it
+        self._pending: dict[int, FloatArray] = {}
+        self._finished = 0
+        self._answered = [threading.Event() for _ in range(n)]
+        self._answers: list[tuple[FloatArray, FloatArray] | BaseException | None] = [None] * n
+        self._results: list[tuple[FloatArray, float, float, bool, int] | None] = [None] * n
+        self._errors: list[BaseException] = []
+
+    def run(self) -> list[tuple[FloatArray, float, float, bool, int]]:
+        n = self._rows.size
+        threads = [threading.Thread(target=self._solve, args=(i,), daemon=True) for i in range(n)]
+        for t in threads:
+            t.start()
+        failure: BaseException | None = None
+        while True:
+            with self._ready:
+                self._ready.wait_for(lambda: len(self._pending) + self._finished == n)
+                if self._finished == n:
+                    break
+                batch = sorted(self._pending)
+                points = np.stack([self._pending.pop(i) for i in batch])
+            try:
+                f, c = _checked_constraints(
+                    self._evaluate(self._rows[batch], points.copy()), points.shape[:2]
+                )
+                answers: list[tuple[FloatArray, FloatArray] | BaseException] = [
+                    (f[j], c[j]) for j in range(len(batch))
+                ]
+            except Exception as exc:  # released to the solves, re-raised below
+                failure = exc
+                answers = [exc] * len(batch)
+            for i, answer in zip(batch, answers, strict=True):
+                self._answers[i] = answer
+                self._answered[i].set()
+        for t in threads:
+            t.join()
+        if failure is not None:
+            raise failure
+        if self._errors:
+            raise self._errors[0]
+        return [r for r in self._results if r is not None]
+
+    def _points(self, i: int, X: FloatArray) -> tuple[FloatArray, FloatArray]:
+        with self._ready:
+            self._pending[i] = X
+            self._ready.notify()
+        self._answered[i].wait()
+        self._answered[i].clear()
+        answer = self._answers[i]
+        self._answers[i] = None
+        if answer is None or isinstance(answer, BaseException):
+            raise _Stop from answer
+        return answer
+
+    def _solve(self, i: int) -> None:
+        try:
+            self._results[i] = _polish_one(
+                lambda X: self._points(i, X),
+                self._lo[i],
+                self._hi[i],
+                self._x0[i],
+                self._settings,
+            )
+        except _Stop:
+            pass
+        except Exception as exc:  # a failure inside SLSQP's bookkeeping; raised by run()
+            self._errors.append(exc)
+        finally:
+            with self._ready:
+                self._finished += 1
+                self._ready.notify()
+
+
+class _Stop(Exception):
+    """Ends a solve whose evaluation failed (the failure itself is raised by ``run``)."""
+
+
+def _polish_one(
+    points: Callable[[FloatArray], tuple[FloatArray, FloatArray]],
+    lo: FloatArray,
+    hi: FloatArray,
+    x0: FloatArray,
+    settings: _SolveSettings,
+) -> tuple[FloatArray, float, float, bool, int]:
+    """SLSQP from ``x0``: ``(x, f, violation, improved, evaluations)``."""
+    d = lo.size
+    step, margin, tol = settings.step, settings.margin, settings.violation_tol
+    fixed = hi <= lo  # a degenerate dimension keeps its value: SLSQP bounds (0, 0)
+    span = np.where(fixed, 1.0, hi - lo)
+    upper_z = np.where(fixed, 0.0, 1.0)
+    cache: dict[bytes, tuple[float, FloatArray, FloatArray, FloatArray]] = {}
+    seen: list[tuple[FloatArray, FloatArray, FloatArray]] = []
+    z0 = np.clip((x0 - lo) / span, 0.0, upper_z)
+
+    def model(z: FloatArray) -> tuple[float, FloatArray, FloatArray, FloatArray]:
+        z = np.clip(z, 0.0, upper_z)
+        key = z.tobytes()
+        if key not in cache:
+            h = np.where(z + step > upper_z, -step, step)
+            # The start is evaluated exactly as given (the unit-cube round trip may move it by
+            # an ulp), so that "never worse than the start" holds for x0 itself.
+            base = x0 if np.array_equal(z, z0) else lo + z * span
+            X = base + np.vstack([np.zeros(d), np.diag(np.where(fixed, 0.0, h * span))])
+            f, c = points(X)
+            seen.append((X, f, c))
+            # SLSQP cannot use infinities; a huge finite value keeps it away from such points.
+            f_s = np.where(np.isfinite(f), f, 1e300)
+            c_s = np.where(np.isnan(c), 1e300, np.clip(c, -1e300, 1e300)) + margin
+            cache[key] = (
+                float(f_s[0]),
+                (f_s[1:] - f_s[0]) / h,
+                -c_s[0],
+                -((c_s[1:] - c_s[0]) / h[:, np.newaxis]).T,
+            )
+        return cache[key]
+
+    minimize(
+        lambda z: model(z)[0],
+        z0,
+        jac=lambda z: model(z)[1],
+        method="SLSQP",
+        bounds=list(zip(np.zeros(d), upper_z, strict=True)),
+        constraints=[{"type": "ineq", "fun": lambda z: model(z)[2], "jac": lambda z: model(z)[3]}],
+        options={"maxiter": settings.max_iterations, "ftol": 1e-12},
+    )
+    X = np.concatenate([s[0] for s in seen])
+    f = np.concatenate([s[1] for s in seen])
+    c = np.concatenate([s[2] for s in seen])
+    total = np.sum(np.maximum(c, 0.0), axis=-1)
+    total = np.where(~np.isfinite(f) | np.isnan(total), np.inf, total)
+    i = int(deb_argbest(f, total, tol))
+    # Row 0 is the start: SLSQP evaluates its initial point first.
+    better = bool(deb_better(f[i : i + 1], total[i : i + 1], f[:1], total[:1], tol)[0])
+    if not better:
+        i = 0
+    return X[i], float(f[i]), float(total[i]), better, int(f.size)
+
+
+def _checked_constraints(
+    result: tuple[ArrayLike, ArrayLike], shape: tuple[int, ...]
+) -> tuple[FloatArray, FloatArray]:
+    try:
+        f_raw, c_raw = result
+    except (TypeError, ValueError):
+        raise ValueError("evaluate must return a pair (objective, constraints)") from None
+    f = np.asarray(f_raw, dtype=np.float64)
+    c = np.asarray(c_raw, dtype=np.float64)
+    if f.shape != shape or c.shape[:-1] != shape or c.ndim != len(shape) + 1:
+        raise ValueError(
+            f"evaluate must return objective {shape} and constraints (*{shape}, m); "
+            f"got {f.shape} and {c.shape}"
+        )
+    return f, c
+
+
+def _problem_streams(seed: Seed, n_problems: int) -> list[np.random.Generator]:
+    """One random stream per problem, see the ``seed`` argument of :func:`pso_minimize`.
+
+    Raises:
+        ValueError: A sequence of streams whose length is not ``n_problems``.
+    """
+    if isinstance(seed, (int, np.integer)):
+        return np.random.default_rng(int(seed)).spawn(n_problems)
+    if isinstance(seed, np.random.Generator):
+        return seed.spawn(n_problems)
+    streams = list(seed)
+    if len(streams) != n_problems:
+        raise ValueError(f"got {len(streams)} random streams for {n_problems} problems")
+    return streams
+
+
+def _draw(streams: list[np.random.Generator], shape: tuple[int, ...]) -> FloatArray:
+    # One call per problem and iteration (not per sample): per-problem streams make a problem's
+    # result independent of its batch, and cost microseconds against an evaluation of the swarm.
+    return np.stack([g.random(shape) for g in streams])
+
+
+def _ring_best(
+    p_x: FloatArray, p_f: FloatArray, p_v: FloatArray, violation_tol: float
+) -> FloatArray:
+    """Deb-best personal best among each particle and its ring neighbours, ``(B, P, d)``."""
+    P = p_f.shape[1]
+    shifts = np.array([0, 1, -1])  # self first: ties keep a particle on its own best
+    f = np.stack([np.roll(p_f, k, axis=1) for k in shifts], axis=-1)
+    v = np.stack([np.roll(p_v, k, axis=1) for k in shifts], axis=-1)
+    source = (np.arange(P) - shifts[deb_argbest(f, v, violation_tol)]) % P
+    return np.take_along_axis(p_x, source[..., np.newaxis], axis=1)
 
 
 def _significant_change(

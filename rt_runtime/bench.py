@@ -29,12 +29,15 @@ def percentiles(values: list[float] | np.ndarray, *, tails: bool = False) -> dic
     return out
 
 
-def bench_oneshot(rig: Rig, n_problems: int = 50, seed: int = 0, de: bool = True) -> dict[str, Any]:
+def bench_oneshot(
+    rig: Rig, n_problems: int = 50, seed: int = 0, de: bool = True, workers: int = 2
+) -> dict[str, Any]:
     """PSO teacher: solve time single and batched, quality against differential evolution.
 
     Half the problems are downward digs, half backward, drawn by
     :func:`rt_runtime.planning.oneshot.sample_problems` with ``seed``. Each problem is solved
-    alone (timed), then all together in one batch (timed), then by the DE reference (timed).
+    alone (timed, one process), then all together in one batch over ``workers`` processes
+    (timed), then by the DE reference (timed).
 
     Returns:
         JSON-ready dict: ``problems``, ``solve_s`` (p50, p99), ``batch_problems_per_s``,
@@ -58,7 +61,7 @@ def bench_oneshot(rig: Rig, n_problems: int = 50, seed: int = 0, de: bool = True
         single_s.append(time.perf_counter() - t0)
 
     t0 = time.perf_counter()
-    batch = oneshot.solve_pso(rig, problems, seed=seed)
+    batch = oneshot.solve_pso(rig, problems, seed=seed, workers=workers)
     batch_s = time.perf_counter() - t0
 
     out: dict[str, Any] = {
@@ -66,6 +69,7 @@ def bench_oneshot(rig: Rig, n_problems: int = 50, seed: int = 0, de: bool = True
         "problems": len(problems),
         "solve_s": percentiles(single_s),
         "batch_problems_per_s": len(problems) / batch_s,
+        "batch_workers": workers,
         "feasible": float(np.mean([s.feasible for s in singles])),
         "batch_feasible": float(np.mean([s.feasible for s in batch])),
     }

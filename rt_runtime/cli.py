@@ -282,7 +282,9 @@ def cmd_bench_oneshot(args: argparse.Namespace) -> int:
     from rt_runtime.bench import bench_oneshot
 
     rig = load_rig(args.rig)
-    r = bench_oneshot(rig, n_problems=args.problems, seed=args.seed, de=not args.no_de)
+    r = bench_oneshot(
+        rig, n_problems=args.problems, seed=args.seed, de=not args.no_de, workers=args.workers
+    )
     if args.json:
         _print_json(r)
         return 0
@@ -293,7 +295,7 @@ def cmd_bench_oneshot(args: argparse.Namespace) -> int:
         f"  solve time single: p50 {r['solve_s']['p50']:.3f} s, p99 {r['solve_s']['p99']:.3f} s "
         f"(goal p50 <= 0.3 s; Yao's PSO 69-71 s: {r['paper']['speedup_vs_yao_pso']:.0f}x faster)"
     )
-    print(f"  batched: {r['batch_problems_per_s']:.1f} problems/s (goal >= 20)")
+    print(f"  batched: {r['batch_problems_per_s']:.1f} problems/s over {r['batch_workers']} processes (goal >= 20)")
     print(f"  feasible: {r['feasible']:.0%} single, {r['batch_feasible']:.0%} batched")
     if "de_solve_s" in r:
         print(
@@ -496,6 +498,7 @@ def build_parser() -> argparse.ArgumentParser:
     b1.add_argument("--problems", type=int, default=50)
     b1.add_argument("--seed", type=int, default=0)
     b1.add_argument("--no-de", action="store_true", help="skip the (slow) DE reference")
+    b1.add_argument("--workers", type=int, default=2, help="processes for the batched solve")
     b1.add_argument("--json", action="store_true")
     b1.set_defaults(handler=cmd_bench_oneshot)
 

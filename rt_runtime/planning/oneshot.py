@@ -22,6 +22,7 @@ Choices where the paper is silent (each also stated where it is computed):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -265,6 +266,20 @@ def evaluate(
         ConfigurationError: The rig has no planning table.
         PlanningError: Non-finite inputs or T <= 0 (from the sextic).
     """
+    return _evaluate(rig, q_start_rad, q_end_rad, surface_y_m, dig_type, a6, T_s, n_samples)[0]
+
+
+def _evaluate(
+    rig: Rig,
+    q_start_rad: ArrayLike,
+    q_end_rad: ArrayLike,
+    surface_y_m: ArrayLike,
+    dig_type: ArrayLike,
+    a6: ArrayLike,
+    T_s: ArrayLike,
+    n_samples: int,
+) -> tuple[Evaluation, FloatArray, FloatArray]:
+    """:func:`evaluate`, also returning the sampled ``qd`` and ``qdd`` ``(B, P, m, 3)``."""
     planning = require_planning(rig)
     qs = np.asarray(q_start_rad, dtype=np.float64)
     qe = np.asarray(q_end_rad, dtype=np.float64)
@@ -304,7 +319,7 @@ def evaluate(
     v[..., 21] = (T - planning.t_max_s) / t_span
     total = np.sum(np.maximum(v, 0.0), axis=-1)
 
-    return Evaluation(
+    ev = Evaluation(
         T_s=T,
         volume_m3=volume,
         energy_j=energy,
@@ -315,6 +330,7 @@ def evaluate(
         violations=v,
         total_violation=total,
     )
+    return ev, qd, qdd
 
 
 def objective(
@@ -581,6 +597,20 @@ _POLISH_MIN_DISTANCE = 0.1
 _POLISH_ITERATIONS = 15
 
 
+def particle_evaluator(
+    rig: Rig, problems: list[Problem], n_samples: int
+) -> Callable[[FloatArray], tuple[FloatArray, FloatArray]]:
+    """``evaluate(X (B, P, 4)) -> (objective, total violation)`` over particles (K1..K3, T_s)."""
+    qs, qe, h, kind = _stack(problems)
+
+    def run(X: FloatArray) -> tuple[FloatArray, FloatArray]:
+        a6, T = a6_from_particle(X)
+        ev = evaluate(rig, qs, qe, h, kind, a6, T, n_samples)
+        return ev.objective, ev.total_violation
+
+    return run
+
+
 def _pso_part(
     rig: Rig, problems: list[Problem], streams: list[np.random.Generator], settings: _PsoSettings
 ) -> FloatArray:
@@ -591,13 +621,8 @@ def _pso_part(
     lo, hi = search_bounds(rig)
     B = len(problems)
 
-    def search(X: FloatArray) -> tuple[FloatArray, FloatArray]:
-        a6, T = a6_from_particle(X)
-        ev = evaluate(rig, qs, qe, h, kind, a6, T, settings.search_samples)
-        return ev.objective, ev.total_violation
-
     res = pso_minimize(
-        search,
+        particle_evaluator(rig, problems, settings.search_samples),
         lo,
         hi,
         n_particles=settings.n_particles,
@@ -671,9 +696,7 @@ def _polish_model(
     and acceleration. Every point is feasible here exactly when it is for :func:`evaluate`.
     """
     a6, T = a6_from_particle(X)
-    ev = evaluate(rig, qs, qe, h, kind, a6, T, n_samples)
-    coeffs = sextic.sextic_coefficients(qs[:, None, :], qe[:, None, :], a6, T)
-    _, _, qd, qdd, _ = sextic.evaluate(coeffs, T, n_samples)
+    ev, qd, qdd = _evaluate(rig, qs, qe, h, kind, a6, T, n_samples)
     v = ev.violations
     c = np.concatenate(
         [
@@ -698,17 +721,11 @@ def solve_de(
     """
     import time
 
-    qs, qe, h, kind = _stack([problem])
+    qs, qe, h, _ = _stack([problem])
     validate_problem(rig, qs, qe, h)
     lo, hi = search_bounds(rig)
-
-    def batch(X: FloatArray) -> tuple[FloatArray, FloatArray]:
-        a6, T = a6_from_particle(X)
-        ev = evaluate(rig, qs, qe, h, kind, a6, T, n_samples)
-        return ev.objective, ev.total_violation
-
     t0 = time.perf_counter()
-    res = de_minimize(batch, lo, hi, seed=seed, **options)  # type: ignore[arg-type]
+    res = de_minimize(particle_evaluator(rig, [problem], n_samples), lo, hi, seed=seed, **options)  # type: ignore[arg-type]
     elapsed = time.perf_counter() - t0
     return _solutions(rig, [problem], res.x_best, elapsed, "de", n_samples)[0]
 

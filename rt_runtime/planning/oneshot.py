@@ -737,6 +737,11 @@ class SamplerRanges:
     The tip enters on the material surface H and leaves towards the machine (x decreasing),
     at or a little above H, with the bucket curled. Yao samples a region 0.8 m long and 0.4 m
     deep below the crawler (Fig. 9); the attitudes are those the scale model reaches there.
+    The ranges are also the PINN's domain, so they cover every query the trench planner makes:
+    entries from 0.55 to 1.10 m (a 0.55-0.70 m long trench of Yao Table 3 placed in the middle
+    of the reach), material surfaces down to 0.40 m below the ground, digs 0.15-0.50 m long
+    (short finishing cuts to a full backward pass along the bottom). All of a 40-problem draw of
+    each type was feasible for the PSO teacher when these were chosen.
 
     Attributes:
         surface_below_ground_m: Range of ground_y - H (material surface below the ground).
@@ -758,17 +763,17 @@ class SamplerRanges:
 SAMPLER_RANGES: dict[DigType, SamplerRanges] = {
     DigType.DOWNWARD: SamplerRanges(
         surface_below_ground_m=(0.0, 0.25),
-        entry_x_m=(0.60, 1.00),
-        length_m=(0.20, 0.35),
-        exit_rise_m=(0.0, 0.08),
+        entry_x_m=(0.55, 1.10),
+        length_m=(0.15, 0.40),
+        exit_rise_m=(0.0, 0.10),
         entry_attitude_deg=(-120.0, -70.0),
         exit_attitude_deg=(-180.0, -140.0),
     ),
     DigType.BACKWARD: SamplerRanges(
-        surface_below_ground_m=(0.10, 0.40),
-        entry_x_m=(0.60, 1.00),
-        length_m=(0.25, 0.40),
-        exit_rise_m=(0.0, 0.06),
+        surface_below_ground_m=(0.05, 0.40),
+        entry_x_m=(0.55, 1.10),
+        length_m=(0.20, 0.50),
+        exit_rise_m=(0.0, 0.08),
         entry_attitude_deg=(-140.0, -100.0),
         exit_attitude_deg=(-185.0, -150.0),
     ),

@@ -233,7 +233,9 @@ def _entry_angle(
     dx = np.where(at_start, d0[..., 0], dx)
     dy = np.where(at_start, d0[..., 1], dy)
     angle = np.arctan2(-dy, np.abs(dx))
-    return np.where(np.any(below, axis=-1), angle, -0.5 * np.pi)
+    # A start within the tolerance counts as an entry whatever the last bit of y0 says: the
+    # poses are solved for y = H, so "below" at t = 0 is rounding noise.
+    return np.where(np.any(below, axis=-1) | at_start, angle, -0.5 * np.pi)
 
 
 def evaluate(

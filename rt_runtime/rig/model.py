@@ -271,6 +271,35 @@ class Rig:
         arm = tuple(j.name for j in self.joints)
         return ("swing", *arm) if self.swing is not None else arm
 
+    @property
+    def planning_fingerprint(self) -> str:
+        """SHA-256 (hex) of every value one-shot planning depends on.
+
+        Geometry, limits, masses, ground, bucket, soil and the planning thresholds, as canonical
+        JSON (floats in their exact repr); not the name, sources, cylinders or CAN settings. A
+        model card records it, so a network trained for other values is refused even when the
+        profile keeps its name.
+        """
+        import dataclasses
+        import hashlib
+        import json
+
+        data = {
+            key: dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value
+            for key, value in (
+                ("gravity_m_s2", self.gravity_m_s2),
+                ("ground_y_m", self.ground_y_m),
+                ("joints", [dataclasses.asdict(j) for j in self.joints]),
+                ("links", [dataclasses.asdict(lk) for lk in self.links]),
+                ("swing", self.swing),
+                ("bucket", self.bucket),
+                ("soil", self.soil),
+                ("planning", self.planning),
+            )
+        }
+        text = json.dumps(data, sort_keys=True, separators=(",", ":"), default=repr)
+        return hashlib.sha256(text.encode()).hexdigest()
+
     def is_assumed(self, key_path: str) -> bool:
         """Whether ``key_path`` is marked assumed in the profile."""
         return any(k == key_path for k, _ in self.assumed)

@@ -1,0 +1,558 @@
+/*
+ * One-shot dig verifier kernel: what rt_runtime.planning.oneshot.evaluate computes for one
+ * candidate, looping over the samples in C (the Python side is rt_runtime/planning/verify.py).
+ *
+ * Why C: evaluate() is numpy batched over (B, P); for a single candidate each of its numpy
+ * operations on a tiny array costs 0.5-3 us, ~0.6 ms in all. This loop does the same arithmetic
+ * in ~7 us at 101 samples, without allocating.
+ *
+ * Layout: the kernel (vk_*) is plain C99 with no Python in it; below it a minimal CPython
+ * extension type `Kernel` holds the packed rig constants and the time grid, and its `run`
+ * method (METH_FASTCALL, buffer protocol) is the per-call entry point: it measured 0.1 us per
+ * call against 0.4 us for ctypes with cached pointers and 2.6 us for ctypes taking the
+ * pointers of the caller's arrays per call.
+ *
+ * Parity with the numpy reference: the same formulas in the same association order as
+ * sextic.py, kinematics.tip_state, soil.yao_resistance, dynamics._inverse_block,
+ * dynamics.energy_j, oneshot.excavated_area_m2 and oneshot._entry_angle (a change there must
+ * be made here too: tests/test_verify.py holds the two together). Outputs agree to ~1e-12
+ * relative (numpy's matrix products and pairwise sums round differently); the only
+ * discontinuities, which sample first lies below the surface and whether the start is within
+ * 1 mm of it, would need a sample within an ulp of those thresholds to differ. No -ffast-math,
+ * no FMA contraction (setup.py passes -ffp-contract=off).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <math.h>
+#include <stddef.h>
+#include <stdlib.h>
+
+/* ---------------------------------------------------------------------------------------------
+ * Layouts shared with verify.py (bump VK_ABI on any change: verify.py refuses a stale build).
+ * ------------------------------------------------------------------------------------------- */
+#define VK_ABI 1
+
+enum vk_param {
+    P_LEN = 0,           /* link lengths l0, l1, l2 (m) */
+    P_CH_H = 3,          /* dynamics._Chain.h (kg m) */
+    P_CH_B = 6,          /* dynamics._Chain.b (kg m) */
+    P_CH_D = 9,          /* dynamics._Chain.d (kg m^2) */
+    P_GRAVITY = 12,      /* m/s^2 */
+    P_K0B = 13,          /* K0 * b (N/m^2 * m), as soil.yao_resistance groups it */
+    P_MU = 14,           /* Yao mu */
+    P_SPEED_REG = 15,    /* soil speed regularisation (m/s) */
+    P_Q_MIN = 16,        /* joint limits (rad) */
+    P_Q_MAX = 19,
+    P_Q_SPAN = 22,       /* q_max - q_min as numpy computes it */
+    P_QD_MAX = 25,       /* rad/s */
+    P_QDD_MAX = 28,      /* rad/s^2 */
+    P_TAU_MAX = 31,      /* N m */
+    P_POWER_MAX = 34,    /* W */
+    P_TP_DOWN = 35,      /* theta_p range of downward digs (lo, hi) rad */
+    P_TP_BACK = 37,      /* theta_p range of backward digs (lo, hi) rad */
+    P_VOL = 39,          /* V_p range (min, max) m^3 */
+    P_TIME = 41,         /* T range (min, max) s */
+    P_ENERGY = 43,       /* energy normalisation (min, max) J */
+    P_WEIGHTS = 45,      /* lambda1..3 */
+    P_WIDTH = 48,        /* bucket width b (m) */
+    VK_N_PARAMS = 49
+};
+
+enum vk_input {
+    I_Q_START = 0, I_Q_END = 3, I_SURFACE = 6, I_DIG_TYPE = 7, I_A6 = 8, I_T = 11, VK_N_IN = 12
+};
+
+#define VK_N_CONSTRAINTS 22
+enum vk_output {
+    O_VIOLATIONS = 0,
+    O_TOTAL = 22,
+    O_OBJECTIVE = 23,
+    O_T = 24,
+    O_VOLUME = 25,
+    O_ENERGY = 26,
+    O_THETA_P = 27,
+    O_PEAK_POWER = 28,
+    O_PEAK_TORQUE = 29,
+    VK_N_OUT = 32
+};
+
+/* Samples per block: the polynomial, the trig and the rest run as three loops over a block,
+ * so that no value lives across the libm calls (their register spills cost more than the
+ * arithmetic) and the arrays stay on the stack (thread-safe, no allocation). */
+#define VK_BLOCK 32
+
+/* Plain max/min (maxsd/minsd). They may drop a NaN; the finiteness checks below catch it. */
+static inline double vk_max(double m, double v) { return m > v ? m : v; }
+static inline double vk_min(double m, double v) { return m < v ? m : v; }
+static inline double vk_pos(double v) { return v > 0.0 ? v : 0.0; }
+
+/* Invalid candidate: total violation +inf (never chosen, never feasible), the rest NaN. */
+static void vk_reject(int m, double *out, double *path)
+{
+    for (int j = 0; j < VK_N_OUT; j++) out[j] = NAN;
+    out[O_TOTAL] = INFINITY;
+    if (path != NULL)
+        for (int i = 0; i < 2 * m; i++) path[i] = NAN;
+}
+
+/*
+ * Evaluate one candidate.
+ *   p:    packed constants (enum vk_param)
+ *   s:    normalised time grid, m >= 2 points from 0 to 1 (numpy.linspace)
+ *   in:   one input row (enum vk_input)
+ *   out:  one output row (enum vk_output)
+ *   path: NULL or (m, 2) tip x, y at the samples
+ */
+static void vk_evaluate(const double *p, const double *s, int m, const double *in, double *out,
+                        double *path)
+{
+    for (int j = 0; j < VK_N_IN; j++)
+        if (!isfinite(in[j])) {
+            vk_reject(m, out, path);
+            return;
+        }
+    const double H = in[I_SURFACE];
+    const double T = in[I_T];
+    const double dig = in[I_DIG_TYPE];
+    if (!(T > 0.0) || !(dig == 0.0 || dig == 1.0)) {
+        vk_reject(m, out, path);
+        return;
+    }
+
+    /* Sextic coefficients (sextic.sextic_coefficients) scaled to s (b_k = a_k T^k, as
+     * sextic.evaluate does with T ** k). b1 = b2 = 0. */
+    const double T2 = T * T, T3 = T2 * T;
+    double Tp[7];
+    Tp[0] = 1.0;
+    Tp[1] = T;
+    for (int k = 2; k < 7; k++) Tp[k] = pow(T, (double)k);
+    double b0[3], b3[3], b4[3], b5[3], b6[3], a3[3];
+    double c1[3][4], c2[3][4]; /* Horner coefficients of dq/ds and d2q/ds2 */
+    for (int j = 0; j < 3; j++) {
+        const double qs = in[I_Q_START + j], c6 = in[I_A6 + j];
+        const double D = in[I_Q_END + j] - qs;
+        a3[j] = 10.0 * D / T3 - c6 * T3;
+        const double a4 = -15.0 * D / (T3 * T) + 3.0 * c6 * T2;
+        const double a5 = 6.0 * D / (T3 * T2) - 3.0 * c6 * T;
+        b0[j] = qs * Tp[0];
+        b3[j] = a3[j] * Tp[3];
+        b4[j] = a4 * Tp[4];
+        b5[j] = a5 * Tp[5];
+        b6[j] = c6 * Tp[6];
+        c1[j][0] = 3.0 * b3[j];
+        c1[j][1] = 4.0 * b4[j];
+        c1[j][2] = 5.0 * b5[j];
+        c1[j][3] = 6.0 * b6[j];
+        c2[j][0] = 6.0 * b3[j];
+        c2[j][1] = 12.0 * b4[j];
+        c2[j][2] = 20.0 * b5[j];
+        c2[j][3] = 30.0 * b6[j];
+    }
+    const double inv_T = 1.0 / T;
+    const double inv_T2 = inv_T * inv_T;
+
+    const double l0 = p[P_LEN], l1 = p[P_LEN + 1], l2 = p[P_LEN + 2];
+    const double h0 = p[P_CH_H], h1 = p[P_CH_H + 1], h2 = p[P_CH_H + 2];
+    const double bb0 = p[P_CH_B], bb1 = p[P_CH_B + 1], bb2 = p[P_CH_B + 2];
+    const double dd0 = p[P_CH_D], dd1 = p[P_CH_D + 1], dd2 = p[P_CH_D + 2];
+    const double g = p[P_GRAVITY], k0b = p[P_K0B], mu = p[P_MU], reg = p[P_SPEED_REG];
+
+    double q_lo[3] = {INFINITY, INFINITY, INFINITY};
+    double q_hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+    double qd_peak[3] = {0.0, 0.0, 0.0};
+    double qdd_peak[3] = {0.0, 0.0, 0.0};
+    double tau_peak[3] = {0.0, 0.0, 0.0};
+    double power_peak = 0.0; /* a sum of positive parts: >= 0 */
+    double energy_acc = 0.0, area_acc = 0.0;
+    /* Sum of every per-sample value: non-finite exactly when one of them is (or overflows),
+     * which the plain max/min above could hide. */
+    double check = 0.0;
+    double x_prev = 0.0, y_prev = 0.0, power_prev = 0.0, t_prev = 0.0;
+    double y_first = 0.0, entry_dx = 0.0, entry_dy = 0.0;
+    double sp_first[3] = {0.0, 0.0, 0.0}, cp_first[3] = {0.0, 0.0, 0.0};
+    int first_below = -1;
+
+    double qv[3][VK_BLOCK], qdv[3][VK_BLOCK], qddv[3][VK_BLOCK];
+    double phi[3][VK_BLOCK], cph[3][VK_BLOCK], sph[3][VK_BLOCK];
+
+    for (int base = 0; base < m; base += VK_BLOCK) {
+        const int nb = m - base < VK_BLOCK ? m - base : VK_BLOCK;
+
+        /* Joint angles, rates, accelerations (sextic.evaluate) and their extremes. */
+        for (int j = 0; j < 3; j++) {
+            for (int k = 0; k < nb; k++) {
+                const double si = s[base + k];
+                const double s2 = si * si, s3 = s2 * si;
+                const double q = b0[j] + s3 * (b3[j] + si * (b4[j] + si * (b5[j] + si * b6[j])));
+                const double qd =
+                    s2 * (c1[j][0] + si * (c1[j][1] + si * (c1[j][2] + si * c1[j][3]))) * inv_T;
+                const double qdd =
+                    si * (c2[j][0] + si * (c2[j][1] + si * (c2[j][2] + si * c2[j][3]))) * inv_T2;
+                qv[j][k] = q;
+                qdv[j][k] = qd;
+                qddv[j][k] = qdd;
+                q_lo[j] = vk_min(q_lo[j], q);
+                q_hi[j] = vk_max(q_hi[j], q);
+                qd_peak[j] = vk_max(qd_peak[j], fabs(qd));
+                qdd_peak[j] = vk_max(qdd_peak[j], fabs(qdd));
+            }
+        }
+        for (int k = 0; k < nb; k++) {
+            phi[0][k] = qv[0][k];
+            phi[1][k] = phi[0][k] + qv[1][k];
+            phi[2][k] = phi[1][k] + qv[2][k];
+        }
+        /* Trig of the absolute angles, as kinematics.tip_state takes it (gcc: one sincos). */
+        for (int j = 0; j < 3; j++)
+            for (int k = 0; k < nb; k++) {
+                cph[j][k] = cos(phi[j][k]);
+                sph[j][k] = sin(phi[j][k]);
+            }
+
+        for (int k = 0; k < nb; k++) {
+            const int i = base + k;
+            const double qd0 = qdv[0][k], qd1 = qdv[1][k], qd2 = qdv[2][k];
+            const double cp0 = cph[0][k], cp1 = cph[1][k], cp2 = cph[2][k];
+            const double sp0 = sph[0][k], sp1 = sph[1][k], sp2 = sph[2][k];
+
+            /* Tip pose and twist (kinematics.tip_state). */
+            const double lc0 = cp0 * l0, lc1 = cp1 * l1, lc2 = cp2 * l2;
+            const double ls0 = sp0 * l0, ls1 = sp1 * l1, ls2 = sp2 * l2;
+            const double x = (lc0 + lc1) + lc2;
+            const double y = (ls0 + ls1) + ls2;
+            const double w0 = qd0, w1 = w0 + qd1, w2 = w1 + qd2;
+            const double vx = -((ls0 * w0 + ls1 * w1) + ls2 * w2);
+            const double vy = (lc0 * w0 + lc1 * w1) + lc2 * w2;
+            if (path != NULL) {
+                path[2 * i] = x;
+                path[2 * i + 1] = y;
+            }
+
+            /* Inverse dynamics (dynamics._inverse_block); relative-angle trig from the
+             * absolute angles' by the difference formulas. */
+            const double c2r = cp1 * cp0 + sp1 * sp0, s2r = sp1 * cp0 - cp1 * sp0;
+            const double c3r = cp2 * cp1 + sp2 * sp1, s3r = sp2 * cp1 - cp2 * sp1;
+            const double c23 = cp2 * cp0 + sp2 * sp0, s23 = sp2 * cp0 - cp2 * sp0;
+            const double d01 = l0 * (h1 * c2r - bb1 * s2r), w01 = l0 * (bb1 * c2r + h1 * s2r);
+            const double d02 = l0 * (h2 * c23 - bb2 * s23), w02 = l0 * (bb2 * c23 + h2 * s23);
+            const double d12 = l1 * (h2 * c3r - bb2 * s3r), w12 = l1 * (bb2 * c3r + h2 * s3r);
+            const double ac0 = qddv[0][k], ac1 = ac0 + qddv[1][k], ac2 = ac1 + qddv[2][k];
+            const double ww0 = w0 * w0, ww1 = w1 * w1, ww2 = w2 * w2;
+            double t0 = dd0 * ac0 + d01 * ac1 + d02 * ac2 - w01 * ww1 - w02 * ww2;
+            t0 += g * (h0 * cp0 - bb0 * sp0);
+            double t1 = d01 * ac0 + dd1 * ac1 + d12 * ac2 + w01 * ww0 - w12 * ww2;
+            t1 += g * (h1 * cp1 - bb1 * sp1);
+            double t2 = d02 * ac0 + d12 * ac1 + dd2 * ac2 + w02 * ww0 + w12 * ww1;
+            t2 += g * (h2 * cp2 - bb2 * sp2);
+
+            /* Yao eq 8 at the tip (soil.yao_resistance, flat surface H); none above it. */
+            const double depth = H - y;
+            if (depth > 0.0) {
+                const double w_q = k0b * depth;
+                /* sqrt for hypot: equal to an ulp at the speeds an arm reaches, 10x faster. */
+                const double speed = vk_max(sqrt(vx * vx + vy * vy), reg);
+                const double gain = w_q / speed;
+                const double tx = gain * vx, ty = gain * vy;
+                const double side_mu = vx > 0.0 ? mu : -mu;
+                const double fx = -tx - side_mu * ty;
+                const double fy = -ty + side_mu * tx;
+                t0 -= l0 * (cp0 * fy - sp0 * fx);
+                t1 -= l1 * (cp1 * fy - sp1 * fx);
+                t2 -= l2 * (cp2 * fy - sp2 * fx);
+            }
+            t1 += t2;
+            t0 += t1;
+            tau_peak[0] = vk_max(tau_peak[0], fabs(t0));
+            tau_peak[1] = vk_max(tau_peak[1], fabs(t1));
+            tau_peak[2] = vk_max(tau_peak[2], fabs(t2));
+
+            /* Positive power (no regeneration); energy by the trapezoid rule on t = s T. */
+            const double power = (vk_pos(t0 * qd0) + vk_pos(t1 * qd1)) + vk_pos(t2 * qd2);
+            power_peak = vk_max(power_peak, power);
+            const double t = s[i] * T;
+            check += ((x + y) + (t0 + t1 + t2)) + ((qd0 + qd1 + qd2) + (ac0 + ac1 + ac2));
+
+            if (y < H && first_below < 0) first_below = i;
+            if (i == 0) {
+                y_first = y;
+                for (int j = 0; j < 3; j++) {
+                    sp_first[j] = sph[j][0];
+                    cp_first[j] = cph[j][0];
+                }
+            } else {
+                energy_acc += (power + power_prev) * (t - t_prev);
+                /* Excavated area, one polyline segment (oneshot.excavated_area_m2). */
+                const double e0 = H - y_prev, e1 = H - y, dx = x - x_prev;
+                if (e0 >= 0.0 && e1 >= 0.0) {
+                    area_acc += 0.5 * (e0 + e1) * dx;
+                } else if (e0 >= 0.0 || e1 >= 0.0) {
+                    double denom = fabs(e0) + fabs(e1);
+                    if (!(denom > 0.0)) denom = 1.0;
+                    const double frac = (e0 > e1 ? e0 : e1) / denom;
+                    area_acc += 0.5 * (vk_pos(e0) + vk_pos(e1)) * frac * dx;
+                }
+                /* Entry segment: the first one ending below the surface. (Sample 0 below the
+                 * surface means a start on it, which takes J(q0) a3 instead.) */
+                if (first_below == i) {
+                    entry_dx = dx;
+                    entry_dy = y - y_prev;
+                }
+            }
+            x_prev = x;
+            y_prev = y;
+            power_prev = power;
+            t_prev = t;
+        }
+    }
+
+    /* theta_p (oneshot._entry_angle). A start within 1 mm of the surface counts as an entry
+     * whatever the last bit of y0 says (the poses are solved for y = H). */
+    const int at_start = y_first <= H + 1e-3;
+    double theta_p;
+    if (first_below < 0 && !at_start) {
+        theta_p = -1.57079632679489661923; /* -pi/2: violates every theta_p range */
+    } else {
+        double dx = entry_dx, dy = entry_dy;
+        if (at_start) {
+            /* Direction J(q0) a3, the cubic term leading; sample 0 is q0 exactly, so its trig
+             * is kinematics.jacobian's. */
+            const double v0 = -sp_first[0] * l0, v1 = -sp_first[1] * l1, v2 = -sp_first[2] * l2;
+            const double sx2 = v2, sx1 = v2 + v1, sx0 = (v2 + v1) + v0;
+            const double u0 = cp_first[0] * l0, u1 = cp_first[1] * l1, u2 = cp_first[2] * l2;
+            const double sy2 = u2, sy1 = u2 + u1, sy0 = (u2 + u1) + u0;
+            dx = (sx0 * a3[0] + sx1 * a3[1]) + sx2 * a3[2];
+            dy = (sy0 * a3[0] + sy1 * a3[1]) + sy2 * a3[2];
+        }
+        theta_p = atan2(-dy, fabs(dx));
+    }
+
+    const double volume = fabs(area_acc) * p[P_WIDTH];
+    const double energy = 0.5 * energy_acc;
+
+    double *v = out + O_VIOLATIONS;
+    for (int j = 0; j < 3; j++) {
+        v[j] = (p[P_Q_MIN + j] - q_lo[j]) / p[P_Q_SPAN + j];
+        v[3 + j] = (q_hi[j] - p[P_Q_MAX + j]) / p[P_Q_SPAN + j];
+        v[6 + j] = qd_peak[j] / p[P_QD_MAX + j] - 1.0;
+        v[9 + j] = qdd_peak[j] / p[P_QDD_MAX + j] - 1.0;
+        v[12 + j] = tau_peak[j] / p[P_TAU_MAX + j] - 1.0;
+    }
+    v[15] = power_peak / p[P_POWER_MAX] - 1.0;
+    const double *tp = dig == 0.0 ? p + P_TP_DOWN : p + P_TP_BACK;
+    const double tp_span = tp[1] - tp[0];
+    v[16] = (tp[0] - theta_p) / tp_span;
+    v[17] = (theta_p - tp[1]) / tp_span;
+    const double vol_min = p[P_VOL], vol_max = p[P_VOL + 1], vol_span = vol_max - vol_min;
+    v[18] = (vol_min - volume) / vol_span;
+    v[19] = (volume - vol_max) / vol_span;
+    const double t_min = p[P_TIME], t_max = p[P_TIME + 1], t_span = t_max - t_min;
+    v[20] = (t_min - T) / t_span;
+    v[21] = (T - t_max) / t_span;
+
+    const double e_min = p[P_ENERGY], e_max = p[P_ENERGY + 1];
+    const double t_t = (T - t_min) / t_span;
+    const double e_e = (energy - e_min) / (e_max - e_min);
+    const double v_v = (vol_max - volume) / vol_span;
+    out[O_OBJECTIVE] = p[P_WEIGHTS] * t_t + p[P_WEIGHTS + 1] * e_e + p[P_WEIGHTS + 2] * v_v;
+    out[O_T] = T;
+    out[O_VOLUME] = volume;
+    out[O_ENERGY] = energy;
+    out[O_THETA_P] = theta_p;
+    out[O_PEAK_POWER] = power_peak;
+    for (int j = 0; j < 3; j++) out[O_PEAK_TORQUE + j] = tau_peak[j];
+
+    /* Overflow (absurd but finite inputs): where numpy's total would be inf or NaN, +inf. */
+    int finite = isfinite(check);
+    double total = 0.0;
+    for (int j = 0; j < VK_N_CONSTRAINTS; j++) total += vk_pos(v[j]);
+    for (int j = 0; j < VK_N_OUT; j++)
+        if (j != O_TOTAL && !isfinite(out[j])) finite = 0;
+    out[O_TOTAL] = finite ? total : INFINITY;
+}
+
+/* ---------------------------------------------------------------------------------------------
+ * CPython binding.
+ * ------------------------------------------------------------------------------------------- */
+typedef struct {
+    PyObject_HEAD
+    double params[VK_N_PARAMS];
+    double *s;
+    int m;
+} KernelObject;
+
+static void Kernel_dealloc(KernelObject *self)
+{
+    free(self->s);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* A C-contiguous float64 buffer of the given rank; shape[k] < 0 accepts any length. */
+static int get_f64(PyObject *obj, Py_buffer *view, int writable, int ndim, const Py_ssize_t *shape,
+                   const char *name)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, view, flags) != 0) {
+        PyErr_Format(PyExc_ValueError,
+                     "%s must be a C-contiguous%s float64 array", name,
+                     writable ? " writable" : "");
+        return -1;
+    }
+    const char *f = view->format;
+    if (f != NULL && (f[0] == '<' || f[0] == '=' || f[0] == '@')) f++;
+    if (view->itemsize != 8 || f == NULL || f[0] != 'd' || f[1] != '\0') {
+        PyErr_Format(PyExc_ValueError, "%s must have dtype float64; got buffer format '%s'", name,
+                     view->format ? view->format : "B");
+        PyBuffer_Release(view);
+        return -1;
+    }
+    int ok = view->ndim == ndim;
+    for (int k = 0; ok && k < ndim; k++)
+        if (shape[k] >= 0 && view->shape[k] != shape[k]) ok = 0;
+    if (!ok) {
+        if (ndim == 1)
+            PyErr_Format(PyExc_ValueError, "%s must have shape (%zd,)", name, shape[0]);
+        else if (ndim == 2)
+            PyErr_Format(PyExc_ValueError, "%s must have shape (N, %zd)", name, shape[1]);
+        else
+            PyErr_Format(PyExc_ValueError, "%s must have shape (N, %zd, %zd)", name, shape[1],
+                         shape[2]);
+        PyBuffer_Release(view);
+        return -1;
+    }
+    return 0;
+}
+
+static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds)
+{
+    static char *kwlist[] = {"params", "n_samples", NULL};
+    PyObject *params;
+    int m;
+    if (!PyArg_ParseTupleAndKeywords(args, kwds, "Oi", kwlist, &params, &m)) return -1;
+    if (m < 2) {
+        PyErr_Format(PyExc_ValueError, "n_samples must be >= 2; got %d", m);
+        return -1;
+    }
+    Py_buffer view;
+    const Py_ssize_t shape[1] = {VK_N_PARAMS};
+    if (get_f64(params, &view, 0, 1, shape, "params") != 0) return -1;
+    const double *src = (const double *)view.buf;
+    for (int k = 0; k < VK_N_PARAMS; k++) self->params[k] = src[k];
+    PyBuffer_Release(&view);
+    double *s = (double *)malloc((size_t)m * sizeof(double));
+    if (s == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    /* numpy.linspace(0, 1, m): i * step, the last point exactly 1. */
+    const double step = 1.0 / (double)(m - 1);
+    for (int i = 0; i < m; i++) s[i] = (double)i * step;
+    s[m - 1] = 1.0;
+    free(self->s);
+    self->s = s;
+    self->m = m;
+    return 0;
+}
+
+static PyObject *Kernel_run(KernelObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs < 2 || nargs > 3) {
+        PyErr_SetString(PyExc_TypeError, "run(inputs, out, path=None) takes 2 or 3 arguments");
+        return NULL;
+    }
+    if (self->s == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "Kernel not initialised");
+        return NULL;
+    }
+    const int m = self->m;
+    Py_buffer in_v, out_v, path_v;
+    const Py_ssize_t in_shape[2] = {-1, VK_N_IN};
+    const Py_ssize_t out_shape[2] = {-1, VK_N_OUT};
+    const Py_ssize_t path_shape[3] = {-1, m, 2};
+    int has_path = nargs == 3 && args[2] != Py_None;
+    if (get_f64(args[0], &in_v, 0, 2, in_shape, "inputs") != 0) return NULL;
+    if (get_f64(args[1], &out_v, 1, 2, out_shape, "out") != 0) {
+        PyBuffer_Release(&in_v);
+        return NULL;
+    }
+    if (has_path && get_f64(args[2], &path_v, 1, 3, path_shape, "path") != 0) {
+        PyBuffer_Release(&in_v);
+        PyBuffer_Release(&out_v);
+        return NULL;
+    }
+    const Py_ssize_t n = in_v.shape[0];
+    int bad = out_v.shape[0] != n || (has_path && path_v.shape[0] != n);
+    if (!bad) {
+        const double *in = (const double *)in_v.buf;
+        double *out = (double *)out_v.buf;
+        double *path = has_path ? (double *)path_v.buf : NULL;
+        for (Py_ssize_t r = 0; r < n; r++)
+            vk_evaluate(self->params, self->s, m, in + r * VK_N_IN, out + r * VK_N_OUT,
+                        path != NULL ? path + r * 2 * m : NULL);
+    }
+    Py_ssize_t n_out = out_v.shape[0], n_path = has_path ? path_v.shape[0] : n;
+    PyBuffer_Release(&in_v);
+    PyBuffer_Release(&out_v);
+    if (has_path) PyBuffer_Release(&path_v);
+    if (bad) {
+        PyErr_Format(PyExc_ValueError,
+                     "inputs, out and path must have the same number of rows N; got %zd, %zd, %zd",
+                     n, n_out, n_path);
+        return NULL;
+    }
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef Kernel_methods[] = {
+    {"run", (PyCFunction)(void (*)(void))Kernel_run, METH_FASTCALL,
+     "run(inputs (N, 12), out (N, 32), path (N, m, 2) or None) -> None"},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyObject *Kernel_get_n_samples(KernelObject *self, void *closure)
+{
+    (void)closure;
+    return PyLong_FromLong(self->m);
+}
+
+static PyGetSetDef Kernel_getset[] = {
+    {"n_samples", (getter)Kernel_get_n_samples, NULL, "samples per trajectory", NULL},
+    {NULL, NULL, NULL, NULL, NULL},
+};
+
+static PyTypeObject KernelType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "rt_runtime.planning._verify.Kernel",
+    .tp_basicsize = sizeof(KernelObject),
+    .tp_dealloc = (destructor)Kernel_dealloc,
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Kernel(params float64 (N_PARAMS,), n_samples): packed rig constants and grid.",
+    .tp_methods = Kernel_methods,
+    .tp_getset = Kernel_getset,
+    .tp_init = (initproc)Kernel_init,
+    .tp_new = PyType_GenericNew,
+};
+
+static struct PyModuleDef verify_module = {
+    PyModuleDef_HEAD_INIT, "_verify",
+    "C kernel of rt_runtime.planning.verify (one-shot dig verification).", -1, NULL,
+    NULL, NULL, NULL, NULL,
+};
+
+PyMODINIT_FUNC PyInit__verify(void)
+{
+    if (PyType_Ready(&KernelType) < 0) return NULL;
+    PyObject *mod = PyModule_Create(&verify_module);
+    if (mod == NULL) return NULL;
+    Py_INCREF(&KernelType);
+    if (PyModule_AddObject(mod, "Kernel", (PyObject *)&KernelType) < 0 ||
+        PyModule_AddIntConstant(mod, "ABI", VK_ABI) < 0 ||
+        PyModule_AddIntConstant(mod, "N_PARAMS", VK_N_PARAMS) < 0 ||
+        PyModule_AddIntConstant(mod, "N_IN", VK_N_IN) < 0 ||
+        PyModule_AddIntConstant(mod, "N_OUT", VK_N_OUT) < 0) {
+        Py_DECREF(&KernelType);
+        Py_DECREF(mod);
+        return NULL;
+    }
+    return mod;
+}

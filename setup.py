@@ -1,0 +1,23 @@
+"""Build of the C extension only; every other piece of metadata lives in pyproject.toml.
+
+``rt_runtime.planning._verify`` is the one-shot verifier kernel (see its source for why it is C).
+``pip install -e .`` compiles it in place with the machine's C compiler. It is optional: without
+a compiler the install still succeeds and ``rt_runtime.planning.verify.Verifier`` falls back to
+the numpy reference (``backend="auto"``) or says how to build it (``backend="c"``).
+"""
+
+from setuptools import Extension, setup
+
+setup(
+    ext_modules=[
+        Extension(
+            "rt_runtime.planning._verify",
+            sources=["rt_runtime/planning/_verify.c"],
+            # -O2 and strict IEEE arithmetic: parity with the numpy reference needs no
+            # -ffast-math and no FMA contraction; -fno-math-errno only drops errno writes.
+            extra_compile_args=["-O2", "-std=c99", "-ffp-contract=off", "-fno-math-errno"],
+            libraries=["m"],
+            optional=True,
+        )
+    ],
+)

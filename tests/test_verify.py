@@ -1,0 +1,414 @@
+"""The one-shot verifier: C kernel and numpy backend against oneshot.evaluate, the reference."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from rt_runtime import kinematics
+from rt_runtime.errors import ConfigurationError, PlanningError
+from rt_runtime.planning import oneshot, verify
+from rt_runtime.planning.oneshot import CONSTRAINT_NAMES, DigType
+from rt_runtime.planning.verify import (
+    COL_ENERGY_J,
+    COL_OBJECTIVE,
+    COL_PEAK_POWER_W,
+    COL_PEAK_TORQUE_NM,
+    COL_T_S,
+    COL_THETA_P_RAD,
+    COL_TOTAL,
+    COL_VIOLATIONS,
+    COL_VOLUME_M3,
+    N_IN,
+    N_OUT,
+    Verifier,
+    VerifyResult,
+)
+from rt_runtime.rig import Rig, load_rig
+from rt_runtime.trajectory import sextic
+
+RTOL = 1e-9
+ATOL = 1e-12
+
+SCALE = load_rig("scale_model")
+
+
+def _variant(rig: Rig) -> Rig:
+    """The scale model with every constant the kernel packs changed: catches hard-coded values."""
+    assert rig.planning is not None
+    boom, stick, bucket = (
+        dataclasses.replace(
+            lk,
+            length_m=lk.length_m * f,
+            mass_kg=lk.mass_kg * m,
+            com_m=(lk.com_m[0] * 0.9, lk.com_m[1] + 0.01 * (i + 1)),
+            inertia_kgm2=lk.inertia_kgm2 * (1.5 + i),
+        )
+        for i, (lk, f, m) in enumerate(
+            zip(rig.links, (1.08, 0.93, 1.05), (1.7, 0.6, 2.3), strict=True)
+        )
+    )
+    j_boom, j_stick, j_bucket = (
+        dataclasses.replace(
+            j,
+            min_rad=j.min_rad - 0.05,
+            max_rad=j.max_rad + 0.03 * (i + 1),
+            velocity_max_rad_s=j.velocity_max_rad_s * (1.2 + 0.1 * i),
+            acceleration_max_rad_s2=j.acceleration_max_rad_s2 * (1.3 + 0.2 * i),
+            torque_max_nm=j.torque_max_nm * (0.4 - 0.05 * i),
+        )
+        for i, j in enumerate(rig.joints)
+    )
+    soil = dataclasses.replace(
+        rig.soil, yao=dataclasses.replace(rig.soil.yao, k0_n_m2=7.3e4, mu=0.55)
+    )
+    planning = dataclasses.replace(
+        rig.planning,
+        t_min_s=4.0,
+        t_max_s=11.0,
+        volume_min_m3=0.8e-3,
+        volume_max_m3=6.6e-3,
+        energy_min_j=70.0,
+        energy_max_j=450.0,
+        power_max_w=300.0,
+        weights=(0.6, 0.15, 0.25),
+        theta_p_downward_rad=(math.radians(35.0), math.radians(85.0)),
+        theta_p_backward_rad=(math.radians(-5.0), math.radians(45.0)),
+    )
+    return dataclasses.replace(
+        rig,
+        name="scale_model_variant",
+        gravity_m_s2=9.7,
+        links=(boom, stick, bucket),
+        joints=(j_boom, j_stick, j_bucket),
+        soil=soil,
+        bucket=dataclasses.replace(rig.bucket, width_m=0.27),
+        planning=planning,
+    )
+
+
+VARIANT = _variant(SCALE)
+RIGS = {"scale_model": SCALE, "variant": VARIANT}
+
+
+def _candidates(rig: Rig, n_problems: int, seed: int) -> np.ndarray:
+    """Input rows: random particles in the search box on sampled problems of both dig types.
+
+    Per problem five candidates: two on the sampled surface (the dig starts on it), one with
+    the surface 3 cm lower (starts above it: entry on a later segment, or never), one 0.5 mm
+    lower (above, but within the 1 mm that counts as a start on the surface) and one 2 cm
+    higher (starts buried).
+    """
+    rng = np.random.default_rng(seed)
+    lo, hi = oneshot.search_bounds(rig)
+    rows = []
+    for kind in DigType:
+        for p in oneshot.sample_problems(rig, n_problems, kind, seed=seed + int(kind)):
+            for shift in (0.0, 0.0, -0.03, -5e-4, 0.02):
+                a6, T = oneshot.a6_from_particle(rng.uniform(lo, hi))
+                rows.append(
+                    verify.pack_inputs(
+                        p.q_start_rad, p.q_end_rad, p.surface_y_m + shift, kind, a6, T
+                    )[0]
+                )
+    return np.array(rows)
+
+
+def _reference(rig: Rig, x: np.ndarray, n_samples: int) -> oneshot.Evaluation:
+    """oneshot.evaluate on input rows, each its own problem with one candidate."""
+    return oneshot.evaluate(
+        rig,
+        x[:, 0:3],
+        x[:, 3:6],
+        x[:, 6],
+        x[:, 7].astype(int),
+        x[:, None, 8:11],
+        x[:, None, 11],
+        n_samples,
+    )
+
+
+def _reference_rows(ev: oneshot.Evaluation) -> np.ndarray:
+    n = ev.T_s.shape[0]
+    out = np.empty((n, N_OUT))
+    out[:, COL_VIOLATIONS : COL_VIOLATIONS + len(CONSTRAINT_NAMES)] = ev.violations[:, 0]
+    out[:, COL_TOTAL] = ev.total_violation[:, 0]
+    out[:, COL_OBJECTIVE] = ev.objective[:, 0]
+    out[:, COL_T_S] = ev.T_s[:, 0]
+    out[:, COL_VOLUME_M3] = ev.volume_m3[:, 0]
+    out[:, COL_ENERGY_J] = ev.energy_j[:, 0]
+    out[:, COL_THETA_P_RAD] = ev.theta_p_rad[:, 0]
+    out[:, COL_PEAK_POWER_W] = ev.peak_power_w[:, 0]
+    out[:, COL_PEAK_TORQUE_NM : COL_PEAK_TORQUE_NM + 3] = ev.peak_torque_nm[:, 0]
+    return out
+
+
+def _column_name(j: int) -> str:
+    if j < len(CONSTRAINT_NAMES):
+        return CONSTRAINT_NAMES[j]
+    names = {
+        COL_TOTAL: "total_violation",
+        COL_OBJECTIVE: "objective",
+        COL_T_S: "T_s",
+        COL_VOLUME_M3: "volume_m3",
+        COL_ENERGY_J: "energy_j",
+        COL_THETA_P_RAD: "theta_p_rad",
+        COL_PEAK_POWER_W: "peak_power_w",
+    }
+    return names.get(j, f"peak_torque_nm[{j - COL_PEAK_TORQUE_NM}]")
+
+
+def _assert_rows_close(got: np.ndarray, want: np.ndarray, x: np.ndarray) -> None:
+    """Every output within RTOL/ATOL; on failure name the worst row, column and its input."""
+    err = np.abs(got - want) / (ATOL + RTOL * np.abs(want))
+    if not np.all(err <= 1.0):
+        i, j = np.unravel_index(int(np.argmax(np.where(np.isnan(err), np.inf, err))), err.shape)
+        pytest.fail(
+            f"{_column_name(int(j))} of row {i}: got {got[i, j]!r}, reference {want[i, j]!r}; "
+            f"input row {x[i].tolist()!r}"
+        )
+
+
+@pytest.fixture(scope="module")
+def c_verifiers() -> dict[str, Verifier]:
+    # backend "c" raises when the kernel is not built: the product needs it, so that fails here.
+    return {name: Verifier(rig, backend="c") for name, rig in RIGS.items()}
+
+
+@pytest.mark.parametrize("rig_name", list(RIGS))
+def test_c_kernel_equals_evaluate_on_random_candidates(
+    rig_name: str, c_verifiers: dict[str, Verifier]
+) -> None:
+    rig = RIGS[rig_name]
+    x = _candidates(rig, 25, seed=11)
+    ev = _reference(rig, x, oneshot.DEFAULT_SAMPLES)
+    out = np.full((x.shape[0], N_OUT), -7.0)
+    c_verifiers[rig_name].evaluate_into(x, out)
+    _assert_rows_close(out, _reference_rows(ev), x)
+    np.testing.assert_array_equal(out[:, COL_TOTAL] <= 0.0, ev.feasible[:, 0])
+    # The set must exercise what it claims to: every entry case and some feasible digs.
+    theta_p = ev.theta_p_rad[:, 0]
+    assert np.sum(theta_p == -0.5 * np.pi) >= 5, "no path that never enters"
+    assert np.sum(x[:, 6] < kinematics.forward(rig, x[:, 0:3])[:, 1] - 1e-3) >= 40
+    assert np.any(np.all(ev.violations[:, 0, 16:18] <= 0.0, axis=-1)), "no theta_p in range"
+
+
+@pytest.mark.parametrize("rig_name", list(RIGS))
+def test_feasibility_agrees_near_the_boundary(
+    rig_name: str, c_verifiers: dict[str, Verifier]
+) -> None:
+    """Random candidates are rarely feasible: screen 2000 with the kernel, check the closest."""
+    rig = RIGS[rig_name]
+    x = _candidates(rig, 250, seed=21)
+    out = np.empty((x.shape[0], N_OUT))
+    c_verifiers[rig_name].evaluate_into(x, out)
+    near = out[:, COL_TOTAL] <= 0.05
+    ev = _reference(rig, x[near], oneshot.DEFAULT_SAMPLES)
+    _assert_rows_close(out[near], _reference_rows(ev), x[near])
+    np.testing.assert_array_equal(out[near, COL_TOTAL] <= 0.0, ev.feasible[:, 0])
+    assert np.sum(ev.feasible) >= 3, "too few feasible candidates to test the flag"
+    assert np.sum(~ev.feasible) >= 3
+
+
+@pytest.mark.parametrize("n_samples", [3, 33, 64, 65])
+def test_c_kernel_equals_evaluate_on_other_grids(n_samples: int) -> None:
+    """Grids that end exactly on, just after, and before the kernel's 32-sample blocks."""
+    x = _candidates(SCALE, 5, seed=5)
+    out = np.empty((x.shape[0], N_OUT))
+    Verifier(SCALE, n_samples, backend="c").evaluate_into(x, out)
+    _assert_rows_close(out, _reference_rows(_reference(SCALE, x, n_samples)), x)
+
+
+def test_feasible_candidates_pass() -> None:
+    """Feasible plans from the PSO teacher come out feasible, with the reference's numbers."""
+    problems = oneshot.sample_problems(SCALE, 2, DigType.DOWNWARD, seed=1)
+    solutions = oneshot.solve_pso(SCALE, problems, n_particles=20, n_iterations=20, seed=0)
+    verifier = Verifier(SCALE, backend="c")
+    n_feasible = 0
+    for p, sol in zip(problems, solutions, strict=True):
+        res = verifier.check(
+            p.q_start_rad, p.q_end_rad, p.surface_y_m, p.dig_type, sol.a6, sol.T_s
+        )
+        # Optima sit on constraint boundaries: the flag may differ where a margin is rounding.
+        assert res.total_violation <= ATOL if sol.feasible else res.total_violation > 0.0
+        assert res.objective == pytest.approx(sol.objective, rel=RTOL, abs=ATOL)
+        n_feasible += sol.feasible
+    assert n_feasible >= 1, "the PSO found no feasible plan: the test checks nothing"
+
+
+def test_numpy_backend_is_evaluate() -> None:
+    x = _candidates(SCALE, 4, seed=2)
+    verifier = Verifier(SCALE, backend="numpy")
+    assert verifier.backend == "numpy"
+    out = np.empty((x.shape[0], N_OUT))
+    verifier.evaluate_into(x, out)
+    np.testing.assert_array_equal(out, _reference_rows(_reference(SCALE, x, 101)))
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_path_is_the_forward_kinematics_of_the_samples(backend: str) -> None:
+    x = _candidates(SCALE, 3, seed=4)
+    n = 57
+    path = np.empty((x.shape[0], n, 2))
+    out = np.empty((x.shape[0], N_OUT))
+    Verifier(SCALE, n, backend=backend).evaluate_into(x, out, path)
+    coeffs = sextic.sextic_coefficients(x[:, 0:3], x[:, 3:6], x[:, 8:11], x[:, 11])
+    q = sextic.evaluate(coeffs, x[:, 11], n).q_rad
+    np.testing.assert_allclose(path, kinematics.forward(SCALE, q)[..., :2], rtol=0, atol=1e-12)
+    # At t = 0 the pose is q_start exactly, and its tip bit for bit what evaluate computes.
+    pose, _ = kinematics.tip_state(SCALE, x[:, 0:3], np.zeros((x.shape[0], 3)))
+    np.testing.assert_array_equal(path[:, 0], pose[:, :2])
+
+
+def _bad_rows(x: np.ndarray) -> np.ndarray:
+    """Rows evaluate refuses (or whose arithmetic overflows), each a copy of a valid row."""
+    bad = []
+    for col in range(N_IN):
+        for value in (np.nan, np.inf, -np.inf):
+            row = x[0].copy()
+            row[col] = value
+            bad.append(row)
+    for col, value in ((11, 0.0), (11, -3.0), (7, 2.0), (7, 0.5), (11, 1e-300), (8, 1e300)):
+        row = x[0].copy()
+        row[col] = value
+        bad.append(row)
+    return np.array(bad)
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_bad_rows_are_rejected_without_touching_the_others(backend: str) -> None:
+    x = _candidates(SCALE, 2, seed=3)
+    bad = _bad_rows(x)
+    mixed = np.concatenate([x[:3], bad, x[3:]])
+    n = 41
+    out = np.empty((mixed.shape[0], N_OUT))
+    path = np.empty((mixed.shape[0], n, 2))
+    verifier = Verifier(SCALE, n, backend=backend)
+    verifier.evaluate_into(mixed, out, path)
+    rejected = out[3 : 3 + len(bad)]
+    assert np.all(rejected[:, COL_TOTAL] == np.inf), rejected[:, COL_TOTAL]
+    # Rows refused before any arithmetic carry NaN everywhere else.
+    assert np.all(np.isnan(np.delete(rejected[: 3 * N_IN + 4], COL_TOTAL, axis=1)))
+    good = np.concatenate([out[:3], out[3 + len(bad) :]])
+    alone = np.empty((x.shape[0], N_OUT))
+    good_path = np.concatenate([path[:3], path[3 + len(bad) :]])
+    alone_path = np.empty((x.shape[0], n, 2))
+    verifier.evaluate_into(x, alone, alone_path)
+    np.testing.assert_array_equal(good, alone)
+    np.testing.assert_array_equal(good_path, alone_path)
+
+
+def test_overflowing_row_is_rejected_as_by_evaluate() -> None:
+    """Huge a6: finite input, overflowing arithmetic; evaluate's own total is inf or NaN."""
+    x = _candidates(SCALE, 1, seed=9)[:1].copy()
+    x[0, 8] = 1e300
+    with np.errstate(all="ignore"):
+        ev = _reference(SCALE, x, 101)
+    assert not np.isfinite(ev.total_violation[0, 0])
+    out = np.empty((1, N_OUT))
+    Verifier(SCALE, backend="c").evaluate_into(x, out)
+    assert out[0, COL_TOTAL] == np.inf
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"q_end_rad": (0.1, np.nan, 0.0)}, r"q_end_rad\[1\] is nan"),
+        ({"a6": (np.inf, 0.0, 0.0)}, r"a6\[0\] is inf"),
+        ({"surface_y_m": np.nan}, "surface_y_m"),
+        ({"T_s": 0.0}, "T_s must be finite and > 0"),
+        ({"T_s": np.inf}, "T_s must be finite and > 0"),
+        ({"dig_type": 2}, "dig_type must be one of DOWNWARD"),
+    ],
+)
+def test_check_raises_naming_the_bad_input(change: dict[str, object], message: str) -> None:
+    p = oneshot.sample_problems(SCALE, 1, DigType.BACKWARD, seed=0)[0]
+    args: dict[str, object] = {
+        "q_start_rad": p.q_start_rad,
+        "q_end_rad": p.q_end_rad,
+        "surface_y_m": p.surface_y_m,
+        "dig_type": p.dig_type,
+        "a6": (1e-6, -2e-6, 0.0),
+        "T_s": 7.0,
+    }
+    args.update(change)
+    for backend in ("c", "numpy"):
+        with pytest.raises(PlanningError, match=message):
+            Verifier(SCALE, backend=backend).check(**args)  # type: ignore[arg-type]
+
+
+def test_check_matches_evaluate_into() -> None:
+    x = _candidates(SCALE, 1, seed=6)
+    verifier = Verifier(SCALE, backend="c")
+    out = np.empty((x.shape[0], N_OUT))
+    verifier.evaluate_into(x, out)
+    for row, o in zip(x, out, strict=True):
+        res = verifier.check(row[0:3], row[3:6], row[6], DigType(int(row[7])), row[8:11], row[11])
+        np.testing.assert_array_equal(res.violations, o[:22])
+        np.testing.assert_array_equal(res.peak_torque_nm, o[COL_PEAK_TORQUE_NM:])
+        assert (res.total_violation, res.objective, res.T_s) == tuple(o[22:25])
+        assert (res.volume_m3, res.energy_j, res.theta_p_rad, res.peak_power_w) == tuple(o[25:29])
+        assert res.feasible == (o[COL_TOTAL] <= 0.0)
+        assert not res.violations.flags.writeable
+
+
+def test_worst_names_the_largest_violation() -> None:
+    row = np.zeros(N_OUT)
+    row[:22] = -np.linspace(1.0, 0.1, 22)
+    row[17] = 0.25
+    row[3] = 0.2
+    row[COL_TOTAL] = 0.45
+    res = VerifyResult.from_row(row)
+    assert res.worst() == ("theta_p_max", 0.25)
+    assert not res.feasible
+    row[:22] = -np.linspace(1.0, 0.1, 22)
+    row[COL_TOTAL] = 0.0
+    res = VerifyResult.from_row(row)
+    name, value = res.worst()
+    assert name == "time_max" and value == pytest.approx(-0.1)
+    assert res.feasible
+    row[5] = np.nan
+    assert VerifyResult.from_row(row).worst()[0] == "angle_max_bucket"
+    with pytest.raises(ValueError, match=r"shape \(32,\)"):
+        VerifyResult.from_row(row[:-1])
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_wrong_arrays_raise_value_error(backend: str) -> None:
+    v = Verifier(SCALE, 11, backend=backend)
+    x = _candidates(SCALE, 1, seed=1)[:2].copy()
+    out = np.empty((2, N_OUT))
+    cases: list[tuple[np.ndarray, np.ndarray, np.ndarray | None, str]] = [
+        (x[:, :11].copy(), out, None, r"inputs must have shape \(N, 12\)"),
+        (x.astype(np.float32), out, None, "float64"),
+        (np.repeat(x, 2, axis=1)[:, ::2], out, None, "C-contiguous"),
+        (x, np.empty((2, N_OUT), dtype=np.float32), None, "float64"),
+        (x, np.empty((3, N_OUT)), None, "same number of rows"),
+        (x, out, np.empty((2, 12, 2)), r"path must have shape \(N, 11, 2\)"),
+        (x, out, np.empty((1, 11, 2)), "same number of rows"),
+    ]
+    for inputs, o, path, message in cases:
+        with pytest.raises(ValueError, match=message):
+            v.evaluate_into(inputs, o, path)
+    frozen = out.copy()
+    frozen.setflags(write=False)
+    with pytest.raises(ValueError, match="writable"):
+        v.evaluate_into(x, frozen)
+
+
+def test_backend_selection_and_configuration_errors(monkeypatch: pytest.MonkeyPatch) -> None:
+    assert Verifier(SCALE).backend == "c"  # built by pip install -e .
+    assert Verifier(SCALE, backend="numpy").backend == "numpy"
+    with pytest.raises(ConfigurationError, match="backend must be one of auto, c, numpy"):
+        Verifier(SCALE, backend="fortran")
+    with pytest.raises(ConfigurationError, match="n_samples must be >= 2"):
+        Verifier(SCALE, 1)
+    with pytest.raises(ConfigurationError, match="no \\[planning\\] table"):
+        Verifier(dataclasses.replace(SCALE, planning=None))
+    monkeypatch.setattr(verify, "_load_extension", lambda: None)
+    assert Verifier(SCALE).backend == "numpy"
+    with pytest.raises(ConfigurationError, match=r"pip install -e \."):
+        Verifier(SCALE, backend="c")

@@ -130,3 +130,204 @@ def bench_oneshot(
         "speedup_vs_yao_pso": YAO_PSO_SOLVE_S[0] / out["solve_s"]["p50"],
     }
     return out
+
+
+YAO_PINN_PLAN_MS = (4.2, 4.5)  # Yao Table 4: PINN planning time per dig
+#: Yao Table 4: mean of the four task averages (Ave-A..Ave-D; t s, V_p 10^3 cm^3 = L, W_E Wh).
+YAO_TABLE4_MEAN = {
+    "pso": {"T_s": 6.875, "volume_L": 4.9125, "energy_Wh": 0.05925},
+    "pinn": {"T_s": 6.995, "volume_L": 4.9125, "energy_Wh": 0.062},
+}
+
+
+def load_heldout(path: Any) -> dict[str, np.ndarray]:
+    """A held-out set written by :func:`rt_runtime.training.export.write_heldout`."""
+    from pathlib import Path
+
+    from rt_runtime.errors import ConfigurationError
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigurationError(
+            f"held-out set {p} does not exist (written by `excavator-rt export`)"
+        )
+    with np.load(p) as z:
+        return {k: z[k] for k in z.files}
+
+
+def bench_pinn(
+    rig: Rig,
+    model_dir: Any = None,
+    *,
+    limit: int | None = None,
+    passes: int = 5,
+    pso_problems: int = 10,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """PINN planner on the held-out sets: quality against the PSO teacher, latency.
+
+    For each dig type, every held-out problem is planned by
+    :meth:`rt_runtime.planning.pinn.PinnPlanner.plan` (domain check, inference, verification,
+    repair or refusal). Quality is judged twice: the network's raw answers by the numpy
+    reference evaluation (``raw_feasible``, objective gap to the teacher), and every returned
+    plan again by the numpy reference (``executed_feasible``, which must be 1.0). Latency is
+    measured over ``passes`` passes over the problems; inference alone over as many bare
+    onnxruntime calls. The PSO teacher solves ``pso_problems`` of them per type in the same run.
+
+    Returns:
+        JSON-ready dict with ``samples``, ``gap_mean``, ``gap_max`` (fractions of the teacher's
+        objective, raw network answers), ``raw_feasible``, ``verified_feasible`` (a verified plan
+        was returned, raw or repaired), ``refused`` (fractions), ``executed_feasible``,
+        ``infer_us`` and ``plan_us`` (p50, p99, p999, max), ``pso_solve_s`` (p50, p99),
+        ``speedup_vs_pso``, ``table4`` (per type: PSO vs PINN mean T, V_p, W_E and planning time),
+        ``types`` (the same per type), ``goals``, ``paper``.
+    """
+    from pathlib import Path
+
+    from rt_runtime.errors import PlanningError
+    from rt_runtime.planning import oneshot
+    from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR, PinnPlanner, PlanStatus
+
+    directory = Path(model_dir) if model_dir is not None else DEFAULT_MODEL_DIR
+    planner = PinnPlanner(rig, directory)
+    out: dict[str, Any] = {"rig": rig.name, "verifier": planner.verifier.backend, "types": {}}
+    all_infer: list[float] = []
+    all_plan: list[float] = []
+    all_gap: list[float] = []
+    counts = {"n": 0, "raw": 0, "verified": 0, "refused": 0, "executed_ok": 0, "returned": 0}
+    pso_s: list[float] = []
+    table4: dict[str, Any] = {}
+    for kind in oneshot.DigType:
+        name = kind.name.lower()
+        held = load_heldout(directory / f"pinn_{name}_heldout.npz")
+        X = held["X"][:limit]
+        n = X.shape[0]
+        # Raw answers, judged by the numpy reference.
+        Y = planner.infer(kind, X)
+        ev = oneshot.evaluate(
+            rig, X[:, 0:3], X[:, 3:6], X[:, 6], int(kind), Y[:, None, :3], Y[:, None, 3]
+        )
+        teacher = held["objective"][:n]
+        gap = (ev.objective[:, 0] - teacher) / np.abs(teacher)
+        all_gap.extend(gap.tolist())
+        plans: list[Any] = []
+        refused: list[str] = []
+        plan_us: list[float] = []
+        for p in range(passes):
+            for i in range(n):
+                try:
+                    plan = planner.plan(X[i, 0:3], X[i, 3:6], float(X[i, 6]), kind)
+                except PlanningError as exc:
+                    if p == 0:
+                        refused.append(str(exc))
+                        plans.append(None)
+                    continue
+                plan_us.append(plan.plan_us)
+                if p == 0:
+                    plans.append(plan)
+        # Inference alone: the bare bound session call.
+        sess = planner._sessions[kind]
+        infer_us = []
+        for i in range(n * passes):
+            sess.x[0] = X[i % n]
+            t0 = time.perf_counter()
+            sess.run(sess.binding)
+            infer_us.append((time.perf_counter() - t0) * 1e6)
+        returned = [pl for pl in plans if pl is not None]
+        ok = 0
+        if returned:
+            a6 = np.array([pl.a6 for pl in returned])
+            T = np.array([pl.T_s for pl in returned])
+            idx = np.array([i for i, pl in enumerate(plans) if pl is not None])
+            ev_exec = oneshot.evaluate(
+                rig, X[idx, 0:3], X[idx, 3:6], X[idx, 6], int(kind), a6[:, None, :], T[:, None]
+            )
+            ok = int(np.sum(ev_exec.feasible[:, 0]))
+        n_raw = sum(1 for pl in returned if pl.status == PlanStatus.RAW)
+        # The teacher on a few of the same problems, in the same run.
+        sub = [
+            oneshot.Problem(
+                q_start_rad=tuple(X[i, 0:3]),  # type: ignore[arg-type]
+                q_end_rad=tuple(X[i, 3:6]),  # type: ignore[arg-type]
+                surface_y_m=float(X[i, 6]),
+                dig_type=kind,
+            )
+            for i in range(min(pso_problems, n))
+        ]
+        for prob in sub:
+            t0 = time.perf_counter()
+            oneshot.solve_pso(rig, [prob], seed=seed)
+            pso_s.append(time.perf_counter() - t0)
+        fin = [pl for pl in returned]
+        table4[name] = {
+            "pso": {
+                "T_s": float(np.mean(held["T_s"][:n])),
+                "volume_L": float(np.mean(held["volume_m3"][:n]) * 1e3),
+                "energy_Wh": float(np.mean(held["energy_j"][:n]) / 3600.0),
+                "plan_s": float(np.median(pso_s[-len(sub) :])) if sub else float("nan"),
+            },
+            "pinn": {
+                "T_s": float(np.mean([pl.T_s for pl in fin])) if fin else float("nan"),
+                "volume_L": float(np.mean([pl.verification.volume_m3 for pl in fin]) * 1e3)
+                if fin
+                else float("nan"),
+                "energy_Wh": float(np.mean([pl.verification.energy_j for pl in fin]) / 3600.0)
+                if fin
+                else float("nan"),
+                "plan_ms": float(np.median(plan_us) / 1e3) if plan_us else float("nan"),
+            },
+        }
+        out["types"][name] = {
+            "samples": n,
+            "gap_mean": float(np.mean(gap)),
+            "gap_max": float(np.max(gap)),
+            "raw_feasible": float(np.mean(ev.feasible[:, 0])),
+            "plan_raw": n_raw / n,
+            "time_scaled": sum(1 for pl in returned if pl.status == PlanStatus.TIME_SCALED) / n,
+            "refined": sum(1 for pl in returned if pl.status == PlanStatus.REFINED) / n,
+            "refused": len(refused) / n,
+            "refusals": refused[:5],
+            "plan_us": percentiles(plan_us, tails=True) if plan_us else None,
+            "infer_us": percentiles(infer_us, tails=True),
+        }
+        counts["n"] += n
+        counts["raw"] += int(np.sum(ev.feasible[:, 0]))
+        counts["verified"] += len(returned)
+        counts["refused"] += len(refused)
+        counts["returned"] += len(returned)
+        counts["executed_ok"] += ok
+        all_infer.extend(infer_us)
+        all_plan.extend(plan_us)
+    out.update(
+        {
+            "samples": counts["n"],
+            "gap_mean": float(np.mean(all_gap)),
+            "gap_max": float(np.max(all_gap)),
+            "raw_feasible": counts["raw"] / counts["n"],
+            "verified_feasible": counts["verified"] / counts["n"],
+            "refused": counts["refused"] / counts["n"],
+            "executed_feasible": counts["executed_ok"] / counts["returned"]
+            if counts["returned"]
+            else float("nan"),
+            "infer_us": percentiles(all_infer, tails=True),
+            "plan_us": percentiles(all_plan, tails=True),
+            "pso_solve_s": percentiles(pso_s),
+            "table4": table4,
+        }
+    )
+    out["speedup_vs_pso"] = out["pso_solve_s"]["p50"] / (out["plan_us"]["p50"] * 1e-6)
+    out["goals"] = {
+        "gap_mean_max": 0.03,
+        "raw_feasible_min": 0.95,
+        "executed_feasible": 1.0,
+        "plan_us_p50_max": 20.0,
+        "plan_us_p99_max": 100.0,
+    }
+    out["paper"] = {
+        "yao_pinn_plan_ms": list(YAO_PINN_PLAN_MS),
+        "yao_pso_solve_s": list(YAO_PSO_SOLVE_S),
+        "yao_gap_approx": 0.05,
+        "yao_table4_mean": YAO_TABLE4_MEAN,
+        "speedup_vs_yao_pinn": YAO_PINN_PLAN_MS[0] * 1e3 / out["plan_us"]["p50"],
+    }
+    return out

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import types
+import warnings
 
 import numpy as np
 import pytest
 
-from rt_runtime import kinematics
+from rt_runtime import dynamics, kinematics
 from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.planning import oneshot, verify
 from rt_runtime.planning.oneshot import CONSTRAINT_NAMES, DigType
@@ -24,6 +26,11 @@ from rt_runtime.planning.verify import (
     COL_VOLUME_M3,
     N_IN,
     N_OUT,
+    N_RETIMED,
+    RETIME_RTOL,
+    RT_A6,
+    RT_T_S,
+    TIME_DEPENDENT,
     Verifier,
     VerifyResult,
 )
@@ -222,10 +229,22 @@ def test_c_kernel_equals_evaluate_on_other_grids(n_samples: int) -> None:
     _assert_rows_close(out, _reference_rows(_reference(SCALE, x, n_samples)), x)
 
 
-def test_feasible_candidates_pass() -> None:
-    """Feasible plans from the PSO teacher come out feasible, with the reference's numbers."""
-    problems = oneshot.sample_problems(SCALE, 2, DigType.DOWNWARD, seed=1)
+@pytest.fixture(scope="module")
+def pso_plans() -> tuple[list[oneshot.Problem], list[oneshot.Solution]]:
+    """Plans of the PSO teacher (small swarm) for two problems of each dig type."""
+    problems = [
+        *oneshot.sample_problems(SCALE, 2, DigType.DOWNWARD, seed=1),
+        *oneshot.sample_problems(SCALE, 2, DigType.BACKWARD, seed=2),
+    ]
     solutions = oneshot.solve_pso(SCALE, problems, n_particles=20, n_iterations=20, seed=0)
+    return problems, solutions
+
+
+def test_feasible_candidates_pass(
+    pso_plans: tuple[list[oneshot.Problem], list[oneshot.Solution]],
+) -> None:
+    """Feasible plans from the PSO teacher come out feasible, with the reference's numbers."""
+    problems, solutions = pso_plans
     verifier = Verifier(SCALE, backend="c")
     n_feasible = 0
     for p, sol in zip(problems, solutions, strict=True):
@@ -412,3 +431,355 @@ def test_backend_selection_and_configuration_errors(monkeypatch: pytest.MonkeyPa
     assert Verifier(SCALE).backend == "numpy"
     with pytest.raises(ConfigurationError, match=r"pip install -e \."):
         Verifier(SCALE, backend="c")
+
+
+# ------------------------------------------------------------------------------------------
+# Retiming: the shortest feasible T along a kept path.
+# ------------------------------------------------------------------------------------------
+
+# The scale model with a 100 W power limit: power then binds on some random candidates, which
+# takes the kernel's search (scan and Illinois) instead of its closed forms.
+def _power_limited(rig: Rig) -> Rig:
+    assert rig.planning is not None
+    planning = dataclasses.replace(rig.planning, power_max_w=100.0)
+    return dataclasses.replace(rig, name=f"{rig.name}_100W", planning=planning)
+
+
+POWER_LIMITED = _power_limited(SCALE)
+RETIME_RIGS = {**RIGS, "power_limited": POWER_LIMITED}
+TD = list(TIME_DEPENDENT)
+
+
+def _shape_terms(x: np.ndarray) -> np.ndarray:
+    """K = -a6 T^6 of input rows (oneshot.particle_from_a6), the path a retiming keeps."""
+    return np.asarray(-x[:, 8:11] * x[:, 11, None] ** 6)
+
+
+def _at_time(x: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Input rows ``x`` moved to durations ``T`` along their own paths."""
+    y = x.copy()
+    y[:, 8:11] = -_shape_terms(x) / np.asarray(T)[:, None] ** 6
+    y[:, 11] = T
+    return y
+
+
+def _retime(verifier: Verifier, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    out = np.full((x.shape[0], N_OUT), -7.0)
+    retimed = np.full((x.shape[0], N_RETIMED), -7.0)
+    verifier.retime_into(x, out, retimed)
+    return out, retimed
+
+
+def _time_ok(out: np.ndarray) -> np.ndarray:
+    """Whether the time-dependent constraints of output rows hold."""
+    return np.asarray(np.all(out[:, TD] <= 0.0, axis=1))
+
+
+def _time_violation(out: np.ndarray) -> np.ndarray:
+    return np.asarray(np.sum(np.maximum(out[:, TD], 0.0), axis=1))
+
+
+@pytest.fixture(scope="module")
+def retime_verifiers() -> dict[str, tuple[Verifier, Verifier]]:
+    """(C, numpy) verifiers per retiming rig."""
+    return {
+        name: (Verifier(rig, backend="c"), Verifier(rig, backend="numpy"))
+        for name, rig in RETIME_RIGS.items()
+    }
+
+
+@pytest.mark.parametrize("rig_name", list(RETIME_RIGS))
+def test_retime_c_equals_the_numpy_reference(
+    rig_name: str, retime_verifiers: dict[str, tuple[Verifier, Verifier]]
+) -> None:
+    """Same T' (within RETIME_RTOL), same feasibility; out is the real evaluation at T'."""
+    rig = RETIME_RIGS[rig_name]
+    assert rig.planning is not None
+    c_verifier, np_verifier = retime_verifiers[rig_name]
+    every = _candidates(rig, 25, seed=31)
+    out_all, rt_all = _retime(c_verifier, every)
+    # The first 30 rows and every row where power binds at T' (the searched case).
+    power_binds = _time_ok(out_all) & (out_all[:, 15] > -1e-6)
+    pick = np.flatnonzero(power_binds | (np.arange(every.shape[0]) < 30))
+    x = every[pick]
+    out_c, rt_c = out_all[pick], rt_all[pick]
+    out_n, rt_n = _retime(np_verifier, x)
+
+    ok_c, ok_n = _time_ok(out_c), _time_ok(out_n)
+    for i in np.flatnonzero(ok_c != ok_n):
+        pytest.fail(f"time feasibility C {ok_c[i]} numpy {ok_n[i]} at T' {rt_c[i, 3]!r} / "
+                    f"{rt_n[i, 3]!r}; input row {x[i].tolist()!r}")
+    np.testing.assert_array_equal(out_c[:, COL_TOTAL] <= 0.0, out_n[:, COL_TOTAL] <= 0.0)
+    rel = np.abs(rt_c[:, RT_T_S] / rt_n[:, RT_T_S] - 1.0)
+    for i in np.flatnonzero(ok_c & (rel > RETIME_RTOL)):
+        pytest.fail(f"T' C {rt_c[i, 3]!r} numpy {rt_n[i, 3]!r}; input row {x[i].tolist()!r}")
+    # Where nothing works: the least violating T' in range, never worse than t_max.
+    T_c = rt_c[:, RT_T_S]
+    assert np.all((T_c >= rig.planning.t_min_s) & (T_c <= rig.planning.t_max_s))
+    at_t_max = np.empty_like(out_c)
+    c_verifier.evaluate_into(_at_time(x, np.full(x.shape[0], rig.planning.t_max_s)), at_t_max)
+    assert np.all(_time_violation(out_c) <= _time_violation(at_t_max) + 1e-9)
+    # out is the evaluation of the retimed row, bit for bit (C) and to the reference (numpy).
+    for verifier, out, rt in ((c_verifier, out_c, rt_c), (np_verifier, out_n, rt_n)):
+        y = x.copy()
+        y[:, 8:11] = rt[:, RT_A6 : RT_A6 + 3]
+        y[:, 11] = rt[:, RT_T_S]
+        again = np.empty_like(out)
+        verifier.evaluate_into(y, again)
+        np.testing.assert_array_equal(out, again)
+    # Where both found T', it agrees to ~1e-9 and so do the evaluations.
+    np.testing.assert_allclose(out_c[ok_c], out_n[ok_c], rtol=1e-7, atol=1e-8)
+    # The set exercises what it claims to.
+    assert np.sum(ok_c) >= 10 and np.sum(~ok_c) >= 3
+    assert np.any(rt_c[:, RT_T_S] < x[:, 11]) and np.any(rt_c[:, RT_T_S] > x[:, 11])
+    if rig_name == "power_limited":
+        assert np.sum(power_binds) >= 5, "power never binds: the search goes untested"
+
+
+@pytest.mark.parametrize("rig_name", list(RETIME_RIGS))
+def test_retime_is_minimal(
+    rig_name: str, retime_verifiers: dict[str, tuple[Verifier, Verifier]]
+) -> None:
+    """At T' (1 - 2 RETIME_RTOL) some time-dependent constraint fails, unless T' = t_min."""
+    rig = RETIME_RIGS[rig_name]
+    assert rig.planning is not None
+    c_verifier, _ = retime_verifiers[rig_name]
+    x = _candidates(rig, 50, seed=41)
+    out, rt = _retime(c_verifier, x)
+    found = _time_ok(out)
+    above = found & (rt[:, RT_T_S] > rig.planning.t_min_s)
+    assert np.sum(above) >= 100
+    if rig_name == "scale_model":
+        assert np.sum(found & ~above) >= 2, "no row retimed to t_min"
+    y = _at_time(x[above], rt[above, RT_T_S] * (1.0 - 2.0 * RETIME_RTOL))
+    faster = np.empty((y.shape[0], N_OUT))
+    c_verifier.evaluate_into(y, faster)
+    for i in np.flatnonzero(_time_ok(faster)):
+        pytest.fail(f"feasible below T' {rt[above][i, 3]!r}: input row {x[above][i].tolist()!r}")
+    np.testing.assert_array_equal(rt[found & ~above, RT_T_S], rig.planning.t_min_s)
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_retime_keeps_the_path(backend: str) -> None:
+    """K, the sampled path and every path-only output are those of the input row."""
+    x = _candidates(SCALE, 3, seed=51)
+    n = 41
+    verifier = Verifier(SCALE, n, backend=backend)
+    out, before = np.empty((x.shape[0], N_OUT)), np.empty((x.shape[0], N_OUT))
+    rt = np.empty((x.shape[0], N_RETIMED))
+    path, path_before = np.empty((x.shape[0], n, 2)), np.empty((x.shape[0], n, 2))
+    verifier.retime_into(x, out, rt, path)
+    verifier.evaluate_into(x, before, path_before)
+    assert np.any(np.abs(rt[:, RT_T_S] / x[:, 11] - 1.0) > 0.05), "nothing was retimed"
+    K_new = -rt[:, RT_A6 : RT_A6 + 3] * rt[:, RT_T_S, None] ** 6
+    np.testing.assert_allclose(K_new, _shape_terms(x), rtol=1e-14, atol=1e-300)
+    np.testing.assert_allclose(path, path_before, rtol=0.0, atol=1e-12)
+    path_only = [*range(6), 16, 17, 18, 19, COL_VOLUME_M3, COL_THETA_P_RAD]
+    np.testing.assert_allclose(out[:, path_only], before[:, path_only], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_retime_where_nothing_works(backend: str) -> None:
+    """Rows no T in range makes feasible: T' is the least violating, the violation reported."""
+    assert SCALE.planning is not None
+    t_max = SCALE.planning.t_max_s
+    x = _candidates(SCALE, 2, seed=61)
+    # A bulge too large for the acceleration limit at any T in range: least violated at t_max.
+    fast = _at_time(x, np.full(x.shape[0], 7.0))
+    fast[:, 8:11] *= 40.0
+    # Torque limits below what gravity alone needs: violated at every T.
+    weak = dataclasses.replace(
+        SCALE,
+        joints=tuple(dataclasses.replace(j, torque_max_nm=1.0) for j in SCALE.joints),
+    )
+    for rig, rows in ((SCALE, fast), (weak, x)):
+        verifier = Verifier(rig, backend=backend)
+        out, rt = _retime(verifier, rows)
+        assert np.all(~_time_ok(out)) and np.all(out[:, COL_TOTAL] > 0.0)
+        assert np.all((rt[:, RT_T_S] >= SCALE.planning.t_min_s) & (rt[:, RT_T_S] <= t_max))
+        at_t_max = np.empty_like(out)
+        verifier.evaluate_into(_at_time(rows, np.full(rows.shape[0], t_max)), at_t_max)
+        assert np.all(_time_violation(out) <= _time_violation(at_t_max) + 1e-9)
+        if rig is SCALE:
+            np.testing.assert_array_equal(rt[:, RT_T_S], t_max)
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_retime_finds_a_feasible_interval_closed_from_above(backend: str) -> None:
+    """A torque limit the dynamics helps to meet: feasible only from the acceleration bound to
+    a little above it (narrower than the numpy reference's grid step)."""
+    assert SCALE.planning is not None
+    t_min, t_max = SCALE.planning.t_min_s, SCALE.planning.t_max_s
+    x = _candidates(SCALE, 5, seed=71)
+    c_verifier = Verifier(SCALE, backend="c")
+    out, rt = _retime(c_verifier, x)
+    at_t_max = np.empty_like(out)
+    c_verifier.evaluate_into(_at_time(x, np.full(x.shape[0], t_max)), at_t_max)
+    torque = slice(COL_PEAK_TORQUE_NM, COL_PEAK_TORQUE_NM + 3)
+    growth = at_t_max[:, torque] / out[:, torque] - 1.0
+    growth[~(_time_ok(out) & (rt[:, RT_T_S] > t_min))] = -1.0
+    i, j = np.unravel_index(int(np.argmax(growth)), growth.shape)
+    assert growth[i, j] > 0.01, "no peak torque that grows with T"
+    joints = list(SCALE.joints)
+    joints[j] = dataclasses.replace(
+        joints[j], torque_max_nm=float(out[i, COL_PEAK_TORQUE_NM + j]) * (1.0 + 1e-5)
+    )
+    rig = dataclasses.replace(SCALE, joints=tuple(joints))
+    verifier = Verifier(rig, backend=backend)
+    row = x[i : i + 1]
+    out_new, rt_new = _retime(verifier, row)
+    assert _time_ok(out_new)[0]
+    assert rt_new[0, RT_T_S] == pytest.approx(rt[i, RT_T_S], rel=RETIME_RTOL)
+    later = np.empty_like(out_new)
+    verifier.evaluate_into(_at_time(row, rt_new[:, RT_T_S] * 1.01), later)
+    assert later[0, 12 + j] > 0.0, "the interval is not closed from above"
+
+
+def test_retime_of_pso_plans(
+    pso_plans: tuple[list[oneshot.Problem], list[oneshot.Solution]],
+) -> None:
+    """A PSO optimum retimes to T' <= T and no worse an objective; slowed down, it comes back."""
+    problems, solutions = pso_plans
+    c_verifier = Verifier(SCALE, backend="c")
+    rows = []
+    for p, sol in zip(problems, solutions, strict=True):
+        row = verify.pack_inputs(p.q_start_rad, p.q_end_rad, p.surface_y_m, p.dig_type,
+                                 sol.a6, sol.T_s)
+        rows += [row, _at_time(row, np.array([min(1.3 * sol.T_s, 10.0)]))]
+    x = np.concatenate(rows)
+    out, rt = _retime(c_verifier, x)
+    _, rt_n = _retime(Verifier(SCALE, backend="numpy"), x)
+    n_feasible = 0
+    for k, sol in enumerate(solutions):
+        if not sol.feasible:
+            continue
+        n_feasible += 1
+        for i in (2 * k, 2 * k + 1):
+            res = VerifyResult.from_row(out[i])
+            assert rt[i, RT_T_S] <= sol.T_s * (1.0 + RETIME_RTOL), (k, rt[i, RT_T_S], sol.T_s)
+            assert res.objective <= sol.objective + 1e-9, (k, res.objective, sol.objective)
+            assert _time_ok(out[i : i + 1])[0]
+            assert res.total_violation <= 1e-9  # path-only margins of an optimum are rounding
+            assert rt_n[i, RT_T_S] == pytest.approx(rt[i, RT_T_S], rel=RETIME_RTOL)
+        assert rt[2 * k + 1, RT_T_S] == pytest.approx(rt[2 * k, RT_T_S], rel=RETIME_RTOL)
+    assert n_feasible >= 2, "the PSO found too few feasible plans: the test checks little"
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_retime_rejects_bad_rows_without_touching_the_others(backend: str) -> None:
+    x = _candidates(SCALE, 2, seed=3)
+    bad = _bad_rows(x)
+    # Two of them are valid paths: T = 1e-300 (K = -a6 T^6 rounds to 0: the quintic) and
+    # a6 = 1e300 (K ~ 1e305, finite, whose evaluation overflows); checked below.
+    special = (bad[:, 11] == 1e-300) | (bad[:, 8] == 1e300)
+    assert np.sum(special) == 2
+    bad = bad[~special]
+    mixed = np.concatenate([x[:3], bad, x[3:]])
+    n = 21
+    verifier = Verifier(SCALE, n, backend=backend)
+    out = np.empty((mixed.shape[0], N_OUT))
+    rt = np.empty((mixed.shape[0], N_RETIMED))
+    path = np.empty((mixed.shape[0], n, 2))
+    verifier.retime_into(mixed, out, rt, path)
+    rejected = slice(3, 3 + len(bad))
+    assert np.all(out[rejected, COL_TOTAL] == np.inf)
+    assert np.all(np.isnan(np.delete(out[rejected], COL_TOTAL, axis=1)))
+    assert np.all(np.isnan(rt[rejected])) and np.all(np.isnan(path[rejected]))
+    alone = np.empty((x.shape[0], N_OUT))
+    alone_rt = np.empty((x.shape[0], N_RETIMED))
+    alone_path = np.empty((x.shape[0], n, 2))
+    verifier.retime_into(x, alone, alone_rt, alone_path)
+    keep = np.r_[0:3, 3 + len(bad) : mixed.shape[0]]
+    np.testing.assert_array_equal(out[keep], alone)
+    np.testing.assert_array_equal(rt[keep], alone_rt)
+    np.testing.assert_array_equal(path[keep], alone_path)
+    quintic, huge = x[:1].copy(), x[:1].copy()
+    quintic[0, 11] = 1e-300
+    huge[0, 8] = 1e300
+    q_out, q_rt = _retime(verifier, quintic)
+    assert np.all(np.isfinite(q_rt)) and np.all(q_rt[0, :3] == 0.0)
+    assert np.isfinite(q_out[0, COL_TOTAL])
+    assert SCALE.planning is not None
+    h_out, h_rt = _retime(verifier, huge)
+    assert h_out[0, COL_TOTAL] == np.inf and h_rt[0, RT_T_S] == SCALE.planning.t_max_s
+
+
+def test_retime_convenience_matches_retime_into() -> None:
+    x = _candidates(SCALE, 1, seed=7)[:4]
+    verifier = Verifier(SCALE, backend="c")
+    out, rt = _retime(verifier, x)
+    for row, o, r in zip(x, out, rt, strict=True):
+        a6, T, res = verifier.retime(row[0:3], row[3:6], row[6], DigType(int(row[7])),
+                                     row[8:11], row[11])
+        np.testing.assert_array_equal(a6, r[:3])
+        assert T == r[3] == res.T_s
+        np.testing.assert_array_equal(res.violations, o[:22])
+        assert res.total_violation == o[COL_TOTAL]
+    with pytest.raises(PlanningError, match="T_s must be finite and > 0"):
+        verifier.retime(x[0, 0:3], x[0, 3:6], x[0, 6], 0, x[0, 8:11], 0.0)
+    with pytest.raises(PlanningError, match="dig_type must be one of"):
+        verifier.retime(x[0, 0:3], x[0, 3:6], x[0, 6], 3, x[0, 8:11], 6.0)
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_retime_wrong_arrays_raise_value_error(backend: str) -> None:
+    v = Verifier(SCALE, 11, backend=backend)
+    x = _candidates(SCALE, 1, seed=1)[:2].copy()
+    out = np.empty((2, N_OUT))
+    rt = np.empty((2, N_RETIMED))
+    cases: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, str]] = [
+        (x[:, :11].copy(), out, rt, None, r"inputs must have shape \(N, 12\)"),
+        (x, out, np.empty((2, 3)), None, r"retimed must have shape \(N, 4\)"),
+        (x, out, np.empty((2, 4), dtype=np.float32), None, "float64"),
+        (x, out, np.empty((3, 4)), None, "same number of rows"),
+        (x, np.empty((1, N_OUT)), rt, None, "same number of rows"),
+        (x, out, rt, np.empty((2, 12, 2)), r"path must have shape \(N, 11, 2\)"),
+    ]
+    for inputs, o, r, path, message in cases:
+        with pytest.raises(ValueError, match=message):
+            v.retime_into(inputs, o, r, path)
+    frozen = rt.copy()
+    frozen.setflags(write=False)
+    with pytest.raises(ValueError, match="writable"):
+        v.retime_into(x, out, frozen)
+
+
+class _RenamedChain:
+    """dynamics._Chain after a refactoring that renamed its fields."""
+
+    def __init__(self, rig: Rig) -> None:
+        chain = dynamics._Chain(rig)
+        self.first_moment = chain.h
+
+
+class _ChangedChain(dynamics._Chain):
+    """dynamics._Chain whose h no longer means what the kernel's closed form assumes."""
+
+    def __init__(self, rig: Rig) -> None:
+        super().__init__(rig)
+        self.h = [1.1 * v for v in self.h]
+
+
+@pytest.mark.parametrize(
+    ("chain", "message"),
+    [(_RenamedChain, "_Chain"), (_ChangedChain, "disagrees with rt_runtime.planning.oneshot")],
+)
+def test_a_changed_dynamics_chain_disables_the_kernel(
+    chain: type, message: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """verify reads the private dynamics._Chain: a change there never goes unnoticed."""
+    monkeypatch.setattr(verify, "dynamics", types.SimpleNamespace(_Chain=chain))
+    with pytest.raises(ConfigurationError, match=message):
+        Verifier(SCALE, backend="c")
+    with pytest.warns(RuntimeWarning, match=message):
+        fallback = Verifier(SCALE)
+    assert fallback.backend == "numpy"
+    if chain is _RenamedChain:
+        with pytest.raises(ConfigurationError, match="h, b, d"):
+            verify.pack_params(SCALE)
+
+
+def test_the_intact_kernel_builds_without_warnings() -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert Verifier(VARIANT, 17).backend == "c"

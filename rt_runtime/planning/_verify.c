@@ -10,7 +10,8 @@
  * extension type `Kernel` holds the packed rig constants and the time grid, and its `run`
  * method (METH_FASTCALL, buffer protocol) is the per-call entry point: it measured 0.1 us per
  * call against 0.4 us for ctypes with cached pointers and 2.6 us for ctypes taking the
- * pointers of the caller's arrays per call.
+ * pointers of the caller's arrays per call. `retime` (vk_retime) keeps each candidate's path
+ * and finds the shortest feasible time along it, then evaluates that with vk_evaluate.
  *
  * Parity with the numpy reference: the same formulas in the same association order as
  * sextic.py, kinematics.tip_state, soil.yao_resistance, dynamics._inverse_block,
@@ -31,7 +32,7 @@
 /* ---------------------------------------------------------------------------------------------
  * Layouts shared with verify.py (bump VK_ABI on any change: verify.py refuses a stale build).
  * ------------------------------------------------------------------------------------------- */
-#define VK_ABI 1
+#define VK_ABI 2
 
 enum vk_param {
     P_LEN = 0,           /* link lengths l0, l1, l2 (m) */
@@ -372,18 +373,415 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
 }
 
 /* ---------------------------------------------------------------------------------------------
+ * Time-optimal retiming along a fixed path.
+ *
+ * With K = -a6 T^6 kept, q(s) is fixed and time scaling only divides q' = dq/ds by T and
+ * q'' by T^2. At unit time (T = 1) each sample caches, per joint, the dynamic torque A (the
+ * M q'' + C q' part, which scales as u = 1/T^2), the gravity torque G and the soil torque F of
+ * the full (unregularised) Yao force, plus q' and the tip speed sp. At any T:
+ *     tau = A u + G + F r,   r = min(1, sp / (T reg))   (the soil's speed regularisation),
+ *     power = sum_j max(tau_j q'_j, 0) / T,   |qd| = |q'| / T,   |qdd| = |q''| u.
+ * Velocity and acceleration bounds are closed forms in T; the torque of every sample with
+ * r = 1 on the whole time range is an interval in u; what is left (power, and the torque of
+ * the few slow samples in the soil near the ends) is searched on the cache.
+ * ------------------------------------------------------------------------------------------- */
+
+/* Closed-form bounds use each limit times (1 - VK_RT_MARGIN) and the search accepts a cached
+ * ratio <= 1 - VK_RT_MARGIN / 2: the cache and the real evaluation round differently (~1e-15
+ * relative), so the real evaluation at the answer holds with ~5e-10 to spare. */
+#define VK_RT_MARGIN 1e-9
+/* Relative bracket width at which the root search stops (its answer is the feasible end). */
+#define VK_RT_TOL 1e-7
+/* Geometric scan points between the closed-form bounds when the lower one fails the search. */
+#define VK_RT_SCAN 8
+#define VK_RT_ITER 60
+/* Real evaluations after the first if it contradicts the cache (never seen in 12000 random
+ * rows on three rigs: a safety net), T' growing by 1e-9, 1e-8, 1e-7 relative. */
+#define VK_RT_BUMPS 3
+#define VK_RT_BUMP 1e-9
+
+/* Cache layout: VK_N_CACHE arrays of m doubles. */
+enum vk_cache { C_A = 0, C_G = 3, C_F = 6, C_QP = 9, C_SP = 12, VK_N_CACHE = 13 };
+
+/* sin and cos for the retiming cache only: the cache just guides the search (the answer is
+ * always evaluated by vk_evaluate with libm), so libm's bit-exactness is not needed there, and
+ * this inline version (fdlibm's kernels after a Cody-Waite reduction; |error| <= 2.3e-16 on
+ * [-20, 20]) measured 1.7 us less per retimed row at 101 samples than libm's sin and cos. */
+static inline void vk_sincos(double x, double *sn, double *cs)
+{
+    if (!(fabs(x) < 1e6)) { /* the int quadrant below needs a small k; NaN too */
+        *sn = sin(x);
+        *cs = cos(x);
+        return;
+    }
+    const double shift = 6755399441055744.0; /* 1.5 * 2^52: adding it rounds to an integer */
+    const double kd = (x * 0.63661977236758134308 + shift) - shift; /* round(x / (pi/2)) */
+    /* pi/2 in two parts, the first with 33 bits so that kd times it is exact. */
+    const double r = (x - kd * 1.57079632673412561417e+00) - kd * 6.07710050650619224932e-11;
+    const double z = r * r;
+    const double S1 = -1.66666666666666324348e-01, S2 = 8.33333333332248946124e-03,
+                 S3 = -1.98412698298579493134e-04, S4 = 2.75573137070700676789e-06,
+                 S5 = -2.50507602534068634195e-08, S6 = 1.58969099521155010221e-10;
+    const double C1 = 4.16666666666666019037e-02, C2 = -1.38888888888741095749e-03,
+                 C3 = 2.48015872894767294178e-05, C4 = -2.75573143513906633035e-07,
+                 C5 = 2.08757232129817482790e-09, C6 = -1.13596475577881948265e-11;
+    const double sr = r + r * z * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
+    const double cr =
+        (1.0 - 0.5 * z) + z * z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))));
+    const int q = (int)kd & 3;
+    *sn = q == 0 ? sr : q == 1 ? cr : q == 2 ? -sr : -cr;
+    *cs = q == 0 ? cr : q == 1 ? -sr : q == 2 ? -cr : sr;
+}
+
+/*
+ * Fill the unit-time cache of one input row.
+ *   K:      out, the kept shape term -a6 T^6 per joint (as oneshot.particle_from_a6)
+ *   qd_pk, qdd_pk: out, max |q'| and max |q''| per joint over the samples
+ * Returns -1 for a row that run() rejects or whose K is not finite, 0 for a finite cache, 1
+ * when the cache overflowed (absurd but finite inputs).
+ */
+static int vk_prepare(const double *p, const double *s, int m, const double *in, double *K,
+                      double *cache, double *qd_pk, double *qdd_pk)
+{
+    for (int j = 0; j < VK_N_IN; j++)
+        if (!isfinite(in[j])) return -1;
+    const double T = in[I_T];
+    const double dig = in[I_DIG_TYPE];
+    if (!(T > 0.0) || !(dig == 0.0 || dig == 1.0)) return -1;
+    const double T6 = pow(T, 6.0);
+    double b0[3], b3[3], b4[3], b5[3], b6[3], c1[3][4], c2[3][4];
+    for (int j = 0; j < 3; j++) {
+        K[j] = -in[I_A6 + j] * T6;
+        if (!isfinite(K[j])) return -1;
+        /* Yao eq 10 (corrected) at T = 1: a6 = -K. */
+        const double qs = in[I_Q_START + j], c6 = -K[j];
+        const double D = in[I_Q_END + j] - qs;
+        b0[j] = qs;
+        b3[j] = 10.0 * D - c6;
+        b4[j] = -15.0 * D + 3.0 * c6;
+        b5[j] = 6.0 * D - 3.0 * c6;
+        b6[j] = c6;
+        c1[j][0] = 3.0 * b3[j];
+        c1[j][1] = 4.0 * b4[j];
+        c1[j][2] = 5.0 * b5[j];
+        c1[j][3] = 6.0 * b6[j];
+        c2[j][0] = 6.0 * b3[j];
+        c2[j][1] = 12.0 * b4[j];
+        c2[j][2] = 20.0 * b5[j];
+        c2[j][3] = 30.0 * b6[j];
+        qd_pk[j] = 0.0;
+        qdd_pk[j] = 0.0;
+    }
+    const double H = in[I_SURFACE];
+    const double l0 = p[P_LEN], l1 = p[P_LEN + 1], l2 = p[P_LEN + 2];
+    const double h0 = p[P_CH_H], h1 = p[P_CH_H + 1], h2 = p[P_CH_H + 2];
+    const double bb0 = p[P_CH_B], bb1 = p[P_CH_B + 1], bb2 = p[P_CH_B + 2];
+    const double dd0 = p[P_CH_D], dd1 = p[P_CH_D + 1], dd2 = p[P_CH_D + 2];
+    const double g = p[P_GRAVITY], k0b = p[P_K0B], mu = p[P_MU];
+    double *A0 = cache + C_A * m, *A1 = A0 + m, *A2 = A1 + m;
+    double *G0 = cache + C_G * m, *G1 = G0 + m, *G2 = G1 + m;
+    double *F0 = cache + C_F * m, *F1 = F0 + m, *F2 = F1 + m;
+    double *Q0 = cache + C_QP * m, *Q1 = Q0 + m, *Q2 = Q1 + m;
+    double *SP = cache + C_SP * m;
+    double check = 0.0;
+
+    double qv[3][VK_BLOCK], qdv[3][VK_BLOCK], qddv[3][VK_BLOCK];
+    double phi[3][VK_BLOCK], cph[3][VK_BLOCK], sph[3][VK_BLOCK];
+    for (int base = 0; base < m; base += VK_BLOCK) {
+        const int nb = m - base < VK_BLOCK ? m - base : VK_BLOCK;
+        for (int j = 0; j < 3; j++)
+            for (int k = 0; k < nb; k++) {
+                const double si = s[base + k];
+                const double s2 = si * si, s3 = s2 * si;
+                qv[j][k] = b0[j] + s3 * (b3[j] + si * (b4[j] + si * (b5[j] + si * b6[j])));
+                qdv[j][k] = s2 * (c1[j][0] + si * (c1[j][1] + si * (c1[j][2] + si * c1[j][3])));
+                qddv[j][k] = si * (c2[j][0] + si * (c2[j][1] + si * (c2[j][2] + si * c2[j][3])));
+                qd_pk[j] = vk_max(qd_pk[j], fabs(qdv[j][k]));
+                qdd_pk[j] = vk_max(qdd_pk[j], fabs(qddv[j][k]));
+            }
+        for (int k = 0; k < nb; k++) {
+            phi[0][k] = qv[0][k];
+            phi[1][k] = phi[0][k] + qv[1][k];
+            phi[2][k] = phi[1][k] + qv[2][k];
+        }
+        for (int j = 0; j < 3; j++)
+            for (int k = 0; k < nb; k++) vk_sincos(phi[j][k], &sph[j][k], &cph[j][k]);
+        for (int k = 0; k < nb; k++) {
+            const int i = base + k;
+            const double qd0 = qdv[0][k], qd1 = qdv[1][k], qd2 = qdv[2][k];
+            const double cp0 = cph[0][k], cp1 = cph[1][k], cp2 = cph[2][k];
+            const double sp0 = sph[0][k], sp1 = sph[1][k], sp2 = sph[2][k];
+            const double lc0 = cp0 * l0, lc1 = cp1 * l1, lc2 = cp2 * l2;
+            const double ls0 = sp0 * l0, ls1 = sp1 * l1, ls2 = sp2 * l2;
+            const double y = (ls0 + ls1) + ls2;
+            const double w0 = qd0, w1 = w0 + qd1, w2 = w1 + qd2;
+            const double vx = -((ls0 * w0 + ls1 * w1) + ls2 * w2);
+            const double vy = (lc0 * w0 + lc1 * w1) + lc2 * w2;
+            const double c2r = cp1 * cp0 + sp1 * sp0, s2r = sp1 * cp0 - cp1 * sp0;
+            const double c3r = cp2 * cp1 + sp2 * sp1, s3r = sp2 * cp1 - cp2 * sp1;
+            const double c23 = cp2 * cp0 + sp2 * sp0, s23 = sp2 * cp0 - cp2 * sp0;
+            const double d01 = l0 * (h1 * c2r - bb1 * s2r), w01 = l0 * (bb1 * c2r + h1 * s2r);
+            const double d02 = l0 * (h2 * c23 - bb2 * s23), w02 = l0 * (bb2 * c23 + h2 * s23);
+            const double d12 = l1 * (h2 * c3r - bb2 * s3r), w12 = l1 * (bb2 * c3r + h2 * s3r);
+            const double ac0 = qddv[0][k], ac1 = ac0 + qddv[1][k], ac2 = ac1 + qddv[2][k];
+            const double ww0 = w0 * w0, ww1 = w1 * w1, ww2 = w2 * w2;
+            const double a0 = dd0 * ac0 + d01 * ac1 + d02 * ac2 - w01 * ww1 - w02 * ww2;
+            const double a1 = d01 * ac0 + dd1 * ac1 + d12 * ac2 + w01 * ww0 - w12 * ww2;
+            const double a2 = d02 * ac0 + d12 * ac1 + dd2 * ac2 + w02 * ww0 + w12 * ww1;
+            const double g0 = g * (h0 * cp0 - bb0 * sp0);
+            const double g1 = g * (h1 * cp1 - bb1 * sp1);
+            const double g2 = g * (h2 * cp2 - bb2 * sp2);
+            const double speed = sqrt(vx * vx + vy * vy);
+            double f0 = 0.0, f1 = 0.0, f2 = 0.0;
+            const double depth = H - y;
+            /* At zero speed the real force is zero at every T (it scales with v / reg). */
+            if (depth > 0.0 && speed > 0.0) {
+                const double gain = k0b * depth / speed;
+                const double tx = gain * vx, ty = gain * vy;
+                const double side_mu = vx > 0.0 ? mu : -mu;
+                const double fx = -tx - side_mu * ty;
+                const double fy = -ty + side_mu * tx;
+                f0 = -(l0 * (cp0 * fy - sp0 * fx));
+                f1 = -(l1 * (cp1 * fy - sp1 * fx));
+                f2 = -(l2 * (cp2 * fy - sp2 * fx));
+            }
+            A2[i] = a2;
+            A1[i] = a1 + a2;
+            A0[i] = a0 + A1[i];
+            G2[i] = g2;
+            G1[i] = g1 + g2;
+            G0[i] = g0 + G1[i];
+            F2[i] = f2;
+            F1[i] = f1 + f2;
+            F0[i] = f0 + F1[i];
+            Q0[i] = qd0;
+            Q1[i] = qd1;
+            Q2[i] = qd2;
+            SP[i] = speed;
+            check += ((A0[i] + G0[i]) + (F0[i] + speed)) + (ac2 + w2);
+        }
+    }
+    return isfinite(check) ? 0 : 1;
+}
+
+/* Time-dependent constraints at T from the cache: the largest value / limit ratio (velocity,
+ * acceleration, torque, power) and the sum of the positive parts of (ratio - 1), which is
+ * what evaluate's total violation holds of them. */
+static void vk_timed(const double *p, const double *c, int m, const double *qd_pk,
+                     const double *qdd_pk, double T, double *ratio, double *total)
+{
+    const double inv_T = 1.0 / T, u = inv_T * inv_T, k_reg = inv_T / p[P_SPEED_REG];
+    const double *A0 = c + C_A * m, *A1 = A0 + m, *A2 = A1 + m;
+    const double *G0 = c + C_G * m, *G1 = G0 + m, *G2 = G1 + m;
+    const double *F0 = c + C_F * m, *F1 = F0 + m, *F2 = F1 + m;
+    const double *Q0 = c + C_QP * m, *Q1 = Q0 + m, *Q2 = Q1 + m;
+    const double *SP = c + C_SP * m;
+    double pk0 = 0.0, pk1 = 0.0, pk2 = 0.0, ppk = 0.0;
+    for (int i = 0; i < m; i++) {
+        const double r = vk_min(1.0, SP[i] * k_reg);
+        const double t0 = A0[i] * u + (G0[i] + F0[i] * r);
+        const double t1 = A1[i] * u + (G1[i] + F1[i] * r);
+        const double t2 = A2[i] * u + (G2[i] + F2[i] * r);
+        pk0 = vk_max(pk0, fabs(t0));
+        pk1 = vk_max(pk1, fabs(t1));
+        pk2 = vk_max(pk2, fabs(t2));
+        ppk = vk_max(ppk, (vk_pos(t0 * Q0[i]) + vk_pos(t1 * Q1[i])) + vk_pos(t2 * Q2[i]));
+    }
+    const double pk[3] = {pk0, pk1, pk2};
+    double worst = ppk * inv_T / p[P_POWER_MAX];
+    double sum = vk_pos(worst - 1.0);
+    for (int j = 0; j < 3; j++) {
+        const double rv = qd_pk[j] * inv_T / p[P_QD_MAX + j];
+        const double ra = qdd_pk[j] * u / p[P_QDD_MAX + j];
+        const double rt = pk[j] / p[P_TAU_MAX + j];
+        worst = vk_max(worst, vk_max(rv, vk_max(ra, rt)));
+        sum += (vk_pos(rv - 1.0) + vk_pos(ra - 1.0)) + vk_pos(rt - 1.0);
+    }
+    *ratio = worst;
+    *total = sum;
+}
+
+/* Closed-form range [*lo, *hi] of T within [t_min, t_max] outside which velocity,
+ * acceleration or the torque of a sample with r = 1 on the whole range fails (limits times
+ * 1 - VK_RT_MARGIN). Returns 0 when that range is empty. */
+static int vk_bounds(const double *p, const double *c, int m, const double *qd_pk,
+                     const double *qdd_pk, double *lo, double *hi)
+{
+    const double lim = 1.0 - VK_RT_MARGIN;
+    double t_lo = p[P_TIME], t_hi = p[P_TIME + 1];
+    for (int j = 0; j < 3; j++) {
+        t_lo = vk_max(t_lo, qd_pk[j] / (p[P_QD_MAX + j] * lim));
+        t_lo = vk_max(t_lo, sqrt(qdd_pk[j] / (p[P_QDD_MAX + j] * lim)));
+    }
+    /* Torque: |A u + B| <= tau_max is an interval of u = 1/T^2 per sample and joint. */
+    const double sp_fast = p[P_SPEED_REG] * p[P_TIME + 1];
+    const double *SP = c + C_SP * m;
+    double u_lo = 0.0, u_hi = INFINITY;
+    for (int j = 0; j < 3; j++) {
+        const double *A = c + (C_A + j) * m, *G = c + (C_G + j) * m, *F = c + (C_F + j) * m;
+        const double tm = p[P_TAU_MAX + j] * lim;
+        for (int i = 0; i < m; i++) {
+            if (F[i] != 0.0 && SP[i] < sp_fast) continue; /* regularised somewhere: searched */
+            const double a = A[i], b = G[i] + F[i];
+            if (a > 0.0) {
+                u_lo = vk_max(u_lo, (-tm - b) / a);
+                u_hi = vk_min(u_hi, (tm - b) / a);
+            } else if (a < 0.0) {
+                u_lo = vk_max(u_lo, (tm - b) / a);
+                u_hi = vk_min(u_hi, (-tm - b) / a);
+            } else if (fabs(b) > tm) {
+                u_hi = -1.0;
+            }
+        }
+    }
+    if (!(u_lo <= u_hi) || !(u_hi > 0.0)) return 0;
+    if (u_hi < INFINITY) t_lo = vk_max(t_lo, 1.0 / sqrt(u_hi));
+    if (u_lo > 0.0) t_hi = vk_min(t_hi, 1.0 / sqrt(u_lo));
+    *lo = t_lo;
+    *hi = t_hi;
+    return t_lo <= t_hi;
+}
+
+/* Illinois (regula falsi with halving) on psi = ratio - threshold over [a, b], psi(a) > 0 >=
+ * psi(b); returns the feasible end once the bracket is VK_RT_TOL narrow. */
+static double vk_boundary(const double *p, const double *c, int m, const double *qd_pk,
+                          const double *qdd_pk, double a, double fa, double b, double fb)
+{
+    const double threshold = 1.0 - 0.5 * VK_RT_MARGIN;
+    int side = 0;
+    for (int it = 0; it < VK_RT_ITER && b - a > VK_RT_TOL * b; it++) {
+        double x = (a * fb - b * fa) / (fb - fa);
+        if (!(x > a && x < b)) x = 0.5 * (a + b);
+        double ratio, total;
+        vk_timed(p, c, m, qd_pk, qdd_pk, x, &ratio, &total);
+        const double fx = ratio - threshold;
+        if (fx <= 0.0) {
+            b = x;
+            fb = fx;
+            if (side == -1) fa *= 0.5;
+            side = -1;
+        } else {
+            a = x;
+            fa = fx;
+            if (side == 1) fb *= 0.5;
+            side = 1;
+        }
+    }
+    return b;
+}
+
+/* The retimed T of a prepared row; *found = 1 when the cache says every time-dependent
+ * constraint holds there, else 0 and T is the candidate with the least cached violation. */
+static double vk_retime_T(const double *p, const double *c, int m, const double *qd_pk,
+                          const double *qdd_pk, int *found)
+{
+    const double threshold = 1.0 - 0.5 * VK_RT_MARGIN;
+    const double t_min = p[P_TIME], t_max = p[P_TIME + 1];
+    double lo = t_min, hi = t_max, ratio, total;
+    double best_T = t_max, best_total = INFINITY;
+    *found = 0;
+    if (vk_bounds(p, c, m, qd_pk, qdd_pk, &lo, &hi)) {
+        vk_timed(p, c, m, qd_pk, qdd_pk, lo, &ratio, &total);
+        if (ratio <= threshold) {
+            *found = 1;
+            return lo;
+        }
+        if (total < best_total) {
+            best_T = lo;
+            best_total = total;
+        }
+        /* The lower bound fails on power or on a slow sample's torque: scan up to the first
+         * point that holds, then close in on the boundary below it. */
+        const double step = pow(hi / lo, 1.0 / VK_RT_SCAN);
+        double a = lo, fa = ratio - threshold;
+        for (int k = 1; k <= VK_RT_SCAN; k++) {
+            const double x = k == VK_RT_SCAN ? hi : a * step;
+            vk_timed(p, c, m, qd_pk, qdd_pk, x, &ratio, &total);
+            if (ratio <= threshold) {
+                *found = 1;
+                return vk_boundary(p, c, m, qd_pk, qdd_pk, a, fa, x, ratio - threshold);
+            }
+            if (total < best_total) {
+                best_T = x;
+                best_total = total;
+            }
+            a = x;
+            fa = ratio - threshold;
+        }
+    }
+    /* Nothing in range holds: the least violating of the points above and a geometric grid
+     * from t_min to t_max (NaN totals never win; all NaN leaves t_max). */
+    const double step = pow(t_max / t_min, 1.0 / VK_RT_SCAN);
+    double x = t_min;
+    for (int k = 0; k <= VK_RT_SCAN; k++, x *= step) {
+        if (k == VK_RT_SCAN) x = t_max;
+        vk_timed(p, c, m, qd_pk, qdd_pk, x, &ratio, &total);
+        if (total < best_total) {
+            best_T = x;
+            best_total = total;
+        }
+    }
+    return best_T;
+}
+
+/* Whether the time-dependent constraints of an evaluated row hold. */
+static int vk_timed_ok(const double *out)
+{
+    for (int j = 6; j <= 15; j++)
+        if (!(out[O_VIOLATIONS + j] <= 0.0)) return 0;
+    return out[O_VIOLATIONS + 20] <= 0.0 && out[O_VIOLATIONS + 21] <= 0.0;
+}
+
+/*
+ * Retime one row: the smallest T' in [t_min, t_max] where every time-dependent constraint
+ * holds with the path (K) kept, evaluated for real at T'.
+ *   retimed: out, (a6', T') (NaN for a rejected row)
+ *   cache:   VK_N_CACHE * m scratch doubles
+ */
+static void vk_retime(const double *p, const double *s, int m, const double *in, double *out,
+                      double *retimed, double *path, double *cache)
+{
+    double K[3], qd_pk[3], qdd_pk[3];
+    const int status = vk_prepare(p, s, m, in, K, cache, qd_pk, qdd_pk);
+    if (status < 0) {
+        vk_reject(m, out, path);
+        for (int j = 0; j < 4; j++) retimed[j] = NAN;
+        return;
+    }
+    int found = 0;
+    double T = p[P_TIME + 1];
+    if (status == 0) T = vk_retime_T(p, cache, m, qd_pk, qdd_pk, &found);
+    double row[VK_N_IN];
+    for (int j = 0; j < VK_N_IN; j++) row[j] = in[j];
+    for (int attempt = 0;; attempt++) {
+        const double T6 = pow(T, 6.0);
+        for (int j = 0; j < 3; j++) row[I_A6 + j] = -K[j] / T6;
+        row[I_T] = T;
+        vk_evaluate(p, s, m, row, out, path);
+        if (!found || attempt == VK_RT_BUMPS || T >= p[P_TIME + 1] || vk_timed_ok(out)) break;
+        T = vk_min(T * (1.0 + VK_RT_BUMP * pow(10.0, attempt)), p[P_TIME + 1]);
+    }
+    for (int j = 0; j < 3; j++) retimed[j] = row[I_A6 + j];
+    retimed[3] = T;
+}
+
+/* ---------------------------------------------------------------------------------------------
  * CPython binding.
  * ------------------------------------------------------------------------------------------- */
 typedef struct {
     PyObject_HEAD
     double params[VK_N_PARAMS];
     double *s;
+    /* Retiming scratch (VK_N_CACHE * m): one per kernel, safe because no method releases the
+     * GIL, so two threads never run in the same kernel at once. */
+    double *cache;
     int m;
 } KernelObject;
 
 static void Kernel_dealloc(KernelObject *self)
 {
     free(self->s);
+    free(self->cache);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -440,7 +838,10 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds)
     for (int k = 0; k < VK_N_PARAMS; k++) self->params[k] = src[k];
     PyBuffer_Release(&view);
     double *s = (double *)malloc((size_t)m * sizeof(double));
-    if (s == NULL) {
+    double *cache = (double *)malloc((size_t)m * VK_N_CACHE * sizeof(double));
+    if (s == NULL || cache == NULL) {
+        free(s);
+        free(cache);
         PyErr_NoMemory();
         return -1;
     }
@@ -449,7 +850,9 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds)
     for (int i = 0; i < m; i++) s[i] = (double)i * step;
     s[m - 1] = 1.0;
     free(self->s);
+    free(self->cache);
     self->s = s;
+    self->cache = cache;
     self->m = m;
     return 0;
 }
@@ -503,9 +906,72 @@ static PyObject *Kernel_run(KernelObject *self, PyObject *const *args, Py_ssize_
     Py_RETURN_NONE;
 }
 
+static PyObject *Kernel_retime(KernelObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs < 3 || nargs > 4) {
+        PyErr_SetString(PyExc_TypeError,
+                        "retime(inputs, out, retimed, path=None) takes 3 or 4 arguments");
+        return NULL;
+    }
+    if (self->s == NULL || self->cache == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "Kernel not initialised");
+        return NULL;
+    }
+    const int m = self->m;
+    Py_buffer in_v, out_v, rt_v, path_v;
+    const Py_ssize_t in_shape[2] = {-1, VK_N_IN};
+    const Py_ssize_t out_shape[2] = {-1, VK_N_OUT};
+    const Py_ssize_t rt_shape[2] = {-1, 4};
+    const Py_ssize_t path_shape[3] = {-1, m, 2};
+    int has_path = nargs == 4 && args[3] != Py_None;
+    if (get_f64(args[0], &in_v, 0, 2, in_shape, "inputs") != 0) return NULL;
+    if (get_f64(args[1], &out_v, 1, 2, out_shape, "out") != 0) {
+        PyBuffer_Release(&in_v);
+        return NULL;
+    }
+    if (get_f64(args[2], &rt_v, 1, 2, rt_shape, "retimed") != 0) {
+        PyBuffer_Release(&in_v);
+        PyBuffer_Release(&out_v);
+        return NULL;
+    }
+    if (has_path && get_f64(args[3], &path_v, 1, 3, path_shape, "path") != 0) {
+        PyBuffer_Release(&in_v);
+        PyBuffer_Release(&out_v);
+        PyBuffer_Release(&rt_v);
+        return NULL;
+    }
+    const Py_ssize_t n = in_v.shape[0];
+    int bad = out_v.shape[0] != n || rt_v.shape[0] != n || (has_path && path_v.shape[0] != n);
+    if (!bad) {
+        const double *in = (const double *)in_v.buf;
+        double *out = (double *)out_v.buf;
+        double *rt = (double *)rt_v.buf;
+        double *path = has_path ? (double *)path_v.buf : NULL;
+        for (Py_ssize_t r = 0; r < n; r++)
+            vk_retime(self->params, self->s, m, in + r * VK_N_IN, out + r * VK_N_OUT, rt + r * 4,
+                      path != NULL ? path + r * 2 * m : NULL, self->cache);
+    }
+    Py_ssize_t n_out = out_v.shape[0], n_rt = rt_v.shape[0];
+    Py_ssize_t n_path = has_path ? path_v.shape[0] : n;
+    PyBuffer_Release(&in_v);
+    PyBuffer_Release(&out_v);
+    PyBuffer_Release(&rt_v);
+    if (has_path) PyBuffer_Release(&path_v);
+    if (bad) {
+        PyErr_Format(PyExc_ValueError,
+                     "inputs, out, retimed and path must have the same number of rows N; got "
+                     "%zd, %zd, %zd, %zd",
+                     n, n_out, n_rt, n_path);
+        return NULL;
+    }
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef Kernel_methods[] = {
     {"run", (PyCFunction)(void (*)(void))Kernel_run, METH_FASTCALL,
      "run(inputs (N, 12), out (N, 32), path (N, m, 2) or None) -> None"},
+    {"retime", (PyCFunction)(void (*)(void))Kernel_retime, METH_FASTCALL,
+     "retime(inputs (N, 12), out (N, 32), retimed (N, 4), path (N, m, 2) or None) -> None"},
     {NULL, NULL, 0, NULL},
 };
 

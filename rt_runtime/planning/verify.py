@@ -19,6 +19,12 @@ Two backends compute the same thing:
 They agree to ~1e-12 relative (the numpy matrix products round differently; ``tests/
 test_verify.py`` holds them to 1e-9).
 
+:meth:`Verifier.retime_into` retimes candidates instead: it keeps each one's path (the shape
+term ``K = -a6 T^6``) and finds the shortest T' in the time range at which every time-dependent
+constraint (:data:`TIME_DEPENDENT`) holds, then evaluates it for real. The PINN's paths are
+good but its T conservative, and eq 11 is dominated by T. The C kernel does it in about twice
+the cost of one evaluation; the numpy backend bisects with real evaluations (the reference).
+
 Input rows are ``[q_start (3) rad, q_end (3) rad, H m, dig_type (0 downward, 1 backward),
 a6 (3) rad/s^6, T s]`` (columns ``IN_*``); output rows are laid out by the ``COL_*`` constants.
 A row that :func:`~rt_runtime.planning.oneshot.evaluate` would refuse (a non-finite value,
@@ -33,6 +39,7 @@ from __future__ import annotations
 
 import importlib
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
@@ -82,7 +89,35 @@ COL_PEAK_TORQUE_NM: Final = 29
 """First of three columns: peak |torque| of boom, stick, bucket, N*m."""
 N_OUT: Final = 32
 
+# Retimed columns (:meth:`Verifier.retime_into`).
+RT_A6: Final = 0
+"""First of three columns: the retimed a6' = -K / T'^6, rad/s^6."""
+RT_T_S: Final = 3
+"""The retimed T', s."""
+N_RETIMED: Final = 4
+
+TIME_DEPENDENT: tuple[int, ...] = (*range(6, 16), 20, 21)
+"""Constraints (indices into :data:`CONSTRAINT_NAMES`) that change when a path is retimed:
+velocity, acceleration, torque, power, time_min and time_max. Angles, theta_p and volume
+depend on the path only."""
+
+RETIME_RTOL: Final = 1e-6
+"""Retiming returns a T' within this relative distance above the feasible boundary it finds
+(measured: the two backends agree to 5e-10, see :meth:`Verifier.retime_into`)."""
+
 BACKENDS: tuple[str, ...] = ("auto", "c", "numpy")
+
+# The numpy reference of retiming: a geometric grid of T over [t_min, t_max] plus the velocity
+# and acceleration bounds, multisection of the first bracket with _REF_SPLIT - 1 points per
+# evaluate call down to _REF_RTOL, and feasibility judged with _REF_MARGIN to spare (normalised
+# units), so that the final evaluation, whose batch shape may round matrix products
+# differently (~1e-13), agrees.
+_REF_GRID = 64
+_REF_SPLIT = 16
+_REF_RTOL = 1e-8
+_REF_MARGIN = 1e-11
+# The velocity and acceleration bounds join the grid this far above their exact values.
+_REF_BOUND_STEP = 1e-9
 
 BUILD_HINT = (
     "build it with `.venv/bin/pip install -e .` from the repository root (setup.py compiles "
@@ -91,7 +126,7 @@ BUILD_HINT = (
 )
 
 # Layout of the kernel's constants; _verify.c's enum vk_param must list the same offsets.
-_ABI = 1
+_ABI = 2
 _PARAM_FIELDS: tuple[tuple[str, int], ...] = (
     ("lengths", 3),
     ("chain_h", 3),
@@ -135,17 +170,17 @@ def pack_params(rig: Rig) -> FloatArray:
     """Every rig constant the kernel needs, ``(N_PARAMS,)`` in ``_verify.c``'s layout.
 
     Raises:
-        ConfigurationError: The rig has no ``[planning]`` table.
+        ConfigurationError: The rig has no ``[planning]`` table, or ``dynamics._Chain`` no
+            longer provides the mass constants the kernel's closed form needs.
     """
     planning = oneshot.require_planning(rig)
-    # The dynamics' own mass constants, so that the two cannot drift apart.
-    chain = dynamics._Chain(rig)
+    chain = _chain_constants(rig)
     values: dict[str, ArrayLike] = {
         "lengths": rig.lengths_m,
-        "chain_h": chain.h,
-        "chain_b": chain.b,
-        "chain_d": chain.d,
-        "gravity": chain.g,
+        "chain_h": chain["h"],
+        "chain_b": chain["b"],
+        "chain_d": chain["d"],
+        "gravity": chain["g"],
         # Grouped as soil.yao_resistance groups it: (K0 b) h.
         "k0_b": rig.soil.yao.k0_n_m2 * rig.bucket.width_m,
         "mu": rig.soil.yao.mu,
@@ -167,6 +202,37 @@ def pack_params(rig: Rig) -> FloatArray:
     }
     parts = [np.asarray(values[name], dtype=np.float64).reshape(n) for name, n in _PARAM_FIELDS]
     return np.ascontiguousarray(np.concatenate(parts))
+
+
+def _chain_constants(rig: Rig) -> dict[str, FloatArray]:
+    """The mass constants ``h, b, d`` (3,) and ``g`` () of :class:`rt_runtime.dynamics._Chain`.
+
+    The dynamics' own constants, so that the kernel and the numpy reference cannot drift apart;
+    ``_Chain`` is private to :mod:`rt_runtime.dynamics`, so its fields are checked here (and
+    :class:`Verifier` checks the whole kernel against :func:`oneshot.evaluate` once at
+    construction, which catches a change of their meaning).
+
+    Raises:
+        ConfigurationError: ``_Chain`` is gone or its fields are missing, misshaped or not finite.
+    """
+    shapes = {"h": (3,), "b": (3,), "d": (3,), "g": ()}
+    try:
+        chain = dynamics._Chain(rig)
+        values = {name: np.asarray(getattr(chain, name), dtype=np.float64) for name in shapes}
+    except (AttributeError, TypeError, ValueError) as exc:
+        raise ConfigurationError(
+            "the verifier kernel reads the mass constants h, b, d (3 floats each) and g of "
+            f"rt_runtime.dynamics._Chain, which failed: {exc!r}; update verify.pack_params and "
+            "_verify.c to the new dynamics"
+        ) from exc
+    for name, shape in shapes.items():
+        v = values[name]
+        if v.shape != shape or not np.all(np.isfinite(v)):
+            raise ConfigurationError(
+                f"rt_runtime.dynamics._Chain.{name} must be finite with shape {shape} for the "
+                f"verifier kernel; got {v.tolist()!r}; update verify.pack_params and _verify.c"
+            )
+    return values
 
 
 def pack_inputs(
@@ -298,15 +364,19 @@ class VerifyResult:
 class Verifier:
     """Evaluates one-shot candidates for one rig and sample grid (see the module docstring).
 
-    Construction packs the rig's constants once and loads the backend; the instance holds no
-    per-call state, so one verifier may serve several threads (the C kernel keeps its scratch
-    on the stack and holds the GIL while it runs).
+    Construction packs the rig's constants once, loads the backend and, for the C kernel,
+    checks one probe candidate against :func:`~rt_runtime.planning.oneshot.evaluate` (about
+    1 ms), so that a kernel that no longer matches the Python physics is never used. The
+    instance holds no per-call state, so one verifier may serve several threads (the C kernel
+    keeps its evaluation scratch on the stack and its retiming scratch in the kernel object,
+    and holds the GIL while it runs).
 
     Args:
         rig: The rig; needs a ``[planning]`` table.
         n_samples: Samples per trajectory (uniform in time, ends included), >= 2: the grid of
             :func:`~rt_runtime.planning.oneshot.evaluate`.
-        backend: ``"c"``, ``"numpy"`` or ``"auto"`` (C when built, else numpy).
+        backend: ``"c"``, ``"numpy"`` or ``"auto"`` (C when built and consistent, else numpy
+            with a :class:`RuntimeWarning` when the kernel is built but unusable).
 
     Attributes:
         rig: The rig.
@@ -315,11 +385,12 @@ class Verifier:
 
     Raises:
         ConfigurationError: The rig has no planning table, ``n_samples`` < 2, an unknown
-            backend, or ``backend="c"`` without the compiled kernel (the message says how to
-            build it).
+            backend, or ``backend="c"`` without a usable compiled kernel (missing or stale: the
+            message says how to build it; or disagreeing with the Python physics: the message
+            names the output).
     """
 
-    __slots__ = ("_run", "backend", "n_samples", "rig")
+    __slots__ = ("_retime", "_run", "backend", "n_samples", "rig")
 
     def __init__(self, rig: Rig, n_samples: int = DEFAULT_SAMPLES, backend: str = "auto") -> None:
         if backend not in BACKENDS:
@@ -330,7 +401,7 @@ class Verifier:
             raise ConfigurationError(f"n_samples must be an int >= 2; got {n_samples!r}")
         if n_samples < 2:
             raise ConfigurationError(f"n_samples must be >= 2; got {n_samples}")
-        params = pack_params(rig)  # raises without a planning table
+        oneshot.require_planning(rig)
         self.rig = rig
         self.n_samples = int(n_samples)
         module = _load_extension() if backend != "numpy" else None
@@ -340,12 +411,59 @@ class Verifier:
                 f"missing or stale; {BUILD_HINT}"
             )
         self._run: Callable[[FloatArray, FloatArray, FloatArray | None], None]
+        self._retime: Callable[[FloatArray, FloatArray, FloatArray, FloatArray | None], None]
+        self._run = self._evaluate_numpy
+        self._retime = self._retime_numpy
+        self.backend = "numpy"
         if module is not None:
-            self._run = module.Kernel(params, self.n_samples).run
-            self.backend = "c"
-        else:
-            self._run = self._evaluate_numpy
-            self.backend = "numpy"
+            try:
+                kernel = module.Kernel(pack_params(rig), self.n_samples)
+                self._self_check(kernel.run)
+            except ConfigurationError as exc:
+                if backend == "c":
+                    raise ConfigurationError(f"backend 'c' is unusable: {exc}") from exc
+                warnings.warn(
+                    f"falling back to the numpy verifier (~100x slower): {exc}",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
+            else:
+                self._run = kernel.run
+                self._retime = kernel.retime
+                self.backend = "c"
+
+    def _self_check(
+        self, run: Callable[[FloatArray, FloatArray, FloatArray | None], None]
+    ) -> None:
+        """Compare ``run`` with the numpy reference on one probe candidate.
+
+        The probe starts 5 cm below the surface with a bulged path in mid-range, so that
+        kinematics, every dynamics term and the soil force all enter its outputs.
+
+        Raises:
+            ConfigurationError: An output differs by more than 1e-9 relative (naming it).
+        """
+        rig = self.rig
+        planning = oneshot.require_planning(rig)
+        span = rig.q_max_rad - rig.q_min_rad
+        q_start = rig.q_min_rad + 0.45 * span
+        tip_y = float(kinematics.forward(rig, q_start)[1])
+        T = 0.5 * (planning.t_min_s + planning.t_max_s)
+        a6, _ = oneshot.a6_from_particle(np.array([*(0.1 * span), T]))
+        x = pack_inputs(q_start, rig.q_min_rad + 0.6 * span, tip_y + 0.05, 0, a6, T)
+        got = np.empty((1, N_OUT))
+        want = np.empty((1, N_OUT))
+        run(x, got, None)
+        self._evaluate_numpy(x, want)
+        err = np.abs(got - want) <= 1e-12 + 1e-9 * np.abs(want)
+        if not np.all(err):
+            j = int(np.argmin(err[0]))
+            raise ConfigurationError(
+                f"the compiled kernel disagrees with rt_runtime.planning.oneshot.evaluate on a "
+                f"probe candidate: output column {j} is {got[0, j]!r}, the reference "
+                f"{want[0, j]!r}; rebuild it ({BUILD_HINT}) or bring _verify.c up to date with "
+                "the Python physics"
+            )
 
     def evaluate_into(
         self, inputs: FloatArray, out: FloatArray, path: FloatArray | None = None
@@ -393,34 +511,99 @@ class Verifier:
             PlanningError: A non-finite input, ``T_s <= 0`` or an unknown dig type, naming it.
             ValueError: A pose or ``a6`` not shaped ``(3,)``.
         """
-        vectors = {"q_start_rad": q_start_rad, "q_end_rad": q_end_rad, "a6": a6}
-        arrays = {k: np.asarray(v, dtype=np.float64) for k, v in vectors.items()}
-        for name, v in arrays.items():
-            if v.shape != (3,):
-                raise ValueError(
-                    f"{name} must have shape (3,) (boom, stick, bucket); got {v.shape}"
-                )
-            if not np.all(np.isfinite(v)):
-                j = int(np.argmax(~np.isfinite(v)))
-                raise PlanningError(f"{name}[{j}] is {float(v[j])!r}; every input must be finite")
-        h = float(surface_y_m)
-        T = float(T_s)
-        if not math.isfinite(h):
-            raise PlanningError(f"surface_y_m is {h!r}; the surface height must be finite")
-        if not (math.isfinite(T) and T > 0.0):
-            raise PlanningError(f"T_s must be finite and > 0 s; got {T!r}")
-        kinds = tuple(int(k) for k in DigType)
-        if isinstance(dig_type, bool) or dig_type not in kinds:
-            raise PlanningError(
-                f"dig_type must be one of {', '.join(f'{k.name} ({int(k)})' for k in DigType)}; "
-                f"got {dig_type!r}"
-            )
-        inputs = pack_inputs(
-            arrays["q_start_rad"], arrays["q_end_rad"], h, int(dig_type), arrays["a6"], T
-        )
+        inputs = _one_row(q_start_rad, q_end_rad, surface_y_m, dig_type, a6, T_s)
         out = np.empty((1, N_OUT), dtype=np.float64)
         self.evaluate_into(inputs, out)
         return VerifyResult.from_row(out[0])
+
+    def retime_into(
+        self,
+        inputs: FloatArray,
+        out: FloatArray,
+        retimed: FloatArray,
+        path: FloatArray | None = None,
+    ) -> None:
+        """Retime N candidates along their paths to the shortest feasible T' (the fast path).
+
+        Each row's path is kept (its shape term ``K = -a6 T^6`` per joint, so that the joint
+        angles, theta_p and V_p, which depend on the path only, do not change) and T' is the
+        smallest value in ``[t_min, t_max]`` at which every time-dependent constraint
+        (:data:`TIME_DEPENDENT`: velocity, acceleration, torque, power and the time range
+        itself) holds. ``out`` then holds the real evaluation at ``(a6' = -K / T'^6, T')``,
+        exactly what :meth:`evaluate_into` gives for the ``retimed`` row, so "feasible" means
+        what it means there (the path-only constraints are reported as they are).
+
+        Where no T' in range satisfies them all, T' is the least violating candidate found
+        (C: among t_max, the closed-form bounds, the scan points and a 9-point geometric grid
+        from t_min to t_max; numpy: on its 64-point grid; t_max when no candidate evaluates
+        finite), evaluated the same way so the caller sees the violation.
+
+        How (C): at unit time the kernel caches per sample the dynamic torque ``A`` (scales as
+        ``1/T^2``), the gravity and soil torques, ``q'`` and the tip speed; velocity and
+        acceleration give closed-form lower bounds on T', each sample's torque an interval of
+        ``1/T^2``; power, and the torque of the few samples slower than the soil model's 1 mm/s
+        regularisation, are searched on the cache (scan, then Illinois to a bracket of 1e-7
+        relative); one real evaluation follows (more only if it contradicts the cache, which
+        a 1e-9 margin on every limit prevents). The answer is within :data:`RETIME_RTOL` above
+        the lowest feasible boundary found (about 1e-7 measured). A feasible set made of
+        several intervals is searched from its lower end, but an island narrower than one
+        scan step (8 steps between the bounds) can be missed. About 1.9x the cost of an
+        :meth:`evaluate_into` row (14-15 us at 101 samples); allocates nothing, safe in the
+        loop's planning step.
+
+        How (numpy, the reference): :func:`oneshot.evaluate` on a 64-point geometric grid of
+        T over the range plus the velocity and acceleration bounds (exact from the evaluation
+        at t_min), then multisection of the first bracket (15 points per call) to 1e-8
+        relative, judging feasibility with 1e-11 to spare; 10-15 ms per row. It misses a
+        feasible interval narrower than a grid step (1.1 %) that starts at no such bound.
+
+        Args:
+            inputs: ``(N, N_IN)`` C-contiguous float64 rows (columns ``IN_*``); ``IN_A6`` and
+                ``IN_T`` define the path by ``K = -a6 T^6``.
+            out: ``(N, N_OUT)`` C-contiguous writable float64: the evaluation at T'.
+            retimed: ``(N, N_RETIMED)`` C-contiguous writable float64: ``a6'`` (columns
+                ``RT_A6..RT_A6+2``) and ``T'`` (``RT_T_S``). NaN for a row that
+                :meth:`evaluate_into` rejects or whose ``K`` overflows (``out`` then as for a
+                rejected row).
+            path: ``(N, n_samples, 2)`` for the tip path at T', or None.
+
+        Raises:
+            ValueError: Wrong shapes, dtypes or memory layout (nothing is written).
+        """
+        self._retime(inputs, out, retimed, path)
+
+    def retime(
+        self,
+        q_start_rad: ArrayLike,
+        q_end_rad: ArrayLike,
+        surface_y_m: float,
+        dig_type: DigType | int,
+        a6: ArrayLike,
+        T_s: float,
+    ) -> tuple[FloatArray, float, VerifyResult]:
+        """Retime one candidate (convenience for :meth:`retime_into`; allocates).
+
+        Args:
+            q_start_rad: Entry pose ``(3,)``.
+            q_end_rad: Exit pose ``(3,)``.
+            surface_y_m: Material surface height H, m.
+            dig_type: Downward or backward.
+            a6: Sixth-order coefficients ``(3,)``, rad/s^6, with ``T_s`` the path to keep.
+            T_s: Digging time, s.
+
+        Returns:
+            ``(a6' (3,) rad/s^6, T' s, the VerifyResult at T')``.
+
+        Raises:
+            PlanningError: A non-finite input, ``T_s <= 0`` or an unknown dig type, naming it.
+            ValueError: A pose or ``a6`` not shaped ``(3,)``.
+        """
+        inputs = _one_row(q_start_rad, q_end_rad, surface_y_m, dig_type, a6, T_s)
+        out = np.empty((1, N_OUT), dtype=np.float64)
+        retimed = np.empty((1, N_RETIMED), dtype=np.float64)
+        self.retime_into(inputs, out, retimed)
+        a6_new = retimed[0, RT_A6 : RT_A6 + 3].copy()
+        return a6_new, float(retimed[0, RT_T_S]), VerifyResult.from_row(out[0])
 
     def _evaluate_numpy(
         self, inputs: FloatArray, out: FloatArray, path: FloatArray | None = None
@@ -474,6 +657,131 @@ class Verifier:
                 paths[i] = row_path[0]
         return rows, paths
 
+    def _retime_numpy(
+        self,
+        inputs: FloatArray,
+        out: FloatArray,
+        retimed: FloatArray,
+        path: FloatArray | None = None,
+    ) -> None:
+        """The numpy backend of :meth:`retime_into`: real evaluations only (the reference)."""
+        x = _checked(inputs, "inputs", (N_IN,), writable=False)
+        o = _checked(out, "out", (N_OUT,), writable=True)
+        rt = _checked(retimed, "retimed", (N_RETIMED,), writable=True)
+        p = None if path is None else _checked(path, "path", (self.n_samples, 2), writable=True)
+        n = x.shape[0]
+        if o.shape[0] != n or rt.shape[0] != n or (p is not None and p.shape[0] != n):
+            raise ValueError(
+                "inputs, out, retimed and path must have the same number of rows N; got "
+                f"{n}, {o.shape[0]}, {rt.shape[0]}, {p.shape[0] if p is not None else n}"
+            )
+        T = x[:, IN_T]
+        kind = x[:, IN_DIG_TYPE]
+        ok = np.all(np.isfinite(x), axis=1) & (T > 0.0) & ((kind == 0.0) | (kind == 1.0))
+        with np.errstate(all="ignore"):
+            K = -x[:, IN_A6 : IN_A6 + 3] * T[:, None] ** 6  # oneshot.particle_from_a6
+        ok &= np.all(np.isfinite(K), axis=1)
+        o[~ok] = np.nan
+        o[~ok, COL_TOTAL] = np.inf
+        rt[~ok] = np.nan
+        if p is not None:
+            p[~ok] = np.nan
+        if not np.any(ok):
+            return
+        v = x[ok]
+        K = K[ok]
+        T_new = self._retime_search(v, K)
+        rows = v.copy()
+        with np.errstate(all="ignore"):
+            rows[:, IN_A6 : IN_A6 + 3] = -K / T_new[:, None] ** 6  # oneshot.a6_from_particle
+        rows[:, IN_T] = T_new
+        res, res_path = self._numpy_rows(rows, p is not None)
+        o[ok] = res
+        if p is not None and res_path is not None:
+            p[ok] = res_path
+        rt[ok, RT_A6 : RT_A6 + 3] = rows[:, IN_A6 : IN_A6 + 3]
+        rt[ok, RT_T_S] = T_new
+
+    def _retime_search(self, v: FloatArray, K: FloatArray) -> FloatArray:
+        """T' per valid row ``v`` with shape terms ``K`` ``(B, 3)``, by real evaluations."""
+        planning = oneshot.require_planning(self.rig)
+        t_min, t_max = planning.t_min_s, planning.t_max_s
+        n = v.shape[0]
+        grid = t_min * (t_max / t_min) ** np.linspace(0.0, 1.0, _REF_GRID)
+        grid[0], grid[-1] = t_min, t_max
+        grid = np.broadcast_to(grid, (n, grid.size))
+        ok, total, td = self._timed_numpy(v, K, grid)
+        # The velocity and acceleration bounds join the grid, exact from the evaluation at t_min
+        # (peak |qd| scales as 1/T, peak |qdd| as 1/T^2): a feasible interval narrower than a
+        # grid step (a torque limit can close it from above) mostly starts at one of them.
+        with np.errstate(all="ignore"):
+            bounds = t_min * np.concatenate(
+                [td[:, 0, 0:3] + 1.0, np.sqrt(td[:, 0, 3:6] + 1.0)], axis=1
+            ) * (1.0 + _REF_BOUND_STEP)
+        bounds = np.clip(np.where(np.isfinite(bounds), bounds, t_max), t_min, t_max)
+        ok_b, total_b, _ = self._timed_numpy(v, K, bounds)
+        Ts = np.concatenate([grid, bounds], axis=1)
+        order = np.argsort(Ts, axis=1, kind="stable")
+        Ts = np.take_along_axis(Ts, order, axis=1)
+        ok = np.take_along_axis(np.concatenate([ok, ok_b], axis=1), order, axis=1)
+        total = np.take_along_axis(np.concatenate([total, total_b], axis=1), order, axis=1)
+        rows = np.arange(n)
+        found = np.any(ok, axis=1)
+        first = np.argmax(ok, axis=1)
+        total = np.where(np.isnan(total), np.inf, total)
+        least = np.where(
+            np.isfinite(total.min(axis=1)), Ts[rows, np.argmin(total, axis=1)], t_max
+        )
+        T = np.where(found, Ts[rows, first], least)
+        # Multisection of each bracket (Ts[first - 1] fails, Ts[first] holds).
+        idx = np.flatnonzero(found & (first > 0))
+        lo, hi = Ts[idx, first[idx] - 1], Ts[idx, first[idx]]
+        frac = np.arange(1, _REF_SPLIT) / _REF_SPLIT
+        while idx.size and np.any(hi > lo * (1.0 + _REF_RTOL)):
+            pts = lo[:, None] * (hi / lo)[:, None] ** frac
+            ok_p, _, _ = self._timed_numpy(v[idx], K[idx], pts)
+            k = np.where(np.any(ok_p, axis=1), np.argmax(ok_p, axis=1), frac.size)
+            pts = np.concatenate([lo[:, None], pts, hi[:, None]], axis=1)
+            sub = np.arange(idx.size)
+            lo, hi = pts[sub, k], pts[sub, k + 1]
+        T[idx] = hi
+        return np.asarray(T, dtype=np.float64)
+
+    def _timed_numpy(
+        self, v: FloatArray, K: FloatArray, T: FloatArray
+    ) -> tuple[NDArray[np.bool_], FloatArray, FloatArray]:
+        """For rows ``v`` retimed to ``T`` (B, P): whether the time-dependent constraints hold
+        (with _REF_MARGIN to spare), their total violation and their values (B, P, 12), NaN
+        where evaluate refuses."""
+        with np.errstate(all="ignore"):
+            a6 = -K[:, None, :] / T[..., None] ** 6
+        viol = np.full((*T.shape, N_CONSTRAINTS), np.nan)
+
+        def evaluate(rows: slice) -> FloatArray:
+            w = v[rows]
+            with np.errstate(all="ignore"):
+                ev = oneshot.evaluate(
+                    self.rig, w[:, IN_Q_START : IN_Q_START + 3], w[:, IN_Q_END : IN_Q_END + 3],
+                    w[:, IN_SURFACE_Y], w[:, IN_DIG_TYPE].astype(np.int64), a6[rows], T[rows],
+                    self.n_samples,
+                )
+            return ev.violations
+
+        try:
+            viol[...] = evaluate(slice(None))
+        except (PlanningError, ConfigurationError):
+            # A batch evaluate refuses (overflowing coefficients): row by row, refused rows NaN.
+            for b in range(v.shape[0]):
+                try:
+                    viol[b] = evaluate(slice(b, b + 1))[0]
+                except (PlanningError, ConfigurationError):
+                    continue
+        td = viol[..., list(TIME_DEPENDENT)]
+        # T is in range by construction: the margin is for the limits, t_min and t_max may hold
+        # with equality.
+        ok = np.all(td[..., :-2] <= -_REF_MARGIN, axis=-1) & np.all(td[..., -2:] <= 0.0, axis=-1)
+        return ok, np.sum(np.maximum(td, 0.0), axis=-1), td
+
     def _numpy_batch(
         self, v: FloatArray, want_path: bool
     ) -> tuple[FloatArray, FloatArray | None]:
@@ -504,6 +812,45 @@ class Verifier:
         samples = sextic.evaluate(coeffs, T[:, 0], self.n_samples)
         pose, _ = kinematics.tip_state(self.rig, samples.q_rad, samples.qd_rad_s)
         return rows, pose[..., :2]
+
+
+def _one_row(
+    q_start_rad: ArrayLike,
+    q_end_rad: ArrayLike,
+    surface_y_m: float,
+    dig_type: DigType | int,
+    a6: ArrayLike,
+    T_s: float,
+) -> FloatArray:
+    """One input row ``(1, N_IN)`` from a checked candidate.
+
+    Raises:
+        PlanningError: A non-finite input, ``T_s <= 0`` or an unknown dig type, naming it.
+        ValueError: A pose or ``a6`` not shaped ``(3,)``.
+    """
+    vectors = {"q_start_rad": q_start_rad, "q_end_rad": q_end_rad, "a6": a6}
+    arrays = {k: np.asarray(v, dtype=np.float64) for k, v in vectors.items()}
+    for name, v in arrays.items():
+        if v.shape != (3,):
+            raise ValueError(f"{name} must have shape (3,) (boom, stick, bucket); got {v.shape}")
+        if not np.all(np.isfinite(v)):
+            j = int(np.argmax(~np.isfinite(v)))
+            raise PlanningError(f"{name}[{j}] is {float(v[j])!r}; every input must be finite")
+    h = float(surface_y_m)
+    T = float(T_s)
+    if not math.isfinite(h):
+        raise PlanningError(f"surface_y_m is {h!r}; the surface height must be finite")
+    if not (math.isfinite(T) and T > 0.0):
+        raise PlanningError(f"T_s must be finite and > 0 s; got {T!r}")
+    kinds = tuple(int(k) for k in DigType)
+    if isinstance(dig_type, bool) or dig_type not in kinds:
+        raise PlanningError(
+            f"dig_type must be one of {', '.join(f'{k.name} ({int(k)})' for k in DigType)}; "
+            f"got {dig_type!r}"
+        )
+    return pack_inputs(
+        arrays["q_start_rad"], arrays["q_end_rad"], h, int(dig_type), arrays["a6"], T
+    )
 
 
 def _checked(a: FloatArray, name: str, tail: tuple[int, ...], *, writable: bool) -> FloatArray:

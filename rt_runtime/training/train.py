@@ -1,0 +1,507 @@
+"""Physics-informed training of the one-shot planner network (Yao 4.3, eq 13-19).
+
+One network per dig type maps ``X = (theta11, theta12, theta13, theta21, theta22, theta23, H)``
+to ``Y = (a16, a26, a36, T)``. The loss is Yao eq 19::
+
+    Loss_z = lambda_M Loss_1 + lambda_C (Loss_2 + Loss_3 + Loss_4) + lambda_F Loss_5 + lambda_R R(W)
+
+with every physics term computed differentiably from the predicted ``Y`` by
+:class:`rt_runtime.training.physics.TorchPhysics`, the torch twin of the numpy evaluation the PSO
+teacher optimises (a test ties the two together):
+
+- Loss_1 (eq 13): mean squared error against the PSO teacher, on standardised targets (below).
+- Loss_2 (eq 14): hinge of the arm's limits: joint angle, velocity, acceleration, torque, power
+  and the digging time range (eq 12's ``t_min <= T <= t_max`` sits with the kinematic limits).
+- Loss_3 (eq 15): hinge of the initial digging angle range.
+- Loss_4 (eq 16): hinge of the fill (volume) range.
+- Loss_5 (eq 18): the normalised objective of eq 11.
+- R(W): the squared L2 norm of the weights (biases excluded).
+
+Choices where the paper is silent or would not work as printed, each measured on scale_model:
+
+- Parametrisation. The network predicts the standardised ``(K1, K2, K3, T)``, with
+  ``K = -a6 T^6`` the sextic's bulge (:mod:`rt_runtime.planning.oneshot`), not ``a6`` itself:
+  ``a6`` spans orders of magnitude with ``T`` (``T^6`` from 5 to 10 s is a factor of 64), so an
+  MSE on raw ``a6`` weighs long digs to nothing. ``a6 = -K / T^6`` is computed in the graph, and
+  the exported model still outputs ``(a16, a26, a36, T)`` (DESIGN.md "Models").
+- Loss_1 is a mean rather than eq 13's sum, so its weight does not depend on the batch size.
+- The hinges carry a margin (``margin``, in the normalised units of
+  :data:`rt_runtime.planning.oneshot.CONSTRAINT_NAMES`): the teacher's optima sit on constraint
+  boundaries, and a network that only learns to land on a boundary lands on the wrong side of
+  it half of the time. The margin pushes the prediction just inside.
+- Optimiser: Adam with a learning rate that decays on plateaus (Yao: mini-batch gradient descent,
+  lr 1e-4, which needs thousands of epochs here).
+- Early stopping on the targets: every ``eval_every`` epochs the model is scored on a validation
+  split of the training data (never on the held-out test set) by its raw feasibility rate and its
+  mean objective gap to the teacher; training stops when both reach their targets for
+  ``patience_evals`` consecutive evaluations, or when the score stops improving, and the best
+  scored weights are kept.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rt_runtime.errors import ConfigurationError
+from rt_runtime.planning.oneshot import CONSTRAINT_NAMES, DigType
+from rt_runtime.rig import Rig, load_rig
+
+FloatArray = NDArray[np.float64]
+
+#: Default hidden layers per dig type: Yao 5.2 (3 x 70 tanh downward, 3 x 60 backward).
+PAPER_HIDDEN: dict[DigType, tuple[int, ...]] = {
+    DigType.DOWNWARD: (70, 70, 70),
+    DigType.BACKWARD: (60, 60, 60),
+}
+#: Yao's batch sizes (50 downward, 100 backward).
+PAPER_BATCH: dict[DigType, int] = {DigType.DOWNWARD: 50, DigType.BACKWARD: 100}
+
+# Column groups of the violation vector for Loss_2..Loss_4.
+_LIMIT_COLS = [i for i, n in enumerate(CONSTRAINT_NAMES) if not n.startswith(("theta_p", "volume"))]
+_ANGLE_COLS = [i for i, n in enumerate(CONSTRAINT_NAMES) if n.startswith("theta_p")]
+_VOLUME_COLS = [i for i, n in enumerate(CONSTRAINT_NAMES) if n.startswith("volume")]
+
+LOSS_NAMES = ("mse", "limits", "theta_p", "volume", "objective", "total")
+
+
+@dataclass(frozen=True, slots=True)
+class TrainConfig:
+    """Settings of one training run.
+
+    Attributes:
+        hidden: Hidden layer widths (tanh); empty means the paper's for the dig type.
+        epochs: Maximum epochs.
+        batch_size: Mini-batch size; 0 means the paper's for the dig type.
+        lr: Initial Adam learning rate.
+        lambda_m, lambda_c, lambda_f, lambda_r: Weights of eq 19.
+        margin: Hinge margin of the constraint losses (normalised units).
+        n_samples: Samples per trajectory in the physics losses.
+        val_fraction: Part of the training split held out for early stopping.
+        eval_every: Epochs between validation scorings.
+        target_feasible: Raw feasibility target on the validation split.
+        target_gap: Mean objective gap target on the validation split (fraction).
+        patience_evals: Scorings without improvement before stopping (and consecutive scorings
+            at the targets before stopping early).
+        seed: Seed of the initialisation, the split and the batch order.
+    """
+
+    hidden: tuple[int, ...] = ()
+    epochs: int = 1500
+    batch_size: int = 0
+    lr: float = 2e-3
+    lambda_m: float = 1.0
+    lambda_c: float = 20.0
+    lambda_f: float = 1.0
+    lambda_r: float = 1e-6
+    margin: float = 0.01
+    n_samples: int = 101
+    val_fraction: float = 0.1
+    eval_every: int = 10
+    target_feasible: float = 0.98
+    target_gap: float = 0.02
+    patience_evals: int = 30
+    seed: int = 0
+
+    def validate(self) -> None:
+        """Raise ConfigurationError naming the first bad setting."""
+        checks = [
+            ("epochs", self.epochs >= 1, ">= 1"),
+            ("batch_size", self.batch_size >= 0, ">= 0 (0: the paper's)"),
+            ("lr", 0.0 < self.lr < 1.0, "in (0, 1)"),
+            ("margin", 0.0 <= self.margin < 0.5, "in [0, 0.5)"),
+            ("n_samples", self.n_samples >= 11, ">= 11"),
+            ("val_fraction", 0.0 < self.val_fraction < 0.5, "in (0, 0.5)"),
+            ("eval_every", self.eval_every >= 1, ">= 1"),
+            ("patience_evals", self.patience_evals >= 1, ">= 1"),
+            ("hidden", all(h >= 1 for h in self.hidden), "widths >= 1"),
+        ]
+        checks += [
+            (name, getattr(self, name) >= 0.0, ">= 0")
+            for name in ("lambda_m", "lambda_c", "lambda_f", "lambda_r")
+        ]
+        for name, ok, allowed in checks:
+            if not ok:
+                raise ConfigurationError(
+                    f"training setting {name} must be {allowed}; got {getattr(self, name)!r}"
+                )
+
+
+@dataclass(frozen=True, slots=True)
+class Normalisation:
+    """Affine scaling of inputs and of the internal targets ``(K1, K2, K3, T)``."""
+
+    x_mean: tuple[float, ...]
+    x_std: tuple[float, ...]
+    z_mean: tuple[float, ...]
+    z_std: tuple[float, ...]
+
+
+@dataclass(slots=True)
+class TrainResult:
+    """What :func:`train` returns (and saves as a checkpoint)."""
+
+    dig_type: DigType
+    rig_name: str
+    hidden: tuple[int, ...]
+    normalisation: Normalisation
+    state_dict: dict[str, Any]
+    history: dict[str, list[float]]
+    best_epoch: int
+    epochs_run: int
+    stop_reason: str
+    val_feasible: float
+    val_gap_mean: float
+    train_s: float
+    config: TrainConfig
+    dataset_meta: dict[str, Any] = field(default_factory=dict)
+
+
+def particles_from_y(y: FloatArray) -> FloatArray:
+    """``(K1, K2, K3, T)`` from ``Y = (a16, a26, a36, T)``, shapes ``(N, 4)``."""
+    T = y[:, 3:4]
+    return np.concatenate([-y[:, :3] * T**6, T], axis=1)
+
+
+def build_network(hidden: tuple[int, ...], normalisation: Normalisation) -> Any:
+    """The exportable network: standardise X, tanh MLP, de-standardise, ``a6 = -K / T^6``.
+
+    Returns:
+        A ``torch.nn.Module`` mapping ``(B, 7)`` float32 to ``(B, 4)`` = (a16, a26, a36, T);
+        its ``internal(x)`` gives the standardised ``(K, T)`` prediction for the MSE.
+    """
+    import torch
+    from torch import nn
+
+    class PinnNet(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            layers: list[nn.Module] = []
+            width = 7
+            for h in hidden:
+                layers += [nn.Linear(width, h), nn.Tanh()]
+                width = h
+            layers.append(nn.Linear(width, 4))
+            self.mlp = nn.Sequential(*layers)
+            n = normalisation
+            self.register_buffer("x_mean", torch.tensor(n.x_mean, dtype=torch.float32))
+            self.register_buffer("x_std", torch.tensor(n.x_std, dtype=torch.float32))
+            self.register_buffer("z_mean", torch.tensor(n.z_mean, dtype=torch.float32))
+            self.register_buffer("z_std", torch.tensor(n.z_std, dtype=torch.float32))
+
+        def internal(self, x: torch.Tensor) -> torch.Tensor:
+            return self.mlp((x - self.x_mean) / self.x_std)  # type: ignore[no-any-return]
+
+        def decode(self, z: torch.Tensor) -> torch.Tensor:
+            kt = z * self.z_std + self.z_mean
+            T = kt[:, 3:4]
+            return torch.cat([-kt[:, :3] / T**6, T], dim=1)
+
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            return self.decode(self.internal(x))
+
+    return PinnNet()
+
+
+def _losses(
+    net: Any,
+    phys: Any,
+    x: Any,
+    z_target: Any,
+    kind: Any,
+    cfg: TrainConfig,
+) -> tuple[Any, list[Any], Any]:
+    """Total loss, the five parts of eq 19, and the evaluation (float64 physics)."""
+    import torch
+
+    z = net.internal(x)
+    loss_mse = torch.mean((z - z_target) ** 2)
+    y = net.decode(z).double()
+    xd = x.double()
+    ev = phys.evaluate(xd[:, 0:3], xd[:, 3:6], xd[:, 6], kind, y[:, :3], y[:, 3])
+    v = ev.violations
+    hinge = torch.relu(v + cfg.margin)
+    loss_lim = hinge[:, _LIMIT_COLS].sum(dim=1).mean()
+    loss_ang = hinge[:, _ANGLE_COLS].sum(dim=1).mean()
+    loss_vol = hinge[:, _VOLUME_COLS].sum(dim=1).mean()
+    loss_obj = ev.objective.mean()
+    reg = sum((p**2).sum() for name, p in net.named_parameters() if name.endswith("weight"))
+    total = (
+        cfg.lambda_m * loss_mse
+        + cfg.lambda_c * (loss_lim + loss_ang + loss_vol)
+        + cfg.lambda_f * loss_obj
+        + cfg.lambda_r * reg
+    )
+    return total, [loss_mse, loss_lim, loss_ang, loss_vol, loss_obj], ev
+
+
+def train(
+    rig: Rig | str,
+    dataset_path: Path,
+    dig_type: DigType,
+    config: TrainConfig | None = None,
+    *,
+    progress: bool = True,
+    log: Any = None,
+) -> TrainResult:
+    """Train one network on the feasible training split of a teacher dataset.
+
+    Args:
+        rig: The rig (or profile name) the dataset was generated for; must match its metadata.
+        dataset_path: The consolidated dataset file of :mod:`rt_runtime.training.dataset`.
+        dig_type: Which network.
+        config: Settings (defaults: the paper's architecture, measured loss weights).
+        progress: Show a progress bar.
+        log: Optional callable taking one line of text per validation scoring.
+
+    Returns:
+        The trained weights, normalisation, loss history and validation scores.
+
+    Raises:
+        ConfigurationError: Bad settings, or a dataset for another rig or dig type.
+    """
+    import torch
+
+    from rt_runtime.training import dataset as ds
+    from rt_runtime.training.physics import TorchPhysics
+
+    cfg = config or TrainConfig()
+    cfg.validate()
+    rig_obj = load_rig(rig) if isinstance(rig, str) else rig
+    data = ds.load(dataset_path)
+    meta = data.meta
+    spec = meta.get("spec", {})
+    if spec.get("rig") not in (None, rig_obj.name):
+        raise ConfigurationError(
+            f"dataset {dataset_path} was generated for rig {spec.get('rig')!r}, "
+            f"not {rig_obj.name!r}"
+        )
+    if spec.get("dig_type") not in (None, dig_type.name.lower()):
+        raise ConfigurationError(
+            f"dataset {dataset_path} holds {spec.get('dig_type')!r} digs, not "
+            f"{dig_type.name.lower()!r}"
+        )
+    hidden = cfg.hidden or PAPER_HIDDEN[dig_type]
+    batch = cfg.batch_size or PAPER_BATCH[dig_type]
+
+    train_idx = np.asarray(data.train_idx)
+    if train_idx.size < 4:
+        raise ConfigurationError(
+            f"dataset {dataset_path} has {train_idx.size} feasible training samples; need >= 4"
+        )
+    rng = np.random.default_rng(cfg.seed)
+    perm = rng.permutation(train_idx)
+    n_val = max(2, round(cfg.val_fraction * perm.size))
+    val_idx, fit_idx = perm[:n_val], perm[n_val:]
+
+    X = np.asarray(data.X, dtype=np.float64)
+    Zt = particles_from_y(np.asarray(data.Y, dtype=np.float64))
+    norm = Normalisation(
+        x_mean=tuple(float(v) for v in X[fit_idx].mean(axis=0)),
+        x_std=tuple(float(v) for v in np.maximum(X[fit_idx].std(axis=0), 1e-6)),
+        z_mean=tuple(float(v) for v in Zt[fit_idx].mean(axis=0)),
+        z_std=tuple(float(v) for v in np.maximum(Zt[fit_idx].std(axis=0), 1e-6)),
+    )
+    torch.manual_seed(cfg.seed)
+    net = build_network(hidden, norm)
+    phys = TorchPhysics(rig_obj, n_samples=cfg.n_samples)
+
+    def tensors(idx: NDArray[np.intp]) -> tuple[Any, Any, Any, FloatArray]:
+        x = torch.tensor(X[idx], dtype=torch.float32)
+        z = (torch.tensor(Zt[idx]) - torch.tensor(norm.z_mean)) / torch.tensor(norm.z_std)
+        kind = torch.full((idx.size,), int(dig_type), dtype=torch.long)
+        return x, z.float(), kind, np.asarray(data.objective)[idx]
+
+    x_fit, z_fit, k_fit, _ = tensors(fit_idx)
+    x_val, z_val, k_val, obj_val = tensors(val_idx)
+
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=8, min_lr=1e-5)
+
+    history: dict[str, list[float]] = {f"train_{n}": [] for n in LOSS_NAMES}
+    history.update({f"val_{n}": [] for n in LOSS_NAMES})
+    history.update({"eval_epoch": [], "val_feasible": [], "val_gap_mean": [], "lr": []})
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.epochs, desc=f"train {dig_type.name.lower()}", unit="epoch")
+
+    best_score = (-1.0, math.inf)
+    best_state = {k: v.clone() for k, v in net.state_dict().items()}
+    best_epoch, stale, at_target = 0, 0, 0
+    stop_reason = "max_epochs"
+    best_feas, best_gap = 0.0, math.inf
+    t0 = time.perf_counter()
+    epoch = 0
+    for epoch in range(1, cfg.epochs + 1):
+        net.train()
+        order = torch.randperm(
+            fit_idx.size, generator=torch.Generator().manual_seed(cfg.seed + epoch)
+        )
+        sums = np.zeros(len(LOSS_NAMES))
+        for start in range(0, fit_idx.size, batch):
+            sel = order[start : start + batch]
+            total, parts, _ = _losses(net, phys, x_fit[sel], z_fit[sel], k_fit[sel], cfg)
+            opt.zero_grad()
+            total.backward()
+            opt.step()
+            w = sel.numel() / fit_idx.size
+            sums[:5] += w * np.array([float(p) for p in parts])
+            sums[5] += w * float(total)
+        for i, n in enumerate(LOSS_NAMES):
+            history[f"train_{n}"].append(float(sums[i]))
+        net.eval()
+        with torch.no_grad():
+            total, parts, ev = _losses(net, phys, x_val, z_val, k_val, cfg)
+        for i, n in enumerate(LOSS_NAMES[:5]):
+            history[f"val_{n}"].append(float(parts[i]))
+        history["val_total"].append(float(total))
+        if bar is not None:
+            bar.update(1)
+        if epoch % cfg.eval_every and epoch != cfg.epochs:
+            continue
+        feas = float(np.mean(ev.total_violation.numpy() <= 0.0))
+        gap = float(np.mean((ev.objective.numpy() - obj_val) / np.abs(obj_val)))
+        sched.step(float(total))
+        history["eval_epoch"].append(float(epoch))
+        history["val_feasible"].append(feas)
+        history["val_gap_mean"].append(gap)
+        history["lr"].append(float(opt.param_groups[0]["lr"]))
+        if log is not None:
+            log(
+                f"epoch {epoch}: val feasible {feas:.3f}, gap {gap:+.4f}, "
+                f"loss {float(total):.4g}, lr {opt.param_groups[0]['lr']:.2g}"
+            )
+        # Score: feasibility first (in steps of half a percent), then the gap.
+        score = (math.floor(feas * 200.0) / 200.0, gap)
+        if score[0] > best_score[0] or (score[0] == best_score[0] and score[1] < best_score[1]):
+            best_score, best_epoch, stale = score, epoch, 0
+            best_feas, best_gap = feas, gap
+            best_state = {k: v.clone() for k, v in net.state_dict().items()}
+        else:
+            stale += 1
+        at_target = at_target + 1 if feas >= cfg.target_feasible and gap <= cfg.target_gap else 0
+        if at_target >= cfg.patience_evals:
+            stop_reason = "targets_reached"
+            break
+        if stale >= cfg.patience_evals:
+            stop_reason = "no_improvement"
+            break
+    if bar is not None:
+        bar.close()
+    net.load_state_dict(best_state)
+    return TrainResult(
+        dig_type=dig_type,
+        rig_name=rig_obj.name,
+        hidden=tuple(hidden),
+        normalisation=norm,
+        state_dict={k: v.detach().cpu() for k, v in net.state_dict().items()},
+        history=history,
+        best_epoch=best_epoch,
+        epochs_run=epoch,
+        stop_reason=stop_reason,
+        val_feasible=best_feas,
+        val_gap_mean=best_gap,
+        train_s=time.perf_counter() - t0,
+        config=cfg,
+        dataset_meta={**meta, "path": str(dataset_path)},
+    )
+
+
+def save_checkpoint(result: TrainResult, path: Path) -> None:
+    """Save a training result (weights, normalisation, history, settings) with torch.save."""
+    import torch
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": "excavator-rt-pinn-checkpoint/1",
+        "dig_type": result.dig_type.name.lower(),
+        "rig": result.rig_name,
+        "hidden": list(result.hidden),
+        "normalisation": asdict(result.normalisation),
+        "state_dict": result.state_dict,
+        "history": result.history,
+        "best_epoch": result.best_epoch,
+        "epochs_run": result.epochs_run,
+        "stop_reason": result.stop_reason,
+        "val_feasible": result.val_feasible,
+        "val_gap_mean": result.val_gap_mean,
+        "train_s": result.train_s,
+        "config": asdict(result.config),
+        "dataset_meta": json.loads(json.dumps(result.dataset_meta, default=str)),
+    }
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(path)
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    """Load a checkpoint written by :func:`save_checkpoint`.
+
+    Raises:
+        ConfigurationError: Missing or not a checkpoint of this format.
+    """
+    import torch
+
+    if not path.is_file():
+        raise ConfigurationError(f"checkpoint {path} does not exist; run `excavator-rt train`")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several unrelated types for a bad file
+        raise ConfigurationError(f"checkpoint {path} cannot be read: {exc}") from exc
+    if not isinstance(payload, dict) or payload.get("format") != "excavator-rt-pinn-checkpoint/1":
+        raise ConfigurationError(f"{path} is not an excavator-rt PINN checkpoint")
+    return payload
+
+
+def network_from_checkpoint(payload: dict[str, Any]) -> Any:
+    """Rebuild the trained network (eval mode) from a checkpoint payload."""
+    norm = Normalisation(**{k: tuple(v) for k, v in payload["normalisation"].items()})
+    net = build_network(tuple(payload["hidden"]), norm)
+    net.load_state_dict(payload["state_dict"])
+    net.eval()
+    return net
+
+
+def plot_losses(history: dict[str, list[float]], path: Path, title: str) -> None:
+    """Loss curves in the manner of Yao Fig. 10-11: six panels, training and validation."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = {
+        "mse": "Loss$_1$ (MSE)",
+        "limits": "Loss$_2$ (working device constraint)",
+        "theta_p": "Loss$_3$ (cutting angle constraint)",
+        "volume": "Loss$_4$ (fill factor constraint)",
+        "objective": "Loss$_5$ (performance)",
+        "total": "Loss$_z$ (all)",
+    }
+    fig, axes = plt.subplots(2, 3, figsize=(13, 7))
+    for ax, (key, label) in zip(axes.flat, labels.items(), strict=True):
+        tr = np.asarray(history[f"train_{key}"])
+        va = np.asarray(history[f"val_{key}"])
+        ep = np.arange(1, tr.size + 1)
+        ax.plot(ep, tr, label="Training")
+        ax.plot(ep, va, label="Validation")
+        if key in ("limits", "theta_p", "volume") and np.all(np.concatenate([tr, va]) >= 0):
+            ax.set_yscale("symlog", linthresh=1e-5)
+        ax.set_xlabel("Epochs")
+        ax.set_ylabel(label)
+        ax.legend()
+        ax.grid(alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -312,6 +312,126 @@ def cmd_bench_oneshot(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_pinn(args: argparse.Namespace) -> int:
+    """``excavator-rt bench pinn``: the shipped PINN on its held-out sets against the teacher."""
+    from rt_runtime.bench import bench_pinn
+
+    rig = load_rig(args.rig)
+    r = bench_pinn(
+        rig, args.models, limit=args.limit, passes=args.passes, pso_problems=args.pso_problems
+    )
+    if args.json:
+        _print_json(r)
+        return 0
+    g = r["goals"]
+    print(f"PINN planner on {rig.name}: {r['samples']} held-out problems (verifier: {r['verifier']})")
+    print(f"  objective gap to PSO: mean {r['gap_mean']:+.2%}, max {r['gap_max']:+.2%} (goal mean <= {g['gap_mean_max']:.0%}; Yao about 5 %)")
+    print(f"  raw network answers: gap mean {r['raw_gap_mean']:+.2%}, feasible {r['raw_feasible']:.1%} (goal >= {g['raw_feasible_min']:.0%})")
+    print(f"  plans returned (verified) {r['verified_feasible']:.1%}, refused {r['refused']:.1%}; returned plans feasible by the numpy reference: {r['executed_feasible']:.1%}")
+    print(f"  inference: p50 {r['infer_us']['p50']:.1f} us, p99 {r['infer_us']['p99']:.1f} us")
+    print(f"  plan (inference + verification): p50 {r['plan_us']['p50']:.1f} us, p99 {r['plan_us']['p99']:.1f} us (goals {g['plan_us_p50_max']:.0f} / {g['plan_us_p99_max']:.0f} us; Yao 4.2-4.5 ms)")
+    print(f"  PSO teacher in the same run: p50 {r['pso_solve_s']['p50']:.3f} s per dig ({r['speedup_vs_pso']:.0f}x slower than the PINN plan)")
+    print("  Table 4 form (means):          T [s]   V_p [L]  W_E [Wh]  planning")
+    for kind, t in r["table4"].items():
+        print(f"    {kind:<8} PSO               {t['pso']['T_s']:6.2f}  {t['pso']['volume_L']:7.2f}  {t['pso']['energy_Wh']:8.4f}  {t['pso']['plan_s']:.3f} s")
+        print(f"    {kind:<8} PINN              {t['pinn']['T_s']:6.2f}  {t['pinn']['volume_L']:7.2f}  {t['pinn']['energy_Wh']:8.4f}  {t['pinn']['plan_ms'] * 1e3:.1f} us")
+    y = r["paper"]["yao_table4_mean"]
+    print(f"    Yao (A-D)  PSO               {y['pso']['T_s']:6.2f}  {y['pso']['volume_L']:7.2f}  {y['pso']['energy_Wh']:8.4f}  69-71 s")
+    print(f"    Yao (A-D)  PINN              {y['pinn']['T_s']:6.2f}  {y['pinn']['volume_L']:7.2f}  {y['pinn']['energy_Wh']:8.4f}  4.2-4.5 ms")
+    return 0
+
+
+def _types(choice: str) -> list[str]:
+    return ["downward", "backward"] if choice == "both" else [choice]
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    """``excavator-rt train``: physics-informed training of the planner networks."""
+    from pathlib import Path
+
+    from rt_runtime.planning.oneshot import DigType
+    from rt_runtime.training.train import TrainConfig, plot_losses, save_checkpoint, train
+
+    rig = load_rig(args.rig)
+    out = Path(args.out)
+    report: dict[str, Any] = {"rig": rig.name, "types": {}}
+    for kind in _types(args.type):
+        cfg = TrainConfig(
+            hidden=tuple(args.hidden or ()),
+            epochs=args.epochs,
+            batch_size=args.batch_size,
+            lr=args.lr,
+            margin=args.margin,
+            seed=args.seed,
+        )
+        log = None if args.json or args.quiet else (lambda line: print(f"  {line}", file=sys.stderr))
+        res = train(
+            rig,
+            Path(args.data) / f"{kind}.npz",
+            DigType[kind.upper()],
+            cfg,
+            progress=not (args.json or args.quiet),
+            log=log,
+        )
+        ckpt = out / f"pinn_{kind}.pt"
+        save_checkpoint(res, ckpt)
+        png = out / f"pinn_{kind}_losses.png"
+        plot_losses(res.history, png, f"PINN training, {kind} digs ({rig.name})")
+        report["types"][kind] = {
+            "checkpoint": str(ckpt),
+            "plot": str(png),
+            "hidden": list(res.hidden),
+            "epochs_run": res.epochs_run,
+            "best_epoch": res.best_epoch,
+            "stop_reason": res.stop_reason,
+            "val_feasible": res.val_feasible,
+            "val_gap_mean": res.val_gap_mean,
+            "train_s": res.train_s,
+        }
+    if args.json:
+        _print_json(report)
+        return 0
+    for kind, r in report["types"].items():
+        print(
+            f"{kind}: {r['epochs_run']} epochs ({r['stop_reason']}), best at {r['best_epoch']}: "
+            f"validation feasible {r['val_feasible']:.1%}, gap to PSO {r['val_gap_mean']:+.2%}; "
+            f"{r['train_s']:.0f} s; {r['checkpoint']}, {r['plot']}"
+        )
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    """``excavator-rt export``: ONNX models with their cards and held-out sets."""
+    from pathlib import Path
+
+    from rt_runtime.training.export import export, write_heldout
+
+    out = Path(args.out)
+    report: dict[str, Any] = {"types": {}}
+    for kind in _types(args.type):
+        data = Path(args.data) / f"{kind}.npz" if args.data else None
+        model = out / f"pinn_{kind}.onnx"
+        card = export(Path(args.checkpoints) / f"pinn_{kind}.pt", model, dataset_path=data)
+        held = write_heldout(card, model)
+        report["types"][kind] = {
+            "model": str(model),
+            "card": str(model.with_suffix(".json")),
+            "heldout": str(held),
+            "parity_max_rel": card["parity_max_rel"],
+            **{k: card["heldout"][k] for k in ("samples", "raw_feasible", "gap_mean", "gap_max")},
+        }
+    if args.json:
+        _print_json(report)
+        return 0
+    for kind, r in report["types"].items():
+        print(
+            f"{kind}: {r['model']} (+ card, held-out set); parity with torch {r['parity_max_rel']:.2g}; "
+            f"held-out {r['samples']}: raw feasible {r['raw_feasible']:.1%}, gap mean "
+            f"{r['gap_mean']:+.2%}, max {r['gap_max']:+.2%}"
+        )
+    return 0
+
+
 # Gao/Yang Table 2: joint angles [deg] of the six key points of their digging path.
 GAO_TABLE2_JOINTS_DEG = (
     (34.83, -40.32, -56.16),
@@ -501,6 +621,42 @@ def build_parser() -> argparse.ArgumentParser:
     b1.add_argument("--workers", type=int, default=2, help="processes for the batched solve")
     b1.add_argument("--json", action="store_true")
     b1.set_defaults(handler=cmd_bench_oneshot)
+
+    from rt_runtime.training import dataset as _dataset
+
+    _dataset.add_parser(sub)
+
+    tr = sub.add_parser("train", help="physics-informed training of the PINN (needs the train extra)")
+    tr.add_argument("--rig", default=DEFAULT_RIG)
+    tr.add_argument("--data", default="data/pinn", help="dataset directory of `excavator-rt dataset`")
+    tr.add_argument("--type", choices=("downward", "backward", "both"), default="both")
+    tr.add_argument("--out", default="runs/train", help="directory for checkpoints and loss plots")
+    tr.add_argument("--epochs", type=int, default=1500)
+    tr.add_argument("--hidden", type=int, nargs="+", help="hidden widths (default: Yao's per type)")
+    tr.add_argument("--batch-size", type=int, default=0, help="0: Yao's per type")
+    tr.add_argument("--lr", type=float, default=2e-3)
+    tr.add_argument("--margin", type=float, default=0.01, help="hinge margin of the constraint losses")
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--quiet", action="store_true")
+    tr.add_argument("--json", action="store_true")
+    tr.set_defaults(handler=cmd_train)
+
+    ex = sub.add_parser("export", help="export trained networks to ONNX with model cards")
+    ex.add_argument("--checkpoints", default="runs/train", help="directory of `excavator-rt train`")
+    ex.add_argument("--data", help="dataset directory (default: the path recorded at training)")
+    ex.add_argument("--type", choices=("downward", "backward", "both"), default="both")
+    ex.add_argument("--out", default="onnx")
+    ex.add_argument("--json", action="store_true")
+    ex.set_defaults(handler=cmd_export)
+
+    b2 = bench_sub.add_parser("pinn", help="PINN planner on the held-out sets: gap, feasibility, latency")
+    b2.add_argument("--rig", default=DEFAULT_RIG)
+    b2.add_argument("--models", help="model directory (default: the shipped onnx/)")
+    b2.add_argument("--limit", type=int, help="held-out problems per type (default: all)")
+    b2.add_argument("--passes", type=int, default=5, help="timed passes over the problems")
+    b2.add_argument("--pso-problems", type=int, default=10, help="problems per type the PSO solves for timing")
+    b2.add_argument("--json", action="store_true")
+    b2.set_defaults(handler=cmd_bench_pinn)
 
     ip = sub.add_parser("interp", help="mixed-order interpolation through key points (Gao/Yang)")
     ip.add_argument("--rig", default="test_bench")

@@ -1,14 +1,19 @@
-"""Latency of the one-shot verifier: :meth:`rt_runtime.planning.verify.Verifier.evaluate_into`
-and :meth:`~rt_runtime.planning.verify.Verifier.retime_into`.
+"""Latency of the one-shot verifier: :meth:`rt_runtime.planning.verify.Verifier.evaluate_into`,
+:meth:`~rt_runtime.planning.verify.Verifier.retime_into` and
+:meth:`~rt_runtime.planning.verify.Verifier.plan_into`.
 
 Times single calls, for one candidate (N = 1, what the PINN planner verifies per dig) and for a
 batch of N = 32, with the C kernel and with the numpy reference backend, and prints the
 distributions as JSON: per-call p50/p90/p99/max in microseconds and the per-candidate p50/p99.
 Retiming is timed at N = 1 on PSO plans whose T is scaled up by 1.0-1.4 (what a conservative
 network gives; about a second of PSO to make them), next to a plain evaluation of the same
-rows, and on random particles. It also times the C call on a row the kernel rejects before any
-arithmetic (T < 0): that is the per-call overhead (argument parsing, buffer checks, the Python
-method).
+rows, and on random particles. Planning (the volume-filling path scale, then retiming) is timed
+at N = 1 on network-like rows: PSO plans with their bulge scaled per joint by a seeded factor
+around 0.8 (log-normal, sigma 0.15) and T 10 % longer, what an imprecise network gives, next to
+retiming the same rows; ``plan_outcomes`` says how many of them plan feasibly against retiming
+alone, fill the volume cap, or take the back-off. It also times the C call on a row the kernel
+rejects before any arithmetic (T < 0): that is the per-call overhead (argument parsing, buffer
+checks, the Python method).
 
 Candidates are random particles of the PSO search box on sampled problems of both dig types,
 cycled through so that the branch predictor does not learn one path. The garbage collector is
@@ -80,6 +85,30 @@ def retime_candidates(rig_name: str, n: int, seed: int) -> np.ndarray:
     return np.ascontiguousarray(np.resize(x, (max(n, 1), x.shape[1])))
 
 
+def network_candidates(rig_name: str, n: int, seed: int) -> np.ndarray:
+    """``n`` input rows like an imprecise network's: PSO plans (both dig types) with their
+    bulge ``K`` scaled per joint by ``0.8 exp(0.15 N(0, 1))`` (seeded) and T 10 % longer."""
+    rig = load_rig(rig_name)
+    planning = oneshot.require_planning(rig)
+    rng = np.random.default_rng(seed)
+    rows = []
+    for kind in DigType:
+        problems = oneshot.sample_problems(rig, 8, kind, seed=seed + 10 + int(kind))
+        plans = oneshot.solve_pso(rig, problems, n_particles=20, n_iterations=20, seed=seed)
+        for p, plan in zip(problems, plans, strict=True):
+            K = -np.asarray(plan.a6) * plan.T_s**6
+            T = min(1.1 * plan.T_s, planning.t_max_s)
+            for _ in range(4):
+                f = 0.8 * np.exp(0.15 * rng.standard_normal(3))
+                rows.append(
+                    verify.pack_inputs(
+                        p.q_start_rad, p.q_end_rad, p.surface_y_m, kind, -(K * f) / T**6, T
+                    )[0]
+                )
+    x = np.array(rows)
+    return np.ascontiguousarray(np.resize(x, (max(n, 1), x.shape[1])))
+
+
 def time_calls(
     verifier: verify.Verifier,
     rows: np.ndarray,
@@ -87,22 +116,28 @@ def time_calls(
     calls: int,
     with_path: bool,
     retime: bool = False,
+    plan: bool = False,
 ) -> np.ndarray:
     """Wall time in ns of ``calls`` calls of ``batch`` rows each, cycling through ``rows``.
 
     ``retime`` times :meth:`~rt_runtime.planning.verify.Verifier.retime_into` instead of
-    :meth:`~rt_runtime.planning.verify.Verifier.evaluate_into`.
+    :meth:`~rt_runtime.planning.verify.Verifier.evaluate_into`, ``plan``
+    :meth:`~rt_runtime.planning.verify.Verifier.plan_into` (default range, with the scale).
     """
     n_sets = max(1, rows.shape[0] // batch)
     sets = [np.ascontiguousarray(rows[i * batch : (i + 1) * batch]) for i in range(n_sets)]
     out = np.empty((batch, verify.N_OUT))
     path = np.empty((batch, verifier.n_samples, 2)) if with_path else None
     retimed = np.empty((batch, verify.N_RETIMED))
+    scale = np.empty(batch)
+    c_range = verify.PLAN_C_RANGE
     run = verifier.evaluate_into
     run_retime = verifier.retime_into
-    for s in sets[: min(len(sets), 50)]:  # warm-up
+    run_plan = verifier.plan_into
+    for s in sets[: min(len(sets), 50 if verifier.backend == "c" else 1)]:  # warm-up
         run(s, out, path)
         run_retime(s, out, retimed, path)
+        run_plan(s, out, retimed, c_range, path, scale)
     times = np.empty(calls, dtype=np.int64)
     clock = time.perf_counter_ns
     gc.disable()
@@ -110,7 +145,11 @@ def time_calls(
         for k in range(calls):
             s = sets[k % n_sets]
             # The branch stays outside the timed region.
-            if retime:
+            if plan:
+                t0 = clock()
+                run_plan(s, out, retimed, c_range, path, scale)
+                t1 = clock()
+            elif retime:
                 t0 = clock()
                 run_retime(s, out, retimed, path)
                 t1 = clock()
@@ -122,6 +161,34 @@ def time_calls(
     finally:
         gc.enable()
     return times
+
+
+def plan_outcomes(verifier: verify.Verifier, rows: np.ndarray) -> dict[str, int]:
+    """What plan_into does with ``rows``: feasible counts against retiming alone, how many fill
+    the volume cap, take the back-off (feasible and scaled, yet a 0.2 % larger bulge still
+    passes every path-only limit: a time-dependent limit decided) or report the own path."""
+    n = rows.shape[0]
+    out, planned, scale = np.empty((n, verify.N_OUT)), np.empty((n, 4)), np.empty(n)
+    verifier.plan_into(rows, out, planned, verify.PLAN_C_RANGE, None, scale)
+    own = np.empty((n, verify.N_OUT))
+    verifier.retime_into(rows, own, np.empty((n, 4)))
+    planning = oneshot.require_planning(verifier.rig)
+    ok = out[:, verify.COL_TOTAL] <= 0.0
+    bigger = rows.copy()
+    bigger[:, verify.IN_A6 : verify.IN_A6 + 3] *= (scale * 1.002)[:, None]
+    path_out = np.empty((n, verify.N_OUT))
+    verifier.evaluate_into(bigger, path_out)
+    slack = np.max(path_out[:, [*range(6), 16, 17, 18, 19]], axis=1) < 0.0
+    v_span = planning.volume_max_m3 - planning.volume_min_m3
+    capped = out[:, verify.COL_VOLUME_M3] >= planning.volume_max_m3 - verify.PLAN_TOL * v_span
+    return {
+        "rows": n,
+        "feasible": int(np.sum(ok)),
+        "feasible_retime_only": int(np.sum(own[:, verify.COL_TOTAL] <= 0.0)),
+        "at_volume_cap": int(np.sum(ok & capped)),
+        "backed_off": int(np.sum(ok & slack & (scale != 1.0))),
+        "own_path_reported": int(np.sum(scale == 1.0)),
+    }
 
 
 def summary(times_ns: np.ndarray, batch: int) -> dict[str, float | int]:
@@ -184,7 +251,21 @@ def main(argv: Sequence[str] | None = None) -> int:
                 continue
             times = time_calls(verifier, x, 1, calls, args.path, retime=retime)
             cases.append({"backend": verifier.backend, "case": name, **summary(times, 1)})
+    # Planning (N = 1) on network-like rows, next to retiming the same rows.
+    net = network_candidates(args.rig, 64, args.seed)
+    for backend, calls in (("c", args.calls), ("numpy", max(1, args.numpy_calls // 30))):
+        verifier = verify.Verifier(rig, args.n_samples, backend=backend)
+        for name, x, retime, plan in (
+            ("retime, network-like rows", net, True, False),
+            ("plan, network-like rows", net, False, True),
+            ("plan, random particles", rows, False, True),
+        ):
+            if backend == "numpy" and not plan:
+                continue
+            times = time_calls(verifier, x, 1, calls, args.path, retime=retime, plan=plan)
+            cases.append({"backend": verifier.backend, "case": name, **summary(times, 1)})
     c_verifier = verify.Verifier(rig, args.n_samples, backend="c")
+    report["plan_outcomes"] = plan_outcomes(c_verifier, net)
     rejected = rows[:1].copy()
     rejected[0, verify.IN_T] = -1.0
     overhead = summary(time_calls(c_verifier, rejected, 1, args.calls, args.path), 1)

@@ -27,6 +27,8 @@ from rt_runtime.planning.verify import (
     N_IN,
     N_OUT,
     N_RETIMED,
+    PLAN_C_RANGE,
+    PLAN_TOL,
     RETIME_RTOL,
     RT_A6,
     RT_T_S,
@@ -742,6 +744,271 @@ def test_retime_wrong_arrays_raise_value_error(backend: str) -> None:
     frozen.setflags(write=False)
     with pytest.raises(ValueError, match="writable"):
         v.retime_into(x, out, frozen)
+
+
+# -- plan: the volume-filling path scale, then retiming ----------------------------------------
+
+PATH_ONLY = [*range(6), 16, 17, 18, 19]
+assert SCALE.planning is not None
+V_MAX = SCALE.planning.volume_max_m3
+V_SPAN = V_MAX - SCALE.planning.volume_min_m3
+
+# Bulge factors per joint of the teacher's plan: what an imprecise network gives. Uneven, so
+# that no scale recovers the teacher's optimum exactly (it often sits on two boundaries at
+# once, theta_p and torque, and is then the only feasible point of its family).
+_NET_FACTORS = (
+    (0.86, 0.8, 0.83),
+    (0.62, 0.91, 0.77),
+    (1.0, 1.0, 1.0),
+    (1.27, 1.19, 1.23),
+    (0.91, 0.63, 1.07),
+    (0.71, 0.76, 0.66),
+)
+
+
+def _plan(
+    verifier: Verifier,
+    x: np.ndarray,
+    c_range: tuple[float, float] = PLAN_C_RANGE,
+    path: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    out = np.full((x.shape[0], N_OUT), -7.0)
+    planned = np.full((x.shape[0], N_RETIMED), -7.0)
+    scale = np.full(x.shape[0], -7.0)
+    verifier.plan_into(x, out, planned, c_range, path, scale)
+    return out, planned, scale
+
+
+def _scaled(x: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Input rows with their bulge K scaled by ``c``."""
+    y = x.copy()
+    y[:, 8:11] *= np.asarray(c)[:, None]
+    return y
+
+
+def _path_violation(verifier: Verifier, x: np.ndarray) -> np.ndarray:
+    """Worst path-only constraint value (joint limits, theta_p, volume) of input rows."""
+    out = np.empty((x.shape[0], N_OUT))
+    verifier.evaluate_into(x, out)
+    return np.asarray(np.max(out[:, PATH_ONLY], axis=1))
+
+
+def _planned_rows(x: np.ndarray, planned: np.ndarray) -> np.ndarray:
+    y = x.copy()
+    y[:, 8:11] = planned[:, RT_A6 : RT_A6 + 3]
+    y[:, 11] = planned[:, RT_T_S]
+    return y
+
+
+@pytest.fixture(scope="module")
+def plan_set() -> dict[str, tuple[np.ndarray, ...]]:
+    """Network-like rows (teacher plans of four problems per dig type with their bulge scaled
+    unevenly and T 10 % longer), planned by both backends and retimed on their own paths."""
+    assert SCALE.planning is not None
+    problems = [
+        *oneshot.sample_problems(SCALE, 4, DigType.DOWNWARD, seed=1),
+        *oneshot.sample_problems(SCALE, 4, DigType.BACKWARD, seed=2),
+    ]
+    solutions = oneshot.solve_pso(SCALE, problems, n_particles=20, n_iterations=20, seed=0)
+    rows = []
+    for p, sol in zip(problems, solutions, strict=True):
+        K = -np.asarray(sol.a6) * sol.T_s**6
+        T = min(1.1 * sol.T_s, SCALE.planning.t_max_s)
+        for f in _NET_FACTORS:
+            a6 = -(K * np.array(f)) / T**6
+            rows.append(
+                verify.pack_inputs(p.q_start_rad, p.q_end_rad, p.surface_y_m, p.dig_type, a6, T)[0]
+            )
+    x = np.array(rows)
+    c_verifier = Verifier(SCALE, backend="c")
+    own = _retime(c_verifier, x)
+    return {
+        "x": (x,),
+        "c": _plan(c_verifier, x),
+        "numpy": _plan(Verifier(SCALE, backend="numpy"), x),
+        "own": own,
+    }
+
+
+def test_plan_c_equals_the_numpy_reference(plan_set: dict[str, tuple[np.ndarray, ...]]) -> None:
+    """Same feasibility; where the cap binds the same volume within PLAN_TOL; where the
+    back-off decides (the kernel bisects 4 times, the reference 8) close volumes."""
+    (x,) = plan_set["x"]
+    out_c, pl_c, sc_c = plan_set["c"]
+    out_n, pl_n, sc_n = plan_set["numpy"]
+    ok_c, ok_n = out_c[:, COL_TOTAL] <= 0.0, out_n[:, COL_TOTAL] <= 0.0
+    for i in np.flatnonzero(ok_c != ok_n):
+        pytest.fail(f"feasible: C {ok_c[i]} (c = {sc_c[i]!r}) numpy {ok_n[i]} (c = {sc_n[i]!r}); "
+                    f"input row {x[i].tolist()!r}")
+    vol_c, vol_n = out_c[:, COL_VOLUME_M3], out_n[:, COL_VOLUME_M3]
+    ok = ok_c & ok_n
+    np.testing.assert_array_less(np.abs(vol_c - vol_n)[ok], 0.03 * V_SPAN)
+    np.testing.assert_array_less(np.abs(out_c[:, COL_OBJECTIVE] - out_n[:, COL_OBJECTIVE])[ok],
+                                 0.005)
+    # Where the reference fills the cap, the kernel does too, within PLAN_TOL.
+    capped = ok & (vol_n >= V_MAX - 1e-6 * V_SPAN) & (sc_n != 1.0)
+    assert np.all(vol_c[capped] <= V_MAX)
+    np.testing.assert_array_less(V_MAX - vol_c[capped], PLAN_TOL * V_SPAN)
+    np.testing.assert_allclose(sc_c[capped], sc_n[capped], rtol=1e-3)
+    # out is the evaluation of planned, bit for bit.
+    for verifier, out, pl in (
+        (Verifier(SCALE, backend="c"), out_c, pl_c),
+        (Verifier(SCALE, backend="numpy"), out_n, pl_n),
+    ):
+        again = np.empty_like(out)
+        verifier.evaluate_into(_planned_rows(x, pl), again)
+        np.testing.assert_array_equal(out, again)
+    # The set exercises what it claims to: capped rows, back-off rows (feasible below the cap
+    # with path slack: a time-dependent limit decided), rows below and above c = 1, failures.
+    c_verifier = Verifier(SCALE, backend="c")
+    slack = _path_violation(c_verifier, _scaled(x, sc_c * 1.002)) < 0.0
+    backed_off = ok_c & (vol_c < V_MAX - 0.01 * V_SPAN) & slack & (sc_c != 1.0)
+    assert np.sum(capped) >= 15 and np.sum(backed_off) >= 3 and np.sum(~ok_c) >= 2
+    assert np.sum(ok_c & (sc_c < 1.0)) >= 5 and np.sum(ok_c & (sc_c > 1.0)) >= 5
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_plan_is_never_worse_than_retiming_the_own_path(
+    backend: str, plan_set: dict[str, tuple[np.ndarray, ...]]
+) -> None:
+    """Where the own path retimes feasibly, the plan is feasible with at least its volume. Its
+    objective could still be worse (the largest volume is chosen, and a bigger bulge takes more
+    time and energy; none of 300 such rows of a validation set was), but only by buying
+    volume."""
+    out_own, _ = plan_set["own"]
+    out, _, _ = plan_set[backend]
+    ok_own, ok = out_own[:, COL_TOTAL] <= 0.0, out[:, COL_TOTAL] <= 0.0
+    assert np.all(ok[ok_own])
+    both = ok & ok_own
+    vol, vol_own = out[both, COL_VOLUME_M3], out_own[both, COL_VOLUME_M3]
+    np.testing.assert_array_less(vol_own - vol, PLAN_TOL * V_SPAN)
+    worse = out[both, COL_OBJECTIVE] > out_own[both, COL_OBJECTIVE]
+    assert np.all(vol[worse] > vol_own[worse]), "a worse objective must buy volume"
+    assert np.sum(ok & ~ok_own) >= 10, "the plan rescues too few rows to test much"
+
+
+def test_plan_fills_the_volume_cap(plan_set: dict[str, tuple[np.ndarray, ...]]) -> None:
+    """With torque and power limits out of reach (retiming then meets every time-dependent
+    limit), c* is the largest path-feasible scale: V_p within PLAN_TOL of the cap (or another
+    path constraint at its limit), and a slightly larger bulge breaks a path constraint."""
+    assert SCALE.planning is not None
+    strong = dataclasses.replace(
+        SCALE,
+        joints=tuple(dataclasses.replace(j, torque_max_nm=1e6) for j in SCALE.joints),
+        planning=dataclasses.replace(SCALE.planning, power_max_w=1e7),
+    )
+    verifier = Verifier(strong, backend="c")
+    (x,) = plan_set["x"]
+    out, _, scale = _plan(verifier, x)
+    ok = (out[:, COL_TOTAL] <= 0.0) & (scale != 1.0) & (scale < PLAN_C_RANGE[1])
+    assert np.sum(ok) >= 10
+    path_worst = np.max(out[ok][:, PATH_ONLY], axis=1)
+    assert np.all(path_worst >= -PLAN_TOL - 1e-9), "c* stopped short of every path limit"
+    capped = out[ok, COL_VOLUME_M3] >= V_MAX - PLAN_TOL * V_SPAN
+    assert np.sum(capped) >= 5 and np.all(out[ok, COL_VOLUME_M3] <= V_MAX)
+    beyond = _path_violation(verifier, _scaled(x[ok], scale[ok] * 1.001))
+    assert np.all(beyond > 0.0), "a larger bulge would still hold: c* is not the largest"
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_plan_keeps_the_path_direction(backend: str) -> None:
+    """K of the plan is c* times the input's; path is the tip path of the planned rows."""
+    x = _candidates(SCALE, 2, seed=91)
+    n = 31
+    verifier = Verifier(SCALE, n, backend=backend)
+    path = np.empty((x.shape[0], n, 2))
+    out, planned, scale = _plan(verifier, x, path=path)
+    K_out = -planned[:, RT_A6 : RT_A6 + 3] * planned[:, RT_T_S, None] ** 6
+    np.testing.assert_allclose(K_out, scale[:, None] * _shape_terms(x), rtol=1e-13, atol=0.0)
+    again, again_path = np.empty_like(out), np.empty_like(path)
+    verifier.evaluate_into(_planned_rows(x, planned), again, again_path)
+    np.testing.assert_array_equal(out, again)
+    np.testing.assert_array_equal(path, again_path)
+    assert np.all((scale >= PLAN_C_RANGE[0]) & (scale <= PLAN_C_RANGE[1]))
+    assert np.any(scale != 1.0), "nothing was scaled"
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_plan_where_nothing_works(backend: str) -> None:
+    """No scale passes the path constraints, no bulge, c_range (1, 1): the row's own path
+    retimed, exactly what retime_into gives, and scale 1."""
+    verifier = Verifier(SCALE, backend=backend)
+    x = _candidates(SCALE, 1, seed=101)[:4]
+    never_enters = x.copy()
+    never_enters[:, 6] -= 1.0  # the surface a metre down: no path reaches it (theta_p -90 deg)
+    quintic = x.copy()
+    quintic[:, 8:11] = 0.0
+    for rows, c_range in ((never_enters, PLAN_C_RANGE), (quintic, PLAN_C_RANGE), (x, (1.0, 1.0))):
+        out, planned, scale = _plan(verifier, rows, c_range)
+        own_out, own_rt = _retime(verifier, rows)
+        np.testing.assert_array_equal(scale, 1.0)
+        np.testing.assert_array_equal(out, own_out)
+        np.testing.assert_array_equal(planned, own_rt)
+    assert np.all(out[:, COL_TOTAL] >= 0.0)
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_plan_rejects_bad_rows_without_touching_the_others(backend: str) -> None:
+    x = _candidates(SCALE, 2, seed=3)[:4]
+    bad = _bad_rows(x)
+    bad = bad[(bad[:, 11] != 1e-300) & (bad[:, 8] != 1e300)]  # valid paths (retime tests)
+    mixed = np.concatenate([x[:2], bad, x[2:]])
+    n = 21
+    verifier = Verifier(SCALE, n, backend=backend)
+    path = np.empty((mixed.shape[0], n, 2))
+    out, planned, scale = _plan(verifier, mixed, path=path)
+    rejected = slice(2, 2 + len(bad))
+    assert np.all(out[rejected, COL_TOTAL] == np.inf)
+    assert np.all(np.isnan(np.delete(out[rejected], COL_TOTAL, axis=1)))
+    assert np.all(np.isnan(planned[rejected])) and np.all(np.isnan(path[rejected]))
+    assert np.all(np.isnan(scale[rejected]))
+    alone_path = np.empty((x.shape[0], n, 2))
+    alone = _plan(verifier, x, path=alone_path)
+    keep = np.r_[0:2, 2 + len(bad) : mixed.shape[0]]
+    for got, want in zip((out, planned, scale, path), (*alone, alone_path), strict=True):
+        np.testing.assert_array_equal(got[keep], want)
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_plan_wrong_arrays_raise_value_error(backend: str) -> None:
+    v = Verifier(SCALE, 11, backend=backend)
+    x = _candidates(SCALE, 1, seed=1)[:2].copy()
+    out = np.empty((2, N_OUT))
+    pl = np.empty((2, N_RETIMED))
+    sc = np.empty(2)
+    cases: list[tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None, str]] = [
+        (x, np.empty((2, 3)), None, None, r"planned must have shape \(N, 4\)"),
+        (x, np.empty((3, 4)), None, None, "same number of rows"),
+        (x, pl, np.empty((2, 12, 2)), None, r"path must have shape \(N, 11, 2\)"),
+        (x, pl, None, np.empty((2, 1)), r"scale must have shape \(N,\)"),
+        (x, pl, None, np.empty(3), "same number of rows"),
+        (x, pl, None, np.empty(2, dtype=np.float32), "float64"),
+        (x[:, :11].copy(), pl, None, None, r"inputs must have shape \(N, 12\)"),
+    ]
+    for inputs, p, path, s, message in cases:
+        with pytest.raises(ValueError, match=message):
+            v.plan_into(inputs, out, p, PLAN_C_RANGE, path, s)
+    for c_range in ((-0.1, 1.0), (2.0, 1.0), (math.nan, 1.0), (0.5, math.inf)):
+        with pytest.raises(ValueError, match="c_range must be finite with 0 <= c_lo <= c_hi"):
+            v.plan_into(x, out, pl, c_range, None, sc)
+    with pytest.raises(ValueError, match="c_range must be two floats"):
+        v.plan_into(x, out, pl, (0.5,), None, sc)  # type: ignore[arg-type]
+
+
+def test_plan_convenience_matches_plan_into() -> None:
+    x = _candidates(SCALE, 1, seed=7)[:4]
+    verifier = Verifier(SCALE, backend="c")
+    out, planned, scale = _plan(verifier, x)
+    for row, o, r, c in zip(x, out, planned, scale, strict=True):
+        a6, T, res, c_got = verifier.plan(row[0:3], row[3:6], row[6], DigType(int(row[7])),
+                                          row[8:11], row[11])
+        np.testing.assert_array_equal(a6, r[:3])
+        assert T == r[3] == res.T_s and c_got == c
+        np.testing.assert_array_equal(res.violations, o[:22])
+    with pytest.raises(PlanningError, match="T_s must be finite and > 0"):
+        verifier.plan(x[0, 0:3], x[0, 3:6], x[0, 6], 0, x[0, 8:11], 0.0)
+    with pytest.raises(ValueError, match="c_range"):
+        verifier.plan(x[0, 0:3], x[0, 3:6], x[0, 6], 0, x[0, 8:11], 6.0, c_range=(1.0, 0.5))
 
 
 class _RenamedChain:

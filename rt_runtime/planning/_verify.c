@@ -11,7 +11,9 @@
  * method (METH_FASTCALL, buffer protocol) is the per-call entry point: it measured 0.1 us per
  * call against 0.4 us for ctypes with cached pointers and 2.6 us for ctypes taking the
  * pointers of the caller's arrays per call. `retime` (vk_retime) keeps each candidate's path
- * and finds the shortest feasible time along it, then evaluates that with vk_evaluate.
+ * and finds the shortest feasible time along it, then evaluates that with vk_evaluate. `plan`
+ * (vk_plan) scales the candidate's bulge to the largest volume its path-only constraints allow
+ * and retimes that path.
  *
  * Parity with the numpy reference: the same formulas in the same association order as
  * sextic.py, kinematics.tip_state, soil.yao_resistance, dynamics._inverse_block,
@@ -32,7 +34,7 @@
 /* ---------------------------------------------------------------------------------------------
  * Layouts shared with verify.py (bump VK_ABI on any change: verify.py refuses a stale build).
  * ------------------------------------------------------------------------------------------- */
-#define VK_ABI 2
+#define VK_ABI 3
 
 enum vk_param {
     P_LEN = 0,           /* link lengths l0, l1, l2 (m) */
@@ -403,10 +405,25 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
 /* Cache layout: VK_N_CACHE arrays of m doubles. */
 enum vk_cache { C_A = 0, C_G = 3, C_F = 6, C_QP = 9, C_SP = 12, VK_N_CACHE = 13 };
 
-/* sin and cos for the retiming cache only: the cache just guides the search (the answer is
- * always evaluated by vk_evaluate with libm), so libm's bit-exactness is not needed there, and
- * this inline version (fdlibm's kernels after a Cody-Waite reduction; |error| <= 2.3e-16 on
- * [-20, 20]) measured 1.7 us less per retimed row at 101 samples than libm's sin and cos. */
+/* sin and cos of |r| <= pi/4: fdlibm's kernels, no reduction and no branch. */
+static inline void vk_sincos_small(double r, double *sn, double *cs)
+{
+    const double z = r * r;
+    const double S1 = -1.66666666666666324348e-01, S2 = 8.33333333332248946124e-03,
+                 S3 = -1.98412698298579493134e-04, S4 = 2.75573137070700676789e-06,
+                 S5 = -2.50507602534068634195e-08, S6 = 1.58969099521155010221e-10;
+    const double C1 = 4.16666666666666019037e-02, C2 = -1.38888888888741095749e-03,
+                 C3 = 2.48015872894767294178e-05, C4 = -2.75573143513906633035e-07,
+                 C5 = 2.08757232129817482790e-09, C6 = -1.13596475577881948265e-11;
+    *sn = r + r * z * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
+    *cs = (1.0 - 0.5 * z) + z * z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))));
+}
+
+/* sin and cos for the retiming cache and the path-scale probes only: they just guide searches
+ * (the answer is always evaluated by vk_evaluate with libm), so libm's bit-exactness is not
+ * needed there, and this inline version (fdlibm's kernels after a Cody-Waite reduction;
+ * |error| <= 2.3e-16 on [-20, 20]) measured 1.7 us less per retimed row at 101 samples than
+ * libm's sin and cos. */
 static inline void vk_sincos(double x, double *sn, double *cs)
 {
     if (!(fabs(x) < 1e6)) { /* the int quadrant below needs a small k; NaN too */
@@ -418,16 +435,8 @@ static inline void vk_sincos(double x, double *sn, double *cs)
     const double kd = (x * 0.63661977236758134308 + shift) - shift; /* round(x / (pi/2)) */
     /* pi/2 in two parts, the first with 33 bits so that kd times it is exact. */
     const double r = (x - kd * 1.57079632673412561417e+00) - kd * 6.07710050650619224932e-11;
-    const double z = r * r;
-    const double S1 = -1.66666666666666324348e-01, S2 = 8.33333333332248946124e-03,
-                 S3 = -1.98412698298579493134e-04, S4 = 2.75573137070700676789e-06,
-                 S5 = -2.50507602534068634195e-08, S6 = 1.58969099521155010221e-10;
-    const double C1 = 4.16666666666666019037e-02, C2 = -1.38888888888741095749e-03,
-                 C3 = 2.48015872894767294178e-05, C4 = -2.75573143513906633035e-07,
-                 C5 = 2.08757232129817482790e-09, C6 = -1.13596475577881948265e-11;
-    const double sr = r + r * z * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
-    const double cr =
-        (1.0 - 0.5 * z) + z * z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))));
+    double sr, cr;
+    vk_sincos_small(r, &sr, &cr);
     const int q = (int)kd & 3;
     *sn = q == 0 ? sr : q == 1 ? cr : q == 2 ? -sr : -cr;
     *cs = q == 0 ? cr : q == 1 ? -sr : q == 2 ? -cr : sr;
@@ -436,12 +445,14 @@ static inline void vk_sincos(double x, double *sn, double *cs)
 /*
  * Fill the unit-time cache of one input row.
  *   K:      out, the kept shape term -a6 T^6 per joint (as oneshot.particle_from_a6)
+ *   trig:   NULL, or cos then sin of the absolute angles of the row's path (6 arrays of m:
+ *           cos phi_0, phi_1, phi_2, sin phi_0, ...) that the caller already has
  *   qd_pk, qdd_pk: out, max |q'| and max |q''| per joint over the samples
  * Returns -1 for a row that run() rejects or whose K is not finite, 0 for a finite cache, 1
  * when the cache overflowed (absurd but finite inputs).
  */
 static int vk_prepare(const double *p, const double *s, int m, const double *in, double *K,
-                      double *cache, double *qd_pk, double *qdd_pk)
+                      const double *trig, double *cache, double *qd_pk, double *qdd_pk)
 {
     for (int j = 0; j < VK_N_IN; j++)
         if (!isfinite(in[j])) return -1;
@@ -504,8 +515,15 @@ static int vk_prepare(const double *p, const double *s, int m, const double *in,
             phi[1][k] = phi[0][k] + qv[1][k];
             phi[2][k] = phi[1][k] + qv[2][k];
         }
-        for (int j = 0; j < 3; j++)
-            for (int k = 0; k < nb; k++) vk_sincos(phi[j][k], &sph[j][k], &cph[j][k]);
+        if (trig != NULL)
+            for (int j = 0; j < 3; j++)
+                for (int k = 0; k < nb; k++) {
+                    cph[j][k] = trig[j * m + base + k];
+                    sph[j][k] = trig[(3 + j) * m + base + k];
+                }
+        else
+            for (int j = 0; j < 3; j++)
+                for (int k = 0; k < nb; k++) vk_sincos(phi[j][k], &sph[j][k], &cph[j][k]);
         for (int k = 0; k < nb; k++) {
             const int i = base + k;
             const double qd0 = qdv[0][k], qd1 = qdv[1][k], qd2 = qdv[2][k];
@@ -732,25 +750,13 @@ static int vk_timed_ok(const double *out)
     return out[O_VIOLATIONS + 20] <= 0.0 && out[O_VIOLATIONS + 21] <= 0.0;
 }
 
-/*
- * Retime one row: the smallest T' in [t_min, t_max] where every time-dependent constraint
- * holds with the path (K) kept, evaluated for real at T'.
- *   retimed: out, (a6', T') (NaN for a rejected row)
- *   cache:   VK_N_CACHE * m scratch doubles
- */
-static void vk_retime(const double *p, const double *s, int m, const double *in, double *out,
-                      double *retimed, double *path, double *cache)
+/* Evaluate the path K at the retimed T (found: whether the search found it feasible; then
+ * T grows a little if the evaluation contradicts the cache) into out; (a6', T') into
+ * retimed. in: the row (its a6 and T are replaced). */
+static void vk_retime_finish(const double *p, const double *s, int m, const double *in,
+                             const double *K, double T, int found, double *out, double *retimed,
+                             double *path)
 {
-    double K[3], qd_pk[3], qdd_pk[3];
-    const int status = vk_prepare(p, s, m, in, K, cache, qd_pk, qdd_pk);
-    if (status < 0) {
-        vk_reject(m, out, path);
-        for (int j = 0; j < 4; j++) retimed[j] = NAN;
-        return;
-    }
-    int found = 0;
-    double T = p[P_TIME + 1];
-    if (status == 0) T = vk_retime_T(p, cache, m, qd_pk, qdd_pk, &found);
     double row[VK_N_IN];
     for (int j = 0; j < VK_N_IN; j++) row[j] = in[j];
     for (int attempt = 0;; attempt++) {
@@ -765,6 +771,587 @@ static void vk_retime(const double *p, const double *s, int m, const double *in,
     retimed[3] = T;
 }
 
+/*
+ * Retime one row: the smallest T' in [t_min, t_max] where every time-dependent constraint
+ * holds with the path (K) kept, evaluated for real at T'.
+ *   retimed: out, (a6', T') (NaN for a rejected row)
+ *   trig:    NULL or the path's trig as vk_prepare takes it
+ *   cache:   VK_N_CACHE * m scratch doubles
+ */
+static void vk_retime(const double *p, const double *s, int m, const double *in, double *out,
+                      double *retimed, double *path, const double *trig, double *cache)
+{
+    double K[3], qd_pk[3], qdd_pk[3];
+    const int status = vk_prepare(p, s, m, in, K, trig, cache, qd_pk, qdd_pk);
+    if (status < 0) {
+        vk_reject(m, out, path);
+        for (int j = 0; j < 4; j++) retimed[j] = NAN;
+        return;
+    }
+    int found = 0;
+    double T = p[P_TIME + 1];
+    if (status == 0) T = vk_retime_T(p, cache, m, qd_pk, qdd_pk, &found);
+    vk_retime_finish(p, s, m, in, K, T, found, out, retimed, path);
+}
+
+/* ---------------------------------------------------------------------------------------------
+ * Volume-filling path scale (plan): keep the direction of the input's bulge, scale it.
+ *
+ * The family theta(s) = theta1 + D q(s) + c K p(s) (K = -a6 T^6 of the input row; q, p of Yao
+ * eq 10 as corrected in DESIGN.md). Joint angles, theta_p and V_p depend on the path only, so
+ * the search over c needs forward kinematics on the s grid and no dynamics:
+ *   - joint limits: each sample's angle is linear in c, so they hold on one interval of c,
+ *     found in closed form; the scan range is cut to it;
+ *   - theta_p of a dig that starts on the surface: the direction J(q0) a3, a3 ~ 10 D + c K, is
+ *     linear in c (one atan2 per probe); otherwise the entry segment of the probe's path;
+ *   - V_p: the polyline area of the probe's path (as vk_evaluate computes it).
+ * A scan of VK_PL_SCAN points uniform in c finds the feasible point of largest V; where its
+ * larger-V neighbour fails (on volume_max mostly: V grows with c and the objective rewards V up
+ * to the cap), Illinois on the constraint that fails there stops once the feasible end is
+ * within VK_PL_TOL of it (V within 1e-4 of the V range below V_max). That path c* is retimed
+ * (vk_retime).
+ *
+ * A larger bulge also needs more torque (soil and gravity, which no retiming reduces), so the
+ * retime at c* can fail where a smaller c would not. Back-off: from the path-feasible scan
+ * points of smaller V (the nearest in V, then the smallest), the first whose retiming search
+ * finds a feasible T (vk_prepare + vk_retime_T, no evaluation) brackets the boundary with c*;
+ * c = 1 replaces the start if it lies between it and c* and passes; VK_PL_BACKOFF bisection
+ * steps close in on the boundary, and the last point that passes is retimed. If nothing
+ * passes, the input's own path (c = 1) is retimed and reported.
+ *
+ * Cost: trig dominates. The absolute angles are phi = A + c B (B = cumulative K times p(s)),
+ * so the scan takes sin and cos once at its first point and advances them by rotation, one
+ * complex product per angle and point; later probes rotate the best scan point's trig by
+ * (x - c) B, with vk_sincos_small (no reduction, no branch) when that angle stays within pi/4.
+ * The trig of the chosen path goes on to vk_prepare.
+ * ------------------------------------------------------------------------------------------- */
+
+/* Scan points (the range ends included): 9 on [0.5, 2] are steps of 0.17 and 0.2 in c either
+ * side of 1. A feasible window narrower than a step can be missed: 13 points found 1.5 % more
+ * feasible rows on a validation set for 1.6 us more per row. */
+#define VK_PL_SCAN 9
+/* Refinement stops when the feasible end's binding path constraint is within this of 0. */
+#define VK_PL_TOL 1e-4
+/* Path constraints are judged with this margin (normalised units): the probes' arithmetic
+ * (angles as theta1 + D q + c K p, rotated trig) rounds differently from vk_evaluate's by
+ * ~1e-15, so the real evaluation at c* holds them. */
+#define VK_PL_MARGIN 1e-9
+#define VK_PL_ITER 40
+/* Bisection steps of the back-off (the bracket shrinks 16-fold: 0.012 in c from one step). */
+#define VK_PL_BACKOFF 4
+
+/* Plan scratch: VK_N_PLAN arrays of m doubles: A and B per joint, three trig buffers and a
+ * rotation (6 arrays each: cos of the three absolute angles, then their sin). */
+enum vk_plan_scratch { S_A = 0, S_B = 3, S_T0 = 6, S_T1 = 12, S_T2 = 18, S_R = 24, VK_N_PLAN = 30 };
+
+/* The path-only search of one row. */
+typedef struct {
+    const double *p, *in, *A, *B;
+    double *buf[3], *R;
+    int m, n3;
+    double H, width, l0, l1, l2;
+    double tp_lo, tp_hi, tp_span;
+    double v_min, v_max, v_span;
+    int at_start;
+    double dx0, dy0, dx1, dy1; /* entry direction (dx0 + c dx1, dy0 + c dy1) when at_start */
+    double b_max;              /* max |B| */
+    /* The scan: points, g, V and the four path values (theta_p_min/max, volume_min/max). */
+    int n, best, ik; /* ik: the buffer holding the best scan point's trig */
+    double cc[VK_PL_SCAN], cg[VK_PL_SCAN], cv[VK_PL_SCAN], cw[VK_PL_SCAN][4];
+} vk_pathscan;
+
+/* g(c): the worst of theta_p_min/max and volume_min/max (normalised as in vk_evaluate) plus
+ * VK_PL_MARGIN; +inf where a value is not finite. *volume gets V_p and v those four values.
+ * The joint limits hold by the scan range. trig: cos then sin of the three absolute angles, m
+ * each. */
+static double vk_path_g(const vk_pathscan *r, double c, const double *trig, double *volume,
+                        double v[4])
+{
+    const int m = r->m;
+    const double *c0 = trig, *c1 = trig + m, *c2 = trig + 2 * m;
+    const double *s0 = trig + 3 * m, *s1 = trig + 4 * m, *s2 = trig + 5 * m;
+    const double H = r->H, l0 = r->l0, l1 = r->l1, l2 = r->l2;
+    double area = 0.0, x_prev = 0.0, y_prev = 0.0, edx = 0.0, edy = 0.0;
+    int first_below = -1;
+    for (int i = 0; i < m; i++) {
+        const double x = (c0[i] * l0 + c1[i] * l1) + c2[i] * l2;
+        const double y = (s0[i] * l0 + s1[i] * l1) + s2[i] * l2;
+        if (y < H && first_below < 0) first_below = i;
+        if (i > 0) {
+            const double e0 = H - y_prev, e1 = H - y, dx = x - x_prev;
+            if (e0 >= 0.0 && e1 >= 0.0) {
+                area += 0.5 * (e0 + e1) * dx;
+            } else if (e0 >= 0.0 || e1 >= 0.0) {
+                double denom = fabs(e0) + fabs(e1);
+                if (!(denom > 0.0)) denom = 1.0;
+                area += 0.5 * (vk_pos(e0) + vk_pos(e1)) * ((e0 > e1 ? e0 : e1) / denom) * dx;
+            }
+            if (first_below == i) {
+                edx = dx;
+                edy = y - y_prev;
+            }
+        }
+        x_prev = x;
+        y_prev = y;
+    }
+    const double V = fabs(area) * r->width;
+    double theta_p;
+    if (r->at_start)
+        theta_p = atan2(-(r->dy0 + c * r->dy1), fabs(r->dx0 + c * r->dx1));
+    else if (first_below < 0)
+        theta_p = -1.57079632679489661923;
+    else
+        theta_p = atan2(-edy, fabs(edx));
+    *volume = V;
+    v[0] = (r->tp_lo - theta_p) / r->tp_span;
+    v[1] = (theta_p - r->tp_hi) / r->tp_span;
+    v[2] = (r->v_min - V) / r->v_span;
+    v[3] = (V - r->v_max) / r->v_span;
+    if (!isfinite(V) || !isfinite(theta_p)) return INFINITY;
+    return vk_max(vk_max(v[0], v[1]), vk_max(v[2], v[3])) + VK_PL_MARGIN;
+}
+
+/* Index of the largest of four values (the first on ties; NaN never wins). */
+static int vk_argmax4(const double v[4])
+{
+    int k = 0;
+    for (int j = 1; j < 4; j++)
+        if (v[j] > v[k]) k = j;
+    return k;
+}
+
+/* dst = the trig at c of the path: the best scan point's rotated by (c - its c) B. */
+static void vk_path_trig(const vk_pathscan *r, double c, double *restrict dst)
+{
+    const int n3 = r->n3;
+    const double d = c - r->cc[r->best];
+    const double *restrict B = r->B;
+    double *restrict rc = r->R, *restrict rs = r->R + n3;
+    if (fabs(d) * r->b_max <= 0.78539816339744830962)
+        for (int t = 0; t < n3; t++) vk_sincos_small(d * B[t], &rs[t], &rc[t]);
+    else
+        for (int t = 0; t < n3; t++) vk_sincos(d * B[t], &rs[t], &rc[t]);
+    const double *restrict src = r->buf[r->ik];
+    const double *restrict c0 = src, *restrict s0 = src + n3;
+    double *restrict c1 = dst, *restrict s1 = dst + n3;
+    for (int t = 0; t < n3; t++) {
+        c1[t] = c0[t] * rc[t] - s0[t] * rs[t];
+        s1[t] = s0[t] * rc[t] + c0[t] * rs[t];
+    }
+}
+
+/*
+ * Illinois from scan point k_ok (passes vk_path_g) towards k_fail (fails) on the constraint
+ * that fails at k_fail (g, a max of several, would converge slowly), switching to another one
+ * if that fails first on the way; stops once the passing end is within VK_PL_TOL of it.
+ * Returns the last passing probe's c (NAN if none passed or nothing was probed), its V_p in
+ * *v_out and its trig in r->buf[*keep]; *probe, *keep: two buffers other than r->ik.
+ */
+static double vk_path_refine(vk_pathscan *r, int k_ok, int k_fail, int *probe, int *keep,
+                             double *v_out)
+{
+    if (!isfinite(r->cg[k_fail])) return NAN;
+    int j = vk_argmax4(r->cw[k_fail]);
+    double a = r->cc[k_ok], b = r->cc[k_fail], wa[4];
+    for (int k = 0; k < 4; k++) wa[k] = r->cw[k_ok][k];
+    double fa = wa[j] + VK_PL_MARGIN, fb = r->cw[k_fail][j] + VK_PL_MARGIN;
+    double c_pass = NAN;
+    int side = 0;
+    for (int it = 0; it < VK_PL_ITER && wa[j] + VK_PL_MARGIN < -VK_PL_TOL &&
+                     fabs(b - a) > 1e-12 * fabs(b);
+         it++) {
+        double x = (a * fb - b * fa) / (fb - fa);
+        if (!(x > vk_min(a, b) && x < vk_max(a, b))) x = 0.5 * (a + b);
+        vk_path_trig(r, x, r->buf[*probe]);
+        double vx, wx[4];
+        const double gx = vk_path_g(r, x, r->buf[*probe], &vx, wx);
+        if (gx <= 0.0) {
+            a = x;
+            for (int k = 0; k < 4; k++) wa[k] = wx[k];
+            fa = wa[j] + VK_PL_MARGIN;
+            c_pass = x;
+            *v_out = vx;
+            const int t = *probe;
+            *probe = *keep;
+            *keep = t;
+            if (side == -1) fb *= 0.5;
+            side = -1;
+        } else {
+            b = x;
+            if (isfinite(gx) && !(wx[j] + VK_PL_MARGIN > 0.0)) {
+                j = vk_argmax4(wx); /* another constraint fails first */
+                fa = wa[j] + VK_PL_MARGIN;
+                side = 0;
+            } else if (side == 1) {
+                fa *= 0.5;
+            } else {
+                side = 1;
+            }
+            fb = isfinite(gx) ? wx[j] + VK_PL_MARGIN : INFINITY;
+        }
+    }
+    return c_pass;
+}
+
+/* Set up the row (r->p, in, m, A, B, buf, R given). Returns 0 when no c in [lo, hi] keeps
+ * every joint in range, with *lo, *hi cut to the joint-limit interval otherwise. */
+static int vk_path_setup(vk_pathscan *r, const double *basis, const double *K, double *lo,
+                         double *hi)
+{
+    const double *p = r->p, *in = r->in;
+    const int m = r->m;
+    const double *Qb = basis, *Pb = basis + m, *Pinv = basis + 2 * m;
+    double D[3];
+    for (int j = 0; j < 3; j++) D[j] = in[I_Q_END + j] - in[I_Q_START + j];
+    /* Joint limits: q_lo <= a + c K p <= q_hi at every sample with p > 0 (with the margin) is
+     * an interval of c K; the ends (p = 0) are the same for every c. */
+    for (int j = 0; j < 3; j++) {
+        if (K[j] == 0.0) continue;
+        const double marg = VK_PL_MARGIN * p[P_Q_SPAN + j];
+        const double q_lo = p[P_Q_MIN + j] + marg, q_hi = p[P_Q_MAX + j] - marg;
+        const double qs = in[I_Q_START + j], dj = D[j];
+        double t_lo = -INFINITY, t_hi = INFINITY;
+        for (int i = 1; i < m - 1; i++) { /* p = 0 at both ends */
+            const double a = qs + dj * Qb[i];
+            t_lo = vk_max(t_lo, (q_lo - a) * Pinv[i]);
+            t_hi = vk_min(t_hi, (q_hi - a) * Pinv[i]);
+        }
+        if (K[j] > 0.0) {
+            *lo = vk_max(*lo, t_lo / K[j]);
+            *hi = vk_min(*hi, t_hi / K[j]);
+        } else {
+            *lo = vk_max(*lo, t_hi / K[j]);
+            *hi = vk_min(*hi, t_lo / K[j]);
+        }
+    }
+    if (!(*lo <= *hi)) return 0;
+    /* Absolute angles phi_j = A_j + c B_j (cumulative sums, as vk_evaluate's phi). */
+    double *A = (double *)r->A, *B = (double *)r->B;
+    double b_max = 0.0;
+    for (int i = 0; i < m; i++) {
+        double a = 0.0, b = 0.0;
+        for (int j = 0; j < 3; j++) {
+            a += in[I_Q_START + j] + D[j] * Qb[i];
+            b += K[j] * Pb[i];
+            A[j * m + i] = a;
+            B[j * m + i] = b;
+            b_max = vk_max(b_max, fabs(b));
+        }
+    }
+    r->b_max = b_max;
+    r->H = in[I_SURFACE];
+    r->width = p[P_WIDTH];
+    r->l0 = p[P_LEN];
+    r->l1 = p[P_LEN + 1];
+    r->l2 = p[P_LEN + 2];
+    const double *tp = in[I_DIG_TYPE] == 0.0 ? p + P_TP_DOWN : p + P_TP_BACK;
+    r->tp_lo = tp[0];
+    r->tp_hi = tp[1];
+    r->tp_span = tp[1] - tp[0];
+    r->v_min = p[P_VOL];
+    r->v_max = p[P_VOL + 1];
+    r->v_span = r->v_max - r->v_min;
+    /* The start: sample 0 is q0 exactly (p(0) = 0), with libm's trig as vk_evaluate takes it,
+     * so at_start is vk_evaluate's. */
+    double sp[3], cp[3];
+    for (int j = 0; j < 3; j++) {
+        sp[j] = sin(A[j * m]);
+        cp[j] = cos(A[j * m]);
+    }
+    const double y0 = (sp[0] * r->l0 + sp[1] * r->l1) + sp[2] * r->l2;
+    r->at_start = y0 <= r->H + 1e-3;
+    /* J(q0) (10 D + c K): vk_evaluate's entry direction J(q0) a3 times T^3 > 0. */
+    const double v0 = -sp[0] * r->l0, v1 = -sp[1] * r->l1, v2 = -sp[2] * r->l2;
+    const double u0 = cp[0] * r->l0, u1 = cp[1] * r->l1, u2 = cp[2] * r->l2;
+    const double sx[3] = {(v2 + v1) + v0, v2 + v1, v2};
+    const double sy[3] = {(u2 + u1) + u0, u2 + u1, u2};
+    r->dx0 = (sx[0] * (10.0 * D[0]) + sx[1] * (10.0 * D[1])) + sx[2] * (10.0 * D[2]);
+    r->dy0 = (sy[0] * (10.0 * D[0]) + sy[1] * (10.0 * D[1])) + sy[2] * (10.0 * D[2]);
+    r->dx1 = (sx[0] * K[0] + sx[1] * K[1]) + sx[2] * K[2];
+    r->dy1 = (sy[0] * K[0] + sy[1] * K[1]) + sy[2] * K[2];
+    return 1;
+}
+
+/*
+ * The scale c* in [c_lo, c_hi] of the largest V_p whose path-only constraints hold (joint
+ * limits, theta_p, volume), or NAN when the scan finds none or the row has no bulge.
+ *   K:     the row's shape term; r: set up by the caller (pointers and m), filled here
+ *   trig:  out, the trig of the path at c* (in r->buf), as vk_prepare takes it
+ *   v_out: out, V_p at c*
+ */
+static double vk_plan_scale(vk_pathscan *r, const double *basis, const double *K, double c_lo,
+                            double c_hi, const double **trig, double *v_out)
+{
+    *trig = NULL;
+    r->best = -1;
+    if (K[0] == 0.0 && K[1] == 0.0 && K[2] == 0.0) return NAN; /* no direction to scale */
+    double lo = c_lo, hi = c_hi;
+    if (!vk_path_setup(r, basis, K, &lo, &hi)) return NAN;
+    const int n3 = r->n3;
+    const double *A = r->A, *B = r->B;
+
+    /* Scan: VK_PL_SCAN points from lo to hi, with c = 1 (the input's own path, often
+     * feasible: it anchors a feasible window narrower than a step) among them when in range:
+     * uniform steps on [lo, 1] and on [1, hi]. Trig at lo, advanced by the rotation h B per
+     * point into whichever buffer holds neither the current point nor the best so far. */
+    const int steps = VK_PL_SCAN - 1;
+    const int n = hi > lo ? VK_PL_SCAN : 1;
+    int n1 = steps; /* steps up to the first segment's end */
+    if (n > 1 && lo < 1.0 && 1.0 < hi) {
+        n1 = (int)floor((double)steps * (1.0 - lo) / (hi - lo) + 0.5);
+        n1 = n1 < 1 ? 1 : n1 > steps - 1 ? steps - 1 : n1;
+    }
+    const double mid = n1 < steps ? 1.0 : hi;
+    double *R = r->R, *rc = R, *rs = R + n3;
+    double *first = r->buf[0];
+    for (int t = 0; t < n3; t++) vk_sincos(A[t] + lo * B[t], &first[n3 + t], &first[t]);
+    r->n = n;
+    int best = -1, ic = 0, ik = -1;
+    double h = 0.0, c_seg = lo;
+    int k_seg = 0;
+    for (int k = 0; k < n; k++) {
+        if (k == 0 || k == n1 + 1) { /* a segment starts: its rotation */
+            c_seg = k == 0 ? lo : mid;
+            k_seg = k == 0 ? 0 : n1;
+            h = k == 0 ? (mid - lo) / (double)n1 : (hi - mid) / (double)(steps - n1);
+            if (n > 1 && h * r->b_max <= 0.78539816339744830962)
+                for (int t = 0; t < n3; t++) vk_sincos_small(h * B[t], &rs[t], &rc[t]);
+            else if (n > 1)
+                for (int t = 0; t < n3; t++) vk_sincos(h * B[t], &rs[t], &rc[t]);
+        }
+        if (k > 0) {
+            int next = 0;
+            while (next == ic || next == ik) next++;
+            const double *restrict c0 = r->buf[ic], *restrict s0 = r->buf[ic] + n3;
+            double *restrict c1 = r->buf[next], *restrict s1 = r->buf[next] + n3;
+            for (int t = 0; t < n3; t++) {
+                c1[t] = c0[t] * rc[t] - s0[t] * rs[t];
+                s1[t] = s0[t] * rc[t] + c0[t] * rs[t];
+            }
+            ic = next;
+        }
+        r->cc[k] = k == n - 1 ? hi : k == n1 ? mid : c_seg + (double)(k - k_seg) * h;
+        r->cg[k] = vk_path_g(r, r->cc[k], r->buf[ic], &r->cv[k], r->cw[k]);
+        if (r->cg[k] <= 0.0 && (best < 0 || r->cv[k] > r->cv[best])) {
+            best = k;
+            ik = ic;
+        }
+    }
+    r->best = best;
+    r->ik = ik;
+    if (best < 0) return NAN;
+    *trig = r->buf[ik];
+    *v_out = r->cv[best];
+
+    /* Refine towards the neighbour of larger V (it fails, since best is the largest). */
+    const double *cv = r->cv;
+    int nb = -1;
+    if (best > 0 && cv[best - 1] > cv[best]) nb = best - 1;
+    if (best < n - 1 && cv[best + 1] > cv[best] && (nb < 0 || cv[best + 1] > cv[nb]))
+        nb = best + 1;
+    if (nb < 0) return r->cc[best];
+    int pb = ik == 0 ? 1 : 0, pk = 3 - ik - pb;
+    double v_ref;
+    const double c_ref = vk_path_refine(r, best, nb, &pb, &pk, &v_ref);
+    if (!isnan(c_ref) && v_ref > cv[best]) {
+        *trig = r->buf[pk];
+        *v_out = v_ref;
+        return c_ref;
+    }
+    return r->cc[best];
+}
+
+/* Whether the retiming search finds a feasible T for the row's path scaled by c, whose trig
+ * is given (no evaluation). */
+static int vk_time_found(const double *p, const double *s, int m, const double *in, double c,
+                         const double *trig, double *cache)
+{
+    double row[VK_N_IN], K[3], qd_pk[3], qdd_pk[3];
+    for (int j = 0; j < VK_N_IN; j++) row[j] = in[j];
+    for (int j = 0; j < 3; j++) row[I_A6 + j] = c * in[I_A6 + j];
+    if (vk_prepare(p, s, m, row, K, trig, cache, qd_pk, qdd_pk) != 0) return 0;
+    int found = 0;
+    vk_retime_T(p, cache, m, qd_pk, qdd_pk, &found);
+    return found;
+}
+
+/*
+ * Back-off after the retime of the path at c_fail (V_p v_fail) failed: the largest-V scale
+ * found whose path passes vk_path_g and whose retiming search finds a time, or NAN.
+ * Start points, the first that passes brackets the boundary with the last that failed: the
+ * path-feasible scan points of smaller V (the largest such V, then the least), then the path
+ * boundary beyond the least (a smaller bulge is kinder to torque but may break volume_min or
+ * theta_p). Then VK_PL_BACKOFF bisection steps.
+ *   trig: out, its trig (in r->buf)
+ */
+static double vk_plan_backoff(vk_pathscan *r, const double *s, double *cache, double c_fail,
+                              double v_fail, const double **trig)
+{
+    const double *p = r->p, *in = r->in;
+    const int m = r->m;
+    *trig = NULL;
+    int k1 = -1, k2 = -1;
+    for (int k = 0; k < r->n; k++) {
+        if (!(r->cg[k] <= 0.0 && r->cv[k] < v_fail)) continue;
+        if (k1 < 0 || r->cv[k] > r->cv[k1]) k1 = k;
+        if (k2 < 0 || r->cv[k] < r->cv[k2]) k2 = k;
+    }
+    if (k1 < 0) return NAN;
+    /* Two buffers besides the best scan point's (the rotation base): probe and keep. */
+    int pb = r->ik == 0 ? 1 : 0, pk = 3 - r->ik - pb;
+    double a = NAN, b = c_fail;
+    for (int u = 0; u < 3 && isnan(a); u++) {
+        double c;
+        if (u < 2) {
+            const int k = u == 0 ? k1 : k2;
+            if (u == 1 && k2 == k1) continue;
+            c = r->cc[k];
+            vk_path_trig(r, c, r->buf[pb]);
+        } else {
+            /* The neighbour of k2 with smaller V, if it fails the path constraints. */
+            int nb = -1;
+            if (k2 > 0 && !(r->cg[k2 - 1] <= 0.0) && r->cv[k2 - 1] < r->cv[k2]) nb = k2 - 1;
+            if (k2 < r->n - 1 && !(r->cg[k2 + 1] <= 0.0) && r->cv[k2 + 1] < r->cv[k2] &&
+                (nb < 0 || r->cv[k2 + 1] < r->cv[nb]))
+                nb = k2 + 1;
+            if (nb < 0) break;
+            double v_b;
+            int q = pb; /* refine into pb and pk, then the passing probe goes to pb */
+            c = vk_path_refine(r, k2, nb, &q, &pk, &v_b);
+            if (isnan(c)) break;
+            pb = q;
+            {
+                const int t = pb;
+                pb = pk;
+                pk = t;
+            }
+        }
+        if (vk_time_found(p, s, m, in, c, r->buf[pb], cache)) {
+            a = c;
+            const int t = pb;
+            pb = pk;
+            pk = t;
+        } else {
+            b = c;
+        }
+    }
+    if (isnan(a)) return NAN;
+    /* The row's own path, if it lies closer to the boundary than a: never report less. */
+    if (vk_min(a, b) < 1.0 && 1.0 < vk_max(a, b)) {
+        vk_path_trig(r, 1.0, r->buf[pb]);
+        double v1, w1[4];
+        if (vk_path_g(r, 1.0, r->buf[pb], &v1, w1) <= 0.0 &&
+            vk_time_found(p, s, m, in, 1.0, r->buf[pb], cache)) {
+            a = 1.0;
+            const int t = pb;
+            pb = pk;
+            pk = t;
+        } else {
+            b = 1.0;
+        }
+    }
+    for (int it = 0; it < VK_PL_BACKOFF; it++) {
+        const double x = 0.5 * (a + b);
+        vk_path_trig(r, x, r->buf[pb]);
+        double vx, wx[4];
+        if (vk_path_g(r, x, r->buf[pb], &vx, wx) <= 0.0 &&
+            vk_time_found(p, s, m, in, x, r->buf[pb], cache)) {
+            a = x;
+            const int t = pb;
+            pb = pk;
+            pk = t;
+        } else {
+            b = x;
+        }
+    }
+    *trig = r->buf[pk];
+    return a;
+}
+
+/* Retime the row's path scaled by c (trig: NULL or its trig) into out, planned; 1 if feasible. */
+static int vk_plan_retime(const double *p, const double *s, int m, const double *in, double c,
+                          double *out, double *planned, double *path, const double *trig,
+                          double *cache)
+{
+    double row[VK_N_IN];
+    for (int j = 0; j < VK_N_IN; j++) row[j] = in[j];
+    for (int j = 0; j < 3; j++) row[I_A6 + j] = c * in[I_A6 + j];
+    vk_retime(p, s, m, row, out, planned, path, trig, cache);
+    return out[O_TOTAL] <= 0.0;
+}
+
+/*
+ * Plan one row: the path scale c* of vk_plan_scale retimed (vk_retime) into out and planned;
+ * if that is infeasible, the back-off's; if that fails too or nothing qualifies, the row's own
+ * path (c = 1) retimed.
+ *   scale: NULL or out, the c of the reported path (NAN for a rejected row)
+ *   basis: q(s), p(s), 1/p(s) (3 * m); sc: VK_N_PLAN * m scratch
+ */
+static void vk_plan(const double *p, const double *s, const double *basis, int m,
+                    const double *in, double c_lo, double c_hi, double *out, double *planned,
+                    double *path, double *scale, double *cache, double *sc)
+{
+    int valid = 1;
+    for (int j = 0; j < VK_N_IN; j++)
+        if (!isfinite(in[j])) valid = 0;
+    const double T = in[I_T], dig = in[I_DIG_TYPE];
+    if (!(T > 0.0) || !(dig == 0.0 || dig == 1.0)) valid = 0;
+    double K[3] = {0.0, 0.0, 0.0};
+    if (valid) {
+        const double T6 = pow(T, 6.0);
+        for (int j = 0; j < 3; j++) {
+            K[j] = -in[I_A6 + j] * T6;
+            if (!isfinite(K[j])) valid = 0;
+        }
+    }
+    if (!valid) {
+        vk_retime(p, s, m, in, out, planned, path, NULL, cache); /* rejects it */
+        if (scale != NULL) *scale = NAN;
+        return;
+    }
+    vk_pathscan r;
+    r.p = p;
+    r.in = in;
+    r.m = m;
+    r.n3 = 3 * m;
+    r.A = sc + S_A * m;
+    r.B = sc + S_B * m;
+    r.buf[0] = sc + S_T0 * m;
+    r.buf[1] = sc + S_T1 * m;
+    r.buf[2] = sc + S_T2 * m;
+    r.R = sc + S_R * m;
+    const double *trig;
+    double v = 0.0;
+    const double c = vk_plan_scale(&r, basis, K, c_lo, c_hi, &trig, &v);
+    if (!isnan(c) && c != 1.0) {
+        /* The retime of c*, evaluated only if its search finds a time (else straight to the
+         * back-off: that evaluation would be thrown away). */
+        double row[VK_N_IN], Kc[3], qd_pk[3], qdd_pk[3];
+        for (int j = 0; j < VK_N_IN; j++) row[j] = in[j];
+        for (int j = 0; j < 3; j++) row[I_A6 + j] = c * in[I_A6 + j];
+        int found = 0;
+        double T_c = 0.0;
+        if (vk_prepare(p, s, m, row, Kc, trig, cache, qd_pk, qdd_pk) == 0)
+            T_c = vk_retime_T(p, cache, m, qd_pk, qdd_pk, &found);
+        if (found) {
+            vk_retime_finish(p, s, m, row, Kc, T_c, found, out, planned, path);
+            if (out[O_TOTAL] <= 0.0) {
+                if (scale != NULL) *scale = c;
+                return;
+            }
+        }
+        const double c2 = vk_plan_backoff(&r, s, cache, c, v, &trig);
+        if (!isnan(c2) && c2 != 1.0 &&
+            vk_plan_retime(p, s, m, in, c2, out, planned, path, trig, cache)) {
+            if (scale != NULL) *scale = c2;
+            return;
+        }
+    }
+    /* Without the probes' trig, so that scale 1 is exactly what retime() gives. */
+    vk_retime(p, s, m, in, out, planned, path, NULL, cache);
+    if (scale != NULL) *scale = 1.0;
+}
+
 /* ---------------------------------------------------------------------------------------------
  * CPython binding.
  * ------------------------------------------------------------------------------------------- */
@@ -772,16 +1359,21 @@ typedef struct {
     PyObject_HEAD
     double params[VK_N_PARAMS];
     double *s;
-    /* Retiming scratch (VK_N_CACHE * m): one per kernel, safe because no method releases the
-     * GIL, so two threads never run in the same kernel at once. */
+    /* q(s), p(s) of Yao eq 10 and 1/p(s) (0 where p is 0) on the grid (3 * m), for plan. */
+    double *basis;
+    /* Retiming (VK_N_CACHE * m) and plan (VK_N_PLAN * m) scratch: one per kernel, safe because
+     * no method releases the GIL, so two threads never run in the same kernel at once. */
     double *cache;
+    double *scratch;
     int m;
 } KernelObject;
 
 static void Kernel_dealloc(KernelObject *self)
 {
     free(self->s);
+    free(self->basis);
     free(self->cache);
+    free(self->scratch);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -808,7 +1400,9 @@ static int get_f64(PyObject *obj, Py_buffer *view, int writable, int ndim, const
     for (int k = 0; ok && k < ndim; k++)
         if (shape[k] >= 0 && view->shape[k] != shape[k]) ok = 0;
     if (!ok) {
-        if (ndim == 1)
+        if (ndim == 1 && shape[0] < 0)
+            PyErr_Format(PyExc_ValueError, "%s must have shape (N,)", name);
+        else if (ndim == 1)
             PyErr_Format(PyExc_ValueError, "%s must have shape (%zd,)", name, shape[0]);
         else if (ndim == 2)
             PyErr_Format(PyExc_ValueError, "%s must have shape (N, %zd)", name, shape[1]);
@@ -838,10 +1432,14 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds)
     for (int k = 0; k < VK_N_PARAMS; k++) self->params[k] = src[k];
     PyBuffer_Release(&view);
     double *s = (double *)malloc((size_t)m * sizeof(double));
+    double *basis = (double *)malloc((size_t)m * 3 * sizeof(double));
     double *cache = (double *)malloc((size_t)m * VK_N_CACHE * sizeof(double));
-    if (s == NULL || cache == NULL) {
+    double *scratch = (double *)malloc((size_t)m * VK_N_PLAN * sizeof(double));
+    if (s == NULL || basis == NULL || cache == NULL || scratch == NULL) {
         free(s);
+        free(basis);
         free(cache);
+        free(scratch);
         PyErr_NoMemory();
         return -1;
     }
@@ -849,10 +1447,20 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds)
     const double step = 1.0 / (double)(m - 1);
     for (int i = 0; i < m; i++) s[i] = (double)i * step;
     s[m - 1] = 1.0;
+    for (int i = 0; i < m; i++) {
+        const double si = s[i], s3 = si * si * si, r = 1.0 - si;
+        basis[i] = s3 * (10.0 + si * (-15.0 + si * 6.0)); /* q(s) */
+        basis[m + i] = s3 * (r * r * r);                   /* p(s) */
+        basis[2 * m + i] = basis[m + i] > 0.0 ? 1.0 / basis[m + i] : 0.0;
+    }
     free(self->s);
+    free(self->basis);
     free(self->cache);
+    free(self->scratch);
     self->s = s;
+    self->basis = basis;
     self->cache = cache;
+    self->scratch = scratch;
     self->m = m;
     return 0;
 }
@@ -949,7 +1557,7 @@ static PyObject *Kernel_retime(KernelObject *self, PyObject *const *args, Py_ssi
         double *path = has_path ? (double *)path_v.buf : NULL;
         for (Py_ssize_t r = 0; r < n; r++)
             vk_retime(self->params, self->s, m, in + r * VK_N_IN, out + r * VK_N_OUT, rt + r * 4,
-                      path != NULL ? path + r * 2 * m : NULL, self->cache);
+                      path != NULL ? path + r * 2 * m : NULL, NULL, self->cache);
     }
     Py_ssize_t n_out = out_v.shape[0], n_rt = rt_v.shape[0];
     Py_ssize_t n_path = has_path ? path_v.shape[0] : n;
@@ -967,11 +1575,109 @@ static PyObject *Kernel_retime(KernelObject *self, PyObject *const *args, Py_ssi
     Py_RETURN_NONE;
 }
 
+/* A float argument of plan. */
+static int get_double(PyObject *obj, double *v, const char *name)
+{
+    *v = PyFloat_AsDouble(obj);
+    if (*v == -1.0 && PyErr_Occurred()) {
+        PyErr_Format(PyExc_TypeError, "%s must be a float", name);
+        return -1;
+    }
+    return 0;
+}
+
+static PyObject *Kernel_plan(KernelObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs < 5 || nargs > 7) {
+        PyErr_SetString(PyExc_TypeError,
+                        "plan(inputs, out, planned, c_lo, c_hi, path=None, scale=None) takes 5 "
+                        "to 7 arguments");
+        return NULL;
+    }
+    if (self->s == NULL || self->cache == NULL || self->scratch == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "Kernel not initialised");
+        return NULL;
+    }
+    double c_lo, c_hi;
+    if (get_double(args[3], &c_lo, "c_lo") != 0 || get_double(args[4], &c_hi, "c_hi") != 0)
+        return NULL;
+    if (!(isfinite(c_lo) && isfinite(c_hi) && c_lo >= 0.0 && c_lo <= c_hi)) {
+        PyErr_Format(PyExc_ValueError,
+                     "c_range must be finite with 0 <= c_lo <= c_hi; got (%R, %R)", args[3],
+                     args[4]);
+        return NULL;
+    }
+    const int m = self->m;
+    Py_buffer in_v, out_v, pl_v, path_v, sc_v;
+    const Py_ssize_t in_shape[2] = {-1, VK_N_IN};
+    const Py_ssize_t out_shape[2] = {-1, VK_N_OUT};
+    const Py_ssize_t pl_shape[2] = {-1, 4};
+    const Py_ssize_t path_shape[3] = {-1, m, 2};
+    const Py_ssize_t sc_shape[1] = {-1};
+    int has_path = nargs >= 6 && args[5] != Py_None;
+    int has_scale = nargs == 7 && args[6] != Py_None;
+    if (get_f64(args[0], &in_v, 0, 2, in_shape, "inputs") != 0) return NULL;
+    if (get_f64(args[1], &out_v, 1, 2, out_shape, "out") != 0) {
+        PyBuffer_Release(&in_v);
+        return NULL;
+    }
+    if (get_f64(args[2], &pl_v, 1, 2, pl_shape, "planned") != 0) {
+        PyBuffer_Release(&in_v);
+        PyBuffer_Release(&out_v);
+        return NULL;
+    }
+    if (has_path && get_f64(args[5], &path_v, 1, 3, path_shape, "path") != 0) {
+        PyBuffer_Release(&in_v);
+        PyBuffer_Release(&out_v);
+        PyBuffer_Release(&pl_v);
+        return NULL;
+    }
+    if (has_scale && get_f64(args[6], &sc_v, 1, 1, sc_shape, "scale") != 0) {
+        PyBuffer_Release(&in_v);
+        PyBuffer_Release(&out_v);
+        PyBuffer_Release(&pl_v);
+        if (has_path) PyBuffer_Release(&path_v);
+        return NULL;
+    }
+    const Py_ssize_t n = in_v.shape[0];
+    int bad = out_v.shape[0] != n || pl_v.shape[0] != n || (has_path && path_v.shape[0] != n) ||
+              (has_scale && sc_v.shape[0] != n);
+    if (!bad) {
+        const double *in = (const double *)in_v.buf;
+        double *out = (double *)out_v.buf;
+        double *pl = (double *)pl_v.buf;
+        double *path = has_path ? (double *)path_v.buf : NULL;
+        double *sc = has_scale ? (double *)sc_v.buf : NULL;
+        for (Py_ssize_t r = 0; r < n; r++)
+            vk_plan(self->params, self->s, self->basis, m, in + r * VK_N_IN, c_lo, c_hi,
+                    out + r * VK_N_OUT, pl + r * 4, path != NULL ? path + r * 2 * m : NULL,
+                    sc != NULL ? sc + r : NULL, self->cache, self->scratch);
+    }
+    Py_ssize_t n_out = out_v.shape[0], n_pl = pl_v.shape[0];
+    Py_ssize_t n_path = has_path ? path_v.shape[0] : n, n_sc = has_scale ? sc_v.shape[0] : n;
+    PyBuffer_Release(&in_v);
+    PyBuffer_Release(&out_v);
+    PyBuffer_Release(&pl_v);
+    if (has_path) PyBuffer_Release(&path_v);
+    if (has_scale) PyBuffer_Release(&sc_v);
+    if (bad) {
+        PyErr_Format(PyExc_ValueError,
+                     "inputs, out, planned, path and scale must have the same number of rows N; "
+                     "got %zd, %zd, %zd, %zd, %zd",
+                     n, n_out, n_pl, n_path, n_sc);
+        return NULL;
+    }
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef Kernel_methods[] = {
     {"run", (PyCFunction)(void (*)(void))Kernel_run, METH_FASTCALL,
      "run(inputs (N, 12), out (N, 32), path (N, m, 2) or None) -> None"},
     {"retime", (PyCFunction)(void (*)(void))Kernel_retime, METH_FASTCALL,
      "retime(inputs (N, 12), out (N, 32), retimed (N, 4), path (N, m, 2) or None) -> None"},
+    {"plan", (PyCFunction)(void (*)(void))Kernel_plan, METH_FASTCALL,
+     "plan(inputs (N, 12), out (N, 32), planned (N, 4), c_lo, c_hi, path (N, m, 2) or None, "
+     "scale (N,) or None) -> None"},
     {NULL, NULL, 0, NULL},
 };
 

@@ -14,7 +14,16 @@ checked before anyone may execute it:
 3. **Verification** of every hard limit of Yao eq 12 (joint range, velocity, acceleration,
    torque, power, initial digging angle, volume, time) on a dense grid (101 samples by default)
    by :class:`rt_runtime.planning.verify.Verifier`, the compiled twin of the numpy evaluation.
-4. **Repair**, only when verification fails. Time scaling first: keeping ``K = -a6 T^6`` keeps
+4. **Fill and retime** (the normal path, :meth:`rt_runtime.planning.verify.Verifier.plan_into`,
+   in the C kernel): the network's path direction is kept and its bulge scaled, K = c K_net,
+   to the largest volume within V_max and the path-only limits (joint range, theta_p), then
+   the path is run at its smallest feasible T. Both steps move the answer to where the PSO's
+   optima lie (on the volume cap and the time-dependent limits), which a regression network
+   can only approach from inside; measured, they take the mean objective gap to the teacher
+   from ~20 % (raw answers) to a few per cent. What they cannot make feasible falls back to the
+   network's own path retimed, then to:
+5. **Repair**, when that still fails (or with ``retime=False``, whenever the raw answer fails).
+   Time scaling first: keeping ``K = -a6 T^6`` keeps
    the joint path (so angles, theta_p and volume) and divides velocities by the scale factor k
    and accelerations by k^2; torque and power fall with them towards their quasi-static values.
    The smallest k (on a 1 % grid, from the analytic velocity/acceleration bound upwards) that
@@ -50,6 +59,7 @@ from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import CONSTRAINT_NAMES, DigType, Problem
 from rt_runtime.planning.verify import (
+    PLAN_C_RANGE,
     COL_T_S,
     COL_TOTAL,
     N_OUT,
@@ -83,7 +93,7 @@ _TIME_MIN = CONSTRAINT_NAMES.index("time_min")
 class PlanStatus(IntEnum):
     """How a returned plan came about."""
 
-    RETIMED = 0  # the network's path at the smallest feasible T (the normal case)
+    RETIMED = 0  # the network's path, bulge scaled to fill the bucket, at its smallest feasible T
     RAW = 1  # the network's answer as it was (retiming off), verified
     TIME_SCALED = 2  # repaired by time scaling (retiming off)
     REFINED = 3  # repaired by the bounded local refinement
@@ -165,6 +175,7 @@ class PinnPlan:
             :mod:`rt_runtime.planning.verify`); always feasible.
         infer_us: Inference time (onnxruntime call).
         plan_us: Whole planning time (domain check, inference, verification, repair).
+        bulge_scale: c of the executed path K = c K_net (1.0: the network's own path).
     """
 
     problem: Problem
@@ -176,6 +187,7 @@ class PinnPlan:
     evaluation: FloatArray
     infer_us: float
     plan_us: float
+    bulge_scale: float = 1.0
 
     @property
     def verification(self) -> VerifyResult:
@@ -267,9 +279,9 @@ class PinnPlanner:
         model_dir: Directory holding ``pinn_downward.onnx``/``.json`` and
             ``pinn_backward.onnx``/``.json``.
         n_verify: Samples of the verification grid.
-        retime: Run the network's path at its smallest feasible T (time-optimal retiming,
-            :meth:`rt_runtime.planning.verify.Verifier.retime_into`); off, the network's T is
-            kept when it verifies.
+        retime: Fill and retime the network's path (step 4 above,
+            :meth:`rt_runtime.planning.verify.Verifier.plan_into`); off, the network's answer
+            is kept when it verifies.
         refine: Allow the bounded local refinement when time scaling cannot repair a plan.
         teacher_fallback: Plan out-of-domain problems with the PSO teacher instead of refusing
             them (seconds, not microseconds: never inside the loop).
@@ -310,6 +322,7 @@ class PinnPlanner:
         self._row = np.zeros((1, 12), dtype=np.float64)
         self._out = np.zeros((1, N_OUT), dtype=np.float64)
         self._retimed = np.zeros((1, 4), dtype=np.float64)
+        self._scale = np.ones(1, dtype=np.float64)
         self._lo = {k: c.domain_min for k, c in self.cards.items()}
         self._hi = {k: c.domain_max for k, c in self.cards.items()}
 
@@ -411,7 +424,7 @@ class PinnPlanner:
         raw_T = y[3]
         out = self._out
         if self.retime:
-            self.verifier.retime_into(row, out, self._retimed)
+            self.verifier.plan_into(row, out, self._retimed, PLAN_C_RANGE, None, self._scale)
             if out[0, COL_TOTAL] <= 0.0:
                 r = self._retimed[0].tolist()
                 return PinnPlan(
@@ -422,6 +435,7 @@ class PinnPlanner:
                     raw_T_s=raw_T,
                     status=PlanStatus.RETIMED,
                     evaluation=out[0].copy(),
+                    bulge_scale=float(self._scale[0]),
                     infer_us=infer_us,
                     plan_us=(time.perf_counter() - t0) * 1e6,
                 )

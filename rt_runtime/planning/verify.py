@@ -25,6 +25,14 @@ constraint (:data:`TIME_DEPENDENT`) holds, then evaluates it for real. The PINN'
 good but its T conservative, and eq 11 is dominated by T. The C kernel does it in about twice
 the cost of one evaluation; the numpy backend bisects with real evaluations (the reference).
 
+:meth:`Verifier.plan_into` goes one step further: it keeps each candidate's path *direction*
+and scales its bulge, ``K -> c K``, to the largest excavated volume that the path-only
+constraints allow (Yao's objective rewards V_p up to the hard cap V_max, which a network must
+aim below to stay feasible), then retimes that path; when the larger bulge cannot be timed
+feasibly (torque), it backs off towards a smaller one, and as a last resort retimes the
+candidate's own path. The C kernel does it in about 1.6x the cost of a retiming (~23 us per
+row at 101 samples) on most rows.
+
 Input rows are ``[q_start (3) rad, q_end (3) rad, H m, dig_type (0 downward, 1 backward),
 a6 (3) rad/s^6, T s]`` (columns ``IN_*``); output rows are laid out by the ``COL_*`` constants.
 A row that :func:`~rt_runtime.planning.oneshot.evaluate` would refuse (a non-finite value,
@@ -105,6 +113,18 @@ RETIME_RTOL: Final = 1e-6
 """Retiming returns a T' within this relative distance above the feasible boundary it finds
 (measured: the two backends agree to 5e-10, see :meth:`Verifier.retime_into`)."""
 
+PLAN_C_RANGE: Final = (0.5, 2.0)
+"""Default range of the path scale c of :meth:`Verifier.plan_into`."""
+
+PLAN_TOL: Final = 1e-4
+"""Where a path constraint caps the path scale (volume_max mostly), :meth:`Verifier.plan_into`
+lands within this of it on the feasible side, in normalised units (for volume_max: V_p within
+1e-4 of the V range below V_max; the numpy reference lands within 1e-9 in c of it)."""
+
+PLAN_MARGIN: Final = 1e-9
+"""Path constraints are judged with this much to spare while searching the scale (normalised
+units), so that the real evaluation of the answer holds them."""
+
 BACKENDS: tuple[str, ...] = ("auto", "c", "numpy")
 
 # The numpy reference of retiming: a geometric grid of T over [t_min, t_max] plus the velocity
@@ -118,6 +138,13 @@ _REF_RTOL = 1e-8
 _REF_MARGIN = 1e-11
 # The velocity and acceleration bounds join the grid this far above their exact values.
 _REF_BOUND_STEP = 1e-9
+# The numpy reference of plan: path constraints on a uniform grid of c, then multisection of
+# the bracket at the best grid point to a relative width of _REF_PLAN_RTOL; the back-off
+# bisects _REF_BACKOFF times (the kernel 4).
+_REF_PLAN_GRID = 49
+_REF_PLAN_RTOL = 1e-9
+_REF_BACKOFF = 8
+_PATH_ONLY = (*range(6), 16, 17, 18, 19)
 
 BUILD_HINT = (
     "build it with `.venv/bin/pip install -e .` from the repository root (setup.py compiles "
@@ -126,7 +153,7 @@ BUILD_HINT = (
 )
 
 # Layout of the kernel's constants; _verify.c's enum vk_param must list the same offsets.
-_ABI = 2
+_ABI = 3
 _PARAM_FIELDS: tuple[tuple[str, int], ...] = (
     ("lengths", 3),
     ("chain_h", 3),
@@ -152,6 +179,11 @@ _PARAM_FIELDS: tuple[tuple[str, int], ...] = (
     ("width", 1),
 )
 N_PARAMS: Final = sum(n for _, n in _PARAM_FIELDS)
+
+
+_PlanFn = Callable[
+    [FloatArray, FloatArray, FloatArray, float, float, FloatArray | None, FloatArray | None], None
+]
 
 
 def _load_extension() -> ModuleType | None:
@@ -368,8 +400,8 @@ class Verifier:
     checks one probe candidate against :func:`~rt_runtime.planning.oneshot.evaluate` (about
     1 ms), so that a kernel that no longer matches the Python physics is never used. The
     instance holds no per-call state, so one verifier may serve several threads (the C kernel
-    keeps its evaluation scratch on the stack and its retiming scratch in the kernel object,
-    and holds the GIL while it runs).
+    keeps its evaluation scratch on the stack and its retiming and planning scratch in the
+    kernel object, and holds the GIL while it runs).
 
     Args:
         rig: The rig; needs a ``[planning]`` table.
@@ -390,7 +422,7 @@ class Verifier:
             names the output).
     """
 
-    __slots__ = ("_retime", "_run", "backend", "n_samples", "rig")
+    __slots__ = ("_plan", "_retime", "_run", "backend", "n_samples", "rig")
 
     def __init__(self, rig: Rig, n_samples: int = DEFAULT_SAMPLES, backend: str = "auto") -> None:
         if backend not in BACKENDS:
@@ -414,6 +446,7 @@ class Verifier:
         self._retime: Callable[[FloatArray, FloatArray, FloatArray, FloatArray | None], None]
         self._run = self._evaluate_numpy
         self._retime = self._retime_numpy
+        self._plan: _PlanFn = self._plan_numpy
         self.backend = "numpy"
         if module is not None:
             try:
@@ -430,6 +463,7 @@ class Verifier:
             else:
                 self._run = kernel.run
                 self._retime = kernel.retime
+                self._plan = kernel.plan
                 self.backend = "c"
 
     def _self_check(
@@ -604,6 +638,113 @@ class Verifier:
         self.retime_into(inputs, out, retimed)
         a6_new = retimed[0, RT_A6 : RT_A6 + 3].copy()
         return a6_new, float(retimed[0, RT_T_S]), VerifyResult.from_row(out[0])
+
+    def plan_into(
+        self,
+        inputs: FloatArray,
+        out: FloatArray,
+        planned: FloatArray,
+        c_range: tuple[float, float] = PLAN_C_RANGE,
+        path: FloatArray | None = None,
+        scale: FloatArray | None = None,
+    ) -> None:
+        """Scale each candidate's bulge to fill the volume cap, then retime (the fast path).
+
+        Each row's path direction is kept and its bulge scaled: the family
+        ``theta(s) = theta1 + D q(s) + c K p(s)`` with ``K = -a6 T^6`` of the row (``c = 1`` is
+        the row's own path). Yao's objective rewards V_p up to the hard cap V_max, so a
+        network that must aim below the cap to stay feasible leaves volume unused; this takes
+        it back:
+
+        1. ``c*`` in ``c_range``: the largest V_p whose path-only constraints hold (joint
+           limits, theta_p, volume_min and volume_max; they need the path only, not T). Where
+           a constraint caps it (volume_max mostly), ``c*`` lies within :data:`PLAN_TOL` of
+           that constraint, feasible side.
+        2. The path at ``c*`` retimed as :meth:`retime_into` does (shortest feasible T').
+        3. If that fails (a larger bulge needs more torque, which no retiming reduces):
+           back-off to the largest ``c`` found between ``c*`` and a path-feasible scale of
+           smaller V_p at which the retiming search finds a time, retimed (``c = 1`` is among
+           the scan points and the back-off's candidates: where the row's own path retimes
+           feasibly, the plan has at least its volume, less :data:`PLAN_TOL`).
+        4. If nothing works, the row's own path (``c = 1``) retimed: ``scale`` 1 means exactly
+           what :meth:`retime_into` gives for the row.
+
+        ``out`` always holds the real evaluation of what ``planned`` holds (exactly what
+        :meth:`evaluate_into` gives for it), so "feasible" means what it means there; ``K`` of
+        ``planned`` is ``scale`` times the row's ``K``. The largest volume is not always the
+        best objective (a bigger bulge takes more time and energy), but the plan's objective
+        is worse than the own path's retimed only where it buys volume (no such row among 300
+        of a validation set).
+
+        How (C): the path-only search needs forward kinematics on the sample grid and no
+        dynamics. Joint limits give the interval of ``c`` in closed form (each sample's angle
+        is linear in ``c``); theta_p of a dig that starts on the surface too (its entry
+        direction ``J(q0)(10 D + c K)``); V_p and the other entries take the path. A 9-point
+        scan (trig advanced by rotation) brackets the largest feasible V_p; Illinois on the
+        constraint that fails at the neighbour of larger V_p closes in (2-3 probes); the
+        back-off bisects 4 times on the retiming search (no evaluation). About 9 us more than
+        :meth:`retime_into` at 101 samples (p50 ~23 us per row); rows that take the back-off
+        cost 40-90 us. Allocates nothing; safe in the loop's planning step.
+
+        How (numpy, the reference): :func:`oneshot.evaluate` of the path constraints on a
+        49-point grid of ``c``, multisection of the bracket at the best grid point to 1e-9
+        relative, the same back-off with 8 bisection steps, and the numpy retiming; slow
+        (0.01-0.2 s per row). Both miss a feasible interval of ``c`` narrower than a grid step.
+
+        Args:
+            inputs: ``(N, N_IN)`` C-contiguous float64 rows (columns ``IN_*``); ``IN_A6`` and
+                ``IN_T`` define the path direction by ``K = -a6 T^6``.
+            out: ``(N, N_OUT)`` C-contiguous writable float64: the evaluation of the plan.
+            planned: ``(N, N_RETIMED)`` C-contiguous writable float64: ``a6'`` (columns
+                ``RT_A6..RT_A6+2``) and ``T'`` (``RT_T_S``); NaN for a rejected row (as
+                :meth:`retime_into`).
+            c_range: ``(c_lo, c_hi)``, finite, ``0 <= c_lo <= c_hi``.
+            path: ``(N, n_samples, 2)`` for the tip path of the plan, or None.
+            scale: ``(N,)`` C-contiguous writable float64 for the ``c`` of the plan (1.0 where
+                the row's own path is reported, NaN for a rejected row), or None.
+
+        Raises:
+            ValueError: Wrong shapes, dtypes or memory layout, or a bad ``c_range`` (nothing is
+                written).
+        """
+        lo, hi = _c_range(c_range)
+        self._plan(inputs, out, planned, lo, hi, path, scale)
+
+    def plan(
+        self,
+        q_start_rad: ArrayLike,
+        q_end_rad: ArrayLike,
+        surface_y_m: float,
+        dig_type: DigType | int,
+        a6: ArrayLike,
+        T_s: float,
+        c_range: tuple[float, float] = PLAN_C_RANGE,
+    ) -> tuple[FloatArray, float, VerifyResult, float]:
+        """Plan one candidate (convenience for :meth:`plan_into`; allocates).
+
+        Args:
+            q_start_rad: Entry pose ``(3,)``.
+            q_end_rad: Exit pose ``(3,)``.
+            surface_y_m: Material surface height H, m.
+            dig_type: Downward or backward.
+            a6: Sixth-order coefficients ``(3,)``, rad/s^6, with ``T_s`` the path direction.
+            T_s: Digging time, s.
+            c_range: ``(c_lo, c_hi)`` of the path scale.
+
+        Returns:
+            ``(a6' (3,) rad/s^6, T' s, the VerifyResult of the plan, its path scale c)``.
+
+        Raises:
+            PlanningError: A non-finite input, ``T_s <= 0`` or an unknown dig type, naming it.
+            ValueError: A pose or ``a6`` not shaped ``(3,)``, or a bad ``c_range``.
+        """
+        inputs = _one_row(q_start_rad, q_end_rad, surface_y_m, dig_type, a6, T_s)
+        out = np.empty((1, N_OUT), dtype=np.float64)
+        planned = np.empty((1, N_RETIMED), dtype=np.float64)
+        scale = np.empty(1, dtype=np.float64)
+        self.plan_into(inputs, out, planned, c_range, None, scale)
+        a6_new = planned[0, RT_A6 : RT_A6 + 3].copy()
+        return a6_new, float(planned[0, RT_T_S]), VerifyResult.from_row(out[0]), float(scale[0])
 
     def _evaluate_numpy(
         self, inputs: FloatArray, out: FloatArray, path: FloatArray | None = None
@@ -782,6 +923,271 @@ class Verifier:
         ok = np.all(td[..., :-2] <= -_REF_MARGIN, axis=-1) & np.all(td[..., -2:] <= 0.0, axis=-1)
         return ok, np.sum(np.maximum(td, 0.0), axis=-1), td
 
+    def _plan_numpy(
+        self,
+        inputs: FloatArray,
+        out: FloatArray,
+        planned: FloatArray,
+        c_lo: float,
+        c_hi: float,
+        path: FloatArray | None = None,
+        scale: FloatArray | None = None,
+    ) -> None:
+        """The numpy backend of :meth:`plan_into`: real evaluations only (the reference)."""
+        x = _checked(inputs, "inputs", (N_IN,), writable=False)
+        o = _checked(out, "out", (N_OUT,), writable=True)
+        pl = _checked(planned, "planned", (N_RETIMED,), writable=True)
+        p = None if path is None else _checked(path, "path", (self.n_samples, 2), writable=True)
+        sc = None if scale is None else _checked(scale, "scale", (), writable=True)
+        n = x.shape[0]
+        counts = [a.shape[0] for a in (o, pl, p, sc) if a is not None]
+        if any(k != n for k in counts):
+            raise ValueError(
+                "inputs, out, planned, path and scale must have the same number of rows N; got "
+                f"{n}, {o.shape[0]}, {pl.shape[0]}, {p.shape[0] if p is not None else n}, "
+                f"{sc.shape[0] if sc is not None else n}"
+            )
+        c_lo, c_hi = _c_range((c_lo, c_hi))
+        T = x[:, IN_T]
+        kind = x[:, IN_DIG_TYPE]
+        ok = np.all(np.isfinite(x), axis=1) & (T > 0.0) & ((kind == 0.0) | (kind == 1.0))
+        with np.errstate(all="ignore"):
+            K = -x[:, IN_A6 : IN_A6 + 3] * T[:, None] ** 6
+        ok &= np.all(np.isfinite(K), axis=1)
+        o[~ok] = np.nan
+        o[~ok, COL_TOTAL] = np.inf
+        pl[~ok] = np.nan
+        if p is not None:
+            p[~ok] = np.nan
+        if sc is not None:
+            sc[~ok] = np.nan
+        rows = np.flatnonzero(ok)
+        if rows.size == 0:
+            return
+        v = x[rows]
+        c_star, v_star, grid, g_grid, vol_grid = self._plan_scale_numpy(v, c_lo, c_hi)
+        # The c of each row's plan, tried in turn: c*, then the back-off, then 1.
+        c_final = np.ones(rows.size)
+        todo = np.flatnonzero(np.isfinite(c_star) & (c_star != 1.0))
+        if todo.size:
+            done = self._plan_retime_numpy(v[todo], c_star[todo], rows[todo], o, pl, p)
+            c_final[todo[done]] = c_star[todo[done]]
+            todo = todo[~done]
+        if todo.size:
+            c2 = self._backoff_numpy(
+                v[todo], c_star[todo], v_star[todo], grid[todo], g_grid[todo], vol_grid[todo]
+            )
+            try_c2 = np.isfinite(c2) & (c2 != 1.0)
+            sub = todo[try_c2]
+            if sub.size:
+                done = self._plan_retime_numpy(v[sub], c2[try_c2], rows[sub], o, pl, p)
+                c_final[sub[done]] = c2[try_c2][done]
+        left = np.setdiff1d(np.arange(rows.size), np.flatnonzero(c_final != 1.0))
+        if left.size:
+            self._plan_retime_numpy(v[left], np.ones(left.size), rows[left], o, pl, p)
+        if sc is not None:
+            sc[rows] = c_final
+
+    def _plan_retime_numpy(
+        self,
+        v: FloatArray,
+        c: FloatArray,
+        rows: NDArray[np.intp],
+        out: FloatArray,
+        planned: FloatArray,
+        path: FloatArray | None,
+    ) -> NDArray[np.bool_]:
+        """Retime rows ``v`` scaled by ``c`` into ``out[rows]`` etc.; which are feasible."""
+        y = _scaled(v, c)
+        o = np.empty((y.shape[0], N_OUT))
+        pl = np.empty((y.shape[0], N_RETIMED))
+        p = None if path is None else np.empty((y.shape[0], self.n_samples, 2))
+        self._retime_numpy(y, o, pl, p)
+        out[rows] = o
+        planned[rows] = pl
+        if path is not None and p is not None:
+            path[rows] = p
+        return np.asarray(o[:, COL_TOTAL] <= 0.0)
+
+    def _path_g_numpy(self, v: FloatArray, c: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Worst path-only violation plus PLAN_MARGIN (+inf where not finite) and V_p of rows
+        ``v`` scaled by ``c`` ``(B, P)``, by :func:`oneshot.evaluate` at the rows' own T."""
+        T = np.broadcast_to(v[:, IN_T, None], c.shape)
+        a6 = c[..., None] * v[:, None, IN_A6 : IN_A6 + 3]
+        viol, volume = self._grid_numpy(v, a6, T)
+        with np.errstate(invalid="ignore"):
+            g = np.max(viol[..., list(_PATH_ONLY)], axis=-1) + PLAN_MARGIN
+        g = np.where(np.isfinite(g) & np.isfinite(volume), g, np.inf)
+        return g, volume
+
+    def _plan_scale_numpy(
+        self, v: FloatArray, c_lo: float, c_hi: float
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """c* and V_p there per row (NaN where no grid point holds), and the grid, its g and
+        its V_p ``(B, P)`` (P: _REF_PLAN_GRID points, and c = 1 when in range)."""
+        n = v.shape[0]
+        points = np.linspace(c_lo, c_hi, _REF_PLAN_GRID)
+        if c_lo < 1.0 < c_hi:  # the row's own path among them, as in the kernel's scan
+            points = np.unique(np.append(points, 1.0))
+        grid = np.ascontiguousarray(np.broadcast_to(points, (n, points.size)))
+        g, vol = self._path_g_numpy(v, grid)
+        ok = g <= 0.0
+        vol_ok = np.where(ok, vol, -np.inf)
+        best = np.argmax(vol_ok, axis=1)
+        found = np.any(ok, axis=1)
+        # No bulge: every c is the same path; report the row's own (as the kernel).
+        with np.errstate(all="ignore"):
+            K = -v[:, IN_A6 : IN_A6 + 3] * v[:, IN_T, None] ** 6
+        found &= np.any(K != 0.0, axis=1)
+        r = np.arange(n)
+        c_star = np.where(found, grid[r, best], np.nan)
+        v_star = np.where(found, vol[r, best], np.nan)
+        # The neighbour of larger V_p (it fails: best is the largest that holds).
+        vol_nan = np.where(np.isfinite(vol), vol, -np.inf)
+        left = np.where(best > 0, vol_nan[r, np.maximum(best - 1, 0)], -np.inf)
+        right = np.where(best < grid.shape[1] - 1,
+                         vol_nan[r, np.minimum(best + 1, grid.shape[1] - 1)], -np.inf)
+        v_best = vol_nan[r, best]
+        nb = np.where(right >= left, best + 1, best - 1)
+        refine = found & (np.maximum(left, right) > v_best)
+        idx = np.flatnonzero(refine)
+        if idx.size:
+            c_b, v_b = self._path_boundary_numpy(v[idx], grid[idx, best[idx]], grid[idx, nb[idx]])
+            better = v_b > v_star[idx]
+            c_star[idx[better]] = c_b[better]
+            v_star[idx[better]] = v_b[better]
+        return c_star, v_star, grid, g, vol
+
+    def _path_boundary_numpy(
+        self, v: FloatArray, lo: FloatArray, hi: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Multisection of ``[lo, hi]`` per row (lo passes the path constraints, hi fails) to
+        the first failure seen from ``lo``, to _REF_PLAN_RTOL: the passing end and its V_p."""
+        frac = np.arange(1, _REF_SPLIT) / _REF_SPLIT
+        sub = np.arange(v.shape[0])
+        while np.any(np.abs(hi - lo) > _REF_PLAN_RTOL * np.abs(hi)):
+            pts = lo[:, None] + (hi - lo)[:, None] * frac
+            g_p, _ = self._path_g_numpy(v, pts)
+            bad = g_p > 0.0
+            k = np.where(np.any(bad, axis=1), np.argmax(bad, axis=1), frac.size)
+            pts = np.concatenate([lo[:, None], pts, hi[:, None]], axis=1)
+            lo, hi = pts[sub, k], pts[sub, k + 1]
+        _, v_lo = self._path_g_numpy(v, lo[:, None])
+        return lo, v_lo[:, 0]
+
+    def _backoff_numpy(
+        self,
+        v: FloatArray,
+        c_fail: FloatArray,
+        v_fail: FloatArray,
+        grid: FloatArray,
+        g: FloatArray,
+        vol: FloatArray,
+    ) -> FloatArray:
+        """The back-off of :meth:`plan_into` per row (NaN where no start point passes)."""
+        n = v.shape[0]
+        cand = (g <= 0.0) & (vol < v_fail[:, None])
+        has = np.any(cand, axis=1)
+        k1 = np.argmax(np.where(cand, vol, -np.inf), axis=1)
+        k2 = np.argmin(np.where(cand, vol, np.inf), axis=1)
+        # The path boundary beyond k2: towards its neighbour of smaller V if that fails.
+        r = np.arange(n)
+        last = grid.shape[1] - 1
+        vol_nan = np.where(np.isfinite(vol), vol, np.inf)
+        v2 = vol[r, k2]
+        fails = g > 0.0
+        left_ok = (k2 > 0) & fails[r, np.maximum(k2 - 1, 0)] & (
+            vol_nan[r, np.maximum(k2 - 1, 0)] < v2)
+        right_ok = (k2 < last) & fails[r, np.minimum(k2 + 1, last)] & (
+            vol_nan[r, np.minimum(k2 + 1, last)] < v2)
+        nb = np.where(
+            left_ok & (~right_ok | (vol_nan[r, np.maximum(k2 - 1, 0)]
+                                     <= vol_nan[r, np.minimum(k2 + 1, last)])),
+            k2 - 1, k2 + 1,
+        )
+        has_nb = has & (left_ok | right_ok)
+        a = np.full(n, np.nan)
+        b = c_fail.copy()
+        for step in range(3):
+            if step < 2:
+                test = np.flatnonzero(has & np.isnan(a) & ((step == 0) | (k2 != k1)))
+                c = grid[test, (k1 if step == 0 else k2)[test]]
+            else:
+                test = np.flatnonzero(has_nb & np.isnan(a))
+                if test.size == 0:
+                    continue
+                c, _ = self._path_boundary_numpy(
+                    v[test], grid[test, k2[test]], grid[test, nb[test]]
+                )
+            if test.size == 0:
+                continue
+            passed = self._time_found_numpy(v[test], c)
+            a[test[passed]] = c[passed]
+            b[test[~passed]] = c[~passed]
+        # The row's own path replaces the start if it lies between it and c* and passes.
+        one = np.flatnonzero(np.isfinite(a) & (np.minimum(a, b) < 1.0) & (np.maximum(a, b) > 1.0))
+        if one.size:
+            g_1, _ = self._path_g_numpy(v[one], np.ones((one.size, 1)))
+            passed = g_1[:, 0] <= 0.0
+            if np.any(passed):
+                sub = np.flatnonzero(passed)
+                passed[sub] = self._time_found_numpy(v[one[sub]], np.ones(sub.size))
+            a[one[passed]] = 1.0
+            b[one[~passed]] = 1.0
+        idx = np.flatnonzero(np.isfinite(a))
+        for _ in range(_REF_BACKOFF):
+            if idx.size == 0:
+                break
+            x = 0.5 * (a[idx] + b[idx])
+            g_x, _ = self._path_g_numpy(v[idx], x[:, None])
+            passed = g_x[:, 0] <= 0.0
+            if np.any(passed):
+                sub = np.flatnonzero(passed)
+                passed[sub] = self._time_found_numpy(v[idx[sub]], x[sub])
+            a[idx[passed]] = x[passed]
+            b[idx[~passed]] = x[~passed]
+        return a
+
+    def _time_found_numpy(self, v: FloatArray, c: FloatArray) -> NDArray[np.bool_]:
+        """Whether the numpy retiming of rows ``v`` scaled by ``c`` meets every time-dependent
+        constraint."""
+        y = _scaled(v, c)
+        with np.errstate(all="ignore"):
+            K = -y[:, IN_A6 : IN_A6 + 3] * y[:, IN_T, None] ** 6
+        T = self._retime_search(y, K)
+        ok, _, _ = self._timed_numpy(y, K, T[:, None])
+        return np.asarray(ok[:, 0])
+
+    def _grid_numpy(
+        self, v: FloatArray, a6: FloatArray, T: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Violations ``(B, P, 22)`` and V_p ``(B, P)`` of rows ``v`` at ``a6`` ``(B, P, 3)``
+        and ``T`` ``(B, P)``; NaN for a row evaluate refuses."""
+        viol = np.full((*T.shape, N_CONSTRAINTS), np.nan)
+        vol = np.full(T.shape, np.nan)
+
+        def evaluate(rows: slice) -> None:
+            w = v[rows]
+            with np.errstate(all="ignore"):
+                ev = oneshot.evaluate(
+                    self.rig, w[:, IN_Q_START : IN_Q_START + 3], w[:, IN_Q_END : IN_Q_END + 3],
+                    w[:, IN_SURFACE_Y], w[:, IN_DIG_TYPE].astype(np.int64), a6[rows], T[rows],
+                    self.n_samples,
+                )
+            viol[rows] = ev.violations
+            vol[rows] = ev.volume_m3
+
+        try:
+            evaluate(slice(None))
+        except (PlanningError, ConfigurationError):
+            for b in range(v.shape[0]):
+                try:
+                    evaluate(slice(b, b + 1))
+                except (PlanningError, ConfigurationError):
+                    viol[b] = np.nan
+                    vol[b] = np.nan
+        return viol, vol
+
     def _numpy_batch(
         self, v: FloatArray, want_path: bool
     ) -> tuple[FloatArray, FloatArray | None]:
@@ -812,6 +1218,24 @@ class Verifier:
         samples = sextic.evaluate(coeffs, T[:, 0], self.n_samples)
         pose, _ = kinematics.tip_state(self.rig, samples.q_rad, samples.qd_rad_s)
         return rows, pose[..., :2]
+
+
+def _scaled(v: FloatArray, c: ArrayLike) -> FloatArray:
+    """Input rows ``v`` with their bulge scaled by ``c`` (B,): ``a6`` times ``c``, as the kernel."""
+    y = v.copy()
+    y[:, IN_A6 : IN_A6 + 3] *= np.asarray(c, dtype=np.float64)[:, None]
+    return y
+
+
+def _c_range(c_range: tuple[float, float]) -> tuple[float, float]:
+    """``(c_lo, c_hi)`` as floats if finite with ``0 <= c_lo <= c_hi``, else ValueError."""
+    try:
+        lo, hi = (float(c) for c in c_range)
+    except (TypeError, ValueError):
+        raise ValueError(f"c_range must be two floats (c_lo, c_hi); got {c_range!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo <= hi):
+        raise ValueError(f"c_range must be finite with 0 <= c_lo <= c_hi; got ({lo!r}, {hi!r})")
+    return lo, hi
 
 
 def _one_row(
@@ -863,6 +1287,6 @@ def _checked(a: FloatArray, name: str, tail: tuple[int, ...], *, writable: bool)
     if writable and not a.flags.writeable:
         raise ValueError(f"{name} must be a C-contiguous writable float64 array")
     if a.ndim != 1 + len(tail) or a.shape[1:] != tail:
-        want = ", ".join(["N", *(str(t) for t in tail)])
+        want = ", ".join(["N", *(str(t) for t in tail)]) if tail else "N,"
         raise ValueError(f"{name} must have shape ({want})")
     return a

@@ -34,8 +34,8 @@ Choices where the paper is silent or would not work as printed, each measured on
 - Early stopping on the targets: every ``eval_every`` epochs the model is scored on a validation
   split of the training data (never on the held-out test set) the way the runtime uses it: the
   network's float32 answers are verified on the runtime's grid (raw feasibility and gap) and
-  planned as :class:`rt_runtime.planning.pinn.PinnPlanner` plans them (the path retimed to its
-  smallest feasible T). The score is the planned feasibility up to its target, then the planned
+  planned as :class:`rt_runtime.planning.pinn.PinnPlanner` plans them (the path's bulge scaled
+  to fill the bucket, then retimed to its smallest feasible T). The score is the planned feasibility up to its target, then the planned
   mean objective gap to the teacher; training stops when both targets hold for
   ``patience_evals`` consecutive scorings, or when the score has not improved for as many, and
   the best scored weights are kept.
@@ -254,7 +254,7 @@ def _plan_scores(
     """Raw and planned feasibility and mean objective gap on ``X``, as the runtime judges them.
 
     The network runs in float32 as exported; its answers are verified on the runtime's grid
-    (raw) and retimed as :class:`rt_runtime.planning.pinn.PinnPlanner` retimes them (planned).
+    (raw) and filled and retimed as :class:`rt_runtime.planning.pinn.PinnPlanner` does (planned).
     """
     import torch
 
@@ -266,7 +266,7 @@ def _plan_scores(
     raw = np.zeros((X.shape[0], N_OUT))
     verifier.evaluate_into(rows, raw)
     planned = np.zeros_like(raw)
-    verifier.retime_into(rows, planned, np.zeros((X.shape[0], 4)))
+    verifier.plan_into(rows, planned, np.zeros((X.shape[0], 4)))
     scale = np.abs(teacher_objective)
 
     def gap(out: FloatArray) -> float:

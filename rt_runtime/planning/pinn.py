@@ -59,10 +59,10 @@ from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import CONSTRAINT_NAMES, DigType, Problem
 from rt_runtime.planning.verify import (
-    PLAN_C_RANGE,
     COL_T_S,
     COL_TOTAL,
     N_OUT,
+    PLAN_C_RANGE,
     Verifier,
     VerifyResult,
 )

@@ -180,7 +180,9 @@ def bench_pinn(
         are counted in ``refused``, not here), ``raw_gap_mean``, ``raw_gap_max`` (the network's
         raw answers, feasible or not), ``raw_feasible``, ``verified_feasible`` (a verified plan
         was returned, raw or repaired), ``refused`` (fractions), ``executed_feasible``,
-        ``infer_us`` and ``plan_us`` (p50, p99, p999, max), ``pso_solve_s`` (p50, p99),
+        ``infer_us`` and ``plan_us`` (p50, p99, p999, max), ``verify_only_plan_us`` (the same
+        problems planned with fill and retime off, raw answers that verify: inference plus
+        verification alone), ``pso_solve_s`` (p50, p99),
         ``speedup_vs_pso``, ``table4`` (per type: PSO vs PINN mean T, V_p, W_E and planning time),
         ``types`` (the same per type), ``goals``, ``paper``.
     """
@@ -192,6 +194,8 @@ def bench_pinn(
 
     directory = Path(model_dir) if model_dir is not None else DEFAULT_MODEL_DIR
     planner = PinnPlanner(rig, directory)
+    verify_only = PinnPlanner(rig, directory, retime=False, refine=False)
+    verify_us: list[float] = []
     out: dict[str, Any] = {"rig": rig.name, "verifier": planner.verifier.backend, "types": {}}
     all_infer: list[float] = []
     all_plan: list[float] = []
@@ -228,6 +232,15 @@ def bench_pinn(
                 plan_us.append(plan.plan_us)
                 if p == 0:
                     plans.append(plan)
+        # The same problems planned without fill and retime: verification of the raw answer
+        # only (the issue's "inference + verification"), refusals not timed.
+        for i in range(n):
+            try:
+                vplan = verify_only.plan(X[i, 0:3], X[i, 3:6], float(X[i, 6]), kind)
+            except PlanningError:
+                continue
+            if vplan.status == PlanStatus.RAW:
+                verify_us.append(vplan.plan_us)
         # Inference alone: the bare bound session call.
         sess = planner._sessions[kind]
         infer_us = []
@@ -321,6 +334,7 @@ def bench_pinn(
             else float("nan"),
             "infer_us": percentiles(all_infer, tails=True),
             "plan_us": percentiles(all_plan, tails=True),
+            "verify_only_plan_us": percentiles(verify_us, tails=True) if verify_us else None,
             "pso_solve_s": percentiles(pso_s),
             "table4": table4,
         }

@@ -329,7 +329,10 @@ def cmd_bench_pinn(args: argparse.Namespace) -> int:
     print(f"  raw network answers: gap mean {r['raw_gap_mean']:+.2%}, feasible {r['raw_feasible']:.1%} (goal >= {g['raw_feasible_min']:.0%})")
     print(f"  plans returned (verified) {r['verified_feasible']:.1%}, refused {r['refused']:.1%}; returned plans feasible by the numpy reference: {r['executed_feasible']:.1%}")
     print(f"  inference: p50 {r['infer_us']['p50']:.1f} us, p99 {r['infer_us']['p99']:.1f} us")
-    print(f"  plan (inference + verification): p50 {r['plan_us']['p50']:.1f} us, p99 {r['plan_us']['p99']:.1f} us (goals {g['plan_us_p50_max']:.0f} / {g['plan_us_p99_max']:.0f} us; Yao 4.2-4.5 ms)")
+    print(f"  plan (inference + fill + retime + verification): p50 {r['plan_us']['p50']:.1f} us, p99 {r['plan_us']['p99']:.1f} us (goals {g['plan_us_p50_max']:.0f} / {g['plan_us_p99_max']:.0f} us; Yao 4.2-4.5 ms)")
+    if r.get("verify_only_plan_us"):
+        v = r["verify_only_plan_us"]
+        print(f"  plan without fill and retime (inference + verification of the raw answer): p50 {v['p50']:.1f} us, p99 {v['p99']:.1f} us")
     print(f"  PSO teacher in the same run: p50 {r['pso_solve_s']['p50']:.3f} s per dig ({r['speedup_vs_pso']:.0f}x slower than the PINN plan)")
     print("  Table 4 form (means):          T [s]   V_p [L]  W_E [Wh]  planning")
     for kind, t in r["table4"].items():
@@ -404,7 +407,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     """``excavator-rt export``: ONNX models with their cards and held-out sets."""
     from pathlib import Path
 
-    from rt_runtime.training.export import export, write_heldout
+    from rt_runtime.training.export import export, record_planned_heldout, write_heldout
 
     out = Path(args.out)
     report: dict[str, Any] = {"types": {}}
@@ -420,15 +423,27 @@ def cmd_export(args: argparse.Namespace) -> int:
             "parity_max_rel": card["parity_max_rel"],
             **{k: card["heldout"][k] for k in ("samples", "raw_feasible", "gap_mean", "gap_max")},
         }
+    if (out / "pinn_downward.json").is_file() and (out / "pinn_backward.json").is_file():
+        rig = load_rig(json.loads((out / "pinn_downward.json").read_text())["rig"])
+        for kind, block in record_planned_heldout(rig, out).items():
+            report["types"].setdefault(kind, {})["planned"] = block
     if args.json:
         _print_json(report)
         return 0
     for kind, r in report["types"].items():
+        if "model" not in r:
+            continue
         print(
             f"{kind}: {r['model']} (+ card, held-out set); parity with torch {r['parity_max_rel']:.2g}; "
             f"held-out {r['samples']}: raw feasible {r['raw_feasible']:.1%}, gap mean "
             f"{r['gap_mean']:+.2%}, max {r['gap_max']:+.2%}"
         )
+        if "planned" in r:
+            p = r["planned"]
+            print(
+                f"  planned by the runtime: returned {p['returned']:.1%}, refused {p['refused']:.1%}, "
+                f"gap mean {p['gap_mean']:+.2%}, max {p['gap_max']:+.2%}"
+            )
     return 0
 
 

@@ -650,7 +650,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--hidden", type=int, nargs="+", help="hidden widths (default: Yao's per type)")
     tr.add_argument("--batch-size", type=int, default=0, help="0: Yao's per type")
     tr.add_argument("--lr", type=float, default=2e-3)
-    tr.add_argument("--margin", type=float, default=0.01, help="hinge margin of the constraint losses")
+    tr.add_argument("--margin", type=float, default=0.03, help="hinge margin of the constraint losses")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--quiet", action="store_true")
     tr.add_argument("--json", action="store_true")

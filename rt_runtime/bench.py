@@ -247,7 +247,7 @@ def bench_pinn(
         for i in range(n * passes):
             sess.x[0] = X[i % n]
             t0 = time.perf_counter()
-            sess.run(sess.binding)
+            sess.run()
             infer_us.append((time.perf_counter() - t0) * 1e6)
         returned = [pl for pl in plans if pl is not None]
         ok = 0

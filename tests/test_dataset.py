@@ -125,12 +125,15 @@ def test_local_cluster_run_files_metadata_and_load(
     assert y_train.shape == (d.train_idx.size, 4)
     with pytest.raises(ValueError, match="read-only"):
         d.X[0, 0] = 1.0
-    # A worker's answer is bitwise the in-process teacher's for the same chunk.
+    # A worker's answer is the in-process teacher's for the same chunk. Not bitwise here: this
+    # test process has imported torch and others by now, which can change BLAS rounding by an
+    # ulp and steer SLSQP a hair apart (seen: 1.6e-7 relative); worker against worker is
+    # compared bitwise in test_reproducible_bitwise_across_clusters.
     direct = ds.solution_arrays(
         oneshot.solve_pso(rig, problems[3:6], seed=0, workers=1, **spec.pso_options)
     )
-    np.testing.assert_array_equal(d.Y[3:6], direct["Y"])
-    np.testing.assert_array_equal(d.K_rad[3:6], direct["K_rad"])
+    np.testing.assert_allclose(d.Y[3:6], direct["Y"], rtol=1e-5)
+    np.testing.assert_allclose(d.K_rad[3:6], direct["K_rad"], rtol=1e-5, atol=1e-9)
 
     meta = json.loads(info.meta_path.read_text())
     assert meta == d.meta

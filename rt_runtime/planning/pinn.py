@@ -153,7 +153,8 @@ def load_card(card_path: Path) -> ModelCard:
     return card
 
 
-def _sha256(path: Path) -> str:
+def sha256_file(path: Path) -> str:
+    """SHA-256 (hex) of a file's bytes (model files against their cards)."""
     h = hashlib.sha256()
     with path.open("rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
@@ -346,7 +347,7 @@ class PinnPlanner:
             )
         if not card.model_path.is_file():
             raise ConfigurationError(f"{where}: model file {card.model_path} does not exist")
-        digest = _sha256(card.model_path)
+        digest = sha256_file(card.model_path)
         if digest != card.model_sha256:
             raise ConfigurationError(
                 f"model {card.model_path} is corrupt or was replaced: SHA-256 {digest[:12]}... "

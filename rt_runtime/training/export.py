@@ -14,7 +14,6 @@ PSO teacher, feasibility rate, opset, exporter).
 from __future__ import annotations
 
 import datetime
-import hashlib
 import json
 import os
 from pathlib import Path
@@ -25,6 +24,7 @@ from numpy.typing import NDArray
 
 from rt_runtime.errors import ConfigurationError
 from rt_runtime.planning.oneshot import CONSTRAINT_NAMES, DigType, evaluate
+from rt_runtime.planning.pinn import sha256_file
 from rt_runtime.rig import Rig, load_rig
 
 FloatArray = NDArray[np.float64]
@@ -39,15 +39,6 @@ OPSET = 17
 PARITY_TOLERANCE = 1e-5
 #: Widening of the domain beyond the training inputs' range, as a fraction of that range.
 DOMAIN_MARGIN = 0.01
-
-
-def sha256_file(path: Path) -> str:
-    """SHA-256 (hex) of a file's bytes."""
-    h = hashlib.sha256()
-    with path.open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def folded_network(net: Any) -> Any:

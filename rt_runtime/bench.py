@@ -267,8 +267,8 @@ def bench_pinn(
         # The teacher on a few of the same problems, in the same run.
         sub = [
             oneshot.Problem(
-                q_start_rad=tuple(X[i, 0:3]),  # type: ignore[arg-type]
-                q_end_rad=tuple(X[i, 3:6]),  # type: ignore[arg-type]
+                q_start_rad=(float(X[i, 0]), float(X[i, 1]), float(X[i, 2])),
+                q_end_rad=(float(X[i, 3]), float(X[i, 4]), float(X[i, 5])),
                 surface_y_m=float(X[i, 6]),
                 dig_type=kind,
             )

@@ -597,7 +597,8 @@ class PinnPlanner:
         )
         out = np.zeros((1, N_OUT), dtype=np.float64)
         self.verifier.evaluate_into(row, out)
-        return out[0]
+        result: FloatArray = out[0]
+        return result
 
     @staticmethod
     def _worst(evaluation: FloatArray) -> str:
@@ -617,4 +618,5 @@ class PinnPlanner:
         kind = DigType(dig_type)
         lo = np.asarray(self._lo[kind])
         hi = np.asarray(self._hi[kind])
-        return np.all((x >= lo) & (x <= hi), axis=-1)
+        inside: NDArray[np.bool_] = np.all((x >= lo) & (x <= hi), axis=-1)
+        return inside

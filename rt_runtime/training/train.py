@@ -191,6 +191,11 @@ def build_network(hidden: tuple[int, ...], normalisation: Normalisation) -> Any:
     from torch import nn
 
     class PinnNet(nn.Module):
+        x_mean: torch.Tensor
+        x_std: torch.Tensor
+        z_mean: torch.Tensor
+        z_std: torch.Tensor
+
         def __init__(self) -> None:
             super().__init__()
             layers: list[nn.Module] = []

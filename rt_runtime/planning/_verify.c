@@ -1465,6 +1465,57 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds)
     return 0;
 }
 
+/* A row-batched buffer argument of run, retime and plan: obj NULL or None when absent. */
+typedef struct {
+    PyObject *obj;
+    const char *name;
+    int writable;
+    int ndim;
+    Py_ssize_t shape[3];
+    Py_buffer view;
+    int held;
+} vk_arg;
+
+static void release_rows(vk_arg *a, int count)
+{
+    for (int k = 0; k < count; k++)
+        if (a[k].held) {
+            PyBuffer_Release(&a[k].view);
+            a[k].held = 0;
+        }
+}
+
+/* Acquire every present argument; all must have the same number of rows N as a[0] (absent
+   ones count as N in the message). Returns N, or -1 with the error set and nothing held. */
+static Py_ssize_t get_rows(vk_arg *a, int count)
+{
+    for (int k = 0; k < count; k++) {
+        a[k].held = 0;
+        if (a[k].obj == NULL || a[k].obj == Py_None) continue;
+        if (get_f64(a[k].obj, &a[k].view, a[k].writable, a[k].ndim, a[k].shape, a[k].name) != 0) {
+            release_rows(a, k);
+            return -1;
+        }
+        a[k].held = 1;
+    }
+    const Py_ssize_t n = a[0].view.shape[0];
+    int bad = 0;
+    for (int k = 1; k < count; k++)
+        if (a[k].held && a[k].view.shape[0] != n) bad = 1;
+    if (!bad) return n;
+    char names[160] = "", rows[160] = "";
+    size_t ln = 0, lr = 0;
+    for (int k = 0; k < count; k++) {
+        const char *sep = k == 0 ? "" : (k == count - 1 ? " and " : ", ");
+        ln += (size_t)snprintf(names + ln, sizeof names - ln, "%s%s", sep, a[k].name);
+        lr += (size_t)snprintf(rows + lr, sizeof rows - lr, "%s%zd", k == 0 ? "" : ", ",
+                               a[k].held ? a[k].view.shape[0] : n);
+    }
+    release_rows(a, count);
+    PyErr_Format(PyExc_ValueError, "%s must have the same number of rows N; got %s", names, rows);
+    return -1;
+}
+
 static PyObject *Kernel_run(KernelObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     if (nargs < 2 || nargs > 3) {
@@ -1476,41 +1527,20 @@ static PyObject *Kernel_run(KernelObject *self, PyObject *const *args, Py_ssize_
         return NULL;
     }
     const int m = self->m;
-    Py_buffer in_v, out_v, path_v;
-    const Py_ssize_t in_shape[2] = {-1, VK_N_IN};
-    const Py_ssize_t out_shape[2] = {-1, VK_N_OUT};
-    const Py_ssize_t path_shape[3] = {-1, m, 2};
-    int has_path = nargs == 3 && args[2] != Py_None;
-    if (get_f64(args[0], &in_v, 0, 2, in_shape, "inputs") != 0) return NULL;
-    if (get_f64(args[1], &out_v, 1, 2, out_shape, "out") != 0) {
-        PyBuffer_Release(&in_v);
-        return NULL;
-    }
-    if (has_path && get_f64(args[2], &path_v, 1, 3, path_shape, "path") != 0) {
-        PyBuffer_Release(&in_v);
-        PyBuffer_Release(&out_v);
-        return NULL;
-    }
-    const Py_ssize_t n = in_v.shape[0];
-    int bad = out_v.shape[0] != n || (has_path && path_v.shape[0] != n);
-    if (!bad) {
-        const double *in = (const double *)in_v.buf;
-        double *out = (double *)out_v.buf;
-        double *path = has_path ? (double *)path_v.buf : NULL;
-        for (Py_ssize_t r = 0; r < n; r++)
-            vk_evaluate(self->params, self->s, m, in + r * VK_N_IN, out + r * VK_N_OUT,
-                        path != NULL ? path + r * 2 * m : NULL);
-    }
-    Py_ssize_t n_out = out_v.shape[0], n_path = has_path ? path_v.shape[0] : n;
-    PyBuffer_Release(&in_v);
-    PyBuffer_Release(&out_v);
-    if (has_path) PyBuffer_Release(&path_v);
-    if (bad) {
-        PyErr_Format(PyExc_ValueError,
-                     "inputs, out and path must have the same number of rows N; got %zd, %zd, %zd",
-                     n, n_out, n_path);
-        return NULL;
-    }
+    vk_arg a[3] = {
+        {args[0], "inputs", 0, 2, {-1, VK_N_IN}},
+        {args[1], "out", 1, 2, {-1, VK_N_OUT}},
+        {nargs == 3 ? args[2] : NULL, "path", 1, 3, {-1, m, 2}},
+    };
+    const Py_ssize_t n = get_rows(a, 3);
+    if (n < 0) return NULL;
+    const double *in = (const double *)a[0].view.buf;
+    double *out = (double *)a[1].view.buf;
+    double *path = a[2].held ? (double *)a[2].view.buf : NULL;
+    for (Py_ssize_t r = 0; r < n; r++)
+        vk_evaluate(self->params, self->s, m, in + r * VK_N_IN, out + r * VK_N_OUT,
+                    path != NULL ? path + r * 2 * m : NULL);
+    release_rows(a, 3);
     Py_RETURN_NONE;
 }
 
@@ -1526,52 +1556,22 @@ static PyObject *Kernel_retime(KernelObject *self, PyObject *const *args, Py_ssi
         return NULL;
     }
     const int m = self->m;
-    Py_buffer in_v, out_v, rt_v, path_v;
-    const Py_ssize_t in_shape[2] = {-1, VK_N_IN};
-    const Py_ssize_t out_shape[2] = {-1, VK_N_OUT};
-    const Py_ssize_t rt_shape[2] = {-1, 4};
-    const Py_ssize_t path_shape[3] = {-1, m, 2};
-    int has_path = nargs == 4 && args[3] != Py_None;
-    if (get_f64(args[0], &in_v, 0, 2, in_shape, "inputs") != 0) return NULL;
-    if (get_f64(args[1], &out_v, 1, 2, out_shape, "out") != 0) {
-        PyBuffer_Release(&in_v);
-        return NULL;
-    }
-    if (get_f64(args[2], &rt_v, 1, 2, rt_shape, "retimed") != 0) {
-        PyBuffer_Release(&in_v);
-        PyBuffer_Release(&out_v);
-        return NULL;
-    }
-    if (has_path && get_f64(args[3], &path_v, 1, 3, path_shape, "path") != 0) {
-        PyBuffer_Release(&in_v);
-        PyBuffer_Release(&out_v);
-        PyBuffer_Release(&rt_v);
-        return NULL;
-    }
-    const Py_ssize_t n = in_v.shape[0];
-    int bad = out_v.shape[0] != n || rt_v.shape[0] != n || (has_path && path_v.shape[0] != n);
-    if (!bad) {
-        const double *in = (const double *)in_v.buf;
-        double *out = (double *)out_v.buf;
-        double *rt = (double *)rt_v.buf;
-        double *path = has_path ? (double *)path_v.buf : NULL;
-        for (Py_ssize_t r = 0; r < n; r++)
-            vk_retime(self->params, self->s, m, in + r * VK_N_IN, out + r * VK_N_OUT, rt + r * 4,
-                      path != NULL ? path + r * 2 * m : NULL, NULL, self->cache);
-    }
-    Py_ssize_t n_out = out_v.shape[0], n_rt = rt_v.shape[0];
-    Py_ssize_t n_path = has_path ? path_v.shape[0] : n;
-    PyBuffer_Release(&in_v);
-    PyBuffer_Release(&out_v);
-    PyBuffer_Release(&rt_v);
-    if (has_path) PyBuffer_Release(&path_v);
-    if (bad) {
-        PyErr_Format(PyExc_ValueError,
-                     "inputs, out, retimed and path must have the same number of rows N; got "
-                     "%zd, %zd, %zd, %zd",
-                     n, n_out, n_rt, n_path);
-        return NULL;
-    }
+    vk_arg a[4] = {
+        {args[0], "inputs", 0, 2, {-1, VK_N_IN}},
+        {args[1], "out", 1, 2, {-1, VK_N_OUT}},
+        {args[2], "retimed", 1, 2, {-1, 4}},
+        {nargs == 4 ? args[3] : NULL, "path", 1, 3, {-1, m, 2}},
+    };
+    const Py_ssize_t n = get_rows(a, 4);
+    if (n < 0) return NULL;
+    const double *in = (const double *)a[0].view.buf;
+    double *out = (double *)a[1].view.buf;
+    double *rt = (double *)a[2].view.buf;
+    double *path = a[3].held ? (double *)a[3].view.buf : NULL;
+    for (Py_ssize_t r = 0; r < n; r++)
+        vk_retime(self->params, self->s, m, in + r * VK_N_IN, out + r * VK_N_OUT, rt + r * 4,
+                  path != NULL ? path + r * 2 * m : NULL, NULL, self->cache);
+    release_rows(a, 4);
     Py_RETURN_NONE;
 }
 
@@ -1608,65 +1608,25 @@ static PyObject *Kernel_plan(KernelObject *self, PyObject *const *args, Py_ssize
         return NULL;
     }
     const int m = self->m;
-    Py_buffer in_v, out_v, pl_v, path_v, sc_v;
-    const Py_ssize_t in_shape[2] = {-1, VK_N_IN};
-    const Py_ssize_t out_shape[2] = {-1, VK_N_OUT};
-    const Py_ssize_t pl_shape[2] = {-1, 4};
-    const Py_ssize_t path_shape[3] = {-1, m, 2};
-    const Py_ssize_t sc_shape[1] = {-1};
-    int has_path = nargs >= 6 && args[5] != Py_None;
-    int has_scale = nargs == 7 && args[6] != Py_None;
-    if (get_f64(args[0], &in_v, 0, 2, in_shape, "inputs") != 0) return NULL;
-    if (get_f64(args[1], &out_v, 1, 2, out_shape, "out") != 0) {
-        PyBuffer_Release(&in_v);
-        return NULL;
-    }
-    if (get_f64(args[2], &pl_v, 1, 2, pl_shape, "planned") != 0) {
-        PyBuffer_Release(&in_v);
-        PyBuffer_Release(&out_v);
-        return NULL;
-    }
-    if (has_path && get_f64(args[5], &path_v, 1, 3, path_shape, "path") != 0) {
-        PyBuffer_Release(&in_v);
-        PyBuffer_Release(&out_v);
-        PyBuffer_Release(&pl_v);
-        return NULL;
-    }
-    if (has_scale && get_f64(args[6], &sc_v, 1, 1, sc_shape, "scale") != 0) {
-        PyBuffer_Release(&in_v);
-        PyBuffer_Release(&out_v);
-        PyBuffer_Release(&pl_v);
-        if (has_path) PyBuffer_Release(&path_v);
-        return NULL;
-    }
-    const Py_ssize_t n = in_v.shape[0];
-    int bad = out_v.shape[0] != n || pl_v.shape[0] != n || (has_path && path_v.shape[0] != n) ||
-              (has_scale && sc_v.shape[0] != n);
-    if (!bad) {
-        const double *in = (const double *)in_v.buf;
-        double *out = (double *)out_v.buf;
-        double *pl = (double *)pl_v.buf;
-        double *path = has_path ? (double *)path_v.buf : NULL;
-        double *sc = has_scale ? (double *)sc_v.buf : NULL;
-        for (Py_ssize_t r = 0; r < n; r++)
-            vk_plan(self->params, self->s, self->basis, m, in + r * VK_N_IN, c_lo, c_hi,
-                    out + r * VK_N_OUT, pl + r * 4, path != NULL ? path + r * 2 * m : NULL,
-                    sc != NULL ? sc + r : NULL, self->cache, self->scratch);
-    }
-    Py_ssize_t n_out = out_v.shape[0], n_pl = pl_v.shape[0];
-    Py_ssize_t n_path = has_path ? path_v.shape[0] : n, n_sc = has_scale ? sc_v.shape[0] : n;
-    PyBuffer_Release(&in_v);
-    PyBuffer_Release(&out_v);
-    PyBuffer_Release(&pl_v);
-    if (has_path) PyBuffer_Release(&path_v);
-    if (has_scale) PyBuffer_Release(&sc_v);
-    if (bad) {
-        PyErr_Format(PyExc_ValueError,
-                     "inputs, out, planned, path and scale must have the same number of rows N; "
-                     "got %zd, %zd, %zd, %zd, %zd",
-                     n, n_out, n_pl, n_path, n_sc);
-        return NULL;
-    }
+    vk_arg a[5] = {
+        {args[0], "inputs", 0, 2, {-1, VK_N_IN}},
+        {args[1], "out", 1, 2, {-1, VK_N_OUT}},
+        {args[2], "planned", 1, 2, {-1, 4}},
+        {nargs >= 6 ? args[5] : NULL, "path", 1, 3, {-1, m, 2}},
+        {nargs == 7 ? args[6] : NULL, "scale", 1, 1, {-1}},
+    };
+    const Py_ssize_t n = get_rows(a, 5);
+    if (n < 0) return NULL;
+    const double *in = (const double *)a[0].view.buf;
+    double *out = (double *)a[1].view.buf;
+    double *pl = (double *)a[2].view.buf;
+    double *path = a[3].held ? (double *)a[3].view.buf : NULL;
+    double *sc = a[4].held ? (double *)a[4].view.buf : NULL;
+    for (Py_ssize_t r = 0; r < n; r++)
+        vk_plan(self->params, self->s, self->basis, m, in + r * VK_N_IN, c_lo, c_hi,
+                out + r * VK_N_OUT, pl + r * 4, path != NULL ? path + r * 2 * m : NULL,
+                sc != NULL ? sc + r : NULL, self->cache, self->scratch);
+    release_rows(a, 5);
     Py_RETURN_NONE;
 }
 

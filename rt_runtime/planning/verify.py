@@ -51,7 +51,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -750,18 +750,12 @@ class Verifier:
         self, inputs: FloatArray, out: FloatArray, path: FloatArray | None = None
     ) -> None:
         """The numpy backend: :func:`oneshot.evaluate` on the valid rows, the rest rejected."""
-        x = _checked(inputs, "inputs", (N_IN,), writable=False)
-        o = _checked(out, "out", (N_OUT,), writable=True)
-        p = None if path is None else _checked(path, "path", (self.n_samples, 2), writable=True)
-        n = x.shape[0]
-        if o.shape[0] != n or (p is not None and p.shape[0] != n):
-            raise ValueError(
-                "inputs, out and path must have the same number of rows N; got "
-                f"{n}, {o.shape[0]}, {p.shape[0] if p is not None else n}"
-            )
-        T = x[:, IN_T]
-        kind = x[:, IN_DIG_TYPE]
-        ok = np.all(np.isfinite(x), axis=1) & (T > 0.0) & ((kind == 0.0) | (kind == 1.0))
+        x, o, p = _checked_rows(
+            (inputs, "inputs", (N_IN,), False),
+            (out, "out", (N_OUT,), True),
+            (path, "path", (self.n_samples, 2), True),
+        )
+        ok, _ = _valid_rows(x, finite_k=False)
         o[~ok] = np.nan
         o[~ok, COL_TOTAL] = np.inf
         if p is not None:
@@ -806,22 +800,13 @@ class Verifier:
         path: FloatArray | None = None,
     ) -> None:
         """The numpy backend of :meth:`retime_into`: real evaluations only (the reference)."""
-        x = _checked(inputs, "inputs", (N_IN,), writable=False)
-        o = _checked(out, "out", (N_OUT,), writable=True)
-        rt = _checked(retimed, "retimed", (N_RETIMED,), writable=True)
-        p = None if path is None else _checked(path, "path", (self.n_samples, 2), writable=True)
-        n = x.shape[0]
-        if o.shape[0] != n or rt.shape[0] != n or (p is not None and p.shape[0] != n):
-            raise ValueError(
-                "inputs, out, retimed and path must have the same number of rows N; got "
-                f"{n}, {o.shape[0]}, {rt.shape[0]}, {p.shape[0] if p is not None else n}"
-            )
-        T = x[:, IN_T]
-        kind = x[:, IN_DIG_TYPE]
-        ok = np.all(np.isfinite(x), axis=1) & (T > 0.0) & ((kind == 0.0) | (kind == 1.0))
-        with np.errstate(all="ignore"):
-            K = -x[:, IN_A6 : IN_A6 + 3] * T[:, None] ** 6  # oneshot.particle_from_a6
-        ok &= np.all(np.isfinite(K), axis=1)
+        x, o, rt, p = _checked_rows(
+            (inputs, "inputs", (N_IN,), False),
+            (out, "out", (N_OUT,), True),
+            (retimed, "retimed", (N_RETIMED,), True),
+            (path, "path", (self.n_samples, 2), True),
+        )
+        ok, K = _valid_rows(x, finite_k=True)
         o[~ok] = np.nan
         o[~ok, COL_TOTAL] = np.inf
         rt[~ok] = np.nan
@@ -934,26 +919,15 @@ class Verifier:
         scale: FloatArray | None = None,
     ) -> None:
         """The numpy backend of :meth:`plan_into`: real evaluations only (the reference)."""
-        x = _checked(inputs, "inputs", (N_IN,), writable=False)
-        o = _checked(out, "out", (N_OUT,), writable=True)
-        pl = _checked(planned, "planned", (N_RETIMED,), writable=True)
-        p = None if path is None else _checked(path, "path", (self.n_samples, 2), writable=True)
-        sc = None if scale is None else _checked(scale, "scale", (), writable=True)
-        n = x.shape[0]
-        counts = [a.shape[0] for a in (o, pl, p, sc) if a is not None]
-        if any(k != n for k in counts):
-            raise ValueError(
-                "inputs, out, planned, path and scale must have the same number of rows N; got "
-                f"{n}, {o.shape[0]}, {pl.shape[0]}, {p.shape[0] if p is not None else n}, "
-                f"{sc.shape[0] if sc is not None else n}"
-            )
+        x, o, pl, p, sc = _checked_rows(
+            (inputs, "inputs", (N_IN,), False),
+            (out, "out", (N_OUT,), True),
+            (planned, "planned", (N_RETIMED,), True),
+            (path, "path", (self.n_samples, 2), True),
+            (scale, "scale", (), True),
+        )
         c_lo, c_hi = _c_range((c_lo, c_hi))
-        T = x[:, IN_T]
-        kind = x[:, IN_DIG_TYPE]
-        ok = np.all(np.isfinite(x), axis=1) & (T > 0.0) & ((kind == 0.0) | (kind == 1.0))
-        with np.errstate(all="ignore"):
-            K = -x[:, IN_A6 : IN_A6 + 3] * T[:, None] ** 6
-        ok &= np.all(np.isfinite(K), axis=1)
+        ok, _ = _valid_rows(x, finite_k=True)
         o[~ok] = np.nan
         o[~ok, COL_TOTAL] = np.inf
         pl[~ok] = np.nan
@@ -1275,6 +1249,39 @@ def _one_row(
     return pack_inputs(
         arrays["q_start_rad"], arrays["q_end_rad"], h, int(dig_type), arrays["a6"], T
     )
+
+
+def _valid_rows(x: FloatArray, *, finite_k: bool) -> tuple[NDArray[np.bool_], FloatArray]:
+    """Rows the kernel accepts (finite, T > 0, dig type 0 or 1) and their ``K = -a6 T^6``
+    (:func:`oneshot.particle_from_a6`); with ``finite_k`` (retiming and plan, which keep the
+    path) a row whose ``K`` overflows is rejected too, as by the kernel."""
+    T = x[:, IN_T]
+    kind = x[:, IN_DIG_TYPE]
+    ok = np.all(np.isfinite(x), axis=1) & (T > 0.0) & ((kind == 0.0) | (kind == 1.0))
+    with np.errstate(all="ignore"):
+        K = -x[:, IN_A6 : IN_A6 + 3] * T[:, None] ** 6
+    if finite_k:
+        ok &= np.all(np.isfinite(K), axis=1)
+    return ok, K
+
+
+def _checked_rows(
+    *args: tuple[FloatArray | None, str, tuple[int, ...], bool],
+) -> list[Any]:
+    """Each ``(array or None, name, tail, writable)`` checked by :func:`_checked`, all present
+    ones with the rows N of the first; the same contract and messages as the C kernel's."""
+    arrays = [
+        None if a is None else _checked(a, name, tail, writable=w) for a, name, tail, w in args
+    ]
+    n = arrays[0].shape[0]
+    rows = [n if a is None else a.shape[0] for a in arrays]
+    if any(k != n for k in rows):
+        names = [name for _, name, _, _ in args]
+        raise ValueError(
+            f"{', '.join(names[:-1])} and {names[-1]} must have the same number of rows N; "
+            f"got {', '.join(str(k) for k in rows)}"
+        )
+    return arrays
 
 
 def _checked(a: FloatArray, name: str, tail: tuple[int, ...], *, writable: bool) -> FloatArray:

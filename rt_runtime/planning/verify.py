@@ -1273,7 +1273,9 @@ def _checked_rows(
     arrays = [
         None if a is None else _checked(a, name, tail, writable=w) for a, name, tail, w in args
     ]
-    n = arrays[0].shape[0]
+    first = arrays[0]
+    assert first is not None  # the inputs are never optional
+    n = first.shape[0]
     rows = [n if a is None else a.shape[0] for a in arrays]
     if any(k != n for k in rows):
         names = [name for _, name, _, _ in args]

@@ -23,14 +23,12 @@ checked before anyone may execute it:
    from ~20 % (raw answers) to a few per cent. What they cannot make feasible falls back to the
    network's own path retimed, then to:
 5. **Repair**, when that still fails (or with ``retime=False``, whenever the raw answer fails).
-   Time scaling first: keeping ``K = -a6 T^6`` keeps
-   the joint path (so angles, theta_p and volume) and divides velocities by the scale factor k
-   and accelerations by k^2; torque and power fall with them towards their quasi-static values.
-   The smallest k (on a 1 % grid, from the analytic velocity/acceleration bound upwards) that
-   satisfies every limit within ``T <= t_max`` wins. What time scaling cannot fix (a joint
-   range, theta_p or volume violation, or T at its maximum) goes to a bounded local refinement
-   (SLSQP from the network's answer, :data:`REFINE_ITERATIONS` iterations), when enabled.
-   Otherwise :class:`~rt_runtime.errors.PlanningError` names the violated limit.
+   Time scaling first, where only time-dependent limits fail (velocity, acceleration, torque,
+   power, t_min): the kernel's exact retiming keeps the path (so angles, theta_p and volume)
+   and takes the smallest T in [t_min, t_max] at which every limit holds. What time scaling
+   cannot fix (a joint range, theta_p or volume violation, or no T in range) goes to a bounded
+   local refinement (SLSQP from the network's answer, :data:`REFINE_ITERATIONS` iterations),
+   when enabled. Otherwise :class:`~rt_runtime.errors.PlanningError` names the violated limit.
 
 Nothing unverified leaves :meth:`PinnPlanner.plan`: every returned plan has passed step 3 on
 the dense grid. The model card must name the rig the planner serves (name and
@@ -59,12 +57,12 @@ from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import CONSTRAINT_NAMES, DigType, Problem
 from rt_runtime.planning.verify import (
-    COL_T_S,
     COL_TOTAL,
     N_OUT,
     PLAN_C_RANGE,
     Verifier,
     VerifyResult,
+    pack_inputs,
 )
 from rt_runtime.rig import Rig
 from rt_runtime.trajectory.sextic import SexticTrajectory
@@ -76,18 +74,12 @@ CARD_FORMAT = "excavator-rt-pinn-card/1"
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[2] / "onnx"
 #: SLSQP iterations of the bounded local refinement.
 REFINE_ITERATIONS = 15
-#: Time-scaling grid: k grows by this factor per step.
-_K_STEP = 1.01
-
 # Constraint columns time scaling can fix (it leaves the path, so angles, theta_p, volume alone).
 _TIME_FIXABLE = frozenset(
     i
     for i, n in enumerate(CONSTRAINT_NAMES)
     if n.startswith(("velocity", "acceleration", "torque", "power")) or n == "time_min"
 )
-_VEL = [CONSTRAINT_NAMES.index(f"velocity_{j}") for j in ("boom", "stick", "bucket")]
-_ACC = [CONSTRAINT_NAMES.index(f"acceleration_{j}") for j in ("boom", "stick", "bucket")]
-_TIME_MIN = CONSTRAINT_NAMES.index("time_min")
 
 
 class PlanStatus(IntEnum):
@@ -424,37 +416,43 @@ class PinnPlanner:
         raw_a6 = (y[0], y[1], y[2])
         raw_T = y[3]
         out = self._out
+
+        def planned(
+            a6: tuple[float, float, float],
+            T: float,
+            status: PlanStatus,
+            evaluation: FloatArray,
+            scale: float = 1.0,
+        ) -> PinnPlan:
+            return PinnPlan(
+                problem=problem,
+                a6=a6,
+                T_s=T,
+                raw_a6=raw_a6,
+                raw_T_s=raw_T,
+                status=status,
+                evaluation=evaluation,
+                infer_us=infer_us,
+                plan_us=(time.perf_counter() - t0) * 1e6,
+                bulge_scale=scale,
+            )
+
         if self.retime:
             self.verifier.plan_into(row, out, self._retimed, PLAN_C_RANGE, None, self._scale)
             if out[0, COL_TOTAL] <= 0.0:
                 r = self._retimed[0].tolist()
-                return PinnPlan(
-                    problem=problem,
-                    a6=(r[0], r[1], r[2]),
-                    T_s=r[3],
-                    raw_a6=raw_a6,
-                    raw_T_s=raw_T,
-                    status=PlanStatus.RETIMED,
-                    evaluation=out[0].copy(),
-                    bulge_scale=float(self._scale[0]),
-                    infer_us=infer_us,
-                    plan_us=(time.perf_counter() - t0) * 1e6,
+                return planned(
+                    (r[0], r[1], r[2]),
+                    r[3],
+                    PlanStatus.RETIMED,
+                    out[0].copy(),
+                    float(self._scale[0]),
                 )
             self.verifier.evaluate_into(row, out)  # back to the network's own answer
         else:
             self.verifier.evaluate_into(row, out)
             if out[0, COL_TOTAL] <= 0.0:
-                return PinnPlan(
-                    problem=problem,
-                    a6=raw_a6,
-                    T_s=raw_T,
-                    raw_a6=raw_a6,
-                    raw_T_s=raw_T,
-                    status=PlanStatus.RAW,
-                    evaluation=out[0].copy(),
-                    infer_us=infer_us,
-                    plan_us=(time.perf_counter() - t0) * 1e6,
-                )
+                return planned(raw_a6, raw_T, PlanStatus.RAW, out[0].copy())
         a6_ok, T_ok, status = self._repair(problem, raw_a6, raw_T)
         final = self._evaluation(problem, a6_ok, T_ok)
         if final[COL_TOTAL] > 0.0:  # the repair paths verify; this guards the guarantee
@@ -462,69 +460,38 @@ class PinnPlanner:
                 f"refused: repaired plan fails verification ({self._worst(final)}); "
                 "nothing was planned"
             )
-        return PinnPlan(
-            problem=problem,
-            a6=a6_ok,
-            T_s=T_ok,
-            raw_a6=raw_a6,
-            raw_T_s=raw_T,
-            status=status,
-            evaluation=final,
-            infer_us=infer_us,
-            plan_us=(time.perf_counter() - t0) * 1e6,
-        )
+        return planned(a6_ok, T_ok, status, final)
 
     # -- repair -----------------------------------------------------------------------------
 
     def _repair(
         self, problem: Problem, a6: tuple[float, float, float], T: float
     ) -> tuple[tuple[float, float, float], float, PlanStatus]:
+        """Time scaling, then refinement, of the network's answer, whose evaluation is in
+        ``self._out``; PlanningError naming its worst limit when neither verifies."""
         out = self._out[0]
-        viol = out[: len(CONSTRAINT_NAMES)]
         planning = oneshot.require_planning(self.rig)
-        bad = {i for i in range(len(CONSTRAINT_NAMES)) if viol[i] > 0.0}
-        if bad <= _TIME_FIXABLE and math.isfinite(T) and T > 0.0:
-            scaled = self._time_scale(a6, T, planning.t_max_s, planning.t_min_s)
-            if scaled is not None:
-                return scaled[0], scaled[1], PlanStatus.TIME_SCALED
+        bad = {i for i in range(len(CONSTRAINT_NAMES)) if out[i] > 0.0}
+        if bad <= _TIME_FIXABLE:
+            # The kernel's exact retiming: the path kept, the smallest T in [t_min, t_max] at
+            # which every time-dependent limit holds.
+            res = np.empty((1, N_OUT))
+            retimed = np.empty((1, 4))
+            self.verifier.retime_into(self._row, res, retimed)
+            if res[0, COL_TOTAL] <= 0.0:
+                r = retimed[0].tolist()
+                return (r[0], r[1], r[2]), r[3], PlanStatus.TIME_SCALED
         if self.refine:
             refined = self._refine(problem, a6, T)
             if refined is not None:
                 return refined[0], refined[1], PlanStatus.REFINED
-        # Report the limit as verified on the network's own answer.
-        self.verifier.evaluate_into(self._row, self._out)
-        worst = int(np.argmax(self._out[0, : len(CONSTRAINT_NAMES)]))
+        worst = int(np.argmax(out[: len(CONSTRAINT_NAMES)]))
         raise PlanningError(
             f"refused: the {problem.dig_type.name.lower()} plan violates {CONSTRAINT_NAMES[worst]} "
-            f"by {self._out[0, worst]:.4g} (normalised; <= 0 allowed) and could not be repaired "
+            f"by {out[worst]:.4g} (normalised; <= 0 allowed) and could not be repaired "
             f"(time scaling within T <= {planning.t_max_s:g} s"
             f"{', local refinement' if self.refine else ''}); nothing was planned"
         )
-
-    def _time_scale(
-        self, a6: tuple[float, float, float], T: float, t_max: float, t_min: float
-    ) -> tuple[tuple[float, float, float], float] | None:
-        """Smallest k on a 1 % grid with every limit met at ``T k`` (path kept), or None."""
-        out = self._out[0]
-        vel = max(out[i] + 1.0 for i in _VEL)
-        acc = max(out[i] + 1.0 for i in _ACC)
-        k = max(1.0, vel, math.sqrt(max(acc, 0.0)), t_min / T)
-        K = [-c * T**6 for c in a6]
-        row = self._row.copy()
-        res = np.zeros((1, N_OUT))
-        while T * k <= t_max * (1.0 + 1e-12):
-            Tk = min(T * k, t_max)
-            row[0, 8:11] = [-c / Tk**6 for c in K]
-            row[0, 11] = Tk
-            self.verifier.evaluate_into(row, res)
-            if res[0, COL_TOTAL] <= 0.0:
-                return (float(row[0, 8]), float(row[0, 9]), float(row[0, 10])), float(
-                    res[0, COL_T_S]
-                )
-            if Tk >= t_max:
-                break
-            k *= _K_STEP
-        return None
 
     def _refine(
         self, problem: Problem, a6: tuple[float, float, float], T: float
@@ -582,19 +549,8 @@ class PinnPlanner:
 
     def _evaluation(self, problem: Problem, a6: tuple[float, float, float], T: float) -> FloatArray:
         """The verifier's output row for one trajectory (allocates; repair paths only)."""
-        row = np.array(
-            [
-                [
-                    *problem.q_start_rad,
-                    *problem.q_end_rad,
-                    problem.surface_y_m,
-                    float(problem.dig_type),
-                    *a6,
-                    T,
-                ]
-            ],
-            dtype=np.float64,
-        )
+        p = problem
+        row = pack_inputs(p.q_start_rad, p.q_end_rad, p.surface_y_m, p.dig_type, a6, T)
         out = np.zeros((1, N_OUT), dtype=np.float64)
         self.verifier.evaluate_into(row, out)
         result: FloatArray = out[0]
@@ -611,12 +567,3 @@ class PinnPlanner:
         """Raw network outputs ``(N, 4)`` for inputs ``(N, 7)`` (no checks; for reports and
         for planners that verify candidates themselves)."""
         return self._sessions[DigType(dig_type)].batch(np.asarray(X, dtype=np.float64))
-
-    def in_domain(self, dig_type: DigType, X: ArrayLike) -> NDArray[np.bool_]:
-        """Whether each input row ``(N, 7)`` lies in the model's domain (finite, in range)."""
-        x = np.asarray(X, dtype=np.float64)
-        kind = DigType(dig_type)
-        lo = np.asarray(self._lo[kind])
-        hi = np.asarray(self._hi[kind])
-        inside: NDArray[np.bool_] = np.all((x >= lo) & (x <= hi), axis=-1)
-        return inside

@@ -141,7 +141,7 @@ YAO_TABLE4_MEAN = {
 
 
 def load_heldout(path: Any) -> dict[str, np.ndarray]:
-    """A held-out set written by :func:`rt_runtime.training.export.write_heldout`."""
+    """A held-out set written by :func:`rt_runtime.training.export.export`."""
     from pathlib import Path
 
     from rt_runtime.errors import ConfigurationError

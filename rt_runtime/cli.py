@@ -407,7 +407,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     """``excavator-rt export``: ONNX models with their cards and held-out sets."""
     from pathlib import Path
 
-    from rt_runtime.training.export import export, record_planned_heldout, write_heldout
+    from rt_runtime.training.export import export, record_planned_heldout
 
     out = Path(args.out)
     report: dict[str, Any] = {"types": {}}
@@ -415,7 +415,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         data = Path(args.data) / f"{kind}.npz" if args.data else None
         model = out / f"pinn_{kind}.onnx"
         card = export(Path(args.checkpoints) / f"pinn_{kind}.pt", model, dataset_path=data)
-        held = write_heldout(card, model)
+        held = out / card["heldout_file"]["name"]
         report["types"][kind] = {
             "model": str(model),
             "card": str(model.with_suffix(".json")),

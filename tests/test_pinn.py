@@ -24,7 +24,7 @@ from rt_runtime.planning.oneshot import DigType  # noqa: E402
 from rt_runtime.planning.pinn import PinnPlanner, PlanStatus, load_card  # noqa: E402
 from rt_runtime.rig import load_rig  # noqa: E402
 from rt_runtime.training import dataset as ds  # noqa: E402
-from rt_runtime.training.export import export, sha256_file, write_heldout  # noqa: E402
+from rt_runtime.training.export import export, sha256_file  # noqa: E402
 from rt_runtime.training.train import (  # noqa: E402
     TrainConfig,
     load_checkpoint,
@@ -65,8 +65,7 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> Path:
         )
         save_checkpoint(res, root / "ckpt" / f"pinn_{name}.pt")
         plot_losses(res.history, root / "ckpt" / f"pinn_{name}_losses.png", name)
-        card = export(root / "ckpt" / f"pinn_{name}.pt", root / "onnx" / f"pinn_{name}.onnx")
-        write_heldout(card, root / "onnx" / f"pinn_{name}.onnx")
+        export(root / "ckpt" / f"pinn_{name}.pt", root / "onnx" / f"pinn_{name}.onnx")
     return root
 
 

@@ -183,7 +183,8 @@ def export(
     rig: Rig | str | None = None,
     dataset_path: Path | None = None,
 ) -> dict[str, Any]:
-    """Export a checkpoint to ONNX, check parity, measure held-out quality, write the card.
+    """Export a checkpoint to ONNX, check parity, measure held-out quality, write the held-out
+    set and the card.
 
     Args:
         checkpoint_path: Written by :func:`rt_runtime.training.train.save_checkpoint`.
@@ -260,8 +261,8 @@ def export(
         "domain": {
             "min": [float(v) for v in lo],
             "max": [float(v) for v in hi],
-            "note": "per-input range of the training inputs widened by 1 % of itself; the "
-            "runtime refuses inputs outside",
+            "note": f"per-input range of the training inputs widened by {DOMAIN_MARGIN:.0%} of "
+            "itself; the runtime refuses inputs outside",
             "sampler": data.meta.get("spec", {}).get("sampler"),
         },
         "dataset": {
@@ -292,33 +293,34 @@ def export(
             },
         },
         "heldout": held,
+        "heldout_file": _write_heldout(data, out_path),
         "parity_max_rel": worst,
         "opset": OPSET,
         "exporter": f"torch {torch.__version__} torch.onnx.export (TorchScript)",
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
-    card_path = out_path.with_suffix(".json")
-    tmp = card_path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(card, indent=2, sort_keys=False) + "\n")
-    os.replace(tmp, card_path)
+    _write_card(out_path.with_suffix(".json"), card)
     return card
 
 
-def write_heldout(card: dict[str, Any], model_path: Path, dataset_path: Path | None = None) -> Path:
+def _write_card(path: Path, card: dict[str, Any]) -> None:
+    """Write a model card atomically (a reader never sees half a card)."""
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(card, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+def _write_heldout(data: Any, model_path: Path) -> dict[str, str]:
     """Write the held-out problems and the teacher's answers beside the model.
 
     ``<model stem>_heldout.npz`` holds the test split the card's ``heldout`` numbers were
     measured on (``X``, ``Y``, ``objective``, ``T_s``, ``volume_m3``, ``energy_j``), so that
     ``excavator-rt bench pinn`` and the tests can measure the shipped model without the
-    dataset. Its SHA-256 is added to the card.
+    dataset.
 
     Returns:
-        The file written.
+        The card's ``heldout_file`` entry: the file's name and SHA-256.
     """
-    from rt_runtime.training import dataset as ds
-
-    data_path = dataset_path or Path(card["dataset"]["path"])
-    data = ds.load(data_path)
     idx = np.asarray(data.test_idx)
     out = model_path.with_name(model_path.stem + "_heldout.npz")
     tmp = out.with_name(out.name + ".tmp.npz")
@@ -332,13 +334,7 @@ def write_heldout(card: dict[str, Any], model_path: Path, dataset_path: Path | N
         energy_j=np.asarray(data.energy_j)[idx],
     )
     os.replace(tmp, out)
-    card_path = model_path.with_suffix(".json")
-    card = json.loads(card_path.read_text())
-    card["heldout_file"] = {"name": out.name, "sha256": sha256_file(out)}
-    tmp_card = card_path.with_suffix(".json.tmp")
-    tmp_card.write_text(json.dumps(card, indent=2) + "\n")
-    os.replace(tmp_card, card_path)
-    return out
+    return {"name": out.name, "sha256": sha256_file(out)}
 
 
 def record_planned_heldout(rig: Rig, model_dir: Path) -> dict[str, dict[str, Any]]:
@@ -385,8 +381,6 @@ def record_planned_heldout(rig: Rig, model_dir: Path) -> dict[str, dict[str, Any
         card_path = model_dir / f"pinn_{name}.json"
         card = json.loads(card_path.read_text())
         card["heldout"]["planned"] = block
-        tmp = card_path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(card, indent=2) + "\n")
-        os.replace(tmp, card_path)
+        _write_card(card_path, card)
         blocks[name] = block
     return blocks

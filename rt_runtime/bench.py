@@ -278,7 +278,6 @@ def bench_pinn(
             t0 = time.perf_counter()
             oneshot.solve_pso(rig, [prob], seed=seed)
             pso_s.append(time.perf_counter() - t0)
-        fin = [pl for pl in returned]
         table4[name] = {
             "pso": {
                 "T_s": float(np.mean(held["T_s"][:n])),
@@ -287,12 +286,12 @@ def bench_pinn(
                 "plan_s": float(np.median(pso_s[-len(sub) :])) if sub else float("nan"),
             },
             "pinn": {
-                "T_s": float(np.mean([pl.T_s for pl in fin])) if fin else float("nan"),
-                "volume_L": float(np.mean([pl.verification.volume_m3 for pl in fin]) * 1e3)
-                if fin
+                "T_s": float(np.mean([pl.T_s for pl in returned])) if returned else float("nan"),
+                "volume_L": float(np.mean([pl.verification.volume_m3 for pl in returned]) * 1e3)
+                if returned
                 else float("nan"),
-                "energy_Wh": float(np.mean([pl.verification.energy_j for pl in fin]) / 3600.0)
-                if fin
+                "energy_Wh": float(np.mean([pl.verification.energy_j for pl in returned]) / 3600.0)
+                if returned
                 else float("nan"),
                 "plan_ms": float(np.median(plan_us) / 1e3) if plan_us else float("nan"),
             },

@@ -232,8 +232,8 @@ def _losses(
     z_target: Any,
     kind: Any,
     cfg: TrainConfig,
-) -> tuple[Any, list[Any], Any]:
-    """Total loss, the five parts of eq 19, and the evaluation (float64 physics)."""
+) -> tuple[Any, list[Any]]:
+    """Total loss and the five parts of eq 19 (physics in float64)."""
     import torch
 
     z = net.internal(x)
@@ -254,7 +254,7 @@ def _losses(
         + cfg.lambda_f * loss_obj
         + cfg.lambda_r * reg
     )
-    return total, [loss_mse, loss_lim, loss_ang, loss_vol, loss_obj], ev
+    return total, [loss_mse, loss_lim, loss_ang, loss_vol, loss_obj]
 
 
 def _plan_scores(
@@ -412,7 +412,7 @@ def train(
         sums = np.zeros(len(LOSS_NAMES))
         for start in range(0, fit_idx.size, batch):
             sel = order[start : start + batch]
-            total, parts, _ = _losses(net, phys, x_fit[sel], z_fit[sel], k_fit[sel], cfg)
+            total, parts = _losses(net, phys, x_fit[sel], z_fit[sel], k_fit[sel], cfg)
             opt.zero_grad()
             total.backward()
             opt.step()
@@ -423,7 +423,7 @@ def train(
             history[f"train_{n}"].append(float(sums[i]))
         net.eval()
         with torch.no_grad():
-            total, parts, _ = _losses(net, phys, x_val, z_val, k_val, cfg)
+            total, parts = _losses(net, phys, x_val, z_val, k_val, cfg)
         for i, n in enumerate(LOSS_NAMES[:5]):
             history[f"val_{n}"].append(float(parts[i]))
         history["val_total"].append(float(total))

@@ -174,12 +174,6 @@ class TrainResult:
     dataset_meta: dict[str, Any] = field(default_factory=dict)
 
 
-def particles_from_y(y: FloatArray) -> FloatArray:
-    """``(K1, K2, K3, T)`` from ``Y = (a16, a26, a36, T)``, shapes ``(N, 4)``."""
-    T = y[:, 3:4]
-    return np.concatenate([-y[:, :3] * T**6, T], axis=1)
-
-
 def build_network(hidden: tuple[int, ...], normalisation: Normalisation) -> Any:
     """The exportable network: standardise X, tanh MLP, de-standardise, ``a6 = -K / T^6``.
 
@@ -350,7 +344,8 @@ def train(
     val_idx, fit_idx = perm[:n_val], perm[n_val:]
 
     X = np.asarray(data.X, dtype=np.float64)
-    Zt = particles_from_y(np.asarray(data.Y, dtype=np.float64))
+    # The internal targets: the teacher's particles (K1, K2, K3, T), stored by the dataset.
+    Zt = np.column_stack([data.K_rad, data.T_s])
     norm = Normalisation(
         x_mean=tuple(float(v) for v in X[fit_idx].mean(axis=0)),
         x_std=tuple(float(v) for v in np.maximum(X[fit_idx].std(axis=0), 1e-6)),

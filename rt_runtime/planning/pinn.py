@@ -70,6 +70,9 @@ from rt_runtime.trajectory.sextic import SexticTrajectory
 FloatArray = NDArray[np.float64]
 
 CARD_FORMAT = "excavator-rt-pinn-card/1"
+#: The network's inputs and outputs (DESIGN.md "Models"): rad, rad, ..., m; rad/s^6 x 3, s.
+INPUT_NAMES = ("theta11", "theta12", "theta13", "theta21", "theta22", "theta23", "H")
+OUTPUT_NAMES = ("a16", "a26", "a36", "T")
 #: The shipped models: the repository's top-level ``onnx/`` directory.
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[2] / "onnx"
 #: SLSQP iterations of the bounded local refinement.
@@ -353,7 +356,7 @@ class PinnPlanner:
         for i in range(7):
             v = x[i]
             if not lo[i] <= v <= hi[i]:  # also catches NaN
-                name = ("theta11", "theta12", "theta13", "theta21", "theta22", "theta23", "H")[i]
+                name = INPUT_NAMES[i]
                 unit = "m" if i == 6 else "rad"
                 if not math.isfinite(v):
                     return f"input {name} is {v}; inputs must be finite"

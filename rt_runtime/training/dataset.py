@@ -69,6 +69,7 @@ from rt_runtime import __version__
 from rt_runtime.errors import CommunicationError, ConfigurationError, ExcavatorRtError
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import DigType, Problem, SamplerRanges, Solution
+from rt_runtime.planning.pinn import INPUT_NAMES, OUTPUT_NAMES
 from rt_runtime.rig import DEFAULT_RIG, Rig, load_rig
 
 if TYPE_CHECKING:
@@ -77,8 +78,6 @@ if TYPE_CHECKING:
 FloatArray = NDArray[np.float64]
 Arrays = dict[str, NDArray[Any]]
 
-INPUT_NAMES = ("theta11", "theta12", "theta13", "theta21", "theta22", "theta23", "H")
-OUTPUT_NAMES = ("a16", "a26", "a36", "T")
 FORMAT = "excavator-rt-dataset/1"
 
 # Arrays of one sample each, the same in chunks and in the consolidated file: name -> shape

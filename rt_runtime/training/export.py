@@ -24,15 +24,12 @@ from numpy.typing import NDArray
 
 from rt_runtime.errors import ConfigurationError
 from rt_runtime.planning.oneshot import CONSTRAINT_NAMES, DigType, evaluate
-from rt_runtime.planning.pinn import sha256_file
+from rt_runtime.planning.pinn import CARD_FORMAT, INPUT_NAMES, OUTPUT_NAMES, sha256_file
 from rt_runtime.rig import Rig, load_rig
 
 FloatArray = NDArray[np.float64]
 
-CARD_FORMAT = "excavator-rt-pinn-card/1"
-INPUT_NAMES = ("theta11", "theta12", "theta13", "theta21", "theta22", "theta23", "H")
 INPUT_UNITS = ("rad", "rad", "rad", "rad", "rad", "rad", "m")
-OUTPUT_NAMES = ("a16", "a26", "a36", "T")
 OUTPUT_UNITS = ("rad/s^6", "rad/s^6", "rad/s^6", "s")
 OPSET = 17
 #: Largest relative difference allowed between onnxruntime and torch on the same inputs.

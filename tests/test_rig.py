@@ -159,3 +159,174 @@ def test_load_by_path_and_errors_for_missing(tmp_path: Path) -> None:
     bad.write_text("name = [unclosed")
     with pytest.raises(RigProfileError, match="not valid TOML"):
         load_rig(bad)
+
+
+# --- drives and actuators (issue 6) --------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", profile_names())
+def test_drives_and_actuators_load_in_si_and_are_assumed(name: str) -> None:
+    rig = load_rig(name)
+    d, a = rig.drives, rig.actuators
+    assert 0.0 < d.encoder_resolution_m <= 1e-6
+    assert d.servo_period_s == pytest.approx(250e-6)
+    assert d.heartbeat_timeout_s > d.heartbeat_period_s
+    assert d.following_error_window_m >= 1e-3
+    assert (a.hydraulic is not None) == (rig.cylinders.kind == "hydraulic")
+    assert a.coulomb_friction_n < a.force_max_n
+    if a.hydraulic is not None:
+        h = a.hydraulic
+        assert 0.0 < h.annulus_area_m2 < h.piston_area_m2
+        assert a.force_max_n <= h.supply_pressure_pa * h.piston_area_m2
+    raw = _raw(name)
+    for table in ("drives", "actuators", "actuators.hydraulic"):
+        node: Any = raw
+        for part in table.split("."):
+            node = node.get(part, {})
+        for key, value in node.items():
+            if not isinstance(value, dict):
+                assert rig.is_assumed(f"{table}.{key}"), f"{table}.{key} has no [assumed] reason"
+
+
+def test_scale_model_drive_values_in_si() -> None:
+    rig = load_rig("scale_model")
+    assert rig.drives.encoder_resolution_m == pytest.approx(0.05e-6)
+    assert rig.drives.following_error_window_m == pytest.approx(5e-3)
+    assert rig.drives.following_error_timeout_s == pytest.approx(0.1)
+    assert rig.drives.quick_stop_deceleration_m_s2 == pytest.approx(0.5)
+    assert rig.actuators.velocity_max_m_s == pytest.approx(0.1)
+    assert rig.actuators.hydraulic is None
+    bench = load_rig("test_bench").actuators.hydraulic
+    assert bench is not None
+    assert bench.supply_pressure_pa == pytest.approx(21e6)
+    assert bench.piston_area_m2 == pytest.approx(50.27e-4)
+    assert bench.valve_flow_m3_s == pytest.approx(40.0 / 60000.0)
+    assert bench.valve_time_constant_s == pytest.approx(8e-3)
+
+
+def test_drives_and_actuators_stay_out_of_the_planning_fingerprint() -> None:
+    doc = copy.deepcopy(_raw("scale_model"))
+    base = parse_rig(doc).planning_fingerprint
+    doc["drives"]["position_gain_1_s"] = 12.0
+    doc["actuators"]["force_max_n"] = 9000.0
+    assert parse_rig(doc).planning_fingerprint == base
+
+
+def test_servo_period_defaults_to_250_us() -> None:
+    doc = copy.deepcopy(_raw("scale_model"))
+    del doc["drives"]["servo_period_us"]
+    del doc["assumed"]["drives.servo_period_us"]
+    assert parse_rig(doc).drives.servo_period_s == pytest.approx(250e-6)
+
+
+@pytest.mark.parametrize(
+    ("profile", "path", "value", "message"),
+    [
+        ("scale_model", "drives", _DELETE, r"drives: missing"),
+        (
+            "scale_model",
+            "drives.position_gain_1_s",
+            -1.0,
+            r"drives\.position_gain_1_s: must be > 0 and <= 10000 \(got -1\)",
+        ),
+        ("scale_model", "drives.velocity_gain", "fast", r"drives\.velocity_gain: must be a number"),
+        (
+            "scale_model",
+            "drives.encoder_resolution_um",
+            0.0,
+            r"drives\.encoder_resolution_um: must be > 0",
+        ),
+        (
+            "scale_model",
+            "drives.servo_period_us",
+            250.5,
+            r"drives\.servo_period_us: must be an integer",
+        ),
+        (
+            "scale_model",
+            "drives.heartbeat_timeout_ms",
+            50,
+            r"drives\.heartbeat_timeout_ms: must be > heartbeat_period_ms \(50\)",
+        ),
+        (
+            "scale_model",
+            "drives.following_error_timeout_ms",
+            70000,
+            r"drives\.following_error_timeout_ms: must be >= 0 and <= 65535",
+        ),
+        (
+            "scale_model",
+            "drives.sync_timeout_ms",
+            _DELETE,
+            r"drives\.sync_timeout_ms: missing",
+        ),
+        (
+            "scale_model",
+            "drives.velocity_gain_s_m",
+            8.0,
+            r"drives\.velocity_gain_s_m: unknown key; allowed here: .*velocity_gain",
+        ),
+        (
+            "scale_model",
+            "drives.quick_stop_deceleration_mm_s2",
+            float("inf"),
+            r"drives\.quick_stop_deceleration_mm_s2: must be a finite number",
+        ),
+        (
+            "scale_model",
+            "actuators.force_max_n",
+            0.0,
+            r"actuators\.force_max_n: must be > 0",
+        ),
+        (
+            "scale_model",
+            "actuators.coulomb_friction_n",
+            30000.0,
+            r"actuators\.coulomb_friction_n: must be < force_max_n",
+        ),
+        (
+            "scale_model",
+            "actuators.reflected_mass_kg",
+            -5.0,
+            r"actuators\.reflected_mass_kg: must be >= 0",
+        ),
+        (
+            "scale_model",
+            "actuators.hydraulic",
+            {"supply_pressure_mpa": 20.0},
+            r"actuators\.hydraulic: not allowed for cylinders\.kind = 'electric'",
+        ),
+        (
+            "test_bench",
+            "actuators.hydraulic",
+            _DELETE,
+            r"actuators\.hydraulic: missing \(required for cylinders\.kind = \"hydraulic\"\)",
+        ),
+        (
+            "test_bench",
+            "actuators.hydraulic.rod_area_cm2",
+            60.0,
+            r"actuators\.hydraulic\.rod_area_cm2: must be < actuators\.hydraulic\.piston_area_cm2",
+        ),
+        (
+            "test_bench",
+            "actuators.hydraulic.bulk_modulus_mpa",
+            -1.0,
+            r"actuators\.hydraulic\.bulk_modulus_mpa: must be > 0",
+        ),
+        (
+            "test_bench",
+            "actuators.force_max_n",
+            200000.0,
+            r"actuators\.force_max_n: must be <= supply pressure x piston area = 105567 N",
+        ),
+    ],
+)
+def test_bad_drive_and_actuator_values_name_the_key(
+    profile: str, path: str, value: Any, message: str
+) -> None:
+    doc = copy.deepcopy(_raw(profile))
+    _set(doc, path, value)
+    with pytest.raises(RigProfileError, match=message) as info:
+        parse_rig(doc, source="bad.toml")
+    assert str(info.value).startswith("bad.toml: ")

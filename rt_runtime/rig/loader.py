@@ -19,9 +19,12 @@ from rt_runtime.rig._schema import Table
 from rt_runtime.rig.cylinders import parse_cylinders
 from rt_runtime.rig.model import (
     ARM_JOINTS,
+    Actuators,
     Bucket,
     Can,
+    Drives,
     FluidSoil,
+    HydraulicActuator,
     Joint,
     Link,
     Planning,
@@ -105,6 +108,8 @@ def parse_rig(raw: dict[str, Any], source: str = "") -> Rig:
     planning_t = root.optional_table("planning")
     planning = _planning(planning_t) if planning_t is not None else None
     can = _can(root.table("can"), swing is not None)
+    drives = _drives(root.table("drives"))
+    actuators = _actuators(root.table("actuators"), cylinders.kind)
     assumed = _assumed(root.table("assumed"), raw)
     root.finish()
 
@@ -124,6 +129,8 @@ def parse_rig(raw: dict[str, Any], source: str = "") -> Rig:
         planning=planning,
         can=can,
         assumed=assumed,
+        drives=drives,
+        actuators=actuators,
     )
     # Imported here: actuation imports this package.
     from rt_runtime.actuation import validate_cylinders
@@ -254,6 +261,88 @@ def _can(t: Table, has_swing: bool) -> Can:
         seen[i] = n
     t.finish()
     return Can(bitrate=bitrate, node_ids=ids, vcu_node_id=vcu)
+
+
+def _drives(t: Table) -> Drives:
+    # Integer milliseconds and micrometres where the CAN object is an integer of that unit
+    # (0x1016/0x1017/0x6066 u16 ms); bounds are the objects' ranges or far beyond any rig.
+    window_mm = t.number("following_error_window_mm", gt=0.0, le=1000.0)
+    period_ms = t.integer("heartbeat_period_ms", ge=1, le=65535)
+    timeout_ms = t.integer("heartbeat_timeout_ms", ge=1, le=65535)
+    if timeout_ms <= period_ms:
+        raise t.error(
+            "heartbeat_timeout_ms",
+            f"must be > heartbeat_period_ms ({period_ms}) so that one late heartbeat is not a "
+            f"loss (got {timeout_ms})",
+        )
+    drives = Drives(
+        encoder_resolution_m=t.number("encoder_resolution_um", gt=0.0, le=1000.0) * 1e-6,
+        position_gain_1_s=t.number("position_gain_1_s", gt=0.0, le=10000.0),
+        velocity_gain_s_m=t.number("velocity_gain", gt=0.0, le=1e6),
+        velocity_integral_gain_1_s=t.number("velocity_integral_gain_1_s", ge=0.0, le=1e5),
+        servo_period_s=t.integer("servo_period_us", ge=10, le=100_000, default=250) * 1e-6,
+        following_error_window_m=window_mm * 1e-3,
+        following_error_timeout_s=t.integer("following_error_timeout_ms", ge=0, le=65535) * 1e-3,
+        heartbeat_period_s=period_ms * 1e-3,
+        heartbeat_timeout_s=timeout_ms * 1e-3,
+        sync_timeout_s=t.integer("sync_timeout_ms", ge=1, le=65535) * 1e-3,
+        quick_stop_deceleration_m_s2=t.number("quick_stop_deceleration_mm_s2", gt=0.0, le=1e6)
+        * 1e-3,
+    )
+    t.finish()
+    return drives
+
+
+def _actuators(t: Table, kind: str) -> Actuators:
+    force_max = t.number("force_max_n", gt=0.0, le=1e8)
+    coulomb = t.number("coulomb_friction_n", ge=0.0)
+    if not coulomb < force_max:
+        raise t.error(
+            "coulomb_friction_n",
+            f"must be < force_max_n ({force_max:g} N): the cylinder could not move (got "
+            f"{coulomb:g})",
+        )
+    hyd_t = t.optional_table("hydraulic")
+    if kind == "hydraulic" and hyd_t is None:
+        raise t.error("hydraulic", 'missing (required for cylinders.kind = "hydraulic")')
+    if kind != "hydraulic" and hyd_t is not None:
+        raise t.error("hydraulic", f"not allowed for cylinders.kind = {kind!r}")
+    hydraulic = _hydraulic(hyd_t) if hyd_t is not None else None
+    if hydraulic is not None:
+        stall_n = hydraulic.supply_pressure_pa * hydraulic.piston_area_m2
+        if force_max > stall_n * (1.0 + 1e-6):
+            raise t.error(
+                "force_max_n",
+                f"must be <= supply pressure x piston area = {stall_n:.0f} N for a hydraulic "
+                f"cylinder (got {force_max:g})",
+            )
+    actuators = Actuators(
+        force_max_n=force_max,
+        velocity_max_m_s=t.number("velocity_max_mm_s", gt=0.0, le=1e5) * 1e-3,
+        reflected_mass_kg=t.number("reflected_mass_kg", ge=0.0, le=1e6),
+        coulomb_friction_n=coulomb,
+        viscous_friction_n_s_m=t.number("viscous_friction_n_s_m", ge=0.0, le=1e9),
+        hydraulic=hydraulic,
+    )
+    t.finish()
+    return actuators
+
+
+def _hydraulic(t: Table) -> HydraulicActuator:
+    piston = t.number("piston_area_cm2", gt=0.0, le=1e5)
+    rod = t.number("rod_area_cm2", gt=0.0, le=1e5)
+    t.ordered("rod_area_cm2", rod, "piston_area_cm2", piston)
+    hyd = HydraulicActuator(
+        supply_pressure_pa=t.number("supply_pressure_mpa", gt=0.0, le=100.0) * 1e6,
+        piston_area_m2=piston * 1e-4,
+        rod_area_m2=rod * 1e-4,
+        bulk_modulus_pa=t.number("bulk_modulus_mpa", gt=0.0, le=1e4) * 1e6,
+        chamber_volume_m3=t.number("chamber_volume_cm3", gt=0.0, le=1e8) * 1e-6,
+        valve_flow_m3_s=t.number("valve_flow_l_min", gt=0.0, le=1e5) / 60000.0,
+        valve_time_constant_s=t.number("valve_time_constant_ms", gt=0.0, le=1000.0) * 1e-3,
+    )
+    t.finish()
+    return hyd
 
 
 def _assumed(t: Table, raw: dict[str, Any]) -> tuple[tuple[str, str], ...]:

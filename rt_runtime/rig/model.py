@@ -1,4 +1,5 @@
-"""Frozen dataclasses describing a rig: geometry, limits, masses, bucket, soil, planning, CAN.
+"""Frozen dataclasses describing a rig: geometry, limits, masses, bucket, soil, planning, CAN,
+drives and actuators.
 
 A :class:`Rig` is built only by :func:`rt_runtime.rig.load_rig`, which validates every field.
 Everything is SI (m, rad, s, kg, N, N*m, W, J, m^3); the profile's edge units (deg, L, Wh,
@@ -193,6 +194,100 @@ class Can:
         return dict(self.node_ids)[joint]
 
 
+@dataclass(frozen=True, slots=True)
+class Drives:
+    """Servo drive settings shared by every axis drive of the rig (profile ``[drives]``).
+
+    The firmware model and the master configure the drives from these; the CAN units
+    (micrometres, milliseconds) are applied at the protocol edge.
+
+    Attributes:
+        encoder_resolution_m: Position resolution at the rod (motor encoder or stroke sensor).
+        position_gain_1_s: Kp of the position loop: velocity demand per metre of position error.
+        velocity_gain_s_m: Gain of the velocity loop: effort (in [-1, 1]) per m/s of velocity
+            error (electric drives; the hydraulic cascade has no velocity loop).
+        velocity_integral_gain_1_s: Integral gain of the velocity loop, 1/T_i.
+        servo_period_s: Period of the drive's servo cascade (sub-step of the SYNC period).
+        following_error_window_m: Largest allowed |demand - actual| stroke (0x6065).
+        following_error_timeout_s: How long the window may be exceeded before FAULT (0x6066).
+        heartbeat_period_s: Heartbeat producer period of the drives and the master (0x1017).
+        heartbeat_timeout_s: Consumer timeout for the master's heartbeat (0x1016).
+        sync_timeout_s: SYNC/RPDO watchdog: longest gap while operation is enabled.
+        quick_stop_deceleration_m_s2: Stroke deceleration of quick stop and fault reactions
+            (0x6085).
+    """
+
+    encoder_resolution_m: float
+    position_gain_1_s: float
+    velocity_gain_s_m: float
+    velocity_integral_gain_1_s: float
+    servo_period_s: float
+    following_error_window_m: float
+    following_error_timeout_s: float
+    heartbeat_period_s: float
+    heartbeat_timeout_s: float
+    sync_timeout_s: float
+    quick_stop_deceleration_m_s2: float
+
+
+@dataclass(frozen=True, slots=True)
+class HydraulicActuator:
+    """Valve-controlled differential cylinder (profile ``[actuators.hydraulic]``).
+
+    One size for the three cylinders. Force = p_A A_A - p_B A_B with the rod-side (annulus)
+    area A_B = piston_area_m2 - rod_area_m2.
+
+    Attributes:
+        supply_pressure_pa: Supply pressure p_s (tank at 0).
+        piston_area_m2: Piston (cap-side) area A_A.
+        rod_area_m2: Cross-section of the rod; less than the piston area.
+        bulk_modulus_pa: Effective bulk modulus of oil and hoses.
+        chamber_volume_m3: Dead volume of each chamber (hose and end of stroke); the swept
+            volume adds to it with the stroke.
+        valve_flow_m3_s: Flow of one metering edge at full opening and a 3.5 MPa drop.
+        valve_time_constant_s: First-order lag of the spool.
+    """
+
+    supply_pressure_pa: float
+    piston_area_m2: float
+    rod_area_m2: float
+    bulk_modulus_pa: float
+    chamber_volume_m3: float
+    valve_flow_m3_s: float
+    valve_time_constant_s: float
+
+    @property
+    def annulus_area_m2(self) -> float:
+        """Rod-side effective area A_B = A_A - rod cross-section."""
+        return self.piston_area_m2 - self.rod_area_m2
+
+
+@dataclass(frozen=True, slots=True)
+class Actuators:
+    """The arm's cylinders as actuators (profile ``[actuators]``), one size for all three.
+
+    Attributes:
+        force_max_n: Largest cylinder force: the motor's peak force at the rod (electric), or
+            supply pressure times piston area (hydraulic).
+        velocity_max_m_s: Largest stroke rate: the motor's top speed at the rod (electric), or
+            the no-load extension speed at full valve opening (hydraulic: the valve's velocity
+            gain per unit spool command).
+        reflected_mass_kg: Mass seen at the rod of what moves with the stroke but is not the
+            arm: motor and screw inertia (electric, J (2 pi / lead)^2), piston and rod
+            (hydraulic).
+        coulomb_friction_n: Coulomb friction of screw, seals and guides.
+        viscous_friction_n_s_m: Viscous friction.
+        hydraulic: Valve and cylinder data where ``cylinders.kind`` is ``hydraulic``, else None.
+    """
+
+    force_max_n: float
+    velocity_max_m_s: float
+    reflected_mass_kg: float
+    coulomb_friction_n: float
+    viscous_friction_n_s_m: float
+    hydraulic: HydraulicActuator | None
+
+
 def _readonly(values: list[float]) -> NDArray[np.float64]:
     a = np.array(values, dtype=np.float64)
     a.setflags(write=False)
@@ -219,6 +314,10 @@ class Rig:
         planning: One-shot planning thresholds, or None where the rig has none.
         can: CAN settings.
         assumed: (key path, reason) for every value no source gives.
+        drives: Servo drive settings (gains, windows, timeouts); not part of
+            :attr:`planning_fingerprint`.
+        actuators: Cylinder actuator data (force, speed, friction, hydraulics); not part of
+            :attr:`planning_fingerprint`.
     """
 
     name: str
@@ -236,6 +335,8 @@ class Rig:
     planning: Planning | None
     can: Can
     assumed: tuple[tuple[str, str], ...]
+    drives: Drives
+    actuators: Actuators
     lengths_m: NDArray[np.float64] = field(init=False, repr=False, compare=False)
     q_min_rad: NDArray[np.float64] = field(init=False, repr=False, compare=False)
     q_max_rad: NDArray[np.float64] = field(init=False, repr=False, compare=False)
@@ -276,9 +377,9 @@ class Rig:
         """SHA-256 (hex) of every value one-shot planning depends on.
 
         Geometry, limits, masses, ground, bucket, soil and the planning thresholds, as canonical
-        JSON (floats in their exact repr); not the name, sources, cylinders or CAN settings. A
-        model card records it, so a network trained for other values is refused even when the
-        profile keeps its name.
+        JSON (floats in their exact repr); not the name, sources, cylinders, CAN, drive or actuator
+        settings. A model card records it, so a network trained for other values is refused
+        even when the profile keeps its name.
         """
         import dataclasses
         import hashlib

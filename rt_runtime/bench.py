@@ -354,3 +354,77 @@ def bench_pinn(
         "speedup_vs_yao_pinn": YAO_PINN_PLAN_MS[0] * 1e3 / out["plan_us"]["p50"],
     }
     return out
+
+
+def bench_plan(
+    rig: Rig,
+    tasks: tuple[str, ...] = ("A", "B", "C", "D"),
+    *,
+    passes: int = 3,
+    pso: bool = True,
+    pso_options: dict[str, Any] | None = None,
+    model_dir: str | None = None,
+) -> dict[str, Any]:
+    """Whole-trench planning (issue 5) on Yao's Table 3 tasks: PINN timed, PSO beside it.
+
+    Each task is planned ``passes`` times with the PINN planner (the plans are deterministic;
+    the times are the distribution) and, with ``pso``, once with the PSO teacher as the one-shot
+    planner. Reported per task: digs (with T, V_p, W_E, theta_p), coverage error, maximum
+    over-dig, whole-plan time (p50/p99), the PSO plan's totals and the ratio of the totals.
+
+    Returns:
+        JSON-ready dict: ``tasks`` (per name), ``trench.plan_us`` (p50/p99 over all tasks and
+        passes), ``goals``, ``paper``.
+    """
+    from rt_runtime.planning.trench import YAO_FIG14, TrenchPlanner, load_task
+
+    pinn = TrenchPlanner(rig, "pinn", model_dir=model_dir)
+    out: dict[str, Any] = {}
+    all_us: list[float] = []
+    for name in tasks:
+        task = load_task(name, rig)
+        times: list[float] = []
+        report: dict[str, Any] = {}
+        for _ in range(max(1, passes)):
+            plan = pinn.plan(task)
+            times.append(plan.plan_total_us)
+            report = plan.to_json()
+        all_us += times
+        entry: dict[str, Any] = {
+            "pinn": report,
+            "plan_us": percentiles(times),
+            "totals": _plan_totals(report),
+        }
+        if pso:
+            t0 = time.perf_counter()
+            pso_plan = TrenchPlanner(
+                rig, "pso", model_dir=model_dir, pso_options=pso_options
+            ).plan(task)
+            pso_report = pso_plan.to_json()
+            entry["pso"] = pso_report
+            entry["pso_plan_s"] = time.perf_counter() - t0
+            entry["pso_totals"] = _plan_totals(pso_report)
+            entry["pinn_vs_pso"] = {
+                k: (entry["totals"][k] / v - 1.0) if v else None
+                for k, v in entry["pso_totals"].items()
+            }
+        entry["yao"] = YAO_FIG14.get(name)
+        out[name] = entry
+    return {
+        "rig": rig.name,
+        "tasks": out,
+        "trench": {"plan_us": percentiles(all_us)},
+        "goals": {"coverage_error_max": 0.02, "overdig_max_mm": 5.0, "plan_us_p50_max": 1000.0,
+                  "pinn_vs_pso_totals_max": 0.05},
+        "paper": {"yao_fig14": YAO_FIG14, "yao_plan_ms_per_dig": [4.2, 4.5]},
+    }
+
+
+def _plan_totals(report: dict[str, Any]) -> dict[str, float]:
+    digs = report["digs"]
+    return {
+        "digs": float(len(digs)),
+        "T_s": float(sum(d["T_s"] for d in digs)),
+        "volume_L": float(sum(d["volume_L"] for d in digs)),
+        "energy_Wh": float(sum(d["energy_Wh"] for d in digs)),
+    }

@@ -578,6 +578,87 @@ def _plot_interp(path: str, rig: str, name: str, t, q, qd, qdd, stroke, names) -
     plt.close(fig)
 
 
+def cmd_plan(args: argparse.Namespace) -> int:
+    """``excavator-rt plan``: a trench task planned dig by dig."""
+    from rt_runtime.planning.trench import TrenchPlanner, load_task
+
+    rig = load_rig(args.rig)
+    task = load_task(args.task, rig)
+    plan = TrenchPlanner(rig, args.planner, model_dir=args.models).plan(task)
+    report = plan.to_json()
+    if args.plot:
+        plot_trench(plan, args.plot)
+        report["plot"] = args.plot
+    if args.json:
+        _print_json(report)
+        return 0
+    t = report["task"]
+    print(f"Trench task {t['name']} on {rig.name}: L {t['length_m']:.3g} m, D {t['depth_m']:.3g} m, beta1 {t['beta1_deg']:.0f} deg, beta2 {t['beta2_deg']:.0f} deg, far edge at x {t['start_x_m']:.3g} m ({args.planner})")
+    print("   #  type       T [s]  V real [L]  V_p [L]  W_E [Wh]  theta_p [deg]  over [mm]  plan [us]  how")
+    for i, d in enumerate(report["digs"], 1):
+        print(f"  {i:2d}  {d['type']:<9} {d['T_s']:6.2f}  {d['volume_L']:10.2f}  {d['predicted_volume_L']:7.2f}  {d['energy_Wh']:8.4f}  {d['theta_p_deg']:13.1f}  {d['overdig_mm']:9.1f}  {d['plan_us']:9.0f}  {d['status']}")
+    yao = report.get("yao_fig14") or {}
+    print(f"  coverage error {report['coverage_error']:.2%} (goal <= 2 %; Yao {yao.get('coverage_error', float('nan')):.1%}), over-dig max {report['overdig_max_mm']:.1f} mm (goal <= 5 mm)")
+    print(f"  removed {report['removed_L']:.2f} L of a {report['design_L']:.2f} L design; dig time {report['dig_time_s']:.1f} s + transitions {report['transition_time_s']:.1f} s; energy {report['energy_Wh']:.3f} Wh")
+    print(f"  whole plan in {report['plan_total_us'] / 1e3:.1f} ms")
+    if args.plot:
+        print(f"  plot: {args.plot}")
+    return 0
+
+
+def plot_trench(plan: Any, path: str) -> None:
+    """Yao Fig. 14 style: the design contour, each dig's tip path and the dug profile."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as e:
+        raise ConfigurationError("--plot needs matplotlib: pip install 'excavator-rt[plot]'") from e
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    x, y = plan.design.exterior.xy
+    ax.plot(x, y, "k--", lw=1.5, label="the task contour")
+    for i, d in enumerate(plan.digs, 1):
+        ax.plot(d.tip_path_m[:, 0], d.tip_path_m[:, 1], lw=1, label=f"trajectory #{i} ({d.dig_type.name.lower()}, {d.status})")
+    s = plan.final_surface_m
+    ax.plot(s[:, 0], s[:, 1], "k-", lw=2, label="dug profile")
+    xf = plan.task.start_x_m
+    ax.set_xlim(xf - plan.task.length_m - 0.1, xf + 0.1)
+    ax.set_ylim(min(y) - 0.05, max(y) + 0.12)
+    ax.set_aspect("equal")
+    ax.set_xlabel("X (m)")
+    ax.set_ylabel("Y (m)")
+    ax.set_title(f"Trenching task ({plan.task.name}): coverage error {plan.coverage_error:.2%}, over-dig {plan.overdig_max_m * 1e3:.1f} mm")
+    ax.legend(fontsize=6, loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def cmd_bench_plan(args: argparse.Namespace) -> int:
+    """``excavator-rt bench plan``: tasks A-D planned with the PINN (timed) and the PSO."""
+    from rt_runtime.bench import bench_plan
+
+    rig = load_rig(args.rig)
+    tasks = tuple(t.strip() for t in args.tasks.split(",") if t.strip())
+    r = bench_plan(rig, tasks, passes=args.passes, pso=not args.no_pso, model_dir=args.models)
+    if args.json:
+        _print_json(r)
+        return 0
+    print(f"Trench planning on {rig.name} (Yao Table 3 tasks); PINN plan times over {args.passes} passes")
+    print("  task  digs  coverage  Yao     over-dig  plan p50     plan p99     PSO plan   totals T / V / W_E vs PSO")
+    for name, e in r["tasks"].items():
+        p = e["pinn"]
+        yao = e["yao"] or {}
+        vs = e.get("pinn_vs_pso")
+        cmp = " / ".join(f"{vs[k]:+.1%}" for k in ("T_s", "volume_L", "energy_Wh")) if vs else "-"
+        pso_s = f"{e['pso_plan_s']:.0f} s" if "pso_plan_s" in e else "-"
+        print(f"  {name:<4}  {p['n_digs']:4d}  {p['coverage_error']:7.2%}  {yao.get('coverage_error', float('nan')):5.1%}  {p['overdig_max_mm']:6.1f} mm  {e['plan_us']['p50'] / 1e3:8.1f} ms  {e['plan_us']['p99'] / 1e3:8.1f} ms  {pso_s:>8}   {cmp}")
+    g = r["goals"]
+    print(f"  whole plan, all tasks: p50 {r['trench']['plan_us']['p50'] / 1e3:.1f} ms, p99 {r['trench']['plan_us']['p99'] / 1e3:.1f} ms (goal p50 <= {g['plan_us_p50_max'] / 1e3:.0f} ms; Yao 4.2-4.5 ms per dig)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every subcommand."""
     p = argparse.ArgumentParser(prog="excavator-rt", description=__doc__.splitlines()[0])
@@ -684,6 +765,24 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--plot", metavar="FILE.png")
     ip.add_argument("--json", action="store_true")
     ip.set_defaults(handler=cmd_interp)
+
+    pl = sub.add_parser("plan", help="plan a trench task dig by dig (Yao Fig. 5, Table 3)")
+    pl.add_argument("--task", required=True, help="A, B, C, D (Yao Table 3) or a TOML file")
+    pl.add_argument("--rig", default=DEFAULT_RIG)
+    pl.add_argument("--planner", choices=("pinn", "pso"), default="pinn")
+    pl.add_argument("--models", help="model directory (default: the shipped onnx/)")
+    pl.add_argument("--plot", metavar="FILE.png", help="design contour, tip paths, dug profile (Yao Fig. 14)")
+    pl.add_argument("--json", action="store_true")
+    pl.set_defaults(handler=cmd_plan)
+
+    b3 = bench_sub.add_parser("plan", help="whole-trench planning on tasks A-D: coverage, over-dig, time, PINN vs PSO")
+    b3.add_argument("--rig", default=DEFAULT_RIG)
+    b3.add_argument("--tasks", default="A,B,C,D")
+    b3.add_argument("--passes", type=int, default=3, help="timed PINN plans per task")
+    b3.add_argument("--no-pso", action="store_true", help="skip the PSO plans (minutes)")
+    b3.add_argument("--models", help="model directory (default: the shipped onnx/)")
+    b3.add_argument("--json", action="store_true")
+    b3.set_defaults(handler=cmd_bench_plan)
 
     demo = sub.add_parser("demo", help="the main demonstration")
     demo.add_argument("--rig", default=DEFAULT_RIG)

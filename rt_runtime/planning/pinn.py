@@ -85,6 +85,13 @@ _TIME_FIXABLE = frozenset(
 )
 
 
+def fill_c_range(c_max: float) -> tuple[float, float]:
+    """The fill step's range of bulge scales with its top capped at ``c_max`` (> 0)."""
+    if not c_max > 0.0:
+        raise ValueError(f"c_max must be > 0; got {c_max!r}")
+    return (min(PLAN_C_RANGE[0], c_max), c_max)
+
+
 class PlanStatus(IntEnum):
     """How a returned plan came about."""
 
@@ -372,6 +379,8 @@ class PinnPlanner:
         q_end_rad: ArrayLike,
         surface_y_m: float,
         dig_type: DigType,
+        *,
+        c_max: float | None = None,
     ) -> PinnPlan:
         """Plan one dig: domain check, inference, retiming/verification, repair if needed.
 
@@ -380,6 +389,9 @@ class PinnPlanner:
             q_end_rad: Exit pose (3,).
             surface_y_m: Material surface height H.
             dig_type: Which network.
+            c_max: Cap on the fill step's bulge scale (:func:`fill_c_range`); None: the
+                default range :data:`rt_runtime.planning.verify.PLAN_C_RANGE`. The trench
+                planner caps it where a fuller bucket would cut below the design profile.
 
         Returns:
             A plan whose trajectory satisfies every limit of Yao eq 12 on the verification grid.
@@ -441,7 +453,8 @@ class PinnPlanner:
             )
 
         if self.retime:
-            self.verifier.plan_into(row, out, self._retimed, PLAN_C_RANGE, None, self._scale)
+            c_range = PLAN_C_RANGE if c_max is None else fill_c_range(c_max)
+            self.verifier.plan_into(row, out, self._retimed, c_range, None, self._scale)
             if out[0, COL_TOTAL] <= 0.0:
                 r = self._retimed[0].tolist()
                 return planned(

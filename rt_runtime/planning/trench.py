@@ -1,0 +1,1445 @@
+"""Task-oriented continuous trench planning (Yao 4.4, Fig. 5) with exact profile accounting.
+
+A trench task is a cross-section in the arm's plane: a trapezoid of top length L on the ground,
+depth D, far wall slope beta1 (at ``start_x_m``, the end the digging starts from) and near wall
+slope beta2 (towards the machine), as in Yao Fig. 13 and Table 3. The planner follows Fig. 5:
+downward digs until the depth is reached, then backward digs, and crawler travel when the rest
+is out of reach, each dig planned by a one-shot planner (the PINN by default, the PSO teacher as
+the alternative) between an entry pose on the material surface and an exit pose towards the
+machine.
+
+Material model. The material is a shapely polygon of the cross-section in the work-site frame
+(the arm frame of the machine's first position; the machine's travel shifts the arm frame by
+``machine_x_m``). A dig removes the region its bucket sweeps: everything above the tip path's
+lower envelope over the x-span of the path (the bucket carries what lies above its cutting edge
+out with it; the path's closing curl lies above the envelope). The same region is kept as a
+height field on a 1 mm grid for screening candidates quickly; the polygon is the record that the
+accounting uses (every removed cubic centimetre is the area difference of two polygons times the
+bucket width, and the sum over digs equals the total removed). This needs the material to stay
+y-monotone (a surface function of x), which holds because every cut is "everything above a
+curve".
+
+Choosing a dig (where Yao is silent). Each dig is the best of a set of candidate problems
+screened in one batch: entry x near the far edge of the remaining design material on the current
+surface (``H`` = the surface height there), entry and exit attitudes and dig lengths from the
+PINN's domain, and bulge caps. Every candidate is inferred by the PINN and filled, retimed and
+verified by the C kernel (:meth:`rt_runtime.planning.verify.Verifier.plan_into`); its tip path
+is then scored on the height field: the design material it removes, minus a penalty for material
+removed outside the design; a candidate that cuts below the design profile by more than the
+over-dig limit, or would take more than the bucket's V_max of real material, is rejected. The
+winner is planned again by the chosen one-shot planner (identical for the PINN; the PSO gives
+its own optimum, which is checked the same way, falling back to the next candidate).
+
+Volumes. The one-shot model's V_p is measured against a flat surface y = H (Yao 3.3); on a
+partly dug surface the real cut differs. Each dig reports both: ``volume_m3`` is the real
+material removed (polygon accounting), ``predicted_volume_m3`` the one-shot V_p that the
+verifier bounded. The bucket capacity V_max is enforced on the real cut.
+
+Closed loop: :class:`TrenchSession` plans one dig at a time; :meth:`TrenchSession.record` takes
+the measured tip path of the executed dig and updates the material from it, so the next dig is
+planned from the true surface. :meth:`TrenchPlanner.plan` runs the session on the predicted paths.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import tomllib
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import shapely
+from numpy.typing import ArrayLike, NDArray
+from shapely.geometry import Polygon
+
+from rt_runtime import kinematics
+from rt_runtime.errors import ConfigurationError, KinematicsError, PlanningError
+from rt_runtime.planning import oneshot
+from rt_runtime.planning.oneshot import DigType, Problem
+from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR, PinnPlanner, fill_c_range
+from rt_runtime.planning.verify import (
+    COL_ENERGY_J,
+    COL_T_S,
+    COL_THETA_P_RAD,
+    COL_TOTAL,
+    COL_VOLUME_M3,
+    N_OUT,
+    VerifyResult,
+    pack_inputs,
+)
+from rt_runtime.rig import Rig
+
+FloatArray = NDArray[np.float64]
+
+#: Yao Table 3: (L m, D m, beta1 deg, beta2 deg).
+BUILTIN_TASKS: dict[str, tuple[float, float, float, float]] = {
+    "A": (0.60, 0.15, 60.0, 60.0),
+    "B": (0.70, 0.10, 65.0, 40.0),
+    "C": (0.55, 0.15, 60.0, 50.0),
+    "D": (0.65, 0.20, 50.0, 60.0),
+}
+#: Yao Fig. 14: number of trajectories and the profile error per task (for the reports).
+YAO_FIG14: dict[str, dict[str, float]] = {
+    "A": {"digs": 4, "coverage_error": 0.087},
+    "B": {"digs": 3, "coverage_error": 0.037},
+    "C": {"digs": 3, "coverage_error": 0.012},
+    "D": {"digs": 5, "coverage_error": 0.033},
+}
+#: No dig may cut below the design profile by more than this (m).
+OVERDIG_LIMIT_M = 0.005
+#: A dig must remove at least this fraction of the design's area of design material; when no
+#: candidate does, the task is finished with what is left reported as coverage error.
+MIN_USEFUL_FRACTION = 0.004
+#: Grid step of the height field (m).
+GRID_STEP_M = 0.001
+# Reach figures of the scale model (m), scaled by the rig's l1 + l2 + l3 against 1.31 m: where
+# digs may enter (the PINN's domain, oneshot.SAMPLER_RANGES), the deepest trench the backward
+# digs' domain serves, and the default far edge of a trench.
+_SCALE_REACH_M = 1.31
+_ENTRY_X_M = (0.55, 1.10)
+_MAX_DEPTH_M = 0.30
+_DEFAULT_START_X_M = 1.05
+# Transition poses (scale model, m / deg), assumed: Yao gives none. The bucket lifts to
+# _LIFT_CLEAR_M above the ground, dumps at _DUMP_POSE (tip x, height above ground, attitude;
+# bucket opened, beside the machine) and approaches each entry from _APPROACH_M above it.
+_LIFT_CLEAR_M = 0.08
+_DUMP_POSE = (0.60, 0.25, -80.0)
+_APPROACH_M = 0.05
+
+
+# -- the task -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class TrenchTask:
+    """A trench cross-section to dig (Yao Fig. 13, Table 3).
+
+    Attributes:
+        name: Task name (``A``..``D`` or the file's stem).
+        length_m: Top length L on the ground.
+        depth_m: Depth D below the ground.
+        beta1_rad: Slope of the far wall (at ``start_x_m``), from the horizontal.
+        beta2_rad: Slope of the near wall (towards the machine).
+        start_x_m: x of the far top edge in the arm frame of the machine's first position.
+    """
+
+    name: str
+    length_m: float
+    depth_m: float
+    beta1_rad: float
+    beta2_rad: float
+    start_x_m: float
+
+    @property
+    def bottom_length_m(self) -> float:
+        """Length of the flat bottom."""
+        return (
+            self.length_m
+            - self.depth_m / math.tan(self.beta1_rad)
+            - self.depth_m / math.tan(self.beta2_rad)
+        )
+
+
+def _reach_scale(rig: Rig) -> float:
+    return float(np.sum(rig.lengths_m)) / _SCALE_REACH_M
+
+
+def task_limits(rig: Rig) -> dict[str, tuple[float, float]]:
+    """The allowed ranges of a task's values on ``rig`` (m, deg), as the validation uses them."""
+    s = _reach_scale(rig)
+    return {
+        "depth_m": (0.0, _MAX_DEPTH_M * s),
+        "start_x_m": (_ENTRY_X_M[0] * s, _ENTRY_X_M[1] * s),
+        "beta_deg": (0.0, 90.0),
+    }
+
+
+def make_task(
+    rig: Rig,
+    length_m: float,
+    depth_m: float,
+    beta1_deg: float,
+    beta2_deg: float,
+    start_x_m: float | None = None,
+    name: str = "task",
+) -> TrenchTask:
+    """A validated task.
+
+    Raises:
+        ConfigurationError: A value is not finite, out of its range (naming the key and what is
+            allowed), the slopes meet above the depth, or the trench lies behind the machine.
+    """
+    limits = task_limits(rig)
+    values = {
+        "length_m": length_m,
+        "depth_m": depth_m,
+        "beta1_deg": beta1_deg,
+        "beta2_deg": beta2_deg,
+    }
+    if start_x_m is not None:
+        values["start_x_m"] = start_x_m
+    for key, v in values.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ConfigurationError(f"task {name}: {key} must be a number; got {v!r}")
+        if not math.isfinite(v):
+            raise ConfigurationError(f"task {name}: {key} = {v} is not finite")
+    if length_m <= 0.0:
+        raise ConfigurationError(f"task {name}: length_m = {length_m:g} must be > 0")
+    lo, hi = limits["depth_m"]
+    if not lo < depth_m <= hi:
+        raise ConfigurationError(
+            f"task {name}: depth_m = {depth_m:g} is outside ({lo:g}, {hi:.3g}] m, the depth "
+            f"{rig.name}'s digs reach below the ground"
+        )
+    for key in ("beta1_deg", "beta2_deg"):
+        b = values[key]
+        if not 0.0 < b < 90.0:
+            raise ConfigurationError(
+                f"task {name}: {key} = {b:g} must lie in (0, 90) deg (a wall slope from the "
+                "horizontal)"
+            )
+    if start_x_m is None:
+        start_x_m = _DEFAULT_START_X_M * _reach_scale(rig)
+    lo, hi = limits["start_x_m"]
+    if start_x_m <= 0.0:
+        raise ConfigurationError(
+            f"task {name}: start_x_m = {start_x_m:g} puts the trench behind the machine; the "
+            f"far edge must lie in front of it, within [{lo:.3g}, {hi:.3g}] m"
+        )
+    if not lo <= start_x_m <= hi:
+        raise ConfigurationError(
+            f"task {name}: start_x_m = {start_x_m:g} is outside the reach [{lo:.3g}, {hi:.3g}] m "
+            f"where {rig.name}'s digs can start"
+        )
+    task = TrenchTask(
+        name=name,
+        length_m=float(length_m),
+        depth_m=float(depth_m),
+        beta1_rad=math.radians(beta1_deg),
+        beta2_rad=math.radians(beta2_deg),
+        start_x_m=float(start_x_m),
+    )
+    if task.bottom_length_m < 0.0:
+        need = depth_m / math.tan(task.beta1_rad) + depth_m / math.tan(task.beta2_rad)
+        raise ConfigurationError(
+            f"task {name}: the walls (beta1 {beta1_deg:g}, beta2 {beta2_deg:g} deg) meet above "
+            f"depth_m = {depth_m:g}; length_m must be >= {need:.4g} m for that depth"
+        )
+    return task
+
+
+_TASK_KEYS = ("length_m", "depth_m", "beta1_deg", "beta2_deg", "start_x_m")
+
+
+def load_task(spec: str | Path, rig: Rig) -> TrenchTask:
+    """A built-in task (``A``..``D``, Yao Table 3) or one from a TOML file.
+
+    The file holds ``length_m``, ``depth_m``, ``beta1_deg``, ``beta2_deg`` and optionally
+    ``start_x_m`` at its top level.
+
+    Raises:
+        ConfigurationError: Unknown name, unreadable file, unknown or missing keys, bad values.
+    """
+    text = str(spec)
+    if text.upper() in BUILTIN_TASKS and not Path(text).exists():
+        L, D, b1, b2 = BUILTIN_TASKS[text.upper()]
+        return make_task(rig, L, D, b1, b2, name=text.upper())
+    path = Path(text)
+    if not path.is_file():
+        raise ConfigurationError(
+            f"task {text!r}: not a built-in task ({', '.join(BUILTIN_TASKS)}) and no such file"
+        )
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as e:
+        raise ConfigurationError(f"task file {path}: cannot read: {e}") from e
+    unknown = sorted(set(data) - set(_TASK_KEYS))
+    if unknown:
+        raise ConfigurationError(
+            f"task file {path}: unknown key(s) {', '.join(unknown)}; allowed: "
+            f"{', '.join(_TASK_KEYS)}"
+        )
+    missing = [k for k in _TASK_KEYS[:4] if k not in data]
+    if missing:
+        raise ConfigurationError(f"task file {path}: missing key(s) {', '.join(missing)}")
+    return make_task(
+        rig,
+        data["length_m"],
+        data["depth_m"],
+        data["beta1_deg"],
+        data["beta2_deg"],
+        data.get("start_x_m"),
+        name=path.stem,
+    )
+
+
+def design_polygon(task: TrenchTask, ground_y_m: float) -> Polygon:
+    """The designed cross-section: the trapezoid below the ground (work-site frame)."""
+    g, D, xf = ground_y_m, task.depth_m, task.start_x_m
+    xn = xf - task.length_m
+    return Polygon(
+        [
+            (xf, g),
+            (xn, g),
+            (xn + D / math.tan(task.beta2_rad), g - D),
+            (xf - D / math.tan(task.beta1_rad), g - D),
+        ]
+    )
+
+
+# -- one-shot planners ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class OneShotResult:
+    """A verified one-shot dig from a planner adapter."""
+
+    a6: tuple[float, float, float]
+    T_s: float
+    evaluation: FloatArray
+    plan_us: float
+    status: str
+
+
+class OneShotPlanner(Protocol):
+    """What the trench planner needs of a one-shot planner."""
+
+    name: str
+
+    def plan_dig(self, problem: Problem, c_max: float) -> OneShotResult:
+        """A verified dig for ``problem``; ``c_max`` caps the bulge scale where supported.
+
+        Raises:
+            PlanningError: No verified plan.
+        """
+        ...
+
+
+class PinnOneShot:
+    """The PINN planner (default): what :meth:`PinnPlanner.plan` returns, bulge capped."""
+
+    name = "pinn"
+
+    def __init__(self, planner: Any) -> None:
+        self.planner = planner
+
+    def plan_dig(self, problem: Problem, c_max: float) -> OneShotResult:
+        p = self.planner.plan(
+            problem.q_start_rad,
+            problem.q_end_rad,
+            problem.surface_y_m,
+            problem.dig_type,
+            c_max=c_max,
+        )
+        return OneShotResult(p.a6, p.T_s, p.evaluation, p.plan_us, p.status.name.lower())
+
+
+class PsoOneShot:
+    """The PSO teacher (seconds per dig): Yao's reference, same interface."""
+
+    name = "pso"
+
+    def __init__(self, rig: Rig, verifier: Any, **pso_options: Any) -> None:
+        self.rig = rig
+        self.verifier = verifier
+        self.options = pso_options
+
+    def plan_dig(self, problem: Problem, c_max: float) -> OneShotResult:
+        t0 = time.perf_counter()
+        sol = oneshot.solve_pso(self.rig, [problem], **self.options)[0]
+        a6 = tuple(float(v) for v in sol.a6)
+        row = pack_inputs(
+            np.array([problem.q_start_rad]),
+            np.array([problem.q_end_rad]),
+            np.array([problem.surface_y_m]),
+            np.array([int(problem.dig_type)]),
+            np.array([a6]),
+            np.array([sol.T_s]),
+        )
+        out = np.zeros((1, N_OUT))
+        self.verifier.evaluate_into(row, out)
+        if out[0, COL_TOTAL] > 0.0:
+            raise PlanningError(
+                f"PSO plan fails verification (total violation {out[0, COL_TOTAL]:.3g})"
+            )
+        return OneShotResult(
+            (a6[0], a6[1], a6[2]),
+            float(sol.T_s),
+            out[0].copy(),
+            (time.perf_counter() - t0) * 1e6,
+            "pso",
+        )
+
+
+# -- the plan -------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class PlannedDig:
+    """One verified dig of a trench plan.
+
+    Attributes:
+        index: 0-based position in the plan.
+        problem: Entry/exit poses (arm frame at the machine's position) and H.
+        a6, T_s: The verified sextic.
+        machine_x_m: The machine's travel from its first position when this dig runs.
+        tip_path_m: Planned tip path in the work-site frame, ``(n, 2)``.
+        volume_m3: Real material the dig removes (polygon accounting, planned path).
+        design_volume_m3: Of that, the part inside the design.
+        predicted_volume_m3: V_p of the one-shot model (flat surface at H), bounded by the
+            verifier.
+        energy_j, theta_p_rad: W_E and the initial digging angle of the verified plan.
+        overdig_m: Deepest cut below the design profile (0 if none).
+        plan_us: Time the one-shot planner took for this dig (excluding screening).
+        select_us: Time of this dig's candidate screening and selection.
+        planner: ``pinn`` or ``pso``; status: how the one-shot planner got the plan.
+        evaluation: The verifier's row for the plan.
+    """
+
+    index: int
+    problem: Problem
+    a6: tuple[float, float, float]
+    T_s: float
+    machine_x_m: float
+    tip_path_m: FloatArray
+    volume_m3: float
+    design_volume_m3: float
+    predicted_volume_m3: float
+    energy_j: float
+    theta_p_rad: float
+    overdig_m: float
+    plan_us: float
+    select_us: float
+    planner: str
+    status: str
+    evaluation: FloatArray = field(repr=False)
+
+    @property
+    def dig_type(self) -> DigType:
+        """Downward or backward."""
+        return self.problem.dig_type
+
+    @property
+    def verification(self) -> VerifyResult:
+        """The verifier's result for the plan."""
+        return VerifyResult.from_row(self.evaluation)
+
+    def trajectory(self) -> Any:
+        """The joint trajectory (:class:`rt_runtime.trajectory.sextic.SexticTrajectory`)."""
+        from rt_runtime.trajectory.sextic import SexticTrajectory
+
+        return SexticTrajectory(
+            np.asarray(self.problem.q_start_rad),
+            np.asarray(self.problem.q_end_rad),
+            np.asarray(self.a6),
+            self.T_s,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class Transition:
+    """A state-to-state joint motion between digs (ruckig, rest to rest, no waypoints).
+
+    Attributes:
+        kind: ``lift_out``, ``dump``, ``approach`` or ``enter``.
+        q_from_rad, q_to_rad: End poses (arm frame).
+        duration_s: Time-optimal duration within the joint velocity/acceleration/jerk limits.
+        machine_x_m: The machine's travel from its first position.
+        penetration_m: Deepest point of the motion below the remaining material (0 if clear).
+    """
+
+    kind: str
+    q_from_rad: tuple[float, float, float]
+    q_to_rad: tuple[float, float, float]
+    duration_s: float
+    machine_x_m: float
+    penetration_m: float
+
+    def trajectory(self, rig: Rig) -> Any:
+        """The ruckig trajectory (``ruckig.Trajectory``), recomputed from the end poses."""
+        traj, _ = _ruckig_move(rig, np.asarray(self.q_from_rad), np.asarray(self.q_to_rad))
+        return traj
+
+
+@dataclass(frozen=True, slots=True)
+class TravelMove:
+    """Crawler travel through the VCU (+x away from the trench's far end is negative)."""
+
+    distance_m: float
+    machine_x_from_m: float
+    machine_x_to_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class TrenchPlan:
+    """A frozen plan for one trench task.
+
+    Attributes:
+        task: The task.
+        rig: Rig name.
+        planner: One-shot planner name.
+        steps: Digs, transitions and travel moves in execution order.
+        digs: The digs alone.
+        design: The designed cross-section polygon.
+        dug: The region the plan removes (initial material minus final material).
+        final_surface_m: The final surface over the task's x range, ``(n, 2)``.
+        coverage_error: Area of the symmetric difference of dug and design over the design.
+        overdig_max_m: Deepest cut below the design profile.
+        removed_m3: Total removed volume; equals the sum of the digs' ``volume_m3``.
+        design_m3: Designed volume (area x bucket width).
+        plan_total_us: Wall time of the whole plan.
+    """
+
+    task: TrenchTask
+    rig: str
+    planner: str
+    steps: tuple[PlannedDig | Transition | TravelMove, ...]
+    digs: tuple[PlannedDig, ...]
+    design: Polygon
+    dug: Any
+    final_surface_m: FloatArray
+    coverage_error: float
+    overdig_max_m: float
+    removed_m3: float
+    design_m3: float
+    plan_total_us: float
+
+    def to_json(self) -> dict[str, Any]:
+        """The report of ``excavator-rt plan --json`` (keys in DESIGN.md "Reports")."""
+        digs = [
+            {
+                "type": d.dig_type.name.lower(),
+                "T_s": d.T_s,
+                "volume_L": d.volume_m3 * 1e3,
+                "predicted_volume_L": d.predicted_volume_m3 * 1e3,
+                "design_volume_L": d.design_volume_m3 * 1e3,
+                "energy_Wh": d.energy_j / 3600.0,
+                "theta_p_deg": math.degrees(d.theta_p_rad),
+                "plan_us": d.plan_us,
+                "select_us": d.select_us,
+                "overdig_mm": d.overdig_m * 1e3,
+                "machine_x_m": d.machine_x_m,
+                "status": d.status,
+            }
+            for d in self.digs
+        ]
+        transitions = [s for s in self.steps if isinstance(s, Transition)]
+        travels = [s for s in self.steps if isinstance(s, TravelMove)]
+        return {
+            "task": {
+                "name": self.task.name,
+                "length_m": self.task.length_m,
+                "depth_m": self.task.depth_m,
+                "beta1_deg": math.degrees(self.task.beta1_rad),
+                "beta2_deg": math.degrees(self.task.beta2_rad),
+                "start_x_m": self.task.start_x_m,
+            },
+            "rig": self.rig,
+            "planner": self.planner,
+            "digs": digs,
+            "n_digs": len(digs),
+            "coverage_error": self.coverage_error,
+            "overdig_max_mm": self.overdig_max_m * 1e3,
+            "removed_L": self.removed_m3 * 1e3,
+            "design_L": self.design_m3 * 1e3,
+            "plan_total_us": self.plan_total_us,
+            "dig_time_s": sum(d.T_s for d in self.digs),
+            "transition_time_s": sum(t.duration_s for t in transitions),
+            "transition_penetration_max_mm": max(
+                (t.penetration_m * 1e3 for t in transitions), default=0.0
+            ),
+            "travel": [t.distance_m for t in travels],
+            "energy_Wh": sum(d.energy_j for d in self.digs) / 3600.0,
+            "yao_fig14": YAO_FIG14.get(self.task.name),
+        }
+
+
+# -- geometry helpers -----------------------------------------------------------------------------
+
+
+def lower_envelope(path_xy: FloatArray, grid_x: FloatArray) -> FloatArray:
+    """Lowest y of a polyline over each grid x it spans (+inf where it does not).
+
+    Exact for the polyline: every segment is interpolated at the grid points inside its x-span.
+    """
+    x0 = float(grid_x[0])
+    h = float(grid_x[1] - grid_x[0])
+    env = np.full(grid_x.shape[0], np.inf)
+    xa, xb = path_xy[:-1, 0], path_xy[1:, 0]
+    ya, yb = path_xy[:-1, 1], path_xy[1:, 1]
+    lo = np.minimum(xa, xb)
+    hi = np.maximum(xa, xb)
+    i0 = np.clip(np.ceil((lo - x0) / h - 1e-9).astype(np.int64), 0, grid_x.shape[0])
+    i1 = np.clip(np.floor((hi - x0) / h + 1e-9).astype(np.int64) + 1, 0, grid_x.shape[0])
+    counts = np.maximum(i1 - i0, 0)
+    total = int(counts.sum())
+    if total:
+        seg = np.repeat(np.arange(counts.shape[0]), counts)
+        start = np.repeat(i0 - np.concatenate(([0], np.cumsum(counts)[:-1])), counts)
+        idx = start + np.arange(total)
+        dx = xb - xa
+        safe = np.where(np.abs(dx) > 1e-12, dx, 1.0)
+        t = np.clip((grid_x[idx] - xa[seg]) / safe[seg], 0.0, 1.0)
+        y = np.where(
+            np.abs(dx[seg]) > 1e-12,
+            ya[seg] + t * (yb[seg] - ya[seg]),
+            np.minimum(ya[seg], yb[seg]),
+        )
+        np.minimum.at(env, idx, y)
+    return env
+
+
+def _swept_polygon(path_xy: FloatArray, grid_x: FloatArray, top_y: float) -> Polygon | None:
+    """The region above the path's lower envelope over its span, up to ``top_y``."""
+    env = lower_envelope(path_xy, grid_x)
+    ok = np.isfinite(env)
+    if np.count_nonzero(ok) < 2:
+        return None
+    xs = grid_x[ok]
+    ys = np.minimum(env[ok], top_y)
+    # Keep the exact end points of the span (the grid may start inside it).
+    x_lo = max(float(path_xy[:, 0].min()), float(grid_x[0]))
+    x_hi = min(float(path_xy[:, 0].max()), float(grid_x[-1]))
+    pts = [(x_lo, top_y), (x_lo, float(ys[0]))]
+    pts += list(zip(xs.tolist(), ys.tolist(), strict=True))
+    pts += [(x_hi, float(ys[-1])), (x_hi, top_y)]
+    return Polygon(pts).buffer(0)
+
+
+def _ruckig_move(rig: Rig, q0: FloatArray, q1: FloatArray) -> tuple[Any, float]:
+    """Time-optimal rest-to-rest joint move within the rig's limits (no intermediate waypoints)."""
+    from ruckig import InputParameter, Result, Ruckig, Trajectory
+
+    otg = Ruckig(3)
+    inp = InputParameter(3)
+    inp.current_position = [float(v) for v in q0]
+    inp.target_position = [float(v) for v in q1]
+    inp.max_velocity = [float(v) for v in rig.qd_max_rad_s]
+    inp.max_acceleration = [float(v) for v in rig.qdd_max_rad_s2]
+    inp.max_jerk = [float(v) for v in rig.qddd_max_rad_s3]
+    traj = Trajectory(3)
+    result = otg.calculate(inp, traj)
+    if result not in (Result.Working, Result.Finished):
+        raise PlanningError(f"ruckig could not plan a transition: {result}")
+    return traj, float(traj.duration)
+
+
+# -- the planner ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class _Candidates:
+    """The candidate grid of one dig type (arm-frame values relative to the entry)."""
+
+    entry_dx_m: tuple[float, ...]
+    entry_attitude_deg: tuple[float, ...]
+    length_m: tuple[float, ...]
+    exit_rise_m: tuple[float, ...]
+    exit_attitude_deg: tuple[float, ...]
+    c_max: tuple[float, ...]
+
+
+_CANDIDATES: dict[DigType, _Candidates] = {
+    DigType.DOWNWARD: _Candidates(
+        entry_dx_m=(0.0,),
+        entry_attitude_deg=(-75.0, -90.0, -105.0, -118.0),
+        length_m=(0.17, 0.22, 0.28, 0.34, 0.39),
+        exit_rise_m=(0.01, 0.05, 0.10, 0.15),
+        exit_attitude_deg=(-145.0, -160.0, -175.0),
+        c_max=(2.0, 1.0, 0.6, 0.3),
+    ),
+    DigType.BACKWARD: _Candidates(
+        entry_dx_m=(0.0,),
+        entry_attitude_deg=(-102.0, -115.0, -128.0, -138.0),
+        length_m=(0.22, 0.28, 0.34, 0.40, 0.46),
+        exit_rise_m=(0.01, 0.05, 0.10, 0.15),
+        exit_attitude_deg=(-152.0, -165.0, -180.0),
+        c_max=(2.0, 1.0, 0.6, 0.3),
+    ),
+}
+
+
+class TrenchPlanner:
+    """Plans trench tasks dig by dig (Yao Fig. 5).
+
+    Args:
+        rig: The rig (needs planning thresholds and shipped PINN models for screening).
+        planner: ``pinn`` (default), ``pso``, or an object with ``plan_dig``.
+        model_dir: PINN model directory (default: the shipped ``onnx/``).
+        pso_options: Keyword arguments for :func:`rt_runtime.planning.oneshot.solve_pso`.
+        max_digs: Safety bound on the number of digs of one task.
+
+    Raises:
+        ConfigurationError: Unknown planner name; models that do not load for the rig.
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        planner: str | OneShotPlanner = "pinn",
+        *,
+        model_dir: Path | str | None = None,
+        pso_options: dict[str, Any] | None = None,
+        max_digs: int = 40,
+    ) -> None:
+
+        oneshot.require_planning(rig)
+        self.rig = rig
+        self.pinn = PinnPlanner(rig, model_dir or DEFAULT_MODEL_DIR, refine=True)
+        self.verifier = self.pinn.verifier
+        if isinstance(planner, str):
+            if planner == "pinn":
+                self.oneshot: OneShotPlanner = PinnOneShot(self.pinn)
+            elif planner == "pso":
+                self.oneshot = PsoOneShot(rig, self.verifier, **(pso_options or {}))
+            else:
+                raise ConfigurationError(f"unknown planner {planner!r}; allowed: pinn, pso")
+        else:
+            self.oneshot = planner
+        self.max_digs = max_digs
+        s = _reach_scale(rig)
+        self.scale = s
+        self.entry_x_range = (_ENTRY_X_M[0] * s, _ENTRY_X_M[1] * s)
+        self._dump_q = kinematics.inverse(
+            rig,
+            _DUMP_POSE[0] * s,
+            rig.ground_y_m + _DUMP_POSE[1] * s,
+            math.radians(_DUMP_POSE[2]),
+        )
+
+    def start(self, task: TrenchTask) -> TrenchSession:
+        """A closed-loop session for ``task`` (plan a dig, execute it, record its path)."""
+        return TrenchSession(self, task)
+
+    def plan(self, task: TrenchTask) -> TrenchPlan:
+        """The whole plan for ``task`` on the predicted paths (open loop).
+
+        Raises:
+            PlanningError: A dig cannot be planned (no verified candidate removes material).
+        """
+        t0 = time.perf_counter()
+        session = self.start(task)
+        while True:
+            dig = session.next_dig()
+            if dig is None:
+                break
+            session.record(dig, dig.tip_path_m)
+        return session.finish(plan_total_us=(time.perf_counter() - t0) * 1e6)
+
+
+class TrenchSession:
+    """One task being dug: the material state and the steps so far (closed loop).
+
+    Use :meth:`next_dig` to plan the next dig from the current material (``None`` when the task
+    is done), execute it, then :meth:`record` the measured tip path (work-site frame); the
+    material is updated from what was measured, not what was planned.
+    """
+
+    def __init__(self, planner: TrenchPlanner, task: TrenchTask) -> None:
+        self.planner = planner
+        self.task = task
+        rig = planner.rig
+        self.rig = rig
+        self.ground_y = rig.ground_y_m
+        self.width_m = rig.bucket.width_m
+        assert rig.planning is not None
+        self.v_max_m3 = rig.planning.volume_max_m3
+        self.design = design_polygon(task, self.ground_y)
+        xf = task.start_x_m
+        xn = xf - task.length_m
+        margin = 0.5 * planner.scale
+        self.x_lo, self.x_hi = xn - margin, xf + margin
+        self.grid = np.arange(self.x_lo, self.x_hi + GRID_STEP_M / 2, GRID_STEP_M)
+        self.bottom_y = self.ground_y - task.depth_m
+        box_bottom = self.bottom_y - 0.2 * planner.scale
+        self.top_y = self.ground_y + 1.0
+        self.initial = Polygon(
+            [
+                (self.x_lo, self.ground_y),
+                (self.x_lo, box_bottom),
+                (self.x_hi, box_bottom),
+                (self.x_hi, self.ground_y),
+            ]
+        )
+        self.material: Any = self.initial
+        self.surface = np.full(self.grid.shape[0], self.ground_y)
+        self.design_floor = self._design_floor()
+        # Half-planes of the design's walls and bottom: n . p <= c inside (unit n).
+        b1, b2 = task.beta1_rad, task.beta2_rad
+        self._walls = np.array(
+            [
+                # far wall through (xf, g), inside is x <= ...: n = (sin b1, -cos b1)
+                [math.sin(b1), -math.cos(b1), math.sin(b1) * xf - math.cos(b1) * self.ground_y],
+                # near wall through (xn, g): n = (-sin b2, -cos b2)
+                [-math.sin(b2), -math.cos(b2), -math.sin(b2) * xn - math.cos(b2) * self.ground_y],
+                # bottom: n = (0, -1), -y <= -(bottom) -> y >= bottom
+                [0.0, -1.0, -self.bottom_y],
+            ]
+        )
+        self.steps: list[PlannedDig | Transition | TravelMove] = []
+        self.digs: list[PlannedDig] = []
+        self.machine_x = 0.0
+        self.q_now: FloatArray | None = None
+        self.pending: PlannedDig | None = None
+        self.design_area = float(self.design.area)
+        self.phase = DigType.DOWNWARD
+        self._finish_index = 0
+
+    # -- state --------------------------------------------------------------------------------
+
+    def _design_floor(self) -> FloatArray:
+        """The design's lower boundary over the grid (the ground outside the trench)."""
+        t = self.task
+        g = self.ground_y
+        x = self.grid
+        far = g - (t.start_x_m - x) * math.tan(t.beta1_rad)
+        near = g - (x - (t.start_x_m - t.length_m)) * math.tan(t.beta2_rad)
+        floor = np.maximum(np.maximum(far, near), self.bottom_y)
+        return np.minimum(floor, g)
+
+    def remaining_design(self) -> Any:
+        """Design material not dug yet."""
+        return self.design.intersection(self.material)
+
+    def overdig_of(self, path_xy: FloatArray) -> float:
+        """Deepest point of a path below the design profile, where it is in the material."""
+        return float(self._overdig_many(path_xy[None])[0])
+
+    def _overdig_many(self, paths: FloatArray) -> FloatArray:
+        """Over-dig of many paths ``(N, n, 2)`` at once (m, 0 where none).
+
+        A sample counts where it lies below the current surface (in material). Its depth
+        below the design is the largest violation of the design's three lower half-planes
+        (walls and bottom; exact where one is violated, a lower bound of the distance to a
+        corner otherwise); outside the trench's x range the ground is the design.
+        """
+        x = paths[..., 0]
+        y = paths[..., 1]
+        inside = y < np.interp(x, self.grid, self.surface)
+        w = self._walls
+        d = np.maximum(
+            np.maximum(w[0, 0] * x + w[0, 1] * y - w[0, 2], w[1, 0] * x + w[1, 1] * y - w[1, 2]),
+            w[2, 0] * x + w[2, 1] * y - w[2, 2],
+        )
+        xf, xn = self.task.start_x_m, self.task.start_x_m - self.task.length_m
+        d = np.where((x > xf) | (x < xn), np.maximum(d, self.ground_y - y), d)
+        return np.max(np.where(inside, np.maximum(d, 0.0), 0.0), axis=-1)
+
+    def _cut_areas(self, env: FloatArray) -> tuple[float, float]:
+        """(total, inside-design) area a path envelope removes from the height field."""
+        cut_to = np.minimum(self.surface, env)
+        total = self.surface - cut_to
+        inside = np.maximum(
+            np.minimum(self.surface, np.maximum(env, self.design_floor)), self.design_floor
+        )
+        design_part = self.surface - inside
+        design_part = np.where(self.surface > self.design_floor, np.maximum(design_part, 0.0), 0.0)
+        h = GRID_STEP_M
+        return float(np.sum(total) * h), float(np.sum(np.minimum(design_part, total)) * h)
+
+    # -- choosing a dig -----------------------------------------------------------------------
+
+    def _phase(self) -> DigType:
+        """Fig. 5: downward until the depth is reached, then backward."""
+        if self.phase is DigType.DOWNWARD:
+            reached = float(np.min(self.surface - self.design_floor, initial=np.inf))
+            deepest = float(np.min(self.surface))
+            if deepest <= self.bottom_y + OVERDIG_LIMIT_M or reached < -1.0:
+                self.phase = DigType.BACKWARD
+        return self.phase
+
+    def _entry_x_candidates(self, remaining: Any) -> list[float]:
+        """Where on the surface digs may enter: the far edge of the remaining design material."""
+        minx, _, maxx, _ = remaining.bounds
+        step = 0.04 * self.planner.scale
+        xs = np.arange(maxx, minx + 0.05 * self.planner.scale, -step)
+        return xs.tolist() or [maxx]
+
+    def next_dig(self) -> PlannedDig | None:
+        """Plan the next dig from the current material, or None when the task is done.
+
+        Raises:
+            PlanningError: Material is left but no verified dig removes any of it, or the
+                safety bound on the number of digs is reached.
+        """
+        if self.pending is not None:
+            raise PlanningError("record() the executed path of the previous dig first")
+        remaining = self.remaining_design()
+        left = float(remaining.area)
+        if left <= 0.005 * self.design_area:
+            return None
+        if len(self.digs) >= self.planner.max_digs:
+            raise PlanningError(
+                f"task {self.task.name}: {left / self.design_area:.1%} of the design is left "
+                f"after {len(self.digs)} digs (the bound)"
+            )
+        t0 = time.perf_counter()
+        self._relocate_if_needed(remaining)
+        ranked = self._screen(remaining)
+        if not ranked and self.phase is DigType.DOWNWARD:
+            self.phase = DigType.BACKWARD
+            ranked = self._screen(remaining)
+        dig = self._first_plannable(ranked, t0)
+        while dig is None and self.digs and self._finish_index < _N_MAX_PASSES:
+            ranked = self._finishing(remaining)
+            if not ranked:
+                return None
+            dig = self._first_plannable(ranked, t0)
+        if dig is None:
+            raise PlanningError(
+                f"task {self.task.name}: no verified dig removes the remaining "
+                f"{left / self.design_area:.1%} of the design without over-digging"
+            )
+        self.pending = dig
+        return dig
+
+    def _first_plannable(self, ranked: list[dict[str, Any]], t0: float) -> PlannedDig | None:
+        """The best screened candidate the one-shot planner plans within the limits.
+
+        The PINN plans exactly what was screened; another planner (the PSO) finds its own
+        optimum for the same poses, which may cut too deep or take more than the bucket: then
+        the next candidate is tried.
+        """
+        for best in ranked:
+            try:
+                return self._plan_chosen(best, (time.perf_counter() - t0) * 1e6)
+            except PlanningError:
+                continue
+        return None
+
+    def _relocate_if_needed(self, remaining: Any) -> None:
+        """Crawler travel when the rest of the design is beyond the entries' reach."""
+        lo, hi = self.planner.entry_x_range
+        maxx = remaining.bounds[2] - self.machine_x  # arm frame
+        if lo <= maxx <= hi:
+            return
+        # Travel so that the far edge of the rest comes 5 cm inside the farthest entry:
+        # negative (backing away) when the rest is too close to the machine.
+        move = maxx - (hi - 0.05 * self.planner.scale)
+        step = TravelMove(move, self.machine_x, self.machine_x + move)
+        self.machine_x += move
+        self.steps.append(step)
+        self.q_now = None
+
+    def _screen(self, remaining: Any) -> list[dict[str, Any]]:
+        """The best candidates of the phase's dig types, best first."""
+        kinds = [DigType.DOWNWARD] if self._phase() is DigType.DOWNWARD else list(DigType)
+        found = [b for k in kinds for b in self._screen_kind(remaining, k)]
+        return sorted(found, key=lambda b: -b["score"])[:_N_RANKED]
+
+    def _screen_kind(self, remaining: Any, kind: DigType) -> list[dict[str, Any]]:
+        rig = self.rig
+        cand = _CANDIDATES[kind]
+        pinn = self.planner.pinn
+        s = self.planner.scale
+        m = self.machine_x
+        lo, hi = pinn.cards[kind].domain_min, pinn.cards[kind].domain_max
+        # Every (entry, exit) pose of the grid at once: entries (x, attitude) x exits
+        # (length, rise, attitude); poses out of reach or limits are dropped.
+        xe = np.asarray(self._entry_x_candidates(remaining))
+        H = np.interp(xe, self.grid, self.surface)
+        ea = np.radians(cand.entry_attitude_deg)
+        E_x, E_a = np.meshgrid(xe, ea, indexing="ij")
+        E_h = np.broadcast_to(H[:, None], E_x.shape)
+        qs, ok_s = _batch_ik(rig, E_x.ravel() - m, E_h.ravel(), E_a.ravel())
+        L, R, A = np.meshgrid(
+            np.asarray(cand.length_m) * s,
+            np.asarray(cand.exit_rise_m) * s,
+            np.radians(cand.exit_attitude_deg),
+            indexing="ij",
+        )
+        n_e, n_x = qs.shape[0], L.size
+        ex = (E_x.ravel()[:, None] - L.ravel()[None, :]).ravel()
+        ey = (E_h.ravel()[:, None] + R.ravel()[None, :]).ravel()
+        ea_x = np.broadcast_to(A.ravel()[None, :], (n_e, n_x)).ravel()
+        qe, ok_e = _batch_ik(rig, ex - m, ey, ea_x)
+        X = np.empty((n_e * n_x, 7))
+        X[:, 0:3] = np.repeat(qs, n_x, axis=0)
+        X[:, 3:6] = qe
+        X[:, 6] = np.repeat(E_h.ravel(), n_x)
+        ok = np.repeat(ok_s, n_x) & ok_e
+        ok &= np.all((np.asarray(lo) <= X) & (np.asarray(hi) >= X), axis=1)
+        X = X[ok]
+        if X.shape[0] == 0:
+            return []
+        c_list = np.asarray(cand.c_max)
+        cmax = np.tile(c_list, X.shape[0])
+        X = np.repeat(X, c_list.size, axis=0)
+        Y = pinn.infer(kind, X)
+        n = X.shape[0]
+        inputs = np.zeros((n, 12))
+        inputs[:, 0:7] = X
+        inputs[:, 7] = int(kind)
+        inputs[:, 8:12] = Y
+        out = np.zeros((n, N_OUT))
+        planned = np.zeros((n, 4))
+        path = np.zeros((n, self.planner.verifier.n_samples, 2))
+        for c in sorted(set(cmax.tolist())):
+            sel = np.flatnonzero(cmax == c)
+            o = np.zeros((sel.size, N_OUT))
+            pl = np.zeros((sel.size, 4))
+            pa = np.zeros((sel.size, path.shape[1], 2))
+            self.planner.verifier.plan_into(
+                np.ascontiguousarray(inputs[sel]), o, pl, fill_c_range(c), pa
+            )
+            out[sel], planned[sel], path[sel] = o, pl, pa
+        cap_area = self.v_max_m3 / self.width_m
+        min_useful = MIN_USEFUL_FRACTION * self.design_area
+        path[:, :, 0] += m
+        ok = (out[:, COL_TOTAL] <= 0.0) & (self._overdig_many(path) <= OVERDIG_LIMIT_M)
+        found: list[dict[str, Any]] = []
+        for i in np.flatnonzero(ok):
+            total, useful = self._cut_areas(lower_envelope(path[i], self.grid))
+            if total > cap_area or useful < min_useful:
+                continue
+            found.append(
+                {
+                    "kind": kind,
+                    "x7": X[i],
+                    "c_max": cmax[i],
+                    "useful": useful,
+                    "total": total,
+                    "score": useful - 2.0 * (total - useful) - 1e-4 * out[i, COL_T_S],
+                }
+            )
+        return sorted(found, key=lambda b: -b["score"])[:_N_RANKED]
+
+    # -- finishing passes ---------------------------------------------------------------------
+
+    def _finishing(self, remaining: Any) -> list[dict[str, Any]]:
+        """The next profile pass, or None when none is left or none removes enough.
+
+        Roughing digs follow their own (PINN) path shape, which cannot reach into the design's
+        corners; two passes then trace the profile: the far wall and the bottom (a downward
+        dig), and the bottom and the near wall (a backward dig). Each is a sextic of the same
+        family, its entry/exit attitudes and bulge K fitted by least squares to the profile
+        polyline (shifted inwards until the over-dig limit holds), retimed and verified by the
+        kernel like every dig, except for the one-shot volume window: V_p is defined against
+        a flat surface at H, which a finishing pass does not have; the bucket capacity is
+        enforced on the real cut instead.
+        """
+        t = self.task
+        g = self.ground_y
+        xf, xn = t.start_x_m, t.start_x_m - t.length_m
+        A = (xf, g)
+        B = (xf - t.depth_m / math.tan(t.beta1_rad), self.bottom_y)
+        C = (xn + t.depth_m / math.tan(t.beta2_rad), self.bottom_y)
+        D = (xn, g)
+        # The bottom pass starts 2 mm up so that it enters descending (theta_p >= 0).
+        lift = np.array([0.0, 0.002])
+        # A sextic follows a straight line within a few mm over ~0.3 m (scale model): longer
+        # bottoms are cut in equal pieces, far to near.
+        n_bottom = max(1, math.ceil((B[0] - C[0]) / (_PASS_LENGTH_M * self.planner.scale)))
+        cuts = [
+            np.asarray(B) + (np.asarray(C) - np.asarray(B)) * k / n_bottom
+            for k in range(n_bottom + 1)
+        ]
+        passes = [(DigType.DOWNWARD, np.array([A, B]), ((-80.0, -100.0), (-95.0, -120.0)))]
+        passes += [
+            (
+                DigType.BACKWARD,
+                np.array([cuts[k] + lift, cuts[k + 1]]),
+                ((-110.0, -135.0), (-150.0, -175.0)),
+            )
+            for k in range(n_bottom)
+        ]
+        passes.append((DigType.DOWNWARD, np.array([D, C]), ((-80.0, -100.0), (-100.0, -130.0))))
+        while self._finish_index < len(passes):
+            kind, poly, atts = passes[self._finish_index]
+            self._finish_index += 1
+            fit = self._fit_pass(kind, poly, atts)
+            if fit is not None:
+                return [fit]
+        return []
+
+    def _fit_pass(
+        self,
+        kind: DigType,
+        poly: FloatArray,
+        atts: tuple[tuple[float, ...], tuple[float, ...]],
+    ) -> dict[str, Any] | None:
+        from scipy.optimize import least_squares
+
+        rig = self.rig
+        m = self.machine_x
+        n = self.planner.verifier.n_samples
+        s_grid = np.linspace(0.0, 1.0, n)
+        qf = 10 * s_grid**3 - 15 * s_grid**4 + 6 * s_grid**5
+        pf = s_grid**3 * (1 - s_grid) ** 3
+        seg = np.diff(poly, axis=0)
+        lengths = np.hypot(seg[:, 0], seg[:, 1])
+        dense = np.concatenate(
+            [
+                poly[i]
+                + np.linspace(0, 1, max(int(lengths[i] / 0.01), 2), endpoint=False)[:, None]
+                * seg[i]
+                for i in range(seg.shape[0])
+            ]
+            + [poly[-1:]]
+        )
+        normals = np.stack([-seg[:, 1], seg[:, 0]], axis=1) / lengths[:, None]
+        # Inside the design is to the left of A->B->C for downward (clockwise?): pick the sign
+        # that makes the design's centroid positive.
+        cx, cy = self.design.centroid.x, self.design.centroid.y
+        sign = np.sign((cx - poly[:-1, 0]) * normals[:, 0] + (cy - poly[:-1, 1]) * normals[:, 1])
+        normals = normals * sign[:, None]
+
+        def seg_dist(P: FloatArray) -> FloatArray:
+            # signed distance of points to the polyline (positive inside the design)
+            best = np.full(P.shape[0], np.inf)
+            signed = np.zeros(P.shape[0])
+            for i in range(seg.shape[0]):
+                a = poly[i]
+                tt = np.clip(((P - a) @ seg[i]) / lengths[i] ** 2, 0.0, 1.0)
+                proj = a + tt[:, None] * seg[i]
+                d = np.hypot(P[:, 0] - proj[:, 0], P[:, 1] - proj[:, 1])
+                sd = np.where((P - a) @ normals[i] >= 0, d, -d)
+                closer = d < best
+                best = np.where(closer, d, best)
+                signed = np.where(closer, sd, signed)
+            return signed
+
+        margin = math.radians(0.5)
+        lo_q, hi_q = rig.q_min_rad + margin, rig.q_max_rad - margin
+
+        def build(z: FloatArray, offset: float) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+            a_start = poly[0] + offset * normals[0]
+            a_end = poly[-1] + offset * normals[-1]
+            try:
+                qs = kinematics.inverse(rig, a_start[0] - m, a_start[1], z[0], check_limits=False)
+                qe = kinematics.inverse(rig, a_end[0] - m, a_end[1], z[1], check_limits=False)
+            except KinematicsError:
+                return None
+            q = qs + np.outer(qf, qe - qs) + np.outer(pf, z[2:5])
+            tip = kinematics.forward(rig, q)[:, :2]
+            tip[:, 0] += m
+            return qs, qe, np.concatenate([tip, q], axis=1)
+
+        def residuals(z: FloatArray, offset: float) -> FloatArray:
+            b = build(z, offset)
+            if b is None:
+                return np.full(n + dense.shape[0] + 3 * n + 1, 1.0)
+            tip = b[2][:, :2]
+            q = b[2][:, 2:]
+            d_path = seg_dist(tip) - offset  # path samples against the shifted profile
+            r1 = d_path + 20.0 * np.minimum(d_path + offset + 0.003, 0.0)
+            # every profile point near the path (coverage)
+            dd = np.min(
+                np.hypot(dense[:, None, 0] - tip[None, :, 0], dense[:, None, 1] - tip[None, :, 1]),
+                axis=1,
+            )
+            r2 = dd - offset
+            lim = np.maximum(q - hi_q, 0.0) + np.maximum(lo_q - q, 0.0)
+            # theta_p: the entry direction J(q0) (10 D + K) must point into the range of the type.
+            d0 = kinematics.jacobian(rig, b[0])[:2] @ (10.0 * (b[1] - b[0]) + z[2:5])
+            ang = math.atan2(-d0[1], abs(d0[0]))
+            tp_lo, tp_hi = oneshot.theta_p_range(self.rig.planning, int(kind))
+            r3 = 50.0 * (max(0.0, float(tp_lo) + 0.01 - ang) + max(0.0, ang - float(tp_hi) + 0.01))
+            return np.concatenate([r1, 0.5 * r2, 10.0 * lim.ravel(), [r3]])
+
+        best_fit = None
+        for offset in (0.0, 0.002, 0.004, 0.007):
+            for a0 in atts[0]:
+                for a1 in atts[1]:
+                    z0 = np.array([math.radians(a0), math.radians(a1), 0.0, 0.0, 0.0])
+                    sol = least_squares(
+                        residuals,
+                        z0,
+                        args=(offset,),
+                        max_nfev=40,
+                        x_scale=[0.3, 0.3, 0.5, 0.5, 0.5],
+                    )
+                    b = build(sol.x, offset)
+                    if b is None:
+                        continue
+                    qs, qe, pq = b
+                    over = self.overdig_of(pq[:, :2])
+                    if over > OVERDIG_LIMIT_M:
+                        continue
+                    if best_fit is None or sol.cost < best_fit[0]:
+                        best_fit = (sol.cost, qs, qe, sol.x[2:5].copy(), pq[:, :2])
+                    if sol.cost < _GOOD_FIT_COST:
+                        break
+                if best_fit is not None and best_fit[0] < _GOOD_FIT_COST:
+                    break
+            if best_fit is not None:
+                break
+        if best_fit is None:
+            return None
+        _, qs, qe, K, tip = best_fit
+        # The verifier's soil model takes depth below a flat H; here the material over the
+        # path is a thin layer, so H is the level of the deepest real cut: the real depth at
+        # the path's lowest point, the layer's thickness elsewhere approximated by it.
+        depth = np.interp(tip[:, 0], self.grid, self.surface) - tip[:, 1]
+        H = float(np.min(tip[:, 1]) + max(0.0, float(np.max(depth))))
+        T0 = 0.5 * (self.rig.planning.t_min_s + self.rig.planning.t_max_s)
+        a6 = -K / T0**6
+        row = pack_inputs(
+            qs[None], qe[None], np.array([H]), np.array([int(kind)]), a6[None], np.array([T0])
+        )
+        out = np.zeros((1, N_OUT))
+        retimed = np.zeros((1, 4))
+        self.planner.verifier.retime_into(row, out, retimed)
+        if not np.isfinite(retimed[0, 3]) or _total_without_volume(out[0]) > 0.0:
+            return None
+        total, useful = self._cut_areas(lower_envelope(tip, self.grid))
+        if (
+            total > self.v_max_m3 / self.width_m
+            or useful < 0.1 * MIN_USEFUL_FRACTION * self.design_area
+        ):
+            return None
+        x7 = np.concatenate([qs, qe, [H]])
+        return {
+            "kind": kind,
+            "x7": x7,
+            "finishing": (tuple(float(v) for v in retimed[0, 0:3]), float(retimed[0, 3])),
+            "c_max": 1.0,
+            "useful": useful,
+            "total": total,
+            "score": useful,
+        }
+
+    def _plan_chosen(self, best: dict[str, Any], select_us: float) -> PlannedDig:
+        x7 = best["x7"]
+        problem = Problem(
+            q_start_rad=(float(x7[0]), float(x7[1]), float(x7[2])),
+            q_end_rad=(float(x7[3]), float(x7[4]), float(x7[5])),
+            surface_y_m=float(x7[6]),
+            dig_type=best["kind"],
+        )
+        finishing = best.get("finishing")
+        if finishing is not None:
+            res = OneShotResult(finishing[0], finishing[1], np.zeros(N_OUT), 0.0, "profile_pass")
+        else:
+            res = self.planner.oneshot.plan_dig(problem, float(best["c_max"]))
+        row = pack_inputs(
+            np.array([problem.q_start_rad]),
+            np.array([problem.q_end_rad]),
+            np.array([problem.surface_y_m]),
+            np.array([int(problem.dig_type)]),
+            np.array([res.a6]),
+            np.array([res.T_s]),
+        )
+        out = np.zeros((1, N_OUT))
+        path = np.zeros((1, self.planner.verifier.n_samples, 2))
+        self.planner.verifier.evaluate_into(row, out, path=path)
+        violation = _total_without_volume(out[0]) if finishing else out[0, COL_TOTAL]
+        if violation > 0.0:
+            raise PlanningError("one-shot plan fails verification; nothing was planned")
+        p = path[0].copy()
+        p[:, 0] += self.machine_x
+        over = self.overdig_of(p)
+        total, useful = self._cut_areas(lower_envelope(p, self.grid))
+        if over > OVERDIG_LIMIT_M or total > self.v_max_m3 / self.width_m:
+            raise PlanningError(
+                f"the {self.planner.oneshot.name} plan of dig {len(self.digs) + 1} over-digs "
+                f"{over * 1e3:.1f} mm or exceeds the bucket ({total * self.width_m * 1e3:.2f} L)"
+            )
+        # The record: polygon areas (the height field above only screened and checked).
+        swept = _swept_polygon(p, self.grid, self.top_y)
+        if swept is not None:
+            total = float(self.material.intersection(swept).area)
+            useful = float(self.remaining_design().intersection(swept).area)
+        return PlannedDig(
+            index=len(self.digs),
+            problem=problem,
+            a6=res.a6,
+            T_s=res.T_s,
+            machine_x_m=self.machine_x,
+            tip_path_m=p,
+            volume_m3=total * self.width_m,
+            design_volume_m3=useful * self.width_m,
+            predicted_volume_m3=float(out[0, COL_VOLUME_M3]),
+            energy_j=float(out[0, COL_ENERGY_J]),
+            theta_p_rad=float(out[0, COL_THETA_P_RAD]),
+            overdig_m=over,
+            plan_us=res.plan_us,
+            select_us=select_us,
+            planner=self.planner.oneshot.name,
+            status=res.status,
+            evaluation=out[0].copy(),
+        )
+
+    # -- recording ----------------------------------------------------------------------------
+
+    def record(self, dig: PlannedDig, measured_path_m: ArrayLike) -> float:
+        """Update the material from the executed dig's measured tip path (work-site frame).
+
+        Returns:
+            The volume (m^3) the measured path removed.
+
+        Raises:
+            PlanningError: ``dig`` is not the pending dig, or the path is not a finite
+                ``(n >= 2, 2)`` array.
+        """
+        if self.pending is None or dig is not self.pending:
+            raise PlanningError("record() takes the dig next_dig() returned last")
+        path = np.asarray(measured_path_m, dtype=np.float64)
+        if path.ndim != 2 or path.shape[1] != 2 or path.shape[0] < 2:
+            raise PlanningError(f"measured path must have shape (n >= 2, 2); got {path.shape}")
+        if not np.all(np.isfinite(path)):
+            raise PlanningError("measured path has non-finite values")
+        before = float(self.material.area)
+        swept = _swept_polygon(path, self.grid, self.top_y)
+        if swept is not None:
+            self.material = self.material.difference(swept)
+        env = lower_envelope(path, self.grid)
+        self.surface = np.minimum(self.surface, env)
+        removed = (before - float(self.material.area)) * self.width_m
+        self._append_transitions(dig)
+        self.steps.append(dig)
+        self.digs.append(dig)
+        self.q_now = np.asarray(dig.problem.q_end_rad)
+        self.pending = None
+        return removed
+
+    def _append_transitions(self, dig: PlannedDig) -> None:
+        """Dump the previous load and approach this dig's entry (ruckig, rest to rest)."""
+        rig = self.rig
+        s = self.planner.scale
+        q_entry = np.asarray(dig.problem.q_start_rad)
+        start = kinematics.forward(rig, q_entry)
+        moves: list[tuple[str, FloatArray, FloatArray]] = []
+        if self.q_now is not None:
+            end = kinematics.forward(rig, self.q_now)
+            lift = _safe_ik(rig, end[0], self.ground_y + _LIFT_CLEAR_M * s, end[2])
+            moves.append(("lift_out", self.q_now, lift))
+            moves.append(("dump", lift, self.planner._dump_q))
+            q_prev = self.planner._dump_q
+        else:
+            q_prev = self.planner._dump_q
+        approach = _safe_ik(rig, start[0], start[1] + _APPROACH_M * s, start[2])
+        moves.append(("approach", q_prev, approach))
+        moves.append(("enter", approach, q_entry))
+        for kind, qa, qb in moves:
+            traj, duration = _ruckig_move(rig, qa, qb)
+            self.steps.append(
+                Transition(
+                    kind=kind,
+                    q_from_rad=(float(qa[0]), float(qa[1]), float(qa[2])),
+                    q_to_rad=(float(qb[0]), float(qb[1]), float(qb[2])),
+                    duration_s=duration,
+                    machine_x_m=self.machine_x,
+                    penetration_m=self._penetration(traj, duration),
+                )
+            )
+
+    def _penetration(self, traj: Any, duration: float) -> float:
+        ts = np.linspace(0.0, duration, 60)
+        q = np.array([traj.at_time(float(t))[0] for t in ts])
+        tip = kinematics.forward(self.rig, q)
+        x = tip[:, 0] + self.machine_x
+        surf = np.interp(x, self.grid, self.surface)
+        return float(max(0.0, np.max(surf - tip[:, 1]) - 1e-3))
+
+    def finish(self, plan_total_us: float) -> TrenchPlan:
+        """The frozen plan of everything recorded so far."""
+        dug = self.initial.difference(self.material)
+        sym = dug.symmetric_difference(self.design)
+        coverage = float(sym.area) / self.design_area
+        # Over-dig: the farthest vertex of the dug region outside the (convex) design, which
+        # is where the largest distance of a polygon from a convex set lies. Zero-area slivers
+        # that polygon differences leave along the ground line are not material.
+        over = dug.difference(self.design)
+        parts = [g for g in getattr(over, "geoms", [over]) if g.area > 1e-10]
+        over_max = 0.0
+        if parts:
+            coords = np.concatenate([shapely.get_coordinates(g) for g in parts])
+            d = shapely.distance(shapely.points(coords), self.design)
+            over_max = float(np.max(d))
+        final_surface = np.stack([self.grid, self.surface], axis=1)
+        removed = (float(self.initial.area) - float(self.material.area)) * self.width_m
+        return TrenchPlan(
+            task=self.task,
+            rig=self.rig.name,
+            planner=self.planner.oneshot.name,
+            steps=tuple(self.steps),
+            digs=tuple(self.digs),
+            design=self.design,
+            dug=dug,
+            final_surface_m=final_surface,
+            coverage_error=coverage,
+            overdig_max_m=over_max,
+            removed_m3=removed,
+            design_m3=self.design_area * self.width_m,
+            plan_total_us=plan_total_us,
+        )
+
+
+# Candidates kept per screening, tried in order when the one-shot planner's plan fails.
+_N_RANKED = 4
+# Upper bound on profile passes (far wall, bottom pieces, near wall).
+_N_MAX_PASSES = 16
+# A profile fit this good (least-squares cost, m^2: ~1 mm RMS) ends the search of starts.
+_GOOD_FIT_COST = 2e-4
+# Longest straight profile pass (scale model, m).
+_PASS_LENGTH_M = 0.30
+_VOLUME_COLUMNS = (
+    oneshot.CONSTRAINT_NAMES.index("volume_min"),
+    oneshot.CONSTRAINT_NAMES.index("volume_max"),
+)
+
+
+def _total_without_volume(row: FloatArray) -> float:
+    """Total violation of a verifier row without the one-shot volume window."""
+    v = row[0 : len(oneshot.CONSTRAINT_NAMES)].copy()
+    v[list(_VOLUME_COLUMNS)] = 0.0
+    return float(np.sum(np.maximum(v, 0.0)))
+
+
+def _batch_ik(
+    rig: Rig, x: FloatArray, y: FloatArray, attitude: FloatArray
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Inverse kinematics of many poses; rows out of reach or out of limits are flagged."""
+    l1, l2, l3 = (float(v) for v in rig.lengths_m)
+    px = x - l3 * np.cos(attitude)
+    py = y - l3 * np.sin(attitude)
+    r = np.hypot(px, py)
+    reach = (r < l1 + l2 - 1e-9) & (r > abs(l1 - l2) + 1e-9)
+    q = np.zeros((x.shape[0], 3))
+    if np.any(reach):
+        q[reach] = kinematics.inverse(rig, x[reach], y[reach], attitude[reach], check_limits=False)
+    ok = reach & np.all((q >= rig.q_min_rad) & (q <= rig.q_max_rad), axis=1)
+    return q, ok
+
+
+def _safe_ik(rig: Rig, x: float, y: float, attitude: float) -> FloatArray:
+    """IK of a transition pose, trying attitudes nearer the middle when the first fails."""
+    for att in (attitude, attitude + 0.3, attitude - 0.3, -math.pi / 2):
+        try:
+            return kinematics.inverse(rig, x, y, att)
+        except KinematicsError:
+            continue
+    raise PlanningError(f"no reachable transition pose at x={x:.3f} m, y={y:.3f} m")
+
+
+def plan_task(rig: Rig, task: TrenchTask | str, planner: str = "pinn", **kwargs: Any) -> TrenchPlan:
+    """Convenience: load ``task`` if given by name/path and plan it."""
+    t = load_task(task, rig) if isinstance(task, str) else task
+    return TrenchPlanner(rig, planner, **kwargs).plan(t)
+
+
+__all__: Sequence[str] = (
+    "BUILTIN_TASKS",
+    "OVERDIG_LIMIT_M",
+    "OneShotPlanner",
+    "OneShotResult",
+    "PinnOneShot",
+    "PlannedDig",
+    "PsoOneShot",
+    "Transition",
+    "TravelMove",
+    "TrenchPlan",
+    "TrenchPlanner",
+    "TrenchSession",
+    "TrenchTask",
+    "design_polygon",
+    "load_task",
+    "lower_envelope",
+    "make_task",
+    "plan_task",
+    "task_limits",
+)

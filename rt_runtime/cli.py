@@ -784,6 +784,12 @@ def build_parser() -> argparse.ArgumentParser:
     b3.add_argument("--json", action="store_true")
     b3.set_defaults(handler=cmd_bench_plan)
 
+    # The HIL lives outside the runtime (rt_runtime never imports hil_sim); the CLI is the glue.
+    import importlib
+
+    hil_cli = importlib.import_module("hil_sim.cli")
+    hil_cli.add_parser(sub).set_defaults(handler=hil_cli.run)
+
     demo = sub.add_parser("demo", help="the main demonstration")
     demo.add_argument("--rig", default=DEFAULT_RIG)
     demo.add_argument("--json", action="store_true")

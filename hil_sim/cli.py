@@ -1,0 +1,152 @@
+"""``excavator-rt hil``: plan a trench task, execute it through the master against the HIL, report.
+
+Role: the command-line edge of :mod:`hil_sim.scenario` (mm, Wh and percent appear only here and
+in the report). ``rt_runtime.cli`` wires it in with :func:`add_parser` and :func:`run`::
+
+    excavator-rt hil --task A [--rig scale_model] [--realtime] [--trace FILE.blf|.asc]
+                     [--no-feedforward] [--max-digs N] [--json] [--plot DIR]
+                     [--inject KIND:AXIS:AT_S ...]
+
+Exit status: 0 when the run finished, 1 when a fault stopped it (the report says which), 2 for
+a configuration or planning error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from typing import Any
+
+from hil_sim.scenario import FaultSpec, Scenario, run_scenario
+from hil_sim.sim import FaultKind
+from rt_runtime.errors import ExcavatorRtError
+
+__all__ = ["add_parser", "format_report", "parse_fault", "run"]
+
+
+def parse_fault(text: str) -> FaultSpec:
+    """``KIND:AXIS:AT_S`` (e.g. ``following_error:stick:2.5``) as a :class:`FaultSpec`.
+
+    Raises:
+        argparse.ArgumentTypeError: Unknown kind or axis, or a bad time.
+    """
+    parts = text.split(":")
+    kinds = ", ".join(k.name.lower() for k in FaultKind)
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"--inject {text!r}: expected KIND:AXIS:AT_S ({kinds})")
+    kind, axis, at = parts
+    try:
+        fault_kind = FaultKind[kind.upper()]
+    except KeyError:
+        raise argparse.ArgumentTypeError(f"--inject kind {kind!r}; allowed: {kinds}") from None
+    if axis not in ("boom", "stick", "bucket"):
+        raise argparse.ArgumentTypeError(f"--inject axis {axis!r}; allowed: boom, stick, bucket")
+    try:
+        at_s = float(at)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--inject time {at!r} is not a number") from None
+    if not (math.isfinite(at_s) and at_s >= 0.0):
+        raise argparse.ArgumentTypeError(f"--inject time {at_s} must be >= 0 s")
+    return FaultSpec(fault_kind, axis, at_s)
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add the ``hil`` sub-command to an ``argparse`` sub-parser set; returns its parser."""
+    p: argparse.ArgumentParser = subparsers.add_parser(
+        "hil",
+        help="execute a trench task against the HIL and report tracking",
+        description="Plan a trench task, execute it through the CAN master against the emulated "
+        "drives and arm (HIL), and print the tracking report.",
+    )
+    p.add_argument("--task", default="A", help="built-in task A..D or a task TOML file")
+    p.add_argument("--rig", default="scale_model", help="rig profile name or TOML file")
+    p.add_argument(
+        "--realtime",
+        action="store_true",
+        help="HIL in its own process at wall-clock speed over 127.0.0.1",
+    )
+    p.add_argument(
+        "--trace", default=None, metavar="FILE", help="write the CAN trace (.blf or .asc)"
+    )
+    p.add_argument("--no-feedforward", action="store_true", help="velocity offset 0x60B1 = 0")
+    p.add_argument("--max-digs", type=int, default=None, help="stop after N digs")
+    p.add_argument("--period-ms", type=float, default=2.0, help="SYNC period (ms)")
+    p.add_argument("--planner", default="pinn", choices=("pinn", "pso"))
+    p.add_argument(
+        "--inject",
+        action="append",
+        type=parse_fault,
+        default=[],
+        metavar="KIND:AXIS:AT_S",
+        help="inject a fault (repeatable)",
+    )
+    p.add_argument("--json", action="store_true", help="print the report as one JSON object")
+    p.add_argument("--plot", default=None, metavar="DIR", help="write figures (Yao Fig. 17-21)")
+    return p
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """Human-readable summary of a report."""
+    lines = [
+        f"HIL {report['transport']}: task {report['task']} on {report['rig']}, feed-forward "
+        f"{'on' if report['feedforward'] else 'off'}: {report['status']}"
+        + (f" ({report['fault']})" if report.get("fault") else ""),
+        f"  digs {len(report['digs'])}, simulated {report['sim_s']:.1f} s, wall "
+        f"{report['wall_s']:.1f} s, overruns {report['overruns']}",
+        "  cylinder tracking (truth / reported):",
+    ]
+    for axis, fig in report["tracking"].items():
+        rep = fig["reported"]
+        lines.append(
+            f"    {axis:6s} max {fig['max_mm']:.3f} / {rep['max_mm']:.3f} mm, "
+            f"rms {fig['rms_mm']:.3f} / {rep['rms_mm']:.3f} mm"
+        )
+    lines.append(f"  tip error max {report['tip_error_max_mm']:.2f} mm")
+    if "coverage_error" in report:
+        lines.append(
+            f"  profile: coverage error {report['coverage_error']:.3f}, over-dig max "
+            f"{report['overdig_max_mm']:.2f} mm"
+        )
+    lines.append(f"  energy {report['energy_Wh']:.3f} Wh")
+    can = report.get("can", {})
+    if "bus_load" in can:
+        load = can["bus_load"]
+        lines.append(
+            f"  bus load {load['nominal']:.1%} nominal, {load['worst_case']:.1%} worst case"
+        )
+    if "sync_rtt_us" in can:
+        rtt = can["sync_rtt_us"]
+        lines.append(f"  SYNC -> TPDO round trip p50 {rtt['p50']:.0f} us, p99 {rtt['p99']:.0f} us")
+    if report.get("trace"):
+        lines.append(f"  trace {report['trace']}")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the ``hil`` sub-command; returns the exit status."""
+    scenario = Scenario(
+        task=args.task,
+        rig=args.rig,
+        feedforward=not args.no_feedforward,
+        realtime=args.realtime,
+        trace_path=args.trace,
+        max_digs=args.max_digs,
+        faults=tuple(args.inject),
+        period_s=args.period_ms * 1e-3,
+        planner=args.planner,
+        plot_dir=args.plot,
+    )
+    try:
+        report = run_scenario(scenario)
+    except ExcavatorRtError as exc:
+        if args.json:
+            print(json.dumps({"status": "error", "error": str(exc)}))
+        else:
+            print(f"excavator-rt hil: {exc}")
+        return 2
+    report.pop("_frames", None)
+    print(json.dumps(report) if args.json else format_report(report))
+    if report["status"] == "planning_error":
+        return 2
+    return 0 if report["status"] == "done" else 1

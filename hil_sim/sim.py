@@ -1,0 +1,523 @@
+"""The HIL on a python-can bus: plant, terrain, three drive nodes and the VCU, lockstep transport.
+
+Role: emulate the rig behind the CAN bus (DESIGN.md "Loop, HIL and time"). :class:`HilCore` is the
+transport-free part: it takes each frame the bus carries with its time, answers it through the
+drive nodes (:mod:`hil_sim.drives`) and the VCU model, advances the plant in servo sub-steps, and
+records the truth (true strokes, joint angles, tip, machine travel) at every SYNC. Two transports
+drive it:
+
+* :class:`LockstepHil` (here): one process, python-can's ``virtual`` interface. The HIL has its own
+  bus end; the master gets :attr:`LockstepHil.master_bus`, a virtual bus on the same channel that
+  hands control to the HIL after every frame it sends (:meth:`LockstepHil.pump`) and whose
+  ``recv(timeout)`` with nothing queued advances the simulated clock by ``timeout`` instead of
+  waiting. SDO, NMT and heartbeats are answered at once; on each SYNC the HIL answers with the
+  TPDOs (sampled at the SYNC) and then advances the plant by exactly one period in servo
+  sub-steps. Time-triggered frames (heartbeats, emergencies) go out whenever the simulated clock
+  moves (:class:`LockstepClock`). Single-threaded and free of wall-clock reads, so two runs give
+  identical traces.
+* :mod:`hil_sim.realtime`: the same core in its own process at wall-clock speed, bridged over
+  127.0.0.1.
+
+Frames of the whole bus can be written as a BLF or ASC trace with python-can's loggers
+(``trace_path``); timestamps are the HIL's clock (simulated seconds in lockstep).
+
+Frames: the world frame of the terrain is the work site (the arm frame of the machine's first
+position); the machine's travel (the VCU's travel position) shifts the arm frame by
+``machine_x_m``, so the soil law sees the tip at ``x_arm + machine_x_m``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import IntEnum
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+from can.interfaces.virtual import VirtualBus
+from numpy.typing import NDArray
+
+from firmware_models.drive import DriveFirmware, Frame
+from firmware_models.vcu import VcuModel
+from hil_sim.drives import DriveNode
+from hil_sim.plant import ArmPlant, TipLoad
+from hil_sim.terrain import Terrain
+from rt_runtime import kinematics
+from rt_runtime.errors import ConfigurationError
+from rt_runtime.rig import Rig
+
+__all__ = [
+    "FaultKind",
+    "HilCore",
+    "LockstepBus",
+    "LockstepClock",
+    "LockstepHil",
+    "Truth",
+    "open_trace",
+]
+
+FloatArray = NDArray[np.float64]
+
+COB_SYNC = 0x080
+#: The master's heartbeat COB-ID (node 0x7E), which drives consume.
+COB_MASTER_HEARTBEAT = 0x700 + 0x7E
+_AXES = ("boom", "stick", "bucket")
+_channel_numbers = itertools.count()
+
+
+class FaultKind(IntEnum):
+    """Faults a scenario injects into one drive node (see :mod:`hil_sim.drives`)."""
+
+    #: The axis jams (effort 0.0, braked): the drive's own following-error check trips (0x8611).
+    FOLLOWING_ERROR = 1
+    #: The drive stops receiving the master's heartbeat: its consumer trips (EMCY 0x8130).
+    HEARTBEAT_LOSS = 2
+    #: The drive stops transmitting: the master's heartbeat consumer trips.
+    NODE_SILENT = 3
+
+
+class _ShiftedLoad:
+    """A tip load in the work-site frame seen from the arm frame of a travelling machine."""
+
+    __slots__ = ("inner", "offset_m")
+
+    def __init__(self, inner: TipLoad) -> None:
+        self.inner = inner
+        self.offset_m = 0.0
+
+    def tip_load(
+        self, x_m: float, y_m: float, vx_m_s: float, vy_m_s: float
+    ) -> tuple[float, float, float, float, float, float]:
+        return self.inner.tip_load(x_m + self.offset_m, y_m, vx_m_s, vy_m_s)
+
+
+@dataclass(frozen=True, slots=True)
+class Truth:
+    """The plant's state at every SYNC the HIL received (before the period's motion).
+
+    Attributes:
+        sync_index: 1-based count of the SYNC (the master's ``Feedback.sync_count``), ``(n,)``.
+        t_s: HIL clock at the SYNC, ``(n,)``.
+        stroke_m: True cylinder strokes, ``(n, 3)``.
+        q_rad: True joint angles, ``(n, 3)``.
+        tip_xy_m: True tip position in the work-site frame, ``(n, 2)``.
+        machine_x_m: Machine travel, ``(n,)``.
+        power_w: Drive power (non-regenerating) in the period before the SYNC, ``(n,)``.
+        energy_j: Energy drawn so far (plant's Yao W_E reading).
+    """
+
+    sync_index: NDArray[np.int64]
+    t_s: FloatArray
+    stroke_m: FloatArray
+    q_rad: FloatArray
+    tip_xy_m: FloatArray
+    machine_x_m: FloatArray
+    power_w: FloatArray
+    energy_j: float
+
+    def to_npz_dict(self) -> dict[str, Any]:
+        """Arrays for ``numpy.savez`` (the real-time HIL hands its truth over in a file)."""
+        return {
+            "sync_index": self.sync_index,
+            "t_s": self.t_s,
+            "stroke_m": self.stroke_m,
+            "q_rad": self.q_rad,
+            "tip_xy_m": self.tip_xy_m,
+            "machine_x_m": self.machine_x_m,
+            "power_w": self.power_w,
+            "energy_j": np.array(self.energy_j),
+        }
+
+    @classmethod
+    def from_npz(cls, data: Any) -> Truth:
+        """The inverse of :meth:`to_npz_dict` (``data`` from ``numpy.load``)."""
+        return cls(
+            sync_index=np.asarray(data["sync_index"], dtype=np.int64),
+            t_s=np.asarray(data["t_s"], dtype=np.float64),
+            stroke_m=np.asarray(data["stroke_m"], dtype=np.float64).reshape(-1, 3),
+            q_rad=np.asarray(data["q_rad"], dtype=np.float64).reshape(-1, 3),
+            tip_xy_m=np.asarray(data["tip_xy_m"], dtype=np.float64).reshape(-1, 2),
+            machine_x_m=np.asarray(data["machine_x_m"], dtype=np.float64),
+            power_w=np.asarray(data["power_w"], dtype=np.float64),
+            energy_j=float(data["energy_j"]),
+        )
+
+
+def open_trace(path: str | Path) -> can.Listener:
+    """A python-can logger for ``path`` (``.blf`` or ``.asc``).
+
+    Raises:
+        ConfigurationError: Another suffix.
+    """
+    suffix = Path(path).suffix.lower()
+    if suffix not in (".blf", ".asc"):
+        raise ConfigurationError(f"trace file {path}: suffix must be .blf or .asc, not {suffix!r}")
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    logger: can.Listener = can.Logger(str(path))
+    return logger
+
+
+class HilCore:
+    """Plant, terrain, drive nodes and VCU behind one bus (transport-free, clock-free).
+
+    Args:
+        rig: The rig simulated (drives, actuators, cylinders, node ids).
+        q0_rad: Initial joint angles ``(3,)``.
+        terrain: Material the bucket cuts (work-site frame), or None for a free arm.
+        period_s: SYNC period; the lockstep transport advances the plant by it per SYNC.
+        vcu: Put the VCU model (travel and swing) on the bus.
+
+    Attributes:
+        plant: The arm.
+        terrain: The terrain (or None).
+        nodes: Drive nodes in axis order.
+        vcu: The VCU model or None.
+        sync_count: SYNCs received.
+        frames: Every frame on the bus as ``(arbitration id, data)`` in bus order, when
+            ``keep_frames`` was set (the determinism test compares these).
+
+    Raises:
+        ConfigurationError: Bad pose, rig or period.
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        q0_rad: FloatArray | tuple[float, float, float],
+        terrain: Terrain | None = None,
+        *,
+        period_s: float = 0.002,
+        vcu: bool = True,
+        keep_frames: bool = False,
+    ) -> None:
+        if not (math.isfinite(period_s) and period_s > 0.0):
+            raise ConfigurationError(f"period_s {period_s} must be finite and > 0")
+        self.rig = rig
+        self.period_s = period_s
+        self.terrain = terrain
+        self._load = _ShiftedLoad(terrain.soil_model(rig)) if terrain is not None else None
+        self.plant = ArmPlant(rig, np.asarray(q0_rad, dtype=np.float64), soil=self._load)
+        ids = dict(rig.can.node_ids)
+        stroke0 = self.plant.stroke_m
+        self.nodes = tuple(
+            DriveNode(
+                DriveFirmware(ids[name], rig, name, initial_position_m=float(stroke0[axis])),
+                axis,
+            )
+            for axis, name in enumerate(_AXES)
+        )
+        self.vcu = VcuModel.from_rig(rig) if vcu else None
+        self.sync_count = 0
+        self.keep_frames = keep_frames
+        self.frames: list[tuple[int, bytes]] = []
+        self.trace: can.Listener | None = None
+        self._servo_dt_s = rig.drives.servo_period_s
+        self._sync_index: list[int] = []
+        self._t: list[float] = []
+        self._stroke: list[tuple[float, float, float]] = []
+        self._q: list[tuple[float, float, float]] = []
+        self._machine_x: list[float] = []
+        self._power: list[float] = []
+        self._energy_at_sync = self.plant.energy_j
+        self._dt_since_sync = 0.0
+
+    # -- frames ---------------------------------------------------------------------------------
+
+    @property
+    def machine_x_m(self) -> float:
+        """The machine's travel from its first position (the VCU's travel position)."""
+        return self.vcu.travel_position_m if self.vcu is not None else 0.0
+
+    def log(self, arbitration_id: int, data: bytes, t_s: float, *, is_rx: bool) -> None:
+        """Record one bus frame (trace file and ``frames``)."""
+        if self.keep_frames:
+            self.frames.append((arbitration_id, bytes(data)))
+        if self.trace is not None:
+            self.trace.on_message_received(
+                can.Message(
+                    timestamp=t_s,
+                    arbitration_id=arbitration_id,
+                    is_extended_id=False,
+                    data=data,
+                    is_rx=is_rx,
+                    channel=0,
+                )
+            )
+
+    def on_frame(self, arbitration_id: int, data: bytes, now_s: float) -> list[Frame]:
+        """One frame from the bus: the truth is sampled on SYNC, then every node answers.
+
+        Returns:
+            The frames the emulated nodes send in reply, in node order.
+        """
+        if arbitration_id == COB_SYNC:
+            self._sample_truth(now_s)
+        out: list[Frame] = []
+        for node in self.nodes:
+            out.extend(node.on_frame(arbitration_id, data, now_s))
+        if self.vcu is not None:
+            out.extend(self.vcu.on_frame(arbitration_id, data, now_s))
+        return out
+
+    def pending_frames(self, now_s: float) -> list[Frame]:
+        """Time supervision of every node at ``now_s``; their due heartbeats and emergencies."""
+        out: list[Frame] = []
+        for node in self.nodes:
+            out.extend(node.pending_frames(now_s))
+        if self.vcu is not None:
+            out.extend(self.vcu.pending_frames(now_s))
+        return out
+
+    # -- time -----------------------------------------------------------------------------------
+
+    def advance(self, dt_s: float) -> None:
+        """Advance drives and plant by ``dt_s`` in servo sub-steps (the last one shorter if
+        ``dt_s`` is not a multiple of the servo period)."""
+        remaining = dt_s
+        plant = self.plant
+        nodes = self.nodes
+        while remaining > 1e-12:
+            h = self._servo_dt_s if remaining > self._servo_dt_s * (1.0 + 1e-9) else remaining
+            s = plant.stroke_m
+            sd = plant.stroke_rate_m_s
+            efforts = [
+                nodes[0].servo_step(h, float(s[0]), float(sd[0])),
+                nodes[1].servo_step(h, float(s[1]), float(sd[1])),
+                nodes[2].servo_step(h, float(s[2]), float(sd[2])),
+            ]
+            if self._load is not None:
+                self._load.offset_m = self.machine_x_m
+            plant.step(h, efforts)
+            if self.vcu is not None:
+                self.vcu.step(h)
+            remaining -= h
+        self._dt_since_sync += dt_s
+
+    def _sample_truth(self, now_s: float) -> None:
+        self.sync_count += 1
+        plant = self.plant
+        s = plant.stroke_m
+        q = plant.q_rad
+        energy = plant.energy_j
+        dt = self._dt_since_sync
+        self._power.append((energy - self._energy_at_sync) / dt if dt > 0.0 else 0.0)
+        self._energy_at_sync = energy
+        self._dt_since_sync = 0.0
+        self._sync_index.append(self.sync_count)
+        self._t.append(now_s)
+        self._stroke.append((float(s[0]), float(s[1]), float(s[2])))
+        self._q.append((float(q[0]), float(q[1]), float(q[2])))
+        self._machine_x.append(self.machine_x_m)
+
+    # -- injection and material -----------------------------------------------------------------
+
+    def inject(self, kind: FaultKind, axis: int) -> None:
+        """Switch a fault on in one drive node, from now on.
+
+        Raises:
+            ValueError: ``axis`` not 0..2.
+        """
+        if not 0 <= axis <= 2:
+            raise ValueError(f"axis must be 0..2 (boom, stick, bucket); got {axis}")
+        faults = self.nodes[axis].faults
+        if kind is FaultKind.FOLLOWING_ERROR:
+            faults.jammed = True
+        elif kind is FaultKind.HEARTBEAT_LOSS:
+            faults.deaf_to = faults.deaf_to | {COB_MASTER_HEARTBEAT}
+        else:
+            faults.silent = True
+
+    def truth(self) -> Truth:
+        """The truth recorded so far."""
+        q = np.array(self._q, dtype=np.float64).reshape(-1, 3)
+        mx = np.array(self._machine_x, dtype=np.float64)
+        tip = kinematics.forward(self.rig, q)[..., :2] if len(q) else np.zeros((0, 2))
+        tip = np.array(tip, dtype=np.float64).reshape(-1, 2)
+        tip[:, 0] += mx
+        return Truth(
+            sync_index=np.array(self._sync_index, dtype=np.int64),
+            t_s=np.array(self._t, dtype=np.float64),
+            stroke_m=np.array(self._stroke, dtype=np.float64).reshape(-1, 3),
+            q_rad=q,
+            tip_xy_m=tip,
+            machine_x_m=mx,
+            power_w=np.array(self._power, dtype=np.float64),
+            energy_j=self.plant.energy_j,
+        )
+
+    def cut(self, sync_from: int, sync_to: int) -> float:
+        """Cut the terrain with the true tip path between two SYNCs (inclusive, 1-based).
+
+        Returns:
+            The volume removed (m^3); 0 without a terrain or with fewer than two samples.
+        """
+        if self.terrain is None:
+            return 0.0
+        idx = np.asarray(self._sync_index, dtype=np.int64)
+        sel = np.flatnonzero((idx >= sync_from) & (idx <= sync_to))
+        if sel.size < 2:
+            return 0.0
+        q = np.array(self._q, dtype=np.float64)[sel]
+        tip = np.array(kinematics.forward(self.rig, q)[..., :2], dtype=np.float64)
+        tip[:, 0] += np.array(self._machine_x)[sel]
+        return self.terrain.cut(tip).volume_m3
+
+
+class LockstepClock:
+    """Simulated seconds, advanced only by sleeping (``sleep_until``) or an empty ``recv``.
+
+    Args:
+        on_advance: Called with the new time whenever the clock moves (the HIL's supervision).
+    """
+
+    realtime = False
+
+    def __init__(self, on_advance: Callable[[float], None]) -> None:
+        self._now = 0.0
+        self._on_advance = on_advance
+
+    def now(self) -> float:
+        """Current simulated time (s)."""
+        return self._now
+
+    def sleep_until(self, t_s: float) -> None:
+        """Move the clock to ``t_s`` (no-op if it is already there or later)."""
+        if t_s > self._now:
+            self._now = t_s
+            self._on_advance(t_s)
+
+
+class LockstepBus(VirtualBus):
+    """The master's end of the lockstep bus: a virtual bus that lets the HIL run after each send.
+
+    ``recv(timeout)`` never blocks on the wall clock: with nothing queued it advances the
+    simulated clock by ``timeout`` (the HIL's heartbeats and supervision run meanwhile) and
+    returns what arrived, or None. ``recv(None)`` advances one period at a time, up to 10 s.
+    """
+
+    def __init__(self, channel: str, hil: LockstepHil) -> None:
+        super().__init__(channel=channel, preserve_timestamps=True)
+        self._hil = hil
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        msg.timestamp = self._hil.clock.now()
+        super().send(msg, timeout)
+        self._hil.pump()
+
+    def _take(self) -> can.Message | None:
+        try:
+            return self.queue.get_nowait()
+        except Exception:  # queue.Empty
+            return None
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        self._hil.pump()
+        msg = self._take()
+        if msg is not None:
+            return msg
+        clock = self._hil.clock
+        if timeout is None:
+            for _ in range(round(10.0 / self._hil.core.period_s)):
+                clock.sleep_until(clock.now() + self._hil.core.period_s)
+                msg = self._take()
+                if msg is not None:
+                    return msg
+            return None
+        if timeout > 0.0:
+            clock.sleep_until(clock.now() + timeout)
+            return self._take()
+        return None
+
+
+class LockstepHil:
+    """The HIL in lockstep over python-can's ``virtual`` interface (one process, deterministic).
+
+    Args:
+        rig, q0_rad, terrain, period_s, vcu, keep_frames: As :class:`HilCore`.
+        trace_path: Write the bus trace here (``.blf`` or ``.asc``), or None.
+
+    Attributes:
+        core: The HIL.
+        clock: The simulated clock; give ``clock.now`` to the master and the clock to the streamer.
+        master_bus: The bus end for the master.
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        q0_rad: FloatArray | tuple[float, float, float],
+        terrain: Terrain | None = None,
+        *,
+        period_s: float = 0.002,
+        vcu: bool = True,
+        keep_frames: bool = False,
+        trace_path: str | Path | None = None,
+    ) -> None:
+        self.core = HilCore(
+            rig, q0_rad, terrain, period_s=period_s, vcu=vcu, keep_frames=keep_frames
+        )
+        if trace_path is not None:
+            self.core.trace = open_trace(trace_path)
+        self.clock = LockstepClock(self._on_time)
+        channel = f"excavator-hil-lockstep-{next(_channel_numbers)}"
+        self._bus = VirtualBus(channel=channel, preserve_timestamps=True)
+        self.master_bus = LockstepBus(channel, self)
+        self._pumping = False
+        self._send(self.core.pending_frames(0.0))  # power-on boot-up messages
+
+    def _send(self, frames: list[Frame]) -> None:
+        now = self.clock.now()
+        for arbitration_id, data in frames:
+            self.core.log(arbitration_id, data, now, is_rx=False)
+            self._bus.send(
+                can.Message(
+                    timestamp=now, arbitration_id=arbitration_id, is_extended_id=False, data=data
+                )
+            )
+
+    def pump(self) -> None:
+        """Handle every frame queued at the HIL's end, at the current simulated time."""
+        if self._pumping:
+            return
+        self._pumping = True
+        try:
+            core = self.core
+            while True:
+                try:
+                    msg = self._bus.queue.get_nowait()
+                except Exception:  # queue.Empty
+                    break
+                now = self.clock.now()
+                data = bytes(msg.data)
+                core.log(msg.arbitration_id, data, now, is_rx=True)
+                self._send(core.on_frame(msg.arbitration_id, data, now))
+                if msg.arbitration_id == COB_SYNC:
+                    core.advance(core.period_s)
+        finally:
+            self._pumping = False
+
+    def _on_time(self, t_s: float) -> None:
+        self.pump()
+        self._send(self.core.pending_frames(t_s))
+
+    def inject(self, kind: FaultKind, axis: int) -> None:
+        """Inject a fault now (see :meth:`HilCore.inject`)."""
+        self.core.inject(kind, axis)
+
+    def close(self) -> None:
+        """Close the trace and both bus ends."""
+        if self.core.trace is not None:
+            self.core.trace.stop()
+            self.core.trace = None
+        self.master_bus.shutdown()
+        self._bus.shutdown()
+
+    def __enter__(self) -> LockstepHil:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -11,10 +11,9 @@ dig; the tip path reconstructed from the drives' reported strokes goes back to t
 the report's ``coverage_error`` and ``overdig_max_mm`` measure. The arm starts at the planner's
 dump pose (or at the first dig's entry with ``start_at_entry``, for short tests).
 
-Transitions: the planner's session lists the transitions that lead to a dig in ``steps``; where
-it has not listed them when the dig is handed out (they are appended at ``record``), the runner
-builds the same sequence itself (lift out, dump, approach, enter; ruckig rest to rest, no
-waypoints) so the arm never jumps.
+Transitions: ``session.next_dig`` appends the transitions that lead into the dig (lift out,
+dump, approach, enter; ruckig rest to rest, no waypoints) to ``session.steps``; the runner
+streams them as they are, then the dig, so the arm never jumps.
 
 Faults (:class:`FaultSpec`) are switched on ``at_s`` seconds after the first motion starts, from
 the streamer's per-cycle hook, on the HIL's drive node (:mod:`hil_sim.drives`).
@@ -23,7 +22,6 @@ the streamer's per-cycle hook, on the HIL's drive node (:mod:`hil_sim.drives`).
 from __future__ import annotations
 
 import functools
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,7 +41,6 @@ from hil_sim.report import (
 )
 from hil_sim.sim import FaultKind, LockstepHil, Truth
 from hil_sim.terrain import Terrain
-from rt_runtime import kinematics
 from rt_runtime.canbus import CanMaster
 from rt_runtime.control import (
     Clock,
@@ -53,20 +50,15 @@ from rt_runtime.control import (
     ruckig_motion,
     sextic_motion,
 )
-from rt_runtime.errors import ConfigurationError, KinematicsError, PlanningError
+from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.rig import Rig, load_rig
 
-__all__ = ["FaultSpec", "Scenario", "run_scenario", "transition_moves"]
+__all__ = ["FaultSpec", "Scenario", "run_scenario"]
 
 FloatArray = NDArray[np.float64]
 
 #: Goals of issue 6 (mm), for the report's ``goal`` block.
 GOALS_MM = {"electric": {"max_mm": 1.0, "rms_mm": 0.3}, "hydraulic": {"max_mm": 3.0}}
-# Transition poses as in the trench planner (scale model, m / deg; scaled by reach).
-_LIFT_CLEAR_M = 0.08
-_APPROACH_M = 0.05
-_DUMP_POSE = (0.60, 0.25, -80.0)
-_SCALE_REACH_M = 1.31
 
 
 @dataclass(frozen=True, slots=True)
@@ -165,67 +157,6 @@ class _LockstepAdapter:
         self.hil.close()
 
 
-def _ruckig(rig: Rig, q0: FloatArray, q1: FloatArray) -> Any:
-    from ruckig import InputParameter, Result, Ruckig, Trajectory
-
-    otg = Ruckig(3)
-    inp = InputParameter(3)
-    inp.current_position = [float(v) for v in q0]
-    inp.target_position = [float(v) for v in q1]
-    inp.max_velocity = [float(v) for v in rig.qd_max_rad_s]
-    inp.max_acceleration = [float(v) for v in rig.qdd_max_rad_s2]
-    inp.max_jerk = [float(v) for v in rig.qddd_max_rad_s3]
-    traj = Trajectory(3)
-    result = otg.calculate(inp, traj)
-    if result not in (Result.Working, Result.Finished):
-        raise PlanningError(f"ruckig could not plan a transition: {result}")
-    return traj
-
-
-def _ik(rig: Rig, x: float, y: float, attitude: float) -> FloatArray:
-    for att in (attitude, attitude + 0.3, attitude - 0.3, -math.pi / 2):
-        try:
-            return np.asarray(kinematics.inverse(rig, x, y, att), dtype=np.float64)
-        except KinematicsError:
-            continue
-    raise PlanningError(f"no reachable transition pose at x={x:.3f} m, y={y:.3f} m")
-
-
-def _scale(rig: Rig) -> float:
-    return float(np.sum(rig.lengths_m)) / _SCALE_REACH_M
-
-
-def dump_pose(rig: Rig, planner: Any = None) -> FloatArray:
-    """The planner's dump pose (where the arm starts), or the same pose computed here."""
-    q = getattr(planner, "_dump_q", None)
-    if q is not None:
-        return np.asarray(q, dtype=np.float64)
-    s = _scale(rig)
-    x, y = _DUMP_POSE[0] * s, rig.ground_y_m + _DUMP_POSE[1] * s
-    return _ik(rig, x, y, math.radians(_DUMP_POSE[2]))
-
-
-def transition_moves(
-    rig: Rig, q_now: FloatArray | None, q_entry: FloatArray, q_dump: FloatArray
-) -> list[tuple[str, FloatArray, FloatArray]]:
-    """The planner's transition sequence to a dig's entry: ``(kind, q_from, q_to)``.
-
-    From the end of the previous dig: lift out to a clearance above the ground, dump, then
-    approach above the entry and enter; for the first dig (``q_now`` None) from the dump pose.
-    """
-    s = _scale(rig)
-    start = kinematics.forward(rig, q_entry)
-    moves: list[tuple[str, FloatArray, FloatArray]] = []
-    q_prev = q_dump
-    if q_now is not None:
-        end = kinematics.forward(rig, q_now)
-        lift = _ik(rig, float(end[0]), rig.ground_y_m + _LIFT_CLEAR_M * s, float(end[2]))
-        moves += [("lift_out", q_now, lift), ("dump", lift, q_dump)]
-    approach = _ik(rig, float(start[0]), float(start[1]) + _APPROACH_M * s, float(start[2]))
-    moves += [("approach", q_prev, approach), ("enter", approach, q_entry)]
-    return moves
-
-
 def _open_hil(sc: Scenario, rig: Rig, q0: FloatArray, terrain: Terrain | None) -> _Hil:
     if sc.realtime:
         from hil_sim.realtime import RealtimeHilProcess
@@ -270,7 +201,7 @@ def run_scenario(sc: Scenario) -> dict[str, Any]:
     plan_t0 = time.perf_counter()
     planner = TrenchPlanner(rig, sc.planner)
     session = planner.start(task)
-    q_dump = dump_pose(rig, planner)
+    q_dump = np.asarray(planner.dump_pose_rad, dtype=np.float64)
     plan_us = (time.perf_counter() - plan_t0) * 1e6
     t0 = time.perf_counter()
     first_dig = session.next_dig()
@@ -307,12 +238,11 @@ def run_scenario(sc: Scenario) -> dict[str, Any]:
         )
         streamer.start(timeout_s=2.0)
         machine_x = 0.0
-        q_now: FloatArray | None = None
-        seen = len(session.steps)
+        seen = 0  # session.steps[seen:] are the transitions leading into ``dig``
         dig = first_dig
         first = True
         while dig is not None and status is StreamStatus.DONE:
-            new_steps = session.steps[seen:]
+            new_steps = [] if (first and sc.start_at_entry) else session.steps[seen:]
             moves: list[tuple[str, Any]] = []
             for step in new_steps:
                 if isinstance(step, TravelMove):
@@ -322,10 +252,6 @@ def run_scenario(sc: Scenario) -> dict[str, Any]:
                     )
                 if isinstance(step, Transition):
                     moves.append((step.kind, ruckig_motion(step.trajectory(rig))))
-            if not moves and not (first and sc.start_at_entry):
-                q_entry = np.asarray(dig.problem.q_start_rad)
-                for kind, qa, qb in transition_moves(rig, q_now, q_entry, q_dump):
-                    moves.append((kind, ruckig_motion(_ruckig(rig, qa, qb))))
             first = False
             for kind, motion in moves:
                 res = streamer.stream(motion)
@@ -347,7 +273,6 @@ def run_scenario(sc: Scenario) -> dict[str, Any]:
             path[:, 0] += machine_x
             recorded_m3 = session.record(dig, path)
             seen = len(session.steps)
-            q_now = np.asarray(dig.problem.q_end_rad)
             done_digs.append(
                 {
                     "index": dig.index,

@@ -634,7 +634,6 @@ def _ruckig_move(rig: Rig, q0: FloatArray, q1: FloatArray) -> tuple[Any, float]:
 class _Candidates:
     """The candidate grid of one dig type (arm-frame values relative to the entry)."""
 
-    entry_dx_m: tuple[float, ...]
     entry_attitude_deg: tuple[float, ...]
     length_m: tuple[float, ...]
     exit_rise_m: tuple[float, ...]
@@ -644,7 +643,6 @@ class _Candidates:
 
 _CANDIDATES: dict[DigType, _Candidates] = {
     DigType.DOWNWARD: _Candidates(
-        entry_dx_m=(0.0,),
         entry_attitude_deg=(-75.0, -90.0, -105.0, -118.0),
         length_m=(0.17, 0.22, 0.28, 0.34, 0.39),
         exit_rise_m=(0.01, 0.05, 0.10, 0.15),
@@ -652,7 +650,6 @@ _CANDIDATES: dict[DigType, _Candidates] = {
         c_max=(2.0, 1.0, 0.6, 0.3),
     ),
     DigType.BACKWARD: _Candidates(
-        entry_dx_m=(0.0,),
         entry_attitude_deg=(-102.0, -115.0, -128.0, -138.0),
         length_m=(0.22, 0.28, 0.34, 0.40, 0.46),
         exit_rise_m=(0.01, 0.05, 0.10, 0.15),
@@ -703,7 +700,8 @@ class TrenchPlanner:
         s = _reach_scale(rig)
         self.scale = s
         self.entry_x_range = (_ENTRY_X_M[0] * s, _ENTRY_X_M[1] * s)
-        self._dump_q = kinematics.inverse(
+        #: Where the bucket dumps (and where the arm starts a task), joint angles.
+        self.dump_pose_rad = kinematics.inverse(
             rig,
             _DUMP_POSE[0] * s,
             rig.ground_y_m + _DUMP_POSE[1] * s,
@@ -735,7 +733,10 @@ class TrenchSession:
 
     Use :meth:`next_dig` to plan the next dig from the current material (``None`` when the task
     is done), execute it, then :meth:`record` the measured tip path (work-site frame); the
-    material is updated from what was measured, not what was planned.
+    material is updated from what was measured, not what was planned. ``next_dig`` also
+    appends to :attr:`steps` the transitions that lead into the dig (from the previous dig's
+    exit, or from the dump pose), checked against the material as it is before the dig; the
+    dig itself joins :attr:`steps` when it is recorded.
     """
 
     def __init__(self, planner: TrenchPlanner, task: TrenchTask) -> None:
@@ -745,8 +746,8 @@ class TrenchSession:
         self.rig = rig
         self.ground_y = rig.ground_y_m
         self.width_m = rig.bucket.width_m
-        assert rig.planning is not None
-        self.v_max_m3 = rig.planning.volume_max_m3
+        self.planning = oneshot.require_planning(rig)
+        self.v_max_m3 = self.planning.volume_max_m3
         self.design = design_polygon(task, self.ground_y)
         xf = task.start_x_m
         xn = xf - task.length_m
@@ -826,29 +827,24 @@ class TrenchSession:
         )
         xf, xn = self.task.start_x_m, self.task.start_x_m - self.task.length_m
         d = np.where((x > xf) | (x < xn), np.maximum(d, self.ground_y - y), d)
-        return np.max(np.where(inside, np.maximum(d, 0.0), 0.0), axis=-1)
+        worst: FloatArray = np.max(np.where(inside, np.maximum(d, 0.0), 0.0), axis=-1)
+        return worst
 
     def _cut_areas(self, env: FloatArray) -> tuple[float, float]:
         """(total, inside-design) area a path envelope removes from the height field."""
-        cut_to = np.minimum(self.surface, env)
-        total = self.surface - cut_to
-        inside = np.maximum(
-            np.minimum(self.surface, np.maximum(env, self.design_floor)), self.design_floor
-        )
-        design_part = self.surface - inside
-        design_part = np.where(self.surface > self.design_floor, np.maximum(design_part, 0.0), 0.0)
-        h = GRID_STEP_M
-        return float(np.sum(total) * h), float(np.sum(np.minimum(design_part, total)) * h)
+        total = np.maximum(self.surface - env, 0.0)
+        inside = np.maximum(self.surface - np.maximum(env, self.design_floor), 0.0)
+        return float(np.sum(total) * GRID_STEP_M), float(np.sum(inside) * GRID_STEP_M)
 
     # -- choosing a dig -----------------------------------------------------------------------
 
     def _phase(self) -> DigType:
         """Fig. 5: downward until the depth is reached, then backward."""
-        if self.phase is DigType.DOWNWARD:
-            reached = float(np.min(self.surface - self.design_floor, initial=np.inf))
-            deepest = float(np.min(self.surface))
-            if deepest <= self.bottom_y + OVERDIG_LIMIT_M or reached < -1.0:
-                self.phase = DigType.BACKWARD
+        if (
+            self.phase is DigType.DOWNWARD
+            and float(np.min(self.surface)) <= self.bottom_y + OVERDIG_LIMIT_M
+        ):
+            self.phase = DigType.BACKWARD
         return self.phase
 
     def _entry_x_candidates(self, remaining: Any) -> list[float]:
@@ -893,6 +889,7 @@ class TrenchSession:
                 f"task {self.task.name}: no verified dig removes the remaining "
                 f"{left / self.design_area:.1%} of the design without over-digging"
             )
+        self._append_transitions(dig)
         self.pending = dig
         return dig
 
@@ -1136,7 +1133,7 @@ class TrenchSession:
             # theta_p: the entry direction J(q0) (10 D + K) must point into the range of the type.
             d0 = kinematics.jacobian(rig, b[0])[:2] @ (10.0 * (b[1] - b[0]) + z[2:5])
             ang = math.atan2(-d0[1], abs(d0[0]))
-            tp_lo, tp_hi = oneshot.theta_p_range(self.rig.planning, int(kind))
+            tp_lo, tp_hi = oneshot.theta_p_range(self.planning, int(kind))
             r3 = 50.0 * (max(0.0, float(tp_lo) + 0.01 - ang) + max(0.0, ang - float(tp_hi) + 0.01))
             return np.concatenate([r1, 0.5 * r2, 10.0 * lim.ravel(), [r3]])
 
@@ -1175,7 +1172,7 @@ class TrenchSession:
         # the path's lowest point, the layer's thickness elsewhere approximated by it.
         depth = np.interp(tip[:, 0], self.grid, self.surface) - tip[:, 1]
         H = float(np.min(tip[:, 1]) + max(0.0, float(np.max(depth))))
-        T0 = 0.5 * (self.rig.planning.t_min_s + self.rig.planning.t_max_s)
+        T0 = 0.5 * (self.planning.t_min_s + self.planning.t_max_s)
         a6 = -K / T0**6
         row = pack_inputs(
             qs[None], qe[None], np.array([H]), np.array([int(kind)]), a6[None], np.array([T0])
@@ -1289,7 +1286,6 @@ class TrenchSession:
         env = lower_envelope(path, self.grid)
         self.surface = np.minimum(self.surface, env)
         removed = (before - float(self.material.area)) * self.width_m
-        self._append_transitions(dig)
         self.steps.append(dig)
         self.digs.append(dig)
         self.q_now = np.asarray(dig.problem.q_end_rad)
@@ -1307,10 +1303,10 @@ class TrenchSession:
             end = kinematics.forward(rig, self.q_now)
             lift = _safe_ik(rig, end[0], self.ground_y + _LIFT_CLEAR_M * s, end[2])
             moves.append(("lift_out", self.q_now, lift))
-            moves.append(("dump", lift, self.planner._dump_q))
-            q_prev = self.planner._dump_q
+            moves.append(("dump", lift, self.planner.dump_pose_rad))
+            q_prev = self.planner.dump_pose_rad
         else:
-            q_prev = self.planner._dump_q
+            q_prev = self.planner.dump_pose_rad
         approach = _safe_ik(rig, start[0], start[1] + _APPROACH_M * s, start[2])
         moves.append(("approach", q_prev, approach))
         moves.append(("enter", approach, q_entry))

@@ -98,7 +98,7 @@ def expected_configuration(rig: Rig, axis: int) -> list[tuple[int, int, str, int
         (0x1400, 0x1600, 0x200, 0x01, (0x607A0020, 0x60B10020)),
         (0x1401, 0x1601, 0x300, 0xFF, (0x60400010, 0x60600008)),
         (0x1800, 0x1A00, 0x180, 0x01, (0x60640020, 0x606C0020)),
-        (0x1801, 0x1A01, 0x280, 0x01, (0x60410010, 0x60610008, 0x603F0010)),
+        (0x1801, 0x1A01, 0x280, 0x00, (0x60410010, 0x60610008, 0x603F0010)),
     ):
         writes += [(comm, 1, "<I", 0x8000_0000 | cob + node), (comm, 2, "<B", ttype)]
         writes += [(mapping, 0, "<B", 0)]
@@ -328,6 +328,27 @@ def test_cycle_byte_exact(enabled: Enabled) -> None:
     assert list(snapshot.position_um) == list(fb.position_um)
 
 
+def test_tpdo2_is_not_awaited_and_a_change_is_taken_when_it_comes(enabled: Enabled) -> None:
+    """TPDO2 is synchronous acyclic (sent on change): a cycle with only TPDO1s is complete,
+    the last statusword holds, and a TPDO2 that does come (a fault) is decoded at once."""
+    master, bus, clock = enabled
+    tpdo1_only = [step for step in tpdos((OE, OE, OE)) if step[1] < 0x280]
+    bus.extend(setpoint_frames(POSITIONS_UM, (0, 0, 0)) + tpdo1_only)
+    assert master.write_setpoints(list(POSITIONS_UM), [0, 0, 0]) is WriteStatus.OK
+    start_s = clock()
+    fb = master.read_feedback(clock(), timeout_s=0.0005)
+    assert clock() == start_s  # nothing was waited for
+    assert fb.status is CycleStatus.OK and not fb.stale.any()
+    assert [fb.drive_state(a) for a in range(3)] == [DriveState.OPERATION_ENABLED] * 3
+    bus.extend(setpoint_frames(POSITIONS_UM, (0, 0, 0)) + tpdo1_only)
+    bus.extend([(RX, 0x282, struct.pack("<HbH", FAULT, 8, 0x8611))])
+    bus.extend([(TX, 0x300 + n, h("02 00 08")) for n in NODES])  # the master's quick stop
+    master.write_setpoints(list(POSITIONS_UM), [0, 0, 0])
+    fb = master.read_feedback(clock(), timeout_s=0.0005)
+    bus.assert_done()
+    assert fb.status is CycleStatus.DRIVE_FAULT and fb.drive_state(1) is DriveState.FAULT
+
+
 def test_missing_tpdo_is_stale_not_an_exception(enabled: Enabled) -> None:
     master, bus, clock = enabled
     bus.extend(setpoint_frames(POSITIONS_UM, (0, 0, 0)))
@@ -422,8 +443,8 @@ def test_quick_stop_disable_and_bus_load(enabled: Enabled) -> None:
     assert master.disable() is WriteStatus.OK
     bus.assert_done()
     load = master.bus_load()
-    assert load.worst_case == pytest.approx((1180 + 4 * 65 * 0.002 / 0.05) / 2000)
-    assert load.nominal == pytest.approx((974 + 4 * 55 * 0.002 / 0.05) / 2000)
+    assert load.worst_case == pytest.approx((865 + 4 * 65 * 0.002 / 0.05) / 2000)  # no TPDO2
+    assert load.nominal == pytest.approx((713 + 4 * 55 * 0.002 / 0.05) / 2000)
     assert master.bus_load(0.001).worst_case > load.worst_case
 
 

@@ -432,17 +432,17 @@ def test_exact_stuffing_by_hand() -> None:
 def test_bus_load_three_drives_500hz_by_hand() -> None:
     period_s, bitrate, heartbeat_s = 0.002, 1_000_000, 0.05
     frames = cia402_cycle_frames(3, period_s, heartbeat_s)
-    # Per 2 ms: RPDO1 3 x 8 B, SYNC, TPDO1 3 x 8 B, TPDO2 3 x 5 B; 4 heartbeats per 50 ms.
-    nominal_bits = 3 * 111 + 47 + 3 * 111 + 3 * 87 + 4 * 55 * period_s / heartbeat_s
-    worst_bits = 3 * 135 + 55 + 3 * 135 + 3 * 105 + 4 * 65 * period_s / heartbeat_s
-    assert nominal_bits == pytest.approx(982.8)
-    assert worst_bits == pytest.approx(1190.4)
+    # Per 2 ms: RPDO1 3 x 8 B, SYNC, TPDO1 3 x 8 B (TPDO2 only on change); 4 heartbeats per 50 ms.
+    nominal_bits = 3 * 111 + 47 + 3 * 111 + 4 * 55 * period_s / heartbeat_s
+    worst_bits = 3 * 135 + 55 + 3 * 135 + 4 * 65 * period_s / heartbeat_s
+    assert nominal_bits == pytest.approx(721.8)
+    assert worst_bits == pytest.approx(875.4)
     assert bus_load(frames, period_s, bitrate, "none") == pytest.approx(nominal_bits / 2000)
     assert bus_load(frames, period_s, bitrate) == pytest.approx(worst_bits / 2000)
     report = bus_load_report(frames, period_s, bitrate)
-    assert report.nominal == pytest.approx(0.4914)
-    assert report.worst_case == pytest.approx(0.5952)
-    assert report.bits_per_s_worst_case == pytest.approx(595_200)
+    assert report.nominal == pytest.approx(0.3609)
+    assert report.worst_case == pytest.approx(0.4377)
+    assert report.bits_per_s_worst_case == pytest.approx(437_700)
     print(
         f"\n3 drives at 500 Hz on 1 Mbit/s: nominal {report.nominal:.1%}, "
         f"worst case {report.worst_case:.1%}"

@@ -43,7 +43,7 @@ CONTRACT: dict[tuple[int, int], tuple[int, str, int | str | None, bool]] = {
     (0x1800, 1): (U32, "rw", 0x180, False),
     (0x1800, 2): (U8, "rw", 1, False),
     (0x1801, 1): (U32, "rw", 0x280, False),
-    (0x1801, 2): (U8, "rw", 1, False),
+    (0x1801, 2): (U8, "rw", 0, False),  # synchronous acyclic: on change
     (0x1A00, 0): (U8, "rw", 2, False),
     (0x1A00, 1): (U32, "rw", 0x60640020, False),
     (0x1A00, 2): (U32, "rw", 0x606C0020, False),

@@ -164,9 +164,10 @@ def cia402_cycle_frames(
 ) -> tuple[tuple[int, float], ...]:
     """The master's cyclic frame set per period (DESIGN.md "CAN protocol").
 
-    Per period: RPDO1 (8 B) per drive, one SYNC (0 B), TPDO1 (8 B) and TPDO2 (5 B) per drive;
-    heartbeats (1 B) of every drive and of the master, ``period_s / heartbeat_period_s`` each.
-    RPDO2, SDO and EMCY are event traffic and not included.
+    Per period: RPDO1 (8 B) per drive, one SYNC (0 B), TPDO1 (8 B) per drive; heartbeats (1 B)
+    of every drive and of the master, ``period_s / heartbeat_period_s`` each. TPDO2 (statusword;
+    synchronous acyclic, sent only when it changed), RPDO2, SDO and EMCY are event traffic and
+    not included: a few frames per state change, none while the drives run.
 
     Raises:
         ValueError: A non-positive period.
@@ -179,7 +180,6 @@ def cia402_cycle_frames(
         (8, float(n_drives)),  # RPDO1
         (0, 1.0),  # SYNC
         (8, float(n_drives)),  # TPDO1
-        (5, float(n_drives)),  # TPDO2
         (1, (n_drives + 1) * period_s / heartbeat_period_s),  # heartbeats
     )
 

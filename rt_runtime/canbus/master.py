@@ -94,7 +94,7 @@ class CycleStatus(IntEnum):
     """
 
     OK = 0
-    #: A drive's TPDO1 or TPDO2 answering the latest SYNC did not arrive in time; its values
+    #: A drive's TPDO1 answering the latest SYNC did not arrive in time; its values
     #: are the previous ones.
     STALE = 1
     #: An EMCY with a nonzero code arrived (see ``Feedback.emcys``) while every drive still
@@ -329,8 +329,9 @@ class Feedback:
         mode_display: 0x6061 (i8).
         error_code: 0x603F (u16).
         state: Decoded :class:`DriveState` value, -1 for an undecodable statusword (i8).
-        tpdo1_sync: SYNC count the latest TPDO1 answered (i64); TPDO2 likewise.
-        stale: Missing TPDO1 or TPDO2 for ``sync_count``.
+        tpdo1_sync: SYNC count the latest TPDO1 answered (i64); ``tpdo2_sync`` the SYNC count
+            at which the latest TPDO2 (a statusword change) arrived.
+        stale: Missing TPDO1 for ``sync_count`` (TPDO2 is sent on change only).
         heartbeat_lost: Heartbeat timed out (and not heard since).
         rx_timestamp_s: Bus timestamp of the latest TPDO1 (the bus's clock, for round trips).
         emcys: EMCYs received during this call.
@@ -500,9 +501,8 @@ class CanMaster:
             fb.statusword[axis], fb.mode_display[axis], fb.error_code[axis] = status, mode, error
             state = decode_state(status)
             fb.state[axis] = -1 if state is None else int(state)
-            if fb.tpdo2_sync[axis] != fb.sync_count:
-                fb.tpdo2_sync[axis] = fb.sync_count
-                self._pending -= 1
+            # TPDO2 is synchronous acyclic (sent only on change): never awaited per SYNC.
+            fb.tpdo2_sync[axis] = fb.sync_count
         elif kind == _EMCY:
             emcy = parse_emcy(self.config.node_ids[axis], data, now_s)
             if emcy is not None:
@@ -573,7 +573,7 @@ class CanMaster:
     def _send_sync(self) -> None:
         self.bus.send(self._sync)
         self.feedback.sync_count += 1
-        self._pending = 2 * self.n
+        self._pending = self.n
 
     def _pack_rpdo2(self, axis: int, controlword: int) -> None:
         RPDO2.codec.pack_into(self._rpdo2[axis].data, 0, controlword, MODE_CSP)
@@ -741,10 +741,10 @@ class CanMaster:
                 silent = [
                     f"{self.config.axes[a]} (node {self.config.node_ids[a]})"
                     for a in range(self.n)
-                    if fb.tpdo1_sync[a] != fb.sync_count or fb.tpdo2_sync[a] != fb.sync_count
+                    if fb.tpdo1_sync[a] != fb.sync_count
                 ]
                 raise CommunicationError(
-                    f"enable: no TPDO1/TPDO2 answer to SYNC {fb.sync_count} from {silent}"
+                    f"enable: no TPDO1 answer to SYNC {fb.sync_count} from {silent}"
                 ) from exc
             self._wait_until(sync_s + self.config.period_s, now_fn)
 
@@ -811,7 +811,7 @@ class CanMaster:
     def read_feedback(self, now_s: float, timeout_s: float) -> Feedback:
         """Collect the drives' answers to the latest SYNC and everything else received.
 
-        Waits until every drive's TPDO1 and TPDO2 for the latest SYNC are in, each wait at most
+        Waits until every drive's TPDO1 for the latest SYNC is in, each wait at most
         ``timeout_s`` (so the call returns at the latest ``timeout_s`` after the last frame that
         came); then takes whatever else is queued without waiting. Checks heartbeat timeouts at
         ``now_s``. When enabled and a drive sends an EMCY, faults, loses its heartbeat or leaves
@@ -844,7 +844,6 @@ class CanMaster:
         self._consumer.check(now_s, fb.heartbeat_events)
         k = fb.sync_count
         np.not_equal(fb.tpdo1_sync, k, out=fb.stale)
-        fb.stale |= fb.tpdo2_sync != k
         for axis, node in enumerate(self.config.node_ids):
             fb.heartbeat_lost[axis] = self._consumer.is_lost(node)
         rebooted = any(e.kind is HeartbeatEventKind.BOOT_UP for e in fb.heartbeat_events)
@@ -906,7 +905,7 @@ class CanMaster:
         return self._send_controlword(int(Command.DISABLE_VOLTAGE))
 
     def bus_load(self, period_s: float | None = None) -> BusLoad:
-        """Load of the cyclic traffic (RPDO1, SYNC, TPDO1, TPDO2, heartbeats) at ``period_s``
+        """Load of the cyclic traffic (RPDO1, SYNC, TPDO1, heartbeats) at ``period_s``
         (default: the configured period) on the rig's bitrate."""
         period = self.config.period_s if period_s is None else period_s
         frames = cia402_cycle_frames(self.n, period, self.config.heartbeat_period_s)

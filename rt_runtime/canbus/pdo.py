@@ -18,6 +18,13 @@ Payloads (little endian)::
     TPDO1 0x180+id  <ii   0x6064 position actual (um), 0x606C velocity actual (um/s)
     TPDO2 0x280+id  <HbH  0x6041 statusword, 0x6061 modes display, 0x603F error code
     SYNC  0x080     (no data)
+
+Transmission: RPDO1 and TPDO1 are synchronous (type 1: latched / sent on every SYNC). TPDO2 is
+synchronous acyclic (type 0): a drive sends it at a SYNC only when its content changed since
+the last one it sent (and once after NMT start). The statusword changes a few times per
+enable or fault, so this takes 3 x 5-byte frames per period off the bus (issue 6's < 50 % bus
+load at 500 Hz) while a state change is still reported at the SYNC that follows it; a drive
+that stops talking is caught by TPDO1 staleness and the heartbeat consumer, not by TPDO2.
 """
 
 from __future__ import annotations
@@ -144,7 +151,7 @@ TPDO2 = PdoSpec(
     0x1801,
     0x1A01,
     COB_TPDO2,
-    1,
+    0,
     ((0x6041, 0, 16), (0x6061, 0, 8), (0x603F, 0, 16)),
     struct.Struct("<HbH"),
 )

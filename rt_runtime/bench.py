@@ -7,7 +7,9 @@ Percentile groups carry ``p50`` and ``p99``. The papers' figures are given under
 
 from __future__ import annotations
 
+import math
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -397,9 +399,9 @@ def bench_plan(
         }
         if pso:
             t0 = time.perf_counter()
-            pso_plan = TrenchPlanner(
-                rig, "pso", model_dir=model_dir, pso_options=pso_options
-            ).plan(task)
+            pso_plan = TrenchPlanner(rig, "pso", model_dir=model_dir, pso_options=pso_options).plan(
+                task
+            )
             pso_report = pso_plan.to_json()
             entry["pso"] = pso_report
             entry["pso_plan_s"] = time.perf_counter() - t0
@@ -414,8 +416,12 @@ def bench_plan(
         "rig": rig.name,
         "tasks": out,
         "trench": {"plan_us": percentiles(all_us)},
-        "goals": {"coverage_error_max": 0.02, "overdig_max_mm": 5.0, "plan_us_p50_max": 1000.0,
-                  "pinn_vs_pso_totals_max": 0.05},
+        "goals": {
+            "coverage_error_max": 0.02,
+            "overdig_max_mm": 5.0,
+            "plan_us_p50_max": 1000.0,
+            "pinn_vs_pso_totals_max": 0.05,
+        },
         "paper": {"yao_fig14": YAO_FIG14, "yao_plan_ms_per_dig": [4.2, 4.5]},
     }
 
@@ -428,3 +434,408 @@ def _plan_totals(report: dict[str, Any]) -> dict[str, float]:
         "volume_L": float(sum(d["volume_L"] for d in digs)),
         "energy_Wh": float(sum(d["energy_Wh"] for d in digs)),
     }
+
+
+# ---------------------------------------------------------------------------------------------
+# The full suite: `excavator-rt bench` without a subcommand (issue 7).
+
+#: Goal of the issue: loop lateness at 500 Hz, p99 (us).
+LOOP_LATENESS_P99_GOAL_US = 50.0
+#: A comfortable pose of the scale model for holding (boom 30, stick -90, bucket -60 deg).
+_HOLD_POSE_DEG = (30.0, -90.0, -60.0)
+
+
+@dataclass(frozen=True, slots=True)
+class BenchSizes:
+    """How much work each part of :func:`bench_full` does.
+
+    Attributes:
+        pinn_limit: Held-out problems per dig type (None: all).
+        pinn_passes: Timed passes of the PINN planner over them.
+        pso_problems: Problems per dig type the PSO solves in the same run.
+        trench_passes: Timed whole-trench plans of task A.
+        loop_seconds: Loop run per rate (s).
+    """
+
+    pinn_limit: int | None = None
+    pinn_passes: int = 5
+    pso_problems: int = 5
+    trench_passes: int = 3
+    loop_seconds: float = 10.0
+
+    @classmethod
+    def quick(cls, loop_seconds: float = 1.0) -> BenchSizes:
+        """Tiny sizes for tests and a first look (seconds, not minutes)."""
+        return cls(
+            pinn_limit=8, pinn_passes=1, pso_problems=1, trench_passes=1, loop_seconds=loop_seconds
+        )
+
+
+def _group_us(values_s: np.ndarray) -> dict[str, float] | None:
+    """Percentile group with tails of values in seconds, reported in microseconds."""
+    a = np.asarray(values_s, dtype=np.float64)
+    a = a[np.isfinite(a)]
+    return percentiles(a * 1e6, tails=True) if a.size else None
+
+
+def bench_loop(
+    rig: Rig,
+    rates_hz: tuple[float, ...] = (500.0, 1000.0),
+    seconds: float = 10.0,
+    *,
+    rt: Any = None,
+    sync_timeout_s: float = 0.1,
+    hil_rig: str | None = None,
+) -> tuple[dict[str, Any], dict[str, dict[str, np.ndarray]]]:
+    """Loop timing against the real-time HIL in its own process, one run per rate.
+
+    For each rate: start :class:`hil_sim.realtime.RealtimeHilProcess` (127.0.0.1), boot and
+    enable the drives through a :class:`~rt_runtime.canbus.CanMaster` on its bus, then run the
+    :class:`~rt_runtime.control.FixedRateLoop` for ``seconds`` with a step that holds position
+    (RPDO1 of the reported stroke + SYNC, read the TPDOs, heartbeat), with ``rt`` applied.
+    Then disable the drives and stop the process. ``hil_sim`` is imported here, at run time:
+    the runtime package never imports it.
+
+    Args:
+        rig: Rig profile (its CAN ids, bitrate and drive set-up).
+        rates_hz: Loop rates (Hz).
+        seconds: Run per rate (s).
+        rt: :class:`~rt_runtime.control.RtSettings` (default: all of them requested).
+        sync_timeout_s: The HIL drives' SYNC/RPDO watchdog (a shared test machine stalls longer
+            than a rig PC; the loop's own overruns are what is measured).
+        hil_rig: Rig profile name for the HIL process (default ``rig.name``).
+
+    Returns:
+        ``(summary, raw)``: the JSON-ready ``loop`` section keyed by the rate as a string
+        (``"500"``), and per rate the raw arrays ``lateness_s``, ``jitter_s``, ``exec_s``,
+        ``rtt_s`` for plots.
+
+    Raises:
+        CommunicationError, DriveFault: The HIL did not start or the drives did not enable.
+    """
+    import importlib
+
+    from rt_runtime.control import RtSettings
+
+    realtime = importlib.import_module("hil_sim.realtime")
+    settings = rt if rt is not None else RtSettings()
+    summary: dict[str, Any] = {}
+    raw: dict[str, dict[str, np.ndarray]] = {}
+    for rate in rates_hz:
+        key = f"{rate:g}"
+        summary[key], raw[key] = _bench_rate(
+            realtime, rig, float(rate), seconds, settings, sync_timeout_s, hil_rig or rig.name
+        )
+    return summary, raw
+
+
+def _bench_rate(
+    realtime: Any,
+    rig: Rig,
+    rate_hz: float,
+    seconds: float,
+    settings: Any,
+    sync_timeout_s: float,
+    hil_rig: str,
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """One rate of :func:`bench_loop`: its JSON entry and raw arrays."""
+    from rt_runtime.canbus import CanMaster, CycleStatus
+    from rt_runtime.control import (
+        Column,
+        CycleInfo,
+        FixedRateLoop,
+        LoopAction,
+        LoopConfig,
+        MonotonicClock,
+        Telemetry,
+    )
+
+    period = 1.0 / rate_hz
+    n_cycles = max(1, round(seconds * rate_hz))
+    hil = realtime.RealtimeHilProcess.start(
+        rig_name=hil_rig,
+        q0_rad=np.radians(np.array(_HOLD_POSE_DEG)),
+        period_s=period,
+        max_wall_s=seconds + 120.0,
+        sync_timeout_s=sync_timeout_s,
+    )
+    clock = MonotonicClock()
+    loop = FixedRateLoop(clock, LoopConfig(period_s=period, rt=settings))
+    try:
+        # RT settings first: mlockall and gc.collect take longer than the drives' watchdog.
+        loop.acquire_rt()
+        master = CanMaster(hil.master_bus, rig, period_s=period)
+        master.boot(clock.now, 5.0)
+        master.enable(clock.now, 5.0)
+        hold_um = master.feedback.position_um.copy()
+        zero = np.zeros_like(hold_um)
+        tel = Telemetry(
+            n_cycles,
+            [Column("rtt_s"), Column("status", np.int8, (), -1), Column("sync", np.int64)],
+        )
+        rtt_col = tel.column("rtt_s")
+        status_col = tel.column("status")
+        sync_col = tel.column("sync")
+        # read_feedback waits up to its timeout per missing frame: 15 % of the period each keeps
+        # the step under the period even when all three TPDO1 trickle in late; a later one is
+        # taken (stale) in the next cycle, so a slow HIL does not hold the loop.
+        read_timeout_s = 0.15 * period
+        nan = math.nan
+
+        def step(info: CycleInfo) -> LoopAction:
+            slot = tel.slot
+            master.write_setpoints(hold_um, zero)
+            sent_s = clock.now()
+            answer = master.read_feedback(sent_s, read_timeout_s)
+            rtt_col[slot] = clock.now() - sent_s if not answer.stale.any() else nan
+            status_col[slot] = answer.status
+            sync_col[slot] = answer.sync_count
+            master.heartbeat(clock.now())
+            return LoopAction.CONTINUE
+
+        loop.telemetry = tel
+        stats = loop.run(step, max_cycles=n_cycles)
+        snap = tel.snapshot()
+        master.disable()
+        load = master.bus_load(period)
+        realistic = _realistic_bus_load(master, hold_um, period)
+        hil_extra = hil.finish()[3]
+    finally:
+        loop.release_rt()
+        hil.close()
+    jitter = stats.period_jitter_s()
+    status = snap["status"]
+    entry: dict[str, Any] = {
+        "period_us": period * 1e6,
+        "cycles": stats.cycles,
+        "seconds": seconds,
+        "lateness_us": _group_us(stats.lateness_s),
+        "jitter_us": _group_us(np.abs(jitter)),
+        "jitter_signed_us": {
+            "min": float(np.min(jitter) * 1e6) if jitter.size else None,
+            "max": float(np.max(jitter) * 1e6) if jitter.size else None,
+        },
+        "exec_us": _group_us(stats.exec_s),
+        "overruns": stats.overruns,
+        "skipped": stats.skipped,
+        "max_consecutive_overruns": stats.max_consecutive_overruns,
+        "safe_stop": stats.safe_stop,
+        "overrun_events": [
+            {"cycle": e.index, "lateness_us": e.lateness_s * 1e6, "skipped": e.skipped}
+            for e in stats.overrun_events[:10]
+        ],
+        "sync_rtt_us": _group_us(snap["rtt_s"]),
+        "stale_cycles": int(np.sum(~np.isfinite(snap["rtt_s"]))),
+        "fault_cycles": int(np.sum(status >= int(CycleStatus.EMCY))),
+        "cycle_status": {
+            CycleStatus(v).name: int(np.sum(status == v)) for v in np.unique(status) if v >= 0
+        },
+        "bus_load": {"nominal": load.nominal, "realistic": realistic, "worst": load.worst_case},
+        "rt": stats.rt.as_dict(),
+        "hil_process": hil_extra.get("hil_process"),
+    }
+    arrays = {
+        "lateness_s": stats.lateness_s,
+        "jitter_s": jitter,
+        "exec_s": stats.exec_s,
+        "rtt_s": snap["rtt_s"],
+    }
+    return entry, arrays
+
+
+def _realistic_bus_load(master: Any, hold_um: np.ndarray, period_s: float) -> float:
+    """Bus load of the cyclic frames as sent in the run, with their exact stuff bits.
+
+    Per period: RPDO1 (the held target, zero velocity offset) per drive, SYNC (0x080), TPDO1
+    (packed from the last feedback) per drive; heartbeats at their period with the worst-case
+    length of a 1-byte frame (0.2 % of the frames at 500 Hz).
+    """
+    from rt_runtime.canbus import RPDO1, TPDO1
+    from rt_runtime.canbus.busload import frame_bits_exact, frame_bits_worst
+
+    cfg = master.config
+    fb = master.feedback
+    bits = float(frame_bits_exact(0x080, b""))
+    for axis, node in enumerate(cfg.node_ids):
+        rpdo = RPDO1.codec.pack(int(hold_um[axis]), 0)
+        bits += frame_bits_exact(RPDO1.cob_base + node, rpdo)
+        tpdo = TPDO1.codec.pack(int(fb.position_um[axis]), int(fb.velocity_um_s[axis]))
+        bits += frame_bits_exact(TPDO1.cob_base + node, tpdo)
+    bits += frame_bits_worst(1) * (len(cfg.node_ids) + 1) * period_s / cfg.heartbeat_period_s
+    return float(bits / period_s / float(cfg.bitrate))
+
+
+def bench_full(
+    rig: Rig,
+    *,
+    sizes: BenchSizes | None = None,
+    rates_hz: tuple[float, ...] = (500.0, 1000.0),
+    rt: Any = None,
+    model_dir: Any = None,
+    hil_rig: str | None = None,
+    loop: bool = True,
+) -> tuple[dict[str, Any], dict[str, dict[str, np.ndarray]]]:
+    """The whole suite of ``excavator-rt bench``: planning latency, loop timing, CAN.
+
+    Planning: the PINN per dig on the held-out sets (:func:`bench_pinn`: inference alone and
+    plan = inference + verification + repair), the PSO teacher on a few of the same problems in
+    the same run, the whole trench plan of task A (:func:`bench_plan`, PINN, timed passes).
+    Loop and CAN: :func:`bench_loop` at each rate against the real-time HIL. Ratios and Yao's
+    figures beside ours.
+
+    Args:
+        rig: Rig profile.
+        sizes: Work per part (default :class:`BenchSizes`; :meth:`BenchSizes.quick` for tests).
+        rates_hz: Loop rates (Hz).
+        rt: :class:`~rt_runtime.control.RtSettings` for the loop (default: all requested).
+        model_dir: PINN model directory (default: the shipped ``onnx/``).
+        hil_rig: Rig profile name for the HIL process (default ``rig.name``).
+        loop: Run the loop and CAN part (False: planning only).
+
+    Returns:
+        ``(report, raw)``: the JSON-ready report (keys in the README, DESIGN.md "Reports") and
+        the loop's raw arrays per rate (for :func:`plot_bench`).
+    """
+    sz = sizes if sizes is not None else BenchSizes()
+    t_start = time.perf_counter()
+    pinn = bench_pinn(
+        rig,
+        model_dir,
+        limit=sz.pinn_limit,
+        passes=sz.pinn_passes,
+        pso_problems=sz.pso_problems,
+    )
+    trench = bench_plan(rig, ("A",), passes=sz.trench_passes, pso=False, model_dir=model_dir)
+    task_a = trench["tasks"]["A"]
+    pso_p50_s = pinn["pso_solve_s"]["p50"]
+    plan_p50_s = pinn["plan_us"]["p50"] * 1e-6
+    report: dict[str, Any] = {
+        "rig": rig.name,
+        "sizes": {
+            "pinn_limit": sz.pinn_limit,
+            "pinn_passes": sz.pinn_passes,
+            "pso_problems_per_type": sz.pso_problems,
+            "trench_passes": sz.trench_passes,
+            "loop_seconds": sz.loop_seconds,
+        },
+        "pinn": {
+            "infer_us": pinn["infer_us"],
+            "plan_us": pinn["plan_us"],
+            "verify_only_plan_us": pinn["verify_only_plan_us"],
+            "samples": pinn["samples"],
+            "refused": pinn["refused"],
+            "executed_feasible": pinn["executed_feasible"],
+            "gap_mean": pinn["gap_mean"],
+        },
+        "pso": {
+            "solve_s": pinn["pso_solve_s"],
+            "problems": sz.pso_problems * 2,
+        },
+        "trench": {
+            "task": "A",
+            "plan_us": trench["trench"]["plan_us"],
+            "digs": len(task_a["pinn"]["digs"]),
+            "coverage_error": task_a["pinn"].get("coverage_error"),
+        },
+        "paper": {
+            "yao_pinn_plan_ms": list(YAO_PINN_PLAN_MS),
+            "yao_pso_solve_s": list(YAO_PSO_SOLVE_S),
+        },
+        "ratios": {
+            "pso_over_pinn_plan": pso_p50_s / plan_p50_s,
+            "yao_pso_over_yao_pinn": YAO_PSO_SOLVE_S[0] / (YAO_PINN_PLAN_MS[1] * 1e-3),
+            "yao_pinn_plan_over_ours": YAO_PINN_PLAN_MS[0] * 1e-3 / plan_p50_s,
+            "yao_pso_over_ours": YAO_PSO_SOLVE_S[0] / pso_p50_s,
+        },
+        "goals": {"loop_500_lateness_p99_us_max": LOOP_LATENESS_P99_GOAL_US},
+    }
+    raw: dict[str, dict[str, np.ndarray]] = {}
+    if loop:
+        loop_summary, raw = bench_loop(rig, rates_hz, sz.loop_seconds, rt=rt, hil_rig=hil_rig)
+        report["loop"] = loop_summary
+        rtt_all = np.concatenate([r["rtt_s"] for r in raw.values()]) if raw else np.zeros(0)
+        first = next(iter(loop_summary.values())) if loop_summary else None
+        report["can"] = {
+            "sync_rtt_us": _group_us(rtt_all),
+            "bus_load": dict(first["bus_load"]) if first is not None else None,
+            "bus_load_rate_hz": float(next(iter(loop_summary))) if loop_summary else None,
+            "bitrate": rig.can.bitrate,
+        }
+        at_500 = loop_summary.get("500")
+        report["goals"]["met"] = {
+            "loop_500_lateness_p99": (
+                at_500["lateness_us"]["p99"] <= LOOP_LATENESS_P99_GOAL_US
+                if at_500 is not None and at_500["lateness_us"] is not None
+                else None
+            )
+        }
+    report["wall_s"] = time.perf_counter() - t_start
+    return report, raw
+
+
+def plot_bench(raw: dict[str, dict[str, np.ndarray]], path: Any) -> Any:
+    """Histograms of loop lateness and SYNC -> TPDO round trip per rate (a PNG).
+
+    Args:
+        raw: The raw arrays of :func:`bench_full` / :func:`bench_loop`.
+        path: Output file.
+
+    Returns:
+        The path written.
+
+    Raises:
+        ConfigurationError: matplotlib is not installed.
+    """
+    from pathlib import Path
+
+    from rt_runtime.errors import ConfigurationError
+
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:  # pragma: no cover - the plot extra
+        raise ConfigurationError(
+            "--plot needs matplotlib: pip install 'excavator-rt[plot]'"
+        ) from exc
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for rate, arrays in raw.items():
+        for ax, name in zip(axes, ("lateness_s", "rtt_s"), strict=True):
+            v = np.asarray(arrays[name], dtype=np.float64)
+            v = v[np.isfinite(v)] * 1e6
+            if v.size == 0:
+                continue
+            hi = max(float(np.max(v)), 1.0)
+            bins = np.logspace(
+                np.log10(max(float(np.min(v[v > 0])) if (v > 0).any() else 0.1, 0.1)),
+                np.log10(hi * 1.01),
+                60,
+            )
+            ax.hist(
+                np.maximum(v, 0.1), bins=bins, histtype="step", label=f"{rate} Hz", linewidth=1.4
+            )
+    axes[0].axvline(LOOP_LATENESS_P99_GOAL_US, color="k", linestyle=":", label="goal p99 (500 Hz)")
+    axes[0].set(
+        xscale="log",
+        yscale="log",
+        xlabel="lateness (us)",
+        ylabel="cycles",
+        title="loop lateness (start - deadline)",
+    )
+    axes[1].set(
+        xscale="log",
+        yscale="log",
+        xlabel="SYNC -> all TPDO1 (us)",
+        ylabel="cycles",
+        title="CAN round trip (real-time HIL, 127.0.0.1)",
+    )
+    for ax in axes:
+        ax.legend()
+        ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out

@@ -277,6 +277,68 @@ def cmd_oneshot(args: argparse.Namespace) -> int:
     return 0 if sol.feasible else 1
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    """``excavator-rt bench``: the full suite (planning latency, loop timing, CAN) in one run."""
+    import dataclasses
+
+    from rt_runtime.bench import BenchSizes, bench_full, plot_bench
+    from rt_runtime.control import RtSettings
+
+    rig = load_rig(args.rig)
+    try:
+        rates = tuple(float(r) for r in args.rates.split(",") if r.strip())
+    except ValueError:
+        raise ConfigurationError(
+            f"--rates {args.rates!r}: allowed a comma-separated list of rates in Hz, e.g. 500,1000"
+        ) from None
+    if not rates or any(not 0 < r <= 10_000 for r in rates):
+        raise ConfigurationError(f"--rates {args.rates!r}: every rate must be in (0, 10000] Hz")
+    if args.seconds is not None and args.seconds <= 0:
+        raise ConfigurationError(f"--seconds {args.seconds}: allowed a number of seconds > 0")
+    sizes = BenchSizes.quick() if args.quick else BenchSizes()
+    if args.seconds is not None:
+        sizes = dataclasses.replace(sizes, loop_seconds=args.seconds)
+    rt = (
+        RtSettings(sched_fifo_priority=None, lock_memory=False, timer_slack_ns=None)
+        if args.no_rt
+        else RtSettings(cpu=args.cpu)
+    )
+    r, raw = bench_full(
+        rig, sizes=sizes, rates_hz=rates, rt=rt, model_dir=args.models, hil_rig=args.rig
+    )
+    if args.plot:
+        r["plot"] = str(plot_bench(raw, args.plot))
+    if args.json:
+        _print_json(r)
+        return 0
+    pinn, pso, paper = r["pinn"], r["pso"], r["paper"]
+    print(f"excavator-rt bench on {rig.name} ({'quick' if args.quick else 'full'} sizes, {r['wall_s']:.0f} s)")
+    print(f"  PINN per dig: inference p50 {pinn['infer_us']['p50']:.1f} us, p99 {pinn['infer_us']['p99']:.1f} us; "
+          f"plan (inference + verification) p50 {pinn['plan_us']['p50']:.1f} us, p99 {pinn['plan_us']['p99']:.1f} us, "
+          f"max {pinn['plan_us']['max']:.0f} us  (Yao {paper['yao_pinn_plan_ms'][0]}-{paper['yao_pinn_plan_ms'][1]} ms)")
+    print(f"  PSO per dig (same problems): p50 {pso['solve_s']['p50']:.3f} s  (Yao {paper['yao_pso_solve_s'][0]:.0f}-"
+          f"{paper['yao_pso_solve_s'][1]:.0f} s); PSO / PINN plan = {r['ratios']['pso_over_pinn_plan']:.0f}x "
+          f"(Yao's own ratio {r['ratios']['yao_pso_over_yao_pinn']:.0f}x)")
+    print(f"  trench task A, whole plan ({r['trench']['digs']} digs): p50 {r['trench']['plan_us']['p50'] / 1e3:.2f} ms")
+    for rate, e in r.get("loop", {}).items():
+        lat, jit, rtt = e["lateness_us"], e["jitter_us"], e["sync_rtt_us"]
+        refused = [k for k, v in e["rt"].items() if not v["applied"]]
+        print(f"  loop {rate} Hz, {e['cycles']} cycles: lateness p50 {lat['p50']:.1f} / p99 {lat['p99']:.1f} / "
+              f"p99.9 {lat['p999']:.1f} / max {lat['max']:.0f} us; |period jitter| p99 {jit['p99']:.1f} us; "
+              f"overruns {e['overruns']} (skipped {e['skipped']})")
+        if rtt is not None:
+            print(f"      SYNC -> TPDO1 p50 {rtt['p50']:.0f} / p99 {rtt['p99']:.0f} / max {rtt['max']:.0f} us, "
+                  f"stale {e['stale_cycles']}; bus load {e['bus_load']['realistic']:.1%} "
+                  f"(nominal {e['bus_load']['nominal']:.1%}, worst {e['bus_load']['worst']:.1%})"
+                  + (f"; RT refused: {', '.join(refused)}" if refused else ""))
+    met = r["goals"].get("met", {}).get("loop_500_lateness_p99")
+    if met is not None:
+        print(f"  goal 500 Hz lateness p99 <= {r['goals']['loop_500_lateness_p99_us_max']:.0f} us: {'met' if met else 'NOT met'}")
+    if args.plot:
+        print(f"  histograms: {r['plot']}")
+    return 0
+
+
 def cmd_bench_oneshot(args: argparse.Namespace) -> int:
     """``excavator-rt bench oneshot``: PSO solve time and quality against DE."""
     from rt_runtime.bench import bench_oneshot
@@ -707,8 +769,21 @@ def build_parser() -> argparse.ArgumentParser:
     one.add_argument("--json", action="store_true")
     one.set_defaults(handler=cmd_oneshot)
 
-    bench = sub.add_parser("bench", help="benchmarks (distributions, against the papers)")
-    bench_sub = bench.add_subparsers(dest="bench_command", required=True, metavar="BENCHMARK")
+    bench = sub.add_parser(
+        "bench",
+        help="benchmarks (distributions, against the papers); no subcommand: the full suite",
+    )
+    bench.add_argument("--rig", default=DEFAULT_RIG)
+    bench.add_argument("--models", help="model directory (default: the shipped onnx/)")
+    bench.add_argument("--seconds", type=float, help="loop run per rate [s] (default 10; 1 with --quick)")
+    bench.add_argument("--rates", default="500,1000", help="loop rates in Hz, comma-separated")
+    bench.add_argument("--plot", metavar="FILE.png", help="histograms of loop lateness and CAN round trip")
+    bench.add_argument("--quick", action="store_true", help="tiny sizes (a first look, the tests)")
+    bench.add_argument("--cpu", type=int, help="pin the loop's thread to this CPU")
+    bench.add_argument("--no-rt", action="store_true", help="ask for no SCHED_FIFO, mlockall or timer slack")
+    bench.add_argument("--json", action="store_true")
+    bench.set_defaults(handler=cmd_bench)
+    bench_sub = bench.add_subparsers(dest="bench_command", required=False, metavar="BENCHMARK")
     b1 = bench_sub.add_parser("oneshot", help="PSO solve time and quality against DE")
     b1.add_argument("--rig", default=DEFAULT_RIG)
     b1.add_argument("--problems", type=int, default=50)

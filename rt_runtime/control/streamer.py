@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
@@ -50,6 +49,7 @@ from numpy.typing import NDArray
 from rt_runtime import actuation, kinematics
 from rt_runtime.canbus import CanMaster, CycleStatus, DriveInfo, Emcy, WriteStatus
 from rt_runtime.canbus.cia402 import DriveState
+from rt_runtime.control.clock import Clock, MonotonicClock
 from rt_runtime.errors import PlanningError
 from rt_runtime.rig import Rig
 
@@ -67,45 +67,6 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 T = TypeVar("T")
-
-
-class Clock(Protocol):
-    """Where the streamer's time comes from.
-
-    Attributes:
-        realtime: True for a wall clock (work between motions must not stop the cycle).
-    """
-
-    realtime: bool
-
-    def now(self) -> float:
-        """Current time (s)."""
-        ...
-
-    def sleep_until(self, t_s: float) -> None:
-        """Return at ``t_s`` (at once if it has passed)."""
-        ...
-
-
-class MonotonicClock:
-    """``time.monotonic`` with an absolute-deadline sleep: sleep, then spin the last ``spin_s``."""
-
-    realtime = True
-
-    def __init__(self, spin_s: float = 2e-4) -> None:
-        self.spin_s = spin_s
-
-    def now(self) -> float:
-        """``time.monotonic()``."""
-        return time.monotonic()
-
-    def sleep_until(self, t_s: float) -> None:
-        """Sleep to ``t_s - spin_s``, then spin to ``t_s``."""
-        remaining = t_s - time.monotonic() - self.spin_s
-        if remaining > 0.0:
-            time.sleep(remaining)
-        while time.monotonic() < t_s:
-            pass
 
 
 class JointMotion(Protocol):

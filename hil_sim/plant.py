@@ -50,13 +50,15 @@ damper of up to ~1e6 N*s/m at low speed) enters as ``(M + dt D) dv = dt f``; the
 likewise take their orifice slope implicitly. That keeps the scheme stable at 250 us for every
 shipped rig, where an explicit step would need ~20 us in soil (2 m / gain at a ~20 kg tip mass).
 
-Speed: everything per sub-step is plain-float arithmetic: 10 us a sub-step (electric) to 17 us
-(hydraulic, in soil) on the build machine, against about 120 us through the batched numpy
-functions of rt_runtime. The closed forms are those of :mod:`rt_runtime.dynamics` and
-:mod:`rt_runtime.kinematics` written out for one state, and the stroke maps are cubic Hermite
-tables built from :mod:`rt_runtime.actuation` (2049 nodes over each travel, < 0.1 deg apart:
-stroke error < 1e-13 m, slope error < 1e-9 relative); ``tests/test_plant.py`` cross-checks all
-three against the library.
+Speed: everything per sub-step is plain-float arithmetic: about 8 us a sub-step (electric) to
+14 us (hydraulic), in soil, on the build machine, against about 120 us through the batched
+numpy functions of rt_runtime (``benchmarks/hil_step.py`` times the HIL's composition). The
+closed forms are those of :mod:`rt_runtime.dynamics` and :mod:`rt_runtime.kinematics` written
+out for one state, and the stroke maps are cubic Hermite tables built from
+:mod:`rt_runtime.actuation` (2049 nodes over each travel, < 0.1 deg apart: stroke error
+< 1e-13 m, slope error < 1e-9 relative), evaluated by Horner's rule; ``tests/test_plant.py``
+cross-checks all three against the library. Each sub-step evaluates the tables once, at its
+new pose, and keeps the result for the next sub-step and the stroke properties.
 
 Power: :attr:`ArmPlant.power_w` is the sum over axes of max(F v, 0) with F the actuator force
 (motor force, or p_A A_A - p_B A_B) and v the stroke rate: what drives that do not regenerate
@@ -125,7 +127,7 @@ class _StrokeTable:
     the stroke continues linearly.
     """
 
-    __slots__ = ("_d", "_h", "_inv_h", "_last", "_q0", "_s")
+    __slots__ = ("_coef", "_d", "_h", "_inv_h", "_last", "_q0", "_s")
 
     def __init__(self, q0: float, h: float, s: list[float], d: list[float]) -> None:
         self._q0 = q0
@@ -134,6 +136,30 @@ class _StrokeTable:
         self._s = s
         self._d = d
         self._last = len(s) - 1
+        # Per interval, the Hermite cubic in power form for Horner's rule: 16 flops per call
+        # instead of 40 on the basis functions (eval runs 12k times per simulated second). The
+        # same polynomial; values differ from the basis form by rounding only (~1e-16).
+        # s(t) = s_i + t (m0 + t (c2 + t c3)) with t = (q - q_i) / h, then its first and second
+        # q-derivatives with the 1/h factors folded in; numpy only builds the table.
+        sa, da = np.asarray(s), np.asarray(d)
+        dp = sa[1:] - sa[:-1]
+        m0, m1 = da[:-1] * h, da[1:] * h
+        c2 = 3.0 * dp - 2.0 * m0 - m1
+        c3 = m0 + m1 - 2.0 * dp
+        inv_h = self._inv_h
+        inv_h2 = inv_h * inv_h
+        columns = (
+            sa[:-1],
+            m0,
+            c2,
+            c3,
+            da[:-1],
+            2.0 * c2 * inv_h,
+            3.0 * c3 * inv_h,
+            2.0 * c2 * inv_h2,
+            6.0 * c3 * inv_h2,
+        )
+        self._coef: list[tuple[float, ...]] = list(zip(*(c.tolist() for c in columns), strict=True))
 
     def eval(self, q: float) -> tuple[float, float, float]:
         """``(s, ds/dq, d2s/dq2)`` at joint angle ``q``."""
@@ -145,17 +171,8 @@ class _StrokeTable:
             return self._s[n] + self._d[n] * (q - self._q0 - n * self._h), self._d[n], 0.0
         i = int(u)
         t = u - i
-        p0 = self._s[i]
-        p1 = self._s[i + 1]
-        m0 = self._d[i] * self._h
-        m1 = self._d[i + 1] * self._h
-        t2 = t * t
-        t3 = t2 * t
-        dp = p1 - p0
-        s = p0 + (3.0 * t2 - 2.0 * t3) * dp + (t3 - 2.0 * t2 + t) * m0 + (t3 - t2) * m1
-        ds = (6.0 * t - 6.0 * t2) * dp + (3.0 * t2 - 4.0 * t + 1.0) * m0 + (3.0 * t2 - 2.0 * t) * m1
-        dds = (6.0 - 12.0 * t) * dp + (6.0 * t - 4.0) * m0 + (6.0 * t - 2.0) * m1
-        return s, ds * self._inv_h, dds * self._inv_h * self._inv_h
+        c0, c1, c2, c3, d1, d2, d3, e0, e1 = self._coef[i]
+        return c0 + t * (c1 + t * (c2 + t * c3)), d1 + t * (d2 + t * d3), e0 + t * e1
 
     @property
     def q_range(self) -> tuple[float, float]:
@@ -185,6 +202,16 @@ def _stroke_tables(rig: Rig) -> tuple[_StrokeTable, ...]:
     return tuple(tables)
 
 
+def _vec3(x: float, y: float, z: float) -> FloatArray:
+    """A new ``(3,)`` float64 array: filling ``np.empty`` costs half of ``np.array`` on a
+    tuple, and the HIL reads strokes and rates every servo sub-step."""
+    out = np.empty(3)
+    out[0] = x
+    out[1] = y
+    out[2] = z
+    return out
+
+
 def _reg_sqrt(dp: float) -> tuple[float, float]:
     """Signed square root with a laminar transition: ``dp / sqrt(|dp| + p_t)`` and its slope."""
     a = abs(dp) + ORIFICE_TRANSITION_PA
@@ -192,9 +219,21 @@ def _reg_sqrt(dp: float) -> tuple[float, float]:
     return dp / r, (0.5 * abs(dp) + ORIFICE_TRANSITION_PA) / (a * r)
 
 
-def _solve3(a: list[float], b0: float, b1: float, b2: float) -> tuple[float, float, float]:
-    """Solve the 3x3 system ``a`` (row-major, 9 floats) by Cramer's rule."""
-    a00, a01, a02, a10, a11, a12, a20, a21, a22 = a
+def _solve3(
+    a00: float,
+    a01: float,
+    a02: float,
+    a10: float,
+    a11: float,
+    a12: float,
+    a20: float,
+    a21: float,
+    a22: float,
+    b0: float,
+    b1: float,
+    b2: float,
+) -> tuple[float, float, float]:
+    """Solve the 3x3 system ``a x = b`` (``a`` row by row) by Cramer's rule."""
     c00 = a11 * a22 - a12 * a21
     c01 = a12 * a20 - a10 * a22
     c02 = a10 * a21 - a11 * a20
@@ -276,6 +315,13 @@ class ArmPlant:
 
         self._q = [float(v) for v in q0]
         self._qd = [float(v) for v in qd0]
+        # (s, ds/dq, d2s/dq2) per axis at self._q: the sub-step and the stroke properties read
+        # it instead of evaluating the tables again (issue 7: 3 evaluations per sub-step, not 9).
+        self._geo = (
+            self._tables[0].eval(self._q[0]),
+            self._tables[1].eval(self._q[1]),
+            self._tables[2].eval(self._q[2]),
+        )
         self._t = 0.0
         self._force = [0.0, 0.0, 0.0]
         self._power = 0.0
@@ -287,6 +333,10 @@ class ArmPlant:
         self._locked = [False, False, False]
 
         self._soil: TipLoad | None = soil.soil_model(rig) if isinstance(soil, Terrain) else soil
+        # Hydraulic state; neutral for an electric rig, whose sub-step never reads it.
+        self._pa = [0.0, 0.0, 0.0]
+        self._pb = [0.0, 0.0, 0.0]
+        self._aa = self._ab = 0.0
 
         if self._hydraulic:
             hyd = act.hydraulic
@@ -358,10 +408,16 @@ class ArmPlant:
             raise ValueError(
                 f"efforts must have 3 values (boom, stick, bucket); got {len(efforts)}"
             )
-        u = [float(efforts[0]), float(efforts[1]), float(efforts[2])]
-        if u[0] != u[0] or u[1] != u[1] or u[2] != u[2]:
-            raise ValueError(f"efforts must not be NaN; got {u}")
-        u = [min(max(e, -1.0), 1.0) for e in u]
+        e0, e1, e2 = float(efforts[0]), float(efforts[1]), float(efforts[2])
+        if e0 != e0 or e1 != e1 or e2 != e2:
+            raise ValueError(f"efforts must not be NaN; got {[e0, e1, e2]}")
+        # Clipping by comparisons: the same values as min(max(e, -1), 1), without two calls per
+        # axis on the HIL's hot path (one step per servo sub-step).
+        u = [
+            -1.0 if e0 < -1.0 else 1.0 if e0 > 1.0 else e0,
+            -1.0 if e1 < -1.0 else 1.0 if e1 > 1.0 else e1,
+            -1.0 if e2 < -1.0 else 1.0 if e2 > 1.0 else e2,
+        ]
         fx = fy = 0.0
         if tip_force_xy_n is not None:
             if len(tip_force_xy_n) != 2:
@@ -369,47 +425,59 @@ class ArmPlant:
             fx, fy = float(tip_force_xy_n[0]), float(tip_force_xy_n[1])
             if not (math.isfinite(fx) and math.isfinite(fy)):
                 raise ValueError(f"tip_force_xy_n must be finite; got {tip_force_xy_n!r}")
+        if self._brakes:
+            self._locked = [u[0] == 0.0, u[1] == 0.0, u[2] == 0.0]
+        if dt_s == self._substep:  # the HIL's case: one servo sub-step per call
+            self._substep_once(dt_s, u, fx, fy)
+            return
         n = max(1, math.ceil(dt_s / self._substep - 1e-9))
         h = dt_s / n
-        if self._brakes:
-            self._locked = [e == 0.0 for e in u]
         for _ in range(n):
             self._substep_once(h, u, fx, fy)
 
     def _substep_once(self, h: float, u: list[float], fx_ext: float, fy_ext: float) -> None:
+        # The HIL calls this once per servo sub-step (~600k times in a demo run), so it reads
+        # each attribute once into a local, takes the stroke geometry cached at the end of the
+        # previous sub-step, and forms the 3x3 system element by element instead of indexing a
+        # list. The operations and their order are those of the original loops (same floats);
+        # tests/test_plant.py pins a trajectory.
         q0, q1, q2 = self._q
         w0, w1, w2 = self._qd
         l0, l1, l2 = self._l
-        hh, bb, dd, g = self._h, self._b, self._d, self._g
+        hh0, hh1, hh2 = self._h
+        bb0, bb1, bb2 = self._b
+        dd0, dd1, dd2 = self._d
+        g = self._g
+        cos = math.cos
+        sin = math.sin
 
         # Trigonometry of the joint and absolute angles (as rt_runtime.dynamics._trig).
-        c1, s1 = math.cos(q0), math.sin(q0)
-        c2, s2 = math.cos(q1), math.sin(q1)
-        c3, s3 = math.cos(q2), math.sin(q2)
+        c1, s1 = cos(q0), sin(q0)
+        c2, s2 = cos(q1), sin(q1)
+        c3, s3 = cos(q2), sin(q2)
         c23, s23 = c2 * c3 - s2 * s3, s2 * c3 + c2 * s3
         cp1, sp1 = c1 * c2 - s1 * s2, s1 * c2 + c1 * s2
         cp2, sp2 = cp1 * c3 - sp1 * s3, sp1 * c3 + cp1 * s3
 
         # Mass matrix and velocity + gravity terms (rt_runtime.dynamics, eq 7).
-        d01 = l0 * (hh[1] * c2 - bb[1] * s2)
-        v01 = l0 * (bb[1] * c2 + hh[1] * s2)
-        d02 = l0 * (hh[2] * c23 - bb[2] * s23)
-        v02 = l0 * (bb[2] * c23 + hh[2] * s23)
-        d12 = l1 * (hh[2] * c3 - bb[2] * s3)
-        v12 = l1 * (bb[2] * c3 + hh[2] * s3)
-        m22 = dd[2]
-        m12 = dd[2] + d12
+        d01 = l0 * (hh1 * c2 - bb1 * s2)
+        v01 = l0 * (bb1 * c2 + hh1 * s2)
+        d02 = l0 * (hh2 * c23 - bb2 * s23)
+        v02 = l0 * (bb2 * c23 + hh2 * s23)
+        d12 = l1 * (hh2 * c3 - bb2 * s3)
+        v12 = l1 * (bb2 * c3 + hh2 * s3)
+        m22 = dd2
+        m12 = dd2 + d12
         m02 = m12 + d02
-        m11 = dd[1] + dd[2] + 2.0 * d12
+        m11 = dd1 + dd2 + 2.0 * d12
         m01 = m11 + d01 + d02
-        m00 = dd[0] + dd[1] + dd[2] + 2.0 * (d01 + d02 + d12)
-        a0 = w0
+        m00 = dd0 + dd1 + dd2 + 2.0 * (d01 + d02 + d12)
         a1 = w0 + w1
         a2 = a1 + w2
-        aa0, aa1, aa2 = a0 * a0, a1 * a1, a2 * a2
-        t0 = -v01 * aa1 - v02 * aa2 + g * (hh[0] * c1 - bb[0] * s1)
-        t1 = v01 * aa0 - v12 * aa2 + g * (hh[1] * cp1 - bb[1] * sp1)
-        t2 = v02 * aa0 + v12 * aa1 + g * (hh[2] * cp2 - bb[2] * sp2)
+        aa0, aa1, aa2 = w0 * w0, a1 * a1, a2 * a2
+        t0 = -v01 * aa1 - v02 * aa2 + g * (hh0 * c1 - bb0 * s1)
+        t1 = v01 * aa0 - v12 * aa2 + g * (hh1 * cp1 - bb1 * sp1)
+        t2 = v02 * aa0 + v12 * aa1 + g * (hh2 * cp2 - bb2 * sp2)
         bias2 = t2
         bias1 = t1 + t2
         bias0 = t0 + bias1
@@ -423,129 +491,157 @@ class ArmPlant:
         vx = jx0 * w0 + jx1 * w1 + jx2 * w2
         vy = jy0 * w0 + jy1 * w1 + jy2 * w2
 
-        # Cylinders: forces along the stroke and their damping -dF/dsd.
+        # Cylinders: forces along the stroke and their damping -dF/dsd, at the stroke geometry
+        # cached for the current q (self._geo, refreshed at the end of every sub-step).
         mr, fc, cv = self._mr, self._fc, self._cv
+        hydraulic = self._hydraulic
+        fmax, vmax, vknee, kstop = self._fmax, self._vmax, self._vknee, self._kstop
+        smax = self._smax
+        pa, pb, aa, ab = self._pa, self._pb, self._aa, self._ab
+        geo = self._geo
+        force = self._force
+        tanh = math.tanh
         diag_m = (m00, m11, m22)
         qd = (w0, w1, w2)
         tau = [0.0, 0.0, 0.0]
         damp = [0.0, 0.0, 0.0]
-        refl = [0.0, 0.0, 0.0]
-        sp = [0.0, 0.0, 0.0]
-        strokes = [0.0, 0.0, 0.0]
-        force = self._force
         for i in range(3):
-            s, ds, dds = self._tables[i].eval(self._q[i])
-            strokes[i] = s
-            sp[i] = ds
-            sd = ds * qd[i]
+            s, ds, dds = geo[i]
+            w = qd[i]
+            sd = ds * w
             d = cv
-            if self._hydraulic:
-                f_act = self._pa[i] * self._aa - self._pb[i] * self._ab
+            if hydraulic:
+                f_act = pa[i] * aa - pb[i] * ab
             else:
-                f_act = u[i] * self._fmax
-                if f_act * sd > 0.0 and abs(sd) > self._vknee:
-                    span = self._vmax - self._vknee
-                    scale = (self._vmax - abs(sd)) / span
+                ui = u[i]
+                f_act = ui * fmax
+                if f_act * sd > 0.0 and abs(sd) > vknee:
+                    span = vmax - vknee
+                    scale = (vmax - abs(sd)) / span
                     if scale > 0.0:
                         f_act *= scale
-                        d += abs(u[i]) * self._fmax / span
+                        d += abs(ui) * fmax / span
                     else:
                         f_act = 0.0
             force[i] = f_act
-            tf = math.tanh(sd / COULOMB_SMOOTHING_M_S)
+            tf = tanh(sd / COULOMB_SMOOTHING_M_S)
             f = f_act - fc * tf - cv * sd
             d += fc * (1.0 - tf * tf) / COULOMB_SMOOTHING_M_S
-            over = -s if s < 0.0 else s - self._smax[i]
+            over = -s if s < 0.0 else s - smax[i]
             if over > 0.0:
                 m_eff = diag_m[i] / (ds * ds) + mr
-                c_stop = 2.0 * STOP_DAMPING_RATIO * math.sqrt(self._kstop * m_eff)
+                c_stop = 2.0 * STOP_DAMPING_RATIO * math.sqrt(kstop * m_eff)
                 if s < 0.0:
-                    f_stop = self._kstop * over - c_stop * sd
+                    f_stop = kstop * over - c_stop * sd
                     if f_stop > 0.0:
                         f += f_stop
                         d += c_stop
                 else:
-                    f_stop = -self._kstop * over - c_stop * sd
+                    f_stop = -kstop * over - c_stop * sd
                     if f_stop < 0.0:
                         f += f_stop
                         d += c_stop
-            tau[i] = ds * f - mr * ds * dds * qd[i] * qd[i]
+            tau[i] = ds * f - mr * ds * dds * w * w
             damp[i] = ds * ds * d
-            refl[i] = mr * ds * ds
+        tau0, tau1, tau2 = tau
+        (stroke0, slope0, _), (stroke1, slope1, _), (stroke2, slope2, _) = geo
 
         # Tip force: soil law (implicit damping) plus the given force.
         fx, fy = fx_ext, fy_ext
         dxx = dxy = dyx = dyy = 0.0
-        if self._soil is not None:
-            sfx, sfy, dxx, dxy, dyx, dyy = self._soil.tip_load(x_tip, y_tip, vx, vy)
+        soil = self._soil
+        if soil is not None:
+            sfx, sfy, dxx, dxy, dyx, dyy = soil.tip_load(x_tip, y_tip, vx, vy)
             fx += sfx
             fy += sfy
             self._soil_f = (sfx, sfy)
-        tau[0] += jx0 * fx + jy0 * fy
-        tau[1] += jx1 * fx + jy1 * fy
-        tau[2] += jx2 * fx + jy2 * fy
+        tau0 += jx0 * fx + jy0 * fy
+        tau1 += jx1 * fx + jy1 * fy
+        tau2 += jx2 * fx + jy2 * fy
 
         # (M + M_r + h D) dqd = h (tau - bias - C_r); D = diag(s'^2 d) + J^T D_tip J.
-        jx = (jx0, jx1, jx2)
-        jy = (jy0, jy1, jy2)
-        m = [m00, m01, m02, m01, m11, m12, m02, m12, m22]
-        for i in range(3):
-            m[4 * i] += refl[i] + h * damp[i]
+        a00 = m00 + (mr * slope0 * slope0 + h * damp[0])
+        a11 = m11 + (mr * slope1 * slope1 + h * damp[1])
+        a22 = m22 + (mr * slope2 * slope2 + h * damp[2])
+        a01 = a10 = m01
+        a02 = a20 = m02
+        a12 = a21 = m12
         if dxx != 0.0 or dxy != 0.0 or dyx != 0.0 or dyy != 0.0:
-            for i in range(3):
-                for j in range(3):
-                    m[3 * i + j] += h * (
-                        jx[i] * (dxx * jx[j] + dxy * jy[j]) + jy[i] * (dyx * jx[j] + dyy * jy[j])
-                    )
-        r0 = h * (tau[0] - bias0)
-        r1 = h * (tau[1] - bias1)
-        r2 = h * (tau[2] - bias2)
-        if self._brakes and (self._locked[0] or self._locked[1] or self._locked[2]):
-            rhs = [r0, r1, r2]
-            for i in range(3):
-                if self._locked[i]:
-                    m[3 * i : 3 * i + 3] = [0.0, 0.0, 0.0]
-                    m[4 * i] = 1.0
-                    rhs[i] = -qd[i]
-            r0, r1, r2 = rhs
-        dq0, dq1, dq2 = _solve3(m, r0, r1, r2)
+            # Element (i, j) adds h (jx_i (dxx jx_j + dxy jy_j) + jy_i (dyx jx_j + dyy jy_j)).
+            px0, py0 = dxx * jx0 + dxy * jy0, dyx * jx0 + dyy * jy0
+            px1, py1 = dxx * jx1 + dxy * jy1, dyx * jx1 + dyy * jy1
+            px2, py2 = dxx * jx2 + dxy * jy2, dyx * jx2 + dyy * jy2
+            a00 += h * (jx0 * px0 + jy0 * py0)
+            a01 += h * (jx0 * px1 + jy0 * py1)
+            a02 += h * (jx0 * px2 + jy0 * py2)
+            a10 += h * (jx1 * px0 + jy1 * py0)
+            a11 += h * (jx1 * px1 + jy1 * py1)
+            a12 += h * (jx1 * px2 + jy1 * py2)
+            a20 += h * (jx2 * px0 + jy2 * py0)
+            a21 += h * (jx2 * px1 + jy2 * py1)
+            a22 += h * (jx2 * px2 + jy2 * py2)
+        r0 = h * (tau0 - bias0)
+        r1 = h * (tau1 - bias1)
+        r2 = h * (tau2 - bias2)
+        if self._brakes:
+            lock0, lock1, lock2 = self._locked
+            if lock0:
+                a00, a01, a02, r0 = 1.0, 0.0, 0.0, -w0
+            if lock1:
+                a10, a11, a12, r1 = 0.0, 1.0, 0.0, -w1
+            if lock2:
+                a20, a21, a22, r2 = 0.0, 0.0, 1.0, -w2
+        dq0, dq1, dq2 = _solve3(a00, a01, a02, a10, a11, a12, a20, a21, a22, r0, r1, r2)
         w0 += dq0
         w1 += dq1
         w2 += dq2
         self._qd = [w0, w1, w2]
-        self._q = [q0 + h * w0, q1 + h * w1, q2 + h * w2]
+        n0, n1, n2 = q0 + h * w0, q1 + h * w1, q2 + h * w2
+        self._q = [n0, n1, n2]
         self._t += h
+        tables = self._tables
+        self._geo = (tables[0].eval(n0), tables[1].eval(n1), tables[2].eval(n2))
 
         # Power of the actuators over the sub-step (new stroke rates), soil dissipation.
-        sd_new = (sp[0] * w0, sp[1] * w1, sp[2] * w2)
+        sd0, sd1, sd2 = slope0 * w0, slope1 * w1, slope2 * w2
+        p0 = force[0] * sd0
+        p1 = force[1] * sd1
+        p2 = force[2] * sd2
+        p_all = 0.0 + p0 + p1 + p2
         p_pos = 0.0
-        p_all = 0.0
-        for i in range(3):
-            p = force[i] * sd_new[i]
-            p_all += p
-            if p > 0.0:
-                p_pos += p
+        if p0 > 0.0:
+            p_pos += p0
+        if p1 > 0.0:
+            p_pos += p1
+        if p2 > 0.0:
+            p_pos += p2
         self._power = p_pos
         self._power_signed = p_all
         self._energy += h * p_pos
         self._energy_signed += h * p_all
-        if self._soil is not None:
+        if soil is not None:
             vx_new = jx0 * w0 + jx1 * w1 + jx2 * w2
             vy_new = jy0 * w0 + jy1 * w1 + jy2 * w2
             sfx, sfy = self._soil_f
             self._soil_energy -= h * (sfx * vx_new + sfy * vy_new)
 
-        if self._hydraulic:
-            self._hydraulic_step(h, u, strokes, sd_new)
+        if hydraulic:
+            self._hydraulic_step(h, u, (stroke0, stroke1, stroke2), (sd0, sd1, sd2))
 
     def _hydraulic_step(
-        self, h: float, u: list[float], strokes: list[float], sd: tuple[float, float, float]
+        self,
+        h: float,
+        u: list[float],
+        strokes: tuple[float, float, float],
+        sd: tuple[float, float, float],
     ) -> None:
         ps, kv, cl, beta = self._ps, self._kv, self._cl, self._beta
+        aa, ab, v0, pmax, smax = self._aa, self._ab, self._v0, self._pmax, self._smax
+        pa_all, pb_all, spool, force = self._pa, self._pb, self._spool, self._force
         lag = 1.0 - math.exp(-h / self._tau_v)
         for i in range(3):
-            x = self._spool[i]
-            pa, pb = self._pa[i], self._pb[i]
+            x = spool[i]
+            pa, pb = pa_all[i], pb_all[i]
             if x >= 0.0:
                 ra, dra = _reg_sqrt(ps - pa)
                 rb, drb = _reg_sqrt(pb)
@@ -560,16 +656,18 @@ class ArmPlant:
             qb += cl * (ps - 2.0 * pb)
             dqa -= 2.0 * cl
             dqb -= 2.0 * cl
-            va = max(self._v0 + self._aa * strokes[i], 0.1 * self._v0)
-            vb = max(self._v0 + self._ab * (self._smax[i] - strokes[i]), 0.1 * self._v0)
+            va = max(v0 + aa * strokes[i], 0.1 * v0)
+            vb = max(v0 + ab * (smax[i] - strokes[i]), 0.1 * v0)
             ga = h * beta / va
             gb = h * beta / vb
-            pa += ga * (qa - self._aa * sd[i]) / (1.0 - ga * dqa)
-            pb += gb * (qb + self._ab * sd[i]) / (1.0 - gb * dqb)
-            self._pa[i] = min(max(pa, 0.0), self._pmax)
-            self._pb[i] = min(max(pb, 0.0), self._pmax)
-            self._spool[i] = x + (u[i] - x) * lag
-            self._force[i] = self._pa[i] * self._aa - self._pb[i] * self._ab
+            pa += ga * (qa - aa * sd[i]) / (1.0 - ga * dqa)
+            pb += gb * (qb + ab * sd[i]) / (1.0 - gb * dqb)
+            pa = min(max(pa, 0.0), pmax)
+            pb = min(max(pb, 0.0), pmax)
+            pa_all[i] = pa
+            pb_all[i] = pb
+            spool[i] = x + (u[i] - x) * lag
+            force[i] = pa * aa - pb * ab
 
     # --- state ----------------------------------------------------------------------------
 
@@ -596,22 +694,24 @@ class ArmPlant:
     @property
     def q_rad(self) -> FloatArray:
         """Joint angles ``(3,)``."""
-        return np.array(self._q)
+        return _vec3(*self._q)
 
     @property
     def qd_rad_s(self) -> FloatArray:
         """Joint rates ``(3,)``."""
-        return np.array(self._qd)
+        return _vec3(*self._qd)
 
     @property
     def stroke_m(self) -> FloatArray:
         """True cylinder strokes ``(3,)`` (what the drives' encoders read, before quantisation)."""
-        return np.array([self._tables[i].eval(self._q[i])[0] for i in range(3)])
+        geo = self._geo
+        return _vec3(geo[0][0], geo[1][0], geo[2][0])
 
     @property
     def stroke_rate_m_s(self) -> FloatArray:
         """True stroke rates ``(3,)``."""
-        return np.array([self._tables[i].eval(self._q[i])[1] * self._qd[i] for i in range(3)])
+        geo, qd = self._geo, self._qd
+        return _vec3(geo[0][1] * qd[0], geo[1][1] * qd[1], geo[2][1] * qd[2])
 
     @property
     def tip_xy_m(self) -> FloatArray:
@@ -628,7 +728,7 @@ class ArmPlant:
         """Actuator force along each cylinder ``(3,)``, positive extending, in the last sub-step:
         the motor force (electric) or ``p_A A_A - p_B A_B`` (hydraulic). Friction and end stops
         are not included."""
-        return np.array(self._force)
+        return _vec3(*self._force)
 
     @property
     def soil_force_xy_n(self) -> FloatArray:

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from firmware_models.drive import DriveFirmware
 from hil_sim import ArmPlant, Terrain
 from hil_sim.plant import STOP_DEFLECTION_M
 from rt_runtime import actuation, dynamics, kinematics, soil
@@ -346,3 +348,196 @@ def test_bad_arguments_are_named() -> None:
     with pytest.raises(ValueError, match="dt_s must be finite and > 0"):
         plant.step(0.0, [0.0, 0.0, 0.0])
     assert plant.pressures_pa is None and plant.spool is None
+
+
+# --- pinned trajectories ----------------------------------------------------------------------
+# Regression guards for performance work on the plant and the drive model: the values below were
+# computed with the code before it was optimised (hil_sim/plant.py and firmware_models/drive.py
+# as of issue 7's profiling); an optimisation may reassociate floating-point sums, nothing more,
+# hence rtol 1e-9. A physics change that moves them is a behaviour change: recompute them on
+# purpose, in its own commit, with the reason.
+
+PINNED_PERIOD_S = 2e-3
+PINNED_SUBSTEPS = 8
+
+
+def _pinned_closed_loop(rig: Rig) -> dict[str, list[float]]:
+    """500 SYNC periods of the plant in soil under three CSP drives on a seeded motion."""
+    rng = np.random.default_rng(20260607)
+    q0 = _mid(rig)
+    tip = kinematics.forward(rig, q0)
+    terrain = Terrain(float(tip[1]) + 0.04, (float(tip[0]) - 2.0, float(tip[0]) + 2.0), 0.3)
+    plant = ArmPlant(rig, q0, terrain)
+    s0 = plant.stroke_m
+    ids = [dict(rig.can.node_ids)[name] for name in actuation.AXES]
+    drives = [
+        DriveFirmware(ids[i], rig, name, initial_position_m=float(s0[i]))
+        for i, name in enumerate(actuation.AXES)
+    ]
+    for fw, node in zip(drives, ids, strict=True):
+        fw.pending_frames(0.0)
+        fw.on_frame(0x000, bytes([0x01, node]), 0.0)
+        for word in (0x06, 0x07, 0x0F):
+            fw.on_frame(0x300 + node, struct.pack("<Hb", word, 8), 0.0)
+    amp = rng.uniform(-0.01, 0.01, 3)
+    omega = 2.0 * math.pi / rng.uniform(1.0, 2.0, 3)
+    h = PINNED_PERIOD_S / PINNED_SUBSTEPS
+    path_sum = 0.0
+    efforts = [0.0, 0.0, 0.0]
+    for k in range(500):
+        now = k * PINNED_PERIOD_S
+        t = now + PINNED_PERIOD_S
+        target = s0 + amp * (1.0 - np.cos(omega * t))
+        rate = amp * omega * np.sin(omega * t)
+        for i, fw in enumerate(drives):
+            payload = struct.pack("<ii", round(target[i] * 1e6), round(rate[i] * 1e6))
+            fw.on_frame(0x200 + ids[i], payload, now)
+        for fw in drives:
+            fw.on_frame(0x080, b"", now)
+            fw.pending_frames(now)
+        for _ in range(PINNED_SUBSTEPS):
+            s = plant.stroke_m
+            sd = plant.stroke_rate_m_s
+            efforts = [fw.servo_step(h, float(s[i]), float(sd[i])) for i, fw in enumerate(drives)]
+            plant.step(h, efforts)
+        path_sum += float(plant.stroke_m.sum())
+    out = {
+        "q_rad": plant.q_rad.tolist(),
+        "qd_rad_s": plant.qd_rad_s.tolist(),
+        "stroke_m": plant.stroke_m.tolist(),
+        "stroke_rate_m_s": plant.stroke_rate_m_s.tolist(),
+        "efforts": efforts,
+        "force_n": plant.cylinder_force_n.tolist(),
+        "soil_n": plant.soil_force_xy_n.tolist(),
+        "energy_j": [plant.energy_j, plant.energy_signed_j, plant.soil_energy_j],
+        "path_sum_m": [path_sum],
+        "states": [float(fw.state) for fw in drives],
+    }
+    if plant.pressures_pa is not None and plant.spool is not None:
+        out["pressures_pa"] = plant.pressures_pa.ravel().tolist()
+        out["spool"] = plant.spool.tolist()
+    return out
+
+
+def _pinned_open_loop(rig: Rig) -> dict[str, list[float]]:
+    """Seeded efforts: end stops, brakes (exact zeros), a tip force, odd step lengths, soil."""
+    rng = np.random.default_rng(7011)
+    q0 = _mid(rig)
+    tip = kinematics.forward(rig, q0)
+    terrain = Terrain(float(tip[1]) + 0.02, (float(tip[0]) - 2.0, float(tip[0]) + 2.0), 0.3)
+    plant = ArmPlant(rig, q0, terrain)
+    hold = _holding_effort(rig, q0) if rig.cylinders.kind == "electric" else np.zeros(3)
+    path_sum = 0.0
+    for k in range(120):
+        effort = hold + rng.uniform(-0.6, 0.6, 3)
+        if k % 7 == 3:
+            effort[k % 3] = 0.0  # brake on one axis
+        if 40 <= k < 60:
+            effort[2] = 1.0  # into the bucket cylinder's end stop
+        force = rng.normal(0.0, 300.0, 2) if k % 5 == 0 else None
+        dt = 0.0023 if k % 11 == 0 else 0.002
+        plant.step(dt, np.clip(effort, -1.0, 1.0).tolist(), force)
+        path_sum += float(plant.stroke_m.sum())
+    out = {
+        "q_rad": plant.q_rad.tolist(),
+        "qd_rad_s": plant.qd_rad_s.tolist(),
+        "force_n": plant.cylinder_force_n.tolist(),
+        "soil_n": plant.soil_force_xy_n.tolist(),
+        "energy_j": [plant.energy_j, plant.energy_signed_j, plant.soil_energy_j],
+        "power_w": [plant.power_w, plant.power_signed_w],
+        "path_sum_m": [path_sum],
+        "brakes": [float(b) for b in plant.brakes_engaged],
+    }
+    if plant.pressures_pa is not None and plant.spool is not None:
+        out["pressures_pa"] = plant.pressures_pa.ravel().tolist()
+        out["spool"] = plant.spool.tolist()
+    return out
+
+
+# Computed before the optimisation (see the comment above); do not edit by hand.
+PINNED_CLOSED_LOOP = {
+    "electric": {
+        "q_rad": [0.4527761078326149, -1.3045771159489228, -1.4738262974923682],
+        "qd_rad_s": [-0.042687951200451504, -0.1642427425226995, 0.014530594438309626],
+        "stroke_m": [0.10506949132259862, 0.1128131121107219, 0.11537543223594854],
+        "stroke_rate_m_s": [-0.0057759276500757, 0.015619026045466212, -0.0008549067450620187],
+        "efforts": [0.006288928324292692, 0.002220009960982976, -0.007482224406517481],
+        "force_n": [157.2232081073173, 55.5002490245744, -187.05561016293703],
+        "soil_n": [0.0, 0.0],
+        "energy_j": [36.68493047530472, 35.811423739205054, 17.468777104266977],
+        "path_sum_m": [158.9315265177744],
+        "states": [4.0, 4.0, 4.0],
+    },
+    "hydraulic": {
+        "q_rad": [0.5765218301823736, -1.7788081859184828, -0.39240306440851525],
+        "qd_rad_s": [-0.024907475417920724, -0.07438929908919278, 0.002791740513267224],
+        "stroke_m": [0.19532977762935558, 0.2058689586779421, 0.18807797956757463],
+        "stroke_rate_m_s": [-0.00761293372595414, 0.015877401988339396, -0.000592650980536513],
+        "efforts": [-0.026442969352861986, 0.04721990919848244, -0.008219858821963077],
+        "force_n": [3626.024246017296, 98.83716642036234, -522.1828041696172],
+        "soil_n": [0.0, 0.0],
+        "energy_j": [156.02858239174503, 152.6288316398197, 67.25492761898653],
+        "path_sum_m": [286.890928015839],
+        "states": [4.0, 4.0, 4.0],
+        "pressures_pa": [
+            7313469.638471852,
+            9641777.022572216,
+            5590326.196522167,
+            8147725.5232751155,
+            6430357.676232599,
+            9557052.907358421,
+        ],
+        "spool": [-0.025382926677508095, 0.055040819935113325, -0.006686819379697558],
+    },
+}
+
+# Computed before the optimisation (see the comment above); do not edit by hand.
+PINNED_OPEN_LOOP = {
+    "electric": {
+        "q_rad": [0.3757589149484191, -1.2979028463046438, -1.439330251498285],
+        "qd_rad_s": [-0.28570647192823917, -0.9612191293053078, 0.8223739432720165],
+        "force_n": [-13195.713935154774, 4922.612532094936, 5026.898864224776],
+        "soil_n": [70.28338423375544, 213.52386776566973],
+        "energy_j": [119.36134125079617, 55.71871780537165, 18.017477450859587],
+        "power_w": [966.1015739830389, 718.5208961924791],
+        "path_sum_m": [38.59179126011785],
+        "brakes": [0.0, 0.0, 0.0],
+    },
+    "hydraulic": {
+        "q_rad": [0.5477209462486324, -1.7846063885888714, -0.411188571969339],
+        "qd_rad_s": [-0.023676806104339695, -0.09420434821819668, 0.22419421669551082],
+        "force_n": [-7291.219822270781, 5951.2643025127545, -278.9383145118845],
+        "soil_n": [-43.96835738821932, 869.3777791708171],
+        "energy_j": [131.56585259980116, 102.95112950042639, 62.049518782444586],
+        "power_w": [191.02245552383516, 191.02245552383516],
+        "path_sum_m": [69.76467292904233],
+        "brakes": [0.0, 0.0, 0.0],
+        "pressures_pa": [
+            7656548.796757497,
+            13319956.538717115,
+            9212848.575372916,
+            11743300.98512857,
+            7455989.447404723,
+            10986382.678677749,
+        ],
+        "spool": [-0.2019707346065887, 0.20358195030825693, -0.054816330115231356],
+    },
+}
+
+
+def _assert_pinned(got: dict[str, list[float]], want: dict[str, list[float]]) -> None:
+    assert got.keys() == want.keys()
+    for key, values in want.items():
+        np.testing.assert_allclose(got[key], values, rtol=1e-9, atol=1e-15, err_msg=key)
+
+
+@pytest.mark.parametrize("rig", [SCALE, BENCH], ids=["electric", "hydraulic"])
+def test_pinned_trajectory_of_plant_and_drives_in_soil(rig: Rig) -> None:
+    """500 SYNC periods (4000 sub-steps) end where they ended before the optimisation."""
+    _assert_pinned(_pinned_closed_loop(rig), PINNED_CLOSED_LOOP[rig.cylinders.kind])
+
+
+@pytest.mark.parametrize("rig", [SCALE, BENCH], ids=["electric", "hydraulic"])
+def test_pinned_trajectory_of_stops_brakes_and_tip_force(rig: Rig) -> None:
+    """The open-loop paths (end stops, brakes, explicit tip force, uneven steps) likewise."""
+    _assert_pinned(_pinned_open_loop(rig), PINNED_OPEN_LOOP[rig.cylinders.kind])

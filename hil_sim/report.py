@@ -1,12 +1,12 @@
 """HIL tracking report: the stable JSON keys of DESIGN.md "Reports" and plots after Yao Fig. 17-21.
 
-Role: turn one HIL run (the streamer's per-SYNC record, the HIL's truth at every SYNC, the
+Role: turn one HIL run (the executor's per-SYNC telemetry, the HIL's truth at every SYNC, the
 terrain the bucket really cut) into the report of ``excavator-rt hil --json``:
 
 * ``tracking``: per axis (boom, stick, bucket) ``max_mm`` and ``rms_mm`` of the true stroke
   (plant) minus the reference stroke at each SYNC, and ``reported`` the same on the drives'
-  TPDO1 feedback (what the controller sees). Only cycles that streamed a motion count; the
-  stop after a fault does not.
+  TPDO1 feedback (what the controller sees). Only cycles that streamed a motion count; holding
+  and the stop after a fault do not.
 * ``tip_error_max_mm``: largest distance between the true tip and the reference tip (forward
   kinematics of the reference joint angles), same cycles.
 * ``coverage_error``: area of the symmetric difference of what the bucket really removed from the
@@ -56,7 +56,8 @@ class Segment:
     """One streamed motion joined with the truth, per SYNC (the report's raw material).
 
     Attributes:
-        kind: ``dig``, ``lift_out``, ``dump``, ``approach``, ``enter``, ``hold``, ``travel``.
+        kind: ``dig``, ``lift_out``, ``dump``, ``approach``, ``enter``, ``connect``, ``hold``,
+            ``stop``, ``travel``.
         index: Dig index for digs, else -1.
         sync_index: SYNC counts ``(n,)``.
         t_s: HIL clock at each SYNC ``(n,)``.

@@ -1,27 +1,35 @@
-"""Scenario runner: a trench task on a rig, planned and executed through the master against the HIL.
+"""Scenario runner: a trench task on a rig, executed by the executor through the master on the HIL.
 
 Role: what ``excavator-rt hil`` and the HIL tests run. A :class:`Scenario` names the task, the
-rig, the transport (lockstep or real time), the streamer's feed-forward, faults to inject and
-where to write the trace; :func:`run_scenario` returns the report (:mod:`hil_sim.report` keys).
+rig, the transport (lockstep or real time), the feed-forward, faults to inject and where to write
+the trace; :func:`run_scenario` returns the report (:mod:`hil_sim.report` keys).
 
-Flow (closed loop, Yao Fig. 5): the trench planner plans one dig at a time from the material it
-believes is left; the streamer executes the transitions that lead to the dig's entry, then the
-dig; the tip path reconstructed from the drives' reported strokes goes back to the planner
-(``session.record``), while the HIL cuts its own terrain with the true tip path, which is what
-the report's ``coverage_error`` and ``overdig_max_mm`` measure. The arm starts at the planner's
-dump pose (or at the first dig's entry with ``start_at_entry``, for short tests).
+Flow (closed loop, Yao Fig. 5): the :class:`~rt_runtime.control.executor.Executor` runs the
+trench session in the fixed-rate loop: it plans one dig at a time from the material the session
+believes is left, streams lead-in, approach, enter, the dig, lift-out and dump through the limit
+guard, and records the tip path reconstructed from the drives' reported strokes into the session
+(``session.record``). After each recorded dig (``on_dig_done``) the HIL cuts its own terrain with
+the *true* tip path of the dig's SYNCs, which is what the report's ``coverage_error`` and
+``overdig_max_mm`` measure. The arm starts at the planner's dump pose, or at the first dig's entry
+with ``start_at_entry`` (short tests: the first dig is planned before the HIL starts and left
+pending in the session, so the executor digs it at once).
 
-Transitions: ``session.next_dig`` appends the transitions that lead into the dig (lift out,
-dump, approach, enter; ruckig rest to rest, no waypoints) to ``session.steps``; the runner
-streams them as they are, then the dig, so the arm never jumps.
+Lockstep runs plan in-process on simulated time (deterministic); real-time runs use the
+executor's planner process and the default RT settings, applied before the drives boot (each
+refusal is in ``loop.rt``).
 
-Faults (:class:`FaultSpec`) are switched on ``at_s`` seconds after the first motion starts, from
-the streamer's per-cycle hook, on the HIL's drive node (:mod:`hil_sim.drives`).
+The report is built from the executor's telemetry: each motion (telemetry ``segment``) and each
+run of holding or stopping becomes one :class:`~hil_sim.report.Segment`, joined with the HIL's
+truth by SYNC count; ``tracking`` counts the cycles that streamed a motion.
+
+Faults (:class:`FaultSpec`) are switched on ``at_s`` seconds after the executor's first cycle,
+from its per-cycle hook, on the HIL's drive node (:mod:`hil_sim.drives`).
 """
 
 from __future__ import annotations
 
-import functools
+import itertools
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,11 +52,20 @@ from hil_sim.terrain import Terrain
 from rt_runtime.canbus import CanMaster
 from rt_runtime.control import (
     Clock,
-    StreamResult,
-    StreamStatus,
-    TrajectoryStreamer,
-    ruckig_motion,
-    sextic_motion,
+    FixedRateLoop,
+    LoopConfig,
+    RtReport,
+    RtSettings,
+    apply_rt,
+    restore_rt,
+)
+from rt_runtime.control.executor import (
+    DigRecord,
+    Executor,
+    ExecutorConfig,
+    ExecutorResult,
+    Phase,
+    executor_telemetry,
 )
 from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.rig import Rig, load_rig
@@ -56,6 +73,11 @@ from rt_runtime.rig import Rig, load_rig
 __all__ = ["FaultSpec", "Scenario", "run_scenario"]
 
 FloatArray = NDArray[np.float64]
+
+#: RT settings of a lockstep run: simulated time needs none of them.
+_NO_RT = RtSettings(
+    sched_fifo_priority=None, lock_memory=False, cpu=None, timer_slack_ns=None, freeze_gc=False
+)
 
 #: Goals of issue 6 (mm), for the report's ``goal`` block.
 GOALS_MM = {"electric": {"max_mm": 1.0, "rms_mm": 0.3}, "hydraulic": {"max_mm": 3.0}}
@@ -181,8 +203,18 @@ def _open_hil(sc: Scenario, rig: Rig, q0: FloatArray, terrain: Terrain | None) -
     return _LockstepAdapter(hil)
 
 
+#: Telemetry rows are kept for this much simulated time (every cycle of a whole task).
+_MAX_RUN_S = 400.0
+#: Kinds of the telemetry's phases in the report's segments.
+_PHASE_KIND = {
+    Phase.WAIT: "hold",
+    Phase.SETTLE: "hold",
+    Phase.STOP: "stop",
+}
+
+
 def run_scenario(sc: Scenario) -> dict[str, Any]:
-    """Plan and execute ``sc`` through the master against the HIL; return the report.
+    """Plan and execute ``sc`` with the executor against the HIL; return the report.
 
     Returns:
         The report (DESIGN.md "Reports" keys for ``excavator-rt hil --json`` plus extras; the
@@ -190,10 +222,10 @@ def run_scenario(sc: Scenario) -> dict[str, Any]:
 
     Raises:
         ConfigurationError: Bad rig, task, or fault.
-        PlanningError: The planner cannot plan the task.
+        PlanningError: The planner cannot plan the task's first dig (``start_at_entry``).
         CommunicationError, DriveFault: Boot or enable failed.
     """
-    from rt_runtime.planning.trench import Transition, TravelMove, TrenchPlanner, load_task
+    from rt_runtime.planning.trench import TrenchPlanner, load_task
 
     wall0 = time.perf_counter()
     rig = load_rig(sc.rig)
@@ -202,26 +234,35 @@ def run_scenario(sc: Scenario) -> dict[str, Any]:
     planner = TrenchPlanner(rig, sc.planner)
     session = planner.start(task)
     q_dump = np.asarray(planner.dump_pose_rad, dtype=np.float64)
+    q0 = q_dump
+    if sc.start_at_entry:
+        # The session keeps the dig pending: the executor digs it first, from its entry.
+        first_dig = session.next_dig()
+        if first_dig is not None:
+            q0 = np.asarray(first_dig.problem.q_start_rad, dtype=np.float64)
     plan_us = (time.perf_counter() - plan_t0) * 1e6
-    t0 = time.perf_counter()
-    first_dig = session.next_dig()
-    plan_us += (time.perf_counter() - t0) * 1e6
-    q0 = np.asarray(first_dig.problem.q_start_rad) if (sc.start_at_entry and first_dig) else q_dump
     terrain = Terrain(
         rig.ground_y_m, (float(session.x_lo), float(session.x_hi)), rig.bucket.width_m
     )
     initial_material = terrain.material
     faults = [(f, f.axis_index()) for f in sc.faults]
     hil = _open_hil(sc, rig, q0, terrain)
-    segments: list[Segment] = []
-    results: list[tuple[str, int, StreamResult, float]] = []
-    status = StreamStatus.DONE
-    fault_text = ""
+    cut_m3: dict[int, float] = {}
+    result: ExecutorResult | None = None
+    rt_report: RtReport | None = None
     error = ""
-    done_digs: list[dict[str, Any]] = []
+    bus_load = None
     try:
         clock: Clock = hil.clock
-        master = CanMaster(hil.master_bus, rig, period_s=sc.period_s)
+        master = CanMaster(hil.master_bus, rig, period_s=sc.period_s, react_to_faults=False)
+        # RT settings are applied here, before boot, not by the loop: mlockall and the garbage
+        # collection of a process with the planner loaded take ~0.1 s, which between enable and
+        # the first cycle would trip the drives' SYNC watchdog and heartbeat consumer.
+        loop = FixedRateLoop(
+            clock,
+            LoopConfig(period_s=sc.period_s, rt=_NO_RT),
+            executor_telemetry(int(_MAX_RUN_S / sc.period_s)),
+        )
         exec_start: list[float] = []
         injected: set[int] = set()
 
@@ -233,102 +274,40 @@ def run_scenario(sc: Scenario) -> dict[str, Any]:
                     injected.add(i)
                     hil.inject(spec.kind, axis)
 
-        streamer = TrajectoryStreamer(
-            master, rig, clock, feedforward=sc.feedforward, on_cycle=on_cycle
+        def on_dig_done(record: DigRecord) -> None:
+            # The HIL's terrain loses what the true tip path cut, before the next dig runs.
+            cut_m3[record.index] = hil.cut(record.sync_first, record.sync_last)
+
+        # Built before boot: on a real-time clock it starts the planner process (not at a
+        # real-time priority, and not in the gap between enable and the first cycle).
+        executor = Executor(
+            master,
+            rig,
+            loop,
+            session,
+            ExecutorConfig(feedforward=sc.feedforward, max_digs=sc.max_digs),
+            on_dig_done=on_dig_done,
+            on_cycle=on_cycle,
         )
-        streamer.start(timeout_s=2.0)
-        machine_x = 0.0
-        seen = 0  # session.steps[seen:] are the transitions leading into ``dig``
-        dig = first_dig
-        first = True
-        while dig is not None and status is StreamStatus.DONE:
-            new_steps = [] if (first and sc.start_at_entry) else session.steps[seen:]
-            moves: list[tuple[str, Any]] = []
-            for step in new_steps:
-                if isinstance(step, TravelMove):
-                    raise ConfigurationError(
-                        f"task {task.name} needs crawler travel ({step.distance_m:+.3f} m); "
-                        "the HIL streamer does not drive the VCU yet"
-                    )
-                if isinstance(step, Transition):
-                    moves.append((step.kind, ruckig_motion(step.trajectory(rig))))
-            first = False
-            for kind, motion in moves:
-                res = streamer.stream(motion)
-                results.append((kind, -1, res, machine_x))
-                if res.status is not StreamStatus.DONE:
-                    status, fault_text = res.status, res.fault
-                    break
-            if status is not StreamStatus.DONE:
-                break
-            res = streamer.stream(sextic_motion(dig.trajectory()))
-            results.append(("dig", dig.index, res, machine_x))
-            if res.status is not StreamStatus.DONE:
-                status, fault_text = res.status, res.fault
-                break
-            cut_m3 = streamer.hold_while(
-                functools.partial(hil.cut, int(res.sync_index[0]), int(res.sync_index[-1]))
-            )
-            path = res.tip_path_m.copy()
-            path[:, 0] += machine_x
-            recorded_m3 = session.record(dig, path)
-            seen = len(session.steps)
-            done_digs.append(
-                {
-                    "index": dig.index,
-                    "type": dig.dig_type.name.lower(),
-                    "T_s": dig.T_s,
-                    "planned_volume_L": dig.volume_m3 * 1e3,
-                    "measured_volume_L": recorded_m3 * 1e3,
-                    "cut_volume_L": cut_m3 * 1e3,
-                    "planned_energy_Wh": dig.energy_j / 3600.0,
-                }
-            )
-            if sc.max_digs is not None and len(done_digs) >= sc.max_digs:
-                break
-            t0 = time.perf_counter()
-            dig = streamer.hold_while(session.next_dig)
-            plan_us += (time.perf_counter() - t0) * 1e6
-        if status is StreamStatus.DONE:
-            results.append(("hold", -1, streamer.hold(0.05), machine_x))
-            streamer.shutdown()
+        rt_report = apply_rt(RtSettings()) if sc.realtime else None
+        try:
+            master.boot(clock.now, 2.0)
+            master.enable(clock.now, 2.0)
+            result = executor.run()
+        finally:
+            executor.close()
+            if rt_report is not None:
+                restore_rt(rt_report)
+        plan_us += result.plan_us
         bus_load = master.bus_load()
     except PlanningError as exc:
         error = str(exc)
-        bus_load = None
     finally:
         truth, material, frames, extra = hil.finish()
         hil.close()
     wall_s = time.perf_counter() - wall0
 
-    index = {int(s): i for i, s in enumerate(truth.sync_index)}
-    for kind, dig_index, res, mx in results:
-        sel = np.array([index.get(int(s), -1) for s in res.sync_index], dtype=np.int64)
-        ok = sel >= 0
-        selc = np.where(ok, sel, 0)
-        nan3 = np.full((len(sel), 3), np.nan)
-        s_true = np.where(ok[:, None], truth.stroke_m[selc], nan3)
-        q_true = np.where(ok[:, None], truth.q_rad[selc], nan3)
-        tip_true = np.where(ok[:, None], truth.tip_xy_m[selc], np.nan)
-        power = np.where(ok, truth.power_w[selc] if len(truth.power_w) else 0.0, np.nan)
-        segments.append(
-            Segment(
-                kind=kind,
-                index=dig_index,
-                sync_index=res.sync_index,
-                t_s=np.where(ok, truth.t_s[selc], np.nan),
-                tracking=res.tracking & ok,
-                q_ref_rad=res.q_ref_rad,
-                stroke_ref_m=res.stroke_ref_m,
-                stroke_true_m=s_true,
-                q_true_rad=q_true,
-                stroke_reported_m=res.stroke_reported_m,
-                velocity_reported_m_s=res.velocity_reported_m_s,
-                tip_ref_m=tip_reference(rig, res.q_ref_rad, np.full(len(sel), mx)),
-                tip_true_m=tip_true,
-                power_w=power,
-            )
-        )
+    segments = _segments(rig, result, truth) if result is not None else []
     report: dict[str, Any] = {}
     report.update(tracking_figures(segments))
     digs_fig = tracking_figures(segments, digs_only=True)
@@ -338,16 +317,35 @@ def run_scenario(sc: Scenario) -> dict[str, Any]:
     }
     if material is not None:
         report.update(profile_errors(initial_material, material, session.design))
-    report["digs"] = done_digs
+    records = result.digs if result is not None else ()
+    report["digs"] = [
+        {
+            "index": r.index,
+            "type": r.dig_type,
+            "T_s": r.T_s,
+            "planned_volume_L": r.planned_volume_m3 * 1e3,
+            "measured_volume_L": r.measured_volume_m3 * 1e3,
+            "cut_volume_L": cut_m3.get(r.index, math.nan) * 1e3,
+            "planned_energy_Wh": r.planned_energy_j / 3600.0,
+            "plan_us": r.plan_us,
+        }
+        for r in records
+    ]
     report["energy_Wh"] = truth.energy_j / 3600.0
     report["wall_s"] = wall_s
-    report["overruns"] = int(sum(r.overruns for _, _, r, _ in results))
-    report["status"] = status.name.lower() if not error else "planning_error"
-    report["fault"] = fault_text or error
+    report["overruns"] = result.overruns if result is not None else 0
+    if result is not None:
+        report["status"] = result.status.name.lower()
+        report["fault"] = result.fault
+        report["loop"] = result.loop.summary()
+        if rt_report is not None:
+            report["loop"]["rt"] = rt_report.as_dict()
+    else:
+        report["status"] = "planning_error"
+        report["fault"] = error
     report["emcys"] = [
         {"node_id": e.node_id, "code": f"0x{int(e.code):04X}", "description": e.description}
-        for _, _, r, _ in results
-        for e in r.emcys
+        for e in (result.emcys if result is not None else ())
     ]
     report["rig"] = rig.name
     report["task"] = task.name
@@ -358,18 +356,19 @@ def run_scenario(sc: Scenario) -> dict[str, Any]:
     report["plan_total_us"] = plan_us
     kind = rig.cylinders.kind
     report["goal"] = GOALS_MM.get(kind, {})
-    rtt = np.concatenate([r.rtt_s for _, _, r, _ in results]) if results else np.zeros(0)
-    rtt = rtt[np.isfinite(rtt)] * 1e6
     can_block: dict[str, Any] = {}
     if bus_load is not None:
         can_block["bus_load"] = {"nominal": bus_load.nominal, "worst_case": bus_load.worst_case}
-    if rtt.size and sc.realtime:
-        can_block["sync_rtt_us"] = {
-            "p50": float(np.percentile(rtt, 50)),
-            "p99": float(np.percentile(rtt, 99)),
-            "p999": float(np.percentile(rtt, 99.9)),
-            "max": float(np.max(rtt)),
-        }
+    if result is not None and sc.realtime:
+        rtt = result.telemetry["rtt_s"]
+        rtt = rtt[np.isfinite(rtt)] * 1e6
+        if rtt.size:
+            can_block["sync_rtt_us"] = {
+                "p50": float(np.percentile(rtt, 50)),
+                "p99": float(np.percentile(rtt, 99)),
+                "p999": float(np.percentile(rtt, 99.9)),
+                "max": float(np.max(rtt)),
+            }
     report["can"] = can_block
     report.update(extra)
     try:
@@ -396,6 +395,51 @@ def run_scenario(sc: Scenario) -> dict[str, Any]:
     if sc.keep_frames:
         report["_frames"] = frames
     return report
+
+
+def _segments(rig: Rig, result: ExecutorResult, truth: Truth) -> list[Segment]:
+    """The executor's telemetry cut into motions (one per segment or phase run), with truth."""
+    tel = result.telemetry
+    sync = tel["sync"]
+    rows = np.flatnonzero(sync >= 1)
+    if rows.size == 0:
+        return []
+    phase = tel["phase"][rows]
+    segment = tel["segment"][rows]
+    change = np.flatnonzero((np.diff(phase) != 0) | (np.diff(segment) != 0)) + 1
+    bounds = np.concatenate([[0], change, [rows.size]])
+    index = {int(s): i for i, s in enumerate(truth.sync_index)}
+    out: list[Segment] = []
+    for a, b in itertools.pairwise(bounds):
+        sel_rows = rows[a:b]
+        ph = Phase(int(phase[a]))
+        kind = _PHASE_KIND.get(ph, ph.name.lower())
+        sync_idx = sync[sel_rows].astype(np.int64)
+        sel = np.array([index.get(int(s), -1) for s in sync_idx], dtype=np.int64)
+        ok = sel >= 0
+        selc = np.where(ok, sel, 0)
+        nan3 = np.full((len(sel), 3), np.nan)
+        q_ref = tel["q_ref_rad"][sel_rows]
+        power = np.where(ok, truth.power_w[selc] if len(truth.power_w) else 0.0, np.nan)
+        out.append(
+            Segment(
+                kind=kind,
+                index=int(tel["dig"][sel_rows[0]]) if ph is Phase.DIG else -1,
+                sync_index=sync_idx,
+                t_s=np.where(ok, truth.t_s[selc], np.nan),
+                tracking=tel["tracking"][sel_rows] & ok,
+                q_ref_rad=q_ref,
+                stroke_ref_m=tel["stroke_ref_m"][sel_rows],
+                stroke_true_m=np.where(ok[:, None], truth.stroke_m[selc], nan3),
+                q_true_rad=np.where(ok[:, None], truth.q_rad[selc], nan3),
+                stroke_reported_m=tel["stroke_fb_m"][sel_rows],
+                velocity_reported_m_s=tel["vel_fb_m_s"][sel_rows],
+                tip_ref_m=tip_reference(rig, q_ref, np.zeros(len(sel))),
+                tip_true_m=np.where(ok[:, None], truth.tip_xy_m[selc], np.nan),
+                power_w=power,
+            )
+        )
+    return out
 
 
 def _surface_of(material: Any, xs: FloatArray) -> FloatArray:

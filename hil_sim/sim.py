@@ -442,7 +442,7 @@ class LockstepHil:
 
     Attributes:
         core: The HIL.
-        clock: The simulated clock; give ``clock.now`` to the master and the clock to the streamer.
+        clock: The simulated clock; give ``clock.now`` to the master and the clock to the loop.
         master_bus: The bus end for the master.
     """
 

@@ -1,8 +1,12 @@
-"""Lockstep HIL: tracking on a real dig, determinism, faults reaching the master, decodable traces.
+"""Lockstep HIL on the executor: tracking on a real dig, determinism, faults, decodable traces.
 
-Everything runs over python-can's ``virtual`` interface in one process on simulated time. The
+Everything runs over python-can's ``virtual`` interface in one process on simulated time, the
+executor (fixed-rate loop, limit guard, monitors) driving the drives through the master. The
 trace check decodes every frame independently of the product's codecs: PDOs and SDOs from the
-EDS through canopen's object dictionary, VCU frames from the DBC through cantools.
+EDS through canopen's object dictionary, VCU frames from the DBC through cantools. Fault runs
+start at the entry of a planned dig (a session restored with the dig pending) and inject the
+fault while it runs: the executor stops every other axis with the guard's jerk-limited stop,
+checked on the RPDO1 frames of the trace.
 """
 
 from __future__ import annotations
@@ -22,11 +26,20 @@ from firmware_models import CIA402_DRIVE_EDS, VCU_DBC, VCU_DBC_NODE_ID
 from hil_sim.scenario import Scenario, run_scenario
 from hil_sim.sim import FaultKind, LockstepHil
 from rt_runtime.canbus import CanMaster, CycleStatus, DriveState
-from rt_runtime.control import StreamResult, StreamStatus, TrajectoryStreamer, sextic_motion
+from rt_runtime.control import FixedRateLoop, LoopConfig, RtSettings
+from rt_runtime.control.executor import (
+    ExecStatus,
+    Executor,
+    ExecutorConfig,
+    ExecutorResult,
+    executor_telemetry,
+)
+from rt_runtime.control.guard import StrokeLimits, check_setpoint_trace, rpdo1_setpoints
+from rt_runtime.planning.trench import TrenchPlanner, TrenchSession, load_task
 from rt_runtime.rig import Rig, load_rig
-from rt_runtime.trajectory.sextic import SexticTrajectory
 
 AXES = ("boom", "stick", "bucket")
+NO_RT = RtSettings(None, False, None, None, False)
 
 
 @pytest.fixture(scope="module")
@@ -40,6 +53,16 @@ def one_dig(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     return run_scenario(
         Scenario(task="A", max_digs=1, start_at_entry=True, keep_frames=True, trace_path=str(trace))
     )
+
+
+@pytest.fixture(scope="module")
+def pending(rig: Rig) -> tuple[TrenchPlanner, Any, dict[str, Any]]:
+    """Task A's planner and the session state with the first dig planned and pending."""
+    planner = TrenchPlanner(rig)
+    task = load_task("A", rig)
+    session = planner.start(task)
+    session.next_dig()
+    return planner, task, session.state()
 
 
 # -- tracking ----------------------------------------------------------------------------------
@@ -73,19 +96,32 @@ def test_lockstep_runs_are_deterministic(one_dig: dict[str, Any], tmp_path: Path
     assert again["tracking"] == one_dig["tracking"]
 
 
+def test_the_whole_run_commands_within_the_limits(one_dig: dict[str, Any], rig: Rig) -> None:
+    nodes = [n for _, n in rig.can.node_ids]
+    target, velocity = rpdo1_setpoints(one_dig["_frames"], nodes)
+    check = check_setpoint_trace(target, StrokeLimits.from_rig(rig), 0.002, velocity_um_s=velocity)
+    assert check.frames > 5000
+    assert check.ok, check
+
+
 # -- faults ------------------------------------------------------------------------------------
 
 
 def _short_run(
     rig: Rig,
+    pending: tuple[TrenchPlanner, Any, dict[str, Any]],
     fault: tuple[FaultKind, int, float] | None = None,
     trace: Path | None = None,
-) -> tuple[LockstepHil, CanMaster, StreamResult, list[float]]:
-    """A 2 s motion of all three axes from rest to rest, a fault injected at a time."""
-    q0 = np.radians([30.0, -90.0, -60.0])
-    q1 = np.radians([10.0, -60.0, -110.0])
+) -> tuple[LockstepHil, CanMaster, ExecutorResult, list[float]]:
+    """The pending dig from its entry, a fault injected at a time after the first cycle."""
+    planner, task, state = pending
+    session = TrenchSession.restore(planner, task, state)
+    assert session.pending is not None
+    q0 = np.asarray(session.pending.problem.q_start_rad)
     hil = LockstepHil(rig, q0, keep_frames=True, trace_path=trace)
-    master = CanMaster(hil.master_bus, rig, period_s=0.002)
+    master = CanMaster(hil.master_bus, rig, period_s=0.002, react_to_faults=False)
+    master.boot(hil.clock.now, 1.0)
+    master.enable(hil.clock.now, 1.0)
     injected: list[float] = []
     start: list[float] = []
 
@@ -96,66 +132,77 @@ def _short_run(
             hil.inject(fault[0], fault[1])
             injected.append(now_s)
 
-    streamer = TrajectoryStreamer(master, rig, hil.clock, on_cycle=on_cycle)
-    streamer.start()
-    result = streamer.stream(sextic_motion(SexticTrajectory(q0, q1, np.zeros(3), 2.0)))
+    loop = FixedRateLoop(hil.clock, LoopConfig(rt=NO_RT), executor_telemetry(20_000))
+    executor = Executor(master, rig, loop, session, ExecutorConfig(max_digs=1), on_cycle=on_cycle)
+    result = executor.run()
     return hil, master, result, injected
 
 
-def _assert_others_stopped(hil: LockstepHil, res: StreamResult, faulty: int) -> None:
-    assert res.status is StreamStatus.FAULT, res.fault
-    assert not res.tracking[-1]
+def _assert_others_stopped(hil: LockstepHil, rig: Rig, res: ExecutorResult, faulty: int) -> None:
+    assert res.status is ExecStatus.FAULT, res.fault
+    tel = res.telemetry
+    assert not tel["tracking"][-1]
     rates = hil.core.plant.stroke_rate_m_s
+    nodes = [n for _, n in rig.can.node_ids]
+    target, velocity = rpdo1_setpoints(hil.core.frames, nodes)
+    limits = StrokeLimits.from_rig(rig)
+    check = check_setpoint_trace(target, limits, 0.002, velocity_um_s=velocity)
     for axis in range(3):
+        # Every frame, for every axis (the faulted drive ignores them), within the limits.
+        assert check.velocity[axis] <= 1.0 and check.acceleration[axis] <= 1.0, check
+        assert check.jerk[axis] <= 1.0, check
         if axis == faulty:
             continue
-        # Quick stop ran to its end: SWITCH ON DISABLED, the axis at rest (< 1 mm/s).
-        assert res.state[-1, axis] == DriveState.SWITCH_ON_DISABLED, (axis, res.state[-1])
+        # The guard's stop ran to its end: still enabled, at rest (< 1 mm/s).
+        assert tel["drive_state"][-1, axis] == DriveState.OPERATION_ENABLED, tel["drive_state"][-1]
         assert abs(rates[axis]) < 1e-3, (axis, rates)
-    # Within the quick-stop deceleration: from the reaction to rest takes no longer than the
-    # ramp from the fastest stroke rate streamed (plus a period of latency and the settling).
-    decel = hil.core.rig.drives.quick_stop_deceleration_m_s2
-    v_max = float(np.nanmax(np.abs(res.velocity_reported_m_s)))
-    stop_cycles = int(np.count_nonzero(~res.tracking))
-    assert stop_cycles * 0.002 <= v_max / decel + 0.2
+    # A jerk-limited stop from the streamed speed: no longer than the guard's stop time.
+    v_max, a_max, j_max = limits.as_arrays()
+    stop_cycles = int(np.count_nonzero(tel["phase"] == 8))
+    assert stop_cycles * 0.002 <= float(np.max(v_max / a_max + 2 * a_max / j_max)) + 0.3
 
 
-def test_following_error_reaches_the_master_and_the_others_stop(rig: Rig) -> None:
+def test_following_error_reaches_the_master_and_the_others_stop(rig: Rig, pending: Any) -> None:
     stick = 1
-    hil, master, res, injected = _short_run(rig, (FaultKind.FOLLOWING_ERROR, stick, 0.6))
+    hil, master, res, injected = _short_run(rig, pending, (FaultKind.FOLLOWING_ERROR, stick, 0.6))
     assert injected
+    # The executor's own following-error monitor trips first, the drive's check (0x8611)
+    # follows while the guard's stop still moves the demand.
+    assert "following error on the stick axis" in res.fault
+    tel = res.telemetry
     codes = {(e.node_id, int(e.code)) for e in res.emcys}
     assert (2, 0x8611) in codes
-    faulted = res.state[:, stick] == DriveState.FAULT
-    assert faulted.any()
-    assert CycleStatus.DRIVE_FAULT in res.cycle_status.tolist()
+    assert (tel["drive_state"][:, stick] == DriveState.FAULT).any()
+    assert CycleStatus.DRIVE_FAULT in tel["cycle_status"].tolist()
     assert master.feedback.error_code[stick] == 0x8611
-    _assert_others_stopped(hil, res, stick)
+    _assert_others_stopped(hil, rig, res, stick)
     hil.close()
 
 
-def test_master_heartbeat_loss_faults_the_drive_and_the_others_stop(rig: Rig) -> None:
+def test_master_heartbeat_loss_faults_the_drive_and_the_others_stop(rig: Rig, pending: Any) -> None:
     bucket = 2
-    hil, _master, res, injected = _short_run(rig, (FaultKind.HEARTBEAT_LOSS, bucket, 0.5))
+    hil, _master, res, injected = _short_run(rig, pending, (FaultKind.HEARTBEAT_LOSS, bucket, 0.5))
     assert injected
     codes = {(e.node_id, int(e.code)) for e in res.emcys}
     assert (3, 0x8130) in codes
-    assert (res.state[:, bucket] == DriveState.FAULT).any()
+    tel = res.telemetry
+    assert (tel["drive_state"][:, bucket] == DriveState.FAULT).any()
     # Detected within the consumer timeout (150 ms) and a heartbeat period.
-    first_fault = int(np.argmax(res.cycle_status >= CycleStatus.EMCY))
+    first_fault = int(np.argmax(tel["cycle_status"] >= CycleStatus.EMCY))
     assert first_fault * 0.002 - 0.5 <= rig.drives.heartbeat_timeout_s + 0.01
-    _assert_others_stopped(hil, res, bucket)
+    _assert_others_stopped(hil, rig, res, bucket)
     hil.close()
 
 
-def test_a_silent_drive_is_lost_by_the_master_and_the_others_stop(rig: Rig) -> None:
+def test_a_silent_drive_is_lost_by_the_master_and_the_others_stop(rig: Rig, pending: Any) -> None:
     boom = 0
-    hil, master, res, injected = _short_run(rig, (FaultKind.NODE_SILENT, boom, 0.5))
+    hil, master, res, injected = _short_run(rig, pending, (FaultKind.NODE_SILENT, boom, 0.5))
     assert injected
-    assert CycleStatus.HEARTBEAT_LOST in res.cycle_status.tolist()
+    tel = res.telemetry
+    assert CycleStatus.HEARTBEAT_LOST in tel["cycle_status"].tolist()
     assert master.feedback.heartbeat_lost[boom]
-    assert np.isnan(res.stroke_reported_m[-1, boom])
-    _assert_others_stopped(hil, res, boom)
+    assert np.isnan(tel["stroke_fb_m"][-1, boom])
+    _assert_others_stopped(hil, rig, res, boom)
     hil.close()
 
 
@@ -270,9 +317,11 @@ def test_asc_trace_reads_back_and_every_frame_decodes(one_dig: dict[str, Any], r
     assert positions and all(0 <= p <= travel_um for p in positions)
 
 
-def test_blf_trace_of_a_fault_reads_back_and_decodes(rig: Rig, tmp_path: Path) -> None:
+def test_blf_trace_of_a_fault_reads_back_and_decodes(
+    rig: Rig, pending: Any, tmp_path: Path
+) -> None:
     path = tmp_path / "fault.blf"
-    hil, _, res, _ = _short_run(rig, (FaultKind.FOLLOWING_ERROR, 1, 0.6), trace=path)
+    hil, _, res, _ = _short_run(rig, pending, (FaultKind.FOLLOWING_ERROR, 1, 0.6), trace=path)
     frames = list(hil.core.frames)
     hil.close()
     messages = _read_trace(path)
@@ -288,5 +337,5 @@ def test_blf_trace_of_a_fault_reads_back_and_decodes(rig: Rig, tmp_path: Path) -
     assert {"code": 0x8611, "register": emcys[0]["register"]} in emcys
     for m in messages:
         decoder.decode(m.arbitration_id, bytes(m.data))
-    assert res.status is StreamStatus.FAULT
-    assert math.isfinite(float(np.nanmax(np.abs(res.stroke_reported_m))))
+    assert res.status is ExecStatus.FAULT
+    assert math.isfinite(float(np.nanmax(np.abs(res.telemetry["stroke_fb_m"]))))

@@ -53,6 +53,7 @@ from typing import Any, Protocol
 import numpy as np
 import shapely
 from numpy.typing import ArrayLike, NDArray
+from shapely.errors import GEOSException
 from shapely.geometry import Polygon
 
 from rt_runtime import kinematics
@@ -609,6 +610,16 @@ def _swept_polygon(path_xy: FloatArray, grid_x: FloatArray, top_y: float) -> Pol
     return Polygon(pts).buffer(0)
 
 
+def joint_move(rig: Rig, q0: ArrayLike, q1: ArrayLike) -> tuple[Any, float]:
+    """Time-optimal rest-to-rest joint move within the rig's joint limits (ruckig, no
+    intermediate waypoints): ``(ruckig.Trajectory, duration_s)``; the transitions' motion.
+
+    Raises:
+        PlanningError: ruckig cannot plan it.
+    """
+    return _ruckig_move(rig, np.asarray(q0, dtype=np.float64), np.asarray(q1, dtype=np.float64))
+
+
 def _ruckig_move(rig: Rig, q0: FloatArray, q1: FloatArray) -> tuple[Any, float]:
     """Time-optimal rest-to-rest joint move within the rig's limits (no intermediate waypoints)."""
     from ruckig import InputParameter, Result, Ruckig, Trajectory
@@ -685,7 +696,10 @@ class TrenchPlanner:
 
         oneshot.require_planning(rig)
         self.rig = rig
-        self.pinn = PinnPlanner(rig, model_dir or DEFAULT_MODEL_DIR, refine=True)
+        #: What built this planner (a planner process rebuilds it from these).
+        self.model_dir = Path(model_dir or DEFAULT_MODEL_DIR)
+        self.pso_options = dict(pso_options or {})
+        self.pinn = PinnPlanner(rig, self.model_dir, refine=True)
         self.verifier = self.pinn.verifier
         if isinstance(planner, str):
             if planner == "pinn":
@@ -1294,34 +1308,184 @@ class TrenchSession:
 
     def _append_transitions(self, dig: PlannedDig) -> None:
         """Dump the previous load and approach this dig's entry (ruckig, rest to rest)."""
-        rig = self.rig
-        s = self.planner.scale
-        q_entry = np.asarray(dig.problem.q_start_rad)
-        start = kinematics.forward(rig, q_entry)
-        moves: list[tuple[str, FloatArray, FloatArray]] = []
         if self.q_now is not None:
-            end = kinematics.forward(rig, self.q_now)
-            lift = _safe_ik(rig, end[0], self.ground_y + _LIFT_CLEAR_M * s, end[2])
-            moves.append(("lift_out", self.q_now, lift))
-            moves.append(("dump", lift, self.planner.dump_pose_rad))
-            q_prev = self.planner.dump_pose_rad
-        else:
-            q_prev = self.planner.dump_pose_rad
-        approach = _safe_ik(rig, start[0], start[1] + _APPROACH_M * s, start[2])
-        moves.append(("approach", q_prev, approach))
-        moves.append(("enter", approach, q_entry))
-        for kind, qa, qb in moves:
-            traj, duration = _ruckig_move(rig, qa, qb)
-            self.steps.append(
-                Transition(
-                    kind=kind,
-                    q_from_rad=(float(qa[0]), float(qa[1]), float(qa[2])),
-                    q_to_rad=(float(qb[0]), float(qb[1]), float(qb[2])),
-                    duration_s=duration,
-                    machine_x_m=self.machine_x,
-                    penetration_m=self._penetration(traj, duration),
+            self.steps.extend(self.exit_transitions(self.q_now))
+        self.steps.extend(self.entry_transitions(dig, self.planner.dump_pose_rad))
+
+    def _transition(self, kind: str, qa: FloatArray, qb: FloatArray) -> Transition:
+        traj, duration = _ruckig_move(self.rig, qa, qb)
+        return Transition(
+            kind=kind,
+            q_from_rad=(float(qa[0]), float(qa[1]), float(qa[2])),
+            q_to_rad=(float(qb[0]), float(qb[1]), float(qb[2])),
+            duration_s=duration,
+            machine_x_m=self.machine_x,
+            penetration_m=self._penetration(traj, duration),
+        )
+
+    def exit_transitions(self, q_from_rad: ArrayLike) -> tuple[Transition, Transition]:
+        """Lift out of the material and go to the dump pose, from any pose (arm frame).
+
+        The lift keeps the tip's x and attitude and raises it to the clearance height above
+        the ground; the executor streams these after each dig while the next one is planned,
+        and from a measured pose inside the material when a run resumes.
+
+        Args:
+            q_from_rad: Start pose ``(3,)``, e.g. a dig's exit or the measured pose.
+
+        Returns:
+            ``(lift_out, dump)``, the same moves :meth:`next_dig` puts before the next dig.
+
+        Raises:
+            PlanningError: No reachable lift pose, or ruckig cannot plan a move.
+        """
+        q0 = np.asarray(q_from_rad, dtype=np.float64)
+        end = kinematics.forward(self.rig, q0)
+        clear = self.ground_y + _LIFT_CLEAR_M * self.planner.scale
+        lift = _safe_ik(self.rig, end[0], clear, end[2])
+        return (
+            self._transition("lift_out", q0, lift),
+            self._transition("dump", lift, self.planner.dump_pose_rad),
+        )
+
+    def entry_transitions(
+        self, dig: PlannedDig, q_from_rad: ArrayLike
+    ) -> tuple[Transition, Transition]:
+        """Approach ``dig``'s entry from ``q_from_rad`` (the dump pose) and enter the material.
+
+        Returns:
+            ``(approach, enter)``: to a pose above the entry, then down to the entry.
+
+        Raises:
+            PlanningError: No reachable approach pose, or ruckig cannot plan a move.
+        """
+        q_entry = np.asarray(dig.problem.q_start_rad)
+        start = kinematics.forward(self.rig, q_entry)
+        approach = _safe_ik(
+            self.rig, start[0], start[1] + _APPROACH_M * self.planner.scale, start[2]
+        )
+        return (
+            self._transition("approach", np.asarray(q_from_rad, dtype=np.float64), approach),
+            self._transition("enter", approach, q_entry),
+        )
+
+    @property
+    def lift_clearance_y_m(self) -> float:
+        """Height the tip lifts to before moving to the dump pose (arm frame)."""
+        return float(self.ground_y + _LIFT_CLEAR_M * self.planner.scale)
+
+    # -- persistence --------------------------------------------------------------------------
+
+    def state(self) -> dict[str, Any]:
+        """The session as JSON-able data (``json.dumps`` takes it as it is).
+
+        Keys: ``version``, ``rig``, ``planner``, ``task`` (name and dimensions), ``material_wkt``
+        (the material polygon as WKT, full precision), ``surface_m`` (height field on the 1 mm
+        grid), ``machine_x_m``, ``q_now_rad`` (the last dig's exit or None), ``phase``
+        (``downward``/``backward``), ``finish_index`` (profile passes tried), ``digs_done``,
+        ``steps`` (every recorded dig, transition and travel move, each a dict with ``type``),
+        and ``pending`` (the dig :meth:`next_dig` returned and :meth:`record` has not taken yet,
+        or None; after :meth:`record` it is always None, which is the state to persist).
+        """
+        t = self.task
+        return {
+            "version": _STATE_VERSION,
+            "rig": self.rig.name,
+            "planner": self.planner.oneshot.name,
+            "task": {
+                "name": t.name,
+                "length_m": t.length_m,
+                "depth_m": t.depth_m,
+                "beta1_rad": t.beta1_rad,
+                "beta2_rad": t.beta2_rad,
+                "start_x_m": t.start_x_m,
+            },
+            "material_wkt": shapely.to_wkt(self.material, rounding_precision=-1),
+            "surface_m": [float(v) for v in self.surface],
+            "machine_x_m": float(self.machine_x),
+            "q_now_rad": None if self.q_now is None else [float(v) for v in self.q_now],
+            "phase": self.phase.name.lower(),
+            "finish_index": int(self._finish_index),
+            "digs_done": len(self.digs),
+            "steps": [_step_to_json(step) for step in self.steps],
+            "pending": None if self.pending is None else _step_to_json(self.pending),
+        }
+
+    @classmethod
+    def restore(
+        cls, planner: TrenchPlanner, task: TrenchTask, state: dict[str, Any]
+    ) -> TrenchSession:
+        """A session continuing from :meth:`state` (a daemon restart resumes the next dig).
+
+        Args:
+            planner: The planner (same rig as the state's).
+            task: The task (same as the state's).
+            state: What :meth:`state` returned (after a JSON round trip or not).
+
+        Raises:
+            ConfigurationError: A key is missing or malformed, the version is unknown, or the
+                rig or task differ from the state's (the message names the key).
+        """
+        session = cls(planner, task)
+        session.apply_state(state)
+        return session
+
+    def apply_state(self, state: dict[str, Any]) -> None:
+        """Replace this session's progress by ``state`` (see :meth:`restore`).
+
+        Raises:
+            ConfigurationError: As :meth:`restore`.
+        """
+        try:
+            version = state["version"]
+            if version != _STATE_VERSION:
+                raise ConfigurationError(
+                    f"session state version {version!r}; allowed: {_STATE_VERSION}"
                 )
+            if state["rig"] != self.rig.name:
+                raise ConfigurationError(
+                    f"session state key 'rig' is {state['rig']!r}; this planner's rig is "
+                    f"{self.rig.name!r}"
+                )
+            t = state["task"]
+            mine = self.task
+            same = t["name"] == mine.name and all(
+                abs(float(t[k]) - float(getattr(mine, k))) <= 1e-12
+                for k in ("length_m", "depth_m", "beta1_rad", "beta2_rad", "start_x_m")
             )
+            if not same:
+                raise ConfigurationError(
+                    f"session state key 'task' is {t}; the session's task is {mine}"
+                )
+            material = shapely.from_wkt(state["material_wkt"])
+            surface = np.asarray(state["surface_m"], dtype=np.float64)
+            if surface.shape != self.surface.shape or not np.isfinite(surface).all():
+                raise ConfigurationError(
+                    f"session state key 'surface_m' has shape {surface.shape}; allowed: "
+                    f"{self.surface.shape} finite values (the task's 1 mm grid)"
+                )
+            steps = [_step_from_json(item) for item in state["steps"]]
+            q_now = state["q_now_rad"]
+            phase = DigType[str(state["phase"]).upper()]
+            machine_x = float(state["machine_x_m"])
+            finish_index = int(state["finish_index"])
+            pending = state.get("pending")
+            pending_dig = None if pending is None else _step_from_json(pending)
+            if pending_dig is not None and not isinstance(pending_dig, PlannedDig):
+                raise ConfigurationError("session state key 'pending' is not a dig")
+        except ConfigurationError:
+            raise
+        except (KeyError, TypeError, ValueError, GEOSException) as exc:
+            raise ConfigurationError(f"session state is malformed: {exc!r}") from exc
+        self.material = material
+        self.surface = surface
+        self.steps = steps
+        self.digs = [s for s in steps if isinstance(s, PlannedDig)]
+        self.machine_x = machine_x
+        self.q_now = None if q_now is None else np.asarray(q_now, dtype=np.float64)
+        self.pending = pending_dig
+        self.phase = phase
+        self._finish_index = finish_index
 
     def _penetration(self, traj: Any, duration: float) -> float:
         ts = np.linspace(0.0, duration, 60)
@@ -1363,6 +1527,110 @@ class TrenchSession:
             design_m3=self.design_area * self.width_m,
             plan_total_us=plan_total_us,
         )
+
+
+_STATE_VERSION = 1
+
+
+def _step_to_json(step: PlannedDig | Transition | TravelMove) -> dict[str, Any]:
+    """One session step as JSON-able data (tagged with ``type``)."""
+    if isinstance(step, PlannedDig):
+        p = step.problem
+        return {
+            "type": "dig",
+            "index": step.index,
+            "problem": {
+                "q_start_rad": list(p.q_start_rad),
+                "q_end_rad": list(p.q_end_rad),
+                "surface_y_m": p.surface_y_m,
+                "dig_type": p.dig_type.name.lower(),
+            },
+            "a6": list(step.a6),
+            "T_s": step.T_s,
+            "machine_x_m": step.machine_x_m,
+            "tip_path_m": np.asarray(step.tip_path_m, dtype=np.float64).tolist(),
+            "volume_m3": step.volume_m3,
+            "design_volume_m3": step.design_volume_m3,
+            "predicted_volume_m3": step.predicted_volume_m3,
+            "energy_j": step.energy_j,
+            "theta_p_rad": step.theta_p_rad,
+            "overdig_m": step.overdig_m,
+            "plan_us": step.plan_us,
+            "select_us": step.select_us,
+            "planner": step.planner,
+            "status": step.status,
+            "evaluation": np.asarray(step.evaluation, dtype=np.float64).tolist(),
+        }
+    if isinstance(step, Transition):
+        return {
+            "type": "transition",
+            "kind": step.kind,
+            "q_from_rad": list(step.q_from_rad),
+            "q_to_rad": list(step.q_to_rad),
+            "duration_s": step.duration_s,
+            "machine_x_m": step.machine_x_m,
+            "penetration_m": step.penetration_m,
+        }
+    return {
+        "type": "travel",
+        "distance_m": step.distance_m,
+        "machine_x_from_m": step.machine_x_from_m,
+        "machine_x_to_m": step.machine_x_to_m,
+    }
+
+
+def _triple(values: Sequence[float]) -> tuple[float, float, float]:
+    if len(values) != 3:
+        raise ValueError(f"expected three values, got {len(values)}")
+    return (float(values[0]), float(values[1]), float(values[2]))
+
+
+def _step_from_json(item: dict[str, Any]) -> PlannedDig | Transition | TravelMove:
+    """The inverse of :func:`_step_to_json` (raises KeyError/ValueError on bad data)."""
+    kind = item["type"]
+    if kind == "dig":
+        p = item["problem"]
+        path = np.asarray(item["tip_path_m"], dtype=np.float64).reshape(-1, 2)
+        return PlannedDig(
+            index=int(item["index"]),
+            problem=Problem(
+                q_start_rad=_triple(p["q_start_rad"]),
+                q_end_rad=_triple(p["q_end_rad"]),
+                surface_y_m=float(p["surface_y_m"]),
+                dig_type=DigType[str(p["dig_type"]).upper()],
+            ),
+            a6=_triple(item["a6"]),
+            T_s=float(item["T_s"]),
+            machine_x_m=float(item["machine_x_m"]),
+            tip_path_m=path,
+            volume_m3=float(item["volume_m3"]),
+            design_volume_m3=float(item["design_volume_m3"]),
+            predicted_volume_m3=float(item["predicted_volume_m3"]),
+            energy_j=float(item["energy_j"]),
+            theta_p_rad=float(item["theta_p_rad"]),
+            overdig_m=float(item["overdig_m"]),
+            plan_us=float(item["plan_us"]),
+            select_us=float(item["select_us"]),
+            planner=str(item["planner"]),
+            status=str(item["status"]),
+            evaluation=np.asarray(item["evaluation"], dtype=np.float64),
+        )
+    if kind == "transition":
+        return Transition(
+            kind=str(item["kind"]),
+            q_from_rad=_triple(item["q_from_rad"]),
+            q_to_rad=_triple(item["q_to_rad"]),
+            duration_s=float(item["duration_s"]),
+            machine_x_m=float(item["machine_x_m"]),
+            penetration_m=float(item["penetration_m"]),
+        )
+    if kind == "travel":
+        return TravelMove(
+            float(item["distance_m"]),
+            float(item["machine_x_from_m"]),
+            float(item["machine_x_to_m"]),
+        )
+    raise ValueError(f"unknown step type {kind!r}; allowed: dig, transition, travel")
 
 
 # Candidates kept per screening, tried in order when the one-shot planner's plan fails.
@@ -1433,6 +1701,7 @@ __all__: Sequence[str] = (
     "TrenchSession",
     "TrenchTask",
     "design_polygon",
+    "joint_move",
     "load_task",
     "lower_envelope",
     "make_task",

@@ -1,0 +1,474 @@
+"""Planning the next dig without stopping the loop: the session driver, inline or in a process.
+
+Role: the executor's planner side (issue 7 item 2). A :class:`SessionDriver` wraps a
+:class:`~rt_runtime.planning.trench.TrenchSession` with the two requests the executor makes:
+
+* ``plan(q_from_rad)``: the next dig with every move the executor streams around it
+  (:class:`DigPlan`: lead-in from the measured pose on the first request, approach and enter,
+  the dig, lift-out and dump after it), or the end of the task;
+* ``record(strokes_m)``: the reported strokes of the executed dig -> the measured tip path in the
+  work-site frame -> ``session.record`` (the surface follows what was measured) ->
+  :class:`Recorded` with the session's JSON state for the job store.
+
+Two links run it (same requests, same replies, :meth:`poll` once per cycle):
+
+* :class:`InlinePlanner` runs each request at once on the caller's thread. For a simulated clock
+  (the lockstep HIL): time stands still while it plans, the run is deterministic.
+* :class:`ProcessPlanner` runs the session in a separate process (``multiprocessing``, ``spawn``
+  context: the loop's process may hold threads, which ``fork`` would copy in a locked state), so
+  the ~0.5 s of candidate screening of ``next_dig`` never holds the loop's interpreter lock. The
+  loop hands a request to a sender thread (``put`` on a queue: no pickling, no blocking pipe write
+  in the cycle) and polls the pipe without waiting; a reply is read and unpickled in one cycle
+  (tens of kB: the dig, its transitions, the session state). The process rebuilds the planner
+  from :class:`PlannerSpec` (rig, one-shot planner name, model directory) and the session from
+  its state (:meth:`TrenchSession.restore`), so nothing but plain data crosses the pipe.
+
+The loop calls only the link's ``request_plan``, ``request_record`` and ``poll``: cheap for
+:class:`ProcessPlanner`; for :class:`InlinePlanner` they take the planning time (simulated time
+does not move meanwhile).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import os
+import queue
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rt_runtime import actuation, kinematics
+from rt_runtime.errors import ConfigurationError, ExcavatorRtError, PlanningError
+from rt_runtime.planning.trench import (
+    PlannedDig,
+    Transition,
+    TravelMove,
+    TrenchPlanner,
+    TrenchSession,
+    TrenchTask,
+    joint_move,
+)
+from rt_runtime.rig import Rig
+
+__all__ = [
+    "AT_ENTRY_TOLERANCE_M",
+    "DigPlan",
+    "InlinePlanner",
+    "PlannerError",
+    "PlannerLink",
+    "PlannerSpec",
+    "ProcessPlanner",
+    "Recorded",
+    "SessionDriver",
+]
+
+FloatArray = NDArray[np.float64]
+
+#: Nice value of the planner process.
+PLANNER_NICE = 10
+#: A measured pose this close to a dig's entry (largest stroke difference) starts the dig
+#: directly, without the approach from the dump pose.
+AT_ENTRY_TOLERANCE_M = 5e-4
+
+
+@dataclass(frozen=True, slots=True)
+class DigPlan:
+    """The next dig and the moves around it, in streaming order ``lead_in, entry, dig, exit``.
+
+    Attributes:
+        dig: The dig, or None when the task is done.
+        lead_in: Moves from the measured pose to the dump pose (first request only): lift-out
+            and dump when the tip is below the clearance height, else one move to the dump
+            pose; empty when the arm is already at the dig's entry.
+        entry: Approach and enter (from the dump pose); empty when the arm is at the entry.
+        exit: Lift-out and dump after the dig.
+        travel: Crawler moves the session put before the dig (the executor cannot drive them).
+        plan_us: Wall time of the request (s * 1e6).
+    """
+
+    dig: PlannedDig | None
+    lead_in: tuple[Transition, ...]
+    entry: tuple[Transition, ...]
+    exit: tuple[Transition, ...]
+    travel: tuple[TravelMove, ...]
+    plan_us: float
+
+
+@dataclass(frozen=True, slots=True)
+class Recorded:
+    """An executed dig recorded into the session.
+
+    Attributes:
+        index: Dig index.
+        measured_volume_m3: Material the measured path removed from the session's material.
+        tip_path_m: Measured tip path, work-site frame, ``(n, 2)``.
+        state: ``TrenchSession.state()`` after the record (JSON-able).
+        record_us: Wall time of the request.
+    """
+
+    index: int
+    measured_volume_m3: float
+    tip_path_m: FloatArray
+    state: dict[str, Any]
+    record_us: float
+
+
+@dataclass(frozen=True, slots=True)
+class PlannerError:
+    """A request failed (the message says which and why)."""
+
+    message: str
+
+
+Reply = DigPlan | Recorded | PlannerError
+
+
+@dataclass(frozen=True, slots=True)
+class PlannerSpec:
+    """What a planner process needs to rebuild the planner (plain, picklable data).
+
+    Attributes:
+        rig: The rig.
+        planner: One-shot planner name (``pinn`` or ``pso``).
+        model_dir: PINN model directory.
+        pso_options: Options of the PSO planner.
+        max_digs: The planner's bound on digs per task.
+        task: The task.
+    """
+
+    rig: Rig
+    planner: str
+    model_dir: str
+    pso_options: dict[str, Any] = field(default_factory=dict)
+    max_digs: int = 40
+    task: TrenchTask | None = None
+
+    @classmethod
+    def of(cls, session: TrenchSession) -> PlannerSpec:
+        """The spec of ``session``'s planner.
+
+        Raises:
+            ConfigurationError: The session uses a one-shot planner object other than the
+                built-in ``pinn``/``pso`` (it cannot be rebuilt in another process).
+        """
+        planner = session.planner
+        name = planner.oneshot.name
+        if name not in ("pinn", "pso"):
+            raise ConfigurationError(
+                f"one-shot planner {name!r} cannot run in a planner process; allowed: pinn, "
+                "pso (or plan in-process: ExecutorConfig(plan_in_worker=False))"
+            )
+        return cls(
+            rig=session.rig,
+            planner=name,
+            model_dir=str(planner.model_dir),
+            pso_options=dict(planner.pso_options),
+            max_digs=planner.max_digs,
+            task=session.task,
+        )
+
+
+class SessionDriver:
+    """The executor's two requests on a session (see the module docstring).
+
+    Args:
+        session: The session (may hold a pending dig, which is then the next dig).
+    """
+
+    def __init__(self, session: TrenchSession) -> None:
+        self.session = session
+        self.rig = session.rig
+
+    def plan(self, q_from_rad: FloatArray | None = None) -> DigPlan:
+        """The next dig and its moves (see :class:`DigPlan`).
+
+        Args:
+            q_from_rad: The measured pose on the first request (lead-in moves and the at-entry
+                check), None afterwards (the arm is at the dump pose).
+
+        Raises:
+            PlanningError: From the session (no verified dig; a move that cannot be planned).
+        """
+        t0 = time.perf_counter()
+        s = self.session
+        dig = s.pending if s.pending is not None else s.next_dig()
+        tail: list[Any] = []
+        for step in reversed(s.steps):
+            if isinstance(step, PlannedDig):
+                break
+            tail.append(step)
+        tail.reverse()
+        entry = tuple(
+            t for t in tail if isinstance(t, Transition) and t.kind in ("approach", "enter")
+        )
+        travel = tuple(t for t in tail if isinstance(t, TravelMove))
+        exit_moves: tuple[Transition, ...] = ()
+        if dig is not None:
+            exit_moves = s.exit_transitions(dig.problem.q_end_rad)
+        lead_in: tuple[Transition, ...] = ()
+        if q_from_rad is not None:
+            q0 = np.asarray(q_from_rad, dtype=np.float64)
+            if dig is not None and self._at(q0, np.asarray(dig.problem.q_start_rad)):
+                entry = ()
+            else:
+                lead_in = self._lead_in(q0)
+        return DigPlan(dig, lead_in, entry, exit_moves, travel, (time.perf_counter() - t0) * 1e6)
+
+    def _at(self, q_a: FloatArray, q_b: FloatArray) -> bool:
+        s_a = actuation.joint_to_stroke(self.rig, q_a, check_limits=False)
+        s_b = actuation.joint_to_stroke(self.rig, q_b, check_limits=False)
+        return bool(np.max(np.abs(s_a - s_b)) <= AT_ENTRY_TOLERANCE_M)
+
+    def _lead_in(self, q0: FloatArray) -> tuple[Transition, ...]:
+        """Measured pose -> dump pose: lift out first when the tip is below the clearance."""
+        s = self.session
+        dump = np.asarray(s.planner.dump_pose_rad, dtype=np.float64)
+        if self._at(q0, dump):
+            return ()
+        tip = kinematics.forward(self.rig, q0)
+        if float(tip[1]) < s.lift_clearance_y_m - 1e-3:
+            return s.exit_transitions(q0)
+        _, duration = joint_move(self.rig, q0, dump)
+        return (
+            Transition(
+                kind="dump",
+                q_from_rad=(float(q0[0]), float(q0[1]), float(q0[2])),
+                q_to_rad=(float(dump[0]), float(dump[1]), float(dump[2])),
+                duration_s=duration,
+                machine_x_m=float(s.machine_x),
+                penetration_m=0.0,
+            ),
+        )
+
+    def record(self, strokes_m: FloatArray) -> Recorded:
+        """Record the pending dig from the drives' reported strokes ``(n, 3)`` (SYNC order).
+
+        Raises:
+            PlanningError: No dig is pending, or fewer than two finite samples.
+        """
+        t0 = time.perf_counter()
+        s = self.session
+        dig = s.pending
+        if dig is None:
+            raise PlanningError("no dig is pending: nothing to record")
+        strokes = np.asarray(strokes_m, dtype=np.float64).reshape(-1, 3)
+        q = actuation.stroke_to_joint(self.rig, strokes, check_limits=False)
+        tip = np.asarray(kinematics.forward(self.rig, q), dtype=np.float64)[..., :2]
+        tip = tip.reshape(-1, 2)
+        tip = tip[np.isfinite(tip).all(axis=1)]
+        tip[:, 0] += dig.machine_x_m
+        volume = s.record(dig, tip)
+        return Recorded(dig.index, volume, tip, s.state(), (time.perf_counter() - t0) * 1e6)
+
+
+class PlannerLink(Protocol):
+    """The executor's side of a planner: requests, then one non-blocking :meth:`poll` a cycle."""
+
+    def request_plan(self, q_from_rad: FloatArray | None) -> None:
+        """Ask for the next :class:`DigPlan`."""
+        ...
+
+    def request_record(self, strokes_m: FloatArray, plan_next: bool) -> None:
+        """Record the pending dig (then plan the next one when ``plan_next``)."""
+        ...
+
+    def poll(self) -> Reply | None:
+        """The next reply, or None (never waits)."""
+        ...
+
+    @property
+    def busy(self) -> bool:
+        """Requests are outstanding."""
+        ...
+
+    def close(self) -> None:
+        """Release the planner (outside the loop)."""
+        ...
+
+
+class InlinePlanner:
+    """Runs each request at once on the caller's thread (simulated clock; deterministic).
+
+    Args:
+        session: The session.
+    """
+
+    def __init__(self, session: TrenchSession) -> None:
+        self.driver = SessionDriver(session)
+        self._replies: deque[Reply] = deque()
+
+    def _run(self, fn: Any, *args: Any) -> None:
+        try:
+            self._replies.append(fn(*args))
+        except ExcavatorRtError as exc:
+            self._replies.append(PlannerError(str(exc)))
+
+    def request_plan(self, q_from_rad: FloatArray | None) -> None:
+        """Plan now; the reply waits for :meth:`poll`."""
+        self._run(self.driver.plan, q_from_rad)
+
+    def request_record(self, strokes_m: FloatArray, plan_next: bool) -> None:
+        """Record now (and plan when ``plan_next`` and the record succeeded)."""
+        self._run(self.driver.record, strokes_m)
+        if plan_next and not isinstance(self._replies[-1], PlannerError):
+            self._run(self.driver.plan, None)
+
+    def poll(self) -> Reply | None:
+        """The oldest reply, or None."""
+        return self._replies.popleft() if self._replies else None
+
+    @property
+    def busy(self) -> bool:
+        """Replies not yet polled."""
+        return bool(self._replies)
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+# -- the planner process --------------------------------------------------------------------------
+
+
+def _worker_main(conn: Any, spec: PlannerSpec, state: dict[str, Any] | None) -> None:
+    """Entry point of the planner process: rebuild planner and session, serve requests."""
+    with contextlib.suppress(AttributeError, OSError, PermissionError):
+        # Never inherit a real-time policy from whoever started us: planning is background work.
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    try:
+        planner = TrenchPlanner(
+            spec.rig,
+            spec.planner,
+            model_dir=spec.model_dir,
+            pso_options=spec.pso_options or None,
+            max_digs=spec.max_digs,
+        )
+        assert spec.task is not None
+        session = (
+            planner.start(spec.task)
+            if state is None
+            else TrenchSession.restore(planner, spec.task, state)
+        )
+        driver = SessionDriver(session)
+    except ExcavatorRtError as exc:
+        conn.send(PlannerError(f"planner process could not start: {exc}"))
+        conn.close()
+        return
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):
+            break
+        kind = message[0]
+        if kind == "stop":
+            break
+        try:
+            if kind == "plan":
+                conn.send(driver.plan(message[1]))
+            elif kind == "record":
+                conn.send(driver.record(message[1]))
+                if message[2]:
+                    conn.send(driver.plan(None))
+        except ExcavatorRtError as exc:
+            conn.send(PlannerError(str(exc)))
+        except Exception as exc:  # keep the process answering; the executor stops the job
+            conn.send(PlannerError(f"planner process: {type(exc).__name__}: {exc}"))
+    conn.close()
+
+
+class ProcessPlanner:
+    """The session in a planner process (real-time clock; see the module docstring).
+
+    Args:
+        session: The session to continue (its state, pending dig included, is copied over; the
+            object itself is not touched while the process runs).
+        spec: How to rebuild the planner; default :meth:`PlannerSpec.of` the session.
+
+    Raises:
+        ConfigurationError: The session's planner cannot be rebuilt in another process.
+    """
+
+    def __init__(self, session: TrenchSession, spec: PlannerSpec | None = None) -> None:
+        self.spec = spec if spec is not None else PlannerSpec.of(session)
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe(duplex=True)
+        self._outbox: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
+        self._outstanding = 0
+        self._dead = False
+        state = session.state()
+        self._process = ctx.Process(
+            target=_worker_main,
+            args=(child, self.spec, state),
+            name="excavator-planner",
+            daemon=True,
+        )
+        self._process.start()
+        child.close()
+        if self._process.pid is not None:
+            with contextlib.suppress(OSError):
+                # Planning is background work: the loop, the drives' bus and (on a test
+                # machine) the HIL come first, also while the process imports and loads models.
+                os.setpriority(os.PRIO_PROCESS, self._process.pid, PLANNER_NICE)
+        self._sender = threading.Thread(target=self._send_loop, name="planner-send", daemon=True)
+        self._sender.start()
+
+    def _send_loop(self) -> None:
+        while True:
+            item = self._outbox.get()
+            if item is None:
+                break
+            try:
+                self._conn.send(item)
+            except (OSError, ValueError):
+                break
+
+    def request_plan(self, q_from_rad: FloatArray | None) -> None:
+        """Queue a plan request (loop safe: a queue put)."""
+        self._outstanding += 1
+        q = None if q_from_rad is None else np.array(q_from_rad, dtype=np.float64)
+        self._outbox.put(("plan", q))
+
+    def request_record(self, strokes_m: FloatArray, plan_next: bool) -> None:
+        """Queue a record request (loop safe: a copy of the strokes and a queue put)."""
+        self._outstanding += 2 if plan_next else 1
+        self._outbox.put(("record", np.array(strokes_m, dtype=np.float64), plan_next))
+
+    def poll(self) -> Reply | None:
+        """One reply if the pipe holds one (never waits), PlannerError if the process died."""
+        if self._dead:
+            return None
+        try:
+            if not self._conn.poll(0):
+                if not self._process.is_alive() and not self._conn.poll(0):
+                    self._dead = True
+                    return PlannerError(
+                        f"the planner process ended (exit code {self._process.exitcode})"
+                    )
+                return None
+            reply: Reply = self._conn.recv()
+        except (EOFError, OSError) as exc:
+            self._dead = True
+            return PlannerError(f"the planner process is gone: {exc!r}")
+        self._outstanding = max(0, self._outstanding - 1)
+        return reply
+
+    @property
+    def busy(self) -> bool:
+        """Requests sent and not answered."""
+        return self._outstanding > 0
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Stop the process (outside the loop): ask, wait ``timeout_s``, then terminate."""
+        self._outbox.put(("stop",))
+        self._outbox.put(None)
+        self._sender.join(timeout_s)
+        self._process.join(timeout_s)
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join(timeout_s)
+        self._conn.close()

@@ -1,0 +1,428 @@
+"""The executor on the lockstep HIL: a job completes and records, every stop is a guard stop.
+
+Each run starts a session restored from a state (the first dig of task A planned once per
+module, pending) with the HIL at the dig's entry, so a run is one dig plus its exit moves. Limits
+are checked on the RPDO1 frames of the bus (:func:`check_setpoint_trace`: finite differences over
+spans, exact up to the micrometre rounding). The planner process is exercised once, with the
+lockstep clock marked real time (the loop holds at the dump pose while the process plans; time
+in the simulation does not wait for it).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pytest
+
+from hil_sim.sim import FaultKind, LockstepHil
+from hil_sim.terrain import Terrain
+from rt_runtime.canbus import CanMaster
+from rt_runtime.control import FixedRateLoop, LoopConfig, OverrunPolicy, RtSettings
+from rt_runtime.control.executor import (
+    DigRecord,
+    ExecStatus,
+    Executor,
+    ExecutorConfig,
+    ExecutorResult,
+    Phase,
+    StopRequest,
+    executor_telemetry,
+)
+from rt_runtime.control.guard import GuardState, StrokeLimits, check_setpoint_trace, rpdo1_setpoints
+from rt_runtime.errors import ConfigurationError, DriveFault, PlanningError
+from rt_runtime.planning.trench import TrenchPlanner, TrenchSession, TrenchTask, load_task
+from rt_runtime.rig import Rig, load_rig
+
+PERIOD_S = 0.002
+NO_RT = RtSettings(None, False, None, None, False)
+
+
+@pytest.fixture(scope="module")
+def rig() -> Rig:
+    return load_rig("scale_model")
+
+
+@pytest.fixture(scope="module")
+def planner(rig: Rig) -> TrenchPlanner:
+    return TrenchPlanner(rig)
+
+
+@pytest.fixture(scope="module")
+def task(rig: Rig) -> TrenchTask:
+    return load_task("A", rig)
+
+
+@pytest.fixture(scope="module")
+def pending_state(planner: TrenchPlanner, task: TrenchTask) -> dict[str, Any]:
+    session = planner.start(task)
+    session.next_dig()
+    return json.loads(json.dumps(session.state()))
+
+
+class _Run:
+    """One executor run on a fresh lockstep HIL."""
+
+    def __init__(
+        self,
+        rig: Rig,
+        session: TrenchSession,
+        q0: np.ndarray,
+        *,
+        config: ExecutorConfig | None = None,
+        on_cycle: Callable[[_Run, int, float], None] | None = None,
+        wrap_clock: Callable[[Any], Any] | None = None,
+        loop_config: LoopConfig | None = None,
+        terrain: bool = True,
+        cut: bool = True,
+    ) -> None:
+        self.session = session
+        ground = Terrain(rig.ground_y_m, (session.x_lo, session.x_hi), rig.bucket.width_m)
+        self.hil = LockstepHil(rig, q0, ground if terrain else None, keep_frames=True)
+        self.master = CanMaster(self.hil.master_bus, rig, period_s=PERIOD_S)
+        self.master.boot(self.hil.clock.now, 1.0)
+        self.master.enable(self.hil.clock.now, 1.0)
+        clock = self.hil.clock if wrap_clock is None else wrap_clock(self.hil.clock)
+        self.loop = FixedRateLoop(
+            clock, loop_config or LoopConfig(rt=NO_RT), executor_telemetry(40_000)
+        )
+        self.records: list[DigRecord] = []
+        self.start_s: float | None = None
+
+        def dig_done(record: DigRecord) -> None:
+            self.records.append(record)
+            if cut:
+                self.hil.core.cut(record.sync_first, record.sync_last)
+
+        def cycle(sync: int, now_s: float) -> None:
+            if self.start_s is None:
+                self.start_s = now_s
+            if on_cycle is not None:
+                on_cycle(self, sync, now_s)
+
+        self.executor = Executor(
+            self.master,
+            rig,
+            self.loop,
+            session,
+            config or ExecutorConfig(max_digs=1),
+            on_dig_done=dig_done,
+            on_cycle=cycle,
+        )
+        self.result: ExecutorResult = self.executor.run()
+        self.hil.close()
+
+    def trace_check(self, rig: Rig) -> Any:
+        nodes = [n for _, n in rig.can.node_ids]
+        target, velocity = rpdo1_setpoints(self.hil.core.frames, nodes)
+        return check_setpoint_trace(
+            target, StrokeLimits.from_rig(rig), PERIOD_S, velocity_um_s=velocity
+        )
+
+    def phases(self) -> list[Phase]:
+        """The phases in order, consecutive repeats merged."""
+        ph = self.result.telemetry["phase"]
+        keep = np.concatenate([[True], np.diff(ph) != 0])
+        return [Phase(int(p)) for p in ph[keep]]
+
+
+def _restore(planner: TrenchPlanner, task: TrenchTask, state: dict[str, Any]) -> TrenchSession:
+    return TrenchSession.restore(planner, task, json.loads(json.dumps(state)))
+
+
+def _entry(session: TrenchSession) -> np.ndarray:
+    assert session.pending is not None
+    return np.asarray(session.pending.problem.q_start_rad)
+
+
+def _assert_at_rest(run: _Run, rig: Rig) -> None:
+    check = run.trace_check(rig)
+    assert check.ok, check
+    assert np.abs(run.hil.core.plant.stroke_rate_m_s).max() < 1e-3
+    assert run.executor.guard.at_rest
+
+
+@pytest.fixture(scope="module")
+def first_run(
+    rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
+) -> _Run:
+    session = _restore(planner, task, pending_state)
+    return _Run(rig, session, _entry(session))
+
+
+# -- a job ---------------------------------------------------------------------------------------
+
+
+def test_session_state_round_trips(
+    planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
+) -> None:
+    session = _restore(planner, task, pending_state)
+    again = json.loads(json.dumps(session.state()))
+    assert again["pending"] == pending_state["pending"]
+    assert again["steps"] == pending_state["steps"]
+    assert again["surface_m"] == pending_state["surface_m"]
+    assert session.material.area == pytest.approx(planner.start(task).material.area, rel=1e-12)
+    with pytest.raises(ConfigurationError, match="'rig'"):
+        TrenchSession.restore(planner, task, {**pending_state, "rig": "field_excavator"})
+    with pytest.raises(ConfigurationError, match="version"):
+        TrenchSession.restore(planner, task, {**pending_state, "version": 99})
+
+
+def test_a_short_job_completes_and_records(first_run: _Run, rig: Rig) -> None:
+    res = first_run.result
+    assert res.status is ExecStatus.DONE, res.fault
+    assert res.overruns == 0
+    assert [r.index for r in res.digs] == [0] and first_run.records == list(res.digs)
+    record = res.digs[0]
+    assert record.dig_type == "downward"
+    assert 0 < record.sync_first < record.sync_last
+    n_sync = record.sync_last - record.sync_first + 1
+    assert n_sync == int(np.ceil(record.T_s / PERIOD_S - 1e-9)) + 1
+    assert record.tip_path_m.shape == (n_sync, 2)
+    assert record.measured_volume_m3 == pytest.approx(record.planned_volume_m3, rel=0.05)
+    json.dumps(record.session_state)
+    assert record.session_state["digs_done"] == 1 and record.session_state["pending"] is None
+    # Planned in the first cycle (in-process, simulated time); connect (measured pose ->
+    # entry, micrometres), the dig, lift-out, dump, hold.
+    assert first_run.phases() == [
+        Phase.CONNECT,
+        Phase.DIG,
+        Phase.LIFT_OUT,
+        Phase.DUMP,
+        Phase.SETTLE,
+    ]
+    tel = res.telemetry
+    # A verified plan passes the guard unchanged, everywhere.
+    assert (tel["guard"][tel["tracking"]] == GuardState.PASSTHROUGH).all()
+    _assert_at_rest(first_run, rig)
+    progress = first_run.executor.progress()
+    assert progress["status"] == "done" and progress["digs_done"] == 1
+
+
+def test_resume_from_a_restored_state_digs_the_next_dig(
+    first_run: _Run, rig: Rig, planner: TrenchPlanner, task: TrenchTask
+) -> None:
+    state = first_run.result.digs[0].session_state
+    session = _restore(planner, task, state)
+    assert session.pending is None and len(session.digs) == 1
+    # The arm where the first dig ended: in the material, so the run lifts out first.
+    q_end = np.asarray(session.digs[0].problem.q_end_rad)
+    run = _Run(rig, session, q_end)
+    res = run.result
+    assert res.status is ExecStatus.DONE, res.fault
+    assert [r.index for r in res.digs] == [1]
+    assert res.digs[0].session_state["digs_done"] == 2
+    assert run.phases()[:6] == [
+        Phase.LIFT_OUT,
+        Phase.DUMP,
+        Phase.APPROACH,
+        Phase.ENTER,
+        Phase.DIG,
+        Phase.LIFT_OUT,
+    ]
+    _assert_at_rest(run, rig)
+
+
+def test_pause_takes_effect_at_the_next_motion_boundary(
+    rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
+) -> None:
+    session = _restore(planner, task, pending_state)
+    seen: dict[str, float] = {}
+
+    def pause_then_resume(run: _Run, _sync: int, now_s: float) -> None:
+        assert run.start_s is not None
+        t = now_s - run.start_s
+        if "paused" not in seen and t >= 1.0:  # mid-dig
+            run.executor.pause()
+            seen["paused"] = t
+        if run.executor.progress()["phase"] == "wait" and "held" not in seen:
+            seen["held"] = t
+        if "held" in seen and "resumed" not in seen and t >= seen["held"] + 0.5:
+            run.executor.resume()
+            seen["resumed"] = t
+
+    run = _Run(rig, session, _entry(session), on_cycle=pause_then_resume, terrain=False)
+    assert run.result.status is ExecStatus.DONE, run.result.fault
+    # The dig ran to its end, the arm held (at rest, at the dig's exit) until resumed.
+    assert run.phases() == [
+        Phase.CONNECT,
+        Phase.DIG,
+        Phase.WAIT,
+        Phase.LIFT_OUT,
+        Phase.DUMP,
+        Phase.SETTLE,
+    ]
+    tel = run.result.telemetry
+    wait = tel["phase"] == Phase.WAIT
+    assert 0.45 <= wait.sum() * PERIOD_S <= 0.6
+    assert np.abs(tel["vel_cmd_m_s"][wait]).max() < 1e-12
+    assert not run.executor.progress()["paused"]
+
+
+# -- stops ---------------------------------------------------------------------------------------
+
+
+def test_cancel_mid_dig_is_a_jerk_limited_stop(
+    rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
+) -> None:
+    session = _restore(planner, task, pending_state)
+
+    def cancel(run: _Run, _sync: int, now_s: float) -> None:
+        assert run.start_s is not None
+        if now_s - run.start_s >= 1.5:
+            run.executor.request_stop(StopRequest.CANCEL)
+
+    run = _Run(rig, session, _entry(session), on_cycle=cancel, terrain=False)
+    res = run.result
+    assert res.status is ExecStatus.CANCELLED, res.fault
+    assert res.digs == () and session.pending is not None
+    tel = res.telemetry
+    stop = tel["phase"] == Phase.STOP
+    assert stop.any() and stop[-1]
+    # Stopped from dig speed: the stop took cycles, and the command was moving when it began.
+    first = int(np.argmax(stop))
+    assert np.abs(tel["vel_cmd_m_s"][first - 1]).max() > 1e-3
+    assert stop.sum() > 100
+    _assert_at_rest(run, rig)
+    assert run.executor.progress()["status"] == "cancelled"
+
+
+def test_an_injected_following_error_stops_the_other_axes_within_limits(
+    rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
+) -> None:
+    session = _restore(planner, task, pending_state)
+    stick = 1
+
+    def jam(run: _Run, _sync: int, now_s: float) -> None:
+        assert run.start_s is not None
+        if now_s - run.start_s >= 1.0 and not run.hil.core.nodes[stick].faults.jammed:
+            run.hil.inject(FaultKind.FOLLOWING_ERROR, stick)
+
+    config = ExecutorConfig(max_digs=1, following_error_m=1e-3)
+    run = _Run(rig, session, _entry(session), config=config, on_cycle=jam, terrain=False)
+    res = run.result
+    assert res.status is ExecStatus.FAULT
+    assert res.fault.startswith("following error on the stick axis"), res.fault
+    tel = res.telemetry
+    # The executor's monitor (1 mm) stopped the job before the drive's own window (5 mm).
+    stop_row = int(np.argmax(tel["phase"] == Phase.STOP))
+    drive_fault = tel["drive_state"][:, stick] == 7
+    assert not drive_fault[:stop_row].any()
+    check = run.trace_check(rig)
+    assert check.ok, check
+    rates = run.hil.core.plant.stroke_rate_m_s
+    for axis in (0, 2):
+        assert abs(rates[axis]) < 1e-3, rates
+        assert tel["drive_state"][-1, axis] == 4  # OPERATION_ENABLED until disabled at the end
+
+
+class _StallingClock:
+    """The lockstep clock, oversleeping every deadline by 1.2 periods after ``at_s``."""
+
+    realtime = False
+
+    def __init__(self, inner: Any, at_s: float) -> None:
+        self.inner = inner
+        self.at_s = at_s
+
+    def now(self) -> float:
+        return float(self.inner.now())
+
+    def sleep_until(self, t_s: float) -> None:
+        late = 1.2 * PERIOD_S if t_s >= self.at_s else 0.0
+        self.inner.sleep_until(t_s + late)
+
+
+def test_a_stalling_clock_leads_to_an_overrun_safe_stop(
+    rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
+) -> None:
+    session = _restore(planner, task, pending_state)
+    run = _Run(
+        rig,
+        session,
+        _entry(session),
+        wrap_clock=lambda clock: _StallingClock(clock, clock.now() + 1.0),
+        loop_config=LoopConfig(rt=NO_RT, overrun=OverrunPolicy(max_consecutive=5)),
+        terrain=False,
+    )
+    res = run.result
+    assert res.status is ExecStatus.OVERRUN_STOP, res.fault
+    assert res.loop.safe_stop and res.overruns >= 5
+    assert "consecutive loop overruns" in res.fault
+    _assert_at_rest(run, rig)
+
+
+# -- the planner process -------------------------------------------------------------------------
+
+
+class _RealtimeLockstep:
+    """The lockstep clock declared real time: the executor plans in its planner process."""
+
+    realtime = True
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+
+    def now(self) -> float:
+        return float(self.inner.now())
+
+    def sleep_until(self, t_s: float) -> None:
+        self.inner.sleep_until(t_s)
+
+
+def test_the_next_dig_is_planned_in_the_planner_process(
+    rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
+) -> None:
+    session = _restore(planner, task, pending_state)
+    run = _Run(
+        rig,
+        session,
+        _entry(session),
+        config=ExecutorConfig(max_digs=2),
+        wrap_clock=_RealtimeLockstep,
+        cut=False,  # on_dig_done runs on the callback thread; the lockstep HIL is single-threaded
+    )
+    res = run.result
+    assert run.executor.plan_in_worker
+    assert res.status is ExecStatus.DONE, res.fault
+    assert [r.index for r in res.digs] == [0, 1] and len(run.records) == 2
+    assert [r.session_state["digs_done"] for r in res.digs] == [1, 2]
+    assert res.overruns == 0
+    # The parent's session caught up with the process's after the run.
+    assert len(session.digs) == 2 and session.pending is None
+    # The second dig was planned while lift-out and dump streamed; the arm held at the dump
+    # pose (WAIT) only if the plan was not there yet (wall-clock planning vs simulated time).
+    phases = run.phases()
+    dig_at = [i for i, p in enumerate(phases) if p is Phase.DIG]
+    assert len(dig_at) == 2
+    between = [p for p in phases[dig_at[0] : dig_at[1]] if p is not Phase.WAIT]
+    assert between == [Phase.DIG, Phase.LIFT_OUT, Phase.DUMP, Phase.APPROACH, Phase.ENTER]
+    _assert_at_rest(run, rig)
+
+
+# -- configuration -------------------------------------------------------------------------------
+
+
+def test_bad_configuration_is_refused(
+    rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
+) -> None:
+    with pytest.raises(ConfigurationError, match="stale_cycles"):
+        ExecutorConfig(stale_cycles=0)
+    with pytest.raises(ConfigurationError, match="following_error_m"):
+        ExecutorConfig(following_error_m=-1.0)
+    session = _restore(planner, task, pending_state)
+    hil = LockstepHil(rig, _entry(session))
+    master = CanMaster(hil.master_bus, rig, period_s=PERIOD_S)
+    loop = FixedRateLoop(hil.clock, LoopConfig(period_s=0.001, rt=NO_RT))
+    with pytest.raises(ConfigurationError, match="period"):
+        Executor(master, rig, loop, session)
+    loop = FixedRateLoop(hil.clock, LoopConfig(rt=NO_RT))
+    executor = Executor(master, rig, loop, session)
+    assert {"stroke_cmd_m", "stroke_fb_m"} <= {c.name for c in loop.telemetry.columns}
+    with pytest.raises(DriveFault, match="OPERATION_ENABLED"):
+        executor.run()  # not booted, not enabled: nothing is sent
+    with pytest.raises(PlanningError, match="once"):
+        executor.run()
+    hil.close()

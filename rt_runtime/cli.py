@@ -145,11 +145,15 @@ def _print_rig(summary: dict[str, Any]) -> None:
 
 def cmd_rig_show(args: argparse.Namespace) -> int:
     """``excavator-rt rig show NAME [--json]``."""
-    summary = rig_summary(load_rig(args.name), samples=args.samples, seed=args.seed)
+    rig = load_rig(args.name)
+    summary = rig_summary(rig, samples=args.samples, seed=args.seed)
+    table = kinematics_table(rig)
     if args.json:
-        _print_json(summary)
+        _print_json({**summary, "kinematics": table})
     else:
         _print_rig(summary)
+        print()
+        _print_kinematics(rig, table)
     return 0
 
 
@@ -201,16 +205,8 @@ def kinematics_table(rig: Rig) -> list[dict[str, Any]]:
     return rows
 
 
-def cmd_demo(args: argparse.Namespace) -> int:
-    """``excavator-rt demo``: the rig summary and its kinematics table."""
-    rig = load_rig(args.rig)
-    summary = rig_summary(rig)
-    table = kinematics_table(rig)
-    if args.json:
-        _print_json({"rig": summary, "kinematics": table})
-        return 0
-    _print_rig(summary)
-    print()
+def _print_kinematics(rig: Rig, table: list[dict[str, Any]]) -> None:
+    """The kinematics table as text."""
     print(f"kinematics of {rig.name} (tip in the arm frame, strokes, static gravity torques)")
     print(
         "  pose          q [deg]                     tip x,y [m]       attitude [deg]  stroke [mm]               gravity torque [N m]"
@@ -223,7 +219,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
             f"  {r['pose']:<13} ({q})  ({r['tip_x_m']:6.3f}, {r['tip_y_m']:6.3f})  {r['attitude_deg']:10.2f}"
             f"      ({s})  ({t})"
         )
-    return 0
 
 
 def cmd_oneshot(args: argparse.Namespace) -> int:
@@ -865,10 +860,7 @@ def build_parser() -> argparse.ArgumentParser:
     hil_cli = importlib.import_module("hil_sim.cli")
     hil_cli.add_parser(sub).set_defaults(handler=hil_cli.run)
 
-    demo = sub.add_parser("demo", help="the main demonstration")
-    demo.add_argument("--rig", default=DEFAULT_RIG)
-    demo.add_argument("--json", action="store_true")
-    demo.set_defaults(handler=cmd_demo)
+    importlib.import_module("hil_sim.demo").add_parser(sub)
     return p
 
 

@@ -6,6 +6,15 @@ in the report). ``rt_runtime.cli`` wires it in with :func:`add_parser` and :func
     excavator-rt hil --task A [--rig scale_model] [--realtime] [--trace FILE.blf|.asc]
                      [--no-feedforward] [--max-digs N] [--json] [--plot DIR]
                      [--inject KIND:AXIS:AT_S ...]
+    excavator-rt hil --path gao|FILE.json|joints [--joints-deg B,S,K ...] [--rig test_bench]
+                     [--orders auto|3-4-5-4-3|...] [--durations 3,3,3,3,3] [--start-deg B,S,K]
+                     [--realtime] [--no-feedforward] [--trace FILE] [--json] [--plot DIR]
+
+``--path`` runs a prescribed joint path instead of a task (:func:`hil_sim.scenario.
+run_path_scenario`): ``gao`` is Gao Table 2 with 3 s segments and the smoothest order pattern,
+``FILE.json`` holds ``{"joints_deg": [[b, s, k], ...], "durations_s": [...]}``, and repeated
+``--joints-deg`` key points imply ``--path joints``. ``--rig`` defaults to ``test_bench`` with a
+path and to ``scale_model`` with a task.
 
 Exit status: 0 when the run finished, 1 when a fault stopped it (the report says which), 2 for
 a configuration or planning error.
@@ -18,11 +27,48 @@ import json
 import math
 from typing import Any
 
-from hil_sim.scenario import FaultSpec, Scenario, run_scenario
+from hil_sim.scenario import (
+    FaultSpec,
+    PathScenario,
+    Scenario,
+    run_path_scenario,
+    run_scenario,
+)
 from hil_sim.sim import FaultKind
 from rt_runtime.errors import ExcavatorRtError
 
-__all__ = ["add_parser", "format_report", "parse_fault", "run"]
+__all__ = ["add_parser", "format_report", "parse_fault", "parse_floats", "run"]
+
+
+def parse_floats(text: str, n: int | None = None, what: str = "value") -> tuple[float, ...]:
+    """Comma-separated finite numbers (``n`` of them when given).
+
+    Raises:
+        argparse.ArgumentTypeError: Not numbers, not finite, or the wrong count.
+    """
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{what} {text!r}: expected comma-separated numbers"
+        ) from None
+    if not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"{what} {text!r}: numbers must be finite")
+    if n is not None and len(values) != n:
+        raise argparse.ArgumentTypeError(f"{what} {text!r}: expected {n} numbers")
+    return values
+
+
+def _triple(text: str) -> tuple[float, float, float]:
+    v = parse_floats(text, 3, "key point (deg: boom,stick,bucket)")
+    return (v[0], v[1], v[2])
+
+
+def _durations(text: str) -> tuple[float, ...]:
+    values = parse_floats(text, None, "--durations")
+    if not all(v > 0.0 for v in values):
+        raise argparse.ArgumentTypeError(f"--durations {text!r}: every duration must be > 0 s")
+    return values
 
 
 def parse_fault(text: str) -> FaultSpec:
@@ -60,7 +106,45 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "drives and arm (HIL), and print the tracking report.",
     )
     p.add_argument("--task", default="A", help="built-in task A..D or a task TOML file")
-    p.add_argument("--rig", default="scale_model", help="rig profile name or TOML file")
+    p.add_argument(
+        "--rig",
+        default=None,
+        help="rig profile name or TOML file (default: scale_model; test_bench with --path)",
+    )
+    p.add_argument(
+        "--path",
+        default=None,
+        metavar="gao|FILE.json|joints",
+        help="run a prescribed joint path instead of a task (Gao/Yang mixed-order "
+        "interpolation through key points): gao = Gao Table 2, 3 s segments",
+    )
+    p.add_argument(
+        "--joints-deg",
+        action="append",
+        type=_triple,
+        default=[],
+        metavar="B,S,K",
+        help="a key point of the path in deg (repeatable; implies --path joints)",
+    )
+    p.add_argument(
+        "--orders",
+        default="auto",
+        help="path order pattern, e.g. 3-4-5-4-3, or auto (the smoothest of Gao's three)",
+    )
+    p.add_argument(
+        "--durations",
+        type=_durations,
+        default=None,
+        metavar="D1,D2,...",
+        help="path segment durations in s (default 3 each)",
+    )
+    p.add_argument(
+        "--start-deg",
+        type=_triple,
+        default=None,
+        metavar="B,S,K",
+        help="arm start pose for a path (default: the path's first key point)",
+    )
     p.add_argument(
         "--realtime",
         action="store_true",
@@ -87,13 +171,33 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def format_report(report: dict[str, Any]) -> str:
-    """Human-readable summary of a report."""
+    """Human-readable summary of a report (a task's or a path's)."""
+    path = report.get("path")
+    head: list[str] = []
+    if path is not None:
+        key_err = path.get("cmd_at_key_error_um", [])
+        head = [
+            f"  path {path['name']}: {len(path['key_points_deg'])} key points, orders "
+            f"{path['orders']}, knots {path['knots_s']} s"
+            + (f", key points scaled from {path['scaled_from']}" if path["scaled_from"] else ""),
+            "  commanded stroke at the key times: max |cmd - key point| "
+            + (f"{max(key_err):.3g} um" if key_err else "n/a"),
+        ]
+        path_fig = report["tracking_path"]["tracking"]
+        head.append(
+            "  path only (truth): "
+            + ", ".join(
+                f"{axis} max {fig['max_mm']:.3f} rms {fig['rms_mm']:.3f} mm"
+                for axis, fig in path_fig.items()
+            )
+        )
     lines = [
         f"HIL {report['transport']}: task {report['task']} on {report['rig']}, feed-forward "
         f"{'on' if report['feedforward'] else 'off'}: {report['status']}"
         + (f" ({report['fault']})" if report.get("fault") else ""),
         f"  digs {len(report['digs'])}, simulated {report['sim_s']:.1f} s, wall "
         f"{report['wall_s']:.1f} s, overruns {report['overruns']}",
+        *head,
         "  cylinder tracking (truth / reported):",
     ]
     for axis, fig in report["tracking"].items():
@@ -125,9 +229,13 @@ def format_report(report: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run the ``hil`` sub-command; returns the exit status."""
+    path = getattr(args, "path", None)
+    joints = tuple(getattr(args, "joints_deg", []) or [])
+    if path is not None or joints:
+        return _run_path(args, path if path is not None else "joints", joints)
     scenario = Scenario(
         task=args.task,
-        rig=args.rig,
+        rig=args.rig if args.rig is not None else "scale_model",
         feedforward=not args.no_feedforward,
         realtime=args.realtime,
         trace_path=args.trace,
@@ -146,7 +254,42 @@ def run(args: argparse.Namespace) -> int:
             print(f"excavator-rt hil: {exc}")
         return 2
     report.pop("_frames", None)
+    report.pop("_loop_stats", None)
     print(json.dumps(report) if args.json else format_report(report))
     if report["status"] == "planning_error":
         return 2
+    return 0 if report["status"] == "done" else 1
+
+
+def _run_path(
+    args: argparse.Namespace, path: str, joints: tuple[tuple[float, float, float], ...]
+) -> int:
+    """``hil --path``: a prescribed joint path on the HIL."""
+    if joints and path != "joints":
+        print("excavator-rt hil: --joints-deg gives the key points itself; use it without --path")
+        return 2
+    scenario = PathScenario(
+        path=path,
+        rig=args.rig if args.rig is not None else "test_bench",
+        joints_deg=joints,
+        orders=args.orders,
+        durations_s=args.durations,
+        start_deg=args.start_deg,
+        feedforward=not args.no_feedforward,
+        realtime=args.realtime,
+        trace_path=args.trace,
+        period_s=args.period_ms * 1e-3,
+        plot_dir=args.plot,
+        faults=tuple(args.inject),
+    )
+    try:
+        report = run_path_scenario(scenario)
+    except (ExcavatorRtError, ValueError) as exc:
+        if args.json:
+            print(json.dumps({"status": "error", "error": str(exc)}))
+        else:
+            print(f"excavator-rt hil: {exc}")
+        return 2
+    report.pop("_frames", None)
+    print(json.dumps(report) if args.json else format_report(report))
     return 0 if report["status"] == "done" else 1

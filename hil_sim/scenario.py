@@ -24,6 +24,19 @@ truth by SYNC count; ``tracking`` counts the cycles that streamed a motion.
 
 Faults (:class:`FaultSpec`) are switched on ``at_s`` seconds after the executor's first cycle,
 from its per-cycle hook, on the HIL's drive node (:mod:`hil_sim.drives`).
+
+Prescribed paths (issue 8 item 3, :class:`PathScenario`, :func:`run_path_scenario`). A joint
+path through key points (Gao/Yang's mixed-order interpolation, :mod:`rt_runtime.trajectory.
+mixed_order`) runs on the executor as a :class:`~rt_runtime.control.planner_worker.PathJob`:
+from the arm's start pose a CONNECT move to the path's start, the path (phase PATH), settle, DONE.
+No terrain and no soil (a free arm). ``path="gao"`` is Gao Table 2's six joint key points with
+3 s segments and the smoothest order pattern of Gao's three (the rule of ``excavator-rt interp``,
+:func:`~rt_runtime.trajectory.mixed_order.choose_smoothest`). On a rig whose joint ranges do not
+hold Table 2's angles they are mapped linearly from ``test_bench``'s ranges into the rig's
+(:func:`scale_key_points`; the report says so under ``path.scaled_from``). The report has the
+same tracking keys as a task's, ``tracking_path`` (the same figures over the path alone, without
+the connect move), and ``path`` (orders, knots, key points, their cylinder strokes and the
+largest difference between the commanded stroke and the key point's stroke at each key time).
 """
 
 from __future__ import annotations
@@ -49,6 +62,7 @@ from hil_sim.report import (
 )
 from hil_sim.sim import FaultKind, LockstepHil, Truth
 from hil_sim.terrain import Terrain
+from rt_runtime import actuation
 from rt_runtime.canbus import CanMaster
 from rt_runtime.control import (
     Clock,
@@ -67,10 +81,22 @@ from rt_runtime.control.executor import (
     Phase,
     executor_telemetry,
 )
+from rt_runtime.control.planner_worker import PathJob, PolynomialMotion
 from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.rig import Rig, load_rig
 
-__all__ = ["FaultSpec", "Scenario", "run_scenario"]
+__all__ = [
+    "GAO_TABLE2_JOINTS_DEG",
+    "FaultSpec",
+    "KeyPointPath",
+    "PathScenario",
+    "Scenario",
+    "key_point_path",
+    "load_key_points",
+    "run_path_scenario",
+    "run_scenario",
+    "scale_key_points",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -179,7 +205,9 @@ class _LockstepAdapter:
         self.hil.close()
 
 
-def _open_hil(sc: Scenario, rig: Rig, q0: FloatArray, terrain: Terrain | None) -> _Hil:
+def _open_hil(
+    sc: Scenario | PathScenario, rig: Rig, q0: FloatArray, terrain: Terrain | None
+) -> _Hil:
     if sc.realtime:
         from hil_sim.realtime import RealtimeHilProcess
 
@@ -210,6 +238,7 @@ _PHASE_KIND = {
     Phase.WAIT: "hold",
     Phase.SETTLE: "hold",
     Phase.STOP: "stop",
+    Phase.PATH: "path",
 }
 
 
@@ -392,6 +421,9 @@ def run_scenario(sc: Scenario) -> dict[str, Any]:
         report["plots"] = [str(p) for p in files]
     if sc.trace_path is not None:
         report["trace"] = str(Path(sc.trace_path))
+    if result is not None:
+        # Per-cycle loop timing (arrays; dropped before JSON output): the demo's histogram.
+        report["_loop_stats"] = result.loop
     if sc.keep_frames:
         report["_frames"] = frames
     return report
@@ -455,3 +487,446 @@ def _surface_of(material: Any, xs: FloatArray) -> FloatArray:
         if not hit.is_empty:
             out[i] = float(hit.bounds[3])
     return out
+
+
+# -- prescribed paths (issue 8 item 3) ------------------------------------------------------------
+
+#: Gao/Yang Table 2: joint angles (deg: boom, stick, bucket) of the six key points of their
+#: digging path, 3 s apart (the same numbers as ``excavator-rt interp``'s default).
+GAO_TABLE2_JOINTS_DEG: tuple[tuple[float, float, float], ...] = (
+    (34.83, -40.32, -56.16),
+    (34.05, -50.52, -57.47),
+    (37.27, -65.58, -58.15),
+    (41.75, -77.73, -60.14),
+    (49.39, -89.13, -60.26),
+    (58.46, -92.13, -61.07),
+)
+#: Gao's segment duration (s).
+GAO_SEGMENT_S = 3.0
+#: The rig Table 2's angles belong to (the source range of :func:`scale_key_points`).
+GAO_RIG = "test_bench"
+
+
+#: ``orders="auto"`` for fewer than Gao's five segments (his patterns need five): the lowest
+#: orders that give a square system (sum of orders = 3 m + 2 for m segments, cubic ends), so
+#: the path has zero velocity and acceleration at both ends and is C2 inside.
+_SHORT_PATTERNS: dict[int, tuple[str, ...]] = {
+    1: ("5",),
+    2: ("4-4",),
+    3: ("3-5-3",),
+    4: ("3-4-4-3",),
+}
+
+
+@dataclass(frozen=True, slots=True)
+class PathScenario:
+    """One HIL run of a prescribed joint path.
+
+    Attributes:
+        path: ``gao`` (Table 2), a JSON file (see :func:`load_key_points`), or ``joints`` with
+            :attr:`joints_deg`.
+        rig: Rig profile name or file.
+        joints_deg: Key points (deg: boom, stick, bucket) when ``path == "joints"``.
+        orders: ``auto`` (the smoothest of Gao's three patterns; with fewer than five segments
+            the lowest orders that fit, see ``_SHORT_PATTERNS``) or a pattern such as
+            ``3-4-5-4-3`` (widened to the segment count as ``interp`` does).
+        durations_s: Segment durations (s); None: the file's, else 3 s each.
+        start_deg: The arm's start pose (deg); None: the path's first key point (the executor
+            still connects the quantised measured pose to it).
+        feedforward: Velocity feed-forward 0x60B1 on.
+        realtime: Real-time HIL in its own process over 127.0.0.1 instead of lockstep.
+        trace_path: Write the CAN trace (``.blf`` / ``.asc``), or None.
+        period_s: SYNC period.
+        plot_dir: Write the figures here, or None.
+        keep_frames: Keep every bus frame in the report object (lockstep).
+        vcu: Put the VCU model on the bus (off: a bench arm has no travel or swing).
+        faults: Faults to inject (as :class:`Scenario`).
+    """
+
+    path: str = "gao"
+    rig: str = "test_bench"
+    joints_deg: tuple[tuple[float, float, float], ...] = ()
+    orders: str = "auto"
+    durations_s: tuple[float, ...] | None = None
+    start_deg: tuple[float, float, float] | None = None
+    feedforward: bool = True
+    realtime: bool = False
+    trace_path: str | None = None
+    period_s: float = 0.002
+    plot_dir: str | None = None
+    keep_frames: bool = False
+    vcu: bool = False
+    faults: tuple[FaultSpec, ...] = field(default_factory=tuple)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class KeyPointPath:
+    """Key points interpolated into a path job.
+
+    Attributes:
+        job: The executor's job (one :class:`PolynomialMotion`).
+        knots_s: Key times from the path's start ``(n,)``.
+        q_key_rad: Key points ``(n, 3)``.
+        orders: The order pattern used, e.g. ``3-4-5-4-3``.
+        strategies: Peak |velocity|/|acceleration|/|jerk| per compared pattern (deg units).
+        scaled_from: The rig whose ranges the key points were mapped from, or "".
+    """
+
+    job: PathJob
+    knots_s: FloatArray
+    q_key_rad: FloatArray
+    orders: str
+    strategies: dict[str, Any]
+    scaled_from: str = ""
+
+
+def scale_key_points(q_deg: Any, from_rig: Rig, to_rig: Rig) -> FloatArray:
+    """Map joint key points linearly from one rig's joint ranges into another's (deg -> deg).
+
+    Args:
+        q_deg: Key points ``(n, 3)`` in degrees, within ``from_rig``'s ranges.
+        from_rig: The rig the key points were made for.
+        to_rig: The rig to run them on.
+
+    Returns:
+        ``(n, 3)`` degrees: ``lo' + (q - lo) (hi' - lo') / (hi - lo)`` per joint.
+    """
+    q = np.asarray(q_deg, dtype=np.float64).reshape(-1, 3)
+    lo, hi = np.degrees(from_rig.q_min_rad[:3]), np.degrees(from_rig.q_max_rad[:3])
+    lo2, hi2 = np.degrees(to_rig.q_min_rad[:3]), np.degrees(to_rig.q_max_rad[:3])
+    out: FloatArray = lo2 + (q - lo) * (hi2 - lo2) / (hi - lo)
+    return out
+
+
+def load_key_points(path: str | Path) -> tuple[FloatArray, tuple[float, ...] | None]:
+    """Key points from a JSON file: ``{"joints_deg": [[b, s, k], ...], "durations_s": [...]}``
+    (``durations_s`` optional).
+
+    Returns:
+        Key points in degrees ``(n, 3)`` and the durations or None.
+
+    Raises:
+        ConfigurationError: Unreadable file or malformed content (the message says what).
+    """
+    import json
+
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise ConfigurationError(f"path file {path}: {exc}") from exc
+    if not isinstance(data, dict) or "joints_deg" not in data:
+        raise ConfigurationError(
+            f"path file {path}: expected an object with 'joints_deg' ([[boom, stick, bucket], "
+            "...] in deg) and optional 'durations_s'"
+        )
+    try:
+        q = np.asarray(data["joints_deg"], dtype=np.float64)
+        dur = data.get("durations_s")
+        durations = None if dur is None else tuple(float(d) for d in dur)
+    except (TypeError, ValueError) as exc:
+        raise ConfigurationError(f"path file {path}: {exc}") from exc
+    if q.ndim != 2 or q.shape[1] != 3 or q.shape[0] < 2:
+        raise ConfigurationError(
+            f"path file {path}: joints_deg must be at least two [boom, stick, bucket] rows; got "
+            f"shape {q.shape}"
+        )
+    return q, durations
+
+
+def key_point_path(
+    rig: Rig,
+    q_key_deg: Any,
+    durations_s: Any = None,
+    orders: str = "auto",
+    name: str = "path",
+) -> KeyPointPath:
+    """Interpolate joint key points (Gao/Yang mixed orders) into a checked path job.
+
+    Args:
+        rig: The rig (the job is checked against it).
+        q_key_deg: Key points ``(n, 3)``, deg.
+        durations_s: ``n - 1`` segment durations (s); None: 3 s each.
+        orders: ``auto`` (compare Gao's three patterns, take the smoothest; fewer than five
+            segments: the lowest orders that fit) or one pattern.
+        name: The job's name.
+
+    Returns:
+        The path.
+
+    Raises:
+        ConfigurationError: Wrong number of durations or key points.
+        ValueError: Malformed key points or orders (from the interpolation).
+        PlanningError: No pattern applies, or the path is faster than the rig's joint limits
+            or does not start and end at rest.
+        JointLimitError: The path leaves a joint range.
+    """
+    from rt_runtime.trajectory import mixed_order
+
+    q_deg = np.asarray(q_key_deg, dtype=np.float64).reshape(-1, 3)
+    n_seg = q_deg.shape[0] - 1
+    if n_seg < 1:
+        raise ConfigurationError(f"a path needs at least two key points; got {q_deg.shape[0]}")
+    durations = [GAO_SEGMENT_S] * n_seg if durations_s is None else [float(d) for d in durations_s]
+    if len(durations) != n_seg:
+        raise ConfigurationError(
+            f"{n_seg + 1} key points need {n_seg} segment durations; got {len(durations)}"
+        )
+    knots = np.concatenate([[0.0], np.cumsum(durations)])
+    q_key = np.radians(q_deg)
+    strategies: tuple[str, ...] = (orders,)
+    if orders == "auto":
+        strategies = mixed_order.PAPER_STRATEGIES if n_seg >= 5 else _SHORT_PATTERNS[n_seg]
+    cmp = mixed_order.compare_strategies(knots, q_key, strategies)
+    if not cmp.results:
+        raise PlanningError(
+            "no order pattern applies: " + "; ".join(f"{n}: {why}" for n, why in cmp.skipped)
+        )
+    best = mixed_order.choose_smoothest(cmp) if orders == "auto" else cmp.results[0]
+    job = PathJob((PolynomialMotion(best.trajectory, name),), name)
+    job.check(rig)
+    deg = 180.0 / math.pi
+    table = {
+        r.name: {
+            "peak_velocity_deg_s": (r.peak_velocity * deg).tolist(),
+            "peak_acceleration_deg_s2": (r.peak_acceleration * deg).tolist(),
+            "peak_jerk_deg_s3": (r.peak_jerk * deg).tolist(),
+        }
+        for r in cmp.results
+    }
+    return KeyPointPath(job, knots, q_key, "-".join(str(p) for p in best.orders), table)
+
+
+def _scenario_path(sc: PathScenario, rig: Rig) -> KeyPointPath:
+    """The scenario's key points -> path (Table 2 scaled into the rig's ranges when needed)."""
+    scaled_from = ""
+    durations: Any = sc.durations_s
+    if sc.path == "gao":
+        q_deg = np.array(GAO_TABLE2_JOINTS_DEG)
+        lo, hi = np.degrees(rig.q_min_rad[:3]), np.degrees(rig.q_max_rad[:3])
+        if not ((q_deg >= lo) & (q_deg <= hi)).all():
+            q_deg = scale_key_points(q_deg, load_rig(GAO_RIG), rig)
+            scaled_from = GAO_RIG
+        name = "gao"
+    elif sc.path == "joints":
+        if len(sc.joints_deg) < 2:
+            raise ConfigurationError("path 'joints' needs at least two key points (--joints-deg)")
+        q_deg = np.asarray(sc.joints_deg, dtype=np.float64)
+        name = "joints"
+    else:
+        q_deg, file_durations = load_key_points(sc.path)
+        durations = durations if durations is not None else file_durations
+        name = Path(sc.path).stem
+    kp = key_point_path(rig, q_deg, durations, sc.orders, name)
+    if scaled_from:
+        kp = KeyPointPath(kp.job, kp.knots_s, kp.q_key_rad, kp.orders, kp.strategies, scaled_from)
+    return kp
+
+
+def run_path_scenario(sc: PathScenario) -> dict[str, Any]:
+    """Execute a prescribed joint path with the executor against the HIL; return the report.
+
+    The path is interpolated and checked before the HIL starts: a path the rig cannot follow
+    raises here and no frame is ever sent.
+
+    Returns:
+        The report: the task report's tracking keys (``tracking``, ``tip_error_max_mm``,
+        ``cycles``), ``tracking_path`` (path only), ``path``, ``status``, ``fault``, ``loop``,
+        ``can``, ``energy_Wh``, ``goal``..., ``_frames`` when ``keep_frames``.
+
+    Raises:
+        ConfigurationError: Bad rig, key points, durations or fault.
+        JointLimitError: The path leaves a joint range.
+        PlanningError: The path is faster than the rig's joint limits.
+        CommunicationError, DriveFault: Boot or enable failed.
+    """
+    wall0 = time.perf_counter()
+    rig = load_rig(sc.rig)
+    kp = _scenario_path(sc, rig)
+    q0 = kp.q_key_rad[0] if sc.start_deg is None else np.radians(np.asarray(sc.start_deg))
+    q0 = np.asarray(q0, dtype=np.float64)
+    actuation.joint_to_stroke(rig, q0, check_limits=True)  # the start pose must be reachable
+    faults = [(f, f.axis_index()) for f in sc.faults]
+    hil = _open_hil(sc, rig, q0, None)
+    result: ExecutorResult | None = None
+    rt_report: RtReport | None = None
+    bus_load = None
+    try:
+        clock: Clock = hil.clock
+        master = CanMaster(hil.master_bus, rig, period_s=sc.period_s, react_to_faults=False)
+        run_s = kp.job.motions[0].duration_s + 60.0
+        loop = FixedRateLoop(
+            clock,
+            LoopConfig(period_s=sc.period_s, rt=_NO_RT),
+            executor_telemetry(int(run_s / sc.period_s)),
+        )
+        exec_start: list[float] = []
+        injected: set[int] = set()
+
+        def on_cycle(_sync: int, now_s: float) -> None:
+            if not exec_start:
+                exec_start.append(now_s)
+            for i, (spec, axis) in enumerate(faults):
+                if i not in injected and now_s - exec_start[0] >= spec.at_s:
+                    injected.add(i)
+                    hil.inject(spec.kind, axis)
+
+        executor = Executor.for_path(
+            master,
+            rig,
+            loop,
+            kp.job,
+            ExecutorConfig(feedforward=sc.feedforward),
+            on_cycle=on_cycle,
+        )
+        rt_report = apply_rt(RtSettings()) if sc.realtime else None
+        try:
+            master.boot(clock.now, 2.0)
+            master.enable(clock.now, 2.0)
+            result = executor.run()
+        finally:
+            executor.close()
+            if rt_report is not None:
+                restore_rt(rt_report)
+        bus_load = master.bus_load()
+    finally:
+        truth, _material, frames, extra = hil.finish()
+        hil.close()
+    wall_s = time.perf_counter() - wall0
+
+    segments = _segments(rig, result, truth)
+    report: dict[str, Any] = {}
+    report.update(tracking_figures(segments))
+    path_fig = tracking_figures([s for s in segments if s.kind == "path"])
+    report["tracking_path"] = path_fig
+    report["path"] = _path_block(rig, kp, result, sc.period_s)
+    report["energy_Wh"] = truth.energy_j / 3600.0
+    report["wall_s"] = wall_s
+    report["overruns"] = result.overruns
+    report["status"] = result.status.name.lower()
+    report["fault"] = result.fault
+    report["loop"] = result.loop.summary()
+    if rt_report is not None:
+        report["loop"]["rt"] = rt_report.as_dict()
+    report["emcys"] = [
+        {"node_id": e.node_id, "code": f"0x{int(e.code):04X}", "description": e.description}
+        for e in result.emcys
+    ]
+    report["digs"] = []
+    report["rig"] = rig.name
+    report["task"] = f"path {kp.job.name}"
+    report["feedforward"] = sc.feedforward
+    report["transport"] = "realtime" if sc.realtime else "lockstep"
+    report["period_s"] = sc.period_s
+    report["sim_s"] = float(truth.t_s[-1] - truth.t_s[0]) if len(truth.t_s) > 1 else 0.0
+    report["goal"] = GOALS_MM.get(rig.cylinders.kind, {})
+    can_block: dict[str, Any] = {}
+    if bus_load is not None:
+        can_block["bus_load"] = {"nominal": bus_load.nominal, "worst_case": bus_load.worst_case}
+    if sc.realtime:
+        rtt = result.telemetry["rtt_s"]
+        rtt = rtt[np.isfinite(rtt)] * 1e6
+        if rtt.size:
+            can_block["sync_rtt_us"] = {
+                "p50": float(np.percentile(rtt, 50)),
+                "p99": float(np.percentile(rtt, 99)),
+                "p999": float(np.percentile(rtt, 99.9)),
+                "max": float(np.max(rtt)),
+            }
+    report["can"] = can_block
+    report.update(extra)
+    if sc.plot_dir is not None:
+        files = plot_report(segments, sc.plot_dir, title=f"path {kp.job.name} ({kp.orders}):")
+        files += _plot_path(rig, segments, kp, sc.plot_dir)
+        report["plots"] = [str(p) for p in files]
+    if sc.trace_path is not None:
+        report["trace"] = str(Path(sc.trace_path))
+    if sc.keep_frames:
+        report["_frames"] = frames
+    return report
+
+
+def _path_block(
+    rig: Rig, kp: KeyPointPath, result: ExecutorResult, period_s: float
+) -> dict[str, Any]:
+    """``path``: orders, knots, key points and their strokes, commanded strokes at key times.
+
+    Row ``k`` of the PATH phase commands (``stroke_cmd_m``) the motion at ``(k + 1) T``; the row
+    just before it (the end of the connect move, at the path's start pose) commands time 0.
+    """
+    deg = 180.0 / math.pi
+    s_key = actuation.joint_to_stroke(rig, kp.q_key_rad, check_limits=False)
+    tel = result.telemetry
+    rows = np.flatnonzero(tel["phase"] == int(Phase.PATH))
+    block: dict[str, Any] = {
+        "name": kp.job.name,
+        "orders": kp.orders,
+        "knots_s": kp.knots_s.tolist(),
+        "key_points_deg": (kp.q_key_rad * deg).round(6).tolist(),
+        "key_strokes_mm": (s_key * 1e3).tolist(),
+        "strategies": kp.strategies,
+        "scaled_from": kp.scaled_from,
+    }
+    if rows.size and rows[0] > 0:
+        cmd = tel["stroke_cmd_m"][np.concatenate([[rows[0] - 1], rows])]
+        block["cmd_at_key_error_um"] = _key_errors(cmd, kp.knots_s, s_key, period_s)
+    return block
+
+
+def _key_errors(
+    cmd: FloatArray, knots_s: FloatArray, s_key: FloatArray, period_s: float
+) -> list[float]:
+    """Largest |commanded - key stroke| (um) at each key time (NaN when not streamed)."""
+    out: list[float] = []
+    for t, s in zip(knots_s, s_key, strict=True):
+        k = round(float(t) / period_s) if math.isfinite(period_s) and period_s > 0 else -1
+        if 0 <= k < len(cmd) and abs(k * period_s - float(t)) < 1e-9:
+            out.append(float(np.max(np.abs(cmd[k] - s)) * 1e6))
+        else:
+            out.append(math.nan)
+    return out
+
+
+def _plot_path(rig: Rig, segments: list[Segment], kp: KeyPointPath, out_dir: str) -> list[Path]:
+    """Cylinder strokes (reference, truth, key points) and the tip path of the path."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return []
+    path_segs = [s for s in segments if s.kind == "path"]
+    if not path_segs:
+        return []
+    seg = path_segs[0]
+    t = seg.t_s - seg.t_s[0]
+    s_key = actuation.joint_to_stroke(rig, kp.q_key_rad, check_limits=False)
+    files: list[Path] = []
+    fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+    for i, name in enumerate(AXES):
+        axes[i].plot(t, seg.stroke_ref_m[:, i] * 1e3, "k--", lw=1, label="reference")
+        axes[i].plot(t, seg.stroke_true_m[:, i] * 1e3, lw=1, label="HIL truth")
+        axes[i].plot(kp.knots_s, s_key[:, i] * 1e3, "o", ms=4, label="key points")
+        axes[i].set_ylabel(f"{name} stroke (mm)")
+    axes[0].legend(loc="best")
+    axes[0].set_title(f"path {kp.job.name} ({kp.orders}) cylinder strokes (cf. Gao Fig. 11)")
+    axes[-1].set_xlabel("t (s)")
+    fig.tight_layout()
+    out = Path(out_dir) / "path_strokes.png"
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    files.append(out)
+    fig, ax = plt.subplots(figsize=(7, 5))
+    ax.plot(seg.tip_ref_m[:, 0], seg.tip_ref_m[:, 1], "k--", lw=1, label="reference tip")
+    ax.plot(seg.tip_true_m[:, 0], seg.tip_true_m[:, 1], lw=1, label="HIL tip")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(loc="best")
+    ax.set_title(f"path {kp.job.name}: bucket tip")
+    fig.tight_layout()
+    out = Path(out_dir) / "path_tip.png"
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    files.append(out)
+    return files

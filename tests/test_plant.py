@@ -531,7 +531,14 @@ def _assert_pinned(got: dict[str, list[float]], want: dict[str, list[float]]) ->
         np.testing.assert_allclose(got[key], values, rtol=1e-9, atol=1e-15, err_msg=key)
 
 
-@pytest.mark.parametrize("rig", [SCALE, BENCH], ids=["electric", "hydraulic"])
+# The pinned values were computed with the bench's position gain of the time (20 1/s); the
+# profile's tuning may change (it did: 10 1/s), the models' behaviour must not.
+PINNED_BENCH = dataclasses.replace(
+    BENCH, drives=dataclasses.replace(BENCH.drives, position_gain_1_s=20.0)
+)
+
+
+@pytest.mark.parametrize("rig", [SCALE, PINNED_BENCH], ids=["electric", "hydraulic"])
 def test_pinned_trajectory_of_plant_and_drives_in_soil(rig: Rig) -> None:
     """500 SYNC periods (4000 sub-steps) end where they ended before the optimisation."""
     _assert_pinned(_pinned_closed_loop(rig), PINNED_CLOSED_LOOP[rig.cylinders.kind])

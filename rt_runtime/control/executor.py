@@ -38,6 +38,19 @@ job, a measured pose) is bridged by a ruckig joint-space move (phase CONNECT), a
 planner's transitions are. A dig that was cut short by a stop is not recorded: a restart plans it
 again from the session's state (:meth:`TrenchSession.restore`), the next undone dig.
 
+Prescribed paths (issue 8 item 3). The same executor runs a :class:`~rt_runtime.control.
+planner_worker.PathJob` (a fixed sequence of joint motions, e.g. Gao's mixed-order interpolation
+through key points) when it is given one in place of the session (:meth:`Executor.for_path` is
+the same call with a clearer name). Its planner link is :class:`~rt_runtime.control.
+planner_worker.PathLink`: the first plan request is answered with every motion at once, each
+queued as phase PATH; there is nothing to record, no planner process and no dig. From the
+measured pose the first motion's start is reached by the usual CONNECT move, then the motions
+stream through the same guard, monitors, stops and telemetry, and the job ends at the last
+motion's end pose at rest (status DONE). The path is checked when the executor is built
+(:meth:`PathJob.check`: joint ranges -> JointLimitError, joint velocity/acceleration/jerk ->
+PlanningError), so a path the rig cannot follow is refused before any frame. A stopped path is
+not resumable: run the rest as a new path. The trench code path is untouched by this.
+
 Planning inside the slack (where the paper is silent). ``next_dig`` screens candidates for
 ~0.5 s: far beyond a 2 ms slack, and a thread would hold the interpreter lock. On a real-time
 clock the session lives in a planner process (:class:`~rt_runtime.control.planner_worker.
@@ -94,6 +107,10 @@ from rt_runtime.control.loop import CycleInfo, FixedRateLoop, LoopAction, LoopSt
 from rt_runtime.control.planner_worker import (
     DigPlan,
     InlinePlanner,
+    JointMotion,
+    PathJob,
+    PathLink,
+    PathPlan,
     PlannerError,
     PlannerLink,
     ProcessPlanner,
@@ -164,6 +181,8 @@ class Phase(IntEnum):
     SETTLE = 7
     #: The guard's jerk-limited stop.
     STOP = 8
+    #: A prescribed path's motion (:class:`~rt_runtime.control.planner_worker.PathJob`).
+    PATH = 9
 
 
 _KIND_PHASE = {
@@ -174,7 +193,7 @@ _KIND_PHASE = {
 }
 #: Phases that stream a plan's motion (telemetry ``tracking``).
 _TRACKING = frozenset(
-    {Phase.CONNECT, Phase.LIFT_OUT, Phase.DUMP, Phase.APPROACH, Phase.ENTER, Phase.DIG}
+    {Phase.CONNECT, Phase.LIFT_OUT, Phase.DUMP, Phase.APPROACH, Phase.ENTER, Phase.DIG, Phase.PATH}
 )
 # Severity when several stop causes come together: the worst is reported.
 _SEVERITY = {
@@ -396,6 +415,7 @@ class _Item:
     q_start_rad: tuple[float, float, float]
     dig: PlannedDig | None = None
     transition: Transition | None = None
+    motion: JointMotion | None = None
 
 
 class Executor:
@@ -414,7 +434,9 @@ class Executor:
         rig: The rig.
         loop: The fixed-rate loop; its clock paces the run. Its telemetry is replaced by one
             with :data:`EXECUTOR_COLUMNS` added (same capacity) when it lacks them.
-        session: The trench session (fresh, restored from a state, or with a pending dig).
+        session: The trench session (fresh, restored from a state, or with a pending dig), or a
+            prescribed path (:class:`~rt_runtime.control.planner_worker.PathJob`; see the
+            module docstring: checked here, never planned in a process).
         config: Executor settings.
         on_dig_done: Called with each :class:`DigRecord` (see the module docstring for the
             thread); must not raise.
@@ -424,6 +446,9 @@ class Executor:
     Raises:
         ConfigurationError: A bad configuration, a loop period other than the master's, or a
             session planner that cannot run in a planner process when one is asked for.
+        JointLimitError: A path leaves a joint's range (nothing was sent).
+        PlanningError: A path is faster than the rig's joint limits or does not start and end
+            at rest (nothing was sent).
     """
 
     def __init__(
@@ -431,7 +456,7 @@ class Executor:
         master: CanMaster,
         rig: Rig,
         loop: FixedRateLoop,
-        session: TrenchSession,
+        session: TrenchSession | PathJob,
         config: ExecutorConfig | None = None,
         *,
         on_dig_done: Callable[[DigRecord], None] | None = None,
@@ -454,6 +479,10 @@ class Executor:
         cfg = self.config
         self.realtime = bool(loop.clock.realtime)
         self.plan_in_worker = self.realtime if cfg.plan_in_worker is None else cfg.plan_in_worker
+        if isinstance(session, PathJob):
+            # Checked before anything is sent; a path has nothing to plan in a process.
+            session.check(rig)
+            self.plan_in_worker = False
         self.limits = StrokeLimits.from_rig(rig, margin=cfg.guard_margin)
         self.guard = LimitGuard(self.limits, period)
         self.following_error_m = (
@@ -467,7 +496,9 @@ class Executor:
         # Started here, before the caller enables the drives and applies RT settings: spawning
         # takes ~20 ms (no SYNC meanwhile) and must not inherit a real-time policy.
         self._process: ProcessPlanner | None = (
-            ProcessPlanner(session) if self.plan_in_worker else None
+            ProcessPlanner(session)
+            if self.plan_in_worker and isinstance(session, TrenchSession)
+            else None
         )
         self._callbacks: queue.SimpleQueue[DigRecord | None] | None = None
         self._cb_thread: threading.Thread | None = None
@@ -490,6 +521,31 @@ class Executor:
         self._status: ExecStatus | None = None
         self._fault = ""
         self._plan_us = 0.0
+
+    @classmethod
+    def for_path(
+        cls,
+        master: CanMaster,
+        rig: Rig,
+        loop: FixedRateLoop,
+        path: PathJob | JointMotion,
+        config: ExecutorConfig | None = None,
+        *,
+        on_cycle: Callable[[int, float], None] | None = None,
+    ) -> Executor:
+        """An executor for a prescribed path (one motion or a :class:`PathJob`).
+
+        Args:
+            master, rig, loop, config, on_cycle: As the constructor.
+            path: The path: a :class:`PathJob`, or one motion (``duration_s`` and
+                ``sample(t) -> (q, qd, qdd)``) made a one-motion job.
+
+        Raises:
+            As the constructor (JointLimitError, PlanningError for a path the rig cannot
+            follow; nothing was sent).
+        """
+        job = path if isinstance(path, PathJob) else PathJob((path,))
+        return cls(master, rig, loop, job, config, on_cycle=on_cycle)
 
     # -- thread-safe control --------------------------------------------------------------------
 
@@ -578,9 +634,13 @@ class Executor:
         s0 = fb.position_um.astype(np.float64) * 1e-6
         self._columns()
         self._init_state(s0)
-        link: PlannerLink = (
-            self._process if self._process is not None else InlinePlanner(self.session)
-        )
+        link: PlannerLink
+        if isinstance(self.session, PathJob):
+            link = PathLink(self.session)
+        elif self._process is not None:
+            link = self._process
+        else:
+            link = InlinePlanner(self.session)
         self._link = link
         # Another thread of this process (the dig-done callback, the planner sender) holding the
         # interpreter lock delays the loop by up to the switch interval (5 ms by default): on a
@@ -595,7 +655,11 @@ class Executor:
             self.close()
         if not stats.stopped_by_step and self._status is None:
             self._status, self._fault = ExecStatus.STOPPED, "the loop ended (max_cycles)"
-        if self.plan_in_worker and self._last_state is not None:
+        if (
+            self.plan_in_worker
+            and self._last_state is not None
+            and isinstance(self.session, TrenchSession)
+        ):
             self.session.apply_state(self._last_state)
         status = self._status if self._status is not None else ExecStatus.DONE
         self._publish(status.name.lower())
@@ -769,6 +833,18 @@ class Executor:
             else:
                 self._call_dig_done(record)
             return
+        if isinstance(reply, PathPlan):
+            self._plan_outstanding = False
+            self._plan_us += reply.plan_us
+            if not (self._stopping or self._final is not None):
+                for motion in reply.motions:
+                    q0, _, _ = motion.sample(0.0)
+                    q_start = tuple(float(v) for v in np.asarray(q0, dtype=np.float64))
+                    self._queue.append(
+                        _Item(Phase.PATH, (q_start[0], q_start[1], q_start[2]), motion=motion)
+                    )
+            self._task_done = True
+            return
         assert isinstance(reply, DigPlan)
         self._plan_outstanding = False
         self._plan_us += reply.plan_us
@@ -808,7 +884,9 @@ class Executor:
             self._phase = Phase.CONNECT
         else:
             self._queue.popleft()
-            if item.dig is not None:
+            if item.motion is not None:
+                self._motion = _Sampler(item.motion.duration_s, item.motion.sample)
+            elif item.dig is not None:
                 self._motion = _Sampler(item.dig.T_s, item.dig.trajectory().sample)
                 self._dig_index = item.dig.index
                 self._digs_started += 1

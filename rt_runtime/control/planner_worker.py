@@ -26,11 +26,25 @@ Two links run it (same requests, same replies, :meth:`poll` once per cycle):
 The loop calls only the link's ``request_plan``, ``request_record`` and ``poll``: cheap for
 :class:`ProcessPlanner`; for :class:`InlinePlanner` they take the planning time (simulated time
 does not move meanwhile).
+
+Prescribed paths (issue 8 item 3). A :class:`PathJob` is a fixed sequence of joint motions an
+operator or a task prescribes (e.g. Gao's mixed-order interpolation through key points, wrapped by
+:class:`PolynomialMotion`); :class:`PathLink` is the planner link that hands it out: the first
+``request_plan`` is answered with one :class:`PathPlan` holding every motion, and there is nothing
+else to plan or record. The executor streams a path through the same guard, monitors, stops and
+telemetry as a trench job (see :mod:`rt_runtime.control.executor`); the trench code path does
+not change. :meth:`PathJob.check` refuses, before anything is sent, a path that leaves the joint
+ranges (:class:`~rt_runtime.errors.JointLimitError`, from :mod:`rt_runtime.actuation`) or that is
+faster than the rig's joint velocity, acceleration or jerk limits
+(:class:`~rt_runtime.errors.PlanningError`: the guard would otherwise slow it down and it would
+trail its own timing), or whose motions do not start and end at rest.
 """
 
 from __future__ import annotations
 
+import bisect
 import contextlib
+import math
 import multiprocessing
 import os
 import queue
@@ -38,7 +52,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -60,9 +74,14 @@ __all__ = [
     "AT_ENTRY_TOLERANCE_M",
     "DigPlan",
     "InlinePlanner",
+    "JointMotion",
+    "PathJob",
+    "PathLink",
+    "PathPlan",
     "PlannerError",
     "PlannerLink",
     "PlannerSpec",
+    "PolynomialMotion",
     "ProcessPlanner",
     "Recorded",
     "SessionDriver",
@@ -126,7 +145,193 @@ class PlannerError:
     message: str
 
 
-Reply = DigPlan | Recorded | PlannerError
+@runtime_checkable
+class JointMotion(Protocol):
+    """A joint motion the executor can stream: ``sample(t_s) -> (q, qd, qdd)`` for
+    ``0 <= t_s <= duration_s`` (rad, rad/s, rad/s^2, each ``(3,)``). Called once per cycle in
+    the loop: it must be cheap."""
+
+    @property
+    def duration_s(self) -> float:
+        """Length of the motion (s)."""
+        ...
+
+    def sample(self, t_s: float) -> tuple[Any, Any, Any]:
+        """Joint position, velocity and acceleration at ``t_s`` (s from the motion's start)."""
+        ...
+
+
+class PolynomialMotion:
+    """A piecewise polynomial joint path as a :class:`JointMotion` (loop-safe sampling).
+
+    Wraps :class:`~rt_runtime.trajectory.mixed_order.PiecewisePolynomial` (three joints, rad):
+    the position, velocity and acceleration tables of every piece are built once here, so one
+    :meth:`sample` is a bisection, one power vector and three small products (~5 us, against
+    ~100 us for three ``PiecewisePolynomial.sample`` calls). Time 0 is the path's first knot.
+
+    Args:
+        path: The path (``n_joints == 3``).
+        name: A label for reports.
+
+    Raises:
+        ConfigurationError: The path does not have three joints.
+    """
+
+    __slots__ = ("_durations", "_knots", "_starts", "_tables", "_width", "name", "path")
+
+    def __init__(self, path: Any, name: str = "path") -> None:
+        coef = np.asarray(path.u_coefficients, dtype=np.float64)  # (m, width, n_joints)
+        if coef.ndim != 3 or coef.shape[2] != 3:
+            raise ConfigurationError(
+                f"a path motion needs three joints (boom, stick, bucket); got coefficients of "
+                f"shape {coef.shape}"
+            )
+        self.path = path
+        self.name = name
+        knots = np.asarray(path.knots_s, dtype=np.float64)
+        durations = np.diff(knots)
+        m, width, _ = coef.shape
+        # tables[d, i, k, j]: coefficient of u**k in the d-th time derivative of piece i, joint j.
+        tables = np.zeros((3, m, width, 3))
+        for d in range(3):
+            for k in range(width - d):
+                falling = math.perm(k + d, d)
+                tables[d, :, k, :] = coef[:, k + d, :] * (falling / durations[:, None] ** d)
+        self._tables = tables
+        self._width = width
+        self._durations = durations
+        self._starts = (knots - knots[0]).tolist()
+        self._knots = knots
+
+    @property
+    def duration_s(self) -> float:
+        """From the first to the last knot (s)."""
+        return float(self._knots[-1] - self._knots[0])
+
+    def sample(self, t_s: float) -> tuple[Any, Any, Any]:
+        """``(q, qd, qdd)`` at ``t_s`` (clamped to the path; at a knot the right-hand piece)."""
+        starts = self._starts
+        m = len(starts) - 1
+        t = min(max(float(t_s), 0.0), starts[-1])
+        seg = min(max(bisect.bisect_right(starts, t) - 1, 0), m - 1)
+        u = (t - starts[seg]) / self._durations[seg]
+        powers = np.power(u, np.arange(self._width, dtype=np.float64))
+        tab = self._tables
+        return powers @ tab[0, seg], powers @ tab[1, seg], powers @ tab[2, seg]
+
+
+#: Largest joint speed (rad/s) and acceleration (rad/s^2) at a path motion's ends that count as
+#: rest.
+PATH_REST_TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PathJob:
+    """A prescribed joint path: motions streamed one after the other (see the module docstring).
+
+    The executor connects its measured pose to the first motion's start with a ruckig move
+    (phase CONNECT), and any two motions that do not meet likewise. Every motion starts and
+    ends at rest (:meth:`check`), so a pause (which takes effect at motion boundaries) always
+    holds the arm at rest.
+
+    Attributes:
+        motions: The motions, at least one.
+        name: A label for reports.
+    """
+
+    motions: tuple[JointMotion, ...]
+    name: str = "path"
+
+    def __post_init__(self) -> None:
+        if len(self.motions) == 0:
+            raise ConfigurationError("a path job needs at least one motion; got none")
+        for i, motion in enumerate(self.motions):
+            d = float(motion.duration_s)
+            if not (math.isfinite(d) and d > 0.0):
+                raise ConfigurationError(
+                    f"path motion {i}: duration_s = {d}; allowed: a finite value > 0"
+                )
+
+    def check(self, rig: Rig, step_s: float = 1e-3) -> None:
+        """Refuse a path the rig cannot follow, before anything is sent.
+
+        Samples every motion every ``step_s`` (and at its end) and checks the joint ranges,
+        the joint velocity, acceleration and jerk limits (jerk as the difference of consecutive
+        accelerations over the step, within 0.1 % headroom for that estimate) and rest at both
+        ends.
+
+        Args:
+            rig: The rig.
+            step_s: Sampling step (s), > 0.
+
+        Raises:
+            JointLimitError: A joint leaves its range (names the joint, value and range).
+            PlanningError: A motion is faster than a joint limit, or does not start or end at
+                rest (names the motion, joint, time and the allowed value).
+            ConfigurationError: ``step_s`` is not > 0.
+        """
+        if not (math.isfinite(step_s) and step_s > 0.0):
+            raise ConfigurationError(f"path check step_s = {step_s}; allowed: a finite value > 0")
+        names = [j.name for j in rig.joints][:3]
+        limits = (
+            ("velocity", np.asarray(rig.qd_max_rad_s, dtype=np.float64), "deg/s"),
+            ("acceleration", np.asarray(rig.qdd_max_rad_s2, dtype=np.float64), "deg/s^2"),
+            ("jerk", np.asarray(rig.qddd_max_rad_s3, dtype=np.float64), "deg/s^3"),
+        )
+        for i, motion in enumerate(self.motions):
+            duration = float(motion.duration_s)
+            n = max(math.ceil(duration / step_s), 1)
+            ts = np.linspace(0.0, duration, n + 1)
+            rows = [motion.sample(float(t)) for t in ts]
+            q = np.array([r[0] for r in rows], dtype=np.float64).reshape(-1, 3)
+            qd = np.array([r[1] for r in rows], dtype=np.float64).reshape(-1, 3)
+            qdd = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 3)
+            if not (np.isfinite(q).all() and np.isfinite(qd).all() and np.isfinite(qdd).all()):
+                raise PlanningError(f"path motion {i} samples a non-finite joint state")
+            # Raises JointLimitError naming the joint, the value and the range.
+            actuation.joint_to_stroke(rig, q, check_limits=True)
+            jerk = np.diff(qdd, axis=0) / np.diff(ts)[:, None]
+            for (what, limit, unit), values, slack in zip(
+                limits, (qd, qdd, jerk), (1.0, 1.0, 1.001), strict=True
+            ):
+                peak = np.max(np.abs(values), axis=0)
+                over = np.flatnonzero(peak > limit * slack)
+                if over.size:
+                    j = int(over[0])
+                    k = int(np.argmax(np.abs(values[:, j])))
+                    raise PlanningError(
+                        f"path motion {i}: {names[j]} {what} {math.degrees(peak[j]):.3f} {unit} "
+                        f"at t = {ts[min(k, len(ts) - 1)]:.3f} s exceeds the rig's limit "
+                        f"{math.degrees(limit[j]):.3f} {unit}; allowed: a slower path (longer "
+                        "durations)"
+                    )
+            for end, k in (("start", 0), ("end", -1)):
+                v = float(np.max(np.abs(qd[k])))
+                a = float(np.max(np.abs(qdd[k])))
+                if v > PATH_REST_TOLERANCE or a > PATH_REST_TOLERANCE:
+                    raise PlanningError(
+                        f"path motion {i} does not {end} at rest (|qd| {v:.3g} rad/s, |qdd| "
+                        f"{a:.3g} rad/s^2); allowed: <= {PATH_REST_TOLERANCE} (zero boundary "
+                        "velocity and acceleration)"
+                    )
+
+
+@dataclass(frozen=True, slots=True)
+class PathPlan:
+    """The reply to a path job's plan request: every motion, in streaming order.
+
+    Attributes:
+        motions: The job's motions.
+        name: The job's name.
+        plan_us: Wall time of the request (s * 1e6; nothing is planned: ~0).
+    """
+
+    motions: tuple[JointMotion, ...]
+    name: str
+    plan_us: float = 0.0
+
+
+Reply = DigPlan | Recorded | PlannerError | PathPlan
 
 
 @dataclass(frozen=True, slots=True)
@@ -318,6 +523,45 @@ class InlinePlanner:
         self._run(self.driver.record, strokes_m)
         if plan_next and not isinstance(self._replies[-1], PlannerError):
             self._run(self.driver.plan, None)
+
+    def poll(self) -> Reply | None:
+        """The oldest reply, or None."""
+        return self._replies.popleft() if self._replies else None
+
+    @property
+    def busy(self) -> bool:
+        """Replies not yet polled."""
+        return bool(self._replies)
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+class PathLink:
+    """The planner link of a :class:`PathJob`: hands out its motions once (inline, any clock).
+
+    The first :meth:`request_plan` is answered with a :class:`PathPlan`; a later one with an
+    empty plan (nothing left); :meth:`request_record` with a :class:`PlannerError` (a path has no
+    digs to record; the executor never asks).
+
+    Args:
+        job: The path.
+    """
+
+    def __init__(self, job: PathJob) -> None:
+        self.job = job
+        self._handed_out = False
+        self._replies: deque[Reply] = deque()
+
+    def request_plan(self, q_from_rad: FloatArray | None) -> None:
+        """Queue the path's motions (first request) or an empty plan (later ones)."""
+        motions = () if self._handed_out else self.job.motions
+        self._handed_out = True
+        self._replies.append(PathPlan(motions, self.job.name))
+
+    def request_record(self, strokes_m: FloatArray, plan_next: bool) -> None:
+        """A path records nothing: answered with a :class:`PlannerError`."""
+        self._replies.append(PlannerError("a path job has no digs to record"))
 
     def poll(self) -> Reply | None:
         """The oldest reply, or None."""

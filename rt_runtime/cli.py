@@ -861,6 +861,10 @@ def build_parser() -> argparse.ArgumentParser:
     hil_cli.add_parser(sub).set_defaults(handler=hil_cli.run)
 
     importlib.import_module("hil_sim.demo").add_parser(sub)
+
+    from rt_runtime.service import client as job_client
+
+    job_client.add_parser(sub)
     return p
 
 

@@ -1,0 +1,165 @@
+"""``excavator-rt job ...``: the command-line client of the daemon's control socket.
+
+::
+
+    excavator-rt job submit --task A [--planner pinn|pso] [--max-digs N]
+    excavator-rt job submit --task my_trench.toml      # read here, sent as numbers
+    excavator-rt job status [ID]
+    excavator-rt job list
+    excavator-rt job pause [ID] | resume ID | cancel ID
+
+Every subcommand takes ``--socket PATH`` (default ``$EXCAVATOR_RTD_SOCKET`` or
+``/run/excavator-rtd/control.sock``) and ``--json`` (print the daemon's reply object as is).
+Exit codes: 0 done, 1 the daemon refused (the reason on stderr), 2 no daemon to talk to.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from rt_runtime.errors import ConfigurationError
+from rt_runtime.service.config import DEFAULT_SOCKET
+from rt_runtime.service.control import request
+
+__all__ = ["add_parser", "format_job", "run"]
+
+_TASK_FILE_KEYS = ("length_m", "depth_m", "beta1_deg", "beta2_deg", "start_x_m")
+
+
+def _default_socket() -> str:
+    return os.environ.get("EXCAVATOR_RTD_SOCKET", str(DEFAULT_SOCKET))
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add ``job`` (and its subcommands) to the ``excavator-rt`` subcommands; handler :func:`run`.
+
+    Args:
+        subparsers: The ``add_subparsers()`` object of the main parser.
+
+    Returns:
+        The ``job`` parser (its handler is set).
+    """
+    p: argparse.ArgumentParser = subparsers.add_parser(
+        "job",
+        help="talk to the rig daemon excavator-rtd: submit, status, pause, resume, cancel, list",
+        description="Client of excavator-rtd's control socket (docs/daemon.md).",
+    )
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--socket",
+        default=_default_socket(),
+        help="control socket (default: $EXCAVATOR_RTD_SOCKET or %(default)s)",
+    )
+    common.add_argument("--json", action="store_true", help="print the daemon's reply as JSON")
+    sub = p.add_subparsers(dest="job_command", required=True, metavar="COMMAND")
+    s = sub.add_parser("submit", parents=[common], help="queue a trench job")
+    s.add_argument("--task", required=True, help="A, B, C, D (Yao Table 3) or a task TOML file")
+    s.add_argument("--planner", choices=("pinn", "pso"), help="one-shot planner (daemon default)")
+    s.add_argument("--max-digs", type=int, help="the job is done after this many digs")
+    st = sub.add_parser("status", parents=[common], help="the daemon and a job (default: current)")
+    st.add_argument("id", type=int, nargs="?")
+    sub.add_parser("list", parents=[common], help="every job the daemon keeps")
+    pa = sub.add_parser("pause", parents=[common], help="pause a job (default: the running one)")
+    pa.add_argument("id", type=int, nargs="?")
+    re = sub.add_parser("resume", parents=[common], help="resume a paused job, retry a failed one")
+    re.add_argument("id", type=int)
+    ca = sub.add_parser("cancel", parents=[common], help="cancel a job (the running one stops)")
+    ca.add_argument("id", type=int)
+    p.set_defaults(handler=run)
+    return p
+
+
+def _task_spec(text: str) -> str | dict[str, Any]:
+    """A built-in name as is; a TOML file read here and sent as numbers (the daemon never
+    reads client paths)."""
+    path = Path(text)
+    if not path.suffix and not path.exists():
+        return text
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigurationError(f"task file {path}: cannot read: {exc}") from exc
+    unknown = sorted(set(data) - set(_TASK_FILE_KEYS))
+    if unknown:
+        raise ConfigurationError(
+            f"task file {path}: unknown key(s) {', '.join(unknown)}; allowed: "
+            f"{', '.join(_TASK_FILE_KEYS)}"
+        )
+    return {"name": path.stem, **data}
+
+
+def format_job(job: dict[str, Any]) -> str:
+    """One line about a job (from a reply)."""
+    t = job.get("task", {})
+    text = (
+        f"job {job.get('id')}: {job.get('status')}, task {t.get('name')} (L {t.get('length_m')} m, "
+        f"D {t.get('depth_m')} m), planner {job.get('planner')}, {len(job.get('digs', []))} "
+        "dig(s) done"
+    )
+    if job.get("fault"):
+        text += f"; {job['fault']}"
+    return text
+
+
+def _print_human(command: str, reply: dict[str, Any]) -> None:
+    if command == "list":
+        jobs = reply.get("jobs", [])
+        if not jobs:
+            print("no jobs")
+        for job in jobs:
+            print(format_job(job))
+        return
+    daemon = reply.get("daemon")
+    if daemon is not None:
+        print(
+            f"daemon: {daemon.get('state')}; rig {daemon.get('rig')}, period "
+            f"{daemon.get('period_s', 0.0) * 1e3:g} ms, healthy {daemon.get('healthy')}"
+        )
+    job = reply.get("job")
+    if job is not None:
+        print(format_job(job))
+        for d in job.get("digs", []):
+            print(
+                f"  dig {d['index']}: {d['dig_type']}, T {d['T_s']:.2f} s, planned "
+                f"{d['planned_volume_m3'] * 1e3:.2f} L, "
+                f"measured {d['measured_volume_m3'] * 1e3:.2f} L"
+            )
+        progress = reply.get("progress")
+        if progress:
+            print("  progress: " + ", ".join(f"{k} {v}" for k, v in progress.items()))
+    elif command == "status":
+        print("no job")
+
+
+def run(args: argparse.Namespace) -> int:
+    """``excavator-rt job <command>``: one request, the reply printed; the exit code.
+
+    Raises:
+        ConfigurationError: An unreadable task file.
+        CommunicationError: No daemon at the socket (the CLI prints it, exit 2).
+    """
+    command = args.job_command
+    req: dict[str, Any] = {"cmd": command}
+    if command == "submit":
+        req["task"] = _task_spec(args.task)
+        if args.planner:
+            req["planner"] = args.planner
+        if args.max_digs is not None:
+            req["max_digs"] = args.max_digs
+    elif getattr(args, "id", None) is not None:
+        req["id"] = args.id
+    reply = request(args.socket, req)
+    if args.json:
+        print(json.dumps(reply, indent=2))
+    if not reply.get("ok"):
+        print(f"excavator-rt job {command}: {reply.get('error', reply)}", file=sys.stderr)
+        return 1
+    if not args.json:
+        _print_human(command, reply)
+    return 0

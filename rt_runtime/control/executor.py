@@ -234,28 +234,13 @@ EXECUTOR_COLUMNS: tuple[Column, ...] = (
 )
 
 
-class _Telemetry(Telemetry):
-    """:class:`Telemetry` with an O(1) :meth:`clear`.
-
-    The loop clears its telemetry when :meth:`FixedRateLoop.run` starts, after the drives were
-    enabled; blanking every row of a whole task's buffer (200 000 rows: ~30 ms) there trips the
-    drives' SYNC watchdog (20 ms). Only the counters need resetting: :meth:`Telemetry.begin`
-    blanks each row before it is written and :meth:`Telemetry.snapshot` reads written rows only.
-    """
-
-    def clear(self) -> None:
-        """Forget every record (O(1))."""
-        self.slot = 0
-        self.count = 0
-
-
 def executor_telemetry(capacity: int) -> Telemetry:
     """A telemetry ring buffer with the executor's columns (give it to the loop).
 
     Raises:
         ConfigurationError: ``capacity`` below 1.
     """
-    return _Telemetry(capacity, EXECUTOR_COLUMNS)
+    return Telemetry(capacity, EXECUTOR_COLUMNS)
 
 
 @dataclass(frozen=True, slots=True)
@@ -588,7 +573,7 @@ class Executor:
         loop_names = {c.name for c in LOOP_COLUMNS}
         extra = [c for c in tel.columns if c.name not in loop_names]
         extra += [c for c in EXECUTOR_COLUMNS if c.name not in names]
-        self.loop.telemetry = _Telemetry(tel.capacity, extra)
+        self.loop.telemetry = Telemetry(tel.capacity, extra)
 
     def _columns(self) -> None:
         tel = self.loop.telemetry

@@ -44,6 +44,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -63,16 +64,8 @@ from hil_sim.report import (
 from hil_sim.sim import FaultKind, LockstepHil, Truth
 from hil_sim.terrain import Terrain
 from rt_runtime import actuation
-from rt_runtime.canbus import CanMaster
-from rt_runtime.control import (
-    Clock,
-    FixedRateLoop,
-    LoopConfig,
-    RtReport,
-    RtSettings,
-    apply_rt,
-    restore_rt,
-)
+from rt_runtime.canbus import BusLoad, CanMaster
+from rt_runtime.control import Clock, FixedRateLoop, LoopConfig, RtSettings
 from rt_runtime.control.executor import (
     DigRecord,
     Executor,
@@ -242,6 +235,114 @@ _PHASE_KIND = {
 }
 
 
+_OnCycle = Callable[[int, float], None]
+
+
+def _fault_injector(hil: _Hil, faults: list[tuple[FaultSpec, int]]) -> _OnCycle:
+    """The executor's per-cycle hook that switches each fault on ``at_s`` after the first cycle."""
+    start: list[float] = []
+    injected: set[int] = set()
+
+    def on_cycle(_sync: int, now_s: float) -> None:
+        if not start:
+            start.append(now_s)
+        for i, (spec, axis) in enumerate(faults):
+            if i not in injected and now_s - start[0] >= spec.at_s:
+                injected.add(i)
+                hil.inject(spec.kind, axis)
+
+    return on_cycle
+
+
+def _execute(
+    sc: Scenario | PathScenario,
+    rig: Rig,
+    hil: _Hil,
+    faults: list[tuple[FaultSpec, int]],
+    run_s: float,
+    make_executor: Callable[[CanMaster, FixedRateLoop, _OnCycle], Executor],
+) -> tuple[ExecutorResult, BusLoad]:
+    """Boot and enable the drives on ``hil``'s bus and run the executor ``make_executor`` builds.
+
+    The executor is built before boot: on a real-time clock it starts the planner process (not
+    at a real-time priority, and not in the gap between enable and the first cycle). The RT
+    settings are acquired before boot too (:meth:`FixedRateLoop.acquire_rt`): mlockall and the
+    garbage collection of a process with the planner loaded take ~0.1 s, which between enable
+    and the first cycle would trip the drives' SYNC watchdog and heartbeat consumer. Lockstep
+    runs on simulated time and asks the OS for nothing.
+
+    Returns:
+        The executor's result and the master's bus load.
+    """
+    clock: Clock = hil.clock
+    master = CanMaster(hil.master_bus, rig, period_s=sc.period_s, react_to_faults=False)
+    loop = FixedRateLoop(
+        clock,
+        LoopConfig(period_s=sc.period_s, rt=RtSettings() if sc.realtime else _NO_RT),
+        executor_telemetry(int(run_s / sc.period_s)),
+    )
+    executor = make_executor(master, loop, _fault_injector(hil, faults))
+    if sc.realtime:
+        loop.acquire_rt()
+    try:
+        master.boot(clock.now, 2.0)
+        master.enable(clock.now, 2.0)
+        result = executor.run()
+    finally:
+        executor.close()
+        loop.release_rt()
+    return result, master.bus_load()
+
+
+def _run_fields(
+    sc: Scenario | PathScenario,
+    rig: Rig,
+    result: ExecutorResult | None,
+    truth: Truth,
+    wall_s: float,
+    bus_load: BusLoad | None,
+    error: str = "",
+) -> dict[str, Any]:
+    """The report keys every run has: outcome, loop, EMCYs, run set-up, energy, CAN."""
+    out: dict[str, Any] = {
+        "energy_Wh": truth.energy_j / 3600.0,
+        "wall_s": wall_s,
+        "overruns": result.overruns if result is not None else 0,
+    }
+    if result is not None:
+        out["status"] = result.status.name.lower()
+        out["fault"] = result.fault
+        out["loop"] = result.loop.summary()  # its ``rt``: what the OS granted and refused
+    else:
+        out["status"] = "planning_error"
+        out["fault"] = error
+    out["emcys"] = [
+        {"node_id": e.node_id, "code": f"0x{int(e.code):04X}", "description": e.description}
+        for e in (result.emcys if result is not None else ())
+    ]
+    out["rig"] = rig.name
+    out["feedforward"] = sc.feedforward
+    out["transport"] = "realtime" if sc.realtime else "lockstep"
+    out["period_s"] = sc.period_s
+    out["sim_s"] = float(truth.t_s[-1] - truth.t_s[0]) if len(truth.t_s) > 1 else 0.0
+    out["goal"] = GOALS_MM.get(rig.cylinders.kind, {})
+    can_block: dict[str, Any] = {}
+    if bus_load is not None:
+        can_block["bus_load"] = {"nominal": bus_load.nominal, "worst_case": bus_load.worst_case}
+    if result is not None and sc.realtime:
+        rtt = result.telemetry["rtt_s"]
+        rtt = rtt[np.isfinite(rtt)] * 1e6
+        if rtt.size:
+            can_block["sync_rtt_us"] = {
+                "p50": float(np.percentile(rtt, 50)),
+                "p99": float(np.percentile(rtt, 99)),
+                "p999": float(np.percentile(rtt, 99.9)),
+                "max": float(np.max(rtt)),
+            }
+    out["can"] = can_block
+    return out
+
+
 def run_scenario(sc: Scenario) -> dict[str, Any]:
     """Plan and execute ``sc`` with the executor against the HIL; return the report.
 
@@ -278,57 +379,27 @@ def run_scenario(sc: Scenario) -> dict[str, Any]:
     hil = _open_hil(sc, rig, q0, terrain)
     cut_m3: dict[int, float] = {}
     result: ExecutorResult | None = None
-    rt_report: RtReport | None = None
     error = ""
     bus_load = None
     try:
-        clock: Clock = hil.clock
-        master = CanMaster(hil.master_bus, rig, period_s=sc.period_s, react_to_faults=False)
-        # RT settings are applied here, before boot, not by the loop: mlockall and the garbage
-        # collection of a process with the planner loaded take ~0.1 s, which between enable and
-        # the first cycle would trip the drives' SYNC watchdog and heartbeat consumer.
-        loop = FixedRateLoop(
-            clock,
-            LoopConfig(period_s=sc.period_s, rt=_NO_RT),
-            executor_telemetry(int(_MAX_RUN_S / sc.period_s)),
-        )
-        exec_start: list[float] = []
-        injected: set[int] = set()
-
-        def on_cycle(_sync: int, now_s: float) -> None:
-            if not exec_start:
-                exec_start.append(now_s)
-            for i, (spec, axis) in enumerate(faults):
-                if i not in injected and now_s - exec_start[0] >= spec.at_s:
-                    injected.add(i)
-                    hil.inject(spec.kind, axis)
 
         def on_dig_done(record: DigRecord) -> None:
             # The HIL's terrain loses what the true tip path cut, before the next dig runs.
             cut_m3[record.index] = hil.cut(record.sync_first, record.sync_last)
 
-        # Built before boot: on a real-time clock it starts the planner process (not at a
-        # real-time priority, and not in the gap between enable and the first cycle).
-        executor = Executor(
-            master,
-            rig,
-            loop,
-            session,
-            ExecutorConfig(feedforward=sc.feedforward, max_digs=sc.max_digs),
-            on_dig_done=on_dig_done,
-            on_cycle=on_cycle,
-        )
-        rt_report = apply_rt(RtSettings()) if sc.realtime else None
-        try:
-            master.boot(clock.now, 2.0)
-            master.enable(clock.now, 2.0)
-            result = executor.run()
-        finally:
-            executor.close()
-            if rt_report is not None:
-                restore_rt(rt_report)
+        def make_executor(master: CanMaster, loop: FixedRateLoop, on_cycle: _OnCycle) -> Executor:
+            return Executor(
+                master,
+                rig,
+                loop,
+                session,
+                ExecutorConfig(feedforward=sc.feedforward, max_digs=sc.max_digs),
+                on_dig_done=on_dig_done,
+                on_cycle=on_cycle,
+            )
+
+        result, bus_load = _execute(sc, rig, hil, faults, _MAX_RUN_S, make_executor)
         plan_us += result.plan_us
-        bus_load = master.bus_load()
     except PlanningError as exc:
         error = str(exc)
     finally:
@@ -360,45 +431,9 @@ def run_scenario(sc: Scenario) -> dict[str, Any]:
         }
         for r in records
     ]
-    report["energy_Wh"] = truth.energy_j / 3600.0
-    report["wall_s"] = wall_s
-    report["overruns"] = result.overruns if result is not None else 0
-    if result is not None:
-        report["status"] = result.status.name.lower()
-        report["fault"] = result.fault
-        report["loop"] = result.loop.summary()
-        if rt_report is not None:
-            report["loop"]["rt"] = rt_report.as_dict()
-    else:
-        report["status"] = "planning_error"
-        report["fault"] = error
-    report["emcys"] = [
-        {"node_id": e.node_id, "code": f"0x{int(e.code):04X}", "description": e.description}
-        for e in (result.emcys if result is not None else ())
-    ]
-    report["rig"] = rig.name
+    report.update(_run_fields(sc, rig, result, truth, wall_s, bus_load, error))
     report["task"] = task.name
-    report["feedforward"] = sc.feedforward
-    report["transport"] = "realtime" if sc.realtime else "lockstep"
-    report["period_s"] = sc.period_s
-    report["sim_s"] = float(truth.t_s[-1] - truth.t_s[0]) if len(truth.t_s) > 1 else 0.0
     report["plan_total_us"] = plan_us
-    kind = rig.cylinders.kind
-    report["goal"] = GOALS_MM.get(kind, {})
-    can_block: dict[str, Any] = {}
-    if bus_load is not None:
-        can_block["bus_load"] = {"nominal": bus_load.nominal, "worst_case": bus_load.worst_case}
-    if result is not None and sc.realtime:
-        rtt = result.telemetry["rtt_s"]
-        rtt = rtt[np.isfinite(rtt)] * 1e6
-        if rtt.size:
-            can_block["sync_rtt_us"] = {
-                "p50": float(np.percentile(rtt, 50)),
-                "p99": float(np.percentile(rtt, 99)),
-                "p999": float(np.percentile(rtt, 99.9)),
-                "max": float(np.max(rtt)),
-            }
-    report["can"] = can_block
     report.update(extra)
     try:
         plan = session.finish(plan_us)
@@ -747,47 +782,20 @@ def run_path_scenario(sc: PathScenario) -> dict[str, Any]:
     actuation.joint_to_stroke(rig, q0, check_limits=True)  # the start pose must be reachable
     faults = [(f, f.axis_index()) for f in sc.faults]
     hil = _open_hil(sc, rig, q0, None)
-    result: ExecutorResult | None = None
-    rt_report: RtReport | None = None
-    bus_load = None
     try:
-        clock: Clock = hil.clock
-        master = CanMaster(hil.master_bus, rig, period_s=sc.period_s, react_to_faults=False)
+
+        def make_executor(master: CanMaster, loop: FixedRateLoop, on_cycle: _OnCycle) -> Executor:
+            return Executor.for_path(
+                master,
+                rig,
+                loop,
+                kp.job,
+                ExecutorConfig(feedforward=sc.feedforward),
+                on_cycle=on_cycle,
+            )
+
         run_s = kp.job.motions[0].duration_s + 60.0
-        loop = FixedRateLoop(
-            clock,
-            LoopConfig(period_s=sc.period_s, rt=_NO_RT),
-            executor_telemetry(int(run_s / sc.period_s)),
-        )
-        exec_start: list[float] = []
-        injected: set[int] = set()
-
-        def on_cycle(_sync: int, now_s: float) -> None:
-            if not exec_start:
-                exec_start.append(now_s)
-            for i, (spec, axis) in enumerate(faults):
-                if i not in injected and now_s - exec_start[0] >= spec.at_s:
-                    injected.add(i)
-                    hil.inject(spec.kind, axis)
-
-        executor = Executor.for_path(
-            master,
-            rig,
-            loop,
-            kp.job,
-            ExecutorConfig(feedforward=sc.feedforward),
-            on_cycle=on_cycle,
-        )
-        rt_report = apply_rt(RtSettings()) if sc.realtime else None
-        try:
-            master.boot(clock.now, 2.0)
-            master.enable(clock.now, 2.0)
-            result = executor.run()
-        finally:
-            executor.close()
-            if rt_report is not None:
-                restore_rt(rt_report)
-        bus_load = master.bus_load()
+        result, bus_load = _execute(sc, rig, hil, faults, run_s, make_executor)
     finally:
         truth, _material, frames, extra = hil.finish()
         hil.close()
@@ -799,40 +807,9 @@ def run_path_scenario(sc: PathScenario) -> dict[str, Any]:
     path_fig = tracking_figures([s for s in segments if s.kind == "path"])
     report["tracking_path"] = path_fig
     report["path"] = _path_block(rig, kp, result, sc.period_s)
-    report["energy_Wh"] = truth.energy_j / 3600.0
-    report["wall_s"] = wall_s
-    report["overruns"] = result.overruns
-    report["status"] = result.status.name.lower()
-    report["fault"] = result.fault
-    report["loop"] = result.loop.summary()
-    if rt_report is not None:
-        report["loop"]["rt"] = rt_report.as_dict()
-    report["emcys"] = [
-        {"node_id": e.node_id, "code": f"0x{int(e.code):04X}", "description": e.description}
-        for e in result.emcys
-    ]
+    report.update(_run_fields(sc, rig, result, truth, wall_s, bus_load))
     report["digs"] = []
-    report["rig"] = rig.name
     report["task"] = f"path {kp.job.name}"
-    report["feedforward"] = sc.feedforward
-    report["transport"] = "realtime" if sc.realtime else "lockstep"
-    report["period_s"] = sc.period_s
-    report["sim_s"] = float(truth.t_s[-1] - truth.t_s[0]) if len(truth.t_s) > 1 else 0.0
-    report["goal"] = GOALS_MM.get(rig.cylinders.kind, {})
-    can_block: dict[str, Any] = {}
-    if bus_load is not None:
-        can_block["bus_load"] = {"nominal": bus_load.nominal, "worst_case": bus_load.worst_case}
-    if sc.realtime:
-        rtt = result.telemetry["rtt_s"]
-        rtt = rtt[np.isfinite(rtt)] * 1e6
-        if rtt.size:
-            can_block["sync_rtt_us"] = {
-                "p50": float(np.percentile(rtt, 50)),
-                "p99": float(np.percentile(rtt, 99)),
-                "p999": float(np.percentile(rtt, 99.9)),
-                "max": float(np.max(rtt)),
-            }
-    report["can"] = can_block
     report.update(extra)
     if sc.plot_dir is not None:
         files = plot_report(segments, sc.plot_dir, title=f"path {kp.job.name} ({kp.orders}):")

@@ -1,8 +1,8 @@
 """Wall time per SYNC period of the lockstep HIL's models: plant, three drives and the VCU.
 
 Role: the measurement behind issue 7's budget (``make demo`` runs ~75k periods of 2 ms and must
-finish in <= 60 s wall). It builds the composition of :class:`hil_sim.sim.HilCore` without the
-bus (same plant, drive nodes and VCU, same servo sub-step loop as ``HilCore.advance``), drives
+finish in <= 60 s wall). It runs :class:`hil_sim.sim.HilCore` without the bus (frames by direct
+call: plant, drive nodes and VCU, the servo sub-step loop of ``HilCore.advance``), drives
 the three drives into OPERATION ENABLED in CSP mode, and replays a held-out verified dig of the
 scale model (``onnx/pinn_downward_heldout.npz``) through the soil of a terrain, one RPDO1 per
 drive, one ``VCU_Command`` and one SYNC per period, as the master does.
@@ -32,10 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_models.drive import DriveFirmware
-from firmware_models.vcu import VcuModel
-from hil_sim.drives import DriveNode
-from hil_sim.plant import ArmPlant, TipLoad
+from hil_sim.sim import HilCore
 from hil_sim.terrain import Terrain
 from rt_runtime import actuation
 from rt_runtime.canbus.vcu import VcuClient, VcuCommand
@@ -49,69 +46,6 @@ COB_NMT = 0x000
 COB_SYNC = 0x080
 AXES = ("boom", "stick", "bucket")
 HELDOUT = Path(__file__).resolve().parent.parent / "onnx" / "pinn_downward_heldout.npz"
-
-
-class ShiftedLoad:
-    """The soil seen from a travelling machine, as ``hil_sim.sim`` wraps it (one more call)."""
-
-    __slots__ = ("inner", "offset_m")
-
-    def __init__(self, inner: TipLoad) -> None:
-        self.inner = inner
-        self.offset_m = 0.0
-
-    def tip_load(
-        self, x_m: float, y_m: float, vx_m_s: float, vy_m_s: float
-    ) -> tuple[float, float, float, float, float, float]:
-        """The inner law at the tip shifted by the machine's travel."""
-        return self.inner.tip_load(x_m + self.offset_m, y_m, vx_m_s, vy_m_s)
-
-
-class Models:
-    """Plant, drive nodes and VCU wired as in ``HilCore`` (frames by direct call, no bus)."""
-
-    def __init__(self, rig: Rig, q0_rad: np.ndarray, terrain: Terrain) -> None:
-        self.load = ShiftedLoad(terrain.soil_model(rig))
-        self.plant = ArmPlant(rig, q0_rad, soil=self.load)
-        ids = dict(rig.can.node_ids)
-        stroke0 = self.plant.stroke_m
-        self.nodes = tuple(
-            DriveNode(DriveFirmware(ids[name], rig, name, initial_position_m=float(stroke0[a])), a)
-            for a, name in enumerate(AXES)
-        )
-        self.vcu = VcuModel.from_rig(rig)
-        self.servo_dt_s = rig.drives.servo_period_s
-
-    def on_frame(self, arbitration_id: int, data: bytes, now_s: float) -> None:
-        """Deliver one frame to every node, as ``HilCore.on_frame`` (replies are dropped)."""
-        for node in self.nodes:
-            node.on_frame(arbitration_id, data, now_s)
-        self.vcu.on_frame(arbitration_id, data, now_s)
-
-    def pending(self, now_s: float) -> None:
-        """Time supervision of every node, as ``HilCore.pending_frames``."""
-        for node in self.nodes:
-            node.pending_frames(now_s)
-        self.vcu.pending_frames(now_s)
-
-    def advance(self, dt_s: float) -> None:
-        """The body of ``HilCore.advance``."""
-        remaining = dt_s
-        plant = self.plant
-        nodes = self.nodes
-        while remaining > 1e-12:
-            h = self.servo_dt_s if remaining > self.servo_dt_s * (1.0 + 1e-9) else remaining
-            s = plant.stroke_m
-            sd = plant.stroke_rate_m_s
-            efforts = [
-                nodes[0].servo_step(h, float(s[0]), float(sd[0])),
-                nodes[1].servo_step(h, float(s[1]), float(sd[1])),
-                nodes[2].servo_step(h, float(s[2]), float(sd[2])),
-            ]
-            self.load.offset_m = self.vcu.travel_position_m
-            plant.step(h, efforts)
-            self.vcu.step(h)
-            remaining -= h
 
 
 def _reference(rig: Rig, dig: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -141,9 +75,9 @@ def run(rig: Rig, digs: int, *, cpu: bool = False) -> tuple[list[int], list[int]
     for dig in range(digs):
         q0, s_ref, v_ref, ground_y_m = _reference(rig, dig)
         terrain = Terrain(ground_y_m, (-0.5, 1.5), rig.bucket.width_m)
-        m = Models(rig, q0, terrain)
+        m = HilCore(rig, q0, terrain, period_s=PERIOD_S)
         now = 0.0
-        m.pending(now)  # boot-up
+        m.pending_frames(now)  # boot-up
         m.on_frame(COB_NMT, bytes([0x01, 0x00]), now)  # start all nodes
         for word in (0x06, 0x07, 0x0F):
             for node_id in ids:
@@ -161,7 +95,7 @@ def run(rig: Rig, digs: int, *, cpu: bool = False) -> tuple[list[int], list[int]
                 m.on_frame(0x200 + node_id, payload, now)
             m.on_frame(*vcu_frame, now)
             m.on_frame(COB_SYNC, b"", now)
-            m.pending(now)
+            m.pending_frames(now)
             t1 = clock()
             m.advance(PERIOD_S)
             t2 = clock()

@@ -321,6 +321,7 @@ def test_cycle_byte_exact(enabled: Enabled) -> None:
     assert list(fb.tpdo1_sync) == list(fb.tpdo2_sync) == [5, 5, 5] and fb.sync_count == 5
     assert not fb.stale.any() and not fb.reacted
     # Literal bytes of the first RPDO1: 100010 = 0x000186AA, 5000 = 0x00001388.
+    assert list(master.last_target_um()) == [100_010, 199_990, 50_000]
     assert bus.sent[-4] == (0x201, h("aa 86 01 00 88 13 00 00"))
     assert bus.sent[-1] == (0x080, b"")
     snapshot = fb.copy()

@@ -808,6 +808,17 @@ class CanMaster:
             return WriteStatus.BUS_ERROR
         return WriteStatus.OK
 
+    def last_target_um(self) -> NDArray[np.int32]:
+        """The stroke target (um) of the last RPDO1 sent to each drive, ``(n,)``.
+
+        Read back from the master's own preallocated messages, so a caller holding the axes
+        continues from exactly what was commanded last (enable's hold, an executor's last
+        setpoint), never from a measured position. Outside the loop (allocates the result).
+        """
+        return np.array(
+            [RPDO1.codec.unpack_from(msg.data)[0] for msg in self._rpdo1], dtype=np.int32
+        )
+
     def read_feedback(self, now_s: float, timeout_s: float) -> Feedback:
         """Collect the drives' answers to the latest SYNC and everything else received.
 

@@ -65,10 +65,8 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import can
 import numpy as np
-from numpy.typing import NDArray
 
 from rt_runtime.canbus import CanMaster, CycleStatus, DriveState
-from rt_runtime.canbus.pdo import RPDO1
 from rt_runtime.control.clock import Clock, MonotonicClock
 from rt_runtime.control.executor import (
     DigRecord,
@@ -608,7 +606,7 @@ class RigRunner:
                 gc.freeze()
                 master.enable(self.clock.now, timeout_s)
                 self._master = master
-                np.copyto(self._hold_um, _commanded_um(master))
+                np.copyto(self._hold_um, master.last_target_um())
                 self.enable_syncs = master.feedback.sync_count
                 self._state = self._idle_state()
             except BaseException as exc:
@@ -812,14 +810,14 @@ class RigRunner:
             log.exception("job %d: the executor failed", job.id)
             master.quick_stop()
             self._fault = f"executor failed: {type(exc).__name__}: {exc}"
-            np.copyto(self._hold_um, _commanded_um(master))
+            np.copyto(self._hold_um, master.last_target_um())
             self.store.set_status(job.id, "failed", self._fault)
             with self._lock:
                 self._executor, self._job_id = None, None
             return
         # Straight back to holding: only what the next cycles need happens here; the reports
         # (logs, telemetry file) go to a thread.
-        np.copyto(self._hold_um, _commanded_um(master))
+        np.copyto(self._hold_um, master.last_target_um())
         self._record_outcome(job, result)
         with self._lock:
             self._executor, self._job_id = None, None
@@ -903,15 +901,6 @@ def _reset_rt_on_fork() -> None:
             os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, param)
     except OSError as exc:
         log.warning("SCHED_RESET_ON_FORK refused: %s", exc)
-
-
-def _commanded_um(master: CanMaster) -> NDArray[np.int32]:
-    """The stroke targets of the last RPDO1 the master sent (um), from its own messages.
-
-    The hold continues from exactly what was commanded last (enable's hold, the executor's last
-    setpoint), never from a measured position, so holding never steps the command.
-    """
-    return np.array([RPDO1.codec.unpack_from(msg.data)[0] for msg in master._rpdo1], dtype=np.int32)
 
 
 # -- the service --------------------------------------------------------------------------------

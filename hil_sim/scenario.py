@@ -77,6 +77,7 @@ from rt_runtime.control.executor import (
 from rt_runtime.control.planner_worker import PathJob, PolynomialMotion
 from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.rig import Rig, load_rig
+from rt_runtime.trajectory.mixed_order import GAO_TABLE2_JOINTS_DEG
 
 __all__ = [
     "GAO_TABLE2_JOINTS_DEG",
@@ -526,16 +527,6 @@ def _surface_of(material: Any, xs: FloatArray) -> FloatArray:
 
 # -- prescribed paths (issue 8 item 3) ------------------------------------------------------------
 
-#: Gao/Yang Table 2: joint angles (deg: boom, stick, bucket) of the six key points of their
-#: digging path, 3 s apart (the same numbers as ``excavator-rt interp``'s default).
-GAO_TABLE2_JOINTS_DEG: tuple[tuple[float, float, float], ...] = (
-    (34.83, -40.32, -56.16),
-    (34.05, -50.52, -57.47),
-    (37.27, -65.58, -58.15),
-    (41.75, -77.73, -60.14),
-    (49.39, -89.13, -60.26),
-    (58.46, -92.13, -61.07),
-)
 #: Gao's segment duration (s).
 GAO_SEGMENT_S = 3.0
 #: The rig Table 2's angles belong to (the source range of :func:`scale_key_points`).

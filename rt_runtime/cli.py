@@ -504,17 +504,6 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
-# Gao/Yang Table 2: joint angles [deg] of the six key points of their digging path.
-GAO_TABLE2_JOINTS_DEG = (
-    (34.83, -40.32, -56.16),
-    (34.05, -50.52, -57.47),
-    (37.27, -65.58, -58.15),
-    (41.75, -77.73, -60.14),
-    (49.39, -89.13, -60.26),
-    (58.46, -92.13, -61.07),
-)
-
-
 def _triples(items: Sequence[str], flag: str) -> list[tuple[float, float, float]]:
     out = []
     for it in items:
@@ -539,7 +528,7 @@ def cmd_interp(args: argparse.Namespace) -> int:
         pts = np.array(_triples(args.points, "--points"))
         q_key = kinematics.inverse(rig, pts[:, 0], pts[:, 1], np.radians(pts[:, 2]))
     else:
-        q_key = np.radians(_triples(args.joints_deg, "--joints-deg") if args.joints_deg else GAO_TABLE2_JOINTS_DEG)
+        q_key = np.radians(_triples(args.joints_deg, "--joints-deg") if args.joints_deg else mixed_order.GAO_TABLE2_JOINTS_DEG)
     n_seg = len(q_key) - 1
     durations = args.durations or [3.0] * n_seg
     if len(durations) != n_seg:

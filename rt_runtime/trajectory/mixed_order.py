@@ -95,6 +95,16 @@ IntArray = NDArray[np.intp]
 
 PAPER_STRATEGIES: tuple[str, ...] = ("3-4-5-4-3", "3-4-7-4-3", "3-3-7-3-3")
 """Gao's three order patterns for five segments (six key points)."""
+#: Gao/Yang Table 2: joint angles (deg: boom, stick, bucket) of the six key points of their
+#: digging path on the test bench, 3 s apart.
+GAO_TABLE2_JOINTS_DEG: tuple[tuple[float, float, float], ...] = (
+    (34.83, -40.32, -56.16),
+    (34.05, -50.52, -57.47),
+    (37.27, -65.58, -58.15),
+    (41.75, -77.73, -60.14),
+    (49.39, -89.13, -60.26),
+    (58.46, -92.13, -61.07),
+)
 
 MAX_CONDITION = 1e10
 """Largest accepted 2-norm condition number of the (row-equilibrated) system.

@@ -45,7 +45,7 @@ from __future__ import annotations
 import math
 import time
 import tomllib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -235,6 +235,43 @@ def make_task(
 _TASK_KEYS = ("length_m", "depth_m", "beta1_deg", "beta2_deg", "start_x_m")
 
 
+def read_task_file(path: str | Path) -> dict[str, Any]:
+    """The top-level keys of a task TOML file (:func:`check_task_keys`; values not yet checked).
+
+    Raises:
+        ConfigurationError: Unreadable file, unknown or missing keys.
+    """
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError) as e:
+        raise ConfigurationError(f"task file {path}: cannot read: {e}") from e
+    check_task_keys(data, f"task file {path}")
+    return data
+
+
+def check_task_keys(data: Mapping[str, Any], source: str, extra: tuple[str, ...] = ()) -> None:
+    """Refuse unknown task keys and missing required ones (values are :func:`make_task`'s).
+
+    Args:
+        data: ``length_m``, ``depth_m``, ``beta1_deg``, ``beta2_deg``, optional ``start_x_m``.
+        source: Where the keys came from, the start of every message.
+        extra: Further keys the caller allows (a submitted job's ``name``).
+
+    Raises:
+        ConfigurationError: Unknown or missing keys, each named with what is allowed.
+    """
+    allowed = (*extra, *_TASK_KEYS)
+    unknown = sorted(set(data) - set(allowed))
+    if unknown:
+        raise ConfigurationError(
+            f"{source}: unknown key(s) {', '.join(unknown)}; allowed: {', '.join(allowed)}"
+        )
+    missing = [k for k in _TASK_KEYS[:4] if k not in data]
+    if missing:
+        raise ConfigurationError(f"{source}: missing key(s) {', '.join(missing)}")
+
+
 def load_task(spec: str | Path, rig: Rig) -> TrenchTask:
     """A built-in task (``A``..``D``, Yao Table 3) or one from a TOML file.
 
@@ -253,19 +290,7 @@ def load_task(spec: str | Path, rig: Rig) -> TrenchTask:
         raise ConfigurationError(
             f"task {text!r}: not a built-in task ({', '.join(BUILTIN_TASKS)}) and no such file"
         )
-    try:
-        data = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError) as e:
-        raise ConfigurationError(f"task file {path}: cannot read: {e}") from e
-    unknown = sorted(set(data) - set(_TASK_KEYS))
-    if unknown:
-        raise ConfigurationError(
-            f"task file {path}: unknown key(s) {', '.join(unknown)}; allowed: "
-            f"{', '.join(_TASK_KEYS)}"
-        )
-    missing = [k for k in _TASK_KEYS[:4] if k not in data]
-    if missing:
-        raise ConfigurationError(f"task file {path}: missing key(s) {', '.join(missing)}")
+    data = read_task_file(path)
     return make_task(
         rig,
         data["length_m"],

@@ -19,17 +19,13 @@ import argparse
 import json
 import os
 import sys
-import tomllib
 from pathlib import Path
 from typing import Any
 
-from rt_runtime.errors import ConfigurationError
 from rt_runtime.service.config import DEFAULT_SOCKET
 from rt_runtime.service.control import request
 
 __all__ = ["add_parser", "format_job", "run"]
-
-_TASK_FILE_KEYS = ("length_m", "depth_m", "beta1_deg", "beta2_deg", "start_x_m")
 
 
 def _default_socket() -> str:
@@ -81,17 +77,9 @@ def _task_spec(text: str) -> str | dict[str, Any]:
     path = Path(text)
     if not path.suffix and not path.exists():
         return text
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigurationError(f"task file {path}: cannot read: {exc}") from exc
-    unknown = sorted(set(data) - set(_TASK_FILE_KEYS))
-    if unknown:
-        raise ConfigurationError(
-            f"task file {path}: unknown key(s) {', '.join(unknown)}; allowed: "
-            f"{', '.join(_TASK_FILE_KEYS)}"
-        )
-    return {"name": path.stem, **data}
+    from rt_runtime.planning.trench import read_task_file  # the planner stack: only when needed
+
+    return {"name": path.stem, **read_task_file(path)}
 
 
 def format_job(job: dict[str, Any]) -> str:

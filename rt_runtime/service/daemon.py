@@ -161,7 +161,7 @@ def resolve_task(spec: Any, rig: Rig) -> tuple[TrenchTask, dict[str, Any]]:
         ConfigurationError: Unknown name, unknown or missing keys, values out of range (the
             planner's message, naming the key and the allowed range).
     """
-    from rt_runtime.planning.trench import BUILTIN_TASKS, make_task
+    from rt_runtime.planning.trench import BUILTIN_TASKS, check_task_keys, make_task
 
     if isinstance(spec, str):
         name = spec.strip().upper()
@@ -177,15 +177,7 @@ def resolve_task(spec: Any, rig: Rig) -> tuple[TrenchTask, dict[str, Any]]:
         raise ConfigurationError(
             f"task must be a built-in name or an object, got {type(spec).__name__}"
         )
-    allowed = ("name", *_TASK_NUMBERS)
-    unknown = sorted(set(spec) - set(allowed))
-    if unknown:
-        raise ConfigurationError(
-            f"task: unknown key(s) {', '.join(unknown)}; allowed: {', '.join(allowed)}"
-        )
-    missing = [k for k in _TASK_NUMBERS[:4] if k not in spec]
-    if missing:
-        raise ConfigurationError(f"task: missing key(s) {', '.join(missing)}")
+    check_task_keys(spec, "task", extra=("name",))
     name = spec.get("name", "custom")
     if not isinstance(name, str) or not 0 < len(name) <= 64:
         raise ConfigurationError(f"task: name must be a string of 1..64 characters, got {name!r}")

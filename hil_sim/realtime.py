@@ -129,6 +129,11 @@ def serve(args: argparse.Namespace) -> int:
                 send(core.on_frame(msg.arbitration_id, data, arrival), arrival)
                 if msg.arbitration_id == COB_SYNC:
                     lateness.append(time.monotonic() - t0 - arrival)
+                    # Time supervision at every SYNC, on the bus's clock: a process that has
+                    # fallen behind drains a backlog here without ever leaving this loop, and
+                    # its nodes must keep producing heartbeats (and judging their watchdogs)
+                    # while it catches up, not only once the backlog is gone.
+                    send(core.pending_frames(arrival), arrival)
             msg = bus.recv(timeout=0.0)
         now = time.monotonic() - t0
         steps = math.floor((now - t_core) / servo + 1e-9)

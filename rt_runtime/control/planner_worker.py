@@ -579,11 +579,24 @@ class PathLink:
 # -- the planner process --------------------------------------------------------------------------
 
 
-def _worker_main(conn: Any, spec: PlannerSpec, state: dict[str, Any] | None) -> None:
-    """Entry point of the planner process: rebuild planner and session, serve requests."""
+def _worker_main(conn: Any, spec: PlannerSpec) -> None:
+    """Entry point of the planner process: rebuild planner and session, serve requests.
+
+    The first message is ``("init", state)``: the session state to continue from (None: a
+    fresh session). It comes over the pipe, not as a process argument: with the ``spawn``
+    start method the arguments are written to the child's pipe inside ``Process.start()``,
+    which blocks until the child reads them once they pass the pipe buffer (64 KiB; a long
+    job's state is larger).
+    """
     with contextlib.suppress(AttributeError, OSError, PermissionError):
         # Never inherit a real-time policy from whoever started us: planning is background work.
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    try:
+        first = conn.recv()
+    except (EOFError, OSError):
+        conn.close()
+        return
+    state: dict[str, Any] | None = first[1] if first[0] == "init" else None
     try:
         planner = TrenchPlanner(
             spec.rig,
@@ -644,10 +657,12 @@ class ProcessPlanner:
         self._outbox: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
         self._outstanding = 0
         self._dead = False
-        state = session.state()
+        # The state goes first through the sender thread (see _worker_main), so start()
+        # returns once the child is spawned, whatever the size of the job.
+        self._outbox.put(("init", session.state()))
         self._process = ctx.Process(
             target=_worker_main,
-            args=(child, self.spec, state),
+            args=(child, self.spec),
             name="excavator-planner",
             daemon=True,
         )

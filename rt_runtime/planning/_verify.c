@@ -81,7 +81,7 @@ enum vk_output {
 };
 
 /* Samples per block: the polynomial, the trig and the rest run as three loops over a block,
- * so that no value lives across the libm calls (their register spills cost more than the
+ * so that no value lives across the trig calls (their register spills cost more than the
  * arithmetic) and the arrays stay on the stack (thread-safe, no allocation). */
 #define VK_BLOCK 32
 
@@ -89,6 +89,43 @@ enum vk_output {
 static inline double vk_max(double m, double v) { return m > v ? m : v; }
 static inline double vk_min(double m, double v) { return m < v ? m : v; }
 static inline double vk_pos(double v) { return v > 0.0 ? v : 0.0; }
+
+/* sin and cos of |r| <= pi/4: fdlibm's kernels, no reduction and no branch. */
+static inline void vk_sincos_small(double r, double *sn, double *cs)
+{
+    const double z = r * r;
+    const double S1 = -1.66666666666666324348e-01, S2 = 8.33333333332248946124e-03,
+                 S3 = -1.98412698298579493134e-04, S4 = 2.75573137070700676789e-06,
+                 S5 = -2.50507602534068634195e-08, S6 = 1.58969099521155010221e-10;
+    const double C1 = 4.16666666666666019037e-02, C2 = -1.38888888888741095749e-03,
+                 C3 = 2.48015872894767294178e-05, C4 = -2.75573143513906633035e-07,
+                 C5 = 2.08757232129817482790e-09, C6 = -1.13596475577881948265e-11;
+    *sn = r + r * z * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
+    *cs = (1.0 - 0.5 * z) + z * z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))));
+}
+
+/* sin and cos: fdlibm's kernels after a Cody-Waite reduction, inline (|error| <= 2.3e-16 on
+ * [-20, 20], libm's class of accuracy; the parity with the numpy reference stays at ~1e-11
+ * relative). Used everywhere, vk_evaluate included (but for its start sample): it measured
+ * 1.5 us less per evaluation and 1.7 us less per retiming cache at 101 samples than libm's sin
+ * and cos. Outside |x| < 1e6 (and for NaN) it is libm. */
+static inline void vk_sincos(double x, double *sn, double *cs)
+{
+    if (!(fabs(x) < 1e6)) { /* the int quadrant below needs a small k; NaN too */
+        *sn = sin(x);
+        *cs = cos(x);
+        return;
+    }
+    const double shift = 6755399441055744.0; /* 1.5 * 2^52: adding it rounds to an integer */
+    const double kd = (x * 0.63661977236758134308 + shift) - shift; /* round(x / (pi/2)) */
+    /* pi/2 in two parts, the first with 33 bits so that kd times it is exact. */
+    const double r = (x - kd * 1.57079632673412561417e+00) - kd * 6.07710050650619224932e-11;
+    double sr, cr;
+    vk_sincos_small(r, &sr, &cr);
+    const int q = (int)kd & 3;
+    *sn = q == 0 ? sr : q == 1 ? cr : q == 2 ? -sr : -cr;
+    *cs = q == 0 ? cr : q == 1 ? -sr : q == 2 ? -cr : sr;
+}
 
 /* Invalid candidate: total violation +inf (never chosen, never feasible), the rest NaN. */
 static void vk_reject(int m, double *out, double *path)
@@ -206,11 +243,15 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
             phi[1][k] = phi[0][k] + qv[1][k];
             phi[2][k] = phi[1][k] + qv[2][k];
         }
-        /* Trig of the absolute angles, as kinematics.tip_state takes it (gcc: one sincos). */
+        /* Trig of the absolute angles (kinematics.tip_state), by vk_sincos; at the start
+         * (q0 exactly) by libm, so that the start's tip is bit for bit numpy's: the poses are
+         * solved for y = H, and "below the surface" and "within 1 mm of it" are decided there. */
         for (int j = 0; j < 3; j++)
-            for (int k = 0; k < nb; k++) {
-                cph[j][k] = cos(phi[j][k]);
-                sph[j][k] = sin(phi[j][k]);
+            for (int k = 0; k < nb; k++) vk_sincos(phi[j][k], &sph[j][k], &cph[j][k]);
+        if (base == 0)
+            for (int j = 0; j < 3; j++) {
+                cph[j][0] = cos(phi[j][0]);
+                sph[j][0] = sin(phi[j][0]);
             }
 
         for (int k = 0; k < nb; k++) {
@@ -404,43 +445,6 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
 
 /* Cache layout: VK_N_CACHE arrays of m doubles. */
 enum vk_cache { C_A = 0, C_G = 3, C_F = 6, C_QP = 9, C_SP = 12, VK_N_CACHE = 13 };
-
-/* sin and cos of |r| <= pi/4: fdlibm's kernels, no reduction and no branch. */
-static inline void vk_sincos_small(double r, double *sn, double *cs)
-{
-    const double z = r * r;
-    const double S1 = -1.66666666666666324348e-01, S2 = 8.33333333332248946124e-03,
-                 S3 = -1.98412698298579493134e-04, S4 = 2.75573137070700676789e-06,
-                 S5 = -2.50507602534068634195e-08, S6 = 1.58969099521155010221e-10;
-    const double C1 = 4.16666666666666019037e-02, C2 = -1.38888888888741095749e-03,
-                 C3 = 2.48015872894767294178e-05, C4 = -2.75573143513906633035e-07,
-                 C5 = 2.08757232129817482790e-09, C6 = -1.13596475577881948265e-11;
-    *sn = r + r * z * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
-    *cs = (1.0 - 0.5 * z) + z * z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))));
-}
-
-/* sin and cos for the retiming cache and the path-scale probes only: they just guide searches
- * (the answer is always evaluated by vk_evaluate with libm), so libm's bit-exactness is not
- * needed there, and this inline version (fdlibm's kernels after a Cody-Waite reduction;
- * |error| <= 2.3e-16 on [-20, 20]) measured 1.7 us less per retimed row at 101 samples than
- * libm's sin and cos. */
-static inline void vk_sincos(double x, double *sn, double *cs)
-{
-    if (!(fabs(x) < 1e6)) { /* the int quadrant below needs a small k; NaN too */
-        *sn = sin(x);
-        *cs = cos(x);
-        return;
-    }
-    const double shift = 6755399441055744.0; /* 1.5 * 2^52: adding it rounds to an integer */
-    const double kd = (x * 0.63661977236758134308 + shift) - shift; /* round(x / (pi/2)) */
-    /* pi/2 in two parts, the first with 33 bits so that kd times it is exact. */
-    const double r = (x - kd * 1.57079632673412561417e+00) - kd * 6.07710050650619224932e-11;
-    double sr, cr;
-    vk_sincos_small(r, &sr, &cr);
-    const int q = (int)kd & 3;
-    *sn = q == 0 ? sr : q == 1 ? cr : q == 2 ? -sr : -cr;
-    *cs = q == 0 ? cr : q == 1 ? -sr : q == 2 ? -cr : sr;
-}
 
 /*
  * Fill the unit-time cache of one input row.
@@ -839,6 +843,13 @@ static void vk_retime(const double *p, const double *s, int m, const double *in,
 #define VK_PL_ITER 40
 /* Bisection steps of the back-off (the bracket shrinks 16-fold: 0.012 in c from one step). */
 #define VK_PL_BACKOFF 4
+/* The scan runs on every VK_PL_STRIDE-th sample (26 of 101): it only picks the bracket, which
+ * the full grid then judges and refines (vk_plan_scale_coarse). Off (VK_PL_COARSE 0) until the
+ * lead decides: measured on the 400 held-out PINN rows it saves ~2 us per plan (p50 23.2 ->
+ * 21.2 us), and picks another bracket on 1 row (objective +0.0016, gap_mean +8e-6); every
+ * test of tests/test_verify.py passes either way. */
+#define VK_PL_STRIDE 4
+#define VK_PL_COARSE 0
 
 /* Plan scratch: VK_N_PLAN arrays of m doubles: A and B per joint, three trig buffers and a
  * rotation (6 arrays each: cos of the three absolute angles, then their sin). */
@@ -993,6 +1004,8 @@ static double vk_path_refine(vk_pathscan *r, int k_ok, int k_fail, int *probe, i
     return c_pass;
 }
 
+static void vk_path_grid(vk_pathscan *r, const double *basis, const double *K);
+
 /* Set up the row (r->p, in, m, A, B, buf, R given). Returns 0 when no c in [lo, hi] keeps
  * every joint in range, with *lo, *hi cut to the joint-limit interval otherwise. */
 static int vk_path_setup(vk_pathscan *r, const double *basis, const double *K, double *lo,
@@ -1000,7 +1013,7 @@ static int vk_path_setup(vk_pathscan *r, const double *basis, const double *K, d
 {
     const double *p = r->p, *in = r->in;
     const int m = r->m;
-    const double *Qb = basis, *Pb = basis + m, *Pinv = basis + 2 * m;
+    const double *Qb = basis, *Pinv = basis + 2 * m;
     double D[3];
     for (int j = 0; j < 3; j++) D[j] = in[I_Q_END + j] - in[I_Q_START + j];
     /* Joint limits: q_lo <= a + c K p <= q_hi at every sample with p > 0 (with the margin) is
@@ -1025,6 +1038,19 @@ static int vk_path_setup(vk_pathscan *r, const double *basis, const double *K, d
         }
     }
     if (!(*lo <= *hi)) return 0;
+    vk_path_grid(r, basis, K);
+    return 1;
+}
+
+/* The row's absolute angles phi_j = A_j + c B_j on r's grid (basis: its q(s), p(s)) and the
+ * scalars of the search (r->p, in, m, A, B given). */
+static void vk_path_grid(vk_pathscan *r, const double *basis, const double *K)
+{
+    const double *p = r->p, *in = r->in;
+    const int m = r->m;
+    const double *Qb = basis, *Pb = basis + m;
+    double D[3];
+    for (int j = 0; j < 3; j++) D[j] = in[I_Q_END + j] - in[I_Q_START + j];
     /* Absolute angles phi_j = A_j + c B_j (cumulative sums, as vk_evaluate's phi). */
     double *A = (double *)r->A, *B = (double *)r->B;
     double b_max = 0.0;
@@ -1069,7 +1095,6 @@ static int vk_path_setup(vk_pathscan *r, const double *basis, const double *K, d
     r->dy0 = (sy[0] * (10.0 * D[0]) + sy[1] * (10.0 * D[1])) + sy[2] * (10.0 * D[2]);
     r->dx1 = (sx[0] * K[0] + sx[1] * K[1]) + sx[2] * K[2];
     r->dy1 = (sy[0] * K[0] + sy[1] * K[1]) + sy[2] * K[2];
-    return 1;
 }
 
 /*
@@ -1079,6 +1104,9 @@ static int vk_path_setup(vk_pathscan *r, const double *basis, const double *K, d
  *   trig:  out, the trig of the path at c* (in r->buf), as vk_prepare takes it
  *   v_out: out, V_p at c*
  */
+static double vk_plan_search(vk_pathscan *r, double lo, double hi, const double **trig,
+                             double *v_out);
+
 static double vk_plan_scale(vk_pathscan *r, const double *basis, const double *K, double c_lo,
                             double c_hi, const double **trig, double *v_out)
 {
@@ -1087,6 +1115,13 @@ static double vk_plan_scale(vk_pathscan *r, const double *basis, const double *K
     if (K[0] == 0.0 && K[1] == 0.0 && K[2] == 0.0) return NAN; /* no direction to scale */
     double lo = c_lo, hi = c_hi;
     if (!vk_path_setup(r, basis, K, &lo, &hi)) return NAN;
+    return vk_plan_search(r, lo, hi, trig, v_out);
+}
+
+/* The scan of vk_plan_scale on r's grid over [lo, hi] (the joint-limit interval): r->n, cc,
+ * cg, cv, cw, best and ik; the index of the best scan point, -1 if none passes. */
+static int vk_plan_scan(vk_pathscan *r, double lo, double hi)
+{
     const int n3 = r->n3;
     const double *A = r->A, *B = r->B;
 
@@ -1139,6 +1174,15 @@ static double vk_plan_scale(vk_pathscan *r, const double *basis, const double *K
     }
     r->best = best;
     r->ik = ik;
+    return best;
+}
+
+/* vk_plan_scale after the setup: the scan, then the refinement towards the neighbour of
+ * larger V. */
+static double vk_plan_search(vk_pathscan *r, double lo, double hi, const double **trig,
+                             double *v_out)
+{
+    const int best = vk_plan_scan(r, lo, hi), n = r->n, ik = r->ik;
     if (best < 0) return NAN;
     *trig = r->buf[ik];
     *v_out = r->cv[best];
@@ -1159,6 +1203,71 @@ static double vk_plan_scale(vk_pathscan *r, const double *basis, const double *K
         return c_ref;
     }
     return r->cc[best];
+}
+
+/*
+ * vk_plan_scale with the scan on a coarse grid (rc: every VK_PL_STRIDE-th sample of rf's): the
+ * joint-limit interval comes from the full grid; the best coarse scan point and its neighbour
+ * of larger V are then judged on the full grid, and the refinement runs there as in
+ * vk_plan_scale, so c* is the full grid's (the coarse grid only picks the bracket). Where the
+ * full grid disagrees with the coarse one about the bracket (the best point fails, or the
+ * neighbour passes) or the coarse scan finds nothing, the full scan decides (vk_plan_search).
+ *   *scanned: out, 1 when rf holds the full scan (what vk_plan_backoff needs), else 0
+ *   *lo, *hi: out, the joint-limit interval
+ */
+static double vk_plan_scale_coarse(vk_pathscan *rf, vk_pathscan *rc, const double *basis,
+                                   const double *basis_c, const double *K, double c_lo,
+                                   double c_hi, const double **trig, double *v_out, int *scanned,
+                                   double *lo, double *hi)
+{
+    *trig = NULL;
+    *scanned = 1;
+    rf->best = -1;
+    rf->n = 0;
+    *lo = c_lo;
+    *hi = c_hi;
+    if (K[0] == 0.0 && K[1] == 0.0 && K[2] == 0.0) return NAN; /* no direction to scale */
+    if (!vk_path_setup(rf, basis, K, lo, hi)) return NAN;
+    vk_path_grid(rc, basis_c, K);
+    const int best = vk_plan_scan(rc, *lo, *hi);
+    if (best < 0) return vk_plan_search(rf, *lo, *hi, trig, v_out);
+    /* The best coarse point on the full grid (trig from scratch, the rotation base). */
+    const int n3 = rf->n3;
+    double *b0 = rf->buf[0];
+    const double c0 = rc->cc[best];
+    for (int t = 0; t < n3; t++) vk_sincos(rf->A[t] + c0 * rf->B[t], &b0[n3 + t], &b0[t]);
+    rf->n = 1;
+    rf->best = 0;
+    rf->ik = 0;
+    rf->cc[0] = c0;
+    rf->cg[0] = vk_path_g(rf, c0, b0, &rf->cv[0], rf->cw[0]);
+    if (!(rf->cg[0] <= 0.0)) return vk_plan_search(rf, *lo, *hi, trig, v_out);
+    *scanned = 0;
+    *trig = b0;
+    *v_out = rf->cv[0];
+    const double *cv = rc->cv;
+    int nb = -1;
+    if (best > 0 && cv[best - 1] > cv[best]) nb = best - 1;
+    if (best < rc->n - 1 && cv[best + 1] > cv[best] && (nb < 0 || cv[best + 1] > cv[nb]))
+        nb = best + 1;
+    if (nb < 0) return c0;
+    rf->n = 2;
+    rf->cc[1] = rc->cc[nb];
+    vk_path_trig(rf, rf->cc[1], rf->buf[1]);
+    rf->cg[1] = vk_path_g(rf, rf->cc[1], rf->buf[1], &rf->cv[1], rf->cw[1]);
+    if (rf->cg[1] <= 0.0) { /* passes on the full grid: the bracket is elsewhere */
+        *scanned = 1;
+        return vk_plan_search(rf, *lo, *hi, trig, v_out);
+    }
+    int pb = 1, pk = 2;
+    double v_ref;
+    const double c_ref = vk_path_refine(rf, 0, 1, &pb, &pk, &v_ref);
+    if (!isnan(c_ref) && v_ref > rf->cv[0]) {
+        *trig = rf->buf[pk];
+        *v_out = v_ref;
+        return c_ref;
+    }
+    return c0;
 }
 
 /* Whether the retiming search finds a feasible T for the row's path scaled by c, whose trig
@@ -1288,8 +1397,9 @@ static int vk_plan_retime(const double *p, const double *s, int m, const double 
  *   basis: q(s), p(s), 1/p(s) (3 * m); sc: VK_N_PLAN * m scratch
  */
 static void vk_plan(const double *p, const double *s, const double *basis, int m,
-                    const double *in, double c_lo, double c_hi, double *out, double *planned,
-                    double *path, double *scale, double *cache, double *sc)
+                    const double *basis_c, int m_c, const double *in, double c_lo, double c_hi,
+                    double *out, double *planned, double *path, double *scale, double *cache,
+                    double *sc, double *sc_c)
 {
     int valid = 1;
     for (int j = 0; j < VK_N_IN; j++)
@@ -1321,8 +1431,24 @@ static void vk_plan(const double *p, const double *s, const double *basis, int m
     r.buf[2] = sc + S_T2 * m;
     r.R = sc + S_R * m;
     const double *trig;
-    double v = 0.0;
-    const double c = vk_plan_scale(&r, basis, K, c_lo, c_hi, &trig, &v);
+    double v = 0.0, lo = c_lo, hi = c_hi;
+    int scanned = 1;
+    double c;
+    if (basis_c != NULL) {
+        vk_pathscan rc = r;
+        rc.m = m_c;
+        rc.n3 = 3 * m_c;
+        rc.A = sc_c + S_A * m_c;
+        rc.B = sc_c + S_B * m_c;
+        rc.buf[0] = sc_c + S_T0 * m_c;
+        rc.buf[1] = sc_c + S_T1 * m_c;
+        rc.buf[2] = sc_c + S_T2 * m_c;
+        rc.R = sc_c + S_R * m_c;
+        c = vk_plan_scale_coarse(&r, &rc, basis, basis_c, K, c_lo, c_hi, &trig, &v, &scanned,
+                                 &lo, &hi);
+    } else {
+        c = vk_plan_scale(&r, basis, K, c_lo, c_hi, &trig, &v);
+    }
     if (!isnan(c) && c != 1.0) {
         /* The retime of c*, evaluated only if its search finds a time (else straight to the
          * back-off: that evaluation would be thrown away). */
@@ -1340,6 +1466,7 @@ static void vk_plan(const double *p, const double *s, const double *basis, int m
                 return;
             }
         }
+        if (!scanned) vk_plan_scan(&r, lo, hi); /* the back-off starts from the full scan */
         const double c2 = vk_plan_backoff(&r, s, cache, c, v, &trig);
         if (!isnan(c2) && c2 != 1.0 &&
             vk_plan_retime(p, s, m, in, c2, out, planned, path, trig, cache)) {
@@ -1365,7 +1492,12 @@ typedef struct {
      * no method releases the GIL, so two threads never run in the same kernel at once. */
     double *cache;
     double *scratch;
+    /* The coarse grid of plan's path-scale scan (every VK_PL_STRIDE-th sample; NULL when the
+     * grid is too small or m - 1 is not a multiple of the stride): its basis and scratch. */
+    double *basis_c;
+    double *scratch_c;
     int m;
+    int m_c;
 } KernelObject;
 
 static void Kernel_dealloc(KernelObject *self)
@@ -1374,6 +1506,8 @@ static void Kernel_dealloc(KernelObject *self)
     free(self->basis);
     free(self->cache);
     free(self->scratch);
+    free(self->basis_c);
+    free(self->scratch_c);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -1453,10 +1587,34 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds)
         basis[m + i] = s3 * (r * r * r);                   /* p(s) */
         basis[2 * m + i] = basis[m + i] > 0.0 ? 1.0 / basis[m + i] : 0.0;
     }
+    double *basis_c = NULL, *scratch_c = NULL;
+    int m_c = 0;
+    if (VK_PL_COARSE && m > 2 * VK_PL_STRIDE + 1 && (m - 1) % VK_PL_STRIDE == 0) {
+        m_c = (m - 1) / VK_PL_STRIDE + 1;
+        basis_c = (double *)malloc((size_t)m_c * 3 * sizeof(double));
+        scratch_c = (double *)malloc((size_t)m_c * VK_N_PLAN * sizeof(double));
+        if (basis_c == NULL || scratch_c == NULL) {
+            free(s);
+            free(basis);
+            free(cache);
+            free(scratch);
+            free(basis_c);
+            free(scratch_c);
+            PyErr_NoMemory();
+            return -1;
+        }
+        for (int i = 0; i < m_c; i++)
+            for (int k = 0; k < 3; k++) basis_c[k * m_c + i] = basis[k * m + i * VK_PL_STRIDE];
+    }
     free(self->s);
     free(self->basis);
     free(self->cache);
     free(self->scratch);
+    free(self->basis_c);
+    free(self->scratch_c);
+    self->basis_c = basis_c;
+    self->scratch_c = scratch_c;
+    self->m_c = m_c;
     self->s = s;
     self->basis = basis;
     self->cache = cache;
@@ -1623,9 +1781,10 @@ static PyObject *Kernel_plan(KernelObject *self, PyObject *const *args, Py_ssize
     double *path = a[3].held ? (double *)a[3].view.buf : NULL;
     double *sc = a[4].held ? (double *)a[4].view.buf : NULL;
     for (Py_ssize_t r = 0; r < n; r++)
-        vk_plan(self->params, self->s, self->basis, m, in + r * VK_N_IN, c_lo, c_hi,
-                out + r * VK_N_OUT, pl + r * 4, path != NULL ? path + r * 2 * m : NULL,
-                sc != NULL ? sc + r : NULL, self->cache, self->scratch);
+        vk_plan(self->params, self->s, self->basis, m, self->basis_c, self->m_c,
+                in + r * VK_N_IN, c_lo, c_hi, out + r * VK_N_OUT, pl + r * 4,
+                path != NULL ? path + r * 2 * m : NULL, sc != NULL ? sc + r : NULL, self->cache,
+                self->scratch, self->scratch_c);
     release_rows(a, 5);
     Py_RETURN_NONE;
 }

@@ -82,7 +82,13 @@ def serve(args: argparse.Namespace) -> int:
         core.trace = open_trace(args.trace)
     channel = f"excavator-hil-rt-{os.getpid()}"
     bus = VirtualBus(channel=channel)
-    server = RemoteServer(HOST, args.port, interface="virtual", channel=channel)
+    # The bridge keeps each frame's own timestamp (the master stamps its send time) instead of
+    # restamping it when the bridge thread gets to run: on a loaded host that thread runs in
+    # bursts, and restamped SYNCs would reach the drives bunched, as if the master had sent
+    # several periods of motion within a fraction of one (a following error made by the harness).
+    server = RemoteServer(
+        HOST, args.port, interface="virtual", channel=channel, preserve_timestamps=True
+    )
     threading.Thread(target=server.serve_forever, name="bridge", daemon=True).start()
     commands: queue.Queue[str] = queue.Queue()
 
@@ -108,16 +114,19 @@ def serve(args: argparse.Namespace) -> int:
             sent += 1
 
     send(core.pending_frames(0.0), 0.0)
-    # Frames are stamped by the virtual bus on send (time.time()); the HIL handles each at its
-    # arrival on its own clock, so a stall of this process delays the answers but does not make
-    # the drives see gaps in the master's SYNCs that were not on the bus.
+    # Frames carry the master's send time (time.time(), kept by the bridge); the HIL handles
+    # each at that moment on its own clock, so a stall of this process (or of its bridge
+    # thread) delays the answers but does not make the drives see gaps or bunches in the
+    # master's SYNCs that were not on the bus.
     epoch_offset = time.time() - time.monotonic() + t0
     gc.freeze()
     running = True
     while running:
         msg = bus.recv(timeout=args.poll)
         while msg is not None:
-            arrival = min(msg.timestamp - epoch_offset, time.monotonic() - t0)
+            now = time.monotonic() - t0
+            # An unstamped frame (a client that does not stamp) arrives now.
+            arrival = min(msg.timestamp - epoch_offset, now) if msg.timestamp > 0.0 else now
             arrival = max(arrival, t_core)
             steps = math.floor((arrival - t_core) / servo + 1e-9)
             if steps > 0:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import struct
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
@@ -558,9 +559,18 @@ class CanMaster:
 
     # ------------------------------------------------------------------ sending
 
+    def _tx(self, msg: can.Message) -> None:
+        """Send one frame stamped with its send time (``time.time()``, the epoch clock python-can
+        stamps received frames with). A bus that transmits at once ignores the stamp; a
+        bridged bus (python-can-remote into the HIL) carries it, so the far end can take the
+        moment the frame entered the bus instead of when its bridge thread got to run.
+        """
+        msg.timestamp = time.time()
+        self.bus.send(msg)
+
     def _send(self, msg: can.Message) -> None:
         try:
-            self.bus.send(msg)
+            self._tx(msg)
         except can.CanError as exc:
             raise CommunicationError(
                 f"the bus refused frame 0x{msg.arbitration_id:03X}: {exc}"
@@ -571,7 +581,7 @@ class CanMaster:
             self._send(self._producer.message)
 
     def _send_sync(self) -> None:
-        self.bus.send(self._sync)
+        self._tx(self._sync)
         self.feedback.sync_count += 1
         self._pending = self.n
 
@@ -802,7 +812,7 @@ class CanMaster:
             return WriteStatus.OUT_OF_RANGE
         try:
             for msg in self._rpdo1:
-                self.bus.send(msg)
+                self._tx(msg)
             self._send_sync()
         except can.CanError:
             return WriteStatus.BUS_ERROR
@@ -887,7 +897,7 @@ class CanMaster:
         """Send the master's heartbeat when due (call every cycle; loop safe)."""
         try:
             if self._producer.due(now_s):
-                self.bus.send(self._producer.message)
+                self._tx(self._producer.message)
         except can.CanError:
             return WriteStatus.BUS_ERROR
         return WriteStatus.OK
@@ -897,7 +907,7 @@ class CanMaster:
         for axis in range(self.n):
             self._pack_rpdo2(axis, controlword)
             try:
-                self.bus.send(self._rpdo2[axis])
+                self._tx(self._rpdo2[axis])
             except can.CanError:
                 status = WriteStatus.BUS_ERROR
         return status

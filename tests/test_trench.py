@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -243,3 +244,25 @@ def test_pso_planner_has_the_same_interface() -> None:
     assert d.evaluation[22] <= 0.0  # verified
     with pytest.raises(ConfigurationError, match="unknown planner"):
         TrenchPlanner(RIG, "astar")
+
+
+def test_trench_longer_than_the_reach_is_dug_after_travel(planner: TrenchPlanner) -> None:
+    from rt_runtime.planning.trench import TravelMove
+
+    # The near edge at 0.05 m is far inside the nearest entry (0.55 m): the machine must back
+    # away to dig the near part, and the accounting holds across the travel.
+    task = make_task(RIG, 1.0, 0.08, 60.0, 60.0, name="long")
+    plan = planner.plan(task)
+    travels = [s for s in plan.steps if isinstance(s, TravelMove)]
+    assert travels and travels[0].distance_m < 0.0
+    assert len({d.machine_x_m for d in plan.digs}) >= 2
+    lo, hi = planner.entry_x_range
+    for d in plan.digs:
+        # every dig enters within the entries' reach of where the machine stands then
+        x_entry = d.tip_path_m[0, 0] - d.machine_x_m
+        assert lo - 0.05 <= x_entry <= hi + 0.05
+    assert plan.coverage_error <= 0.02
+    assert plan.overdig_max_m <= OVERDIG_LIMIT_M
+    assert plan.removed_m3 == pytest.approx(sum(d.volume_m3 for d in plan.digs), rel=1e-9)
+    for prev, step in itertools.pairwise(travels):
+        assert step.machine_x_from_m == pytest.approx(prev.machine_x_to_m)

@@ -19,16 +19,20 @@ bucket width, and the sum over digs equals the total removed). This needs the ma
 y-monotone (a surface function of x), which holds because every cut is "everything above a
 curve".
 
-Choosing a dig (where Yao is silent). Each dig is the best of a set of candidate problems
-screened in one batch: entry x near the far edge of the remaining design material on the current
-surface (``H`` = the surface height there), entry and exit attitudes and dig lengths from the
-PINN's domain, and bulge caps. Every candidate is inferred by the PINN and filled, retimed and
-verified by the C kernel (:meth:`rt_runtime.planning.verify.Verifier.plan_into`); its tip path
-is then scored on the height field: the design material it removes, minus a penalty for material
-removed outside the design; a candidate that cuts below the design profile by more than the
-over-dig limit, or would take more than the bucket's V_max of real material, is rejected. The
-winner is planned again by the chosen one-shot planner (identical for the PINN; the PSO gives
-its own optimum, which is checked the same way, falling back to the next candidate).
+Choosing a dig (where Yao is silent). Each roughing dig is the best of a grid of candidate
+problems: entry x near the far edge of the remaining design material on the current surface
+(``H`` = the surface height there), entry and exit attitudes, dig lengths and rises from the
+PINN's domain, and bulge caps. The grid goes through the network in one batch, but not through
+the kernel: a candidate's tip path is known before the kernel fills and retimes it (the fill
+scales the bulge ``K`` along its direction, the retiming keeps the path), so each path is
+computed on a coarse grid of samples at a few bulge scales, and the fill's scale (the largest
+with V_min <= V_p <= V_max against H), the over-dig and the real cut on the height field are
+interpolated between them. The score is the design material removed minus twice the material
+removed outside it. Only the best few are planned for real by the one-shot planner (one plan
+in the usual case), and the plan's own path is checked on the verifier's full grid: over-dig
+beyond the limit, a real cut above the bucket's V_max or a cut that removes almost no design
+material sends the next candidate. When no roughing dig is left, straight profile passes trace
+the design (:meth:`TrenchSession._finishing`), fitted by Gauss-Newton on the bulge ``K``.
 
 Volumes. The one-shot model's V_p is measured against a flat surface y = H (Yao 3.3); on a
 partly dug surface the real cut differs. Each dig reports both: ``volume_m3`` is the real
@@ -60,14 +64,14 @@ from rt_runtime import kinematics
 from rt_runtime.errors import ConfigurationError, KinematicsError, PlanningError
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import DigType, Problem
-from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR, PinnPlanner, fill_c_range
+from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR, PinnPlanner
 from rt_runtime.planning.verify import (
     COL_ENERGY_J,
-    COL_T_S,
     COL_THETA_P_RAD,
     COL_TOTAL,
     COL_VOLUME_M3,
     N_OUT,
+    PLAN_C_RANGE,
     VerifyResult,
     pack_inputs,
 )
@@ -593,46 +597,59 @@ def lower_envelope(path_xy: FloatArray, grid_x: FloatArray) -> FloatArray:
     """
     x0 = float(grid_x[0])
     h = float(grid_x[1] - grid_x[0])
-    env = np.full(grid_x.shape[0], np.inf)
+    n = grid_x.shape[0]
+    env = np.full(n, np.inf)
     xa, xb = path_xy[:-1, 0], path_xy[1:, 0]
     ya, yb = path_xy[:-1, 1], path_xy[1:, 1]
     lo = np.minimum(xa, xb)
-    hi = np.maximum(xa, xb)
-    i0 = np.clip(np.ceil((lo - x0) / h - 1e-9).astype(np.int64), 0, grid_x.shape[0])
-    i1 = np.clip(np.floor((hi - x0) / h + 1e-9).astype(np.int64) + 1, 0, grid_x.shape[0])
+    i0 = np.clip(np.ceil((lo - x0) / h - 1e-9), 0, n).astype(np.int64)
+    i1 = np.clip(np.floor((lo + np.abs(xb - xa) - x0) / h + 1e-9) + 1, 0, n).astype(np.int64)
     counts = np.maximum(i1 - i0, 0)
     total = int(counts.sum())
     if total:
         seg = np.repeat(np.arange(counts.shape[0]), counts)
-        start = np.repeat(i0 - np.concatenate(([0], np.cumsum(counts)[:-1])), counts)
-        idx = start + np.arange(total)
+        idx = np.arange(total) + np.repeat(i0 - (np.cumsum(counts) - counts), counts)
         dx = xb - xa
-        safe = np.where(np.abs(dx) > 1e-12, dx, 1.0)
-        t = np.clip((grid_x[idx] - xa[seg]) / safe[seg], 0.0, 1.0)
-        y = np.where(
-            np.abs(dx[seg]) > 1e-12,
-            ya[seg] + t * (yb[seg] - ya[seg]),
-            np.minimum(ya[seg], yb[seg]),
-        )
+        flat = np.abs(dx) <= 1e-12
+        slope = np.where(flat, 0.0, (yb - ya) / np.where(flat, 1.0, dx))
+        y_lo = np.minimum(ya, yb)
+        base = np.where(flat, y_lo, ya)
+        y = base[seg] + slope[seg] * (grid_x[idx] - xa[seg])
+        # Clipping y to the segment's range is clipping its parameter to [0, 1].
+        y = np.minimum(np.maximum(y, y_lo[seg]), np.maximum(ya, yb)[seg])
         np.minimum.at(env, idx, y)
     return env
 
 
-def _swept_polygon(path_xy: FloatArray, grid_x: FloatArray, top_y: float) -> Polygon | None:
-    """The region above the path's lower envelope over its span, up to ``top_y``."""
-    env = lower_envelope(path_xy, grid_x)
-    ok = np.isfinite(env)
-    if np.count_nonzero(ok) < 2:
+def _swept_polygon(
+    path_xy: FloatArray, grid_x: FloatArray, top_y: float, env: FloatArray | None = None
+) -> Polygon | None:
+    """The region above the path's lower envelope over its span, up to ``top_y``.
+
+    ``env``: the path's :func:`lower_envelope` on ``grid_x`` when the caller has it.
+    """
+    if env is None:
+        env = lower_envelope(path_xy, grid_x)
+    ok = np.flatnonzero(np.isfinite(env))
+    if ok.shape[0] < 2:
         return None
-    xs = grid_x[ok]
-    ys = np.minimum(env[ok], top_y)
+    # The path is continuous, so the grid points it spans are one run: ok[0]..ok[-1].
+    i0, i1 = int(ok[0]), int(ok[-1]) + 1
     # Keep the exact end points of the span (the grid may start inside it).
-    x_lo = max(float(path_xy[:, 0].min()), float(grid_x[0]))
-    x_hi = min(float(path_xy[:, 0].max()), float(grid_x[-1]))
-    pts = [(x_lo, top_y), (x_lo, float(ys[0]))]
-    pts += list(zip(xs.tolist(), ys.tolist(), strict=True))
-    pts += [(x_hi, float(ys[-1])), (x_hi, top_y)]
-    return Polygon(pts).buffer(0)
+    x_lo = max(float(np.min(path_xy[:, 0])), float(grid_x[0]))
+    x_hi = min(float(np.max(path_xy[:, 0])), float(grid_x[-1]))
+    m = i1 - i0
+    coords = np.empty((m + 4, 2))
+    coords[0] = (x_lo, top_y)
+    coords[2 : m + 2, 0] = grid_x[i0:i1]
+    coords[2 : m + 2, 1] = np.minimum(env[i0:i1], top_y)
+    coords[1] = (x_lo, coords[2, 1])
+    coords[m + 2] = (x_hi, coords[m + 1, 1])
+    coords[m + 3] = (x_hi, top_y)
+    poly = shapely.polygons(coords)
+    if not shapely.is_valid(poly):  # only a path at the top line would do this
+        poly = poly.buffer(0)
+    return poly
 
 
 def joint_move(rig: Rig, q0: ArrayLike, q1: ArrayLike) -> tuple[Any, float]:
@@ -666,6 +683,116 @@ def _ruckig_move(rig: Rig, q0: FloatArray, q1: FloatArray) -> tuple[Any, float]:
 # -- the planner ----------------------------------------------------------------------------------
 
 
+class _Arm:
+    """The planar arm's kinematics for the planner's hot path (no checks, no allocation of
+    intermediate dicts): the formulas of :func:`rt_runtime.kinematics.inverse` (excavator
+    branch, angles wrapped into each joint's 2 pi window) and :func:`~rt_runtime.kinematics.
+    forward`, scalar and batched. Answers agree with those functions to rounding (~1e-15).
+    """
+
+    def __init__(self, rig: Rig) -> None:
+        self.l1, self.l2, self.l3 = (float(v) for v in rig.lengths_m)
+        self.lengths = np.asarray(rig.lengths_m, dtype=np.float64)
+        self.q_min = np.asarray(rig.q_min_rad, dtype=np.float64)
+        self.q_max = np.asarray(rig.q_max_rad, dtype=np.float64)
+        self.low = 0.5 * (self.q_min + self.q_max) - math.pi
+        self._lim = [
+            (float(a), float(b), float(c))
+            for a, b, c in zip(self.q_min, self.q_max, self.low, strict=True)
+        ]
+        self.outer = self.l1 + self.l2
+        self.inner = abs(self.l1 - self.l2)
+
+    def ik(self, x: float, y: float, attitude: float) -> tuple[float, float, float] | None:
+        """Joint angles of one tip pose, or None when out of reach or out of the limits."""
+        l1, l2 = self.l1, self.l2
+        px = x - self.l3 * math.cos(attitude)
+        py = y - self.l3 * math.sin(attitude)
+        r = math.hypot(px, py)
+        if not self.inner + 1e-9 < r < self.outer - 1e-9:
+            return None
+        far = math.sqrt(max((self.outer - r) * (self.outer + r), 0.0))
+        near = math.sqrt(max((r - self.inner) * (r + self.inner), 0.0))
+        t2 = -2.0 * math.atan2(far, near)
+        t1 = math.atan2(py, px) - math.atan2(l2 * math.sin(t2), l1 + l2 * math.cos(t2))
+        out = []
+        for q, (lo, hi, low) in zip((t1, t2, attitude - t1 - t2), self._lim, strict=True):
+            q -= 2.0 * math.pi * math.floor((q - low) / (2.0 * math.pi))
+            if not lo - 1e-9 <= q <= hi + 1e-9:
+                return None
+            out.append(min(max(q, lo), hi))
+        return (out[0], out[1], out[2])
+
+    def ik_many(
+        self, x: FloatArray, y: FloatArray, attitude: FloatArray
+    ) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """Joint angles of many poses ``(N, 3)`` and which are reachable within the limits."""
+        px = x - self.l3 * np.cos(attitude)
+        py = y - self.l3 * np.sin(attitude)
+        r = np.hypot(px, py)
+        reach = (r < self.outer - 1e-9) & (r > self.inner + 1e-9)
+        far = np.sqrt(np.maximum((self.outer - r) * (self.outer + r), 0.0))
+        near = np.sqrt(np.maximum((r - self.inner) * (r + self.inner), 0.0))
+        q = np.empty((x.shape[0], 3))
+        t2 = -2.0 * np.arctan2(far, near)
+        elbow = np.arctan2(self.l2 * np.sin(t2), self.l1 + self.l2 * np.cos(t2))
+        q[:, 0] = np.arctan2(py, px) - elbow
+        q[:, 1] = t2
+        q[:, 2] = attitude - q[:, 0] - t2
+        q -= 2.0 * np.pi * np.floor((q - self.low) / (2.0 * np.pi))
+        ok = reach & np.all((q >= self.q_min) & (q <= self.q_max), axis=1)
+        return q, ok
+
+    def tip_xy(self, q: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Tip x and y of joint angles ``(..., 3)``."""
+        p0 = q[..., 0]
+        p1 = p0 + q[..., 1]
+        p2 = p1 + q[..., 2]
+        x = self.l1 * np.cos(p0) + self.l2 * np.cos(p1) + self.l3 * np.cos(p2)
+        y = self.l1 * np.sin(p0) + self.l2 * np.sin(p1) + self.l3 * np.sin(p2)
+        return x, y
+
+    def tip(self, q: tuple[float, float, float] | FloatArray) -> tuple[float, float, float]:
+        """Tip pose (x, y, attitude) of one joint pose."""
+        p0 = float(q[0])
+        p1 = p0 + float(q[1])
+        p2 = p1 + float(q[2])
+        return (
+            self.l1 * math.cos(p0) + self.l2 * math.cos(p1) + self.l3 * math.cos(p2),
+            self.l1 * math.sin(p0) + self.l2 * math.sin(p1) + self.l3 * math.sin(p2),
+            p2,
+        )
+
+
+class _Mover:
+    """Rest-to-rest ruckig moves with the rig's limits, reusing one generator (the transitions'
+    hot path: ~2 us a move instead of ~15 us building the objects each time)."""
+
+    def __init__(self, rig: Rig) -> None:
+        from ruckig import InputParameter, Result, Ruckig, Trajectory
+
+        self._ok = (Result.Working, Result.Finished)
+        self._otg = Ruckig(3)
+        self._inp = InputParameter(3)
+        self._inp.max_velocity = [float(v) for v in rig.qd_max_rad_s]
+        self._inp.max_acceleration = [float(v) for v in rig.qdd_max_rad_s2]
+        self._inp.max_jerk = [float(v) for v in rig.qddd_max_rad_s3]
+        self._traj = Trajectory(3)
+
+    def move(self, q0: Sequence[float], q1: Sequence[float]) -> Any:
+        """The move's trajectory (valid until the next call).
+
+        Raises:
+            PlanningError: ruckig cannot plan it.
+        """
+        self._inp.current_position = [float(v) for v in q0]
+        self._inp.target_position = [float(v) for v in q1]
+        result = self._otg.calculate(self._inp, self._traj)
+        if result not in self._ok:
+            raise PlanningError(f"ruckig could not plan a transition: {result}")
+        return self._traj
+
+
 @dataclass(frozen=True, slots=True)
 class _Candidates:
     """The candidate grid of one dig type (arm-frame values relative to the entry)."""
@@ -680,19 +807,21 @@ class _Candidates:
 _CANDIDATES: dict[DigType, _Candidates] = {
     DigType.DOWNWARD: _Candidates(
         entry_attitude_deg=(-75.0, -90.0, -105.0, -118.0),
-        length_m=(0.17, 0.22, 0.28, 0.34, 0.39),
-        exit_rise_m=(0.01, 0.05, 0.10, 0.15),
+        length_m=(0.22, 0.34, 0.39),
+        exit_rise_m=(0.01, 0.05, 0.15),
         exit_attitude_deg=(-145.0, -160.0, -175.0),
         c_max=(2.0, 1.0, 0.6, 0.3),
     ),
     DigType.BACKWARD: _Candidates(
-        entry_attitude_deg=(-102.0, -115.0, -128.0, -138.0),
-        length_m=(0.22, 0.28, 0.34, 0.40, 0.46),
-        exit_rise_m=(0.01, 0.05, 0.10, 0.15),
+        entry_attitude_deg=(-102.0, -115.0, -128.0),
+        length_m=(0.28, 0.40, 0.46),
+        exit_rise_m=(0.01, 0.05),
         exit_attitude_deg=(-152.0, -165.0, -180.0),
         c_max=(2.0, 1.0, 0.6, 0.3),
     ),
 }
+#: Entry x candidates per screening: from the far edge of the remaining design inwards.
+_N_ENTRY_X = 4
 
 
 class TrenchPlanner:
@@ -739,6 +868,24 @@ class TrenchPlanner:
         s = _reach_scale(rig)
         self.scale = s
         self.entry_x_range = (_ENTRY_X_M[0] * s, _ENTRY_X_M[1] * s)
+        self.arm = _Arm(rig)
+        s_grid = np.linspace(0.0, 1.0, _SCREEN_SAMPLES)
+        self.screen_qf = 10 * s_grid**3 - 15 * s_grid**4 + 6 * s_grid**5
+        self.screen_pf = s_grid**3 * (1 - s_grid) ** 3
+        self.screen_c = np.asarray(_SCREEN_C)
+        # Second derivatives of the sextic's shape functions on a 1001-point grid.
+        t = np.linspace(0.0, 1.0, 1001)
+        self.fine_qf2 = 60 * t - 180 * t**2 + 120 * t**3
+        self.fine_pf2 = 6 * t - 36 * t**2 + 60 * t**3 - 30 * t**4
+        self.qdd_max = np.asarray(rig.qdd_max_rad_s2, dtype=np.float64)
+        s_fit = np.linspace(0.0, 1.0, _FIT_SAMPLES)
+        self.fit_qf = 10 * s_fit**3 - 15 * s_fit**4 + 6 * s_fit**5
+        self.fit_pf = s_fit**3 * (1 - s_fit) ** 3
+        self.mover = _Mover(rig)
+        self.domain = {
+            k: (np.asarray(c.domain_min), np.asarray(c.domain_max))
+            for k, c in self.pinn.cards.items()
+        }
         #: Where the bucket dumps (and where the arm starts a task), joint angles.
         self.dump_pose_rad = kinematics.inverse(
             rig,
@@ -827,6 +974,7 @@ class TrenchSession:
         self.design_area = float(self.design.area)
         self.phase = DigType.DOWNWARD
         self._finish_index = 0
+        self._travels = 0
 
     # -- state --------------------------------------------------------------------------------
 
@@ -858,7 +1006,7 @@ class TrenchSession:
         """
         x = paths[..., 0]
         y = paths[..., 1]
-        inside = y < np.interp(x, self.grid, self.surface)
+        inside = y < self._on_grid(x, self.surface)[0]
         w = self._walls
         d = np.maximum(
             np.maximum(w[0, 0] * x + w[0, 1] * y - w[0, 2], w[1, 0] * x + w[1, 1] * y - w[1, 2]),
@@ -890,7 +1038,7 @@ class TrenchSession:
         """Where on the surface digs may enter: the far edge of the remaining design material."""
         minx, _, maxx, _ = remaining.bounds
         step = 0.04 * self.planner.scale
-        xs = np.arange(maxx, minx + 0.05 * self.planner.scale, -step)
+        xs = np.arange(maxx, minx + 0.05 * self.planner.scale, -step)[:_N_ENTRY_X]
         return xs.tolist() or [maxx]
 
     def next_dig(self) -> PlannedDig | None:
@@ -918,11 +1066,17 @@ class TrenchSession:
             self.phase = DigType.BACKWARD
             ranked = self._screen(remaining)
         dig = self._first_plannable(ranked, t0)
+        exhausted = False
         while dig is None and self.digs and self._finish_index < _N_MAX_PASSES:
             ranked = self._finishing(remaining)
             if not ranked:
-                return None
+                exhausted = True
+                break
             dig = self._first_plannable(ranked, t0)
+        if dig is None and self._relocate_for_rest(remaining):
+            return self.next_dig()
+        if dig is None and exhausted:
+            return None
         if dig is None:
             raise PlanningError(
                 f"task {self.task.name}: no verified dig removes the remaining "
@@ -946,12 +1100,48 @@ class TrenchSession:
                 continue
         return None
 
+    def _reachable(self, remaining: Any) -> Any:
+        """The part of ``remaining`` between the nearest and farthest entries."""
+        lo, hi = self.planner.entry_x_range
+        m = self.machine_x
+        return remaining.intersection(shapely.box(m + lo, self.bottom_y - 1.0, m + hi, self.top_y))
+
+    def _relocate_for_rest(self, remaining: Any) -> bool:
+        """Travel away from the trench when nothing more can be dug here and design material
+        is left nearer to the machine than the nearest entry (a trench longer than the reach):
+        the far edge of that part comes 5 cm inside the farthest entry. Returns whether the
+        machine moved (at most :data:`_MAX_TRAVELS` times a task)."""
+        if self._travels >= _MAX_TRAVELS:
+            return False
+        lo, hi = self.planner.entry_x_range
+        s = self.planner.scale
+        near = remaining.intersection(
+            shapely.box(self.x_lo, self.bottom_y - 1.0, self.machine_x + lo, self.top_y)
+        )
+        if near.is_empty or near.area < 0.005 * self.design_area:
+            return False
+        move = (near.bounds[2] - self.machine_x) - (hi - 0.05 * s)
+        if move >= -1e-3:
+            return False
+        self.steps.append(TravelMove(move, self.machine_x, self.machine_x + move))
+        self.machine_x += move
+        self._travels += 1
+        self.q_now = None
+        self.phase = DigType.DOWNWARD
+        self._finish_index = 0
+        return True
+
     def _relocate_if_needed(self, remaining: Any) -> None:
         """Crawler travel when the rest of the design is beyond the entries' reach."""
         lo, hi = self.planner.entry_x_range
         maxx = remaining.bounds[2] - self.machine_x  # arm frame
         if lo <= maxx <= hi:
             return
+        if self._travels >= _MAX_TRAVELS:
+            return
+        if self._reachable(remaining).area >= 0.005 * self.design_area:
+            return  # material is left within reach: dig that first
+        self._travels += 1
         # Travel so that the far edge of the rest comes 5 cm inside the farthest entry:
         # negative (backing away) when the rest is too close to the machine.
         move = maxx - (hi - 0.05 * self.planner.scale)
@@ -967,81 +1157,128 @@ class TrenchSession:
         return sorted(found, key=lambda b: -b["score"])[:_N_RANKED]
 
     def _screen_kind(self, remaining: Any, kind: DigType) -> list[dict[str, Any]]:
-        rig = self.rig
+        """The best candidates of one dig type, best first, screened on their geometry.
+
+        Every (entry, exit) pose of the grid goes through the network at once; the tip path of
+        each answer is known before the kernel runs (the fill scales the bulge ``K`` along its
+        direction and the retiming keeps the path), so each path is computed on a coarse grid
+        of samples at a few bulge scales, and the fill's scale, V_p against H, the over-dig
+        and the real cut on the height field are interpolated between them. Only the ranked
+        few are planned for real (:meth:`_first_plannable`), and those are checked on the
+        verifier's full grid.
+        """
+        arm = self.planner.arm
         cand = _CANDIDATES[kind]
-        pinn = self.planner.pinn
         s = self.planner.scale
         m = self.machine_x
-        lo, hi = pinn.cards[kind].domain_min, pinn.cards[kind].domain_max
+        lo, hi = self.planner.domain[kind]
         # Every (entry, exit) pose of the grid at once: entries (x, attitude) x exits
         # (length, rise, attitude); poses out of reach or limits are dropped.
         xe = np.asarray(self._entry_x_candidates(remaining))
         H = np.interp(xe, self.grid, self.surface)
         ea = np.radians(cand.entry_attitude_deg)
-        E_x, E_a = np.meshgrid(xe, ea, indexing="ij")
-        E_h = np.broadcast_to(H[:, None], E_x.shape)
-        qs, ok_s = _batch_ik(rig, E_x.ravel() - m, E_h.ravel(), E_a.ravel())
-        L, R, A = np.meshgrid(
-            np.asarray(cand.length_m) * s,
-            np.asarray(cand.exit_rise_m) * s,
-            np.radians(cand.exit_attitude_deg),
-            indexing="ij",
+        n_x, n_a = xe.shape[0], ea.shape[0]
+        qs, ok_s = arm.ik_many(np.repeat(xe - m, n_a), np.repeat(H, n_a), np.tile(ea, n_x))
+        L, R, A = (
+            g.ravel()
+            for g in np.meshgrid(
+                np.asarray(cand.length_m) * s,
+                np.asarray(cand.exit_rise_m) * s,
+                np.radians(cand.exit_attitude_deg),
+                indexing="ij",
+            )
         )
         n_e, n_x = qs.shape[0], L.size
-        ex = (E_x.ravel()[:, None] - L.ravel()[None, :]).ravel()
-        ey = (E_h.ravel()[:, None] + R.ravel()[None, :]).ravel()
-        ea_x = np.broadcast_to(A.ravel()[None, :], (n_e, n_x)).ravel()
-        qe, ok_e = _batch_ik(rig, ex - m, ey, ea_x)
+        ex = (np.repeat(xe, n_a)[:, None] - L[None, :]).ravel()
+        ey = (np.repeat(H, n_a)[:, None] + R[None, :]).ravel()
+        qe, ok_e = arm.ik_many(ex - m, ey, np.tile(A, n_e))
         X = np.empty((n_e * n_x, 7))
         X[:, 0:3] = np.repeat(qs, n_x, axis=0)
         X[:, 3:6] = qe
-        X[:, 6] = np.repeat(E_h.ravel(), n_x)
+        X[:, 6] = np.repeat(np.repeat(H, n_a), n_x)
         ok = np.repeat(ok_s, n_x) & ok_e
-        ok &= np.all((np.asarray(lo) <= X) & (np.asarray(hi) >= X), axis=1)
+        ok &= np.all((lo <= X) & (hi >= X), axis=1)
         X = X[ok]
         if X.shape[0] == 0:
             return []
-        c_list = np.asarray(cand.c_max)
-        cmax = np.tile(c_list, X.shape[0])
-        X = np.repeat(X, c_list.size, axis=0)
-        Y = pinn.infer(kind, X)
-        n = X.shape[0]
-        inputs = np.zeros((n, 12))
-        inputs[:, 0:7] = X
-        inputs[:, 7] = int(kind)
-        inputs[:, 8:12] = Y
-        out = np.zeros((n, N_OUT))
-        planned = np.zeros((n, 4))
-        path = np.zeros((n, self.planner.verifier.n_samples, 2))
-        for c in sorted(set(cmax.tolist())):
-            sel = np.flatnonzero(cmax == c)
-            o = np.zeros((sel.size, N_OUT))
-            pl = np.zeros((sel.size, 4))
-            pa = np.zeros((sel.size, path.shape[1], 2))
-            self.planner.verifier.plan_into(
-                np.ascontiguousarray(inputs[sel]), o, pl, fill_c_range(c), pa
-            )
-            out[sel], planned[sel], path[sel] = o, pl, pa
+        Y = self.planner.pinn.infer(kind, X)
+        K = -Y[:, 0:3] * Y[:, 3:4] ** 6
+        # Paths at the screening scales: q(s) = q1 + qf(s) (q2 - q1) + c pf(s) K.
+        qf, pf = self.planner.screen_qf, self.planner.screen_pf
+        base = X[:, None, 0:3] + qf[None, :, None] * (X[:, None, 3:6] - X[:, None, 0:3])
+        G = self.planner.screen_c
+        bulge = pf[None, :, None] * K[:, None, :]
+        q = base[:, None] + G[None, :, None, None] * bulge[:, None]
+        x, y = arm.tip_xy(q)
+        x += m
         cap_area = self.v_max_m3 / self.width_m
+        vp = oneshot.excavated_area_m2(x - m, y, X[:, 6, None])
+        over = self._overdig_many(np.stack([x, y], axis=-1))
+        total, useful = self._cut_estimate(x, y)
+        # The fill's scale: the largest c <= c_max with V_p <= V_max (linear between scales).
+        above = vp > cap_area * (1.0 - 1e-3)
+        k = np.where(above.any(axis=1), np.argmax(above, axis=1), G.shape[0])
+        kk = np.clip(k, 1, G.shape[0] - 1)
+        r = np.arange(X.shape[0])
+        v0, v1 = vp[r, kk - 1], vp[r, kk]
+        frac = np.clip((cap_area - v0) / np.where(v1 > v0, v1 - v0, 1.0), 0.0, 1.0)
+        c_cap = np.where(k == G.shape[0], G[-1], G[kk - 1] + frac * (G[kk] - G[kk - 1]))
+        c_cap = np.where(k == 0, G[0] * cap_area / np.maximum(vp[:, 0], 1e-12), c_cap)
         min_useful = MIN_USEFUL_FRACTION * self.design_area
-        path[:, :, 0] += m
-        ok = (out[:, COL_TOTAL] <= 0.0) & (self._overdig_many(path) <= OVERDIG_LIMIT_M)
-        found: list[dict[str, Any]] = []
-        for i in np.flatnonzero(ok):
-            total, useful = self._cut_areas(lower_envelope(path[i], self.grid))
-            if total > cap_area or useful < min_useful:
-                continue
-            found.append(
-                {
-                    "kind": kind,
-                    "x7": X[i],
-                    "c_max": cmax[i],
-                    "useful": useful,
-                    "total": total,
-                    "score": useful - 2.0 * (total - useful) - 1e-4 * out[i, COL_T_S],
-                }
+        min_area = self.planning.volume_min_m3 / self.width_m * 1.02
+        rows, caps, uses, totals = [], [], [], []
+        for j, c_max in enumerate(sorted(cand.c_max, reverse=True)):
+            c = np.minimum(c_max, c_cap)
+            # A smaller cap than the fill reaches anyway is the same path: screened once.
+            valid = c >= min(PLAN_C_RANGE[0], c_max)
+            if j:
+                valid &= c_cap >= c_max
+            kc = np.clip(np.searchsorted(G, c), 1, G.shape[0] - 1)
+            w = np.clip((c - G[kc - 1]) / (G[kc] - G[kc - 1]), 0.0, 1.0)
+            o, t, u, v = (
+                a[r, kc - 1] * (1.0 - w) + a[r, kc] * w for a in (over, total, useful, vp)
             )
-        return sorted(found, key=lambda b: -b["score"])[:_N_RANKED]
+            # Below V_min the fill finds no scale and falls back to the network's own path.
+            valid &= v >= min_area
+            good = np.flatnonzero(
+                valid & (o <= _SCREEN_OVERDIG_M) & (t <= cap_area) & (u >= min_useful)
+            )
+            rows.append(good)
+            caps.append(np.full(good.shape[0], c_max))
+            uses.append(u[good])
+            totals.append(t[good])
+        idx, cm, u, t = (np.concatenate(a) for a in (rows, caps, uses, totals))
+        score = u - 2.0 * (t - u)
+        best = np.argsort(-score, kind="stable")[:_N_RANKED]
+        return [
+            {
+                "kind": kind,
+                "x7": X[idx[b]],
+                "c_max": float(cm[b]),
+                "useful": float(u[b]),
+                "total": float(t[b]),
+                "score": float(score[b]),
+            }
+            for b in best
+        ]
+
+    def _on_grid(self, x: FloatArray, *fields: FloatArray) -> list[FloatArray]:
+        """``np.interp`` of fields on the uniform grid at ``x`` (clamped at the ends)."""
+        u = np.clip((x - self.grid[0]) / GRID_STEP_M, 0.0, self.grid.shape[0] - 1.000001)
+        i = u.astype(np.int64)
+        w = u - i
+        return [f[i] * (1.0 - w) + f[i + 1] * w for f in fields]
+
+    def _cut_estimate(self, x: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """(total, inside-design) area sampled paths ``(..., n)`` cut from the height field,
+        integrated along each path (exact for a path that does not turn back in x)."""
+        xm = 0.5 * (x[..., 1:] + x[..., :-1])
+        ym = 0.5 * (y[..., 1:] + y[..., :-1])
+        dx = np.abs(np.diff(x, axis=-1))
+        surf, floor = self._on_grid(xm, self.surface, self.design_floor)
+        total = np.sum(np.maximum(surf - ym, 0.0) * dx, axis=-1)
+        useful = np.sum(np.maximum(surf - np.maximum(ym, floor), 0.0) * dx, axis=-1)
+        return total, useful
 
     # -- finishing passes ---------------------------------------------------------------------
 
@@ -1097,115 +1334,162 @@ class TrenchSession:
         poly: FloatArray,
         atts: tuple[tuple[float, ...], tuple[float, ...]],
     ) -> dict[str, Any] | None:
-        from scipy.optimize import least_squares
+        """Fit one straight profile pass ``poly`` (2 points, work-site frame).
 
-        rig = self.rig
+        For each pair of end attitudes of ``atts`` the sextic's path is linear in its bulge
+        ``K`` in joint space, so the signed distances of the path samples from the line are
+        fitted in ``K`` by Gauss-Newton (two linearised least-squares steps of a 3 x 3 system,
+        microseconds); a pair whose fit leaves the joint limits or the theta_p range is
+        skipped. The first pair that fits within ~1 mm RMS, or else the best, is taken; the
+        line is shifted inwards (0, 2, 4, 7 mm) until the over-dig limit holds.
+        """
+        arm = self.planner.arm
         m = self.machine_x
-        n = self.planner.verifier.n_samples
-        s_grid = np.linspace(0.0, 1.0, n)
-        qf = 10 * s_grid**3 - 15 * s_grid**4 + 6 * s_grid**5
-        pf = s_grid**3 * (1 - s_grid) ** 3
-        seg = np.diff(poly, axis=0)
-        lengths = np.hypot(seg[:, 0], seg[:, 1])
-        dense = np.concatenate(
-            [
-                poly[i]
-                + np.linspace(0, 1, max(int(lengths[i] / 0.01), 2), endpoint=False)[:, None]
-                * seg[i]
-                for i in range(seg.shape[0])
-            ]
-            + [poly[-1:]]
-        )
-        normals = np.stack([-seg[:, 1], seg[:, 0]], axis=1) / lengths[:, None]
-        # Inside the design is to the left of A->B->C for downward (clockwise?): pick the sign
-        # that makes the design's centroid positive.
-        cx, cy = self.design.centroid.x, self.design.centroid.y
-        sign = np.sign((cx - poly[:-1, 0]) * normals[:, 0] + (cy - poly[:-1, 1]) * normals[:, 1])
-        normals = normals * sign[:, None]
-
-        def seg_dist(P: FloatArray) -> FloatArray:
-            # signed distance of points to the polyline (positive inside the design)
-            best = np.full(P.shape[0], np.inf)
-            signed = np.zeros(P.shape[0])
-            for i in range(seg.shape[0]):
-                a = poly[i]
-                tt = np.clip(((P - a) @ seg[i]) / lengths[i] ** 2, 0.0, 1.0)
-                proj = a + tt[:, None] * seg[i]
-                d = np.hypot(P[:, 0] - proj[:, 0], P[:, 1] - proj[:, 1])
-                sd = np.where((P - a) @ normals[i] >= 0, d, -d)
-                closer = d < best
-                best = np.where(closer, d, best)
-                signed = np.where(closer, sd, signed)
-            return signed
-
+        a, b = np.asarray(poly[0], dtype=np.float64), np.asarray(poly[-1], dtype=np.float64)
+        seg = b - a
+        normal = np.array([-seg[1], seg[0]]) / math.hypot(seg[0], seg[1])
+        # Inwards: towards the design's centroid.
+        c = self.design.centroid
+        if (c.x - a[0]) * normal[0] + (c.y - a[1]) * normal[1] < 0.0:
+            normal = -normal
+        qf, pf = self.planner.fit_qf, self.planner.fit_pf
         margin = math.radians(0.5)
-        lo_q, hi_q = rig.q_min_rad + margin, rig.q_max_rad - margin
+        lo_q, hi_q = arm.q_min + margin, arm.q_max - margin
+        tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
+        n_full = self.planner.verifier.n_samples
+        s_full = np.linspace(0.0, 1.0, n_full)
+        qf_full = 10 * s_full**3 - 15 * s_full**4 + 6 * s_full**5
+        pf_full = s_full**3 * (1 - s_full) ** 3
+        good = _GOOD_FIT_COST * qf.shape[0] / 101.0
 
-        def build(z: FloatArray, offset: float) -> tuple[FloatArray, FloatArray, FloatArray] | None:
-            a_start = poly[0] + offset * normals[0]
-            a_end = poly[-1] + offset * normals[-1]
-            try:
-                qs = kinematics.inverse(rig, a_start[0] - m, a_start[1], z[0], check_limits=False)
-                qe = kinematics.inverse(rig, a_end[0] - m, a_end[1], z[1], check_limits=False)
-            except KinematicsError:
+        def candidate(q1: FloatArray, q2: FloatArray, K: FloatArray) -> dict[str, Any] | None:
+            qp = q1 + qf_full[:, None] * (q2 - q1) + pf_full[:, None] * K
+            px, py = arm.tip_xy(qp)
+            tip = np.stack([px + m, py], axis=1)
+            if self.overdig_of(tip) > OVERDIG_LIMIT_M:
                 return None
-            q = qs + np.outer(qf, qe - qs) + np.outer(pf, z[2:5])
-            tip = kinematics.forward(rig, q)[:, :2]
-            tip[:, 0] += m
-            return qs, qe, np.concatenate([tip, q], axis=1)
+            return self._pass_candidate(kind, q1, q2, K, tip)
 
-        def residuals(z: FloatArray, offset: float) -> FloatArray:
-            b = build(z, offset)
-            if b is None:
-                return np.full(n + dense.shape[0] + 3 * n + 1, 1.0)
-            tip = b[2][:, :2]
-            q = b[2][:, 2:]
-            d_path = seg_dist(tip) - offset  # path samples against the shifted profile
-            r1 = d_path + 20.0 * np.minimum(d_path + offset + 0.003, 0.0)
-            # every profile point near the path (coverage)
-            dd = np.min(
-                np.hypot(dense[:, None, 0] - tip[None, :, 0], dense[:, None, 1] - tip[None, :, 1]),
-                axis=1,
-            )
-            r2 = dd - offset
-            lim = np.maximum(q - hi_q, 0.0) + np.maximum(lo_q - q, 0.0)
-            # theta_p: the entry direction J(q0) (10 D + K) must point into the range of the type.
-            d0 = kinematics.jacobian(rig, b[0])[:2] @ (10.0 * (b[1] - b[0]) + z[2:5])
-            ang = math.atan2(-d0[1], abs(d0[0]))
-            tp_lo, tp_hi = oneshot.theta_p_range(self.planning, int(kind))
-            r3 = 50.0 * (max(0.0, float(tp_lo) + 0.01 - ang) + max(0.0, ang - float(tp_hi) + 0.01))
-            return np.concatenate([r1, 0.5 * r2, 10.0 * lim.ravel(), [r3]])
-
-        best_fit = None
         for offset in (0.0, 0.002, 0.004, 0.007):
-            for a0 in atts[0]:
-                for a1 in atts[1]:
-                    z0 = np.array([math.radians(a0), math.radians(a1), 0.0, 0.0, 0.0])
-                    sol = least_squares(
-                        residuals,
-                        z0,
-                        args=(offset,),
-                        max_nfev=40,
-                        x_scale=[0.3, 0.3, 0.5, 0.5, 0.5],
+            a_s = a + offset * normal
+            b_s = b + offset * normal
+            mid = [(v[0], v[-1], *np.linspace(v[0], v[-1], 5)[1:-1].tolist()) for v in atts]
+            starts = [self._pass_pose(a_s, mid[0]), self._pass_pose(b_s, mid[1])]
+            fits: list[tuple[float, FloatArray, FloatArray, FloatArray]] = []
+            # Table pairs first; a good fit is tried at once, the others by cost at the end.
+            for qs in starts[0]:
+                for qe in starts[1]:
+                    q1, q2 = np.asarray(qs), np.asarray(qe)
+                    base = q1 + qf[:, None] * (q2 - q1)
+                    K, cost = self._fit_bulge(base, q1, q2, a_s, normal, offset, kind)
+                    q = base + pf[:, None] * K
+                    if np.any(q < lo_q) or np.any(q > hi_q):
+                        continue
+                    # theta_p: the entry direction J(q1) (10 D + K) in the type's range.
+                    jac = kinematics.jacobian(self.rig, q1)[:2]
+                    d0 = jac @ (10.0 * (q2 - q1) + K)
+                    ang = math.atan2(-d0[1], abs(d0[0]))
+                    if not tp_lo + 0.01 <= ang <= tp_hi - 0.01:
+                        continue
+                    if cost < good:
+                        found = candidate(q1, q2, K)
+                        if found is not None:
+                            return found
+                    else:
+                        fits.append((cost, q1, q2, K))
+            for _, q1, q2, K in sorted(fits, key=lambda f: f[0]):
+                found = candidate(q1, q2, K)
+                if found is not None:
+                    return found
+        return None
+
+    def _pass_pose(self, point: FloatArray, attitudes_deg: tuple[float, ...]) -> list[FloatArray]:
+        """Joint poses of a pass end at the table's attitudes; where one is out of reach or
+        limits, the nearest attitude (5 deg steps, up to 45 deg away) that is not."""
+        arm = self.planner.arm
+        found: list[FloatArray] = []
+        for att in attitudes_deg:
+            for step in range(10):
+                for sign in (1.0,) if step == 0 else (1.0, -1.0):
+                    q = arm.ik(
+                        float(point[0]) - self.machine_x,
+                        float(point[1]),
+                        math.radians(att + sign * 5.0 * step),
                     )
-                    b = build(sol.x, offset)
-                    if b is None:
-                        continue
-                    qs, qe, pq = b
-                    over = self.overdig_of(pq[:, :2])
-                    if over > OVERDIG_LIMIT_M:
-                        continue
-                    if best_fit is None or sol.cost < best_fit[0]:
-                        best_fit = (sol.cost, qs, qe, sol.x[2:5].copy(), pq[:, :2])
-                    if sol.cost < _GOOD_FIT_COST:
+                    if q is not None:
                         break
-                if best_fit is not None and best_fit[0] < _GOOD_FIT_COST:
+                if q is not None:
+                    found.append(np.asarray(q))
                     break
-            if best_fit is not None:
+        return found
+
+    def _fit_bulge(
+        self,
+        base: FloatArray,
+        q1: FloatArray,
+        q2: FloatArray,
+        a_s: FloatArray,
+        normal: FloatArray,
+        offset: float,
+        kind: DigType,
+    ) -> tuple[FloatArray, float]:
+        """Damped Gauss-Newton fit of the bulge ``K`` (3) of a profile pass: the signed
+        distances of the path samples from the shifted line (weighted 21x where the path
+        crosses the design line outwards by > 3 mm) and, while it is violated, the entry
+        direction's theta_p bound as a heavily weighted row. Returns ``(K, cost)``."""
+        arm = self.planner.arm
+        pf = self.planner.fit_pf
+        lengths = arm.lengths
+        m = self.machine_x
+        tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
+        jac0 = kinematics.jacobian(self.rig, q1)[:2]
+        d_ent = jac0 @ (10.0 * (q2 - q1))
+        mu = 1e-7
+        K = np.zeros(3)
+        step = np.zeros(3)
+        cost = math.inf
+        for _ in range(8):
+            q = base + pf[:, None] * K
+            phi = np.cumsum(q, axis=1)
+            cs, sn = np.cos(phi) * lengths, np.sin(phi) * lengths
+            d = (cs.sum(axis=1) + m - a_s[0]) * normal[0] + (sn.sum(axis=1) - a_s[1]) * normal[1]
+            w = np.where(d + offset + 0.003 < 0.0, 21.0, 1.0)
+            r = w * d
+            jx = -np.cumsum(sn[:, ::-1], axis=1)[:, ::-1]
+            jy = np.cumsum(cs[:, ::-1], axis=1)[:, ::-1]
+            J = (normal[0] * jx + normal[1] * jy) * (pf * w)[:, None]
+            # theta_p of the entry direction d0 = J(q1) (10 D + K), linear in K.
+            d0 = d_ent + jac0 @ K
+            ang = math.atan2(-d0[1], abs(d0[0]))
+            sx = 1.0 if d0[0] >= 0.0 else -1.0
+            rows, rhs = [J], [-r]
+            pen = 0.0
+            for bound, up in ((tp_lo + 0.02, False), (tp_hi - 0.02, True)):
+                if (ang > bound) if up else (ang < bound):
+                    # g(K) = -d0_y cos(b) - |d0_x| sin(b): zero on the bound.
+                    gk = -jac0[1] * math.cos(bound) - sx * jac0[0] * math.sin(bound)
+                    g = -d0[1] * math.cos(bound) - abs(d0[0]) * math.sin(bound)
+                    rows.append(gk[None] * 0.5)
+                    rhs.append(np.array([-g * 0.5]))
+                    pen += (0.5 * g) ** 2
+            new_cost = float(r @ r) + pen
+            if new_cost > cost:  # the step made it worse: back off, damp harder
+                K = K - 0.5 * step
+                mu *= 10.0
+                continue
+            cost = new_cost
+            A = np.concatenate(rows)
+            b = np.concatenate(rhs)
+            step = np.linalg.solve(A.T @ A + mu * np.eye(3), A.T @ b - mu * K)
+            K = K + step
+            if float(step @ step) < 1e-6:
                 break
-        if best_fit is None:
-            return None
-        _, qs, qe, K, tip = best_fit
+        return K, cost
+
+    def _pass_candidate(
+        self, kind: DigType, qs: FloatArray, qe: FloatArray, K: FloatArray, tip: FloatArray
+    ) -> dict[str, Any] | None:
+        """A fitted profile pass retimed and checked, as a ranked candidate (None: refused)."""
         # The verifier's soil model takes depth below a flat H; here the material over the
         # path is a thin layer, so H is the level of the deepest real cut: the real depth at
         # the path's lowest point, the layer's thickness elsewhere approximated by it.
@@ -1238,6 +1522,27 @@ class TrenchSession:
             "score": useful,
         }
 
+    def _fine_grid_time(
+        self, problem: Problem, a6: tuple[float, float, float], T_s: float
+    ) -> tuple[tuple[float, float, float], float]:
+        """The same path, slowed just enough that the joint accelerations hold on a grid 10x
+        finer than the verifier's (a retimed plan sits on the limit at the verifier's samples
+        and may peak a few 1e-4 above it between them); unchanged when they already hold or
+        the slower time would leave the time range. The caller verifies the result.
+        """
+        q1 = np.asarray(problem.q_start_rad)
+        D = np.asarray(problem.q_end_rad) - q1
+        K = -np.asarray(a6) * T_s**6
+        qdd = self.planner.fine_qf2[:, None] * D + self.planner.fine_pf2[:, None] * K
+        ratio = float(np.max(np.abs(qdd) / self.planner.qdd_max)) / T_s**2
+        if ratio <= 1.0:
+            return a6, T_s
+        T_new = T_s * math.sqrt(ratio) * (1.0 + 1e-9)
+        if T_new > self.planning.t_max_s:
+            return a6, T_s
+        a_new = -K / T_new**6
+        return (float(a_new[0]), float(a_new[1]), float(a_new[2])), T_new
+
     def _plan_chosen(self, best: dict[str, Any], select_us: float) -> PlannedDig:
         x7 = best["x7"]
         problem = Problem(
@@ -1251,24 +1556,37 @@ class TrenchSession:
             res = OneShotResult(finishing[0], finishing[1], np.zeros(N_OUT), 0.0, "profile_pass")
         else:
             res = self.planner.oneshot.plan_dig(problem, float(best["c_max"]))
+        a6, T_s = self._fine_grid_time(problem, res.a6, res.T_s)
         row = pack_inputs(
             np.array([problem.q_start_rad]),
             np.array([problem.q_end_rad]),
             np.array([problem.surface_y_m]),
             np.array([int(problem.dig_type)]),
-            np.array([res.a6]),
-            np.array([res.T_s]),
+            np.array([a6]),
+            np.array([T_s]),
         )
         out = np.zeros((1, N_OUT))
         path = np.zeros((1, self.planner.verifier.n_samples, 2))
         self.planner.verifier.evaluate_into(row, out, path=path)
         violation = _total_without_volume(out[0]) if finishing else out[0, COL_TOTAL]
+        if violation > 0.0 and T_s != res.T_s:  # the slower plan fails: keep the verified one
+            a6, T_s = res.a6, res.T_s
+            row[0, 8:11] = a6
+            row[0, 11] = T_s
+            self.planner.verifier.evaluate_into(row, out, path=path)
+            violation = _total_without_volume(out[0]) if finishing else out[0, COL_TOTAL]
         if violation > 0.0:
             raise PlanningError("one-shot plan fails verification; nothing was planned")
         p = path[0].copy()
         p[:, 0] += self.machine_x
         over = self.overdig_of(p)
         total, useful = self._cut_areas(lower_envelope(p, self.grid))
+        if finishing is None and useful < 0.5 * MIN_USEFUL_FRACTION * self.design_area:
+            raise PlanningError(
+                f"the {self.planner.oneshot.name} plan of dig {len(self.digs) + 1} removes "
+                f"{useful * self.width_m * 1e3:.3f} L of the design, less than the screening "
+                "promised"
+            )
         if over > OVERDIG_LIMIT_M or total > self.v_max_m3 / self.width_m:
             raise PlanningError(
                 f"the {self.planner.oneshot.name} plan of dig {len(self.digs) + 1} over-digs "
@@ -1282,8 +1600,8 @@ class TrenchSession:
         return PlannedDig(
             index=len(self.digs),
             problem=problem,
-            a6=res.a6,
-            T_s=res.T_s,
+            a6=a6,
+            T_s=T_s,
             machine_x_m=self.machine_x,
             tip_path_m=p,
             volume_m3=total * self.width_m,
@@ -1338,7 +1656,8 @@ class TrenchSession:
         self.steps.extend(self.entry_transitions(dig, self.planner.dump_pose_rad))
 
     def _transition(self, kind: str, qa: FloatArray, qb: FloatArray) -> Transition:
-        traj, duration = _ruckig_move(self.rig, qa, qb)
+        traj = self.planner.mover.move(qa, qb)
+        duration = float(traj.duration)
         return Transition(
             kind=kind,
             q_from_rad=(float(qa[0]), float(qa[1]), float(qa[2])),
@@ -1365,9 +1684,9 @@ class TrenchSession:
             PlanningError: No reachable lift pose, or ruckig cannot plan a move.
         """
         q0 = np.asarray(q_from_rad, dtype=np.float64)
-        end = kinematics.forward(self.rig, q0)
+        end = self.planner.arm.tip(q0)
         clear = self.ground_y + _LIFT_CLEAR_M * self.planner.scale
-        lift = _safe_ik(self.rig, end[0], clear, end[2])
+        lift = _safe_ik(self.rig, end[0], clear, end[2], self.planner.arm)
         return (
             self._transition("lift_out", q0, lift),
             self._transition("dump", lift, self.planner.dump_pose_rad),
@@ -1385,9 +1704,13 @@ class TrenchSession:
             PlanningError: No reachable approach pose, or ruckig cannot plan a move.
         """
         q_entry = np.asarray(dig.problem.q_start_rad)
-        start = kinematics.forward(self.rig, q_entry)
+        start = self.planner.arm.tip(q_entry)
         approach = _safe_ik(
-            self.rig, start[0], start[1] + _APPROACH_M * self.planner.scale, start[2]
+            self.rig,
+            start[0],
+            start[1] + _APPROACH_M * self.planner.scale,
+            start[2],
+            self.planner.arm,
         )
         return (
             self._transition("approach", np.asarray(q_from_rad, dtype=np.float64), approach),
@@ -1513,12 +1836,11 @@ class TrenchSession:
         self._finish_index = finish_index
 
     def _penetration(self, traj: Any, duration: float) -> float:
-        ts = np.linspace(0.0, duration, 60)
-        q = np.array([traj.at_time(float(t))[0] for t in ts])
-        tip = kinematics.forward(self.rig, q)
-        x = tip[:, 0] + self.machine_x
-        surf = np.interp(x, self.grid, self.surface)
-        return float(max(0.0, np.max(surf - tip[:, 1]) - 1e-3))
+        at = traj.at_time
+        q = np.array([at(t)[0] for t in np.linspace(0.0, duration, 60).tolist()])
+        x, y = self.planner.arm.tip_xy(q)
+        x += self.machine_x
+        return float(max(0.0, float(np.max(np.interp(x, self.grid, self.surface) - y)) - 1e-3))
 
     def finish(self, plan_total_us: float) -> TrenchPlan:
         """The frozen plan of everything recorded so far."""
@@ -1658,12 +1980,23 @@ def _step_from_json(item: dict[str, Any]) -> PlannedDig | Transition | TravelMov
     raise ValueError(f"unknown step type {kind!r}; allowed: dig, transition, travel")
 
 
+# Bulge scales at which the screening computes each candidate's path; the fill's scale between
+# them is interpolated.
+_SCREEN_C = (0.3, 0.6, 1.0, 2.0)
+# Samples per path in the screening (the plan is checked on the verifier's full grid).
+_SCREEN_SAMPLES = 9
+# Over-dig a screened path may show at its coarse samples (the plan's own check is exact).
+_SCREEN_OVERDIG_M = 0.8 * OVERDIG_LIMIT_M
 # Candidates kept per screening, tried in order when the one-shot planner's plan fails.
 _N_RANKED = 4
+# Crawler travels per task at most.
+_MAX_TRAVELS = 4
 # Upper bound on profile passes (far wall, bottom pieces, near wall).
 _N_MAX_PASSES = 16
 # A profile fit this good (least-squares cost, m^2: ~1 mm RMS) ends the search of starts.
 _GOOD_FIT_COST = 2e-4
+# Samples of a profile pass's path in its fit.
+_FIT_SAMPLES = 41
 # Longest straight profile pass (scale model, m).
 _PASS_LENGTH_M = 0.30
 _VOLUME_COLUMNS = (
@@ -1679,25 +2012,14 @@ def _total_without_volume(row: FloatArray) -> float:
     return float(np.sum(np.maximum(v, 0.0)))
 
 
-def _batch_ik(
-    rig: Rig, x: FloatArray, y: FloatArray, attitude: FloatArray
-) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Inverse kinematics of many poses; rows out of reach or out of limits are flagged."""
-    l1, l2, l3 = (float(v) for v in rig.lengths_m)
-    px = x - l3 * np.cos(attitude)
-    py = y - l3 * np.sin(attitude)
-    r = np.hypot(px, py)
-    reach = (r < l1 + l2 - 1e-9) & (r > abs(l1 - l2) + 1e-9)
-    q = np.zeros((x.shape[0], 3))
-    if np.any(reach):
-        q[reach] = kinematics.inverse(rig, x[reach], y[reach], attitude[reach], check_limits=False)
-    ok = reach & np.all((q >= rig.q_min_rad) & (q <= rig.q_max_rad), axis=1)
-    return q, ok
-
-
-def _safe_ik(rig: Rig, x: float, y: float, attitude: float) -> FloatArray:
+def _safe_ik(rig: Rig, x: float, y: float, attitude: float, arm: _Arm | None = None) -> FloatArray:
     """IK of a transition pose, trying attitudes nearer the middle when the first fails."""
     for att in (attitude, attitude + 0.3, attitude - 0.3, -math.pi / 2):
+        if arm is not None:
+            q = arm.ik(x, y, att)
+            if q is not None:
+                return np.asarray(q)
+            continue
         try:
             return kinematics.inverse(rig, x, y, att)
         except KinematicsError:

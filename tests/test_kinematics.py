@@ -433,3 +433,43 @@ def test_tip_state_equals_forward_and_tip_velocity(name: str) -> None:
     pose, twist = kinematics.tip_state(rig, q, qd)
     np.testing.assert_allclose(pose, kinematics.forward(rig, q), rtol=0, atol=1e-12)
     np.testing.assert_allclose(twist, kinematics.tip_velocity(rig, q, qd), rtol=0, atol=1e-12)
+
+
+# -- FastArm: the unchecked hot-path twin of forward / inverse --------------------------------
+
+
+def test_fast_arm_matches_forward_and_inverse(rig: Rig) -> None:
+    arm = kinematics.FastArm(rig)
+    rng = np.random.default_rng(7)
+    lo, hi = np.asarray(rig.q_min_rad), np.asarray(rig.q_max_rad)
+    q = lo + (hi - lo) * rng.random((400, 3))
+    tip = forward(rig, q)
+    x, y = arm.tip_xy(q)
+    np.testing.assert_allclose(x, tip[:, 0], atol=1e-12)
+    np.testing.assert_allclose(y, tip[:, 1], atol=1e-12)
+    for i in range(0, 400, 37):
+        np.testing.assert_allclose(arm.tip(q[i]), tip[i], atol=1e-12)
+    # Batched IK: every pose forward() made is reachable; where inverse() accepts the pose
+    # within the limits, both give the same angles (the excavator branch).
+    qi, ok = arm.ik_many(tip[:, 0], tip[:, 1], tip[:, 2])
+    ref = inverse(rig, tip[:, 0], tip[:, 1], tip[:, 2], check_limits=False)
+    within = np.all((ref >= lo) & (ref <= hi), axis=1)
+    np.testing.assert_array_equal(ok, within)
+    np.testing.assert_allclose(qi[ok], ref[ok], atol=1e-12)
+    assert ok.sum() > 100
+    # Scalar IK agrees with the batch and refuses what the batch flags.
+    for i in range(0, 400, 13):
+        one = arm.ik(float(tip[i, 0]), float(tip[i, 1]), float(tip[i, 2]))
+        if ok[i]:
+            assert one is not None
+            np.testing.assert_allclose(one, ref[i], atol=1e-12)
+        elif not np.all((ref[i] >= lo - 1e-9) & (ref[i] <= hi + 1e-9)):
+            assert one is None
+
+
+def test_fast_arm_refuses_unreachable_poses(rig: Rig) -> None:
+    arm = kinematics.FastArm(rig)
+    far = 2.0 * float(sum(rig.lengths_m))
+    assert arm.ik(far, 0.0, 0.0) is None
+    _, ok = arm.ik_many(np.array([far, 0.0]), np.array([0.0, 0.0]), np.array([0.0, 0.0]))
+    assert not ok[0]

@@ -415,7 +415,7 @@ class PinnPlanner:
         """
         t0 = time.perf_counter()
         try:
-            kind = self._kinds.get(dig_type)  # type: ignore[call-overload]
+            kind = self._kinds.get(dig_type)
         except TypeError:  # unhashable: DigType says what is wrong with it
             kind = None
         if kind is None or isinstance(dig_type, bool):

@@ -683,87 +683,6 @@ def _ruckig_move(rig: Rig, q0: FloatArray, q1: FloatArray) -> tuple[Any, float]:
 # -- the planner ----------------------------------------------------------------------------------
 
 
-class _Arm:
-    """The planar arm's kinematics for the planner's hot path (no checks, no allocation of
-    intermediate dicts): the formulas of :func:`rt_runtime.kinematics.inverse` (excavator
-    branch, angles wrapped into each joint's 2 pi window) and :func:`~rt_runtime.kinematics.
-    forward`, scalar and batched. Answers agree with those functions to rounding (~1e-15).
-    """
-
-    def __init__(self, rig: Rig) -> None:
-        self.l1, self.l2, self.l3 = (float(v) for v in rig.lengths_m)
-        self.lengths = np.asarray(rig.lengths_m, dtype=np.float64)
-        self.q_min = np.asarray(rig.q_min_rad, dtype=np.float64)
-        self.q_max = np.asarray(rig.q_max_rad, dtype=np.float64)
-        self.low = 0.5 * (self.q_min + self.q_max) - math.pi
-        self._lim = [
-            (float(a), float(b), float(c))
-            for a, b, c in zip(self.q_min, self.q_max, self.low, strict=True)
-        ]
-        self.outer = self.l1 + self.l2
-        self.inner = abs(self.l1 - self.l2)
-
-    def ik(self, x: float, y: float, attitude: float) -> tuple[float, float, float] | None:
-        """Joint angles of one tip pose, or None when out of reach or out of the limits."""
-        l1, l2 = self.l1, self.l2
-        px = x - self.l3 * math.cos(attitude)
-        py = y - self.l3 * math.sin(attitude)
-        r = math.hypot(px, py)
-        if not self.inner + 1e-9 < r < self.outer - 1e-9:
-            return None
-        far = math.sqrt(max((self.outer - r) * (self.outer + r), 0.0))
-        near = math.sqrt(max((r - self.inner) * (r + self.inner), 0.0))
-        t2 = -2.0 * math.atan2(far, near)
-        t1 = math.atan2(py, px) - math.atan2(l2 * math.sin(t2), l1 + l2 * math.cos(t2))
-        out = []
-        for q, (lo, hi, low) in zip((t1, t2, attitude - t1 - t2), self._lim, strict=True):
-            q -= 2.0 * math.pi * math.floor((q - low) / (2.0 * math.pi))
-            if not lo - 1e-9 <= q <= hi + 1e-9:
-                return None
-            out.append(min(max(q, lo), hi))
-        return (out[0], out[1], out[2])
-
-    def ik_many(
-        self, x: FloatArray, y: FloatArray, attitude: FloatArray
-    ) -> tuple[FloatArray, NDArray[np.bool_]]:
-        """Joint angles of many poses ``(N, 3)`` and which are reachable within the limits."""
-        px = x - self.l3 * np.cos(attitude)
-        py = y - self.l3 * np.sin(attitude)
-        r = np.hypot(px, py)
-        reach = (r < self.outer - 1e-9) & (r > self.inner + 1e-9)
-        far = np.sqrt(np.maximum((self.outer - r) * (self.outer + r), 0.0))
-        near = np.sqrt(np.maximum((r - self.inner) * (r + self.inner), 0.0))
-        q = np.empty((x.shape[0], 3))
-        t2 = -2.0 * np.arctan2(far, near)
-        elbow = np.arctan2(self.l2 * np.sin(t2), self.l1 + self.l2 * np.cos(t2))
-        q[:, 0] = np.arctan2(py, px) - elbow
-        q[:, 1] = t2
-        q[:, 2] = attitude - q[:, 0] - t2
-        q -= 2.0 * np.pi * np.floor((q - self.low) / (2.0 * np.pi))
-        ok = reach & np.all((q >= self.q_min) & (q <= self.q_max), axis=1)
-        return q, ok
-
-    def tip_xy(self, q: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Tip x and y of joint angles ``(..., 3)``."""
-        p0 = q[..., 0]
-        p1 = p0 + q[..., 1]
-        p2 = p1 + q[..., 2]
-        x = self.l1 * np.cos(p0) + self.l2 * np.cos(p1) + self.l3 * np.cos(p2)
-        y = self.l1 * np.sin(p0) + self.l2 * np.sin(p1) + self.l3 * np.sin(p2)
-        return x, y
-
-    def tip(self, q: tuple[float, float, float] | FloatArray) -> tuple[float, float, float]:
-        """Tip pose (x, y, attitude) of one joint pose."""
-        p0 = float(q[0])
-        p1 = p0 + float(q[1])
-        p2 = p1 + float(q[2])
-        return (
-            self.l1 * math.cos(p0) + self.l2 * math.cos(p1) + self.l3 * math.cos(p2),
-            self.l1 * math.sin(p0) + self.l2 * math.sin(p1) + self.l3 * math.sin(p2),
-            p2,
-        )
-
-
 class _Mover:
     """Rest-to-rest ruckig moves with the rig's limits, reusing one generator (the transitions'
     hot path: ~2 us a move instead of ~15 us building the objects each time)."""
@@ -779,7 +698,7 @@ class _Mover:
         self._inp.max_jerk = [float(v) for v in rig.qddd_max_rad_s3]
         self._traj = Trajectory(3)
 
-    def move(self, q0: Sequence[float], q1: Sequence[float]) -> Any:
+    def move(self, q0: Sequence[float] | FloatArray, q1: Sequence[float] | FloatArray) -> Any:
         """The move's trajectory (valid until the next call).
 
         Raises:
@@ -868,7 +787,7 @@ class TrenchPlanner:
         s = _reach_scale(rig)
         self.scale = s
         self.entry_x_range = (_ENTRY_X_M[0] * s, _ENTRY_X_M[1] * s)
-        self.arm = _Arm(rig)
+        self.arm = kinematics.FastArm(rig)
         s_grid = np.linspace(0.0, 1.0, _SCREEN_SAMPLES)
         self.screen_qf = 10 * s_grid**3 - 15 * s_grid**4 + 6 * s_grid**5
         self.screen_pf = s_grid**3 * (1 - s_grid) ** 3
@@ -2012,7 +1931,9 @@ def _total_without_volume(row: FloatArray) -> float:
     return float(np.sum(np.maximum(v, 0.0)))
 
 
-def _safe_ik(rig: Rig, x: float, y: float, attitude: float, arm: _Arm | None = None) -> FloatArray:
+def _safe_ik(
+    rig: Rig, x: float, y: float, attitude: float, arm: kinematics.FastArm | None = None
+) -> FloatArray:
     """IK of a transition pose, trying attitudes nearer the middle when the first fails."""
     for att in (attitude, attitude + 0.3, attitude - 0.3, -math.pi / 2):
         if arm is not None:

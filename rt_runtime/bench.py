@@ -372,7 +372,8 @@ def bench_plan(
     Each task is planned ``passes`` times with the PINN planner (the plans are deterministic;
     the times are the distribution) and, with ``pso``, once with the PSO teacher as the one-shot
     planner. Reported per task: digs (with T, V_p, W_E, theta_p), coverage error, maximum
-    over-dig, whole-plan time (p50/p99), the PSO plan's totals and the ratio of the totals.
+    over-dig, whole-plan time (p50/p99), the PSO plan's totals and the ratio of the totals,
+    and (``same_problems``) both planners on the PINN plan's own dig problems, summed.
 
     Returns:
         JSON-ready dict: ``tasks`` (per name), ``trench.plan_us`` (p50/p99 over all tasks and
@@ -387,6 +388,7 @@ def bench_plan(
         task = load_task(name, rig)
         times: list[float] = []
         report: dict[str, Any] = {}
+        plan = None
         for _ in range(max(1, passes)):
             plan = pinn.plan(task)
             times.append(plan.plan_total_us)
@@ -398,6 +400,8 @@ def bench_plan(
             "totals": _plan_totals(report),
         }
         if pso:
+            assert plan is not None
+            entry["same_problems"] = _same_problems(rig, pinn, plan.digs, pso_options or {})
             t0 = time.perf_counter()
             pso_plan = TrenchPlanner(rig, "pso", model_dir=model_dir, pso_options=pso_options).plan(
                 task
@@ -423,6 +427,56 @@ def bench_plan(
             "pinn_vs_pso_totals_max": 0.05,
         },
         "paper": {"yao_fig14": YAO_FIG14, "yao_plan_ms_per_dig": [4.2, 4.5]},
+    }
+
+
+def _same_problems(
+    rig: Rig, planner: Any, digs: Any, pso_options: dict[str, Any]
+) -> dict[str, Any]:
+    """PINN and PSO on the very dig problems of the PINN's trench plan (Yao Table 4's pairing).
+
+    Two whole-trench plans, one per one-shot planner, drift apart after the first dig (each
+    leaves its own material, so later digs are different problems; the counts differ too).
+    The like-for-like comparison of the two planners is per problem: every roughing dig of the
+    PINN's plan (its entry and exit poses, surface height and type; profile passes are fitted,
+    not one-shot planned, and are the same for both) is planned by the PINN one-shot planner
+    and by the PSO teacher, and T, V_p and W_E are summed over the task.
+    """
+    from rt_runtime.planning import oneshot
+
+    sums = {"pinn": [0.0, 0.0, 0.0], "pso": [0.0, 0.0, 0.0]}
+    n = 0
+    pso_s: list[float] = []
+    for d in digs:
+        if d.status == "profile_pass":
+            continue
+        problem = d.problem
+        plan = planner.pinn.plan(
+            problem.q_start_rad, problem.q_end_rad, problem.surface_y_m, problem.dig_type
+        )
+        v = plan.verification
+        t0 = time.perf_counter()
+        sol = oneshot.solve_pso(rig, [problem], **pso_options)[0]
+        pso_s.append(time.perf_counter() - t0)
+        for key, (T, vol, e) in (
+            ("pinn", (plan.T_s, v.volume_m3, v.energy_j)),
+            ("pso", (sol.T_s, sol.volume_m3, sol.energy_j)),
+        ):
+            sums[key][0] += T
+            sums[key][1] += vol * 1e3
+            sums[key][2] += e / 3600.0
+        n += 1
+    totals = {
+        k: {"digs": float(n), "T_s": t[0], "volume_L": t[1], "energy_Wh": t[2]}
+        for k, t in sums.items()
+    }
+    return {
+        **totals,
+        "pso_solve_s": percentiles(pso_s) if pso_s else None,
+        "pinn_vs_pso": {
+            k: (totals["pinn"][k] / totals["pso"][k] - 1.0) if totals["pso"][k] else None
+            for k in ("T_s", "volume_L", "energy_Wh")
+        },
     }
 
 

@@ -700,6 +700,14 @@ def cmd_bench_plan(args: argparse.Namespace) -> int:
         cmp = " / ".join(f"{vs[k]:+.1%}" for k in ("T_s", "volume_L", "energy_Wh")) if vs else "-"
         pso_s = f"{e['pso_plan_s']:.0f} s" if "pso_plan_s" in e else "-"
         print(f"  {name:<4}  {p['n_digs']:4d}  {p['coverage_error']:7.2%}  {yao.get('coverage_error', float('nan')):5.1%}  {p['overdig_max_mm']:6.1f} mm  {e['plan_us']['p50'] / 1e3:8.1f} ms  {e['plan_us']['p99'] / 1e3:8.1f} ms  {pso_s:>8}   {cmp}")
+    if any("same_problems" in e for e in r["tasks"].values()):
+        print("  PINN vs PSO on the same dig problems (the PINN plan's roughing digs), totals T / V_p / W_E:")
+        for name, e in r["tasks"].items():
+            sp = e.get("same_problems")
+            if sp:
+                vs = sp["pinn_vs_pso"]
+                cmp = " / ".join(f"{vs[k]:+.1%}" for k in ("T_s", "volume_L", "energy_Wh"))
+                print(f"    {name:<4} {sp['pinn']['digs']:3.0f} digs  PINN {sp['pinn']['T_s']:.1f} s / {sp['pinn']['volume_L']:.2f} L / {sp['pinn']['energy_Wh']:.3f} Wh  PSO {sp['pso']['T_s']:.1f} s / {sp['pso']['volume_L']:.2f} L / {sp['pso']['energy_Wh']:.3f} Wh  ({cmp})")
     g = r["goals"]
     print(f"  whole plan, all tasks: p50 {r['trench']['plan_us']['p50'] / 1e3:.1f} ms, p99 {r['trench']['plan_us']['p99'] / 1e3:.1f} ms (goal p50 <= {g['plan_us_p50_max'] / 1e3:.0f} ms; Yao 4.2-4.5 ms per dig)")
     return 0

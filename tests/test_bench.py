@@ -33,3 +33,25 @@ def test_bench_oneshot_keys_on_two_problems(capsys) -> None:  # type: ignore[no-
 def test_bench_oneshot_without_reference() -> None:
     r = bench.bench_oneshot(load_rig("scale_model"), n_problems=2, de=False)
     assert "de_solve_s" not in r and r["feasible"] == 1.0
+
+
+def test_bench_plan_compares_pinn_and_pso_on_the_same_dig_problems() -> None:
+    from rt_runtime.bench import bench_plan
+    from rt_runtime.rig import load_rig
+
+    rig = load_rig("scale_model")
+    quick = {"n_particles": 12, "n_iterations": 8, "polish_starts": 1}
+    r = bench_plan(rig, ("B",), passes=1, pso_options=quick)
+    e = r["tasks"]["B"]
+    sp = e["same_problems"]
+    roughing = [d for d in e["pinn"]["digs"] if d["status"] != "profile_pass"]
+    assert sp["pinn"]["digs"] == sp["pso"]["digs"] == len(roughing) > 0
+    for key in ("T_s", "volume_L", "energy_Wh"):
+        assert sp["pso"][key] > 0.0
+        assert sp["pinn_vs_pso"][key] == pytest.approx(sp["pinn"][key] / sp["pso"][key] - 1.0)
+    # The PINN side is the one-shot plan of the same problems: its times are the digs' own
+    # plans' order of magnitude (one-shot T within the planning thresholds).
+    planning = rig.planning
+    assert planning is not None
+    assert planning.t_min_s * len(roughing) <= sp["pinn"]["T_s"] <= planning.t_max_s * len(roughing)
+    assert "pso_totals" in e and "pinn_vs_pso" in e

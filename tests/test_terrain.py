@@ -10,6 +10,7 @@ import shapely
 from shapely.geometry import LineString
 
 from hil_sim import Terrain
+from hil_sim.terrain import CUT_SIMPLIFY_M
 from rt_runtime import soil
 from rt_runtime.errors import ConfigurationError
 from rt_runtime.planning.oneshot import excavated_area_m2
@@ -55,8 +56,25 @@ def test_curved_monotonic_path_matches_the_planners_area() -> None:
     x = np.linspace(0.8, 0.2, 301)
     y = GROUND - 0.12 * np.sin(np.pi * (0.8 - x) / 0.6) + 0.01  # enters and leaves 1 cm deep
     t = _terrain()
-    cut = t.cut(np.stack([x, y], axis=-1))
+    cut = t.cut(np.stack([x, y], axis=-1), simplify_m=0.0)
     assert cut.area_m2 == pytest.approx(float(excavated_area_m2(x, y, GROUND)), rel=1e-9)
+
+
+def test_simplified_cut_stays_within_its_tolerance_times_the_length() -> None:
+    x = np.linspace(0.8, 0.2, 3001)
+    y = GROUND - 0.12 * np.sin(np.pi * (0.8 - x) / 0.6) + 0.01
+    path = np.stack([x, y], axis=-1)
+    exact = _terrain().cut(path, simplify_m=0.0).area_m2
+    t = _terrain()
+    fast = t.cut(path)  # the default tolerance
+    length = float(np.sum(np.hypot(np.diff(x), np.diff(y))))
+    assert abs(fast.area_m2 - exact) <= CUT_SIMPLIFY_M * length
+    assert fast.area_m2 != exact  # it did simplify (a curved path loses its chords' slivers)
+    # The surface it leaves is the exact one within the tolerance.
+    ref = _terrain()
+    ref.cut(path, simplify_m=0.0)
+    xs = np.linspace(0.25, 0.75, 101)
+    np.testing.assert_allclose(t.surface_y(xs), ref.surface_y(xs), rtol=0, atol=2 * CUT_SIMPLIFY_M)
 
 
 def test_a_path_that_doubles_back_removes_nothing_twice() -> None:

@@ -871,6 +871,18 @@ typedef struct {
     double cc[VK_PL_SCAN], cg[VK_PL_SCAN], cv[VK_PL_SCAN], cw[VK_PL_SCAN][4];
 } vk_pathscan;
 
+/* Point a scan at an m-sample grid's scratch buffers in sc. */
+static inline void vk_pathscan_grid(vk_pathscan *r, double *sc, int m) {
+    r->m = m;
+    r->n3 = 3 * m;
+    r->A = sc + S_A * m;
+    r->B = sc + S_B * m;
+    r->buf[0] = sc + S_T0 * m;
+    r->buf[1] = sc + S_T1 * m;
+    r->buf[2] = sc + S_T2 * m;
+    r->R = sc + S_R * m;
+}
+
 /* g(c): the worst of theta_p_min/max and volume_min/max (normalised as in vk_evaluate) plus
  * VK_PL_MARGIN; +inf where a value is not finite. *volume gets V_p and v those four values.
  * The joint limits hold by the scan range. trig: cos then sin of the three absolute angles, m
@@ -1422,28 +1434,14 @@ static void vk_plan(const double *p, const double *s, const double *basis, int m
     vk_pathscan r;
     r.p = p;
     r.in = in;
-    r.m = m;
-    r.n3 = 3 * m;
-    r.A = sc + S_A * m;
-    r.B = sc + S_B * m;
-    r.buf[0] = sc + S_T0 * m;
-    r.buf[1] = sc + S_T1 * m;
-    r.buf[2] = sc + S_T2 * m;
-    r.R = sc + S_R * m;
+    vk_pathscan_grid(&r, sc, m);
     const double *trig;
     double v = 0.0, lo = c_lo, hi = c_hi;
     int scanned = 1;
     double c;
     if (basis_c != NULL) {
         vk_pathscan rc = r;
-        rc.m = m_c;
-        rc.n3 = 3 * m_c;
-        rc.A = sc_c + S_A * m_c;
-        rc.B = sc_c + S_B * m_c;
-        rc.buf[0] = sc_c + S_T0 * m_c;
-        rc.buf[1] = sc_c + S_T1 * m_c;
-        rc.buf[2] = sc_c + S_T2 * m_c;
-        rc.R = sc_c + S_R * m_c;
+        vk_pathscan_grid(&rc, sc_c, m_c);
         c = vk_plan_scale_coarse(&r, &rc, basis, basis_c, K, c_lo, c_hi, &trig, &v, &scanned,
                                  &lo, &hi);
     } else {

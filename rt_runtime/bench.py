@@ -186,7 +186,9 @@ def bench_pinn(
         problems planned with fill and retime off, raw answers that verify: inference plus
         verification alone), ``pso_solve_s`` (p50, p99),
         ``speedup_vs_pso``, ``table4`` (per type: PSO vs PINN mean T, V_p, W_E and planning time),
-        ``types`` (the same per type), ``goals``, ``paper``.
+        ``paths`` (problems per path of :class:`rt_runtime.planning.pinn.PlanStatus`: ``retimed``,
+        ``raw``, ``time-scaled``, ``repaired-fast``, ``refined``, ``teacher``, and ``refused``;
+        counts, not fractions), ``types`` (the same per type), ``goals``, ``paper``.
     """
     from pathlib import Path
 
@@ -204,6 +206,15 @@ def bench_pinn(
     all_gap: list[float] = []
     all_raw_gap: list[float] = []
     counts = {"n": 0, "raw": 0, "verified": 0, "refused": 0, "executed_ok": 0, "returned": 0}
+    path_names = {
+        PlanStatus.RETIMED: "retimed",
+        PlanStatus.RAW: "raw",
+        PlanStatus.TIME_SCALED: "time-scaled",
+        PlanStatus.REPAIRED: "repaired-fast",
+        PlanStatus.REFINED: "refined",
+        PlanStatus.TEACHER: "teacher",
+    }
+    all_paths = dict.fromkeys([*path_names.values(), "refused"], 0)
     pso_s: list[float] = []
     table4: dict[str, Any] = {}
     for kind in oneshot.DigType:
@@ -266,6 +277,12 @@ def bench_pinn(
         else:
             gap = np.array([np.nan])
         n_raw = sum(1 for pl in returned if pl.status == PlanStatus.RAW)
+        paths = dict.fromkeys([*path_names.values(), "refused"], 0)
+        for pl in returned:
+            paths[path_names[pl.status]] += 1
+        paths["refused"] = len(refused)
+        for key, value in paths.items():
+            all_paths[key] += value
         # The teacher on a few of the same problems, in the same run.
         sub = [
             oneshot.Problem(
@@ -306,8 +323,10 @@ def bench_pinn(
             "raw_feasible": float(np.mean(ev.feasible[:, 0])),
             "plan_raw": n_raw / n,
             "time_scaled": sum(1 for pl in returned if pl.status == PlanStatus.TIME_SCALED) / n,
+            "repaired_fast": paths["repaired-fast"] / n,
             "refined": sum(1 for pl in returned if pl.status == PlanStatus.REFINED) / n,
             "refused": len(refused) / n,
+            "paths": paths,
             "refusals": refused[:5],
             "plan_us": percentiles(plan_us, tails=True) if plan_us else None,
             "infer_us": percentiles(infer_us, tails=True),
@@ -337,6 +356,7 @@ def bench_pinn(
             "plan_us": percentiles(all_plan, tails=True),
             "verify_only_plan_us": percentiles(verify_us, tails=True) if verify_us else None,
             "pso_solve_s": percentiles(pso_s),
+            "paths": all_paths,
             "table4": table4,
         }
     )

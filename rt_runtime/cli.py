@@ -385,6 +385,8 @@ def cmd_bench_pinn(args: argparse.Namespace) -> int:
     print(f"  objective gap to PSO: mean {r['gap_mean']:+.2%}, max {r['gap_max']:+.2%} (goal mean <= {g['gap_mean_max']:.0%}; Yao about 5 %)")
     print(f"  raw network answers: gap mean {r['raw_gap_mean']:+.2%}, feasible {r['raw_feasible']:.1%} (goal >= {g['raw_feasible_min']:.0%})")
     print(f"  plans returned (verified) {r['verified_feasible']:.1%}, refused {r['refused']:.1%}; returned plans feasible by the numpy reference: {r['executed_feasible']:.1%}")
+    if r.get("paths"):
+        print("  paths: " + ", ".join(f"{k} {v}" for k, v in r["paths"].items()))
     print(f"  inference: p50 {r['infer_us']['p50']:.1f} us, p99 {r['infer_us']['p99']:.1f} us")
     print(f"  plan (inference + fill + retime + verification): p50 {r['plan_us']['p50']:.1f} us, p99 {r['plan_us']['p99']:.1f} us (goals {g['plan_us_p50_max']:.0f} / {g['plan_us_p99_max']:.0f} us; Yao 4.2-4.5 ms)")
     if r.get("verify_only_plan_us"):

@@ -20,8 +20,15 @@ pytest.importorskip("distributed")
 
 from rt_runtime.errors import ConfigurationError, PlanningError  # noqa: E402
 from rt_runtime.planning import oneshot  # noqa: E402
-from rt_runtime.planning.oneshot import DigType  # noqa: E402
-from rt_runtime.planning.pinn import PinnPlanner, PlanStatus, load_card  # noqa: E402
+from rt_runtime.planning.oneshot import CONSTRAINT_NAMES, DigType  # noqa: E402
+from rt_runtime.planning.pinn import (  # noqa: E402
+    DEFAULT_MODEL_DIR,
+    FAST_REPAIR_CALLS,
+    PinnPlanner,
+    PlanStatus,
+    _nearest,
+    load_card,
+)
 from rt_runtime.rig import load_rig  # noqa: E402
 from rt_runtime.training import dataset as ds  # noqa: E402
 from rt_runtime.training.export import export, sha256_file  # noqa: E402
@@ -146,7 +153,7 @@ def test_planner_without_retiming_verifies_or_repairs(pipeline: Path) -> None:
         except PlanningError as exc:
             assert "violates" in str(exc) or "outside" in str(exc)
             continue
-        assert plan.status in (PlanStatus.RAW, PlanStatus.TIME_SCALED)
+        assert plan.status in (PlanStatus.RAW, PlanStatus.TIME_SCALED, PlanStatus.REPAIRED)
         assert plan.verification.feasible
         if plan.status == PlanStatus.RAW:
             assert plan.T_s == plan.raw_T_s
@@ -247,3 +254,213 @@ def test_train_config_errors_name_the_setting() -> None:
         TrainConfig(margin=0.7).validate()
     with pytest.raises(ConfigurationError, match=r"training setting epochs must be >= 1"):
         TrainConfig(epochs=0).validate()
+
+
+# -- the fast repair -------------------------------------------------------------------------
+#
+# Network answers that fail the normal path (fill and retime), pinned here so that the cases do
+# not depend on which networks are shipped: a stand-in session answers them. The problems are
+# held-out problems; the answers are what networks trained on the shipped datasets gave.
+
+# Backward row 4 of the shipped held-out set: the boom dips below its lower limit mid-path, and
+# no bulge scale keeps both the boom in range and V_p >= V_min (SLSQP served it before).
+BOOM_X = [-0.11897403270667706, -1.1543312812918345, -1.0678792357036995, -0.26727008754507564,
+          -1.3844281531240807, -1.5448969749897588, -0.5803403383168766]
+BOOM_Y = [0.00018114503473043442, 0.0001446689711883664, -0.00021662420476786792,
+          6.214824676513672]
+# Backward row 153: repaired path found, but it needs more boom torque than any T allows;
+# the refinement serves it.
+TORQUE_X = [-0.17880657091514524, -0.9015407154851449, -0.9705558136313537,
+            -0.25538150650980096, -1.099580994412145, -1.379083708820552, -0.6354834594385348]
+TORQUE_Y = [0.0003552054113242775, 0.00038819393375888467, -0.00028847815701738,
+            5.45201301574707]
+# A downward answer entering too flat (theta_p below its minimum): projected onto theta_p's
+# half-space, then filled.
+THETA_P_X = [0.041962009594897764, -1.052794932364652, -0.21295111744740058,
+             0.10333892775245856, -1.4332045605432642, -1.28225601666702, -0.47238977704605606]
+THETA_P_Y = [0.0001131445897044614, 0.00018338885274715722, -4.3922182157984935e-07,
+             6.103066444396973]
+
+
+class _FixedNetwork:
+    """Stands in for a network's session: always answers ``y`` = (a16, a26, a36, T)."""
+
+    def __init__(self, y: list[float]) -> None:
+        self.x = np.zeros((1, 7), dtype=np.float32)
+        self.y = np.array([y], dtype=np.float32)
+
+    def run(self) -> None:
+        pass
+
+
+def _fixed_planner(kind: DigType, y: list[float], **options: bool) -> tuple[PinnPlanner, list[str]]:
+    """The shipped planner with ``kind``'s network answering ``y``, and a log of its kernel
+    calls."""
+    planner = PinnPlanner(RIG, DEFAULT_MODEL_DIR, **options)
+    planner._sessions[kind] = _FixedNetwork(y)  # type: ignore[assignment]
+    calls: list[str] = []
+    for name in ("_eval_rows", "_plan_rows", "_retime_rows", "_coarse_rows"):
+        kernel = getattr(planner, name)
+
+        def counted(*args: object, _kernel: object = kernel, _name: str = name) -> None:
+            calls.append(_name)
+            _kernel(*args)  # type: ignore[operator]
+
+        setattr(planner, name, counted)
+    return planner, calls
+
+
+def _reference(x: list[float], kind: DigType, plan: object) -> oneshot.Evaluation:
+    a6 = np.asarray(plan.a6)  # type: ignore[attr-defined]
+    return oneshot.evaluate(
+        RIG, np.array([x[0:3]]), np.array([x[3:6]]), np.array([x[6]]), int(kind),
+        a6[None, None], np.array([[plan.T_s]]),  # type: ignore[attr-defined]
+    )
+
+
+def test_fast_repair_fixes_a_boom_below_its_limit() -> None:
+    kind = DigType.BACKWARD
+    raw = oneshot.evaluate(
+        RIG, np.array([BOOM_X[0:3]]), np.array([BOOM_X[3:6]]), np.array([BOOM_X[6]]),
+        int(kind), np.array([[BOOM_Y[0:3]]], dtype=np.float32).astype(float),
+        np.array([[np.float32(BOOM_Y[3])]], dtype=float),
+    )
+    assert raw.violations[0, 0, CONSTRAINT_NAMES.index("angle_min_boom")] > 0.0
+    # Without it, the normal path fails and the case goes to the refinement (milliseconds).
+    slow, _ = _fixed_planner(kind, BOOM_Y, fast_repair=False)
+    assert slow.plan(BOOM_X[0:3], BOOM_X[3:6], BOOM_X[6], kind).status == PlanStatus.REFINED
+    planner, calls = _fixed_planner(kind, BOOM_Y)
+    plan = planner.plan(BOOM_X[0:3], BOOM_X[3:6], BOOM_X[6], kind)
+    assert plan.status == PlanStatus.REPAIRED
+    assert plan.verification.feasible
+    assert _reference(BOOM_X, kind, plan).feasible[0, 0]
+    # The normal path's plan_into, then at most FAST_REPAIR_CALLS kernel calls.
+    assert calls[0] == "_plan_rows"
+    assert 2 <= len(calls) <= 1 + FAST_REPAIR_CALLS, calls
+    # The repair lands on the boom's limit (the teacher's optimum lies there), within 1 %.
+    boom = plan.verification.violations[CONSTRAINT_NAMES.index("angle_min_boom")]
+    assert -0.01 < boom <= 0.0
+    volume = plan.verification.violations[CONSTRAINT_NAMES.index("volume_min")]
+    assert -0.02 < volume <= 0.0
+    traj = plan.trajectory()
+    np.testing.assert_allclose(traj.sample(plan.T_s)[0], BOOM_X[3:6], atol=1e-9)
+
+
+def test_fast_repair_projects_theta_p_and_fills() -> None:
+    kind = DigType.DOWNWARD
+    planner, calls = _fixed_planner(kind, THETA_P_Y)
+    slow, _ = _fixed_planner(kind, THETA_P_Y, fast_repair=False, refine=False)
+    with pytest.raises(PlanningError, match=r"violates theta_p_min .* could not be repaired"):
+        slow.plan(THETA_P_X[0:3], THETA_P_X[3:6], THETA_P_X[6], kind)
+    plan = planner.plan(THETA_P_X[0:3], THETA_P_X[3:6], THETA_P_X[6], kind)
+    assert plan.status == PlanStatus.REPAIRED
+    assert _reference(THETA_P_X, kind, plan).feasible[0, 0]
+    assert len(calls) <= 1 + FAST_REPAIR_CALLS
+    # No joint was clamped: the repaired path was filled (scaled to more volume).
+    assert calls[-1] == "_plan_rows" and plan.bulge_scale > 1.0
+
+
+def test_fast_repair_is_bounded_when_it_fails() -> None:
+    """A repaired path that no T can time (torque) is left to the refinement, after at most
+    FAST_REPAIR_CALLS kernel calls in the repair."""
+    kind = DigType.BACKWARD
+    planner, calls = _fixed_planner(kind, TORQUE_Y)
+    in_repair: list[int] = []
+    repair = planner._fast_repair
+
+    def counted(*args: object) -> object:
+        start = len(calls)
+        outcome = repair(*args)  # type: ignore[arg-type]
+        in_repair.append(len(calls) - start)
+        return outcome
+
+    planner._fast_repair = counted  # type: ignore[method-assign]
+    plan = planner.plan(TORQUE_X[0:3], TORQUE_X[3:6], TORQUE_X[6], kind)
+    assert plan.status == PlanStatus.REFINED
+    assert _reference(TORQUE_X, kind, plan).feasible[0, 0]
+    assert len(in_repair) == 1 and 1 <= in_repair[0] <= FAST_REPAIR_CALLS
+    no_refine, _ = _fixed_planner(kind, TORQUE_Y, refine=False)
+    with pytest.raises(PlanningError, match=r"fast repair: its path cannot be timed\)"):
+        no_refine.plan(TORQUE_X[0:3], TORQUE_X[3:6], TORQUE_X[6], kind)
+
+
+def test_fast_repair_without_retiming() -> None:
+    """With fill and retime off, the repair follows time scaling and retimes its path."""
+    kind = DigType.BACKWARD
+    planner, calls = _fixed_planner(kind, BOOM_Y, retime=False, refine=False)
+    plan = planner.plan(BOOM_X[0:3], BOOM_X[3:6], BOOM_X[6], kind)
+    assert plan.status == PlanStatus.REPAIRED
+    assert plan.bulge_scale == 1.0
+    assert _reference(BOOM_X, kind, plan).feasible[0, 0]
+    assert "_plan_rows" not in calls and calls[-1] == "_retime_rows"
+
+
+def _scipy_nearest(w: np.ndarray, A: np.ndarray, r: np.ndarray) -> tuple[bool, float]:
+    """min sum(u^2 / w) subject to A u <= r by scipy's SLSQP: (converged and feasible, the
+    minimum)."""
+    from scipy.optimize import minimize
+
+    res = minimize(
+        lambda u: float(np.sum(u**2 / w)),
+        np.zeros(w.size),
+        jac=lambda u: 2.0 * u / w,
+        constraints=[{"type": "ineq", "fun": lambda u: r - A @ u, "jac": lambda u: -A}],
+        method="SLSQP",
+        options={"ftol": 1e-12, "maxiter": 200},
+    )
+    return bool(res.success and np.all(r - A @ res.x >= -1e-9)), float(res.fun)
+
+
+def test_nearest_point_against_scipy() -> None:
+    """The repair's closed-form nearest point against scipy's SLSQP, on seeded random cases of
+    its kind: one joint fixed, one violated half-space, two more that may become active."""
+    rng = np.random.default_rng(7)
+    found = missed = 0
+    for case in range(100):
+        K = rng.normal(0.0, 5.0, 3)
+        w = rng.uniform(0.1, 2.0, 3)
+        fixed = int(rng.integers(3))
+        w[fixed] = 0.0
+        free = np.flatnonzero(w > 0.0)
+        A = rng.normal(0.0, 1.0, (3, 3))
+        slack = np.concatenate([[-rng.uniform(0.5, 3.0)], rng.uniform(0.0, 3.0, 2)])
+        b = A @ K + slack
+        got = _nearest(K.tolist(), w.tolist(), [(A[i].tolist(), float(b[i])) for i in range(3)])
+        ref_ok, ref_d = _scipy_nearest(w[free], A[:, free], b - A @ K)
+        if got is None:
+            missed += bool(ref_ok)
+            continue
+        found += 1
+        assert np.all(A @ np.asarray(got) <= b + 1e-9), case
+        assert got[fixed] == K[fixed], case
+        d_got = float(np.sum((np.asarray(got) - K)[free] ** 2 / w[free]))
+        if ref_ok:  # optimal: SLSQP finds no nearer point
+            assert d_got <= ref_d * (1.0 + 1e-6) + 1e-9, (case, d_got, ref_d)
+    assert found >= 80 and missed <= 5, (found, missed)
+
+
+# Backward row 28: the boom dips below its limit and V_p is short; no path within the limits
+# lies near the answer (the teacher's is elsewhere), and the refinement finds none either.
+NO_PATH_X = [-0.13212793389398458, -1.570333786404607, -0.43744894044092186,
+             -0.3368390724601505, -1.6213758991393872, -1.1801516381418657, -0.6297843377348948]
+NO_PATH_Y = [2.3353719370788895e-05, 1.4795507013332099e-05, -4.2413699702592567e-05,
+             8.85538387298584]
+
+
+@pytest.mark.parametrize("refine_no_path", [False, True])
+def test_no_path_is_refused_without_the_refinement(refine_no_path: bool) -> None:
+    kind = DigType.BACKWARD
+    planner, calls = _fixed_planner(kind, NO_PATH_Y, refine_no_path=refine_no_path)
+    refinements: list[object] = []
+    refine = planner._refine
+
+    def counted(*args: object) -> object:
+        refinements.append(args)
+        return refine(*args)  # type: ignore[arg-type]
+
+    planner._refine = counted  # type: ignore[method-assign]
+    with pytest.raises(PlanningError, match=r"violates angle_min_boom .*fast repair: no path"):
+        planner.plan(NO_PATH_X[0:3], NO_PATH_X[3:6], NO_PATH_X[6], kind)
+    assert len(refinements) == int(refine_no_path)
+    # plan_into, the repair's calls, the evaluation of the network's answer for the message.
+    assert len(calls) <= 2 + FAST_REPAIR_CALLS

@@ -26,9 +26,30 @@ checked before anyone may execute it:
    Time scaling first, where only time-dependent limits fail (velocity, acceleration, torque,
    power, t_min): the kernel's exact retiming keeps the path (so angles, theta_p and volume)
    and takes the smallest T in [t_min, t_max] at which every limit holds. What time scaling
-   cannot fix (a joint range, theta_p or volume violation, or no T in range) goes to a bounded
-   local refinement (SLSQP from the network's answer, :data:`REFINE_ITERATIONS` iterations),
-   when enabled. Otherwise :class:`~rt_runtime.errors.PlanningError` names the violated limit.
+   cannot fix (a joint range, theta_p or volume violation, or no T in range) goes first to the
+   **fast repair** (:meth:`PinnPlanner._fast_repair`, at most :data:`FAST_REPAIR_CALLS` kernel
+   calls, tens of microseconds), then, when that fails too, to a bounded local refinement (SLSQP
+   from the network's answer, :data:`REFINE_ITERATIONS` iterations, milliseconds), when enabled.
+   Otherwise :class:`~rt_runtime.errors.PlanningError` names the violated limit.
+
+   The fast repair changes the path's direction where scaling it cannot help (measured on the
+   shipped backward model: the boom dips below its lower limit mid-path, and no scale keeps
+   both the boom in range and V_p >= V_min). The path is ``theta(s) = theta1 + D q(s) +
+   K p(s)``, linear in K, so (a) each joint's range on the verification grid is an interval of
+   its K_i in closed form: a violating joint's K_i is clamped into it; (b) a dig that starts on
+   the surface enters along ``J(q0) (10 D + K)``, so each theta_p limit is a half-space of K: K
+   is projected onto it; (c) V_p is not linear: where V_min fails, one secant per free joint
+   (on a coarse 11-sample grid, ~1 us each) linearises it and K moves to the nearest point (in
+   joint ranges, the joint that sets T weighted 100x heavier) meeting V_min and the theta_p
+   half-spaces, with one chord correction when needed. The teacher's optima on such rows lie on
+   that vertex (boom at its limit, theta_p at its maximum, V_p at V_min). The kernel's fill
+   and retiming (retiming alone where a joint was clamped: its limit caps the fill) then time
+   the repaired path and verify it as on the normal path. Measured on the shipped models: the
+   7 backward rows that SLSQP served (11-42 ms each) now take 70-80 us; 6 are repaired,
+   1 (a repaired path no T can time: boom torque) still goes to SLSQP. Where the fast repair
+   finds no path within the path-only limits near the network's answer, the refinement, which
+   starts from the same answer, is skipped unless ``refine_no_path`` (it never found one there
+   either, measured, and took milliseconds to refuse).
 
 Nothing unverified leaves :meth:`PinnPlanner.plan`: every returned plan has passed step 3 on
 the dense grid. The model card must name the rig the planner serves (name and
@@ -78,6 +99,31 @@ OUTPUT_NAMES = ("a16", "a26", "a36", "T")
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[2] / "onnx"
 #: SLSQP iterations of the bounded local refinement.
 REFINE_ITERATIONS = 15
+#: Most kernel calls of one fast repair: an evaluation of the repaired path, three on a coarse
+#: grid for the volume secants, the fill and retiming, and a second one after a chord
+#: correction of V_p.
+FAST_REPAIR_CALLS = 6
+# The fast repair's targets, normalised as the constraint values (:data:`CONSTRAINT_NAMES`):
+# clamped joints this far inside their range, theta_p inside its range, V_p above V_min. They
+# keep the repaired path feasible after the kernel's own arithmetic and the fill's scale search.
+_REPAIR_JOINT_MARGIN = 1e-4
+_REPAIR_THETA_P_MARGIN = 1e-3
+_REPAIR_VOLUME_MARGIN = 1e-3
+# The joint that sets the retimed T (acceleration, velocity or torque) moves this much less
+# (its weight in the nearest-point metric): moving it lengthens the dig, which eq 11 punishes
+# most (measured on the shipped backward model: mean gap of the repaired rows 3.3 % -> 2.3 %).
+_REPAIR_BINDING_WEIGHT = 0.01
+# Step of the volume secants, per joint range (K / 64 is the mid-path bulge): about the distance
+# the repair moves (measured: no chord correction needed on the shipped and candidate models,
+# against 2 of 6 rows at 0.5).
+_REPAIR_GRADIENT_STEP = 2.0
+# Samples of the coarse grid on which the volume secants are taken (measured: the same repaired
+# plans, mean objective within 0.1 % of those at 21 or 101 samples, on the shipped and candidate
+# models).
+_REPAIR_SECANT_SAMPLES = 11
+_VOLUME_MIN = CONSTRAINT_NAMES.index("volume_min")
+_VOLUME_MAX = CONSTRAINT_NAMES.index("volume_max")
+_THETA_P = (CONSTRAINT_NAMES.index("theta_p_min"), CONSTRAINT_NAMES.index("theta_p_max"))
 # Constraint columns time scaling can fix (it leaves the path, so angles, theta_p, volume alone).
 _TIME_FIXABLE = frozenset(
     i
@@ -93,6 +139,70 @@ def fill_c_range(c_max: float) -> tuple[float, float]:
     return (min(PLAN_C_RANGE[0], c_max), c_max)
 
 
+def _nearest(
+    K: list[float], w: list[float], cons: list[tuple[list[float], float]]
+) -> list[float] | None:
+    """The point nearest ``K`` meeting every half-space ``a . K' <= b`` of ``cons``.
+
+    Distance: ``sum((K'_j - K_j)^2 / w_j)``; a joint with ``w_j = 0`` does not move. A convex
+    quadratic programme with at most three constraints, solved by a greedy active set in closed
+    form: the first constraint ``K`` violates (the optimum's active set holds one, or projecting
+    would return ``K``), then, when its projection violates another, both (two free joints
+    meet two constraints at a point). Exact where the constraints ``K`` meets are met by the
+    projection or one of them is active at the optimum, the repair's case (V_min with one
+    theta_p limit). Plain floats: numpy's call overhead (~1 us) exceeds the arithmetic.
+
+    Returns:
+        The point (``K`` itself when it already meets them), or None when the greedy set gives
+        no point meeting all.
+    """
+    K0, K1, K2 = K
+    w0, w1, w2 = w
+    P0, P1, P2 = K0, K1, K2
+    first: tuple[float, float, float, float, float] | None = None
+    for _ in range(2):
+        for a, b in cons:
+            a0, a1, a2 = a
+            if a0 * P0 + a1 * P1 + a2 * P2 > b + 1e-12 * (1.0 + abs(b)):
+                break
+        else:
+            return [P0, P1, P2]
+        wa0, wa1, wa2 = w0 * a0, w1 * a1, w2 * a2
+        m = a0 * wa0 + a1 * wa1 + a2 * wa2
+        r = b - (a0 * K0 + a1 * K1 + a2 * K2)
+        if first is None:
+            if not m > 0.0:
+                return None  # only fixed joints in it
+            first = (wa0, wa1, wa2, m, r)
+            f0, f1, f2 = a0, a1, a2
+            lam = r / m
+            P0, P1, P2 = K0 + lam * wa0, K1 + lam * wa1, K2 + lam * wa2
+        else:
+            v0, v1, v2, mf, rf = first
+            mx = f0 * wa0 + f1 * wa1 + f2 * wa2
+            det = mf * m - mx * mx
+            if not abs(det) > 1e-12 * mf * m:
+                return None  # parallel constraints, or only fixed joints in the second
+            lf = (m * rf - mx * r) / det
+            ls = (mf * r - mx * rf) / det
+            P0 = K0 + lf * v0 + ls * wa0
+            P1 = K1 + lf * v1 + ls * wa1
+            P2 = K2 + lf * v2 + ls * wa2
+    for a, b in cons:
+        if a[0] * P0 + a[1] * P1 + a[2] * P2 > b + 1e-12 * (1.0 + abs(b)):
+            return None
+    return [P0, P1, P2]
+
+
+class _Repair(IntEnum):
+    """Outcome of :meth:`PinnPlanner._fast_repair`."""
+
+    DONE = 0  # a verified plan
+    SKIPPED = 1  # not its case (no path-only violation, V_max, theta_p of a late entry)
+    NO_PATH = 2  # no path meeting every path-only limit found near the network's
+    UNTIMED = 3  # a path meeting them, which no T in range times (torque, power)
+
+
 class PlanStatus(IntEnum):
     """How a returned plan came about."""
 
@@ -101,6 +211,7 @@ class PlanStatus(IntEnum):
     TIME_SCALED = 2  # repaired by time scaling (retiming off)
     REFINED = 3  # repaired by the bounded local refinement
     TEACHER = 4  # out of the model's domain; planned by the PSO teacher (when allowed)
+    REPAIRED = 5  # path direction repaired in closed form (fast repair), then filled and retimed
 
 
 @dataclass(frozen=True, slots=True)
@@ -179,7 +290,8 @@ class PinnPlan:
             :mod:`rt_runtime.planning.verify`); always feasible.
         infer_us: Inference time (onnxruntime call).
         plan_us: Whole planning time (domain check, inference, verification, repair).
-        bulge_scale: c of the executed path K = c K_net (1.0: the network's own path).
+        bulge_scale: c of the executed path K = c K_net (1.0: the network's own path); for
+            :attr:`PlanStatus.REPAIRED`, c of the fill relative to the repaired direction.
     """
 
     problem: Problem
@@ -286,7 +398,14 @@ class PinnPlanner:
         retime: Fill and retime the network's path (step 4 above,
             :meth:`rt_runtime.planning.verify.Verifier.plan_into`); off, the network's answer
             is kept when it verifies.
-        refine: Allow the bounded local refinement when time scaling cannot repair a plan.
+        fast_repair: Allow the fast repair (module docstring, step 5) before the refinement.
+        refine: Allow the bounded local refinement when neither time scaling nor the fast
+            repair can repair a plan.
+        refine_no_path: Run the refinement also where the fast repair found no path meeting the
+            path-only limits near the network's answer. Off by default: measured on the shipped
+            and the candidate models, the refinement (which starts from the same answer) found
+            none either on any such held-out row (7 problems), at 10-40 ms each, and its memory
+            traffic slows the plans after it (the p99 of ``bench pinn`` ~105 us -> ~180 us).
         teacher_fallback: Plan out-of-domain problems with the PSO teacher instead of refusing
             them (seconds, not microseconds: never inside the loop).
         verifier_backend: ``auto``, ``c`` or ``numpy`` (see
@@ -304,14 +423,18 @@ class PinnPlanner:
         *,
         n_verify: int = oneshot.DEFAULT_SAMPLES,
         retime: bool = True,
+        fast_repair: bool = True,
         refine: bool = True,
+        refine_no_path: bool = False,
         teacher_fallback: bool = False,
         verifier_backend: str = "auto",
     ) -> None:
-        oneshot.require_planning(rig)
+        planning = oneshot.require_planning(rig)
         self.rig = rig
         self.retime = retime
+        self.fast_repair = fast_repair
         self.refine = refine
+        self.refine_no_path = refine_no_path
         self.teacher_fallback = teacher_fallback
         self.verifier = Verifier(rig, n_verify, backend=verifier_backend)
         self.cards: dict[DigType, ModelCard] = {}
@@ -337,9 +460,36 @@ class PinnPlanner:
         self._y_view = self._row[0, 8:12]
         self._retimed_row = self._retimed[0]
         self._out_row = self._out[0]
-        # plan_into without its Python wrapper (the range is checked here, once per range).
+        # plan_into, evaluate_into and retime_into without their Python wrappers (the range is
+        # checked here, once per range).
         self._plan_rows = self.verifier._plan
+        self._eval_rows = self.verifier._run
+        self._retime_rows = self.verifier._retime
         self._c_default = (float(PLAN_C_RANGE[0]), float(PLAN_C_RANGE[1]))
+        # The fast repair's constants and scratch rows (module docstring, step 5).
+        n = self.verifier.n_samples
+        s = np.linspace(0.0, 1.0, n)[1:-1]  # p(s) = 0 at both ends: every K keeps them
+        # K_j's bound from sample s is (c - D_j q(s)) / p(s): basis columns 1/p and -q/p.
+        pinv = 1.0 / (s**3 * (1.0 - s) ** 3)
+        q = 10.0 * s**3 - 15.0 * s**4 + 6.0 * s**5
+        self._fr_basis = np.ascontiguousarray(np.stack([pinv, -q * pinv], axis=1))
+        self._fr_v = np.zeros(2, dtype=np.float64)
+        self._fr_qmin = tuple(float(v) for v in rig.q_min_rad)
+        self._fr_qmax = tuple(float(v) for v in rig.q_max_rad)
+        self._fr_span = tuple(float(v) for v in rig.q_max_rad - rig.q_min_rad)
+        self._fr_len = tuple(float(v) for v in rig.lengths_m)
+        self._fr_tp: dict[DigType, tuple[float, float, float]] = {}
+        for k, (lo, hi) in (
+            (DigType.DOWNWARD, planning.theta_p_downward_rad),
+            (DigType.BACKWARD, planning.theta_p_backward_rad),
+        ):
+            self._fr_tp[k] = (float(lo), float(hi), _REPAIR_THETA_P_MARGIN * float(hi - lo))
+        self._fr_row = np.zeros((1, 12), dtype=np.float64)
+        self._fr_out = np.zeros((1, N_OUT), dtype=np.float64)
+        self._fr_in = self._fr_row[0]
+        self._fr_out_row = self._fr_out[0]
+        self._coarse = Verifier(rig, _REPAIR_SECANT_SAMPLES, backend=verifier_backend)
+        self._coarse_rows = self._coarse._run
 
     def _check_card(self, card: ModelCard, kind: DigType) -> None:
         where = str(card.path)
@@ -410,8 +560,8 @@ class PinnPlanner:
 
         Raises:
             PlanningError: Input outside the model's domain (or not finite) when the teacher
-                fallback is off; a plan that neither time scaling nor refinement could repair,
-                naming the violated limit.
+                fallback is off; a plan that neither time scaling, the fast repair nor the
+                refinement could repair, naming the violated limit.
         """
         t0 = time.perf_counter()
         try:
@@ -421,6 +571,7 @@ class PinnPlanner:
         if kind is None or isinstance(dig_type, bool):
             kind = DigType(dig_type)
         row = self._row
+        tried: _Repair | None = None  # the fast repair's outcome, once tried
         self._qs_view[:] = q_start_rad
         self._qe_view[:] = q_end_rad
         row[0, 6] = surface_y_m
@@ -451,7 +602,17 @@ class PinnPlanner:
         if self.retime:
             c_lo, c_hi = self._c_default if c_max is None else fill_c_range(c_max)
             self._plan_rows(row, out, self._retimed, c_lo, c_hi, None, self._scale)
-            if self._out_row[COL_TOTAL] <= 0.0:
+            status = PlanStatus.RETIMED
+            ok = self._out_row[COL_TOTAL] <= 0.0
+            if not ok and self.fast_repair:
+                # A failed plan_into reports the network's own path retimed (scale 1): its
+                # path-only values are the network path's, which do not depend on T.
+                if self._scale[0] != 1.0:
+                    self._eval_rows(row, out, None)
+                tried = self._fast_repair(kind, self._out_row.tolist(), (c_lo, c_hi))
+                ok = tried == _Repair.DONE
+                status = PlanStatus.REPAIRED
+            if ok:
                 r = self._retimed_row.tolist()
                 evaluation = self._out_row.copy()
                 scale = float(self._scale[0])
@@ -462,7 +623,7 @@ class PinnPlanner:
                     r[3],
                     raw_a6,
                     raw_T,
-                    PlanStatus.RETIMED,
+                    status,
                     evaluation,
                     infer_us,
                     (time.perf_counter() - t0) * 1e6,
@@ -486,7 +647,7 @@ class PinnPlanner:
                     (time.perf_counter() - t0) * 1e6,
                 )
         problem = Problem((x[0], x[1], x[2]), (x[3], x[4], x[5]), x[6], kind)
-        a6_ok, T_ok, status = self._repair(problem, raw_a6, raw_T)
+        a6_ok, T_ok, status = self._repair(problem, raw_a6, raw_T, tried)
         final = self._evaluation(problem, a6_ok, T_ok)
         if final[COL_TOTAL] > 0.0:  # the repair paths verify; this guards the guarantee
             raise PlanningError(
@@ -508,13 +669,18 @@ class PinnPlanner:
     # -- repair -----------------------------------------------------------------------------
 
     def _repair(
-        self, problem: Problem, a6: tuple[float, float, float], T: float
+        self,
+        problem: Problem,
+        a6: tuple[float, float, float],
+        T: float,
+        tried: _Repair | None,
     ) -> tuple[tuple[float, float, float], float, PlanStatus]:
-        """Time scaling, then refinement, of the network's answer, whose evaluation is in
-        ``self._out``; PlanningError naming its worst limit when neither verifies."""
-        out = self._out[0]
+        """Time scaling, then the fast repair (unless ``tried``: its outcome already), then
+        refinement, of the network's answer, whose evaluation is in ``self._out``;
+        PlanningError naming its worst limit when none verifies."""
+        ev = self._out[0].tolist()
         planning = oneshot.require_planning(self.rig)
-        bad = {i for i in range(len(CONSTRAINT_NAMES)) if out[i] > 0.0}
+        bad = {i for i in range(len(CONSTRAINT_NAMES)) if ev[i] > 0.0}
         if bad <= _TIME_FIXABLE:
             # The kernel's exact retiming: the path kept, the smallest T in [t_min, t_max] at
             # which every time-dependent limit holds.
@@ -524,17 +690,241 @@ class PinnPlanner:
             if res[0, COL_TOTAL] <= 0.0:
                 r = retimed[0].tolist()
                 return (r[0], r[1], r[2]), r[3], PlanStatus.TIME_SCALED
-        if self.refine:
+        if tried is None and self.fast_repair:
+            tried = self._fast_repair(problem.dig_type, ev, None)
+            if tried == _Repair.DONE:
+                r = self._retimed_row.tolist()
+                return (r[0], r[1], r[2]), r[3], PlanStatus.REPAIRED
+        refine = self.refine and (tried != _Repair.NO_PATH or self.refine_no_path)
+        if refine:
             refined = self._refine(problem, a6, T)
             if refined is not None:
                 return refined[0], refined[1], PlanStatus.REFINED
-        worst = int(np.argmax(out[: len(CONSTRAINT_NAMES)]))
+        worst = max(range(len(CONSTRAINT_NAMES)), key=ev.__getitem__)
+        how = [f"time scaling within T <= {planning.t_max_s:g} s"]
+        if tried == _Repair.NO_PATH:
+            how.append("fast repair: no path within the path-only limits near the network's")
+        elif tried == _Repair.UNTIMED:
+            how.append("fast repair: its path cannot be timed")
+        if refine:
+            how.append("local refinement")
         raise PlanningError(
             f"refused: the {problem.dig_type.name.lower()} plan violates {CONSTRAINT_NAMES[worst]} "
-            f"by {out[worst]:.4g} (normalised; <= 0 allowed) and could not be repaired "
-            f"(time scaling within T <= {planning.t_max_s:g} s"
-            f"{', local refinement' if self.refine else ''}); nothing was planned"
+            f"by {ev[worst]:.4g} (normalised; <= 0 allowed) and could not be repaired "
+            f"({'; '.join(how)}); nothing was planned"
         )
+
+    def _fast_repair(
+        self, kind: DigType, ev: list[float], c_range: tuple[float, float] | None
+    ) -> _Repair:
+        """Repair the direction of the network's path (``self._row``) in closed form and plan it.
+
+        Module docstring, step 5: clamp each violating joint's K_i into its range's interval,
+        project K onto the theta_p half-spaces, and where V_min fails, step to the nearest point
+        of the linearised V_min (with one chord correction); at most
+        :data:`FAST_REPAIR_CALLS` kernel calls, no allocation of arrays beyond the joint
+        intervals'.
+
+        Args:
+            kind: The dig type.
+            ev: The verifier's output row for the network's path (``N_OUT`` floats; its
+                path-only values are used, its time-dependent ones only to find the joint that
+                sets T).
+            c_range: The fill's range of the final :meth:`Verifier.plan_into`; None: retime
+                only (:meth:`Verifier.retime_into`), as with ``retime=False``.
+
+        Returns:
+            The outcome; for :attr:`_Repair.DONE` ``self._retimed`` holds the verified plan,
+            ``self._out`` its evaluation and ``self._scale`` its fill scale (1.0 for a
+            retiming).
+        """
+        path_ok = max(ev[0:6]) <= 0.0 and max(ev[16:20]) <= 0.0
+        if path_ok or ev[_VOLUME_MAX] > 0.0:
+            return _Repair.SKIPPED  # only time-dependent limits fail (retiming's case), or V_max
+        src = self._row[0].tolist()
+        T = src[11]
+        t6 = T**6
+        K = [-src[8] * t6, -src[9] * t6, -src[10] * t6]
+        if not (T > 0.0 and math.isfinite(K[0] + K[1] + K[2])):
+            return _Repair.SKIPPED
+        D = [src[3] - src[0], src[4] - src[1], src[5] - src[2]]
+        span = self._fr_span
+        # Metric of the nearest point: K_i in units of its joint's range; fixed joints weigh 0.
+        w = [span[0] * span[0], span[1] * span[1], span[2] * span[2]]
+        # 1. Joint ranges: q_min <= qs + D q(s) + K p(s) <= q_max at every sample with p > 0,
+        # an interval of K_j; the violated end clamps K_j (the other end is left to the checks).
+        clamped = False
+        for j in range(3):
+            low = ev[j] > 0.0
+            if low or ev[3 + j] > 0.0:
+                m = _REPAIR_JOINT_MARGIN * span[j]
+                v = self._fr_v
+                v[1] = D[j]
+                if low:
+                    v[0] = self._fr_qmin[j] + m - src[j]
+                    K[j] = max(K[j], float(self._fr_basis.dot(v).max()))
+                else:
+                    v[0] = self._fr_qmax[j] - m - src[j]
+                    K[j] = min(K[j], float(self._fr_basis.dot(v).min()))
+                w[j] = 0.0
+                clamped = True
+        # The joint that sets T: the largest time factor squared (velocity ~ 1/T, the others
+        # ~ 1/T^2); it moves least.
+        f0 = max((1.0 + ev[6]) ** 2, 1.0 + ev[9], 1.0 + ev[12])
+        f1 = max((1.0 + ev[7]) ** 2, 1.0 + ev[10], 1.0 + ev[13])
+        f2 = max((1.0 + ev[8]) ** 2, 1.0 + ev[11], 1.0 + ev[14])
+        binding = 0 if f0 >= f1 and f0 >= f2 else (1 if f1 >= f2 else 2)
+        w[binding] *= _REPAIR_BINDING_WEIGHT
+        # 2. theta_p: half-spaces of K for a dig that starts on the surface.
+        cons = self._theta_p_halfspaces(kind, src, D, K)
+        if cons is None:
+            if ev[_THETA_P[0]] > 0.0 or ev[_THETA_P[1]] > 0.0:
+                return _Repair.SKIPPED  # theta_p of a dig that enters later: not linear in K
+            cons = []
+        elif cons:
+            K_new = _nearest(K, w, cons)
+            if K_new is None:
+                return _Repair.NO_PATH
+            K = K_new
+        fr = self._fr_in
+        fr[:] = self._row[0]
+        o = self._fr_evaluate(K, t6)
+        g: list[float] | None = None
+        if max(o[0:6]) > 0.0 or max(o[16:20]) > 0.0:
+            # 3. V_min: linearised by a secant per free joint (at most two: with three, the one
+            # that sets T stays), over about the distance the repair moves.
+            if max(o[0:6]) > 0.0 or max(o[16:18]) > 0.0 or o[_VOLUME_MAX] > 0.0:
+                return _Repair.NO_PATH
+            if w[0] > 0.0 and w[1] > 0.0 and w[2] > 0.0:
+                w[binding] = 0.0
+            # The secants on a coarse grid: ~0.15x the cost of an evaluation; its bias in V_p
+            # (~0.1 of the V range at 11 samples, smooth in K) cancels in the differences.
+            g = [0.0, 0.0, 0.0]
+            base = None
+            for j in range(3):
+                if w[j] > 0.0:
+                    if base is None:
+                        base = self._fr_evaluate_coarse(K, t6)
+                    h = _REPAIR_GRADIENT_STEP * span[j]
+                    K_h = K.copy()
+                    K_h[j] += h
+                    g[j] = (self._fr_evaluate_coarse(K_h, t6) - base) / h
+            K_new = self._volume_step(K, w, g, o[_VOLUME_MIN], cons)
+            if K_new is None:
+                return _Repair.NO_PATH
+            K = K_new
+        # 4. The kernel's fill and retiming of the repaired path, verified as on the normal
+        # path. A clamped joint's limit caps the fill at c ~ 1 anyway: retiming alone is the
+        # same plan, 7 us cheaper.
+        fill = None if clamped else c_range
+        if self._fr_plan(K, t6, fill):
+            return _Repair.DONE
+        # The failed plan reports the repaired path itself (scale 1): its path-only values
+        # are K's.
+        o = self._out_row.tolist()
+        if max(o[0:6]) <= 0.0 and max(o[16:20]) <= 0.0:
+            return _Repair.UNTIMED  # a path that meets every path-only limit, but no T times it
+        if g is None or max(o[0:6]) > 0.0 or max(o[16:18]) > 0.0 or o[_VOLUME_MAX] > 0.0:
+            return _Repair.NO_PATH
+        # One chord correction with the same secants, where V_min alone still fails.
+        K_new = self._volume_step(K, w, g, o[_VOLUME_MIN], cons)
+        if K_new is None:
+            return _Repair.NO_PATH
+        if self._fr_plan(K_new, t6, fill):
+            return _Repair.DONE
+        o = self._out_row.tolist()
+        if max(o[0:6]) <= 0.0 and max(o[16:20]) <= 0.0:
+            return _Repair.UNTIMED
+        return _Repair.NO_PATH
+
+    @staticmethod
+    def _volume_step(
+        K: list[float],
+        w: list[float],
+        g: list[float],
+        v: float,
+        cons: list[tuple[list[float], float]],
+    ) -> list[float] | None:
+        """The point nearest K where the linearised volume_min value ``v + g . (K' - K)`` is
+        the repair's margin below 0 and the half-spaces ``cons`` hold (None if none)."""
+        b = -_REPAIR_VOLUME_MARGIN - v + (g[0] * K[0] + g[1] * K[1] + g[2] * K[2])
+        return _nearest(K, w, [(g, b), *cons])
+
+    def _fr_plan(self, K: list[float], t6: float, c_range: tuple[float, float] | None) -> bool:
+        """Fill (``c_range``) and retime, or retime only (None), the scratch row with shape
+        term K into ``self._out``, ``self._retimed``, ``self._scale``; whether it verified."""
+        fr = self._fr_in
+        fr[8] = -K[0] / t6
+        fr[9] = -K[1] / t6
+        fr[10] = -K[2] / t6
+        if c_range is None:
+            self._retime_rows(self._fr_row, self._out, self._retimed, None)
+            self._scale[0] = 1.0
+        else:
+            self._plan_rows(
+                self._fr_row, self._out, self._retimed, c_range[0], c_range[1], None, self._scale
+            )
+        return bool(self._out_row[COL_TOTAL] <= 0.0)
+
+    def _fr_evaluate_coarse(self, K: list[float], t6: float) -> float:
+        """volume_min's value for the scratch row with shape term K on the coarse grid."""
+        fr = self._fr_in
+        fr[8] = -K[0] / t6
+        fr[9] = -K[1] / t6
+        fr[10] = -K[2] / t6
+        self._coarse_rows(self._fr_row, self._fr_out, None)
+        return float(self._fr_out_row[_VOLUME_MIN])
+
+    def _fr_evaluate(self, K: list[float], t6: float) -> list[float]:
+        """The verifier's output row for the scratch row with shape term K (path-only values
+        matter: T is the network's)."""
+        fr = self._fr_in
+        fr[8] = -K[0] / t6
+        fr[9] = -K[1] / t6
+        fr[10] = -K[2] / t6
+        self._eval_rows(self._fr_row, self._fr_out, None)
+        result: list[float] = self._fr_out[0].tolist()
+        return result
+
+    def _theta_p_halfspaces(
+        self, kind: DigType, src: list[float], D: list[float], K: list[float]
+    ) -> list[tuple[list[float], float]] | None:
+        """theta_p's limits (with the repair's margin) as half-spaces ``a . K <= b``; None when
+        the dig does not start on the surface (theta_p then depends on where the path enters,
+        not linearly on K) or enters straight down.
+
+        Where the dig starts on the surface (within 1 mm, as :func:`oneshot.evaluate`), the tip
+        enters along ``e = J(q0) (10 D + K)`` and theta_p = atan2(-e_y, |e_x|); with the sign of
+        e_x kept, ``theta_p <= h`` is ``-e_y <= |e_x| tan h``, linear in K.
+        """
+        phi0 = src[0]
+        phi1 = phi0 + src[1]
+        phi2 = phi1 + src[2]
+        s0, s1, s2 = math.sin(phi0), math.sin(phi1), math.sin(phi2)
+        l0, l1, l2 = self._fr_len
+        if not (s0 * l0 + s1 * l1) + s2 * l2 <= src[6] + 1e-3:
+            return None
+        v2 = -s2 * l2
+        v1 = v2 - s1 * l1
+        v0 = v1 - s0 * l0
+        u2 = math.cos(phi2) * l2
+        u1 = u2 + math.cos(phi1) * l1
+        u0 = u1 + math.cos(phi0) * l0
+        W0, W1, W2 = 10.0 * D[0] + K[0], 10.0 * D[1] + K[1], 10.0 * D[2] + K[2]
+        ex = v0 * W0 + v1 * W1 + v2 * W2
+        if ex == 0.0:
+            return None
+        sig = 1.0 if ex > 0.0 else -1.0
+        lo, hi, m = self._fr_tp[kind]
+        cons: list[tuple[list[float], float]] = []
+        # theta_p <= hi - m: -(sy + sig tan sx) . W <= 0; theta_p >= lo + m: the opposite.
+        # theta_p lies in [-90, 90] deg: a limit there is none.
+        for limit, bound, side in ((hi, hi - m, -1.0), (lo, lo + m, 1.0)):
+            if abs(limit) < 0.5 * math.pi:
+                t = sig * math.tan(bound)
+                a = [side * (u0 + t * v0), side * (u1 + t * v1), side * (u2 + t * v2)]
+                cons.append((a, -10.0 * (a[0] * D[0] + a[1] * D[1] + a[2] * D[2])))
+        return cons
 
     def _refine(
         self, problem: Problem, a6: tuple[float, float, float], T: float

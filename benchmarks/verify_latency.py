@@ -11,9 +11,11 @@ rows, and on random particles. Planning (the volume-filling path scale, then ret
 at N = 1 on network-like rows: PSO plans with their bulge scaled per joint by a seeded factor
 around 0.8 (log-normal, sigma 0.15) and T 10 % longer, what an imprecise network gives, next to
 retiming the same rows; ``plan_outcomes`` says how many of them plan feasibly against retiming
-alone, fill the volume cap, or take the back-off. It also times the C call on a row the kernel
-rejects before any arithmetic (T < 0): that is the per-call overhead (argument parsing, buffer
-checks, the Python method).
+alone, fill the volume cap, or take the back-off. ``pinn_plan`` times planning on the PINN's own
+answers to its held-out problems (``--models``, default the shipped ``onnx/``): per row the
+least time over ``--pinn-reps`` passes, summarised by outcome (filled, backed off, own path,
+failed). It also times the C call on a row the kernel rejects before any arithmetic (T < 0):
+that is the per-call overhead (argument parsing, buffer checks, the Python method).
 
 Candidates are random particles of the PSO search box on sampled problems of both dig types,
 cycled through so that the branch predictor does not learn one path. The garbage collector is
@@ -163,10 +165,13 @@ def time_calls(
     return times
 
 
-def plan_outcomes(verifier: verify.Verifier, rows: np.ndarray) -> dict[str, int]:
-    """What plan_into does with ``rows``: feasible counts against retiming alone, how many fill
-    the volume cap, take the back-off (feasible and scaled, yet a 0.2 % larger bulge still
-    passes every path-only limit: a time-dependent limit decided) or report the own path."""
+def plan_classes(verifier: verify.Verifier, rows: np.ndarray) -> dict[str, np.ndarray]:
+    """What plan_into does with each of ``rows`` (boolean masks): ``filled`` (feasible, the
+    path scaled, no time-dependent limit decided), ``backed_off`` (feasible and scaled, yet a
+    0.2 % larger bulge still passes every path-only limit: a time-dependent limit decided,
+    the back-off's rows), ``own_path`` (feasible, the row's own path), ``failed`` (nothing
+    feasible: step 4), plus ``at_volume_cap`` and ``feasible_retime_only`` (the own path
+    retimed is feasible)."""
     n = rows.shape[0]
     out, planned, scale = np.empty((n, verify.N_OUT)), np.empty((n, 4)), np.empty(n)
     verifier.plan_into(rows, out, planned, verify.PLAN_C_RANGE, None, scale)
@@ -181,14 +186,98 @@ def plan_outcomes(verifier: verify.Verifier, rows: np.ndarray) -> dict[str, int]
     slack = np.max(path_out[:, [*range(6), 16, 17, 18, 19]], axis=1) < 0.0
     v_span = planning.volume_max_m3 - planning.volume_min_m3
     capped = out[:, verify.COL_VOLUME_M3] >= planning.volume_max_m3 - verify.PLAN_TOL * v_span
+    scaled = scale != 1.0
     return {
-        "rows": n,
-        "feasible": int(np.sum(ok)),
-        "feasible_retime_only": int(np.sum(own[:, verify.COL_TOTAL] <= 0.0)),
-        "at_volume_cap": int(np.sum(ok & capped)),
-        "backed_off": int(np.sum(ok & slack & (scale != 1.0))),
-        "own_path_reported": int(np.sum(scale == 1.0)),
+        "filled": ok & scaled & ~slack,
+        "backed_off": ok & scaled & slack,
+        "own_path": ok & ~scaled,
+        "failed": ~ok,
+        "at_volume_cap": ok & capped,
+        "feasible_retime_only": own[:, verify.COL_TOTAL] <= 0.0,
     }
+
+
+def plan_outcomes(verifier: verify.Verifier, rows: np.ndarray) -> dict[str, int]:
+    """Counts of :func:`plan_classes`: feasible against retiming alone, how many fill the volume
+    cap, take the back-off or report the own path."""
+    cls = plan_classes(verifier, rows)
+    return {
+        "rows": int(rows.shape[0]),
+        "feasible": int(rows.shape[0] - np.sum(cls["failed"])),
+        "feasible_retime_only": int(np.sum(cls["feasible_retime_only"])),
+        "at_volume_cap": int(np.sum(cls["at_volume_cap"])),
+        "backed_off": int(np.sum(cls["backed_off"])),
+        "own_path_reported": int(np.sum(cls["own_path"] | cls["failed"])),
+    }
+
+
+def pinn_rows(rig_name: str, model_dir: str | None) -> np.ndarray | None:
+    """The PINN's answers on its held-out problems (both dig types) as input rows: what
+    :meth:`rt_runtime.planning.pinn.PinnPlanner.plan` hands to plan_into. None when the model
+    directory has no held-out sets."""
+    from pathlib import Path
+
+    from rt_runtime.bench import load_heldout
+    from rt_runtime.errors import ConfigurationError
+    from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR, PinnPlanner
+
+    directory = Path(model_dir) if model_dir is not None else DEFAULT_MODEL_DIR
+    try:
+        planner = PinnPlanner(load_rig(rig_name), directory)
+        rows = []
+        for kind in DigType:
+            X = load_heldout(directory / f"pinn_{kind.name.lower()}_heldout.npz")["X"]
+            Y = planner.infer(kind, X)
+            for x, y in zip(X, Y, strict=True):
+                rows.append(verify.pack_inputs(x[0:3], x[3:6], float(x[6]), kind, y[0:3],
+                                               float(y[3]))[0])
+    except ConfigurationError:
+        return None
+    return np.ascontiguousarray(np.array(rows))
+
+
+def per_row_plan_us(verifier: verify.Verifier, rows: np.ndarray, reps: int) -> np.ndarray:
+    """Per row, the least wall time (us) of one plan_into call over ``reps`` passes through all
+    rows (a row's cost without the machine's noise; the passes keep the caches as cold as a
+    planner's between digs)."""
+    out, planned, scale = np.empty((1, verify.N_OUT)), np.empty((1, 4)), np.empty(1)
+    sets = [np.ascontiguousarray(rows[i : i + 1]) for i in range(rows.shape[0])]
+    best = np.full(rows.shape[0], np.inf)
+    run_plan = verifier.plan_into
+    c_range = verify.PLAN_C_RANGE
+    clock = time.perf_counter_ns
+    gc.disable()
+    try:
+        for _ in range(reps):
+            for i, s in enumerate(sets):
+                t0 = clock()
+                run_plan(s, out, planned, c_range, None, scale)
+                t1 = clock()
+                best[i] = min(best[i], (t1 - t0) / 1e3)
+    finally:
+        gc.enable()
+    return best
+
+
+def pinn_plan_report(verifier: verify.Verifier, rows: np.ndarray, reps: int) -> dict[str, object]:
+    """plan_into on the PINN's held-out answers: per class of :func:`plan_classes`, the rows
+    and the p50/p90/max of their per-row least times; all rows' p50/p99."""
+    us = per_row_plan_us(verifier, rows, reps)
+    cls = plan_classes(verifier, rows)
+    report: dict[str, object] = {
+        "rows": int(rows.shape[0]),
+        "reps": reps,
+        "all_p50_us": round(float(np.percentile(us, 50)), 2),
+        "all_p99_us": round(float(np.percentile(us, 99)), 2),
+    }
+    for name in ("filled", "backed_off", "own_path", "failed"):
+        m = cls[name]
+        if np.any(m):
+            p50, p90 = np.percentile(us[m], [50, 90])
+            report[name] = {"rows": int(np.sum(m)), "p50_us": round(float(p50), 2),
+                            "p90_us": round(float(p90), 2),
+                            "max_us": round(float(us[m].max()), 2)}
+    return report
 
 
 def summary(times_ns: np.ndarray, batch: int) -> dict[str, float | int]:
@@ -217,6 +306,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 32])
     parser.add_argument("--path", action="store_true", help="also write the tip path")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--models", default=None,
+                        help="PINN model directory for the held-out plan case (default: the "
+                        "shipped onnx/)")
+    parser.add_argument("--pinn-reps", type=int, default=20,
+                        help="passes over the PINN's held-out rows (per-row least time)")
     args = parser.parse_args(argv)
 
     rig = load_rig(args.rig)
@@ -266,6 +360,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             cases.append({"backend": verifier.backend, "case": name, **summary(times, 1)})
     c_verifier = verify.Verifier(rig, args.n_samples, backend="c")
     report["plan_outcomes"] = plan_outcomes(c_verifier, net)
+    # Planning the PINN's own answers on its held-out problems, per row and by outcome.
+    held = pinn_rows(args.rig, args.models) if args.n_samples == oneshot.DEFAULT_SAMPLES else None
+    if held is not None:
+        report["pinn_plan"] = pinn_plan_report(c_verifier, held, args.pinn_reps)
     rejected = rows[:1].copy()
     rejected[0, verify.IN_T] = -1.0
     overhead = summary(time_calls(c_verifier, rejected, 1, args.calls, args.path), 1)

@@ -832,7 +832,8 @@ def plan_set() -> dict[str, tuple[np.ndarray, ...]]:
 
 def test_plan_c_equals_the_numpy_reference(plan_set: dict[str, tuple[np.ndarray, ...]]) -> None:
     """Same feasibility; where the cap binds the same volume within PLAN_TOL; where the
-    back-off decides (the kernel bisects 4 times, the reference 8) close volumes."""
+    back-off decides (the kernel's root search to 1e-3 in c, the reference's 8 bisections)
+    close volumes."""
     (x,) = plan_set["x"]
     out_c, pl_c, sc_c = plan_set["c"]
     out_n, pl_n, sc_n = plan_set["numpy"]
@@ -865,6 +866,63 @@ def test_plan_c_equals_the_numpy_reference(plan_set: dict[str, tuple[np.ndarray,
     backed_off = ok_c & (vol_c < V_MAX - 0.01 * V_SPAN) & slack & (sc_c != 1.0)
     assert np.sum(capped) >= 15 and np.sum(backed_off) >= 3 and np.sum(~ok_c) >= 2
     assert np.sum(ok_c & (sc_c < 1.0)) >= 5 and np.sum(ok_c & (sc_c > 1.0)) >= 5
+
+
+def test_plan_backs_off_to_the_boundary(plan_set: dict[str, tuple[np.ndarray, ...]]) -> None:
+    """Where the retime of c* fails on a time-dependent limit, the kernel's back-off lands
+    within 1e-3 in c of where the retiming stops finding a time (a bulge 0.3 % larger cannot
+    be timed), and where the reference's bisection lands (8 halvings of its bracket)."""
+    (x,) = plan_set["x"]
+    out_c, _, sc_c = plan_set["c"]
+    _, _, sc_n = plan_set["numpy"]
+    verifier = Verifier(SCALE, backend="c")
+    ok = out_c[:, COL_TOTAL] <= 0.0
+    slack = _path_violation(verifier, _scaled(x, sc_c * 1.003)) < 0.0
+    backed_off = (ok & (out_c[:, COL_VOLUME_M3] < V_MAX - 0.01 * V_SPAN) & slack
+                  & (sc_c != 1.0) & (sc_c < PLAN_C_RANGE[1]))
+    assert np.sum(backed_off) >= 5
+    beyond, _ = _retime(verifier, _scaled(x[backed_off], sc_c[backed_off] * 1.003))
+    assert np.all(beyond[:, COL_TOTAL] > 0.0), "the back-off stopped short of the boundary"
+    np.testing.assert_allclose(sc_c[backed_off], sc_n[backed_off], rtol=3e-3)
+
+
+# A network answer (a candidate model's, held-out problem) whose retimed T rises from 6.5 s to
+# 9.8 s over the last 0.3 % of c before the retiming stops finding a time: a torque bound
+# pushes T above the acceleration bound there.
+_STEEP_T_ROW = (
+    0.12159470704598468, -0.9065310971238985, -1.0918591192622462, -0.06322975502906886,
+    -0.764982117491176, -2.085584627217118, -0.36739476123660764, 0.0,
+    0.00011385644029360265, 0.0002175837435061112, 5.189147486817092e-05, 6.665980815887451,
+)
+
+
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_plan_back_off_avoids_a_steeply_rising_time(backend: str) -> None:
+    """The back-off's largest c would take T = 9.8 s (objective ~0.96); where a torque bound has
+    raised T like that, the scale where it started rising is tried too and the better one in T
+    and V_p kept (objective ~0.63)."""
+    x = np.array([_STEEP_T_ROW])
+    out, _, scale = _plan(Verifier(SCALE, backend=backend), x)
+    assert out[0, COL_TOTAL] <= 0.0
+    assert out[0, COL_T_S] < 7.0 and out[0, COL_OBJECTIVE] < 0.64, (scale[0], out[0, COL_T_S])
+    # The largest c whose retiming finds a time lies above it, at a far longer T.
+    verifier = Verifier(SCALE, backend="c")
+    beyond, _ = _retime(verifier, _scaled(x, np.array([1.0401])))
+    assert beyond[0, COL_TOTAL] <= 0.0 and beyond[0, COL_T_S] > 9.0
+
+
+def test_plan_batch_equals_single_rows(plan_set: dict[str, tuple[np.ndarray, ...]]) -> None:
+    """The kernel's per-row scratch carries nothing from one row to the next: each row of the
+    plan set (capped, backed-off and failed rows) planned alone gives the batch's bits."""
+    (x,) = plan_set["x"]
+    verifier = Verifier(SCALE, backend="c")
+    got = [np.empty((x.shape[0], N_OUT)), np.empty((x.shape[0], N_RETIMED)),
+           np.empty(x.shape[0])]
+    for i in range(x.shape[0]):
+        verifier.plan_into(x[i : i + 1], got[0][i : i + 1], got[1][i : i + 1], PLAN_C_RANGE,
+                           None, got[2][i : i + 1])
+    for g, want in zip(got, plan_set["c"], strict=True):
+        np.testing.assert_array_equal(g, want)
 
 
 @pytest.mark.parametrize("backend", ["c", "numpy"])
@@ -929,22 +987,48 @@ def test_plan_keeps_the_path_direction(backend: str) -> None:
 
 
 @pytest.mark.parametrize("backend", ["c", "numpy"])
-def test_plan_where_nothing_works(backend: str) -> None:
-    """No scale passes the path constraints, no bulge, c_range (1, 1): the row's own path
-    retimed, exactly what retime_into gives, and scale 1."""
+def test_plan_where_nothing_works(
+    backend: str, plan_set: dict[str, tuple[np.ndarray, ...]]
+) -> None:
+    """No scale passes the path constraints, no bulge, c_range (1, 1): the row's own path and
+    scale 1; where it breaks a path-only limit (no T fixes that), the row itself as
+    evaluate_into gives it, else retimed exactly as retime_into gives it."""
     verifier = Verifier(SCALE, backend=backend)
     x = _candidates(SCALE, 1, seed=101)[:4]
     never_enters = x.copy()
     never_enters[:, 6] -= 1.0  # the surface a metre down: no path reaches it (theta_p -90 deg)
     quintic = x.copy()
     quintic[:, 8:11] = 0.0
-    for rows, c_range in ((never_enters, PLAN_C_RANGE), (quintic, PLAN_C_RANGE), (x, (1.0, 1.0))):
+    (net,) = plan_set["x"]
+    own_path_ok = net[_path_violation(Verifier(SCALE, backend="c"), net) < 0.0][:3]
+    kinds = [0, 0]  # rows reported as evaluated, as retimed
+    for rows, c_range in (
+        (never_enters, PLAN_C_RANGE),
+        (quintic, PLAN_C_RANGE),
+        (x, (1.0, 1.0)),
+        (own_path_ok, (1.0, 1.0)),
+    ):
         out, planned, scale = _plan(verifier, rows, c_range)
         own_out, own_rt = _retime(verifier, rows)
+        ev = np.empty_like(out)
+        verifier.evaluate_into(rows, ev)
+        with np.errstate(invalid="ignore"):
+            broken = ~(np.max(ev[:, PATH_ONLY], axis=1) <= 0.0)
         np.testing.assert_array_equal(scale, 1.0)
-        np.testing.assert_array_equal(out, own_out)
-        np.testing.assert_array_equal(planned, own_rt)
-    assert np.all(out[:, COL_TOTAL] >= 0.0)
+        np.testing.assert_array_equal(out[broken], ev[broken])
+        np.testing.assert_array_equal(planned[broken, RT_A6 : RT_A6 + 3], rows[broken, 8:11])
+        np.testing.assert_array_equal(planned[broken, RT_T_S], rows[broken, 11])
+        np.testing.assert_array_equal(out[~broken], own_out[~broken])
+        np.testing.assert_array_equal(planned[~broken], own_rt[~broken])
+        # The path-only values are the own path's either way.
+        np.testing.assert_allclose(out[:, PATH_ONLY], own_out[:, PATH_ONLY], rtol=1e-9,
+                                   atol=1e-12)
+        assert np.all(out[:, COL_TOTAL] >= 0.0)
+        if rows is never_enters:
+            assert np.all(broken)
+        kinds[0] += int(np.sum(broken))
+        kinds[1] += int(np.sum(~broken))
+    assert kinds[0] >= 4 and kinds[1] >= 3, kinds
 
 
 @pytest.mark.parametrize("backend", ["c", "numpy"])

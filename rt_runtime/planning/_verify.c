@@ -34,7 +34,7 @@
 /* ---------------------------------------------------------------------------------------------
  * Layouts shared with verify.py (bump VK_ABI on any change: verify.py refuses a stale build).
  * ------------------------------------------------------------------------------------------- */
-#define VK_ABI 3
+#define VK_ABI 4
 
 enum vk_param {
     P_LEN = 0,           /* link lengths l0, l1, l2 (m) */
@@ -625,9 +625,14 @@ static void vk_timed(const double *p, const double *c, int m, const double *qd_p
 
 /* Closed-form range [*lo, *hi] of T within [t_min, t_max] outside which velocity,
  * acceleration or the torque of a sample with r = 1 on the whole range fails (limits times
- * 1 - VK_RT_MARGIN). Returns 0 when that range is empty. */
+ * 1 - VK_RT_MARGIN). Returns 0 when that range is empty. *window (unless NULL): the width of
+ * the range in u = 1/T^2 that the velocity, acceleration and t_min bounds (from above) and the
+ * torque bounds leave, not cut at u = 1/t_max^2 or 0 (1/s^2): > 0 where the closed-form bounds
+ * leave some T (t_max aside), < 0 where they crossed, and smooth in the path (the back-off's
+ * root search runs on it). bind (unless NULL): the samples that set the window's torque ends,
+ * the largest lower and the least upper bound of u (-1 where none). */
 static int vk_bounds(const double *p, const double *c, int m, const double *qd_pk,
-                     const double *qdd_pk, double *lo, double *hi)
+                     const double *qdd_pk, double *lo, double *hi, double *window, int *bind)
 {
     const double lim = 1.0 - VK_RT_MARGIN;
     double t_lo = p[P_TIME], t_hi = p[P_TIME + 1];
@@ -638,23 +643,38 @@ static int vk_bounds(const double *p, const double *c, int m, const double *qd_p
     /* Torque: |A u + B| <= tau_max is an interval of u = 1/T^2 per sample and joint. */
     const double sp_fast = p[P_SPEED_REG] * p[P_TIME + 1];
     const double *SP = c + C_SP * m;
-    double u_lo = 0.0, u_hi = INFINITY;
+    double u_lo = 0.0, u_hi = INFINITY, u_lo_raw = -INFINITY;
+    int i_lo = -1, i_hi = -1;
     for (int j = 0; j < 3; j++) {
         const double *A = c + (C_A + j) * m, *G = c + (C_G + j) * m, *F = c + (C_F + j) * m;
         const double tm = p[P_TAU_MAX + j] * lim;
         for (int i = 0; i < m; i++) {
             if (F[i] != 0.0 && SP[i] < sp_fast) continue; /* regularised somewhere: searched */
             const double a = A[i], b = G[i] + F[i];
+            double l, h;
             if (a > 0.0) {
-                u_lo = vk_max(u_lo, (-tm - b) / a);
-                u_hi = vk_min(u_hi, (tm - b) / a);
+                l = (-tm - b) / a;
+                h = (tm - b) / a;
             } else if (a < 0.0) {
-                u_lo = vk_max(u_lo, (tm - b) / a);
-                u_hi = vk_min(u_hi, (-tm - b) / a);
-            } else if (fabs(b) > tm) {
-                u_hi = -1.0;
+                l = (tm - b) / a;
+                h = (-tm - b) / a;
+            } else {
+                if (fabs(b) > tm) u_hi = -1.0;
+                continue;
             }
+            u_lo = vk_max(u_lo, l);
+            u_hi = vk_min(u_hi, h);
+            if (l > u_lo_raw) {
+                u_lo_raw = l;
+                i_lo = i;
+            }
+            if (h <= u_hi) i_hi = i;
         }
+    }
+    if (window != NULL) *window = vk_min(u_hi, 1.0 / (t_lo * t_lo)) - u_lo_raw;
+    if (bind != NULL) {
+        bind[0] = i_lo;
+        bind[1] = i_hi;
     }
     if (!(u_lo <= u_hi) || !(u_hi > 0.0)) return 0;
     if (u_hi < INFINITY) t_lo = vk_max(t_lo, 1.0 / sqrt(u_hi));
@@ -693,16 +713,19 @@ static double vk_boundary(const double *p, const double *c, int m, const double 
 }
 
 /* The retimed T of a prepared row; *found = 1 when the cache says every time-dependent
- * constraint holds there, else 0 and T is the candidate with the least cached violation. */
+ * constraint holds there, else 0 and T is the candidate with the least cached violation (with
+ * need_best 0, when only *found matters, the search for that candidate is skipped and T is
+ * NAN). *window, bind (unless NULL): vk_bounds' window and binding samples. */
 static double vk_retime_T(const double *p, const double *c, int m, const double *qd_pk,
-                          const double *qdd_pk, int *found)
+                          const double *qdd_pk, int *found, int need_best, double *window,
+                          int *bind)
 {
     const double threshold = 1.0 - 0.5 * VK_RT_MARGIN;
     const double t_min = p[P_TIME], t_max = p[P_TIME + 1];
     double lo = t_min, hi = t_max, ratio, total;
     double best_T = t_max, best_total = INFINITY;
     *found = 0;
-    if (vk_bounds(p, c, m, qd_pk, qdd_pk, &lo, &hi)) {
+    if (vk_bounds(p, c, m, qd_pk, qdd_pk, &lo, &hi, window, bind)) {
         vk_timed(p, c, m, qd_pk, qdd_pk, lo, &ratio, &total);
         if (ratio <= threshold) {
             *found = 1;
@@ -731,6 +754,7 @@ static double vk_retime_T(const double *p, const double *c, int m, const double 
             fa = ratio - threshold;
         }
     }
+    if (!need_best) return NAN;
     /* Nothing in range holds: the least violating of the points above and a geometric grid
      * from t_min to t_max (NaN totals never win; all NaN leaves t_max). */
     const double step = pow(t_max / t_min, 1.0 / VK_RT_SCAN);
@@ -794,7 +818,7 @@ static void vk_retime(const double *p, const double *s, int m, const double *in,
     }
     int found = 0;
     double T = p[P_TIME + 1];
-    if (status == 0) T = vk_retime_T(p, cache, m, qd_pk, qdd_pk, &found);
+    if (status == 0) T = vk_retime_T(p, cache, m, qd_pk, qdd_pk, &found, 1, NULL, NULL);
     vk_retime_finish(p, s, m, in, K, T, found, out, retimed, path);
 }
 
@@ -816,12 +840,15 @@ static void vk_retime(const double *p, const double *s, int m, const double *in,
  * (vk_retime).
  *
  * A larger bulge also needs more torque (soil and gravity, which no retiming reduces), so the
- * retime at c* can fail where a smaller c would not. Back-off: from the path-feasible scan
- * points of smaller V (the nearest in V, then the smallest), the first whose retiming search
- * finds a feasible T (vk_prepare + vk_retime_T, no evaluation) brackets the boundary with c*;
- * c = 1 replaces the start if it lies between it and c* and passes; VK_PL_BACKOFF bisection
- * steps close in on the boundary, and the last point that passes is retimed. If nothing
- * passes, the input's own path (c = 1) is retimed and reported.
+ * retime at c* can fail where a smaller c would not. Back-off (vk_plan_backoff): the largest
+ * c towards a path-feasible scan point of smaller V whose retiming search finds a feasible T
+ * (probes: vk_prepare + vk_retime_T, no evaluation), found by a root search on the closed-form
+ * bounds of that search (their window in 1/T^2 closes about linearly in c), first predicted
+ * from a few samples' dynamics (one probe on most rows), to within VK_PL_BACKOFF_TOL in c (where
+ * a torque bound pushes T up steeply near there, the scale where that starts competes); the
+ * answer's probe is evaluated (its search's T reused). If nothing passes, the input's
+ * own path (c = 1) is reported: retimed, or evaluated as it is where a path-only limit fails
+ * (no retiming can fix that: 7 us instead of 14).
  *
  * Cost: trig dominates. The absolute angles are phi = A + c B (B = cumulative K times p(s)),
  * so the scan takes sin and cos once at its first point and advances them by rotation, one
@@ -841,8 +868,14 @@ static void vk_retime(const double *p, const double *s, int m, const double *in,
  * ~1e-15, so the real evaluation at c* holds them. */
 #define VK_PL_MARGIN 1e-9
 #define VK_PL_ITER 40
-/* Bisection steps of the back-off (the bracket shrinks 16-fold: 0.012 in c from one step). */
+/* Back-off: at most VK_PL_BACKOFF probes between the bracket's ends (a root search on the
+ * retiming bounds' window, vk_plan_backoff), stopping once the bracket is VK_PL_BACKOFF_TOL
+ * wide in c (the objective changes ~0.3 per unit of c there: 3e-4 at the tolerance). */
 #define VK_PL_BACKOFF 4
+#define VK_PL_BACKOFF_TOL 1e-3
+/* ... and no closing-in probe once the back-off has made this many (shots, starts included):
+ * bounds its worst case (the old bisection's was 8 probes and a retime). */
+#define VK_PL_PROBES 5
 /* The scan runs on every VK_PL_STRIDE-th sample (26 of 101): it only picks the bracket, which
  * the full grid then judges and refines (vk_plan_scale_coarse). Off (VK_PL_COARSE 0) until the
  * lead decides: measured on the 400 held-out PINN rows it saves ~2 us per plan (p50 23.2 ->
@@ -1282,35 +1315,497 @@ static double vk_plan_scale_coarse(vk_pathscan *rf, vk_pathscan *rc, const doubl
     return c0;
 }
 
-/* Whether the retiming search finds a feasible T for the row's path scaled by c, whose trig
- * is given (no evaluation). */
-static int vk_time_found(const double *p, const double *s, int m, const double *in, double c,
-                         const double *trig, double *cache)
+/* A back-off probe: the row's path scaled by c, whose trig is given, prepared and searched for
+ * a time (vk_prepare + vk_retime_T without its least-violation search; no evaluation). Returns
+ * 1 when the search finds a feasible T: then *T is it and K the path's shape term, exactly what
+ * vk_retime computes for that row before vk_retime_finish. *window, bind: vk_bounds' window
+ * (NAN when the row cannot be prepared) and binding samples. */
+static int vk_backoff_probe(const double *p, const double *s, int m, const double *in, double c,
+                            const double *trig, double *cache, double *K, double *T,
+                            double *window, int *bind)
 {
-    double row[VK_N_IN], K[3], qd_pk[3], qdd_pk[3];
+    double row[VK_N_IN], qd_pk[3], qdd_pk[3];
     for (int j = 0; j < VK_N_IN; j++) row[j] = in[j];
     for (int j = 0; j < 3; j++) row[I_A6 + j] = c * in[I_A6 + j];
+    *window = NAN;
+    bind[0] = bind[1] = -1;
     if (vk_prepare(p, s, m, row, K, trig, cache, qd_pk, qdd_pk) != 0) return 0;
     int found = 0;
-    vk_retime_T(p, cache, m, qd_pk, qdd_pk, &found);
+    *T = vk_retime_T(p, cache, m, qd_pk, qdd_pk, &found, 0, window, bind);
     return found;
 }
 
+/* A passing back-off probe: its scale, retimed T, shape term, window, V_p, the part of the
+ * objective (Yao eq 11) that T and V_p make (vk_probe_j) and the samples that bind its window. */
+typedef struct {
+    double c, T, K[3], w, v, j;
+    int bind[2];
+} vk_probe;
+
+/* How vk_backoff_try gets the probe's trig: computed and judged by vk_path_g, computed only
+ * (a path-feasible scan point), or already in r->buf[*pb]. */
+enum { VK_TRY_CHECK = 0, VK_TRY_TRIG = 1, VK_TRY_READY = 2 };
+
+/* lambda1 T_norm - lambda3 V_norm (eq 11 without its energy term and constants). */
+static double vk_probe_j(const double *p, double T, double v)
+{
+    return p[P_WEIGHTS] * (T - p[P_TIME]) / (p[P_TIME + 1] - p[P_TIME]) -
+           p[P_WEIGHTS + 2] * v / (p[P_VOL + 1] - p[P_VOL]);
+}
+
+/* One back-off probe at c (V_p v unless how is VK_TRY_CHECK, which computes it; *probes counts
+ * them): 1 when the path passes vk_path_g (unless known) and the retiming search finds a time;
+ * then *best is it,
+ * *least too if its vk_probe_j is less, and its trig moves to r->buf[*pk] (pb and pk swap).
+ * *w, bind: its window (NAN where the path fails or the row cannot be prepared) and binding
+ * samples (vk_bounds). */
+static int vk_backoff_try(vk_pathscan *r, const double *s, double *cache, int *probes, double c,
+                          int how, double v, int *pb, int *pk, vk_probe *best, vk_probe *least,
+                          double *w, int *bind)
+{
+    *w = NAN;
+    bind[0] = bind[1] = -1;
+    (*probes)++;
+    if (how != VK_TRY_READY) vk_path_trig(r, c, r->buf[*pb]);
+    if (how == VK_TRY_CHECK) {
+        double wv[4];
+        if (!(vk_path_g(r, c, r->buf[*pb], &v, wv) <= 0.0)) return 0;
+    }
+    vk_probe x;
+    x.c = c;
+    const int found = vk_backoff_probe(r->p, s, r->m, r->in, c, r->buf[*pb], cache, x.K, &x.T,
+                                       &x.w, bind);
+    *w = x.w;
+    if (found) {
+        x.v = v;
+        x.j = vk_probe_j(r->p, x.T, v);
+        x.bind[0] = bind[0];
+        x.bind[1] = bind[1];
+        *best = x;
+        if (!(least->j <= x.j)) *least = x;
+        const int t = *pb;
+        *pb = *pk;
+        *pk = t;
+    }
+    return found;
+}
+
+/* Whether a window value can steer the root search: finite and of the given sign. */
+static inline int vk_win_pos(double w) { return isfinite(w) && w > 0.0; }
+static inline int vk_win_neg(double w) { return isfinite(w) && w < 0.0; }
+
+/* Shots of the back-off (vk_plan_backoff, step 1), and the least distance of a shot from the
+ * failed end, as a fraction of the bracket. */
+#define VK_PL_SHOTS 2
+#define VK_PL_SHOT_NEAR 0.05
+/* A back-off answer's retimed T this far (relative) above its velocity and acceleration bound
+ * was raised by a torque bound (vk_plan_backoff). */
+#define VK_PL_RAISED 1e-3
+/* vk_local_fails' margin for rounding (1/s^2; u = 1/T^2 is ~0.01 to 0.04 here). */
+#define VK_LOCAL_SAFE 1e-12
+/* Steps of vk_local_bounds' climb from the last binding sample to the one that binds now. */
+#define VK_LOCAL_CLIMB 24
+
+/* vk_bounds' torque bounds of u = 1/T^2 at one sample of the row's path scaled by c (dynamics
+ * as vk_prepare computes them, at unit time): *l the largest lower bound over the joints, *h
+ * the least upper one (-inf and +inf for a sample in the soil slower than the regularisation
+ * at t_max, whose torque the retiming searches). */
+static void vk_local_sample(const vk_pathscan *r, const double *basis, const double *D,
+                            const double *Kc, double c, int i, double *l, double *h)
+{
+    const double *p = r->p;
+    const int m = r->m;
+    const double *Q1 = basis + 3 * m, *Q2 = basis + 4 * m, *P1 = basis + 5 * m,
+                 *P2 = basis + 6 * m;
+    const double lim = 1.0 - VK_RT_MARGIN;
+    const double l0 = p[P_LEN], l1 = p[P_LEN + 1], l2 = p[P_LEN + 2];
+    const double h0 = p[P_CH_H], h1 = p[P_CH_H + 1], h2 = p[P_CH_H + 2];
+    const double bb0 = p[P_CH_B], bb1 = p[P_CH_B + 1], bb2 = p[P_CH_B + 2];
+    const double dd0 = p[P_CH_D], dd1 = p[P_CH_D + 1], dd2 = p[P_CH_D + 2];
+    const double g = p[P_GRAVITY], k0b = p[P_K0B], mu = p[P_MU], H = r->H;
+    double qd[3], qdd[3], cp[3], sp[3];
+    for (int j = 0; j < 3; j++) {
+        qd[j] = D[j] * Q1[i] + Kc[j] * P1[i];
+        qdd[j] = D[j] * Q2[i] + Kc[j] * P2[i];
+        vk_sincos(r->A[j * m + i] + c * r->B[j * m + i], &sp[j], &cp[j]);
+    }
+    const double lc0 = cp[0] * l0, lc1 = cp[1] * l1, lc2 = cp[2] * l2;
+    const double ls0 = sp[0] * l0, ls1 = sp[1] * l1, ls2 = sp[2] * l2;
+    const double y = (ls0 + ls1) + ls2;
+    const double w0 = qd[0], w1 = w0 + qd[1], w2 = w1 + qd[2];
+    const double vx = -((ls0 * w0 + ls1 * w1) + ls2 * w2);
+    const double vy = (lc0 * w0 + lc1 * w1) + lc2 * w2;
+    const double c2r = cp[1] * cp[0] + sp[1] * sp[0], s2r = sp[1] * cp[0] - cp[1] * sp[0];
+    const double c3r = cp[2] * cp[1] + sp[2] * sp[1], s3r = sp[2] * cp[1] - cp[2] * sp[1];
+    const double c23 = cp[2] * cp[0] + sp[2] * sp[0], s23 = sp[2] * cp[0] - cp[2] * sp[0];
+    const double d01 = l0 * (h1 * c2r - bb1 * s2r), w01 = l0 * (bb1 * c2r + h1 * s2r);
+    const double d02 = l0 * (h2 * c23 - bb2 * s23), w02 = l0 * (bb2 * c23 + h2 * s23);
+    const double d12 = l1 * (h2 * c3r - bb2 * s3r), w12 = l1 * (bb2 * c3r + h2 * s3r);
+    const double ac0 = qdd[0], ac1 = ac0 + qdd[1], ac2 = ac1 + qdd[2];
+    const double ww0 = w0 * w0, ww1 = w1 * w1, ww2 = w2 * w2;
+    const double a0 = dd0 * ac0 + d01 * ac1 + d02 * ac2 - w01 * ww1 - w02 * ww2;
+    const double a1 = d01 * ac0 + dd1 * ac1 + d12 * ac2 + w01 * ww0 - w12 * ww2;
+    const double a2 = d02 * ac0 + d12 * ac1 + dd2 * ac2 + w02 * ww0 + w12 * ww1;
+    const double g0 = g * (h0 * cp[0] - bb0 * sp[0]);
+    const double g1 = g * (h1 * cp[1] - bb1 * sp[1]);
+    const double g2 = g * (h2 * cp[2] - bb2 * sp[2]);
+    const double speed = sqrt(vx * vx + vy * vy);
+    double f0 = 0.0, f1 = 0.0, f2 = 0.0;
+    const double depth = H - y;
+    if (depth > 0.0 && speed > 0.0) {
+        const double gain = k0b * depth / speed;
+        const double tx = gain * vx, ty = gain * vy;
+        const double side_mu = vx > 0.0 ? mu : -mu;
+        const double fx = -tx - side_mu * ty;
+        const double fy = -ty + side_mu * tx;
+        f0 = -(l0 * (cp[0] * fy - sp[0] * fx));
+        f1 = -(l1 * (cp[1] * fy - sp[1] * fx));
+        f2 = -(l2 * (cp[2] * fy - sp[2] * fx));
+    }
+    *l = -INFINITY;
+    *h = INFINITY;
+    if (depth > 0.0 && speed > 0.0 && speed < p[P_SPEED_REG] * p[P_TIME + 1]) return;
+    const double At[3] = {a0 + (a1 + a2), a1 + a2, a2};
+    const double Gt[3] = {g0 + (g1 + g2), g1 + g2, g2};
+    const double Ft[3] = {f0 + (f1 + f2), f1 + f2, f2};
+    for (int j = 0; j < 3; j++) {
+        const double tm = p[P_TAU_MAX + j] * lim, a = At[j], b = Gt[j] + Ft[j];
+        if (a > 0.0) {
+            *l = vk_max(*l, (-tm - b) / a);
+            *h = vk_min(*h, (tm - b) / a);
+        } else if (a < 0.0) {
+            *l = vk_max(*l, (tm - b) / a);
+            *h = vk_min(*h, (-tm - b) / a);
+        } else if (fabs(b) > tm) {
+            *h = -1.0;
+        }
+    }
+}
+
 /*
- * Back-off after the retime of the path at c_fail (V_p v_fail) failed: the largest-V scale
- * found whose path passes vk_path_g and whose retiming search finds a time, or NAN.
- * Start points, the first that passes brackets the boundary with the last that failed: the
- * path-feasible scan points of smaller V (the largest such V, then the least), then the path
- * boundary beyond the least (a smaller bulge is kinder to torque but may break volume_min or
- * theta_p). Then VK_PL_BACKOFF bisection steps.
- *   trig: out, its trig (in r->buf)
+ * vk_bounds' quantities of the row's path scaled by c, its torque ends from two samples only:
+ * from bind[0] (bind[1]), the climb over neighbouring samples to the local maximum of the
+ * lower (minimum of the upper) bound of u = 1/T^2, which moves a few samples as c changes;
+ * bind gets them. *u_lo, *u_hi: those bounds (-inf, +inf without a sample); *t_va: the bound
+ * of T from velocity, acceleration and t_min, from every sample (they are linear in c). Never
+ * tighter than vk_bounds' own, equal where the climbs end on the samples that bind it. ~1 us
+ * at 101 samples (no trig arrays, no cache): the back-off predicts with it.
+ *   basis: the kernel's (q, p, 1/p, q', q'', p', p'' on the grid); K: the row's shape term
  */
-static double vk_plan_backoff(vk_pathscan *r, const double *s, double *cache, double c_fail,
-                              double v_fail, const double **trig)
+static void vk_local_bounds(const vk_pathscan *r, const double *basis, const double *K,
+                            double c, int *bind, double *u_lo, double *u_hi, double *t_va)
 {
     const double *p = r->p, *in = r->in;
     const int m = r->m;
-    *trig = NULL;
+    const double *Q1 = basis + 3 * m, *Q2 = basis + 4 * m, *P1 = basis + 5 * m,
+                 *P2 = basis + 6 * m;
+    const double lim = 1.0 - VK_RT_MARGIN;
+    double D[3], Kc[3];
+    for (int j = 0; j < 3; j++) {
+        D[j] = in[I_Q_END + j] - in[I_Q_START + j];
+        Kc[j] = c * K[j];
+    }
+    /* Six independent running maxima in one pass (one chain each would wait on the last). */
+    double v0 = 0.0, v1 = 0.0, v2 = 0.0, a0 = 0.0, a1 = 0.0, a2 = 0.0;
+    for (int i = 0; i < m; i++) {
+        v0 = vk_max(v0, fabs(D[0] * Q1[i] + Kc[0] * P1[i]));
+        v1 = vk_max(v1, fabs(D[1] * Q1[i] + Kc[1] * P1[i]));
+        v2 = vk_max(v2, fabs(D[2] * Q1[i] + Kc[2] * P1[i]));
+        a0 = vk_max(a0, fabs(D[0] * Q2[i] + Kc[0] * P2[i]));
+        a1 = vk_max(a1, fabs(D[1] * Q2[i] + Kc[1] * P2[i]));
+        a2 = vk_max(a2, fabs(D[2] * Q2[i] + Kc[2] * P2[i]));
+    }
+    const double qd_pk[3] = {v0, v1, v2}, qdd_pk[3] = {a0, a1, a2};
+    double t_lo = p[P_TIME];
+    for (int j = 0; j < 3; j++) {
+        t_lo = vk_max(t_lo, qd_pk[j] / (p[P_QD_MAX + j] * lim));
+        t_lo = vk_max(t_lo, sqrt(qdd_pk[j] / (p[P_QDD_MAX + j] * lim)));
+    }
+    *t_va = t_lo;
+    double ends[2] = {-INFINITY, INFINITY}; /* u_lo, u_hi */
+    for (int e = 0; e < 2; e++) {
+        int i = bind[e];
+        if (i < 0 || i >= m) continue;
+        double l, h;
+        vk_local_sample(r, basis, D, Kc, c, i, &l, &h);
+        double v = e == 0 ? l : -h; /* climb to the largest v */
+        int dir = 0;
+        for (int step = 0; step < VK_LOCAL_CLIMB; step++) {
+            int moved = 0;
+            for (int d = -1; d <= 1 && !moved; d += 2) {
+                if (dir == -d || i + d < 0 || i + d >= m) continue;
+                vk_local_sample(r, basis, D, Kc, c, i + d, &l, &h);
+                const double vn = e == 0 ? l : -h;
+                if (vn > v) {
+                    v = vn;
+                    i += d;
+                    dir = d;
+                    moved = 1;
+                }
+            }
+            if (!moved) break;
+        }
+        bind[e] = i;
+        ends[e] = e == 0 ? v : -v;
+    }
+    *u_lo = ends[0];
+    *u_hi = ends[1];
+}
+
+/* What the back-off's predictions root-find, from vk_local_bounds: VK_LOCAL_WINDOW, vk_bounds'
+ * window (< 0: no T meets the closed-form bounds); VK_LOCAL_KINK, u_hi - 1/t_va^2 (< 0: the
+ * torque bound pushes T above the velocity and acceleration bound, and it rises steeply). */
+enum { VK_LOCAL_WINDOW = 0, VK_LOCAL_KINK = 1 };
+
+static double vk_local_value(const vk_pathscan *r, const double *basis, const double *K,
+                             double c, int *bind, int what)
+{
+    double u_lo, u_hi, t_va;
+    vk_local_bounds(r, basis, K, c, bind, &u_lo, &u_hi, &t_va);
+    const double u_va = 1.0 / (t_va * t_va);
+    return what == VK_LOCAL_KINK ? u_hi - u_va : vk_min(u_hi, u_va) - u_lo;
+}
+
+/*
+ * The back-off's prediction: Illinois on vk_local_value (what: VK_LOCAL_WINDOW or
+ * VK_LOCAL_KINK) over [c_ok, c_fail] (> 0 at c_ok, < 0 at c_fail) until the bracket or the
+ * step is 2e-4 in c (at most 8 steps);
+ * the scale where it crosses zero (NAN if it does not change sign), and *slope its slope there.
+ * bind: the binding samples at c_fail, updated as the climbs move them.
+ */
+static double vk_backoff_predict(const vk_pathscan *r, const double *basis, const double *K,
+                                 double c_ok, double c_fail, int *bind, double *slope, int what)
+{
+    double a = c_ok, b = c_fail;
+    double fb = vk_local_value(r, basis, K, b, bind, what);
+    int bind_ok[2] = {bind[0], bind[1]};
+    double fa = vk_local_value(r, basis, K, a, bind_ok, what);
+    if (!(vk_win_pos(fa) && vk_win_neg(fb))) return NAN;
+    double wa = fa, wb = fb, x_prev = NAN;
+    int side = 0;
+    for (int it = 0; it < 8 && fabs(b - a) > 2e-4; it++) {
+        double x = (a * fb - b * fa) / (fb - fa);
+        if (!(x > vk_min(a, b) && x < vk_max(a, b))) x = 0.5 * (a + b);
+        if (fabs(x - x_prev) < 2e-4) break; /* the steps settled */
+        x_prev = x;
+        const double fx = vk_local_value(r, basis, K, x, bind, what);
+        if (!isfinite(fx)) return NAN;
+        if (fx > 0.0) {
+            a = x;
+            wa = fa = fx;
+            if (side == -1) fb *= 0.5;
+            side = -1;
+        } else {
+            b = x;
+            wb = fb = fx;
+            if (side == 1) fa *= 0.5;
+            side = 1;
+        }
+    }
+    *slope = (wb - wa) / (b - a);
+    return (a * wb - b * wa) / (wb - wa);
+}
+
+/* Whether vk_local_bounds' window at c (climbs from bw) is below zero by more than rounding:
+ * then the full grid's is too (every sample set's window is at least the full grid's), the
+ * closed-form bounds leave no T and the retiming search cannot find one, so the probe is not
+ * needed. *w: that window. */
+static int vk_local_fails(const vk_pathscan *r, const double *basis, const double *K, double c,
+                          const int *bw, double *w)
+{
+    int bl[2] = {bw[0], bw[1]};
+    if (bl[0] < 0 && bl[1] < 0) return 0;
+    *w = vk_local_value(r, basis, K, c, bl, VK_LOCAL_WINDOW);
+    return *w < -VK_LOCAL_SAFE;
+}
+
+/*
+ * The back-off's search (vk_plan_backoff): the largest-V scale found whose path passes
+ * vk_path_g and whose retiming search finds a time, or NAN. Every answer is a probe whose
+ * search found a time on the full grid; the window (vk_bounds': the width of the range of
+ * u = 1/T^2 that the closed-form bounds leave, > 0 at every scale whose search finds a time,
+ * < 0 where the bounds crossed, and close to linear in c: as the bulge grows, measured, the
+ * boom's torque needs an ever shorter T against the accelerations' ever longer one) only steers.
+ *
+ * 1. Shots (at most VK_PL_SHOTS): where the window failed at the failed end b (c_fail at
+ *    first), the samples that bind it there give vk_local_bounds, whose window's zero between b
+ *    and k1 (or k2, where the local window fails at k1 too) is found by vk_backoff_predict and
+ *    probed VK_PL_BACKOFF_TOL / 2 inside. If it passes within VK_PL_BACKOFF_TOL of the boundary
+ *    (its window over the predicted slope), that is the answer (one probe in the common case,
+ *    ~7 us); if it passes farther, it is the bracket's passing end; if it fails on the window,
+ *    the next shot starts from it (the samples that bind the window far beyond the boundary are
+ *    not always those that bind it there), unless it recovered less than half of the window. A zero next to b is no prediction (a sample whose
+ *    dynamic torque vanishes sets a bound that diverges there).
+ * 2. Otherwise start points, the first that passes brackets the boundary with the last that
+ *    failed: k1, k2 (not one between a failed shot and c_fail), the path boundary beyond k2 (a
+ *    smaller bulge is kinder to torque but may break volume_min or theta_p). Here and in 3, a
+ *    point whose local window is negative fails without a probe (vk_local_fails).
+ * 3. At most VK_PL_BACKOFF probes close in (none past VK_PL_PROBES in all): the local
+ *    prediction between the ends from the samples that bind the last probe's window, aimed
+ *    VK_PL_BACKOFF_TOL / 2 inside (not next to the failed end, and not again once one failed);
+ *    where there is none (or an end has no window of the right sign: a path constraint or a
+ *    searched limit, power or a slow sample's torque, failed), regula falsi on the window
+ *    (Anderson-Bjorck) or bisection. It stops once the bracket is VK_PL_BACKOFF_TOL wide or a
+ *    passing probe lies within that of the boundary (by the local slope or the ends' secant).
+ * 4. c = 1 (the row's own path) if it lies between the ends and passes: never report less.
+ *   k1, k2: the path-feasible scan points of smaller V than c_fail's, the largest and least V
+ *   w_fail, bind: the window at c_fail and its binding samples (vk_bounds; NAN and -1 when
+ *                 unknown or not what failed)
+ *   best: out, the answer's probe; least: in and out, the passing probe of least vk_probe_j
+ */
+static double vk_backoff_search(vk_pathscan *r, const double *s, const double *basis,
+                                const double *K, double *cache, double c_fail, double w_fail,
+                                const int *bind, int k1, int k2, vk_probe *best,
+                                vk_probe *least)
+{
+    const double tol = VK_PL_BACKOFF_TOL;
+    /* Two buffers besides the best scan point's (the rotation base): probe and keep. */
+    int pb = r->ik == 0 ? 1 : 0, pk = 3 - r->ik - pb;
+    double a = NAN, b = c_fail, wa = NAN, wb = w_fail, w;
+    int probes = 0;
+    /* 1. The shots, from the samples that bind the window of the last failed probe. */
+    int bw[2] = {bind[0], bind[1]};
+    for (int shot = 0; shot < VK_PL_SHOTS && vk_win_neg(wb) && (bw[0] >= 0 || bw[1] >= 0);
+         shot++) {
+        double slope = NAN, c_ok = r->cc[k1];
+        int bl[2] = {bw[0], bw[1]};
+        double cs = vk_backoff_predict(r, basis, K, c_ok, b, bl, &slope, VK_LOCAL_WINDOW);
+        if (isnan(cs) && k2 != k1) { /* k1 beyond the local boundary too */
+            c_ok = r->cc[k2];
+            bl[0] = bw[0];
+            bl[1] = bw[1];
+            cs = vk_backoff_predict(r, basis, K, c_ok, b, bl, &slope, VK_LOCAL_WINDOW);
+        }
+        const double c = cs + (c_ok < b ? -0.5 : 0.5) * tol;
+        if (isnan(cs) || !(c > vk_min(c_ok, b) && c < vk_max(c_ok, b)) ||
+            fabs(c - b) < VK_PL_SHOT_NEAR * fabs(b - c_ok))
+            break;
+        if (vk_backoff_try(r, s, cache, &probes, c, VK_TRY_CHECK, NAN, &pb, &pk, best, least, &w, bw)) {
+            if (vk_win_pos(w) && w <= tol * fabs(slope)) return c;
+            a = c;
+            wa = w;
+            break;
+        }
+        /* A shot that recovered less than half of the window: the model is poor here. */
+        const int poor = !(fabs(w) < 0.5 * fabs(wb));
+        if (!vk_win_neg(w)) break;
+        b = c;
+        wb = w;
+        if (poor) break;
+    }
+    /* 2. Start points (not one between a failed shot and c_fail: it would fail too). */
+    const double b_lo = vk_min(b, c_fail), b_hi = vk_max(b, c_fail);
+    for (int u = 0; u < 2 && isnan(a); u++) {
+        const int k = u == 0 ? k1 : k2;
+        if ((u == 1 && k2 == k1) || (b != c_fail && b_lo <= r->cc[k] && r->cc[k] <= b_hi))
+            continue;
+        if (vk_local_fails(r, basis, K, r->cc[k], bw, &w)) {
+            b = r->cc[k];
+            wb = w;
+            continue;
+        }
+        if (vk_backoff_try(r, s, cache, &probes, r->cc[k], VK_TRY_TRIG, r->cv[k], &pb, &pk, best, least,
+                           &w, bw)) {
+            a = r->cc[k];
+            wa = w;
+        } else {
+            b = r->cc[k];
+            wb = w;
+        }
+    }
+    if (isnan(a)) {
+        /* The neighbour of k2 with smaller V, if it fails the path constraints. */
+        int nb = -1;
+        if (k2 > 0 && !(r->cg[k2 - 1] <= 0.0) && r->cv[k2 - 1] < r->cv[k2]) nb = k2 - 1;
+        if (k2 < r->n - 1 && !(r->cg[k2 + 1] <= 0.0) && r->cv[k2 + 1] < r->cv[k2] &&
+            (nb < 0 || r->cv[k2 + 1] < r->cv[nb]))
+            nb = k2 + 1;
+        if (nb < 0) return NAN;
+        double v_b;
+        int q = pb; /* refine into pb and pk, then the passing probe goes to pb */
+        const double c = vk_path_refine(r, k2, nb, &q, &pk, &v_b);
+        if (isnan(c)) return NAN;
+        pb = pk;
+        pk = q;
+        if (!vk_backoff_try(r, s, cache, &probes, c, VK_TRY_READY, v_b, &pb, &pk, best, least, &w, bw))
+            return NAN;
+        a = c;
+        wa = w;
+    }
+    /* 3. Close in: the local prediction from the samples that bind the last probe's window
+     * (vk_backoff_predict, aimed tol / 2 inside), or where there is none, regula falsi on the
+     * window with the Anderson-Bjorck scaling of the end that stays (fa, fb), or bisection. */
+    double fa = wa, fb = wb;
+    int side = 0, predict = 1;
+    for (int it = 0; it < VK_PL_BACKOFF && probes < VK_PL_PROBES && fabs(b - a) > tol; it++) {
+        double c = NAN, slope = NAN;
+        if (predict && vk_win_pos(wa) && vk_win_neg(wb) && (bw[0] >= 0 || bw[1] >= 0)) {
+            int bl[2] = {bw[0], bw[1]};
+            const double cs = vk_backoff_predict(r, basis, K, a, b, bl, &slope, VK_LOCAL_WINDOW);
+            const double cp = cs + (a < b ? -0.5 : 0.5) * tol;
+            if (!isnan(cs) && cp > vk_min(a, b) && cp < vk_max(a, b) &&
+                fabs(cp - b) >= VK_PL_SHOT_NEAR * fabs(b - a))
+                c = cp;
+        }
+        if (isnan(c)) {
+            slope = NAN;
+            c = 0.5 * (a + b);
+            if (vk_win_pos(fa) && vk_win_neg(fb)) {
+                const double cs = (a * fb - b * fa) / (fb - fa) + (a < b ? -0.5 : 0.5) * tol;
+                if (cs > vk_min(a, b) && cs < vk_max(a, b)) c = cs;
+            }
+        }
+        int passed = 0;
+        if (!vk_local_fails(r, basis, K, c, bw, &w))
+            passed = vk_backoff_try(r, s, cache, &probes, c, VK_TRY_CHECK, NAN, &pb, &pk, best, least, &w,
+                                    bw);
+        if (passed) {
+            if (side == -1) {
+                const double k = 1.0 - w / fa;
+                fb *= k > 0.0 && isfinite(k) ? k : 0.5;
+            }
+            a = c;
+            wa = fa = w;
+            side = -1;
+            /* The boundary within tol of a: by the local slope, or the secant of the ends. */
+            if (vk_win_pos(wa) && ((isfinite(slope) && wa <= tol * fabs(slope)) ||
+                                   (vk_win_neg(wb) && fabs(b - a) * wa / (wa - wb) <= tol)))
+                break;
+        } else {
+            if (side == 1) {
+                const double k = 1.0 - w / fb;
+                fa *= k > 0.0 && isfinite(k) ? k : 0.5;
+            }
+            if (isfinite(slope)) predict = 0; /* a prediction that failed: not again */
+            b = c;
+            wb = fb = w;
+            side = 1;
+        }
+    }
+    /* 4. The row's own path, if it lies between the ends: never report less. */
+    if (vk_min(a, b) < 1.0 && 1.0 < vk_max(a, b) &&
+        vk_backoff_try(r, s, cache, &probes, 1.0, VK_TRY_CHECK, NAN, &pb, &pk, best, least, &w, bw))
+        a = 1.0;
+    return a;
+}
+
+/*
+ * Back-off after the retime of the path at c_fail (V_p v_fail) failed: the scale of the probe
+ * *best (vk_backoff_search: the largest V whose retiming search finds a time, near the
+ * boundary), or NAN when nothing passes. Where the retimed T there lies above the velocity and
+ * acceleration bound (by VK_PL_RAISED), a torque bound has pushed it up, and T rises steeply
+ * with c near such a boundary (measured: 6.5 s to 9.8 s over the last 0.3 % of c), which eq 11
+ * weighs more than the volume gained: then the kink where that started (vk_backoff_predict on
+ * VK_LOCAL_KINK) is probed too, and of the passing probes the one of least vk_probe_j is the
+ * answer.
+ *   basis, K: the kernel's basis and the row's shape term (for vk_local_bounds)
+ *   w_fail, bind: the window at c_fail and its binding samples (vk_bounds; NAN and -1 when
+ *                 unknown or not what failed)
+ */
+static double vk_plan_backoff(vk_pathscan *r, const double *s, const double *basis,
+                              const double *K, double *cache, double c_fail, double v_fail,
+                              double w_fail, const int *bind, vk_probe *best)
+{
     int k1 = -1, k2 = -1;
     for (int k = 0; k < r->n; k++) {
         if (!(r->cg[k] <= 0.0 && r->cv[k] < v_fail)) continue;
@@ -1318,95 +1813,55 @@ static double vk_plan_backoff(vk_pathscan *r, const double *s, double *cache, do
         if (k2 < 0 || r->cv[k] < r->cv[k2]) k2 = k;
     }
     if (k1 < 0) return NAN;
-    /* Two buffers besides the best scan point's (the rotation base): probe and keep. */
-    int pb = r->ik == 0 ? 1 : 0, pk = 3 - r->ik - pb;
-    double a = NAN, b = c_fail;
-    for (int u = 0; u < 3 && isnan(a); u++) {
-        double c;
-        if (u < 2) {
-            const int k = u == 0 ? k1 : k2;
-            if (u == 1 && k2 == k1) continue;
-            c = r->cc[k];
-            vk_path_trig(r, c, r->buf[pb]);
-        } else {
-            /* The neighbour of k2 with smaller V, if it fails the path constraints. */
-            int nb = -1;
-            if (k2 > 0 && !(r->cg[k2 - 1] <= 0.0) && r->cv[k2 - 1] < r->cv[k2]) nb = k2 - 1;
-            if (k2 < r->n - 1 && !(r->cg[k2 + 1] <= 0.0) && r->cv[k2 + 1] < r->cv[k2] &&
-                (nb < 0 || r->cv[k2 + 1] < r->cv[nb]))
-                nb = k2 + 1;
-            if (nb < 0) break;
-            double v_b;
-            int q = pb; /* refine into pb and pk, then the passing probe goes to pb */
-            c = vk_path_refine(r, k2, nb, &q, &pk, &v_b);
-            if (isnan(c)) break;
-            pb = q;
-            {
-                const int t = pb;
-                pb = pk;
-                pk = t;
-            }
-        }
-        if (vk_time_found(p, s, m, in, c, r->buf[pb], cache)) {
-            a = c;
-            const int t = pb;
-            pb = pk;
-            pk = t;
-        } else {
-            b = c;
-        }
-    }
+    vk_probe least;
+    least.j = NAN;
+    const double a = vk_backoff_search(r, s, basis, K, cache, c_fail, w_fail, bind, k1, k2, best,
+                                       &least);
     if (isnan(a)) return NAN;
-    /* The row's own path, if it lies closer to the boundary than a: never report less. */
-    if (vk_min(a, b) < 1.0 && 1.0 < vk_max(a, b)) {
-        vk_path_trig(r, 1.0, r->buf[pb]);
-        double v1, w1[4];
-        if (vk_path_g(r, 1.0, r->buf[pb], &v1, w1) <= 0.0 &&
-            vk_time_found(p, s, m, in, 1.0, r->buf[pb], cache)) {
-            a = 1.0;
-            const int t = pb;
-            pb = pk;
-            pk = t;
-        } else {
-            b = 1.0;
+    double u_lo, u_hi, t_va;
+    int bl[2] = {best->bind[0], best->bind[1]};
+    vk_local_bounds(r, basis, K, a, bl, &u_lo, &u_hi, &t_va);
+    if (!(best->T > t_va * (1.0 + VK_PL_RAISED))) return a;
+    const vk_probe far = *best;
+    for (int u = 0; u < 2; u++) {
+        const int k = u == 0 ? k1 : k2;
+        if (u == 1 && k2 == k1) break;
+        const double c_ok = r->cc[k];
+        double slope;
+        bl[0] = far.bind[0];
+        bl[1] = far.bind[1];
+        const double ck = vk_backoff_predict(r, basis, K, c_ok, a, bl, &slope, VK_LOCAL_KINK);
+        if (isnan(ck)) continue;
+        const double c = ck + (c_ok < a ? -0.5 : 0.5) * VK_PL_BACKOFF_TOL;
+        if (c > vk_min(c_ok, a) && c < vk_max(c_ok, a)) {
+            int pb = r->ik == 0 ? 1 : 0, pk = 3 - r->ik - pb, bw[2], probes = 0;
+            double w;
+            vk_backoff_try(r, s, cache, &probes, c, VK_TRY_CHECK, NAN, &pb, &pk, best, &least,
+                           &w, bw);
         }
+        break;
     }
-    for (int it = 0; it < VK_PL_BACKOFF; it++) {
-        const double x = 0.5 * (a + b);
-        vk_path_trig(r, x, r->buf[pb]);
-        double vx, wx[4];
-        if (vk_path_g(r, x, r->buf[pb], &vx, wx) <= 0.0 &&
-            vk_time_found(p, s, m, in, x, r->buf[pb], cache)) {
-            a = x;
-            const int t = pb;
-            pb = pk;
-            pk = t;
-        } else {
-            b = x;
-        }
-    }
-    *trig = r->buf[pk];
-    return a;
+    *best = least.j < far.j ? least : far;
+    return best->c;
 }
 
-/* Retime the row's path scaled by c (trig: NULL or its trig) into out, planned; 1 if feasible. */
-static int vk_plan_retime(const double *p, const double *s, int m, const double *in, double c,
-                          double *out, double *planned, double *path, const double *trig,
-                          double *cache)
+/* Whether the path-only constraints (joint limits, theta_p, volume) of an evaluated row hold. */
+static int vk_path_ok(const double *out)
 {
-    double row[VK_N_IN];
-    for (int j = 0; j < VK_N_IN; j++) row[j] = in[j];
-    for (int j = 0; j < 3; j++) row[I_A6 + j] = c * in[I_A6 + j];
-    vk_retime(p, s, m, row, out, planned, path, trig, cache);
-    return out[O_TOTAL] <= 0.0;
+    for (int j = 0; j < 6; j++)
+        if (!(out[O_VIOLATIONS + j] <= 0.0)) return 0;
+    for (int j = 16; j < 20; j++)
+        if (!(out[O_VIOLATIONS + j] <= 0.0)) return 0;
+    return 1;
 }
 
 /*
  * Plan one row: the path scale c* of vk_plan_scale retimed (vk_retime) into out and planned;
  * if that is infeasible, the back-off's; if that fails too or nothing qualifies, the row's own
- * path (c = 1) retimed.
+ * path (c = 1): retimed, or where it breaks a path-only limit (which no T fixes), evaluated as
+ * it is (planned: the row's a6 and T).
  *   scale: NULL or out, the c of the reported path (NAN for a rejected row)
- *   basis: q(s), p(s), 1/p(s) (3 * m); sc: VK_N_PLAN * m scratch
+ *   basis: q(s), p(s), 1/p(s), q', q'', p', p'' (7 * m); sc: VK_N_PLAN * m scratch
  */
 static void vk_plan(const double *p, const double *s, const double *basis, int m,
                     const double *basis_c, int m_c, const double *in, double c_lo, double c_hi,
@@ -1434,6 +1889,7 @@ static void vk_plan(const double *p, const double *s, const double *basis, int m
     vk_pathscan r;
     r.p = p;
     r.in = in;
+    r.n = 0;
     vk_pathscan_grid(&r, sc, m);
     const double *trig;
     double v = 0.0, lo = c_lo, hi = c_hi;
@@ -1453,10 +1909,10 @@ static void vk_plan(const double *p, const double *s, const double *basis, int m
         double row[VK_N_IN], Kc[3], qd_pk[3], qdd_pk[3];
         for (int j = 0; j < VK_N_IN; j++) row[j] = in[j];
         for (int j = 0; j < 3; j++) row[I_A6 + j] = c * in[I_A6 + j];
-        int found = 0;
-        double T_c = 0.0;
+        int found = 0, bind[2] = {-1, -1};
+        double T_c = 0.0, w_c = NAN;
         if (vk_prepare(p, s, m, row, Kc, trig, cache, qd_pk, qdd_pk) == 0)
-            T_c = vk_retime_T(p, cache, m, qd_pk, qdd_pk, &found);
+            T_c = vk_retime_T(p, cache, m, qd_pk, qdd_pk, &found, 0, &w_c, bind);
         if (found) {
             vk_retime_finish(p, s, m, row, Kc, T_c, found, out, planned, path);
             if (out[O_TOTAL] <= 0.0) {
@@ -1465,16 +1921,35 @@ static void vk_plan(const double *p, const double *s, const double *basis, int m
             }
         }
         if (!scanned) vk_plan_scan(&r, lo, hi); /* the back-off starts from the full scan */
-        const double c2 = vk_plan_backoff(&r, s, cache, c, v, &trig);
-        if (!isnan(c2) && c2 != 1.0 &&
-            vk_plan_retime(p, s, m, in, c2, out, planned, path, trig, cache)) {
-            if (scale != NULL) *scale = c2;
+        vk_probe b;
+        const double c2 = vk_plan_backoff(&r, s, basis, K, cache, c, v, found ? NAN : w_c, bind,
+                                          &b);
+        if (!isnan(c2) && c2 != 1.0) {
+            /* The probe's search found b.T: what vk_retime of that path gives, evaluated. */
+            for (int j = 0; j < 3; j++) row[I_A6 + j] = c2 * in[I_A6 + j];
+            vk_retime_finish(p, s, m, row, b.K, b.T, 1, out, planned, path);
+            if (out[O_TOTAL] <= 0.0) {
+                if (scale != NULL) *scale = c2;
+                return;
+            }
+        }
+    }
+    if (scale != NULL) *scale = 1.0;
+    /* The row's own path. Unless the scan found it path-feasible, it is evaluated first: where
+     * a path-only limit fails, no T can fix it, and that evaluation is the report. */
+    int own_ok = 0;
+    for (int k = 0; k < r.n; k++)
+        if (r.cc[k] == 1.0 && r.cg[k] <= 0.0) own_ok = 1;
+    if (!own_ok) {
+        vk_evaluate(p, s, m, in, out, path);
+        if (!vk_path_ok(out)) {
+            for (int j = 0; j < 3; j++) planned[j] = in[I_A6 + j];
+            planned[3] = in[I_T];
             return;
         }
     }
     /* Without the probes' trig, so that scale 1 is exactly what retime() gives. */
     vk_retime(p, s, m, in, out, planned, path, NULL, cache);
-    if (scale != NULL) *scale = 1.0;
 }
 
 /* ---------------------------------------------------------------------------------------------
@@ -1484,7 +1959,8 @@ typedef struct {
     PyObject_HEAD
     double params[VK_N_PARAMS];
     double *s;
-    /* q(s), p(s) of Yao eq 10 and 1/p(s) (0 where p is 0) on the grid (3 * m), for plan. */
+    /* q(s), p(s) of Yao eq 10, 1/p(s) (0 where p is 0), q', q'', p', p'' on the grid (7 * m),
+     * for plan. */
     double *basis;
     /* Retiming (VK_N_CACHE * m) and plan (VK_N_PLAN * m) scratch: one per kernel, safe because
      * no method releases the GIL, so two threads never run in the same kernel at once. */
@@ -1564,7 +2040,7 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds)
     for (int k = 0; k < VK_N_PARAMS; k++) self->params[k] = src[k];
     PyBuffer_Release(&view);
     double *s = (double *)malloc((size_t)m * sizeof(double));
-    double *basis = (double *)malloc((size_t)m * 3 * sizeof(double));
+    double *basis = (double *)malloc((size_t)m * 7 * sizeof(double));
     double *cache = (double *)malloc((size_t)m * VK_N_CACHE * sizeof(double));
     double *scratch = (double *)malloc((size_t)m * VK_N_PLAN * sizeof(double));
     if (s == NULL || basis == NULL || cache == NULL || scratch == NULL) {
@@ -1584,6 +2060,11 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds)
         basis[i] = s3 * (10.0 + si * (-15.0 + si * 6.0)); /* q(s) */
         basis[m + i] = s3 * (r * r * r);                   /* p(s) */
         basis[2 * m + i] = basis[m + i] > 0.0 ? 1.0 / basis[m + i] : 0.0;
+        /* Their first and second derivatives (the back-off's vk_local_bounds). */
+        basis[3 * m + i] = 30.0 * si * si * r * r;                    /* q'(s) */
+        basis[4 * m + i] = 60.0 * si * r * (1.0 - 2.0 * si);          /* q''(s) */
+        basis[5 * m + i] = 3.0 * si * si * r * r * (1.0 - 2.0 * si);  /* p'(s) */
+        basis[6 * m + i] = 6.0 * si * r * (1.0 - 5.0 * si * r);       /* p''(s) */
     }
     double *basis_c = NULL, *scratch_c = NULL;
     int m_c = 0;

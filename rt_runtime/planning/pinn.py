@@ -605,8 +605,11 @@ class PinnPlanner:
             status = PlanStatus.RETIMED
             ok = self._out_row[COL_TOTAL] <= 0.0
             if not ok and self.fast_repair:
-                # A failed plan_into reports the network's own path retimed (scale 1): its
-                # path-only values are the network path's, which do not depend on T.
+                # A failed plan_into reports the network's own path (scale 1): retimed, or,
+                # where a path-only limit fails (no T fixes it), at the network's own T. Its
+                # path-only values are the network path's either way (they do not depend on
+                # T), and its time-dependent ones are at a T of that path, all the fast repair
+                # reads (to find the joint that sets T).
                 if self._scale[0] != 1.0:
                     self._eval_rows(row, out, None)
                 tried = self._fast_repair(kind, self._out_row.tolist(), (c_lo, c_hi))

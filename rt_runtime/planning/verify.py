@@ -29,9 +29,10 @@ the cost of one evaluation; the numpy backend bisects with real evaluations (the
 and scales its bulge, ``K -> c K``, to the largest excavated volume that the path-only
 constraints allow (Yao's objective rewards V_p up to the hard cap V_max, which a network must
 aim below to stay feasible), then retimes that path; when the larger bulge cannot be timed
-feasibly (torque), it backs off towards a smaller one, and as a last resort retimes the
-candidate's own path. The C kernel does it in about 1.6x the cost of a retiming (~23 us per
-row at 101 samples) on most rows.
+feasibly (torque), it backs off towards a smaller one, and as a last resort reports the
+candidate's own path (retimed, unless a path-only limit fails, which no timing fixes). The C
+kernel does it in about 1.6x the cost of a retiming (~23 us per row at 101 samples) on most
+rows, ~38 us where it backs off.
 
 Input rows are ``[q_start (3) rad, q_end (3) rad, H m, dig_type (0 downward, 1 backward),
 a6 (3) rad/s^6, T s]`` (columns ``IN_*``); output rows are laid out by the ``COL_*`` constants.
@@ -140,10 +141,14 @@ _REF_MARGIN = 1e-11
 _REF_BOUND_STEP = 1e-9
 # The numpy reference of plan: path constraints on a uniform grid of c, then multisection of
 # the bracket at the best grid point to a relative width of _REF_PLAN_RTOL; the back-off
-# bisects _REF_BACKOFF times (the kernel 4).
+# bisects _REF_BACKOFF times (the kernel steers a root search on its retiming bounds instead,
+# to 1e-3 in c).
 _REF_PLAN_GRID = 49
 _REF_PLAN_RTOL = 1e-9
 _REF_BACKOFF = 8
+# A back-off answer's retimed T this far (relative) above its velocity and acceleration bound
+# was raised by a torque bound (the kernel's VK_PL_RAISED).
+_REF_RAISED = 1e-3
 _PATH_ONLY = (*range(6), 16, 17, 18, 19)
 
 BUILD_HINT = (
@@ -153,7 +158,7 @@ BUILD_HINT = (
 )
 
 # Layout of the kernel's constants; _verify.c's enum vk_param must list the same offsets.
-_ABI = 3
+_ABI = 4
 _PARAM_FIELDS: tuple[tuple[str, int], ...] = (
     ("lengths", 3),
     ("chain_h", 3),
@@ -665,9 +670,18 @@ class Verifier:
            back-off to the largest ``c`` found between ``c*`` and a path-feasible scale of
            smaller V_p at which the retiming search finds a time, retimed (``c = 1`` is among
            the scan points and the back-off's candidates: where the row's own path retimes
-           feasibly, the plan has at least its volume, less :data:`PLAN_TOL`).
-        4. If nothing works, the row's own path (``c = 1``) retimed: ``scale`` 1 means exactly
-           what :meth:`retime_into` gives for the row.
+           feasibly, the plan has at least its volume, less :data:`PLAN_TOL`). The kernel lands
+           within 1e-3 in ``c`` of that boundary (measured: ~0.3 of objective per unit of
+           ``c`` there), the reference within 1/256 of its bracket. The kernel's one exception:
+           where a torque bound has pushed the retimed T there above the velocity and
+           acceleration bound (T then rises steeply with ``c``: 6.5 s to 9.8 s over the last
+           0.3 % of ``c`` on one held-out row), it also tries the scale where that started and
+           keeps the better of the two in T and V_p (eq 11 less its energy term).
+        4. If nothing works, the row's own path (``c = 1``, ``scale`` 1): where it breaks a
+           path-only limit, which no T can fix, the row itself, exactly as
+           :meth:`evaluate_into` gives it (``planned`` holds the row's own a6 and T); else
+           retimed, exactly what :meth:`retime_into` gives for the row. Either way the
+           path-only values in ``out`` are those of the row's own path.
 
         ``out`` always holds the real evaluation of what ``planned`` holds (exactly what
         :meth:`evaluate_into` gives for it), so "feasible" means what it means there; ``K`` of
@@ -681,14 +695,23 @@ class Verifier:
         is linear in ``c``); theta_p of a dig that starts on the surface too (its entry
         direction ``J(q0)(10 D + c K)``); V_p and the other entries take the path. A 9-point
         scan (trig advanced by rotation) brackets the largest feasible V_p; Illinois on the
-        constraint that fails at the neighbour of larger V_p closes in (2-3 probes); the
-        back-off bisects 4 times on the retiming search (no evaluation). About 9 us more than
+        constraint that fails at the neighbour of larger V_p closes in (2-3 probes). The
+        back-off probes scales with the retiming search only (no evaluation) and steers by
+        the search's closed-form bounds: the width of the range of ``1/T^2`` that velocity,
+        acceleration and the torque of each sample leave, which closes (measured: the boom's
+        torque needs an ever shorter T, the accelerations an ever longer one) about linearly
+        in ``c``. The samples that bind it at the failed ``c*`` give a model of it on a few
+        samples (~1 us) whose zero is probed; on the PINN's held-out rows 59 of 71 back-off
+        rows need that one probe (1.4 on average), the rest fall back to start points (scan
+        points of smaller V_p) and a root search on the bounds (at most 4 more probes); the
+        answer's T is the probe's, evaluated once. About 9 us more than
         :meth:`retime_into` at 101 samples (p50 ~23 us per row); rows that take the back-off
-        cost 40-90 us. Allocates nothing; safe in the loop's planning step.
+        ~38 us (p50; 60 us p90). Allocates nothing; safe in the loop's planning step.
 
         How (numpy, the reference): :func:`oneshot.evaluate` of the path constraints on a
         49-point grid of ``c``, multisection of the bracket at the best grid point to 1e-9
-        relative, the same back-off with 8 bisection steps, and the numpy retiming; slow
+        relative, the back-off's start points with 8 bisection steps (real evaluations,
+        no steering; for a raised T, 8 more towards the kink), and the numpy retiming; slow
         (0.01-0.2 s per row). Both miss a feasible interval of ``c`` narrower than a grid step.
 
         Args:
@@ -958,9 +981,33 @@ class Verifier:
                 c_final[sub[done]] = c2[try_c2][done]
         left = np.setdiff1d(np.arange(rows.size), np.flatnonzero(c_final != 1.0))
         if left.size:
-            self._plan_retime_numpy(v[left], np.ones(left.size), rows[left], o, pl, p)
+            self._plan_own_numpy(v[left], rows[left], o, pl, p)
         if sc is not None:
             sc[rows] = c_final
+
+    def _plan_own_numpy(
+        self,
+        v: FloatArray,
+        rows: NDArray[np.intp],
+        out: FloatArray,
+        planned: FloatArray,
+        path: FloatArray | None,
+    ) -> None:
+        """Step 4 of :meth:`plan_into` for rows ``v`` into ``out[rows]`` etc.: each row's own
+        path evaluated as it is where a path-only limit fails (no T fixes it; ``planned`` the
+        row's a6 and T), else retimed (all rows are retimed in one batch, as before this
+        split: the batch's shape rounds the matrix products, and a retimed row must not change
+        with which of its neighbours broke a path limit)."""
+        self._plan_retime_numpy(v, np.ones(v.shape[0]), rows, out, planned, path)
+        res, res_path = self._numpy_rows(v, path is not None)
+        with np.errstate(invalid="ignore"):
+            bad = ~(np.max(res[:, list(_PATH_ONLY)], axis=1) <= 0.0)  # NaN fails too
+        idx = np.flatnonzero(bad)
+        out[rows[idx]] = res[idx]
+        planned[rows[idx], RT_A6 : RT_A6 + 3] = v[idx, IN_A6 : IN_A6 + 3]
+        planned[rows[idx], RT_T_S] = v[idx, IN_T]
+        if path is not None and res_path is not None:
+            path[rows[idx]] = res_path[idx]
 
     def _plan_retime_numpy(
         self,
@@ -1108,6 +1155,7 @@ class Verifier:
                 passed[sub] = self._time_found_numpy(v[one[sub]], np.ones(sub.size))
             a[one[passed]] = 1.0
             b[one[~passed]] = 1.0
+        start = a.copy()
         idx = np.flatnonzero(np.isfinite(a))
         for _ in range(_REF_BACKOFF):
             if idx.size == 0:
@@ -1120,7 +1168,74 @@ class Verifier:
                 passed[sub] = self._time_found_numpy(v[idx[sub]], x[sub])
             a[idx[passed]] = x[passed]
             b[idx[~passed]] = x[~passed]
-        return a
+        return self._backoff_raised_numpy(v, start, a)
+
+    def _backoff_raised_numpy(self, v: FloatArray, start: FloatArray, a: FloatArray) -> FloatArray:
+        """The kernel's exception to the back-off's largest c (:meth:`plan_into`, step 3): where
+        the retimed T at ``a`` lies above its velocity and acceleration bound by more than
+        _REF_RAISED, bisect (_REF_BACKOFF steps) from the back-off's start point for the largest
+        c whose retiming finds a T that does not, and keep the better of the two in
+        lambda1 T_norm - lambda3 V_norm."""
+        out = a.copy()
+        rows = np.flatnonzero(np.isfinite(a) & np.isfinite(start) & (a != start))
+        if rows.size == 0:
+            return out
+        T_a, raised_a, j_a = self._backoff_probe_numpy(v[rows], a[rows])
+        sub = np.flatnonzero(raised_a)
+        if sub.size == 0:
+            return out
+        rows, T_a, j_a = rows[sub], T_a[sub], j_a[sub]
+        _, raised_s, _ = self._backoff_probe_numpy(v[rows], start[rows])
+        keep = ~raised_s  # the start must lie before the kink
+        rows, j_a = rows[keep], j_a[keep]
+        lo, hi = start[rows].copy(), a[rows].copy()
+        j_lo = np.full(rows.size, np.nan)
+        for _ in range(_REF_BACKOFF):
+            if rows.size == 0:
+                break
+            x = 0.5 * (lo + hi)
+            g_x, _ = self._path_g_numpy(v[rows], x[:, None])
+            passed = g_x[:, 0] <= 0.0
+            sub = np.flatnonzero(passed)
+            if sub.size:
+                _, raised_x, j_x = self._backoff_probe_numpy(v[rows[sub]], x[sub])
+                passed[sub] = ~raised_x
+                ok = sub[~raised_x]
+                j_lo[ok] = j_x[~raised_x]
+            lo[passed] = x[passed]
+            hi[~passed] = x[~passed]
+        better = np.isfinite(j_lo) & (j_lo < j_a)
+        out[rows[better]] = lo[better]
+        return out
+
+    def _backoff_probe_numpy(
+        self, v: FloatArray, c: FloatArray
+    ) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
+        """For rows ``v`` scaled by ``c`` whose retiming finds a T (others: T NaN, not raised,
+        objective part +inf): the retimed T, whether it lies above the velocity and
+        acceleration bound by more than _REF_RAISED, and lambda1 T_norm - lambda3 V_norm."""
+        planning = oneshot.require_planning(self.rig)
+        t_min, t_max = planning.t_min_s, planning.t_max_s
+        y = _scaled(v, c)
+        with np.errstate(all="ignore"):
+            K = -y[:, IN_A6 : IN_A6 + 3] * y[:, IN_T, None] ** 6
+        T = self._retime_search(y, K)
+        ok, _, _ = self._timed_numpy(y, K, T[:, None])
+        # Peak |qd| scales as 1/T, peak |qdd| as 1/T^2: their bounds from t_min.
+        _, _, td = self._timed_numpy(y, K, np.full((y.shape[0], 1), t_min))
+        with np.errstate(all="ignore"):
+            t_va = np.maximum(
+                t_min,
+                t_min * np.max(np.concatenate(
+                    [td[:, 0, 0:3] + 1.0, np.sqrt(td[:, 0, 3:6] + 1.0)], axis=1), axis=1),
+            )
+            _, vol = self._path_g_numpy(v, c[:, None])
+        lam1, _, lam3 = planning.weights
+        j = lam1 * (T - t_min) / (t_max - t_min) - lam3 * vol[:, 0] / (
+            planning.volume_max_m3 - planning.volume_min_m3)
+        found = ok[:, 0]
+        raised = found & (t_va * (1.0 + _REF_RAISED) < T)
+        return np.where(found, T, np.nan), raised, np.where(found, j, np.inf)
 
     def _time_found_numpy(self, v: FloatArray, c: FloatArray) -> NDArray[np.bool_]:
         """Whether the numpy retiming of rows ``v`` scaled by ``c`` meets every time-dependent

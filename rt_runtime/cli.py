@@ -425,6 +425,13 @@ def cmd_train(args: argparse.Namespace) -> int:
             lr=args.lr,
             margin=args.margin,
             seed=args.seed,
+            lambda_c=args.lambda_c,
+            lambda_d=args.lambda_d,
+            dir_infeasible_slope=args.dir_infeasible_slope,
+            ema_decay=args.ema_decay,
+            target_feasible=args.target_feasible,
+            patience_evals=args.patience_evals,
+            init_checkpoint=str(Path(args.init_from) / f"pinn_{kind}.pt") if args.init_from else "",
         )
         log = None if args.json or args.quiet else (lambda line: print(f"  {line}", file=sys.stderr))
         res = train(
@@ -801,6 +808,13 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--batch-size", type=int, default=0, help="0: Yao's per type")
     tr.add_argument("--lr", type=float, default=2e-3)
     tr.add_argument("--margin", type=float, default=0.03, help="hinge margin of the constraint losses")
+    tr.add_argument("--lambda-c", type=float, default=40.0, help="weight of the constraint losses (eq 19's lambda_C)")
+    tr.add_argument("--lambda-d", type=float, default=10.0, help="weight of the direction loss (first-order gap of the runtime's plan; 0: off)")
+    tr.add_argument("--dir-infeasible-slope", type=float, default=5.0, help="direction loss: least slope (per rad) of a tilt the runtime cannot plan")
+    tr.add_argument("--ema-decay", type=float, default=0.995, help="moving average of the weights that is scored and kept (0: off)")
+    tr.add_argument("--target-feasible", type=float, default=0.95, help="early stopping: raw and planned feasibility target on the validation split")
+    tr.add_argument("--patience-evals", type=int, default=30, help="early stopping: scorings without improvement")
+    tr.add_argument("--init-from", help="directory with pinn_<type>.pt checkpoints to start from (same depth, widths >= theirs)")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--quiet", action="store_true")
     tr.add_argument("--json", action="store_true")

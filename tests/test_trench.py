@@ -246,12 +246,17 @@ def test_pso_planner_has_the_same_interface() -> None:
         TrenchPlanner(RIG, "astar")
 
 
-def test_trench_longer_than_the_reach_is_dug_after_travel(planner: TrenchPlanner) -> None:
+@pytest.mark.parametrize("depth_m", [0.08, 0.10, 0.12])
+def test_trench_longer_than_the_reach_is_dug_after_travel(
+    planner: TrenchPlanner, depth_m: float
+) -> None:
     from rt_runtime.planning.trench import TravelMove
 
     # The near edge at 0.05 m is far inside the nearest entry (0.55 m): the machine must back
-    # away to dig the near part, and the accounting holds across the travel.
-    task = make_task(RIG, 1.0, 0.08, 60.0, 60.0, name="long")
+    # away to dig the near part, and the accounting holds across the travel. At 0.10 and
+    # 0.12 m the profile passes from the first stand leave slivers that put every entry over
+    # dug ground unless entries follow the material left (32 % was left before).
+    task = make_task(RIG, 1.0, depth_m, 60.0, 60.0, name="long")
     plan = planner.plan(task)
     travels = [s for s in plan.steps if isinstance(s, TravelMove)]
     assert travels and travels[0].distance_m < 0.0

@@ -954,10 +954,34 @@ class TrenchSession:
         return self.phase
 
     def _entry_x_candidates(self, remaining: Any) -> list[float]:
-        """Where on the surface digs may enter: the far edge of the remaining design material."""
-        minx, _, maxx, _ = remaining.bounds
-        step = 0.04 * self.planner.scale
-        xs = np.arange(maxx, minx + 0.05 * self.planner.scale, -step)[:_N_ENTRY_X]
+        """Where on the surface digs may enter: the far edge of the remaining design material
+        within the entries' reach from where the machine stands.
+
+        After a travel, the edge is taken on the height field, where the material left above
+        the design floor is at least :data:`_ENTRY_MIN_THICKNESS_M` (scaled) thick: the profile
+        passes dug from the previous stand leave slivers along the floor, and the polygon's
+        bounds put the entries over dug ground (every candidate there over-digs, and a long
+        trench's near part was never roughed out: 32-52 % left on 1.0-1.2 m trenches 0.10-0.15 m
+        deep). Before any travel the polygon's bounds within reach are used, as they were: the
+        height-field edge changes the plans of Yao's tasks, D for the worse (27 % left), a
+        trade not made here.
+        """
+        s = self.planner.scale
+        lo, hi = self.planner.entry_x_range
+        m = self.machine_x
+        grid = self.grid
+        thick = (self.surface - self.design_floor > _ENTRY_MIN_THICKNESS_M * s) & (
+            (grid >= m + lo) & (grid <= m + hi)
+        )
+        idx = np.flatnonzero(thick) if self._travels else np.empty(0, dtype=np.intp)
+        if idx.size:
+            minx, maxx = float(grid[idx[0]]), float(grid[idx[-1]])
+        else:
+            reach = self._reachable(remaining)
+            part = reach if reach.area >= 0.005 * self.design_area else remaining
+            minx, _, maxx, _ = part.bounds
+        step = 0.04 * s
+        xs = np.arange(maxx, minx + 0.05 * s, -step)[:_N_ENTRY_X]
         return xs.tolist() or [maxx]
 
     def next_dig(self) -> PlannedDig | None:
@@ -1912,6 +1936,8 @@ _N_RANKED = 4
 _MAX_TRAVELS = 4
 # Upper bound on profile passes (far wall, bottom pieces, near wall).
 _N_MAX_PASSES = 16
+#: Least material above the design floor where an entry may be placed (m, scale model).
+_ENTRY_MIN_THICKNESS_M = 0.01
 # A profile fit this good (least-squares cost, m^2: ~1 mm RMS) ends the search of starts.
 _GOOD_FIT_COST = 2e-4
 # Samples of a profile pass's path in its fit.

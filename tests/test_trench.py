@@ -193,6 +193,21 @@ def test_seeded_random_valid_tasks_plan(planner: TrenchPlanner) -> None:
         assert plan.coverage_error < 0.05
 
 
+@pytest.mark.parametrize(("length_m", "depth_m"), [(0.32, 0.06), (0.60, 0.06), (0.34, 0.05)])
+def test_shallow_trench_is_dug_by_profile_passes(
+    planner: TrenchPlanner, length_m: float, depth_m: float
+) -> None:
+    # Shallower than any one-shot dig can cut without over-digging (V_p >= V_min takes a
+    # deeper scoop): the profile passes, which need no volume window, dig it from the start.
+    plan = planner.plan(make_task(RIG, length_m, depth_m, 60.0, 60.0, name="shallow"))
+    assert plan.digs and all(d.status == "profile_pass" for d in plan.digs)
+    assert plan.coverage_error <= 0.025
+    assert plan.overdig_max_m <= OVERDIG_LIMIT_M
+    v_max = RIG.planning.volume_max_m3 if RIG.planning is not None else math.inf
+    assert all(d.volume_m3 <= v_max * (1 + 1e-9) for d in plan.digs)  # bucket capacity
+    assert plan.removed_m3 == pytest.approx(sum(d.volume_m3 for d in plan.digs), rel=1e-9)
+
+
 # -- closed loop ----------------------------------------------------------------------------------
 
 

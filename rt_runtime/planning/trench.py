@@ -1010,7 +1010,7 @@ class TrenchSession:
             ranked = self._screen(remaining)
         dig = self._first_plannable(ranked, t0)
         exhausted = False
-        while dig is None and self.digs and self._finish_index < _N_MAX_PASSES:
+        while dig is None and self._finish_index < _N_MAX_PASSES:
             ranked = self._finishing(remaining)
             if not ranked:
                 exhausted = True

@@ -240,7 +240,8 @@ def test_trace_records_what_was_sent_and_received(tmp_path: Path) -> None:
     path.write_bytes(b"old")
     recorder = TraceRecorder(path)
     assert (tmp_path / "t" / "can.1.blf").read_bytes() == b"old"
-    channel = f"trace-{uuid.uuid4().hex}"
+    # A name python-can reads a channel number out of (trailing digits) that no BLF field holds.
+    channel = f"trace-{uuid.uuid4().hex}-99999999"
     peer = can.Bus(interface="virtual", channel=channel)
     bus = TracedBus(can.Bus(interface="virtual", channel=channel), recorder)
     try:

@@ -297,7 +297,21 @@ class TraceRecorder:
                     self._logger = None
                 return
             if isinstance(item, can.Message):
-                msg = item
+                # One bus, channel 0 as for sent frames: the interface's channel name may not
+                # map to a BLF channel number (python-can parses digits out of a name like
+                # "trace-1f3e99", which overflowed the field and killed this thread).
+                msg = can.Message(
+                    timestamp=item.timestamp,
+                    arbitration_id=item.arbitration_id,
+                    data=item.data,
+                    is_extended_id=item.is_extended_id,
+                    is_remote_frame=item.is_remote_frame,
+                    is_error_frame=item.is_error_frame,
+                    is_rx=item.is_rx,
+                    dlc=item.dlc,
+                    channel=0,
+                    check=False,
+                )
             elif item[0] is self._REOPEN:
                 self._open(item[1])
                 continue

@@ -446,6 +446,64 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
 /* Cache layout: VK_N_CACHE arrays of m doubles. */
 enum vk_cache { C_A = 0, C_G = 3, C_F = 6, C_QP = 9, C_SP = 12, VK_N_CACHE = 13 };
 
+/* The arm's link and soil constants of the unit-time dynamics (vk_unit_dynamics). */
+typedef struct {
+    double l0, l1, l2, h0, h1, h2, bb0, bb1, bb2, dd0, dd1, dd2, g, k0b, mu;
+} vk_dyn;
+
+static inline vk_dyn vk_dyn_of(const double *p)
+{
+    const vk_dyn d = {p[P_LEN],       p[P_LEN + 1],  p[P_LEN + 2],  p[P_CH_H],     p[P_CH_H + 1],
+                      p[P_CH_H + 2],  p[P_CH_B],     p[P_CH_B + 1], p[P_CH_B + 2], p[P_CH_D],
+                      p[P_CH_D + 1],  p[P_CH_D + 2], p[P_GRAVITY],  p[P_K0B],      p[P_MU]};
+    return d;
+}
+
+/* Dynamics of one sample at unit time (T = 1), shared by vk_prepare's cache and the back-off's
+ * vk_local_sample: per joint the inertial torque a (joint accelerations and velocity
+ * products), gravity g and the soil's f (Yao eq 8 at depth H - y; zero at zero speed, where the
+ * real force, which scales with v / reg, is zero at every T), not yet summed outwards.
+ * Returns the tip speed; *depth = H - y. */
+static inline double vk_unit_dynamics(const vk_dyn d, double H, const double cp[3],
+                                      const double sp[3], const double qd[3], const double qdd[3],
+                                      double a[3], double gv[3], double f[3], double *depth)
+{
+    const double lc0 = cp[0] * d.l0, lc1 = cp[1] * d.l1, lc2 = cp[2] * d.l2;
+    const double ls0 = sp[0] * d.l0, ls1 = sp[1] * d.l1, ls2 = sp[2] * d.l2;
+    const double y = (ls0 + ls1) + ls2;
+    const double w0 = qd[0], w1 = w0 + qd[1], w2 = w1 + qd[2];
+    const double vx = -((ls0 * w0 + ls1 * w1) + ls2 * w2);
+    const double vy = (lc0 * w0 + lc1 * w1) + lc2 * w2;
+    const double c2r = cp[1] * cp[0] + sp[1] * sp[0], s2r = sp[1] * cp[0] - cp[1] * sp[0];
+    const double c3r = cp[2] * cp[1] + sp[2] * sp[1], s3r = sp[2] * cp[1] - cp[2] * sp[1];
+    const double c23 = cp[2] * cp[0] + sp[2] * sp[0], s23 = sp[2] * cp[0] - cp[2] * sp[0];
+    const double d01 = d.l0 * (d.h1 * c2r - d.bb1 * s2r), w01 = d.l0 * (d.bb1 * c2r + d.h1 * s2r);
+    const double d02 = d.l0 * (d.h2 * c23 - d.bb2 * s23), w02 = d.l0 * (d.bb2 * c23 + d.h2 * s23);
+    const double d12 = d.l1 * (d.h2 * c3r - d.bb2 * s3r), w12 = d.l1 * (d.bb2 * c3r + d.h2 * s3r);
+    const double ac0 = qdd[0], ac1 = ac0 + qdd[1], ac2 = ac1 + qdd[2];
+    const double ww0 = w0 * w0, ww1 = w1 * w1, ww2 = w2 * w2;
+    a[0] = d.dd0 * ac0 + d01 * ac1 + d02 * ac2 - w01 * ww1 - w02 * ww2;
+    a[1] = d01 * ac0 + d.dd1 * ac1 + d12 * ac2 + w01 * ww0 - w12 * ww2;
+    a[2] = d02 * ac0 + d12 * ac1 + d.dd2 * ac2 + w02 * ww0 + w12 * ww1;
+    gv[0] = d.g * (d.h0 * cp[0] - d.bb0 * sp[0]);
+    gv[1] = d.g * (d.h1 * cp[1] - d.bb1 * sp[1]);
+    gv[2] = d.g * (d.h2 * cp[2] - d.bb2 * sp[2]);
+    const double speed = sqrt(vx * vx + vy * vy);
+    f[0] = f[1] = f[2] = 0.0;
+    *depth = H - y;
+    if (*depth > 0.0 && speed > 0.0) {
+        const double gain = d.k0b * *depth / speed;
+        const double tx = gain * vx, ty = gain * vy;
+        const double side_mu = vx > 0.0 ? d.mu : -d.mu;
+        const double fx = -tx - side_mu * ty;
+        const double fy = -ty + side_mu * tx;
+        f[0] = -(d.l0 * (cp[0] * fy - sp[0] * fx));
+        f[1] = -(d.l1 * (cp[1] * fy - sp[1] * fx));
+        f[2] = -(d.l2 * (cp[2] * fy - sp[2] * fx));
+    }
+    return speed;
+}
+
 /*
  * Fill the unit-time cache of one input row.
  *   K:      out, the kept shape term -a6 T^6 per joint (as oneshot.particle_from_a6)
@@ -488,11 +546,7 @@ static int vk_prepare(const double *p, const double *s, int m, const double *in,
         qdd_pk[j] = 0.0;
     }
     const double H = in[I_SURFACE];
-    const double l0 = p[P_LEN], l1 = p[P_LEN + 1], l2 = p[P_LEN + 2];
-    const double h0 = p[P_CH_H], h1 = p[P_CH_H + 1], h2 = p[P_CH_H + 2];
-    const double bb0 = p[P_CH_B], bb1 = p[P_CH_B + 1], bb2 = p[P_CH_B + 2];
-    const double dd0 = p[P_CH_D], dd1 = p[P_CH_D + 1], dd2 = p[P_CH_D + 2];
-    const double g = p[P_GRAVITY], k0b = p[P_K0B], mu = p[P_MU];
+    const vk_dyn dyn = vk_dyn_of(p);
     double *A0 = cache + C_A * m, *A1 = A0 + m, *A2 = A1 + m;
     double *G0 = cache + C_G * m, *G1 = G0 + m, *G2 = G1 + m;
     double *F0 = cache + C_F * m, *F1 = F0 + m, *F2 = F1 + m;
@@ -531,42 +585,16 @@ static int vk_prepare(const double *p, const double *s, int m, const double *in,
         for (int k = 0; k < nb; k++) {
             const int i = base + k;
             const double qd0 = qdv[0][k], qd1 = qdv[1][k], qd2 = qdv[2][k];
-            const double cp0 = cph[0][k], cp1 = cph[1][k], cp2 = cph[2][k];
-            const double sp0 = sph[0][k], sp1 = sph[1][k], sp2 = sph[2][k];
-            const double lc0 = cp0 * l0, lc1 = cp1 * l1, lc2 = cp2 * l2;
-            const double ls0 = sp0 * l0, ls1 = sp1 * l1, ls2 = sp2 * l2;
-            const double y = (ls0 + ls1) + ls2;
-            const double w0 = qd0, w1 = w0 + qd1, w2 = w1 + qd2;
-            const double vx = -((ls0 * w0 + ls1 * w1) + ls2 * w2);
-            const double vy = (lc0 * w0 + lc1 * w1) + lc2 * w2;
-            const double c2r = cp1 * cp0 + sp1 * sp0, s2r = sp1 * cp0 - cp1 * sp0;
-            const double c3r = cp2 * cp1 + sp2 * sp1, s3r = sp2 * cp1 - cp2 * sp1;
-            const double c23 = cp2 * cp0 + sp2 * sp0, s23 = sp2 * cp0 - cp2 * sp0;
-            const double d01 = l0 * (h1 * c2r - bb1 * s2r), w01 = l0 * (bb1 * c2r + h1 * s2r);
-            const double d02 = l0 * (h2 * c23 - bb2 * s23), w02 = l0 * (bb2 * c23 + h2 * s23);
-            const double d12 = l1 * (h2 * c3r - bb2 * s3r), w12 = l1 * (bb2 * c3r + h2 * s3r);
-            const double ac0 = qddv[0][k], ac1 = ac0 + qddv[1][k], ac2 = ac1 + qddv[2][k];
-            const double ww0 = w0 * w0, ww1 = w1 * w1, ww2 = w2 * w2;
-            const double a0 = dd0 * ac0 + d01 * ac1 + d02 * ac2 - w01 * ww1 - w02 * ww2;
-            const double a1 = d01 * ac0 + dd1 * ac1 + d12 * ac2 + w01 * ww0 - w12 * ww2;
-            const double a2 = d02 * ac0 + d12 * ac1 + dd2 * ac2 + w02 * ww0 + w12 * ww1;
-            const double g0 = g * (h0 * cp0 - bb0 * sp0);
-            const double g1 = g * (h1 * cp1 - bb1 * sp1);
-            const double g2 = g * (h2 * cp2 - bb2 * sp2);
-            const double speed = sqrt(vx * vx + vy * vy);
-            double f0 = 0.0, f1 = 0.0, f2 = 0.0;
-            const double depth = H - y;
-            /* At zero speed the real force is zero at every T (it scales with v / reg). */
-            if (depth > 0.0 && speed > 0.0) {
-                const double gain = k0b * depth / speed;
-                const double tx = gain * vx, ty = gain * vy;
-                const double side_mu = vx > 0.0 ? mu : -mu;
-                const double fx = -tx - side_mu * ty;
-                const double fy = -ty + side_mu * tx;
-                f0 = -(l0 * (cp0 * fy - sp0 * fx));
-                f1 = -(l1 * (cp1 * fy - sp1 * fx));
-                f2 = -(l2 * (cp2 * fy - sp2 * fx));
-            }
+            const double cpk[3] = {cph[0][k], cph[1][k], cph[2][k]};
+            const double spk[3] = {sph[0][k], sph[1][k], sph[2][k]};
+            const double qdk[3] = {qd0, qd1, qd2};
+            const double qddk[3] = {qddv[0][k], qddv[1][k], qddv[2][k]};
+            double at[3], gt[3], ft[3], depth;
+            const double speed = vk_unit_dynamics(dyn, H, cpk, spk, qdk, qddk, at, gt, ft, &depth);
+            const double a0 = at[0], a1 = at[1], a2 = at[2];
+            const double g0 = gt[0], g1 = gt[1], g2 = gt[2];
+            const double f0 = ft[0], f1 = ft[1], f2 = ft[2];
+            const double ac2 = (qddk[0] + qddk[1]) + qddk[2], w2 = (qd0 + qd1) + qd2;
             A2[i] = a2;
             A1[i] = a1 + a2;
             A0[i] = a0 + A1[i];
@@ -1418,50 +1446,18 @@ static void vk_local_sample(const vk_pathscan *r, const double *basis, const dou
     const double *Q1 = basis + 3 * m, *Q2 = basis + 4 * m, *P1 = basis + 5 * m,
                  *P2 = basis + 6 * m;
     const double lim = 1.0 - VK_RT_MARGIN;
-    const double l0 = p[P_LEN], l1 = p[P_LEN + 1], l2 = p[P_LEN + 2];
-    const double h0 = p[P_CH_H], h1 = p[P_CH_H + 1], h2 = p[P_CH_H + 2];
-    const double bb0 = p[P_CH_B], bb1 = p[P_CH_B + 1], bb2 = p[P_CH_B + 2];
-    const double dd0 = p[P_CH_D], dd1 = p[P_CH_D + 1], dd2 = p[P_CH_D + 2];
-    const double g = p[P_GRAVITY], k0b = p[P_K0B], mu = p[P_MU], H = r->H;
+    const double H = r->H;
     double qd[3], qdd[3], cp[3], sp[3];
     for (int j = 0; j < 3; j++) {
         qd[j] = D[j] * Q1[i] + Kc[j] * P1[i];
         qdd[j] = D[j] * Q2[i] + Kc[j] * P2[i];
         vk_sincos(r->A[j * m + i] + c * r->B[j * m + i], &sp[j], &cp[j]);
     }
-    const double lc0 = cp[0] * l0, lc1 = cp[1] * l1, lc2 = cp[2] * l2;
-    const double ls0 = sp[0] * l0, ls1 = sp[1] * l1, ls2 = sp[2] * l2;
-    const double y = (ls0 + ls1) + ls2;
-    const double w0 = qd[0], w1 = w0 + qd[1], w2 = w1 + qd[2];
-    const double vx = -((ls0 * w0 + ls1 * w1) + ls2 * w2);
-    const double vy = (lc0 * w0 + lc1 * w1) + lc2 * w2;
-    const double c2r = cp[1] * cp[0] + sp[1] * sp[0], s2r = sp[1] * cp[0] - cp[1] * sp[0];
-    const double c3r = cp[2] * cp[1] + sp[2] * sp[1], s3r = sp[2] * cp[1] - cp[2] * sp[1];
-    const double c23 = cp[2] * cp[0] + sp[2] * sp[0], s23 = sp[2] * cp[0] - cp[2] * sp[0];
-    const double d01 = l0 * (h1 * c2r - bb1 * s2r), w01 = l0 * (bb1 * c2r + h1 * s2r);
-    const double d02 = l0 * (h2 * c23 - bb2 * s23), w02 = l0 * (bb2 * c23 + h2 * s23);
-    const double d12 = l1 * (h2 * c3r - bb2 * s3r), w12 = l1 * (bb2 * c3r + h2 * s3r);
-    const double ac0 = qdd[0], ac1 = ac0 + qdd[1], ac2 = ac1 + qdd[2];
-    const double ww0 = w0 * w0, ww1 = w1 * w1, ww2 = w2 * w2;
-    const double a0 = dd0 * ac0 + d01 * ac1 + d02 * ac2 - w01 * ww1 - w02 * ww2;
-    const double a1 = d01 * ac0 + dd1 * ac1 + d12 * ac2 + w01 * ww0 - w12 * ww2;
-    const double a2 = d02 * ac0 + d12 * ac1 + dd2 * ac2 + w02 * ww0 + w12 * ww1;
-    const double g0 = g * (h0 * cp[0] - bb0 * sp[0]);
-    const double g1 = g * (h1 * cp[1] - bb1 * sp[1]);
-    const double g2 = g * (h2 * cp[2] - bb2 * sp[2]);
-    const double speed = sqrt(vx * vx + vy * vy);
-    double f0 = 0.0, f1 = 0.0, f2 = 0.0;
-    const double depth = H - y;
-    if (depth > 0.0 && speed > 0.0) {
-        const double gain = k0b * depth / speed;
-        const double tx = gain * vx, ty = gain * vy;
-        const double side_mu = vx > 0.0 ? mu : -mu;
-        const double fx = -tx - side_mu * ty;
-        const double fy = -ty + side_mu * tx;
-        f0 = -(l0 * (cp[0] * fy - sp[0] * fx));
-        f1 = -(l1 * (cp[1] * fy - sp[1] * fx));
-        f2 = -(l2 * (cp[2] * fy - sp[2] * fx));
-    }
+    double at[3], gt[3], ft[3], depth;
+    const double speed = vk_unit_dynamics(vk_dyn_of(p), H, cp, sp, qd, qdd, at, gt, ft, &depth);
+    const double a0 = at[0], a1 = at[1], a2 = at[2];
+    const double g0 = gt[0], g1 = gt[1], g2 = gt[2];
+    const double f0 = ft[0], f1 = ft[1], f2 = ft[2];
     *l = -INFINITY;
     *h = INFINITY;
     if (depth > 0.0 && speed > 0.0 && speed < p[P_SPEED_REG] * p[P_TIME + 1]) return;

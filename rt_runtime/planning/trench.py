@@ -381,14 +381,8 @@ class PsoOneShot:
         t0 = time.perf_counter()
         sol = oneshot.solve_pso(self.rig, [problem], **self.options)[0]
         a6 = tuple(float(v) for v in sol.a6)
-        row = pack_inputs(
-            np.array([problem.q_start_rad]),
-            np.array([problem.q_end_rad]),
-            np.array([problem.surface_y_m]),
-            np.array([int(problem.dig_type)]),
-            np.array([a6]),
-            np.array([sol.T_s]),
-        )
+        p = problem
+        row = pack_inputs(p.q_start_rad, p.q_end_rad, p.surface_y_m, p.dig_type, a6, sol.T_s)
         out = np.zeros((1, N_OUT))
         self.verifier.evaluate_into(row, out)
         if out[0, COL_TOTAL] > 0.0:
@@ -1500,14 +1494,8 @@ class TrenchSession:
         else:
             res = self.planner.oneshot.plan_dig(problem, float(best["c_max"]))
         a6, T_s = self._fine_grid_time(problem, res.a6, res.T_s)
-        row = pack_inputs(
-            np.array([problem.q_start_rad]),
-            np.array([problem.q_end_rad]),
-            np.array([problem.surface_y_m]),
-            np.array([int(problem.dig_type)]),
-            np.array([a6]),
-            np.array([T_s]),
-        )
+        pb = problem
+        row = pack_inputs(pb.q_start_rad, pb.q_end_rad, pb.surface_y_m, pb.dig_type, a6, T_s)
         out = np.zeros((1, N_OUT))
         path = np.zeros((1, self.planner.verifier.n_samples, 2))
         self.planner.verifier.evaluate_into(row, out, path=path)

@@ -122,6 +122,9 @@ _REPAIR_GRADIENT_STEP = 2.0
 # models).
 _REPAIR_SECANT_SAMPLES = 11
 _VOLUME_MIN = CONSTRAINT_NAMES.index("volume_min")
+# Path-only constraints (they need the path, not T): joint ranges, theta_p, volume.
+_ANGLES = slice(CONSTRAINT_NAMES.index("angle_min_boom"), CONSTRAINT_NAMES.index("velocity_boom"))
+_PATH_SHAPE = slice(CONSTRAINT_NAMES.index("theta_p_min"), CONSTRAINT_NAMES.index("time_min"))
 _VOLUME_MAX = CONSTRAINT_NAMES.index("volume_max")
 _THETA_P = (CONSTRAINT_NAMES.index("theta_p_min"), CONSTRAINT_NAMES.index("theta_p_max"))
 # Constraint columns time scaling can fix (it leaves the path, so angles, theta_p, volume alone).
@@ -130,6 +133,45 @@ _TIME_FIXABLE = frozenset(
     for i, n in enumerate(CONSTRAINT_NAMES)
     if n.startswith(("velocity", "acceleration", "torque", "power")) or n == "time_min"
 )
+
+
+def _path_fails(ev: list[float]) -> bool:
+    """A path-only limit (joint range, theta_p, volume) fails in the verifier row ``ev``."""
+    return max(ev[_ANGLES]) > 0.0 or max(ev[_PATH_SHAPE]) > 0.0
+
+
+def _path_fails_beyond_v_min(ev: list[float]) -> bool:
+    """A path-only limit other than volume_min fails (what the V_min step cannot mend)."""
+    return (
+        max(ev[_ANGLES]) > 0.0
+        or max(ev[_THETA_P[0] : _THETA_P[1] + 1]) > 0.0
+        or (ev[_VOLUME_MAX] > 0.0)
+    )
+
+
+def _problem(x: list[float], kind: DigType) -> Problem:
+    """The problem of the planner's input row values ``x`` (entry, exit, H)."""
+    return Problem((x[0], x[1], x[2]), (x[3], x[4], x[5]), x[6], kind)
+
+
+def _planned(
+    x: list[float],
+    kind: DigType,
+    a6: tuple[float, float, float],
+    T: float,
+    raw_a6: tuple[float, float, float],
+    raw_T: float,
+    status: PlanStatus,
+    evaluation: FloatArray,
+    infer_us: float,
+    t0: float,
+    scale: float = 1.0,
+) -> PinnPlan:
+    """A returned plan; its ``plan_us`` runs from ``t0`` (perf_counter) to now."""
+    return PinnPlan(
+        _problem(x, kind), a6, T, raw_a6, raw_T, status, evaluation, infer_us,
+        (time.perf_counter() - t0) * 1e6, scale,
+    )  # fmt: skip
 
 
 def fill_c_range(c_max: float) -> tuple[float, float]:
@@ -565,10 +607,8 @@ class PinnPlanner:
         """
         t0 = time.perf_counter()
         try:
-            kind = self._kinds.get(dig_type)
-        except TypeError:  # unhashable: DigType says what is wrong with it
-            kind = None
-        if kind is None or isinstance(dig_type, bool):
+            kind = self._kinds[dig_type]
+        except (KeyError, TypeError):  # not a dig type's value: DigType names what is wrong
             kind = DigType(dig_type)
         row = self._row
         tried: _Repair | None = None  # the fast repair's outcome, once tried
@@ -582,7 +622,7 @@ class PinnPlanner:
         ):
             why = self._domain_error(kind, x)
             if why is not None:
-                problem = Problem((x[0], x[1], x[2]), (x[3], x[4], x[5]), x[6], kind)
+                problem = _problem(x, kind)
                 if self.teacher_fallback and all(map(math.isfinite, x)):
                     return self._teacher(problem, t0)
                 raise PlanningError(f"refused: {why}; nothing was planned")
@@ -617,39 +657,19 @@ class PinnPlanner:
                 status = PlanStatus.REPAIRED
             if ok:
                 r = self._retimed_row.tolist()
-                evaluation = self._out_row.copy()
-                scale = float(self._scale[0])
-                problem = Problem((x[0], x[1], x[2]), (x[3], x[4], x[5]), x[6], kind)
-                return PinnPlan(
-                    problem,
-                    (r[0], r[1], r[2]),
-                    r[3],
-                    raw_a6,
-                    raw_T,
-                    status,
-                    evaluation,
-                    infer_us,
-                    (time.perf_counter() - t0) * 1e6,
-                    scale,
-                )
+                return _planned(
+                    x, kind, (r[0], r[1], r[2]), r[3], raw_a6, raw_T, status,
+                    self._out_row.copy(), infer_us, t0, float(self._scale[0]),
+                )  # fmt: skip
             self.verifier.evaluate_into(row, out)  # back to the network's own answer
         else:
             self.verifier.evaluate_into(row, out)
             if self._out_row[COL_TOTAL] <= 0.0:
-                evaluation = self._out_row.copy()
-                problem = Problem((x[0], x[1], x[2]), (x[3], x[4], x[5]), x[6], kind)
-                return PinnPlan(
-                    problem,
-                    raw_a6,
-                    raw_T,
-                    raw_a6,
-                    raw_T,
-                    PlanStatus.RAW,
-                    evaluation,
-                    infer_us,
-                    (time.perf_counter() - t0) * 1e6,
-                )
-        problem = Problem((x[0], x[1], x[2]), (x[3], x[4], x[5]), x[6], kind)
+                return _planned(
+                    x, kind, raw_a6, raw_T, raw_a6, raw_T, PlanStatus.RAW,
+                    self._out_row.copy(), infer_us, t0,
+                )  # fmt: skip
+        problem = _problem(x, kind)
         a6_ok, T_ok, status = self._repair(problem, raw_a6, raw_T, tried)
         final = self._evaluation(problem, a6_ok, T_ok)
         if final[COL_TOTAL] > 0.0:  # the repair paths verify; this guards the guarantee
@@ -657,17 +677,7 @@ class PinnPlanner:
                 f"refused: repaired plan fails verification ({self._worst(final)}); "
                 "nothing was planned"
             )
-        return PinnPlan(
-            problem,
-            a6_ok,
-            T_ok,
-            raw_a6,
-            raw_T,
-            status,
-            final,
-            infer_us,
-            (time.perf_counter() - t0) * 1e6,
-        )
+        return _planned(x, kind, a6_ok, T_ok, raw_a6, raw_T, status, final, infer_us, t0)
 
     # -- repair -----------------------------------------------------------------------------
 
@@ -741,8 +751,7 @@ class PinnPlanner:
             ``self._out`` its evaluation and ``self._scale`` its fill scale (1.0 for a
             retiming).
         """
-        path_ok = max(ev[0:6]) <= 0.0 and max(ev[16:20]) <= 0.0
-        if path_ok or ev[_VOLUME_MAX] > 0.0:
+        if not _path_fails(ev) or ev[_VOLUME_MAX] > 0.0:
             return _Repair.SKIPPED  # only time-dependent limits fail (retiming's case), or V_max
         src = self._row[0].tolist()
         T = src[11]
@@ -793,10 +802,10 @@ class PinnPlanner:
         fr[:] = self._row[0]
         o = self._fr_evaluate(K, t6)
         g: list[float] | None = None
-        if max(o[0:6]) > 0.0 or max(o[16:20]) > 0.0:
+        if _path_fails(o):
             # 3. V_min: linearised by a secant per free joint (at most two: with three, the one
             # that sets T stays), over about the distance the repair moves.
-            if max(o[0:6]) > 0.0 or max(o[16:18]) > 0.0 or o[_VOLUME_MAX] > 0.0:
+            if _path_fails_beyond_v_min(o):
                 return _Repair.NO_PATH
             if w[0] > 0.0 and w[1] > 0.0 and w[2] > 0.0:
                 w[binding] = 0.0
@@ -825,9 +834,9 @@ class PinnPlanner:
         # The failed plan reports the repaired path itself (scale 1): its path-only values
         # are K's.
         o = self._out_row.tolist()
-        if max(o[0:6]) <= 0.0 and max(o[16:20]) <= 0.0:
+        if not _path_fails(o):
             return _Repair.UNTIMED  # a path that meets every path-only limit, but no T times it
-        if g is None or max(o[0:6]) > 0.0 or max(o[16:18]) > 0.0 or o[_VOLUME_MAX] > 0.0:
+        if g is None or _path_fails_beyond_v_min(o):
             return _Repair.NO_PATH
         # One chord correction with the same secants, where V_min alone still fails.
         K_new = self._volume_step(K, w, g, o[_VOLUME_MIN], cons)
@@ -836,7 +845,7 @@ class PinnPlanner:
         if self._fr_plan(K_new, t6, fill):
             return _Repair.DONE
         o = self._out_row.tolist()
-        if max(o[0:6]) <= 0.0 and max(o[16:20]) <= 0.0:
+        if not _path_fails(o):
             return _Repair.UNTIMED
         return _Repair.NO_PATH
 
@@ -853,13 +862,17 @@ class PinnPlanner:
         b = -_REPAIR_VOLUME_MARGIN - v + (g[0] * K[0] + g[1] * K[1] + g[2] * K[2])
         return _nearest(K, w, [(g, b), *cons])
 
-    def _fr_plan(self, K: list[float], t6: float, c_range: tuple[float, float] | None) -> bool:
-        """Fill (``c_range``) and retime, or retime only (None), the scratch row with shape
-        term K into ``self._out``, ``self._retimed``, ``self._scale``; whether it verified."""
+    def _fr_set(self, K: list[float], t6: float) -> None:
+        """Put the shape term K (a6 = -K / T^6) into the scratch row."""
         fr = self._fr_in
         fr[8] = -K[0] / t6
         fr[9] = -K[1] / t6
         fr[10] = -K[2] / t6
+
+    def _fr_plan(self, K: list[float], t6: float, c_range: tuple[float, float] | None) -> bool:
+        """Fill (``c_range``) and retime, or retime only (None), the scratch row with shape
+        term K into ``self._out``, ``self._retimed``, ``self._scale``; whether it verified."""
+        self._fr_set(K, t6)
         if c_range is None:
             self._retime_rows(self._fr_row, self._out, self._retimed, None)
             self._scale[0] = 1.0
@@ -871,20 +884,14 @@ class PinnPlanner:
 
     def _fr_evaluate_coarse(self, K: list[float], t6: float) -> float:
         """volume_min's value for the scratch row with shape term K on the coarse grid."""
-        fr = self._fr_in
-        fr[8] = -K[0] / t6
-        fr[9] = -K[1] / t6
-        fr[10] = -K[2] / t6
+        self._fr_set(K, t6)
         self._coarse_rows(self._fr_row, self._fr_out, None)
         return float(self._fr_out_row[_VOLUME_MIN])
 
     def _fr_evaluate(self, K: list[float], t6: float) -> list[float]:
         """The verifier's output row for the scratch row with shape term K (path-only values
         matter: T is the network's)."""
-        fr = self._fr_in
-        fr[8] = -K[0] / t6
-        fr[9] = -K[1] / t6
-        fr[10] = -K[2] / t6
+        self._fr_set(K, t6)
         self._eval_rows(self._fr_row, self._fr_out, None)
         result: list[float] = self._fr_out[0].tolist()
         return result

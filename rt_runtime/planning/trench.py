@@ -1060,10 +1060,7 @@ class TrenchSession:
         move = (near.bounds[2] - self.machine_x) - (hi - 0.05 * s)
         if move >= -1e-3:
             return False
-        self.steps.append(TravelMove(move, self.machine_x, self.machine_x + move))
-        self.machine_x += move
-        self._travels += 1
-        self.q_now = None
+        self._travel(move)
         self.phase = DigType.DOWNWARD
         self._finish_index = 0
         return True
@@ -1078,13 +1075,15 @@ class TrenchSession:
             return
         if self._reachable(remaining).area >= 0.005 * self.design_area:
             return  # material is left within reach: dig that first
-        self._travels += 1
         # Travel so that the far edge of the rest comes 5 cm inside the farthest entry:
         # negative (backing away) when the rest is too close to the machine.
-        move = maxx - (hi - 0.05 * self.planner.scale)
-        step = TravelMove(move, self.machine_x, self.machine_x + move)
+        self._travel(maxx - (hi - 0.05 * self.planner.scale))
+
+    def _travel(self, move: float) -> None:
+        """Crawler travel by ``move`` (m along the trench); the arm's pose is unknown after."""
+        self.steps.append(TravelMove(move, self.machine_x, self.machine_x + move))
         self.machine_x += move
-        self.steps.append(step)
+        self._travels += 1
         self.q_now = None
 
     def _screen(self, remaining: Any) -> list[dict[str, Any]]:

@@ -112,7 +112,7 @@ def planned_objective(
     Returns:
         ``(N,)`` Yao eq 11 of the filled and retimed plan, NaN where that plan is infeasible.
     """
-    from rt_runtime.planning.verify import COL_OBJECTIVE, COL_TOTAL, N_OUT, Verifier
+    from rt_runtime.planning.verify import COL_OBJECTIVE, COL_TOTAL, N_OUT, Verifier, pack_inputs
 
     verifier = (
         rig_or_verifier if isinstance(rig_or_verifier, Verifier) else Verifier(rig_or_verifier)
@@ -121,11 +121,9 @@ def planned_objective(
     result = np.full(n, np.nan)
     for a in range(0, n, _CHUNK):
         b = min(n, a + _CHUNK)
-        rows = np.zeros((b - a, 12))
-        rows[:, 0:7] = X[a:b]
-        rows[:, 7] = int(dig_type)
-        rows[:, 8:11] = -K_rad[a:b] / T_s[a:b, None] ** 6
-        rows[:, 11] = T_s[a:b]
+        T = T_s[a:b]
+        a6 = -K_rad[a:b] / T[:, None] ** 6
+        rows = pack_inputs(X[a:b, 0:3], X[a:b, 3:6], X[a:b, 6], int(dig_type), a6, T)
         out = np.zeros((b - a, N_OUT))
         verifier.plan_into(rows, out, np.zeros((b - a, 4)))
         ok = out[:, COL_TOTAL] <= 0.0

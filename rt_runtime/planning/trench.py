@@ -61,7 +61,7 @@ from shapely.errors import GEOSException
 from shapely.geometry import Polygon
 
 from rt_runtime import kinematics
-from rt_runtime.errors import ConfigurationError, KinematicsError, PlanningError
+from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import DigType, Problem
 from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR, PinnPlanner
@@ -1616,7 +1616,7 @@ class TrenchSession:
         q0 = np.asarray(q_from_rad, dtype=np.float64)
         end = self.planner.arm.tip(q0)
         clear = self.ground_y + _LIFT_CLEAR_M * self.planner.scale
-        lift = _safe_ik(self.rig, end[0], clear, end[2], self.planner.arm)
+        lift = _safe_ik(self.planner.arm, end[0], clear, end[2])
         return (
             self._transition("lift_out", q0, lift),
             self._transition("dump", lift, self.planner.dump_pose_rad),
@@ -1636,11 +1636,7 @@ class TrenchSession:
         q_entry = np.asarray(dig.problem.q_start_rad)
         start = self.planner.arm.tip(q_entry)
         approach = _safe_ik(
-            self.rig,
-            start[0],
-            start[1] + _APPROACH_M * self.planner.scale,
-            start[2],
-            self.planner.arm,
+            self.planner.arm, start[0], start[1] + _APPROACH_M * self.planner.scale, start[2]
         )
         return (
             self._transition("approach", np.asarray(q_from_rad, dtype=np.float64), approach),
@@ -1944,20 +1940,12 @@ def _total_without_volume(row: FloatArray) -> float:
     return float(np.sum(np.maximum(v, 0.0)))
 
 
-def _safe_ik(
-    rig: Rig, x: float, y: float, attitude: float, arm: kinematics.FastArm | None = None
-) -> FloatArray:
+def _safe_ik(arm: kinematics.FastArm, x: float, y: float, attitude: float) -> FloatArray:
     """IK of a transition pose, trying attitudes nearer the middle when the first fails."""
     for att in (attitude, attitude + 0.3, attitude - 0.3, -math.pi / 2):
-        if arm is not None:
-            q = arm.ik(x, y, att)
-            if q is not None:
-                return np.asarray(q)
-            continue
-        try:
-            return kinematics.inverse(rig, x, y, att)
-        except KinematicsError:
-            continue
+        q = arm.ik(x, y, att)
+        if q is not None:
+            return np.asarray(q)
     raise PlanningError(f"no reachable transition pose at x={x:.3f} m, y={y:.3f} m")
 
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from collections.abc import Callable
 from typing import Any
 
 from hil_sim.scenario import (
@@ -245,9 +246,15 @@ def run(args: argparse.Namespace) -> int:
         planner=args.planner,
         plot_dir=args.plot,
     )
+    return _print_run(args, lambda: run_scenario(scenario))
+
+
+def _print_run(args: argparse.Namespace, run: Callable[[], dict[str, Any]]) -> int:
+    """Run a scenario and print its report (``--json`` or text); the command's exit status:
+    0 done, 1 stopped otherwise, 2 refused before anything moved (bad input, planning)."""
     try:
-        report = run_scenario(scenario)
-    except ExcavatorRtError as exc:
+        report = run()
+    except (ExcavatorRtError, ValueError) as exc:
         if args.json:
             print(json.dumps({"status": "error", "error": str(exc)}))
         else:
@@ -282,14 +289,4 @@ def _run_path(
         plot_dir=args.plot,
         faults=tuple(args.inject),
     )
-    try:
-        report = run_path_scenario(scenario)
-    except (ExcavatorRtError, ValueError) as exc:
-        if args.json:
-            print(json.dumps({"status": "error", "error": str(exc)}))
-        else:
-            print(f"excavator-rt hil: {exc}")
-        return 2
-    report.pop("_frames", None)
-    print(json.dumps(report) if args.json else format_report(report))
-    return 0 if report["status"] == "done" else 1
+    return _print_run(args, lambda: run_path_scenario(scenario))

@@ -497,7 +497,27 @@ class PlannerLink(Protocol):
         ...
 
 
-class InlinePlanner:
+class _AnsweredLink:
+    """A link that answers each request at once on the caller's thread: its replies wait in a
+    queue for :meth:`poll`; nothing to release."""
+
+    def __init__(self) -> None:
+        self._replies: deque[Reply] = deque()
+
+    def poll(self) -> Reply | None:
+        """The oldest reply, or None."""
+        return self._replies.popleft() if self._replies else None
+
+    @property
+    def busy(self) -> bool:
+        """Replies not yet polled."""
+        return bool(self._replies)
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+class InlinePlanner(_AnsweredLink):
     """Runs each request at once on the caller's thread (simulated clock; deterministic).
 
     Args:
@@ -505,8 +525,8 @@ class InlinePlanner:
     """
 
     def __init__(self, session: TrenchSession) -> None:
+        super().__init__()
         self.driver = SessionDriver(session)
-        self._replies: deque[Reply] = deque()
 
     def _run(self, fn: Any, *args: Any) -> None:
         try:
@@ -524,20 +544,8 @@ class InlinePlanner:
         if plan_next and not isinstance(self._replies[-1], PlannerError):
             self._run(self.driver.plan, None)
 
-    def poll(self) -> Reply | None:
-        """The oldest reply, or None."""
-        return self._replies.popleft() if self._replies else None
 
-    @property
-    def busy(self) -> bool:
-        """Replies not yet polled."""
-        return bool(self._replies)
-
-    def close(self) -> None:
-        """Nothing to release."""
-
-
-class PathLink:
+class PathLink(_AnsweredLink):
     """The planner link of a :class:`PathJob`: hands out its motions once (inline, any clock).
 
     The first :meth:`request_plan` is answered with a :class:`PathPlan`; a later one with an
@@ -549,9 +557,9 @@ class PathLink:
     """
 
     def __init__(self, job: PathJob) -> None:
+        super().__init__()
         self.job = job
         self._handed_out = False
-        self._replies: deque[Reply] = deque()
 
     def request_plan(self, q_from_rad: FloatArray | None) -> None:
         """Queue the path's motions (first request) or an empty plan (later ones)."""
@@ -562,18 +570,6 @@ class PathLink:
     def request_record(self, strokes_m: FloatArray, plan_next: bool) -> None:
         """A path records nothing: answered with a :class:`PlannerError`."""
         self._replies.append(PlannerError("a path job has no digs to record"))
-
-    def poll(self) -> Reply | None:
-        """The oldest reply, or None."""
-        return self._replies.popleft() if self._replies else None
-
-    @property
-    def busy(self) -> bool:
-        """Replies not yet polled."""
-        return bool(self._replies)
-
-    def close(self) -> None:
-        """Nothing to release."""
 
 
 # -- the planner process --------------------------------------------------------------------------

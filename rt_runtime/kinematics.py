@@ -176,9 +176,7 @@ def _solve_arm(
     ``targets`` only serves the error message (the caller's own coordinates).
     """
     l1, l2, l3 = (float(v) for v in rig.lengths_m)
-    pivot_x = x_m - l3 * np.cos(attitude_rad)
-    pivot_y = y_m - l3 * np.sin(attitude_rad)
-    r = np.hypot(pivot_x, pivot_y)
+    q, r = _arm_angles(l1, l2, l3, x_m, y_m, attitude_rad)
     outer = l1 + l2
     inner = abs(l1 - l2)
     tol = _REACH_REL_TOL * outer
@@ -189,9 +187,24 @@ def _solve_arm(
             f"bucket pivot of {_describe(targets, i)} is {float(r.flat[i]):.6g} m from the boom "
             f"foot pin; boom and stick reach [{inner:.6g}, {outer:.6g}] m"
         )
+    return q
+
+
+def _arm_angles(
+    l1: float, l2: float, l3: float, x_m: FloatArray, y_m: FloatArray, attitude_rad: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Excavator-branch joint angles ``(..., 3)``, neither wrapped nor checked, and the bucket
+    pivot's distance r from the boom foot pin (the angles mean nothing where r is outside the
+    annulus ``[|l1 - l2|, l1 + l2]``; they are finite there).
+    """
+    pivot_x = x_m - l3 * np.cos(attitude_rad)
+    pivot_y = y_m - l3 * np.sin(attitude_rad)
+    r = np.hypot(pivot_x, pivot_y)
+    outer = l1 + l2
+    inner = abs(l1 - l2)
     # Law of cosines in half-angle form: tan^2(theta2 / 2) = ((l1+l2)^2 - r^2) / (r^2 - (l1-l2)^2).
     # The factored differences stay exact near full extension and full fold, where acos of the
-    # cosine loses half the digits; clipping only absorbs the tolerance admitted above.
+    # cosine loses half the digits; clipping only absorbs a tolerance the caller admits.
     far = np.sqrt(np.maximum((outer - r) * (outer + r), 0.0))
     near = np.sqrt(np.maximum((r - inner) * (r + inner), 0.0))
     theta2 = -2.0 * np.arctan2(far, near)
@@ -201,7 +214,7 @@ def _solve_arm(
     q[..., 0] = theta1
     q[..., 1] = theta2
     q[..., 2] = attitude_rad - theta1 - theta2
-    return q
+    return q, r
 
 
 def inverse(
@@ -304,19 +317,9 @@ class FastArm:
         self, x: FloatArray, y: FloatArray, attitude: FloatArray
     ) -> tuple[FloatArray, NDArray[np.bool_]]:
         """Joint angles of many poses ``(N, 3)`` and which are reachable within the limits."""
-        px = x - self.l3 * np.cos(attitude)
-        py = y - self.l3 * np.sin(attitude)
-        r = np.hypot(px, py)
+        q, r = _arm_angles(self.l1, self.l2, self.l3, x, y, attitude)
         reach = (r < self.outer - 1e-9) & (r > self.inner + 1e-9)
-        far = np.sqrt(np.maximum((self.outer - r) * (self.outer + r), 0.0))
-        near = np.sqrt(np.maximum((r - self.inner) * (r + self.inner), 0.0))
-        q = np.empty((x.shape[0], 3))
-        t2 = -2.0 * np.arctan2(far, near)
-        elbow = np.arctan2(self.l2 * np.sin(t2), self.l1 + self.l2 * np.cos(t2))
-        q[:, 0] = np.arctan2(py, px) - elbow
-        q[:, 1] = t2
-        q[:, 2] = attitude - q[:, 0] - t2
-        q -= 2.0 * np.pi * np.floor((q - self.low) / (2.0 * np.pi))
+        q = _wrap_to_range(q, self.q_min, self.q_max)
         ok = reach & np.all((q >= self.q_min) & (q <= self.q_max), axis=1)
         return q, ok
 

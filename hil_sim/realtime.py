@@ -53,6 +53,7 @@ from can.interfaces.virtual import VirtualBus
 from hil_sim.sim import COB_SYNC, FaultKind, HilCore, Truth, open_trace
 from hil_sim.terrain import Terrain
 from rt_runtime.control import MonotonicClock
+from rt_runtime.control.rt import RtSettings, apply_rt
 from rt_runtime.errors import CommunicationError
 from rt_runtime.rig import load_rig
 
@@ -69,13 +70,16 @@ def serve(args: argparse.Namespace) -> int:
     from can_remote import RemoteServer
 
     if args.rt_priority is not None:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
-        except (AttributeError, OSError) as exc:
-            print(
-                f"HIL: SCHED_FIFO {args.rt_priority} refused ({exc}); running without",
-                file=sys.stderr,
-            )
+        only_fifo = RtSettings(
+            sched_fifo_priority=args.rt_priority,
+            lock_memory=False,
+            cpu=None,
+            timer_slack_ns=None,
+            freeze_gc=False,
+        )
+        for item in apply_rt(only_fifo).refused:
+            print(f"HIL: SCHED_FIFO {item.requested} refused ({item.reason}); running without",
+                  file=sys.stderr)  # fmt: skip
     # The bridge's threads forward frames; a short switch interval keeps them from waiting
     # 5 ms (the default) for the loop to give up the interpreter.
     sys.setswitchinterval(2e-4)

@@ -286,3 +286,19 @@ def test_trench_longer_than_the_reach_is_dug_after_travel(
     assert plan.removed_m3 == pytest.approx(sum(d.volume_m3 for d in plan.digs), rel=1e-9)
     for prev, step in itertools.pairwise(travels):
         assert step.machine_x_from_m == pytest.approx(prev.machine_x_to_m)
+
+
+def test_deep_long_trench_enters_the_bulk_after_travel(planner: TrenchPlanner) -> None:
+    # 1.0 m x 0.15 m: the first stand's digs slope the material off towards the machine. After
+    # the travel the thin edge of that slope is the far edge of the material; entering there
+    # fills the bucket from the face above the path, so no dig qualified and the session
+    # ended with 40 % of the design left. Entries also start at the bulk's edge now.
+    from rt_runtime.planning.trench import TravelMove
+
+    plan = planner.plan(make_task(RIG, 1.0, 0.15, 60.0, 60.0, name="deep"))
+    assert any(isinstance(s, TravelMove) for s in plan.steps)
+    after = [d for d in plan.digs if d.machine_x_m < 0.0]
+    # the bulk is roughed out from the second stand by PINN digs, not only profile passes
+    assert any(d.status == "retimed" for d in after)
+    assert plan.coverage_error <= 0.10
+    assert plan.overdig_max_m <= OVERDIG_LIMIT_M

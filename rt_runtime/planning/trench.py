@@ -968,15 +968,30 @@ class TrenchSession:
             (grid >= m + lo) & (grid <= m + hi)
         )
         idx = np.flatnonzero(thick) if self._travels else np.empty(0, dtype=np.intp)
+        step = 0.04 * s
+        edges: list[float] = []
         if idx.size:
             minx, maxx = float(grid[idx[0]]), float(grid[idx[-1]])
+            # The far edge of the bulk as well: where the previous stand's digs sloped the
+            # material off, the thin edge lies on that slope, below the ground the bulk
+            # behind it stands at, and every dig entering there would fill the bucket from
+            # the face above its path (1.0 m x 0.15 m: 40 % left). The bulk's edge is where
+            # the material is at least 90 % of its thickest within reach.
+            t = self.surface[idx] - self.design_floor[idx]
+            bulk = idx[t >= _ENTRY_BULK_FRACTION * float(np.max(t))]
+            bulk_x = float(grid[bulk[-1]])
+            if bulk_x < maxx - step:
+                edges.append(bulk_x)
         else:
             reach = self._reachable(remaining)
             part = reach if reach.area >= 0.005 * self.design_area else remaining
             minx, _, maxx, _ = part.bounds
-        step = 0.04 * s
-        xs = np.arange(maxx, minx + 0.05 * s, -step)[:_N_ENTRY_X]
-        return xs.tolist() or [maxx]
+        xs = [
+            float(x)
+            for edge in (maxx, *edges)
+            for x in np.arange(edge, minx + 0.05 * s, -step)[:_N_ENTRY_X]
+        ]
+        return xs or [maxx]
 
     def next_dig(self) -> PlannedDig | None:
         """Plan the next dig from the current material, or None when the task is done.
@@ -1921,6 +1936,9 @@ _MAX_TRAVELS = 4
 _N_MAX_PASSES = 16
 #: Least material above the design floor where an entry may be placed (m, scale model).
 _ENTRY_MIN_THICKNESS_M = 0.01
+#: After a travel, entries also start at the far edge of the material at least this fraction of
+#: its thickest within reach (:meth:`TrenchSession._entry_x_candidates`).
+_ENTRY_BULK_FRACTION = 0.9
 # A profile fit this good (least-squares cost, m^2: ~1 mm RMS) ends the search of starts.
 _GOOD_FIT_COST = 2e-4
 # Samples of a profile pass's path in its fit.

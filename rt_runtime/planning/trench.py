@@ -1027,6 +1027,15 @@ class TrenchSession:
             dig = self._first_plannable(ranked, t0)
         if dig is None and self._relocate_for_rest(remaining):
             return self.next_dig()
+        # Nothing more from here or from another stand: the rest in layers (_finishing), when
+        # it is more than a sliver (on Yao's B the ~1 % left are slivers along the profile,
+        # which layers over-cut: 1.0 -> 1.4 %).
+        layers = exhausted and left > _LAYER_MIN_LEFT * self.design_area
+        while dig is None and layers and self._finish_index < _N_MAX_PASSES:
+            ranked = self._finishing(remaining, layers=True)
+            if not ranked:
+                break
+            dig = self._first_plannable(ranked, t0)
         if dig is None and exhausted:
             return None
         if dig is None:
@@ -1047,10 +1056,24 @@ class TrenchSession:
         """
         for best in ranked:
             try:
-                return self._plan_chosen(best, (time.perf_counter() - t0) * 1e6)
+                dig = self._plan_chosen(best, (time.perf_counter() - t0) * 1e6)
+                self._check_transition_poses(dig)
             except PlanningError:
                 continue
+            return dig
         return None
+
+    def _check_transition_poses(self, dig: PlannedDig) -> None:
+        """PlanningError unless the poses of the moves around ``dig`` are reachable: the
+        approach above its entry and the lift out above its exit (a layer pass may end too
+        near the machine to lift the bucket straight up, and that was only found when the next
+        dig was planned, as an error)."""
+        arm = self.planner.arm
+        s = self.planner.scale
+        start = arm.tip(np.asarray(dig.problem.q_start_rad))
+        end = arm.tip(np.asarray(dig.problem.q_end_rad))
+        _safe_ik(arm, start[0], start[1] + _APPROACH_M * s, start[2])
+        _safe_ik(arm, end[0], self.ground_y + _LIFT_CLEAR_M * s, end[2])
 
     def _reachable(self, remaining: Any) -> Any:
         """The part of ``remaining`` between the nearest and farthest entries."""
@@ -1233,7 +1256,7 @@ class TrenchSession:
 
     # -- finishing passes ---------------------------------------------------------------------
 
-    def _finishing(self, remaining: Any) -> list[dict[str, Any]]:
+    def _finishing(self, remaining: Any, *, layers: bool = False) -> list[dict[str, Any]]:
         """The next profile pass, or None when none is left or none removes enough.
 
         Roughing digs follow their own (PINN) path shape, which cannot reach into the design's
@@ -1270,7 +1293,31 @@ class TrenchSession:
             )
             for k in range(n_bottom)
         ]
-        passes.append((DigType.DOWNWARD, np.array([D, C]), ((-80.0, -100.0), (-100.0, -130.0))))
+        wall_near = (DigType.DOWNWARD, np.array([D, C]), ((-80.0, -100.0), (-100.0, -130.0)))
+        passes.append(wall_near)
+        # ``layers``: where those fail and no other stand helps (the boom's torque through a
+        # thick face: a short trench whose roughing digs do not fit left up to 69 % of its
+        # design), the rest is taken in layers from the top, each a bottom-like pass from
+        # wall to wall at a fixed height, and the profile passes then run again under them.
+        # The list only grows at its end, so _finish_index counts through both; a plan that
+        # never needs the layers is unchanged.
+        standard = len(passes)
+        n_layers = math.ceil(t.depth_m / (_LAYER_M * self.planner.scale)) if layers else 0
+        for k in range(1, n_layers):
+            y = self.bottom_y + t.depth_m * (1.0 - k / n_layers)
+            far = (xf - (g - y) / math.tan(t.beta1_rad), y)
+            near = (xn + (g - y) / math.tan(t.beta2_rad), y)
+            n_piece = max(1, math.ceil((far[0] - near[0]) / (_PASS_LENGTH_M * self.planner.scale)))
+            ends = [
+                np.asarray(far) + (np.asarray(near) - np.asarray(far)) * j / n_piece
+                for j in range(n_piece + 1)
+            ]
+            passes += [
+                (DigType.BACKWARD, np.array([ends[j] + lift, ends[j + 1]]), passes[1][2])
+                for j in range(n_piece)
+            ]
+        if len(passes) > standard:
+            passes += passes[:standard]
         while self._finish_index < len(passes):
             kind, poly, atts = passes[self._finish_index]
             self._finish_index += 1
@@ -1933,7 +1980,7 @@ _N_RANKED = 4
 # Crawler travels per task at most.
 _MAX_TRAVELS = 4
 # Upper bound on profile passes (far wall, bottom pieces, near wall).
-_N_MAX_PASSES = 16
+_N_MAX_PASSES = 40
 #: Least material above the design floor where an entry may be placed (m, scale model).
 _ENTRY_MIN_THICKNESS_M = 0.01
 #: After a travel, entries also start at the far edge of the material at least this fraction of
@@ -1945,6 +1992,10 @@ _GOOD_FIT_COST = 2e-4
 _FIT_SAMPLES = 41
 # Longest straight profile pass (scale model, m).
 _PASS_LENGTH_M = 0.30
+#: Thickest layer of a layer pass (:meth:`TrenchSession._finishing`), m on the scale model.
+_LAYER_M = 0.05
+#: Least part of the design left (fraction) for which layer passes are tried.
+_LAYER_MIN_LEFT = 0.03
 _VOLUME_COLUMNS = (
     oneshot.CONSTRAINT_NAMES.index("volume_min"),
     oneshot.CONSTRAINT_NAMES.index("volume_max"),

@@ -15,6 +15,7 @@ from rt_runtime.planning.trench import (
     PlannedDig,
     Transition,
     TrenchPlanner,
+    TrenchSession,
     design_polygon,
     load_task,
     lower_envelope,
@@ -316,3 +317,32 @@ def test_thick_rest_that_no_dig_fits_is_taken_in_layers(planner: TrenchPlanner) 
     assert plan.coverage_error <= 0.05
     assert plan.overdig_max_m <= OVERDIG_LIMIT_M
     assert plan.removed_m3 == pytest.approx(sum(d.volume_m3 for d in plan.digs), rel=1e-9)
+
+
+def test_resumed_session_after_a_travel_plans_as_the_uninterrupted_one(
+    planner: TrenchPlanner,
+) -> None:
+    import json
+
+    # The travel count decides where entries start (and bounds the travels); a session
+    # restored from its state counted none, so after a daemon restart at the second stand it
+    # planned other digs than the run that was not interrupted.
+    task = make_task(RIG, 1.0, 0.15, 60.0, 60.0, name="deep")
+    a = planner.start(task)
+    b = None
+    while True:
+        dig = a.next_dig()
+        if dig is None:
+            break
+        a.record(dig, dig.tip_path_m)
+        if b is None and a.machine_x < 0.0:
+            b = TrenchSession.restore(planner, task, json.loads(json.dumps(a.state())))
+    assert b is not None, "the session never travelled"
+    while True:
+        dig = b.next_dig()
+        if dig is None:
+            break
+        b.record(dig, dig.tip_path_m)
+    assert len(b.digs) == len(a.digs)
+    for da, db in zip(a.digs, b.digs, strict=True):
+        np.testing.assert_allclose(db.tip_path_m, da.tip_path_m, rtol=0, atol=1e-12)

@@ -1822,6 +1822,9 @@ class TrenchSession:
         self.pending = pending_dig
         self.phase = phase
         self._finish_index = finish_index
+        # The travels so far are the steps' travel moves (the entries and the travel bound
+        # depend on them; a resumed session counted none before).
+        self._travels = sum(isinstance(s, TravelMove) for s in steps)
 
     def _penetration(self, traj: Any, duration: float) -> float:
         at = traj.at_time

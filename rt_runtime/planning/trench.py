@@ -1019,23 +1019,15 @@ class TrenchSession:
             ranked = self._screen(remaining)
         dig = self._first_plannable(ranked, t0)
         exhausted = False
-        while dig is None and self._finish_index < _N_MAX_PASSES:
-            ranked = self._finishing(remaining)
-            if not ranked:
-                exhausted = True
-                break
-            dig = self._first_plannable(ranked, t0)
+        if dig is None:
+            dig, exhausted = self._next_pass(remaining, t0)
         if dig is None and self._relocate_for_rest(remaining):
             return self.next_dig()
         # Nothing more from here or from another stand: the rest in layers (_finishing), when
         # it is more than a sliver (on Yao's B the ~1 % left are slivers along the profile,
         # which layers over-cut: 1.0 -> 1.4 %).
-        layers = exhausted and left > _LAYER_MIN_LEFT * self.design_area
-        while dig is None and layers and self._finish_index < _N_MAX_PASSES:
-            ranked = self._finishing(remaining, layers=True)
-            if not ranked:
-                break
-            dig = self._first_plannable(ranked, t0)
+        if dig is None and exhausted and left > _LAYER_MIN_LEFT * self.design_area:
+            dig, _ = self._next_pass(remaining, t0, layers=True)
         if dig is None and exhausted:
             return None
         if dig is None:
@@ -1063,17 +1055,41 @@ class TrenchSession:
             return dig
         return None
 
+    def _next_pass(
+        self, remaining: Any, t0: float, *, layers: bool = False
+    ) -> tuple[PlannedDig | None, bool]:
+        """The next plannable profile pass (:meth:`_finishing`, with ``layers``), and whether
+        the passes ran out (False also when the bound :data:`_N_MAX_PASSES` stopped them)."""
+        while self._finish_index < _N_MAX_PASSES:
+            ranked = self._finishing(remaining, layers=layers)
+            if not ranked:
+                return None, True
+            dig = self._first_plannable(ranked, t0)
+            if dig is not None:
+                return dig, False
+        return None, False
+
     def _check_transition_poses(self, dig: PlannedDig) -> None:
         """PlanningError unless the poses of the moves around ``dig`` are reachable: the
         approach above its entry and the lift out above its exit (a layer pass may end too
         near the machine to lift the bucket straight up, and that was only found when the next
         dig was planned, as an error)."""
-        arm = self.planner.arm
-        s = self.planner.scale
-        start = arm.tip(np.asarray(dig.problem.q_start_rad))
-        end = arm.tip(np.asarray(dig.problem.q_end_rad))
-        _safe_ik(arm, start[0], start[1] + _APPROACH_M * s, start[2])
-        _safe_ik(arm, end[0], self.ground_y + _LIFT_CLEAR_M * s, end[2])
+        self._approach_pose(np.asarray(dig.problem.q_start_rad))
+        self._lift_pose(np.asarray(dig.problem.q_end_rad))
+
+    def _lift_pose(self, q: FloatArray) -> FloatArray:
+        """The tip of pose ``q`` raised to the lift clearance, same x and attitude
+        (PlanningError: out of reach)."""
+        end = self.planner.arm.tip(q)
+        return _safe_ik(self.planner.arm, end[0], self.lift_clearance_y_m, end[2])
+
+    def _approach_pose(self, q: FloatArray) -> FloatArray:
+        """The pose above entry pose ``q`` that the approach goes to (PlanningError: out of
+        reach)."""
+        start = self.planner.arm.tip(q)
+        return _safe_ik(
+            self.planner.arm, start[0], start[1] + _APPROACH_M * self.planner.scale, start[2]
+        )
 
     def _reachable(self, remaining: Any) -> Any:
         """The part of ``remaining`` between the nearest and farthest entries."""
@@ -1275,26 +1291,11 @@ class TrenchSession:
         B = (xf - t.depth_m / math.tan(t.beta1_rad), self.bottom_y)
         C = (xn + t.depth_m / math.tan(t.beta2_rad), self.bottom_y)
         D = (xn, g)
-        # The bottom pass starts 2 mm up so that it enters descending (theta_p >= 0).
-        lift = np.array([0.0, 0.002])
-        # A sextic follows a straight line within a few mm over ~0.3 m (scale model): longer
-        # bottoms are cut in equal pieces, far to near.
-        n_bottom = max(1, math.ceil((B[0] - C[0]) / (_PASS_LENGTH_M * self.planner.scale)))
-        cuts = [
-            np.asarray(B) + (np.asarray(C) - np.asarray(B)) * k / n_bottom
-            for k in range(n_bottom + 1)
+        passes: list[_Pass] = [
+            (DigType.DOWNWARD, np.array([A, B]), ((-80.0, -100.0), (-95.0, -120.0)))
         ]
-        passes = [(DigType.DOWNWARD, np.array([A, B]), ((-80.0, -100.0), (-95.0, -120.0)))]
-        passes += [
-            (
-                DigType.BACKWARD,
-                np.array([cuts[k] + lift, cuts[k + 1]]),
-                ((-110.0, -135.0), (-150.0, -175.0)),
-            )
-            for k in range(n_bottom)
-        ]
-        wall_near = (DigType.DOWNWARD, np.array([D, C]), ((-80.0, -100.0), (-100.0, -130.0)))
-        passes.append(wall_near)
+        passes += self._bottom_passes(B, C)
+        passes.append((DigType.DOWNWARD, np.array([D, C]), ((-80.0, -100.0), (-100.0, -130.0))))
         # ``layers``: where those fail and no other stand helps (the boom's torque through a
         # thick face: a short trench whose roughing digs do not fit left up to 69 % of its
         # design), the rest is taken in layers from the top, each a bottom-like pass from
@@ -1307,15 +1308,7 @@ class TrenchSession:
             y = self.bottom_y + t.depth_m * (1.0 - k / n_layers)
             far = (xf - (g - y) / math.tan(t.beta1_rad), y)
             near = (xn + (g - y) / math.tan(t.beta2_rad), y)
-            n_piece = max(1, math.ceil((far[0] - near[0]) / (_PASS_LENGTH_M * self.planner.scale)))
-            ends = [
-                np.asarray(far) + (np.asarray(near) - np.asarray(far)) * j / n_piece
-                for j in range(n_piece + 1)
-            ]
-            passes += [
-                (DigType.BACKWARD, np.array([ends[j] + lift, ends[j + 1]]), passes[1][2])
-                for j in range(n_piece)
-            ]
+            passes += self._bottom_passes(far, near)
         if len(passes) > standard:
             passes += passes[:standard]
         while self._finish_index < len(passes):
@@ -1325,6 +1318,18 @@ class TrenchSession:
             if fit is not None:
                 return [fit]
         return []
+
+    def _bottom_passes(self, far: tuple[float, float], near: tuple[float, float]) -> list[_Pass]:
+        """Backward passes along the straight line from ``far`` to ``near`` (the bottom, or a
+        layer): a sextic follows a straight line within a few mm over ~0.3 m (scale model), so
+        a longer line is cut in equal pieces, far to near, each starting 2 mm up so that it
+        enters descending (theta_p >= 0)."""
+        lift = np.array([0.0, 0.002])
+        n = max(1, math.ceil((far[0] - near[0]) / (_PASS_LENGTH_M * self.planner.scale)))
+        a, b = np.asarray(far), np.asarray(near)
+        cuts = [a + (b - a) * k / n for k in range(n + 1)]
+        atts = ((-110.0, -135.0), (-150.0, -175.0))
+        return [(DigType.BACKWARD, np.array([cuts[k] + lift, cuts[k + 1]]), atts) for k in range(n)]
 
     def _fit_pass(
         self,
@@ -1676,9 +1681,7 @@ class TrenchSession:
             PlanningError: No reachable lift pose, or ruckig cannot plan a move.
         """
         q0 = np.asarray(q_from_rad, dtype=np.float64)
-        end = self.planner.arm.tip(q0)
-        clear = self.ground_y + _LIFT_CLEAR_M * self.planner.scale
-        lift = _safe_ik(self.planner.arm, end[0], clear, end[2])
+        lift = self._lift_pose(q0)
         return (
             self._transition("lift_out", q0, lift),
             self._transition("dump", lift, self.planner.dump_pose_rad),
@@ -1696,10 +1699,7 @@ class TrenchSession:
             PlanningError: No reachable approach pose, or ruckig cannot plan a move.
         """
         q_entry = np.asarray(dig.problem.q_start_rad)
-        start = self.planner.arm.tip(q_entry)
-        approach = _safe_ik(
-            self.planner.arm, start[0], start[1] + _APPROACH_M * self.planner.scale, start[2]
-        )
+        approach = self._approach_pose(q_entry)
         return (
             self._transition("approach", np.asarray(q_from_rad, dtype=np.float64), approach),
             self._transition("enter", approach, q_entry),
@@ -1999,6 +1999,9 @@ _PASS_LENGTH_M = 0.30
 _LAYER_M = 0.05
 #: Least part of the design left (fraction) for which layer passes are tried.
 _LAYER_MIN_LEFT = 0.03
+#: A profile pass: its dig type, its line (2 points, work-site frame) and the attitude table of
+#: its two ends (deg).
+_Pass = tuple[DigType, FloatArray, tuple[tuple[float, ...], tuple[float, ...]]]
 _VOLUME_COLUMNS = (
     oneshot.CONSTRAINT_NAMES.index("volume_min"),
     oneshot.CONSTRAINT_NAMES.index("volume_max"),

@@ -114,6 +114,40 @@ def test_lower_envelope_is_exact_for_the_polyline() -> None:
     assert env[np.searchsorted(grid, 0.5)] == pytest.approx(-0.3, abs=1e-12)
 
 
+def test_swept_region_ends_where_the_path_does() -> None:
+    from rt_runtime.planning.trench import _path_low_at, _swept_polygon
+
+    # A steep cut whose ends fall between grid points: the region must not reach below the
+    # path there (it ended at the next grid point's depth, a step's worth of slope deeper:
+    # 0.37 mm past the design on a 74 deg wall).
+    grid = np.arange(0.0, 0.3001, 0.001)
+    path = np.array([[0.1005, 0.0], [0.1105, -0.08], [0.2004, -0.09], [0.2097, 0.0]])
+    poly = _swept_polygon(path, grid, 1.0)
+    xy = np.asarray(poly.exterior.coords)
+    below = [_path_low_at(path, x) - y for x, y in xy if y < 1.0]
+    assert max(below) <= 1e-12
+    # and it still takes the whole cut between the grid points
+    assert poly.bounds[0] == pytest.approx(0.1005) and poly.bounds[2] == pytest.approx(0.2097)
+
+
+def test_overdig_is_the_distance_to_the_design(planner: TrenchPlanner) -> None:
+    import shapely
+
+    # Below a corner the deepest half-plane violation understates the cut: the over-dig of
+    # a path is its distance to the design polygon, as the finished plan measures it.
+    session = planner.start(load_task("A", RIG))
+    design = session.design
+    rng = np.random.default_rng(3)
+    corner = np.array(design.exterior.coords[2])  # near bottom corner
+    pts = corner + rng.uniform([-0.02, -0.02], [0.02, 0.0], size=(200, 2))
+    got = np.array([session.overdig_of(p[None]) for p in pts])
+    want = np.array(
+        [0.0 if design.covers(shapely.Point(p)) else design.distance(shapely.Point(p)) for p in pts]
+    )
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    assert np.any(got > 0.0)
+
+
 # -- plans of A-D ---------------------------------------------------------------------------------
 
 
@@ -317,6 +351,19 @@ def test_thick_rest_that_no_dig_fits_is_taken_in_layers(planner: TrenchPlanner) 
     assert plan.coverage_error <= 0.05
     assert plan.overdig_max_m <= OVERDIG_LIMIT_M
     assert plan.removed_m3 == pytest.approx(sum(d.volume_m3 for d in plan.digs), rel=1e-9)
+
+
+def test_rest_within_reach_is_layered_before_a_travel(planner: TrenchPlanner) -> None:
+    from rt_runtime.planning.trench import TravelMove
+
+    # 0.9 m x 0.18 m: when the first stand's digs ran out, the session travelled back for the
+    # wedge by the near wall before layering the thick rest it could still reach, and from
+    # the second stand that rest was out of reach: 7.9 % left. The rest within reach is now
+    # layered first.
+    plan = planner.plan(make_task(RIG, 0.9, 0.18, 60.0, 60.0, name="deep"))
+    assert any(isinstance(s, TravelMove) for s in plan.steps)
+    assert plan.coverage_error <= 0.02
+    assert plan.overdig_max_m <= OVERDIG_LIMIT_M
 
 
 def test_resumed_session_after_a_travel_plans_as_the_uninterrupted_one(

@@ -100,6 +100,8 @@ OVERDIG_LIMIT_M = 0.005
 MIN_USEFUL_FRACTION = 0.004
 #: Grid step of the height field (m).
 GRID_STEP_M = 0.001
+# Thinner parts of a polygon difference are rounding, not ground (see TrenchSession.finish).
+_SLIVER_M = 1e-6
 # Reach figures of the scale model (m), scaled by the rig's l1 + l2 + l3 against 1.31 m: where
 # digs may enter (the PINN's domain, oneshot.SAMPLER_RANGES), the deepest trench the backward
 # digs' domain serves, and the default far edge of a trench.
@@ -615,6 +617,21 @@ def lower_envelope(path_xy: FloatArray, grid_x: FloatArray) -> FloatArray:
     return env
 
 
+def _path_low_at(path_xy: FloatArray, x: float) -> float:
+    """Lowest y of a polyline at abscissa ``x`` (``inf`` where it does not reach ``x``)."""
+    xa, xb = path_xy[:-1, 0], path_xy[1:, 0]
+    ya, yb = path_xy[:-1, 1], path_xy[1:, 1]
+    hit = (np.minimum(xa, xb) <= x) & (x <= np.maximum(xa, xb))
+    if not np.any(hit):
+        return math.inf
+    xa, xb, ya, yb = xa[hit], xb[hit], ya[hit], yb[hit]
+    dx = xb - xa
+    flat = np.abs(dx) <= 1e-12
+    t = np.where(flat, 0.0, (x - xa) / np.where(flat, 1.0, dx))
+    y = np.where(flat, np.minimum(ya, yb), ya + np.clip(t, 0.0, 1.0) * (yb - ya))
+    return float(np.min(y))
+
+
 def _swept_polygon(
     path_xy: FloatArray, grid_x: FloatArray, top_y: float, env: FloatArray | None = None
 ) -> Polygon | None:
@@ -637,8 +654,14 @@ def _swept_polygon(
     coords[0] = (x_lo, top_y)
     coords[2 : m + 2, 0] = grid_x[i0:i1]
     coords[2 : m + 2, 1] = np.minimum(env[i0:i1], top_y)
-    coords[1] = (x_lo, coords[2, 1])
-    coords[m + 2] = (x_hi, coords[m + 1, 1])
+    # The span's ends at the path's own lowest point there, not at the nearest grid point's
+    # envelope: on a steep path that is up to a grid step's worth of slope deeper than the
+    # path reaches at the end, which cut past the design (5.15 mm by a dig whose path went
+    # 4.78 mm deep). Where the grid clips the span its end is a grid point.
+    y_lo = coords[2, 1] if x_lo == grid_x[i0] else top_y
+    y_hi = coords[m + 1, 1] if x_hi == grid_x[i1 - 1] else top_y
+    coords[1] = (x_lo, min(_path_low_at(path_xy, x_lo), y_lo))
+    coords[m + 2] = (x_hi, min(_path_low_at(path_xy, x_hi), y_hi))
     coords[m + 3] = (x_hi, top_y)
     poly = shapely.polygons(coords)
     if not shapely.is_valid(poly):  # only a path at the top line would do this
@@ -879,6 +902,8 @@ class TrenchSession:
                 [0.0, -1.0, -self.bottom_y],
             ]
         )
+        ring = np.asarray(self.design.exterior.coords)  # closed: last == first
+        self._design_edges = (ring[:-1].copy(), ring[1:].copy())
         self.steps: list[PlannedDig | Transition | TravelMove] = []
         self.digs: list[PlannedDig] = []
         self.machine_x = 0.0
@@ -912,10 +937,13 @@ class TrenchSession:
     def _overdig_many(self, paths: FloatArray) -> FloatArray:
         """Over-dig of many paths ``(N, n, 2)`` at once (m, 0 where none).
 
-        A sample counts where it lies below the current surface (in material). Its depth
-        below the design is the largest violation of the design's three lower half-planes
-        (walls and bottom; exact where one is violated, a lower bound of the distance to a
-        corner otherwise); outside the trench's x range the ground is the design.
+        A sample counts where it lies below the current surface (in material) and outside the
+        design (one of its three lower half-planes, walls and bottom, violated; outside the
+        trench's x range the ground is the design). Its over-dig is its Euclidean distance to
+        the design polygon, the measure of the finished plan's ``overdig_max_m``. (The largest
+        half-plane violation alone is that distance only where one is violated: below a
+        corner it is a lower bound, and a dig 4.9 mm "deep" by it cut 5.15 mm into the
+        corner.)
         """
         x = paths[..., 0]
         y = paths[..., 1]
@@ -927,7 +955,23 @@ class TrenchSession:
         )
         xf, xn = self.task.start_x_m, self.task.start_x_m - self.task.length_m
         d = np.where((x > xf) | (x < xn), np.maximum(d, self.ground_y - y), d)
-        worst: FloatArray = np.max(np.where(inside, np.maximum(d, 0.0), 0.0), axis=-1)
+        out = inside & (d > 0.0)
+        worst: FloatArray = np.zeros(x.shape[:-1])
+        if np.any(out):
+            px, py = x[out], y[out]
+            a, b = self._design_edges
+            ab = b - a
+            # distance to each edge (segment) of the convex design, the nearest one counts
+            t = ((px[:, None] - a[:, 0]) * ab[:, 0] + (py[:, None] - a[:, 1]) * ab[:, 1]) / (
+                np.einsum("ij,ij->i", ab, ab)
+            )
+            t = np.clip(t, 0.0, 1.0)
+            ex = px[:, None] - (a[:, 0] + t * ab[:, 0])
+            ey = py[:, None] - (a[:, 1] + t * ab[:, 1])
+            dist = np.sqrt(np.min(ex * ex + ey * ey, axis=1))
+            full = np.zeros(x.shape)
+            full[out] = dist
+            worst = np.max(full, axis=-1)
         return worst
 
     def _cut_areas(self, env: FloatArray) -> tuple[float, float]:
@@ -1021,12 +1065,20 @@ class TrenchSession:
         exhausted = False
         if dig is None:
             dig, exhausted = self._next_pass(remaining, t0)
+        # Nothing more from here: the rest within reach in layers (_finishing) before any
+        # travel away from it, when it is more than a sliver (on Yao's B the ~1 % left are
+        # slivers along the profile, which layers over-cut: 1.0 -> 1.4 %). (Travelling first
+        # left a short deep trench 69 % undug: the travel was for a 4 % wedge by the near
+        # wall, and from the new stand the bulk was out of reach.)
+        layered = False
+        min_left = _LAYER_MIN_LEFT * self.design_area
+        if dig is None and exhausted and float(self._reachable(remaining).area) > min_left:
+            dig, _ = self._next_pass(remaining, t0, layers=True)
+            layered = True
         if dig is None and self._relocate_for_rest(remaining):
             return self.next_dig()
-        # Nothing more from here or from another stand: the rest in layers (_finishing), when
-        # it is more than a sliver (on Yao's B the ~1 % left are slivers along the profile,
-        # which layers over-cut: 1.0 -> 1.4 %).
-        if dig is None and exhausted and left > _LAYER_MIN_LEFT * self.design_area:
+        # Nothing more from here or from another stand: the rest in layers.
+        if dig is None and exhausted and not layered and left > min_left:
             dig, _ = self._next_pass(remaining, t0, layers=True)
         if dig is None and exhausted:
             return None
@@ -1839,10 +1891,16 @@ class TrenchSession:
         sym = dug.symmetric_difference(self.design)
         coverage = float(sym.area) / self.design_area
         # Over-dig: the farthest vertex of the dug region outside the (convex) design, which
-        # is where the largest distance of a polygon from a convex set lies. Zero-area slivers
-        # that polygon differences leave along the ground line are not material.
+        # is where the largest distance of a polygon from a convex set lies. Slivers that
+        # polygon differences leave along the ground line (nanometres thick, up to the grid's
+        # whole length) are not material: a part counts where its mean thickness
+        # (2 area / perimeter) is at least _SLIVER_M.
         over = dug.difference(self.design)
-        parts = [g for g in getattr(over, "geoms", [over]) if g.area > 1e-10]
+        parts = [
+            g
+            for g in getattr(over, "geoms", [over])
+            if g.area > 0.0 and 2.0 * g.area >= _SLIVER_M * g.length
+        ]
         over_max = 0.0
         if parts:
             coords = np.concatenate([shapely.get_coordinates(g) for g in parts])

@@ -200,7 +200,12 @@ def bench_pinn(
     planner = PinnPlanner(rig, directory)
     verify_only = PinnPlanner(rig, directory, retime=False, refine=False)
     verify_us: list[float] = []
-    out: dict[str, Any] = {"rig": rig.name, "verifier": planner.verifier.backend, "types": {}}
+    out: dict[str, Any] = {
+        "rig": rig.name,
+        "verifier": planner.verifier.backend,
+        "verifier_build": planner.verifier.build,
+        "types": {},
+    }
     all_infer: list[float] = []
     all_plan: list[float] = []
     all_gap: list[float] = []

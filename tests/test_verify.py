@@ -435,6 +435,31 @@ def test_backend_selection_and_configuration_errors(monkeypatch: pytest.MonkeyPa
         Verifier(SCALE, backend="c")
 
 
+def test_avx2_build_is_the_baseline_bit_for_bit(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The AVX2 build of the same source must change the speed only: no FMA contraction and no
+    # reassociation either way, so every output of every method is identical.
+    fast = Verifier(SCALE)
+    if fast.build != "avx2":
+        pytest.skip("this CPU or compiler has no AVX2 build of the kernel")
+    baseline = verify._load_extension(avx2=False)
+    monkeypatch.setattr(verify, "_load_extension", lambda: baseline)
+    slow = Verifier(SCALE)
+    assert slow.build == "baseline"
+    x = _candidates(SCALE, 30, seed=11)
+    n, m = x.shape[0], oneshot.DEFAULT_SAMPLES
+    results = []
+    for v in (fast, slow):
+        out, path = np.empty((n, N_OUT)), np.empty((n, m, 2))
+        v.evaluate_into(x, out, path)
+        rt_out, rt = np.empty((n, N_OUT)), np.empty((n, 4))
+        v.retime_into(x, rt_out, rt)
+        pl_out, pl, sc = np.empty((n, N_OUT)), np.empty((n, 4)), np.empty(n)
+        v.plan_into(x, pl_out, pl, path=None, scale=sc)
+        results.append((out, path, rt_out, rt, pl_out, pl, sc))
+    for a, b in zip(*results, strict=True):
+        assert np.array_equal(a, b, equal_nan=True)
+
+
 # ------------------------------------------------------------------------------------------
 # Retiming: the shortest feasible T along a kept path.
 # ------------------------------------------------------------------------------------------

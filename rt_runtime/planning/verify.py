@@ -191,10 +191,24 @@ _PlanFn = Callable[
 ]
 
 
-def _load_extension() -> ModuleType | None:
-    """The compiled kernel module, or None when it is not built (or built for another ABI)."""
+def _load_extension(avx2: bool = True) -> ModuleType | None:
+    """The compiled kernel module, or None when it is not built (or built for another ABI).
+
+    Where the CPU has AVX2 (the baseline module's ``CPU_AVX2``, asked before the other is
+    imported: its code would not run elsewhere) and ``avx2``, the AVX2 build of the same
+    source (``_verify_avx2``, bit for bit the same results, plan ~23 % faster); else, or when
+    that one is missing or stale, the baseline build.
+    """
+    module = _import_kernel("rt_runtime.planning._verify")
+    if module is None or not avx2 or not getattr(module, "CPU_AVX2", 0):
+        return module
+    return _import_kernel("rt_runtime.planning._verify_avx2") or module
+
+
+def _import_kernel(name: str) -> ModuleType | None:
+    """Kernel module ``name`` when it is built for this ABI, else None."""
     try:
-        module = importlib.import_module("rt_runtime.planning._verify")
+        module = importlib.import_module(name)
     except ImportError:
         return None
     layout = (module.ABI, module.N_PARAMS, module.N_IN, module.N_OUT)
@@ -427,7 +441,7 @@ class Verifier:
             names the output).
     """
 
-    __slots__ = ("_plan", "_retime", "_run", "backend", "n_samples", "rig")
+    __slots__ = ("_plan", "_retime", "_run", "backend", "build", "n_samples", "rig")
 
     def __init__(self, rig: Rig, n_samples: int = DEFAULT_SAMPLES, backend: str = "auto") -> None:
         if backend not in BACKENDS:
@@ -453,6 +467,8 @@ class Verifier:
         self._retime = self._retime_numpy
         self._plan: _PlanFn = self._plan_numpy
         self.backend = "numpy"
+        #: Which build of the C kernel runs ("avx2" or "baseline"; None with numpy).
+        self.build: str | None = None
         if module is not None:
             try:
                 kernel = module.Kernel(pack_params(rig), self.n_samples)
@@ -470,6 +486,7 @@ class Verifier:
                 self._retime = kernel.retime
                 self._plan = kernel.plan
                 self.backend = "c"
+                self.build = "avx2" if module.__name__.endswith("_avx2") else "baseline"
 
     def _self_check(
         self, run: Callable[[FloatArray, FloatArray, FloatArray | None], None]

@@ -115,7 +115,7 @@ def test_lower_envelope_is_exact_for_the_polyline() -> None:
 
 
 def test_swept_region_ends_where_the_path_does() -> None:
-    from rt_runtime.planning.trench import _path_low_at, _swept_polygon
+    from rt_runtime.planning.trench import _swept_polygon
 
     # A steep cut whose ends fall between grid points: the region must not reach below the
     # path there (it ended at the next grid point's depth, a step's worth of slope deeper:
@@ -124,7 +124,7 @@ def test_swept_region_ends_where_the_path_does() -> None:
     path = np.array([[0.1005, 0.0], [0.1105, -0.08], [0.2004, -0.09], [0.2097, 0.0]])
     poly = _swept_polygon(path, grid, 1.0)
     xy = np.asarray(poly.exterior.coords)
-    below = [_path_low_at(path, x) - y for x, y in xy if y < 1.0]
+    below = [np.interp(x, path[:, 0], path[:, 1]) - y for x, y in xy if y < 1.0]  # x rises
     assert max(below) <= 1e-12
     # and it still takes the whole cut between the grid points
     assert poly.bounds[0] == pytest.approx(0.1005) and poly.bounds[2] == pytest.approx(0.2097)

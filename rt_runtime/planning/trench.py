@@ -617,21 +617,6 @@ def lower_envelope(path_xy: FloatArray, grid_x: FloatArray) -> FloatArray:
     return env
 
 
-def _path_low_at(path_xy: FloatArray, x: float) -> float:
-    """Lowest y of a polyline at abscissa ``x`` (``inf`` where it does not reach ``x``)."""
-    xa, xb = path_xy[:-1, 0], path_xy[1:, 0]
-    ya, yb = path_xy[:-1, 1], path_xy[1:, 1]
-    hit = (np.minimum(xa, xb) <= x) & (x <= np.maximum(xa, xb))
-    if not np.any(hit):
-        return math.inf
-    xa, xb, ya, yb = xa[hit], xb[hit], ya[hit], yb[hit]
-    dx = xb - xa
-    flat = np.abs(dx) <= 1e-12
-    t = np.where(flat, 0.0, (x - xa) / np.where(flat, 1.0, dx))
-    y = np.where(flat, np.minimum(ya, yb), ya + np.clip(t, 0.0, 1.0) * (yb - ya))
-    return float(np.min(y))
-
-
 def _swept_polygon(
     path_xy: FloatArray, grid_x: FloatArray, top_y: float, env: FloatArray | None = None
 ) -> Polygon | None:
@@ -654,14 +639,13 @@ def _swept_polygon(
     coords[0] = (x_lo, top_y)
     coords[2 : m + 2, 0] = grid_x[i0:i1]
     coords[2 : m + 2, 1] = np.minimum(env[i0:i1], top_y)
-    # The span's ends at the path's own lowest point there, not at the nearest grid point's
-    # envelope: on a steep path that is up to a grid step's worth of slope deeper than the
-    # path reaches at the end, which cut past the design (5.15 mm by a dig whose path went
-    # 4.78 mm deep). Where the grid clips the span its end is a grid point.
-    y_lo = coords[2, 1] if x_lo == grid_x[i0] else top_y
-    y_hi = coords[m + 1, 1] if x_hi == grid_x[i1 - 1] else top_y
-    coords[1] = (x_lo, min(_path_low_at(path_xy, x_lo), y_lo))
-    coords[m + 2] = (x_hi, min(_path_low_at(path_xy, x_hi), y_hi))
+    # The span's ends at the path's own lowest point there (its envelope on the two-point
+    # grid of the ends), not at the nearest grid point's envelope: on a steep path that is up
+    # to a grid step's worth of slope deeper than the path reaches at the end, which cut past
+    # the design (5.15 mm by a dig whose path went 4.78 mm deep).
+    ends = np.minimum(lower_envelope(path_xy, np.array([x_lo, x_hi])), top_y)
+    coords[1] = (x_lo, ends[0])
+    coords[m + 2] = (x_hi, ends[1])
     coords[m + 3] = (x_hi, top_y)
     poly = shapely.polygons(coords)
     if not shapely.is_valid(poly):  # only a path at the top line would do this
@@ -902,8 +886,10 @@ class TrenchSession:
                 [0.0, -1.0, -self.bottom_y],
             ]
         )
+        # The design's edges for the over-dig distance: start points, vectors, squared lengths.
         ring = np.asarray(self.design.exterior.coords)  # closed: last == first
-        self._design_edges = (ring[:-1].copy(), ring[1:].copy())
+        edge = ring[1:] - ring[:-1]
+        self._design_edges = (ring[:-1].copy(), edge, np.sum(edge * edge, axis=1))
         self.steps: list[PlannedDig | Transition | TravelMove] = []
         self.digs: list[PlannedDig] = []
         self.machine_x = 0.0
@@ -959,12 +945,9 @@ class TrenchSession:
         worst: FloatArray = np.zeros(x.shape[:-1])
         if np.any(out):
             px, py = x[out], y[out]
-            a, b = self._design_edges
-            ab = b - a
+            a, ab, ab2 = self._design_edges
             # distance to each edge (segment) of the convex design, the nearest one counts
-            t = ((px[:, None] - a[:, 0]) * ab[:, 0] + (py[:, None] - a[:, 1]) * ab[:, 1]) / (
-                np.einsum("ij,ij->i", ab, ab)
-            )
+            t = ((px[:, None] - a[:, 0]) * ab[:, 0] + (py[:, None] - a[:, 1]) * ab[:, 1]) / ab2
             t = np.clip(t, 0.0, 1.0)
             ex = px[:, None] - (a[:, 0] + t * ab[:, 0])
             ey = py[:, None] - (a[:, 1] + t * ab[:, 1])

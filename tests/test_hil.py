@@ -35,7 +35,7 @@ from rt_runtime.control.executor import (
     executor_telemetry,
 )
 from rt_runtime.control.guard import StrokeLimits, check_setpoint_trace, rpdo1_setpoints
-from rt_runtime.planning.trench import TrenchPlanner, TrenchSession, load_task
+from rt_runtime.planning.trench import TrenchPlanner, TrenchSession
 from rt_runtime.rig import Rig, load_rig
 
 AXES = ("boom", "stick", "bucket")
@@ -53,16 +53,6 @@ def one_dig(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     return run_scenario(
         Scenario(task="A", max_digs=1, start_at_entry=True, keep_frames=True, trace_path=str(trace))
     )
-
-
-@pytest.fixture(scope="module")
-def pending(rig: Rig) -> tuple[TrenchPlanner, Any, dict[str, Any]]:
-    """Task A's planner and the session state with the first dig planned and pending."""
-    planner = TrenchPlanner(rig)
-    task = load_task("A", rig)
-    session = planner.start(task)
-    session.next_dig()
-    return planner, task, session.state()
 
 
 # -- tracking ----------------------------------------------------------------------------------

@@ -43,7 +43,7 @@ from rt_runtime.control.executor import (
     ExecutorResult,
     executor_telemetry,
 )
-from rt_runtime.planning.trench import TrenchPlanner, TrenchSession, load_task
+from rt_runtime.planning.trench import TrenchPlanner, TrenchSession
 from rt_runtime.rig import Rig, load_rig
 
 MAX_WALL_S = 60.0
@@ -54,15 +54,6 @@ rt: list[dict[str, Any]] = []
 @pytest.fixture(scope="module")
 def rig() -> Rig:
     return load_rig("scale_model")
-
-
-@pytest.fixture(scope="module")
-def pending(rig: Rig) -> tuple[TrenchPlanner, Any, dict[str, Any]]:
-    planner = TrenchPlanner(rig)
-    task = load_task("A", rig)
-    session = planner.start(task)
-    session.next_dig()
-    return planner, task, session.state()
 
 
 def _patient(rig: Rig) -> Rig:

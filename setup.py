@@ -10,8 +10,10 @@ from setuptools import Extension, setup
 
 # -O3 (it vectorises plan's trig and rotation loops: 2.5 us less per row) and strict IEEE
 # arithmetic: parity with the numpy reference needs no -ffast-math and no FMA contraction;
-# -fno-math-errno only drops errno writes.
-FLAGS = ["-O3", "-std=c99", "-ffp-contract=off", "-fno-math-errno"]
+# -fno-math-errno only drops errno writes; -fno-trapping-math lets the compiler compute both
+# sides of a select (the soil force of the dynamics loops, ~2 us less per plan with AVX2): it
+# changes no value, only when floating-point exception flags would be raised, which nothing reads.
+FLAGS = ["-O3", "-std=c99", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"]
 
 setup(
     ext_modules=[

@@ -253,6 +253,8 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
 
     double qv[3][VK_BLOCK], qdv[3][VK_BLOCK], qddv[3][VK_BLOCK];
     double phi[3][VK_BLOCK], cph[3][VK_BLOCK], sph[3][VK_BLOCK];
+    double bx[VK_BLOCK], by[VK_BLOCK], bt[3][VK_BLOCK], bpow[VK_BLOCK], bchk[VK_BLOCK];
+    const double mu_neg = -mu;
 
     for (int base = 0; base < m; base += VK_BLOCK) {
         const int nb = m - base < VK_BLOCK ? m - base : VK_BLOCK;
@@ -291,8 +293,9 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
                 sph[j][0] = sin(phi[j][0]);
             }
 
+        /* Per sample (a loop that vectorises: no branch, no carried value): the tip, the
+         * torques and the power, into the block's arrays. */
         for (int k = 0; k < nb; k++) {
-            const int i = base + k;
             const double qd0 = qdv[0][k], qd1 = qdv[1][k], qd2 = qdv[2][k];
             const double cp0 = cph[0][k], cp1 = cph[1][k], cp2 = cph[2][k];
             const double sp0 = sph[0][k], sp1 = sph[1][k], sp2 = sph[2][k];
@@ -305,10 +308,6 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
             const double w0 = qd0, w1 = w0 + qd1, w2 = w1 + qd2;
             const double vx = -((ls0 * w0 + ls1 * w1) + ls2 * w2);
             const double vy = (lc0 * w0 + lc1 * w1) + lc2 * w2;
-            if (path != NULL) {
-                path[2 * i] = x;
-                path[2 * i + 1] = y;
-            }
 
             /* Inverse dynamics (dynamics._inverse_block); relative-angle trig from the
              * absolute angles' by the difference formulas. */
@@ -327,32 +326,53 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
             double t2 = d02 * ac0 + d12 * ac1 + dd2 * ac2 + w02 * ww0 + w12 * ww1;
             t2 += g * (h2 * cp2 - bb2 * sp2);
 
-            /* Yao eq 8 at the tip (soil.yao_resistance, flat surface H); none above it. */
+            /* Yao eq 8 at the tip (soil.yao_resistance, flat surface H); none above it: the
+             * force is computed either way and selected. */
             const double depth = H - y;
-            if (depth > 0.0) {
-                const double w_q = k0b * depth;
-                /* sqrt for hypot: equal to an ulp at the speeds an arm reaches, 10x faster. */
-                const double speed = vk_max(sqrt(vx * vx + vy * vy), reg);
-                const double gain = w_q / speed;
-                const double tx = gain * vx, ty = gain * vy;
-                const double side_mu = vx > 0.0 ? mu : -mu;
-                const double fx = -tx - side_mu * ty;
-                const double fy = -ty + side_mu * tx;
-                t0 -= l0 * (cp0 * fy - sp0 * fx);
-                t1 -= l1 * (cp1 * fy - sp1 * fx);
-                t2 -= l2 * (cp2 * fy - sp2 * fx);
-            }
+            const double w_q = k0b * depth;
+            /* sqrt for hypot: equal to an ulp at the speeds an arm reaches, 10x faster. */
+            const double speed = vk_max(sqrt(vx * vx + vy * vy), reg);
+            const double gain = w_q / speed;
+            const double tx = gain * vx, ty = gain * vy;
+            const double side_mu = vx > 0.0 ? mu : mu_neg;
+            const double fx = -tx - side_mu * ty;
+            const double fy = -ty + side_mu * tx;
+            const double r0 = t0 - l0 * (cp0 * fy - sp0 * fx);
+            const double r1 = t1 - l1 * (cp1 * fy - sp1 * fx);
+            const double r2 = t2 - l2 * (cp2 * fy - sp2 * fx);
+            const int soil = depth > 0.0;
+            t0 = soil ? r0 : t0;
+            t1 = soil ? r1 : t1;
+            t2 = soil ? r2 : t2;
             t1 += t2;
             t0 += t1;
-            tau_peak[0] = vk_max(tau_peak[0], fabs(t0));
-            tau_peak[1] = vk_max(tau_peak[1], fabs(t1));
-            tau_peak[2] = vk_max(tau_peak[2], fabs(t2));
 
-            /* Positive power (no regeneration); energy by the trapezoid rule on t = s T. */
-            const double power = (vk_pos(t0 * qd0) + vk_pos(t1 * qd1)) + vk_pos(t2 * qd2);
+            /* Positive power (no regeneration). */
+            bx[k] = x;
+            by[k] = y;
+            bt[0][k] = t0;
+            bt[1][k] = t1;
+            bt[2][k] = t2;
+            bpow[k] = (vk_pos(t0 * qd0) + vk_pos(t1 * qd1)) + vk_pos(t2 * qd2);
+            bchk[k] = ((x + y) + (t0 + t1 + t2)) + ((qd0 + qd1 + qd2) + (ac0 + ac1 + ac2));
+        }
+        if (path != NULL)
+            for (int k = 0; k < nb; k++) {
+                path[2 * (base + k)] = bx[k];
+                path[2 * (base + k) + 1] = by[k];
+            }
+
+        /* In sample order: the peaks, the energy by the trapezoid rule on t = s T, the
+         * excavated area, the entry segment. */
+        for (int k = 0; k < nb; k++) {
+            const int i = base + k;
+            const double x = bx[k], y = by[k], power = bpow[k];
+            tau_peak[0] = vk_max(tau_peak[0], fabs(bt[0][k]));
+            tau_peak[1] = vk_max(tau_peak[1], fabs(bt[1][k]));
+            tau_peak[2] = vk_max(tau_peak[2], fabs(bt[2][k]));
             power_peak = vk_max(power_peak, power);
             const double t = s[i] * T;
-            check += ((x + y) + (t0 + t1 + t2)) + ((qd0 + qd1 + qd2) + (ac0 + ac1 + ac2));
+            check += bchk[k];
 
             if (y < H && first_below < 0) first_below = i;
             if (i == 0) {
@@ -526,18 +546,23 @@ static inline double vk_unit_dynamics(const vk_dyn d, double H, const double cp[
     gv[1] = d.g * (d.h1 * cp[1] - d.bb1 * sp[1]);
     gv[2] = d.g * (d.h2 * cp[2] - d.bb2 * sp[2]);
     const double speed = sqrt(vx * vx + vy * vy);
-    f[0] = f[1] = f[2] = 0.0;
+    /* Branch-free (selects, no branch: the loops that call it vectorise); out of the soil
+     * the force is computed with a stand-in speed and not used. */
     *depth = H - y;
-    if (*depth > 0.0 && speed > 0.0) {
-        const double gain = d.k0b * *depth / speed;
-        const double tx = gain * vx, ty = gain * vy;
-        const double side_mu = vx > 0.0 ? d.mu : -d.mu;
-        const double fx = -tx - side_mu * ty;
-        const double fy = -ty + side_mu * tx;
-        f[0] = -(d.l0 * (cp[0] * fy - sp[0] * fx));
-        f[1] = -(d.l1 * (cp[1] * fy - sp[1] * fx));
-        f[2] = -(d.l2 * (cp[2] * fy - sp[2] * fx));
-    }
+    const int soil = (*depth > 0.0) & (speed > 0.0);
+    const double divisor = soil ? speed : 1.0;
+    const double gain = d.k0b * *depth / divisor;
+    const double tx = gain * vx, ty = gain * vy;
+    const double mu_neg = -d.mu;
+    const double side_mu = vx > 0.0 ? d.mu : mu_neg;
+    const double fx = -tx - side_mu * ty;
+    const double fy = -ty + side_mu * tx;
+    const double f0 = -(d.l0 * (cp[0] * fy - sp[0] * fx));
+    const double f1 = -(d.l1 * (cp[1] * fy - sp[1] * fx));
+    const double f2 = -(d.l2 * (cp[2] * fy - sp[2] * fx));
+    f[0] = soil ? f0 : 0.0;
+    f[1] = soil ? f1 : 0.0;
+    f[2] = soil ? f2 : 0.0;
     return speed;
 }
 
@@ -584,15 +609,11 @@ static int vk_prepare(const double *p, const double *s, int m, const double *in,
     }
     const double H = in[I_SURFACE];
     const vk_dyn dyn = vk_dyn_of(p);
-    double *A0 = cache + C_A * m, *A1 = A0 + m, *A2 = A1 + m;
-    double *G0 = cache + C_G * m, *G1 = G0 + m, *G2 = G1 + m;
-    double *F0 = cache + C_F * m, *F1 = F0 + m, *F2 = F1 + m;
-    double *Q0 = cache + C_QP * m, *Q1 = Q0 + m, *Q2 = Q1 + m;
-    double *SP = cache + C_SP * m;
     double check = 0.0;
 
     double qv[3][VK_BLOCK], qdv[3][VK_BLOCK], qddv[3][VK_BLOCK];
-    double phi[3][VK_BLOCK], cph[3][VK_BLOCK], sph[3][VK_BLOCK];
+    double phi[3][VK_BLOCK], cph[3][VK_BLOCK], sph[3][VK_BLOCK], chk[VK_BLOCK];
+    double blk[VK_N_CACHE][VK_BLOCK];
     for (int base = 0; base < m; base += VK_BLOCK) {
         const int nb = m - base < VK_BLOCK ? m - base : VK_BLOCK;
         for (int j = 0; j < 3; j++)
@@ -619,7 +640,6 @@ static int vk_prepare(const double *p, const double *s, int m, const double *in,
         else
             for (int j = 0; j < 3; j++) vk_sincos_n(phi[j], sph[j], cph[j], nb);
         for (int k = 0; k < nb; k++) {
-            const int i = base + k;
             const double qd0 = qdv[0][k], qd1 = qdv[1][k], qd2 = qdv[2][k];
             const double cpk[3] = {cph[0][k], cph[1][k], cph[2][k]};
             const double spk[3] = {sph[0][k], sph[1][k], sph[2][k]};
@@ -631,21 +651,27 @@ static int vk_prepare(const double *p, const double *s, int m, const double *in,
             const double g0 = gt[0], g1 = gt[1], g2 = gt[2];
             const double f0 = ft[0], f1 = ft[1], f2 = ft[2];
             const double ac2 = (qddk[0] + qddk[1]) + qddk[2], w2 = (qd0 + qd1) + qd2;
-            A2[i] = a2;
-            A1[i] = a1 + a2;
-            A0[i] = a0 + A1[i];
-            G2[i] = g2;
-            G1[i] = g1 + g2;
-            G0[i] = g0 + G1[i];
-            F2[i] = f2;
-            F1[i] = f1 + f2;
-            F0[i] = f0 + F1[i];
-            Q0[i] = qd0;
-            Q1[i] = qd1;
-            Q2[i] = qd2;
-            SP[i] = speed;
-            check += ((A0[i] + G0[i]) + (F0[i] + speed)) + (ac2 + w2);
+            const double A1i = a1 + a2, A0i = a0 + A1i;
+            const double G1i = g1 + g2, G0i = g0 + G1i;
+            const double F1i = f1 + f2, F0i = f0 + F1i;
+            blk[C_A][k] = A0i;
+            blk[C_A + 1][k] = A1i;
+            blk[C_A + 2][k] = a2;
+            blk[C_G][k] = G0i;
+            blk[C_G + 1][k] = G1i;
+            blk[C_G + 2][k] = g2;
+            blk[C_F][k] = F0i;
+            blk[C_F + 1][k] = F1i;
+            blk[C_F + 2][k] = f2;
+            blk[C_SP][k] = speed;
+            chk[k] = ((A0i + G0i) + (F0i + speed)) + (ac2 + w2);
         }
+        /* Stores to the cache after the loop: within it, to the block (which nothing aliases),
+         * so that it vectorises. */
+        for (int c = 0; c < VK_N_CACHE; c++)
+            if (c < C_QP || c >= C_QP + 3) memcpy(cache + c * m + base, blk[c], nb * sizeof(double));
+        for (int j = 0; j < 3; j++) memcpy(cache + (C_QP + j) * m + base, qdv[j], nb * sizeof(double));
+        for (int k = 0; k < nb; k++) check += chk[k]; /* in order: the loop above vectorises */
     }
     return isfinite(check) ? 0 : 1;
 }
@@ -996,26 +1022,35 @@ static double vk_path_g(const vk_pathscan *r, double c, const double *trig, doub
     const double H = r->H, l0 = r->l0, l1 = r->l1, l2 = r->l2;
     double area = 0.0, x_prev = 0.0, y_prev = 0.0, edx = 0.0, edy = 0.0;
     int first_below = -1;
-    for (int i = 0; i < m; i++) {
-        const double x = (c0[i] * l0 + c1[i] * l1) + c2[i] * l2;
-        const double y = (s0[i] * l0 + s1[i] * l1) + s2[i] * l2;
-        if (y < H && first_below < 0) first_below = i;
-        if (i > 0) {
-            const double e0 = H - y_prev, e1 = H - y, dx = x - x_prev;
-            if (e0 >= 0.0 && e1 >= 0.0) {
-                area += 0.5 * (e0 + e1) * dx;
-            } else if (e0 >= 0.0 || e1 >= 0.0) {
-                double denom = fabs(e0) + fabs(e1);
-                if (!(denom > 0.0)) denom = 1.0;
-                area += 0.5 * (vk_pos(e0) + vk_pos(e1)) * ((e0 > e1 ? e0 : e1) / denom) * dx;
-            }
-            if (first_below == i) {
-                edx = dx;
-                edy = y - y_prev;
-            }
+    double bx[VK_BLOCK], by[VK_BLOCK];
+    for (int base = 0; base < m; base += VK_BLOCK) {
+        const int nb = m - base < VK_BLOCK ? m - base : VK_BLOCK;
+        for (int k = 0; k < nb; k++) { /* vectorises */
+            const int i = base + k;
+            bx[k] = (c0[i] * l0 + c1[i] * l1) + c2[i] * l2;
+            by[k] = (s0[i] * l0 + s1[i] * l1) + s2[i] * l2;
         }
-        x_prev = x;
-        y_prev = y;
+        for (int k = 0; k < nb; k++) {
+            const int i = base + k;
+            const double x = bx[k], y = by[k];
+            if (y < H && first_below < 0) first_below = i;
+            if (i > 0) {
+                const double e0 = H - y_prev, e1 = H - y, dx = x - x_prev;
+                if (e0 >= 0.0 && e1 >= 0.0) {
+                    area += 0.5 * (e0 + e1) * dx;
+                } else if (e0 >= 0.0 || e1 >= 0.0) {
+                    double denom = fabs(e0) + fabs(e1);
+                    if (!(denom > 0.0)) denom = 1.0;
+                    area += 0.5 * (vk_pos(e0) + vk_pos(e1)) * ((e0 > e1 ? e0 : e1) / denom) * dx;
+                }
+                if (first_below == i) {
+                    edx = dx;
+                    edy = y - y_prev;
+                }
+            }
+            x_prev = x;
+            y_prev = y;
+        }
     }
     const double V = fabs(area) * r->width;
     double theta_p;

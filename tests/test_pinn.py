@@ -20,7 +20,7 @@ pytest.importorskip("distributed")
 
 from rt_runtime.errors import ConfigurationError, PlanningError  # noqa: E402
 from rt_runtime.planning import oneshot  # noqa: E402
-from rt_runtime.planning.oneshot import CONSTRAINT_NAMES, DigType  # noqa: E402
+from rt_runtime.planning.oneshot import CONSTRAINT_NAMES, DigType, Problem  # noqa: E402
 from rt_runtime.planning.pinn import (  # noqa: E402
     DEFAULT_MODEL_DIR,
     FAST_REPAIR_CALLS,
@@ -125,6 +125,12 @@ def test_planner_returns_only_verified_plans(pipeline: Path) -> None:
                 assert "refused" in str(exc)
                 continue
             returned += 1
+            # The plan and its problem are immutable values, the problem the one asked.
+            assert plan.problem == Problem(tuple(x[0:3]), tuple(x[3:6]), float(x[6]), kind)
+            with pytest.raises(AttributeError):
+                plan.T_s = 1.0  # type: ignore[misc]
+            with pytest.raises(AttributeError):
+                plan.problem.surface_y_m = 0.0  # type: ignore[misc]
             ev = oneshot.evaluate(
                 RIG, x[None, 0:3], x[None, 3:6], x[None, 6], int(kind),
                 np.asarray(plan.a6)[None, None], np.asarray([[plan.T_s]]),

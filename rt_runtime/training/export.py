@@ -44,7 +44,10 @@ def folded_network(net: Any) -> Any:
     The same function as ``net`` (the parity check compares them), in fewer graph nodes, which
     is what an onnxruntime call of a small network costs: the input standardisation goes into
     the first layer's weights and bias, the output de-standardisation and the sign of
-    ``-K`` into the last one's, and the decode is one Split, one Pow, one Mul and the Concat.
+    ``-K`` into the last one's, and the decode is one Gather, one Pow and one Mul:
+    ``y * [T, T, T, T] ** [-6, -6, -6, 0]`` (a Split, Pow, Mul and Concat instead cost ~0.7 us
+    more per call in onnxruntime 1.31, measured on this rig PC; the outputs are the same bit
+    for bit, ``T ** 0`` being exactly 1).
     """
     import torch
     from torch import nn
@@ -64,6 +67,9 @@ def folded_network(net: Any) -> Any:
         bn = (last.bias.double() * z_std + z_mean) * sign
 
     class Folded(nn.Module):
+        t_cols: torch.Tensor
+        t_powers: torch.Tensor
+
         def __init__(self) -> None:
             super().__init__()
             layers: list[nn.Module] = []
@@ -81,10 +87,13 @@ def folded_network(net: Any) -> Any:
             lin_layers[0].bias.data = b1.float()
             lin_layers[-1].weight.data = wn.float()
             lin_layers[-1].bias.data = bn.float()
+            # The decode's constants: T in every column, raised to -6 (the a6 columns) or 0.
+            self.register_buffer("t_cols", torch.tensor([3, 3, 3, 3], dtype=torch.int64))
+            self.register_buffer("t_powers", torch.tensor([-6.0, -6.0, -6.0, 0.0]))
 
         def forward(self, x: torch.Tensor) -> torch.Tensor:
-            minus_k, T = torch.split(self.mlp(x), [3, 1], dim=1)
-            return torch.cat([minus_k * torch.pow(T, -6.0), T], dim=1)
+            y: torch.Tensor = self.mlp(x)  # (-K, T)
+            return y * torch.pow(y[:, self.t_cols], self.t_powers)  # (-K T^-6, T^0 T)
 
     folded = Folded()
     folded.eval()

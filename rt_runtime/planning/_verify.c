@@ -259,24 +259,29 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
     for (int base = 0; base < m; base += VK_BLOCK) {
         const int nb = m - base < VK_BLOCK ? m - base : VK_BLOCK;
 
-        /* Joint angles, rates, accelerations (sextic.evaluate) and their extremes. */
+        /* Joint angles, rates, accelerations (sextic.evaluate; a loop that vectorises) and
+         * their extremes (in sample order). */
         for (int j = 0; j < 3; j++) {
             for (int k = 0; k < nb; k++) {
                 const double si = s[base + k];
                 const double s2 = si * si, s3 = s2 * si;
-                const double q = b0[j] + s3 * (b3[j] + si * (b4[j] + si * (b5[j] + si * b6[j])));
-                const double qd =
+                qv[j][k] = b0[j] + s3 * (b3[j] + si * (b4[j] + si * (b5[j] + si * b6[j])));
+                qdv[j][k] =
                     s2 * (c1[j][0] + si * (c1[j][1] + si * (c1[j][2] + si * c1[j][3]))) * inv_T;
-                const double qdd =
+                qddv[j][k] =
                     si * (c2[j][0] + si * (c2[j][1] + si * (c2[j][2] + si * c2[j][3]))) * inv_T2;
-                qv[j][k] = q;
-                qdv[j][k] = qd;
-                qddv[j][k] = qdd;
-                q_lo[j] = vk_min(q_lo[j], q);
-                q_hi[j] = vk_max(q_hi[j], q);
-                qd_peak[j] = vk_max(qd_peak[j], fabs(qd));
-                qdd_peak[j] = vk_max(qdd_peak[j], fabs(qdd));
             }
+            double lo = q_lo[j], hi = q_hi[j], vp = qd_peak[j], ap = qdd_peak[j];
+            for (int k = 0; k < nb; k++) {
+                lo = vk_min(lo, qv[j][k]);
+                hi = vk_max(hi, qv[j][k]);
+                vp = vk_max(vp, fabs(qdv[j][k]));
+                ap = vk_max(ap, fabs(qddv[j][k]));
+            }
+            q_lo[j] = lo;
+            q_hi[j] = hi;
+            qd_peak[j] = vp;
+            qdd_peak[j] = ap;
         }
         for (int k = 0; k < nb; k++) {
             phi[0][k] = qv[0][k];
@@ -616,16 +621,22 @@ static int vk_prepare(const double *p, const double *s, int m, const double *in,
     double blk[VK_N_CACHE][VK_BLOCK];
     for (int base = 0; base < m; base += VK_BLOCK) {
         const int nb = m - base < VK_BLOCK ? m - base : VK_BLOCK;
-        for (int j = 0; j < 3; j++)
-            for (int k = 0; k < nb; k++) {
+        for (int j = 0; j < 3; j++) {
+            for (int k = 0; k < nb; k++) { /* vectorises */
                 const double si = s[base + k];
                 const double s2 = si * si, s3 = s2 * si;
                 qv[j][k] = b0[j] + s3 * (b3[j] + si * (b4[j] + si * (b5[j] + si * b6[j])));
                 qdv[j][k] = s2 * (c1[j][0] + si * (c1[j][1] + si * (c1[j][2] + si * c1[j][3])));
                 qddv[j][k] = si * (c2[j][0] + si * (c2[j][1] + si * (c2[j][2] + si * c2[j][3])));
-                qd_pk[j] = vk_max(qd_pk[j], fabs(qdv[j][k]));
-                qdd_pk[j] = vk_max(qdd_pk[j], fabs(qddv[j][k]));
             }
+            double vp = qd_pk[j], ap = qdd_pk[j];
+            for (int k = 0; k < nb; k++) {
+                vp = vk_max(vp, fabs(qdv[j][k]));
+                ap = vk_max(ap, fabs(qddv[j][k]));
+            }
+            qd_pk[j] = vp;
+            qdd_pk[j] = ap;
+        }
         for (int k = 0; k < nb; k++) {
             phi[0][k] = qv[0][k];
             phi[1][k] = phi[0][k] + qv[1][k];

@@ -103,6 +103,42 @@ static inline double vk_max(double m, double v) { return m > v ? m : v; }
 static inline double vk_min(double m, double v) { return m < v ? m : v; }
 static inline double vk_pos(double v) { return v > 0.0 ? v : 0.0; }
 
+/* The area between the surface and one polyline segment whose ends lie e0 and e1 below it, dx
+ * apart (oneshot.excavated_area_m2's term): the trapezoid where both ends are below, the part
+ * below where one is, 0 where neither is (adding it changes no sum: sums start at +0). */
+static inline double vk_segment_area(double e0, double e1, double dx)
+{
+    if (e0 >= 0.0 && e1 >= 0.0) return 0.5 * (e0 + e1) * dx;
+    if (!(e0 >= 0.0 || e1 >= 0.0)) return 0.0;
+    double denom = fabs(e0) + fabs(e1);
+    if (!(denom > 0.0)) denom = 1.0;
+    const double frac = (e0 > e1 ? e0 : e1) / denom;
+    return 0.5 * (vk_pos(e0) + vk_pos(e1)) * frac * dx;
+}
+
+/* The tip's polyline, fed sample by sample in order (vk_polyline_add): its excavated area and
+ * its entry segment, the first one ending below the surface (first_below: its end sample, -1
+ * while there is none). */
+typedef struct {
+    double area, x_prev, y_prev, entry_dx, entry_dy;
+    int first_below;
+} vk_polyline;
+
+static inline void vk_polyline_add(vk_polyline *pl, int i, double x, double y, double H)
+{
+    if (y < H && pl->first_below < 0) pl->first_below = i;
+    if (i > 0) {
+        const double dx = x - pl->x_prev;
+        pl->area += vk_segment_area(H - pl->y_prev, H - y, dx);
+        if (pl->first_below == i) {
+            pl->entry_dx = dx;
+            pl->entry_dy = y - pl->y_prev;
+        }
+    }
+    pl->x_prev = x;
+    pl->y_prev = y;
+}
+
 /* sin and cos of |r| <= pi/4: fdlibm's kernels, no reduction and no branch. */
 static inline void vk_sincos_small(double r, double *sn, double *cs)
 {
@@ -242,14 +278,14 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
     double qdd_peak[3] = {0.0, 0.0, 0.0};
     double tau_peak[3] = {0.0, 0.0, 0.0};
     double power_peak = 0.0; /* a sum of positive parts: >= 0 */
-    double energy_acc = 0.0, area_acc = 0.0;
+    double energy_acc = 0.0;
+    vk_polyline pl = {0.0, 0.0, 0.0, 0.0, 0.0, -1};
     /* Sum of every per-sample value: non-finite exactly when one of them is (or overflows),
      * which the plain max/min above could hide. */
     double check = 0.0;
-    double x_prev = 0.0, y_prev = 0.0, power_prev = 0.0, t_prev = 0.0;
-    double y_first = 0.0, entry_dx = 0.0, entry_dy = 0.0;
+    double power_prev = 0.0, t_prev = 0.0;
+    double y_first = 0.0;
     double sp_first[3] = {0.0, 0.0, 0.0}, cp_first[3] = {0.0, 0.0, 0.0};
-    int first_below = -1;
 
     double qv[3][VK_BLOCK], qdv[3][VK_BLOCK], qddv[3][VK_BLOCK];
     double phi[3][VK_BLOCK], cph[3][VK_BLOCK], sph[3][VK_BLOCK];
@@ -379,7 +415,7 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
             const double t = s[i] * T;
             check += bchk[k];
 
-            if (y < H && first_below < 0) first_below = i;
+            vk_polyline_add(&pl, i, x, y, H);
             if (i == 0) {
                 y_first = y;
                 for (int j = 0; j < 3; j++) {
@@ -388,25 +424,7 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
                 }
             } else {
                 energy_acc += (power + power_prev) * (t - t_prev);
-                /* Excavated area, one polyline segment (oneshot.excavated_area_m2). */
-                const double e0 = H - y_prev, e1 = H - y, dx = x - x_prev;
-                if (e0 >= 0.0 && e1 >= 0.0) {
-                    area_acc += 0.5 * (e0 + e1) * dx;
-                } else if (e0 >= 0.0 || e1 >= 0.0) {
-                    double denom = fabs(e0) + fabs(e1);
-                    if (!(denom > 0.0)) denom = 1.0;
-                    const double frac = (e0 > e1 ? e0 : e1) / denom;
-                    area_acc += 0.5 * (vk_pos(e0) + vk_pos(e1)) * frac * dx;
-                }
-                /* Entry segment: the first one ending below the surface. (Sample 0 below the
-                 * surface means a start on it, which takes J(q0) a3 instead.) */
-                if (first_below == i) {
-                    entry_dx = dx;
-                    entry_dy = y - y_prev;
-                }
             }
-            x_prev = x;
-            y_prev = y;
             power_prev = power;
             t_prev = t;
         }
@@ -416,10 +434,12 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
      * whatever the last bit of y0 says (the poses are solved for y = H). */
     const int at_start = y_first <= H + 1e-3;
     double theta_p;
-    if (first_below < 0 && !at_start) {
+    if (pl.first_below < 0 && !at_start) {
         theta_p = -1.57079632679489661923; /* -pi/2: violates every theta_p range */
     } else {
-        double dx = entry_dx, dy = entry_dy;
+        /* The entry segment (sample 0 below the surface means a start on it, which takes
+         * J(q0) a3 instead). */
+        double dx = pl.entry_dx, dy = pl.entry_dy;
         if (at_start) {
             /* Direction J(q0) a3, the cubic term leading; sample 0 is q0 exactly, so its trig
              * is kinematics.jacobian's. */
@@ -433,7 +453,7 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
         theta_p = atan2(-dy, fabs(dx));
     }
 
-    const double volume = fabs(area_acc) * p[P_WIDTH];
+    const double volume = fabs(pl.area) * p[P_WIDTH];
     const double energy = 0.5 * energy_acc;
 
     double *v = out + O_VIOLATIONS;
@@ -1031,8 +1051,7 @@ static double vk_path_g(const vk_pathscan *r, double c, const double *trig, doub
     const double *c0 = trig, *c1 = trig + m, *c2 = trig + 2 * m;
     const double *s0 = trig + 3 * m, *s1 = trig + 4 * m, *s2 = trig + 5 * m;
     const double H = r->H, l0 = r->l0, l1 = r->l1, l2 = r->l2;
-    double area = 0.0, x_prev = 0.0, y_prev = 0.0, edx = 0.0, edy = 0.0;
-    int first_below = -1;
+    vk_polyline pl = {0.0, 0.0, 0.0, 0.0, 0.0, -1};
     double bx[VK_BLOCK], by[VK_BLOCK];
     for (int base = 0; base < m; base += VK_BLOCK) {
         const int nb = m - base < VK_BLOCK ? m - base : VK_BLOCK;
@@ -1041,36 +1060,16 @@ static double vk_path_g(const vk_pathscan *r, double c, const double *trig, doub
             bx[k] = (c0[i] * l0 + c1[i] * l1) + c2[i] * l2;
             by[k] = (s0[i] * l0 + s1[i] * l1) + s2[i] * l2;
         }
-        for (int k = 0; k < nb; k++) {
-            const int i = base + k;
-            const double x = bx[k], y = by[k];
-            if (y < H && first_below < 0) first_below = i;
-            if (i > 0) {
-                const double e0 = H - y_prev, e1 = H - y, dx = x - x_prev;
-                if (e0 >= 0.0 && e1 >= 0.0) {
-                    area += 0.5 * (e0 + e1) * dx;
-                } else if (e0 >= 0.0 || e1 >= 0.0) {
-                    double denom = fabs(e0) + fabs(e1);
-                    if (!(denom > 0.0)) denom = 1.0;
-                    area += 0.5 * (vk_pos(e0) + vk_pos(e1)) * ((e0 > e1 ? e0 : e1) / denom) * dx;
-                }
-                if (first_below == i) {
-                    edx = dx;
-                    edy = y - y_prev;
-                }
-            }
-            x_prev = x;
-            y_prev = y;
-        }
+        for (int k = 0; k < nb; k++) vk_polyline_add(&pl, base + k, bx[k], by[k], H);
     }
-    const double V = fabs(area) * r->width;
+    const double V = fabs(pl.area) * r->width;
     double theta_p;
     if (r->at_start)
         theta_p = atan2(-(r->dy0 + c * r->dy1), fabs(r->dx0 + c * r->dx1));
-    else if (first_below < 0)
+    else if (pl.first_below < 0)
         theta_p = -1.57079632679489661923;
     else
-        theta_p = atan2(-edy, fabs(edx));
+        theta_p = atan2(-pl.entry_dy, fabs(pl.entry_dx));
     *volume = V;
     v[0] = (r->tp_lo - theta_p) / r->tp_span;
     v[1] = (theta_p - r->tp_hi) / r->tp_span;

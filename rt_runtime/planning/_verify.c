@@ -388,12 +388,12 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
             t1 += t2;
             t0 += t1;
 
-            /* Positive power (no regeneration). */
             bx[k] = x;
             by[k] = y;
             bt[0][k] = t0;
             bt[1][k] = t1;
             bt[2][k] = t2;
+            /* Positive power (no regeneration). */
             bpow[k] = (vk_pos(t0 * qd0) + vk_pos(t1 * qd1)) + vk_pos(t2 * qd2);
             bchk[k] = ((x + y) + (t0 + t1 + t2)) + ((qd0 + qd1 + qd2) + (ac0 + ac1 + ac2));
         }
@@ -525,8 +525,39 @@ static void vk_evaluate(const double *p, const double *s, int m, const double *i
 #define VK_RT_BUMPS 3
 #define VK_RT_BUMP 1e-9
 
-/* Cache layout: VK_N_CACHE arrays of m doubles. */
-enum vk_cache { C_A = 0, C_G = 3, C_F = 6, C_QP = 9, C_SP = 12, VK_N_CACHE = 13 };
+/* Cache layout: VK_N_CACHE arrays of m doubles; those before C_QP are vk_prepare's dynamics
+ * loop's, C_QP's are q' (its input). */
+enum vk_cache { C_A = 0, C_G = 3, C_F = 6, C_SP = 9, C_QP = 10, VK_N_CACHE = 13 };
+
+/* The least T that velocity, acceleration (peaks |q'| and |q''| per joint at unit time) and
+ * t_min allow, each limit times 1 - VK_RT_MARGIN. */
+static inline double vk_t_va(const double *p, const double *qd_pk, const double *qdd_pk)
+{
+    const double lim = 1.0 - VK_RT_MARGIN;
+    double t_lo = p[P_TIME];
+    for (int j = 0; j < 3; j++) {
+        t_lo = vk_max(t_lo, qd_pk[j] / (p[P_QD_MAX + j] * lim));
+        t_lo = vk_max(t_lo, sqrt(qdd_pk[j] / (p[P_QDD_MAX + j] * lim)));
+    }
+    return t_lo;
+}
+
+/* The interval [*l, *h] of u = 1/T^2 in which |a u + b| <= tm (a joint's torque at one sample);
+ * 0, nothing written, where a is 0 (or NaN): then no u changes the torque. */
+static inline int vk_u_interval(double a, double b, double tm, double *l, double *h)
+{
+    if (a > 0.0) {
+        *l = (-tm - b) / a;
+        *h = (tm - b) / a;
+        return 1;
+    }
+    if (a < 0.0) {
+        *l = (tm - b) / a;
+        *h = (-tm - b) / a;
+        return 1;
+    }
+    return 0;
+}
 
 /* The arm's link and soil constants of the unit-time dynamics (vk_unit_dynamics). */
 typedef struct {
@@ -638,7 +669,7 @@ static int vk_prepare(const double *p, const double *s, int m, const double *in,
 
     double qv[3][VK_BLOCK], qdv[3][VK_BLOCK], qddv[3][VK_BLOCK];
     double phi[3][VK_BLOCK], cph[3][VK_BLOCK], sph[3][VK_BLOCK], chk[VK_BLOCK];
-    double blk[VK_N_CACHE][VK_BLOCK];
+    double blk[C_QP][VK_BLOCK];
     for (int base = 0; base < m; base += VK_BLOCK) {
         const int nb = m - base < VK_BLOCK ? m - base : VK_BLOCK;
         for (int j = 0; j < 3; j++) {
@@ -699,9 +730,9 @@ static int vk_prepare(const double *p, const double *s, int m, const double *in,
         }
         /* Stores to the cache after the loop: within it, to the block (which nothing aliases),
          * so that it vectorises. */
-        for (int c = 0; c < VK_N_CACHE; c++)
-            if (c < C_QP || c >= C_QP + 3) memcpy(cache + c * m + base, blk[c], nb * sizeof(double));
-        for (int j = 0; j < 3; j++) memcpy(cache + (C_QP + j) * m + base, qdv[j], nb * sizeof(double));
+        const size_t bytes = (size_t)nb * sizeof(double);
+        for (int c = 0; c < C_QP; c++) memcpy(cache + c * m + base, blk[c], bytes);
+        for (int j = 0; j < 3; j++) memcpy(cache + (C_QP + j) * m + base, qdv[j], bytes);
         for (int k = 0; k < nb; k++) check += chk[k]; /* in order: the loop above vectorises */
     }
     return isfinite(check) ? 0 : 1;
@@ -756,11 +787,7 @@ static int vk_bounds(const double *p, const double *c, int m, const double *qd_p
                      const double *qdd_pk, double *lo, double *hi, double *window, int *bind)
 {
     const double lim = 1.0 - VK_RT_MARGIN;
-    double t_lo = p[P_TIME], t_hi = p[P_TIME + 1];
-    for (int j = 0; j < 3; j++) {
-        t_lo = vk_max(t_lo, qd_pk[j] / (p[P_QD_MAX + j] * lim));
-        t_lo = vk_max(t_lo, sqrt(qdd_pk[j] / (p[P_QDD_MAX + j] * lim)));
-    }
+    double t_lo = vk_t_va(p, qd_pk, qdd_pk), t_hi = p[P_TIME + 1];
     /* Torque: |A u + B| <= tau_max is an interval of u = 1/T^2 per sample and joint. */
     const double sp_fast = p[P_SPEED_REG] * p[P_TIME + 1];
     const double *SP = c + C_SP * m;
@@ -771,15 +798,9 @@ static int vk_bounds(const double *p, const double *c, int m, const double *qd_p
         const double tm = p[P_TAU_MAX + j] * lim;
         for (int i = 0; i < m; i++) {
             if (F[i] != 0.0 && SP[i] < sp_fast) continue; /* regularised somewhere: searched */
-            const double a = A[i], b = G[i] + F[i];
+            const double b = G[i] + F[i];
             double l, h;
-            if (a > 0.0) {
-                l = (-tm - b) / a;
-                h = (tm - b) / a;
-            } else if (a < 0.0) {
-                l = (tm - b) / a;
-                h = (-tm - b) / a;
-            } else {
+            if (!vk_u_interval(A[i], b, tm, &l, &h)) {
                 if (fabs(b) > tm) u_hi = -1.0;
                 continue;
             }
@@ -1555,13 +1576,11 @@ static void vk_local_sample(const vk_pathscan *r, const double *basis, const dou
     const double Gt[3] = {g0 + (g1 + g2), g1 + g2, g2};
     const double Ft[3] = {f0 + (f1 + f2), f1 + f2, f2};
     for (int j = 0; j < 3; j++) {
-        const double tm = p[P_TAU_MAX + j] * lim, a = At[j], b = Gt[j] + Ft[j];
-        if (a > 0.0) {
-            *l = vk_max(*l, (-tm - b) / a);
-            *h = vk_min(*h, (tm - b) / a);
-        } else if (a < 0.0) {
-            *l = vk_max(*l, (tm - b) / a);
-            *h = vk_min(*h, (-tm - b) / a);
+        const double tm = p[P_TAU_MAX + j] * lim, b = Gt[j] + Ft[j];
+        double lj, hj;
+        if (vk_u_interval(At[j], b, tm, &lj, &hj)) {
+            *l = vk_max(*l, lj);
+            *h = vk_min(*h, hj);
         } else if (fabs(b) > tm) {
             *h = -1.0;
         }
@@ -1578,19 +1597,12 @@ static void vk_local_sample(const vk_pathscan *r, const double *basis, const dou
  * at 101 samples (no trig arrays, no cache): the back-off predicts with it.
  *   basis: the kernel's (q, p, 1/p, q', q'', p', p'' on the grid); K: the row's shape term
  */
-static void vk_local_bounds(const vk_pathscan *r, const double *basis, const double *K,
-                            double c, int *bind, double *u_lo, double *u_hi, double *t_va)
+static double vk_local_t_va(const vk_pathscan *r, const double *basis, const double *D,
+                            const double *Kc)
 {
-    const double *p = r->p, *in = r->in;
     const int m = r->m;
     const double *Q1 = basis + 3 * m, *Q2 = basis + 4 * m, *P1 = basis + 5 * m,
                  *P2 = basis + 6 * m;
-    const double lim = 1.0 - VK_RT_MARGIN;
-    double D[3], Kc[3];
-    for (int j = 0; j < 3; j++) {
-        D[j] = in[I_Q_END + j] - in[I_Q_START + j];
-        Kc[j] = c * K[j];
-    }
     /* Six independent running maxima in one pass (one chain each would wait on the last). */
     double v0 = 0.0, v1 = 0.0, v2 = 0.0, a0 = 0.0, a1 = 0.0, a2 = 0.0;
     for (int i = 0; i < m; i++) {
@@ -1602,12 +1614,25 @@ static void vk_local_bounds(const vk_pathscan *r, const double *basis, const dou
         a2 = vk_max(a2, fabs(D[2] * Q2[i] + Kc[2] * P2[i]));
     }
     const double qd_pk[3] = {v0, v1, v2}, qdd_pk[3] = {a0, a1, a2};
-    double t_lo = p[P_TIME];
+    return vk_t_va(r->p, qd_pk, qdd_pk);
+}
+
+/* D (q_end - q_start) and Kc (c K) of the row's path scaled by c. */
+static void vk_local_path(const vk_pathscan *r, const double *K, double c, double *D, double *Kc)
+{
     for (int j = 0; j < 3; j++) {
-        t_lo = vk_max(t_lo, qd_pk[j] / (p[P_QD_MAX + j] * lim));
-        t_lo = vk_max(t_lo, sqrt(qdd_pk[j] / (p[P_QDD_MAX + j] * lim)));
+        D[j] = r->in[I_Q_END + j] - r->in[I_Q_START + j];
+        Kc[j] = c * K[j];
     }
-    *t_va = t_lo;
+}
+
+static void vk_local_bounds(const vk_pathscan *r, const double *basis, const double *K,
+                            double c, int *bind, double *u_lo, double *u_hi, double *t_va)
+{
+    const int m = r->m;
+    double D[3], Kc[3];
+    vk_local_path(r, K, c, D, Kc);
+    *t_va = vk_local_t_va(r, basis, D, Kc);
     double ends[2] = {-INFINITY, INFINITY}; /* u_lo, u_hi */
     for (int e = 0; e < 2; e++) {
         int i = bind[e];
@@ -1904,11 +1929,11 @@ static double vk_plan_backoff(vk_pathscan *r, const double *s, const double *bas
     const double a = vk_backoff_search(r, s, basis, K, cache, c_fail, w_fail, bind, k1, k2, best,
                                        &least);
     if (isnan(a)) return NAN;
-    double u_lo, u_hi, t_va;
-    int bl[2] = {best->bind[0], best->bind[1]};
-    vk_local_bounds(r, basis, K, a, bl, &u_lo, &u_hi, &t_va);
-    if (!(best->T > t_va * (1.0 + VK_PL_RAISED))) return a;
+    double D[3], Kc[3];
+    vk_local_path(r, K, a, D, Kc);
+    if (!(best->T > vk_local_t_va(r, basis, D, Kc) * (1.0 + VK_PL_RAISED))) return a;
     const vk_probe far = *best;
+    int bl[2];
     for (int u = 0; u < 2; u++) {
         const int k = u == 0 ? k1 : k2;
         if (u == 1 && k2 == k1) break;
@@ -1992,15 +2017,11 @@ static void vk_plan(const double *p, const double *s, const double *basis, int m
     if (!isnan(c) && c != 1.0) {
         /* The retime of c*, evaluated only if its search finds a time (else straight to the
          * back-off: that evaluation would be thrown away). */
-        double row[VK_N_IN], Kc[3], qd_pk[3], qdd_pk[3];
-        for (int j = 0; j < VK_N_IN; j++) row[j] = in[j];
-        for (int j = 0; j < 3; j++) row[I_A6 + j] = c * in[I_A6 + j];
-        int found = 0, bind[2] = {-1, -1};
-        double T_c = 0.0, w_c = NAN;
-        if (vk_prepare(p, s, m, row, Kc, trig, cache, qd_pk, qdd_pk) == 0)
-            T_c = vk_retime_T(p, cache, m, qd_pk, qdd_pk, &found, 0, &w_c, bind);
+        double Kc[3], T_c = 0.0, w_c;
+        int bind[2];
+        const int found = vk_backoff_probe(p, s, m, in, c, trig, cache, Kc, &T_c, &w_c, bind);
         if (found) {
-            vk_retime_finish(p, s, m, row, Kc, T_c, found, out, planned, path);
+            vk_retime_finish(p, s, m, in, Kc, T_c, found, out, planned, path);
             if (out[O_TOTAL] <= 0.0) {
                 if (scale != NULL) *scale = c;
                 return;
@@ -2011,9 +2032,9 @@ static void vk_plan(const double *p, const double *s, const double *basis, int m
         const double c2 = vk_plan_backoff(&r, s, basis, K, cache, c, v, found ? NAN : w_c, bind,
                                           &b);
         if (!isnan(c2) && c2 != 1.0) {
-            /* The probe's search found b.T: what vk_retime of that path gives, evaluated. */
-            for (int j = 0; j < 3; j++) row[I_A6 + j] = c2 * in[I_A6 + j];
-            vk_retime_finish(p, s, m, row, b.K, b.T, 1, out, planned, path);
+            /* The probe's search found b.T: what vk_retime of that path gives, evaluated
+             * (vk_retime_finish sets a6 and T from b.K and b.T; the rest of the row is in's). */
+            vk_retime_finish(p, s, m, in, b.K, b.T, 1, out, planned, path);
             if (out[O_TOTAL] <= 0.0) {
                 if (scale != NULL) *scale = c2;
                 return;

@@ -479,12 +479,12 @@ def train(
     phys = TorchPhysics(rig_obj, n_samples=cfg.n_samples)
     # The judged network: the weights' moving average when ema_decay > 0, else the network.
     judge = copy.deepcopy(net) if cfg.ema_decay > 0.0 else net
-    cone_all = None
+    cone_fit: tuple[Any, Any, Any, Any] | None = None
+    cone_val: tuple[Any, Any, Any, Any] | None = None
     if cfg.lambda_d > 0.0:
         from rt_runtime.training.targets import direction_targets
 
-        # The cones of the fit and validation samples only (never of the test split), in
-        # full-size arrays indexed like X.
+        # The cones of the fit and validation samples only (never of the test split).
         used = np.concatenate([fit_idx, val_idx])
         tg = direction_targets(
             rig_obj,
@@ -496,12 +496,13 @@ def train(
             radius_rad=math.radians(cfg.dir_radius_deg),
             infeasible_slope=cfg.dir_infeasible_slope,
         )
-        parts_full = []
-        for part in (tg.u, tg.e1, tg.e2, tg.slopes):
-            full = np.zeros((X.shape[0], part.shape[1]))
-            full[used] = part
-            parts_full.append(torch.tensor(full))
-        cone_all = tuple(parts_full)
+        # Rows of the targets are those of `used`: the fit samples', then the validation's.
+        cones = [np.asarray(a, dtype=np.float64) for a in (tg.u, tg.e1, tg.e2, tg.slopes)]
+        n_fit = fit_idx.size
+        u, e1, e2, sl = (torch.tensor(a[:n_fit]) for a in cones)
+        cone_fit = (u, e1, e2, sl)
+        u, e1, e2, sl = (torch.tensor(a[n_fit:]) for a in cones)
+        cone_val = (u, e1, e2, sl)
         if log is not None:
             log(
                 f"direction cones: {used.size} samples x {cfg.dir_n} tilts of "
@@ -509,13 +510,6 @@ def train(
                 f"{float(np.median(tg.slopes)) * math.pi / 180.0:.4f} per deg, "
                 f"{tg.infeasible_fraction:.1%} of tilts not plannable"
             )
-
-    def cone_rows(idx: NDArray[np.intp]) -> tuple[Any, Any, Any, Any] | None:
-        if cone_all is None:
-            return None
-        sel = torch.as_tensor(idx, dtype=torch.long)
-        u, e1, e2, sl = (a[sel] for a in cone_all)
-        return u, e1, e2, sl
 
     def tensors(idx: NDArray[np.intp]) -> tuple[Any, Any, Any, FloatArray]:
         x = torch.tensor(X[idx], dtype=torch.float32)
@@ -525,7 +519,6 @@ def train(
 
     x_fit, z_fit, k_fit, _ = tensors(fit_idx)
     x_val, z_val, k_val, obj_val = tensors(val_idx)
-    cone_fit, cone_val = cone_rows(fit_idx), cone_rows(val_idx)
 
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=8, min_lr=1e-5)

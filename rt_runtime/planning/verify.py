@@ -1233,11 +1233,7 @@ class Verifier:
         acceleration bound by more than _REF_RAISED, and lambda1 T_norm - lambda3 V_norm."""
         planning = oneshot.require_planning(self.rig)
         t_min, t_max = planning.t_min_s, planning.t_max_s
-        y = _scaled(v, c)
-        with np.errstate(all="ignore"):
-            K = -y[:, IN_A6 : IN_A6 + 3] * y[:, IN_T, None] ** 6
-        T = self._retime_search(y, K)
-        ok, _, _ = self._timed_numpy(y, K, T[:, None])
+        y, K, T, ok = self._retimed_numpy(v, c)
         # Peak |qd| scales as 1/T, peak |qdd| as 1/T^2: their bounds from t_min.
         _, _, td = self._timed_numpy(y, K, np.full((y.shape[0], 1), t_min))
         with np.errstate(all="ignore"):
@@ -1250,19 +1246,26 @@ class Verifier:
         lam1, _, lam3 = planning.weights
         j = lam1 * (T - t_min) / (t_max - t_min) - lam3 * vol[:, 0] / (
             planning.volume_max_m3 - planning.volume_min_m3)
-        found = ok[:, 0]
+        found = ok
         raised = found & (t_va * (1.0 + _REF_RAISED) < T)
         return np.where(found, T, np.nan), raised, np.where(found, j, np.inf)
 
-    def _time_found_numpy(self, v: FloatArray, c: FloatArray) -> NDArray[np.bool_]:
-        """Whether the numpy retiming of rows ``v`` scaled by ``c`` meets every time-dependent
-        constraint."""
+    def _retimed_numpy(
+        self, v: FloatArray, c: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+        """Rows ``v`` scaled by ``c``, their shape terms K, the numpy retiming's T and whether
+        every time-dependent constraint holds at it."""
         y = _scaled(v, c)
         with np.errstate(all="ignore"):
             K = -y[:, IN_A6 : IN_A6 + 3] * y[:, IN_T, None] ** 6
         T = self._retime_search(y, K)
         ok, _, _ = self._timed_numpy(y, K, T[:, None])
-        return np.asarray(ok[:, 0])
+        return y, K, T, np.asarray(ok[:, 0])
+
+    def _time_found_numpy(self, v: FloatArray, c: FloatArray) -> NDArray[np.bool_]:
+        """Whether the numpy retiming of rows ``v`` scaled by ``c`` meets every time-dependent
+        constraint."""
+        return self._retimed_numpy(v, c)[3]
 
     def _grid_numpy(
         self, v: FloatArray, a6: FloatArray, T: FloatArray

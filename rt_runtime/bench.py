@@ -219,7 +219,8 @@ def bench_pinn(
         PlanStatus.REFINED: "refined",
         PlanStatus.TEACHER: "teacher",
     }
-    all_paths = dict.fromkeys([*path_names.values(), "refused"], 0)
+    path_keys = (*path_names.values(), "refused")
+    all_paths = dict.fromkeys(path_keys, 0)
     pso_s: list[float] = []
     table4: dict[str, Any] = {}
     for kind in oneshot.DigType:
@@ -281,8 +282,7 @@ def bench_pinn(
             all_gap.extend(gap.tolist())
         else:
             gap = np.array([np.nan])
-        n_raw = sum(1 for pl in returned if pl.status == PlanStatus.RAW)
-        paths = dict.fromkeys([*path_names.values(), "refused"], 0)
+        paths = dict.fromkeys(path_keys, 0)
         for pl in returned:
             paths[path_names[pl.status]] += 1
         paths["refused"] = len(refused)
@@ -326,10 +326,10 @@ def bench_pinn(
             "gap_max": float(np.max(gap)),
             "raw_gap_mean": float(np.mean(raw_gap)),
             "raw_feasible": float(np.mean(ev.feasible[:, 0])),
-            "plan_raw": n_raw / n,
-            "time_scaled": sum(1 for pl in returned if pl.status == PlanStatus.TIME_SCALED) / n,
+            "plan_raw": paths["raw"] / n,
+            "time_scaled": paths["time-scaled"] / n,
             "repaired_fast": paths["repaired-fast"] / n,
-            "refined": sum(1 for pl in returned if pl.status == PlanStatus.REFINED) / n,
+            "refined": paths["refined"] / n,
             "refused": len(refused) / n,
             "paths": paths,
             "refusals": refused[:5],

@@ -486,8 +486,7 @@ class Transition:
 
     def trajectory(self, rig: Rig) -> Any:
         """The ruckig trajectory (``ruckig.Trajectory``), recomputed from the end poses."""
-        traj, _ = _ruckig_move(rig, np.asarray(self.q_from_rad), np.asarray(self.q_to_rad))
-        return traj
+        return joint_move(rig, self.q_from_rad, self.q_to_rad)[0]
 
 
 @dataclass(frozen=True, slots=True)
@@ -660,25 +659,15 @@ def joint_move(rig: Rig, q0: ArrayLike, q1: ArrayLike) -> tuple[Any, float]:
     Raises:
         PlanningError: ruckig cannot plan it.
     """
-    return _ruckig_move(rig, np.asarray(q0, dtype=np.float64), np.asarray(q1, dtype=np.float64))
-
-
-def _ruckig_move(rig: Rig, q0: FloatArray, q1: FloatArray) -> tuple[Any, float]:
-    """Time-optimal rest-to-rest joint move within the rig's limits (no intermediate waypoints)."""
-    from ruckig import InputParameter, Result, Ruckig, Trajectory
-
-    otg = Ruckig(3)
-    inp = InputParameter(3)
-    inp.current_position = [float(v) for v in q0]
-    inp.target_position = [float(v) for v in q1]
-    inp.max_velocity = [float(v) for v in rig.qd_max_rad_s]
-    inp.max_acceleration = [float(v) for v in rig.qdd_max_rad_s2]
-    inp.max_jerk = [float(v) for v in rig.qddd_max_rad_s3]
-    traj = Trajectory(3)
-    result = otg.calculate(inp, traj)
-    if result not in (Result.Working, Result.Finished):
-        raise PlanningError(f"ruckig could not plan a transition: {result}")
+    traj = _Mover(rig).move(np.asarray(q0, dtype=np.float64), np.asarray(q1, dtype=np.float64))
     return traj, float(traj.duration)
+
+
+def _sextic_shapes(n: int) -> tuple[FloatArray, FloatArray]:
+    """The sextic's shape functions on ``n`` uniform samples of [0, 1]: the joint blend
+    ``10 s^3 - 15 s^4 + 6 s^5`` and the bulge profile ``s^3 (1 - s)^3``."""
+    s = np.linspace(0.0, 1.0, n)
+    return 10 * s**3 - 15 * s**4 + 6 * s**5, s**3 * (1 - s) ** 3
 
 
 # -- the planner ----------------------------------------------------------------------------------
@@ -789,18 +778,16 @@ class TrenchPlanner:
         self.scale = s
         self.entry_x_range = (_ENTRY_X_M[0] * s, _ENTRY_X_M[1] * s)
         self.arm = kinematics.FastArm(rig)
-        s_grid = np.linspace(0.0, 1.0, _SCREEN_SAMPLES)
-        self.screen_qf = 10 * s_grid**3 - 15 * s_grid**4 + 6 * s_grid**5
-        self.screen_pf = s_grid**3 * (1 - s_grid) ** 3
+        self.screen_qf, self.screen_pf = _sextic_shapes(_SCREEN_SAMPLES)
         self.screen_c = np.asarray(_SCREEN_C)
         # Second derivatives of the sextic's shape functions on a 1001-point grid.
         t = np.linspace(0.0, 1.0, 1001)
         self.fine_qf2 = 60 * t - 180 * t**2 + 120 * t**3
         self.fine_pf2 = 6 * t - 36 * t**2 + 60 * t**3 - 30 * t**4
         self.qdd_max = np.asarray(rig.qdd_max_rad_s2, dtype=np.float64)
-        s_fit = np.linspace(0.0, 1.0, _FIT_SAMPLES)
-        self.fit_qf = 10 * s_fit**3 - 15 * s_fit**4 + 6 * s_fit**5
-        self.fit_pf = s_fit**3 * (1 - s_fit) ** 3
+        self.fit_qf, self.fit_pf = _sextic_shapes(_FIT_SAMPLES)
+        # On the verifier's grid: the profile passes' paths as the verifier samples them.
+        self.full_qf, self.full_pf = _sextic_shapes(self.verifier.n_samples)
         self.mover = _Mover(rig)
         self.domain = {
             k: (np.asarray(c.domain_min), np.asarray(c.domain_max))
@@ -1040,11 +1027,15 @@ class TrenchSession:
             )
         t0 = time.perf_counter()
         self._relocate_if_needed(remaining)
-        ranked = self._screen(remaining)
+        # The entries do not depend on the dig type or the phase: computed once for both
+        # screenings (nothing but the phase changes between them).
+        xe = np.asarray(self._entry_x_candidates(remaining))
+        H = np.interp(xe, self.grid, self.surface)
+        ranked = self._screen(xe, H)
         if not ranked and self.phase is DigType.DOWNWARD:
             self.phase = DigType.BACKWARD
-            ranked = self._screen(remaining)
-        dig = self._first_plannable(ranked, t0)
+            ranked = self._screen(xe, H)
+        dig = self._first_plannable(ranked, remaining, t0)
         exhausted = False
         if dig is None:
             dig, exhausted = self._next_pass(remaining, t0)
@@ -1074,8 +1065,11 @@ class TrenchSession:
         self.pending = dig
         return dig
 
-    def _first_plannable(self, ranked: list[dict[str, Any]], t0: float) -> PlannedDig | None:
-        """The best screened candidate the one-shot planner plans within the limits.
+    def _first_plannable(
+        self, ranked: list[dict[str, Any]], remaining: Any, t0: float
+    ) -> PlannedDig | None:
+        """The best screened candidate the one-shot planner plans within the limits
+        (``remaining``: :meth:`remaining_design` of the current material).
 
         The PINN plans exactly what was screened; another planner (the PSO) finds its own
         optimum for the same poses, which may cut too deep or take more than the bucket: then
@@ -1083,7 +1077,7 @@ class TrenchSession:
         """
         for best in ranked:
             try:
-                dig = self._plan_chosen(best, (time.perf_counter() - t0) * 1e6)
+                dig = self._plan_chosen(best, remaining, (time.perf_counter() - t0) * 1e6)
                 self._check_transition_poses(dig)
             except PlanningError:
                 continue
@@ -1099,7 +1093,7 @@ class TrenchSession:
             ranked = self._finishing(remaining, layers=layers)
             if not ranked:
                 return None, True
-            dig = self._first_plannable(ranked, t0)
+            dig = self._first_plannable(ranked, remaining, t0)
             if dig is not None:
                 return dig, False
         return None, False
@@ -1175,13 +1169,14 @@ class TrenchSession:
         self._travels += 1
         self.q_now = None
 
-    def _screen(self, remaining: Any) -> list[dict[str, Any]]:
-        """The best candidates of the phase's dig types, best first."""
+    def _screen(self, xe: FloatArray, H: FloatArray) -> list[dict[str, Any]]:
+        """The best candidates of the phase's dig types, best first, entering at ``xe``
+        (:meth:`_entry_x_candidates`) where the surface is at ``H``."""
         kinds = [DigType.DOWNWARD] if self._phase() is DigType.DOWNWARD else list(DigType)
-        found = [b for k in kinds for b in self._screen_kind(remaining, k)]
+        found = [b for k in kinds for b in self._screen_kind(xe, H, k)]
         return sorted(found, key=lambda b: -b["score"])[:_N_RANKED]
 
-    def _screen_kind(self, remaining: Any, kind: DigType) -> list[dict[str, Any]]:
+    def _screen_kind(self, xe: FloatArray, H: FloatArray, kind: DigType) -> list[dict[str, Any]]:
         """The best candidates of one dig type, best first, screened on their geometry.
 
         Every (entry, exit) pose of the grid goes through the network at once; the tip path of
@@ -1199,8 +1194,6 @@ class TrenchSession:
         lo, hi = self.planner.domain[kind]
         # Every (entry, exit) pose of the grid at once: entries (x, attitude) x exits
         # (length, rise, attitude); poses out of reach or limits are dropped.
-        xe = np.asarray(self._entry_x_candidates(remaining))
-        H = np.interp(xe, self.grid, self.surface)
         ea = np.radians(cand.entry_attitude_deg)
         n_x, n_a = xe.shape[0], ea.shape[0]
         qs, ok_s = arm.ik_many(np.repeat(xe - m, n_a), np.repeat(H, n_a), np.tile(ea, n_x))
@@ -1394,10 +1387,7 @@ class TrenchSession:
         margin = math.radians(0.5)
         lo_q, hi_q = arm.q_min + margin, arm.q_max - margin
         tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
-        n_full = self.planner.verifier.n_samples
-        s_full = np.linspace(0.0, 1.0, n_full)
-        qf_full = 10 * s_full**3 - 15 * s_full**4 + 6 * s_full**5
-        pf_full = s_full**3 * (1 - s_full) ** 3
+        qf_full, pf_full = self.planner.full_qf, self.planner.full_pf
         good = _GOOD_FIT_COST * qf.shape[0] / 101.0
 
         def candidate(q1: FloatArray, q2: FloatArray, K: FloatArray) -> dict[str, Any] | None:
@@ -1581,7 +1571,9 @@ class TrenchSession:
         a_new = -K / T_new**6
         return (float(a_new[0]), float(a_new[1]), float(a_new[2])), T_new
 
-    def _plan_chosen(self, best: dict[str, Any], select_us: float) -> PlannedDig:
+    def _plan_chosen(self, best: dict[str, Any], remaining: Any, select_us: float) -> PlannedDig:
+        """Plan ``best`` for real and check it; ``remaining`` is :meth:`remaining_design` (the
+        caller's, the material being unchanged since)."""
         x7 = best["x7"]
         problem = Problem(
             q_start_rad=(float(x7[0]), float(x7[1]), float(x7[2])),
@@ -1612,7 +1604,8 @@ class TrenchSession:
         p = path[0].copy()
         p[:, 0] += self.machine_x
         over = self.overdig_of(p)
-        total, useful = self._cut_areas(lower_envelope(p, self.grid))
+        env = lower_envelope(p, self.grid)
+        total, useful = self._cut_areas(env)
         if finishing is None and useful < 0.5 * MIN_USEFUL_FRACTION * self.design_area:
             raise PlanningError(
                 f"the {self.planner.oneshot.name} plan of dig {len(self.digs) + 1} removes "
@@ -1625,10 +1618,10 @@ class TrenchSession:
                 f"{over * 1e3:.1f} mm or exceeds the bucket ({total * self.width_m * 1e3:.2f} L)"
             )
         # The record: polygon areas (the height field above only screened and checked).
-        swept = _swept_polygon(p, self.grid, self.top_y)
+        swept = _swept_polygon(p, self.grid, self.top_y, env)
         if swept is not None:
             total = float(self.material.intersection(swept).area)
-            useful = float(self.remaining_design().intersection(swept).area)
+            useful = float(remaining.intersection(swept).area)
         return PlannedDig(
             index=len(self.digs),
             problem=problem,
@@ -1669,10 +1662,10 @@ class TrenchSession:
         if not np.all(np.isfinite(path)):
             raise PlanningError("measured path has non-finite values")
         before = float(self.material.area)
-        swept = _swept_polygon(path, self.grid, self.top_y)
+        env = lower_envelope(path, self.grid)
+        swept = _swept_polygon(path, self.grid, self.top_y, env)
         if swept is not None:
             self.material = self.material.difference(swept)
-        env = lower_envelope(path, self.grid)
         self.surface = np.minimum(self.surface, env)
         removed = (before - float(self.material.area)) * self.width_m
         self.steps.append(dig)

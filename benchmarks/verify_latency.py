@@ -228,35 +228,19 @@ def pinn_rows(rig_name: str, model_dir: str | None) -> np.ndarray | None:
         for kind in DigType:
             X = load_heldout(directory / f"pinn_{kind.name.lower()}_heldout.npz")["X"]
             Y = planner.infer(kind, X)
-            for x, y in zip(X, Y, strict=True):
-                rows.append(verify.pack_inputs(x[0:3], x[3:6], float(x[6]), kind, y[0:3],
-                                               float(y[3]))[0])
+            rows.append(verify.pack_inputs(X[:, 0:3], X[:, 3:6], X[:, 6], kind, Y[:, 0:3], Y[:, 3]))
     except ConfigurationError:
         return None
-    return np.ascontiguousarray(np.array(rows))
+    return np.ascontiguousarray(np.concatenate(rows))
 
 
 def per_row_plan_us(verifier: verify.Verifier, rows: np.ndarray, reps: int) -> np.ndarray:
     """Per row, the least wall time (us) of one plan_into call over ``reps`` passes through all
     rows (a row's cost without the machine's noise; the passes keep the caches as cold as a
     planner's between digs)."""
-    out, planned, scale = np.empty((1, verify.N_OUT)), np.empty((1, 4)), np.empty(1)
-    sets = [np.ascontiguousarray(rows[i : i + 1]) for i in range(rows.shape[0])]
-    best = np.full(rows.shape[0], np.inf)
-    run_plan = verifier.plan_into
-    c_range = verify.PLAN_C_RANGE
-    clock = time.perf_counter_ns
-    gc.disable()
-    try:
-        for _ in range(reps):
-            for i, s in enumerate(sets):
-                t0 = clock()
-                run_plan(s, out, planned, c_range, None, scale)
-                t1 = clock()
-                best[i] = min(best[i], (t1 - t0) / 1e3)
-    finally:
-        gc.enable()
-    return best
+    n = rows.shape[0]
+    ns = time_calls(verifier, rows, 1, reps * n, False, plan=True)
+    return np.asarray(ns.reshape(reps, n).min(axis=0) / 1e3)
 
 
 def pinn_plan_report(verifier: verify.Verifier, rows: np.ndarray, reps: int) -> dict[str, object]:

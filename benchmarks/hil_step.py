@@ -32,9 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-from hil_sim.sim import HilCore
+from hil_sim.sim import COB_SYNC, HilCore
 from hil_sim.terrain import Terrain
 from rt_runtime import actuation
+from rt_runtime.actuation import AXES
 from rt_runtime.canbus.vcu import VcuClient, VcuCommand
 from rt_runtime.rig import Rig, load_rig
 from rt_runtime.trajectory import sextic
@@ -43,8 +44,6 @@ PERIOD_S = 2e-3
 #: The demo's rig; the held-out digs replayed are planned for it.
 RIG = "scale_model"
 COB_NMT = 0x000
-COB_SYNC = 0x080
-AXES = ("boom", "stick", "bucket")
 HELDOUT = Path(__file__).resolve().parent.parent / "onnx" / "pinn_downward_heldout.npz"
 
 

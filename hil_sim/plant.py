@@ -204,7 +204,7 @@ def _stroke_tables(rig: Rig) -> tuple[_StrokeTable, ...]:
 
 def _vec3(x: float, y: float, z: float) -> FloatArray:
     """A new ``(3,)`` float64 array: filling ``np.empty`` costs half of ``np.array`` on a
-    tuple, and the HIL reads strokes and rates every servo sub-step."""
+    tuple."""
     out = np.empty(3)
     out[0] = x
     out[1] = y
@@ -302,7 +302,15 @@ class ArmPlant:
         self._tables = _stroke_tables(rig)
         self._chain(rig)
 
-        strokes = [self._tables[i].eval(float(q0[i]))[0] for i in range(3)]
+        self._q = [float(v) for v in q0]
+        # (s, ds/dq, d2s/dq2) per axis at self._q: the sub-step and the stroke properties read
+        # it instead of evaluating the tables again (issue 7: 3 evaluations per sub-step, not 9).
+        self._geo = (
+            self._tables[0].eval(self._q[0]),
+            self._tables[1].eval(self._q[1]),
+            self._tables[2].eval(self._q[2]),
+        )
+        strokes = [g[0] for g in self._geo]
         bad = [
             actuation.AXES[i] for i in range(3) if not -1e-9 <= strokes[i] <= self._smax[i] + 1e-9
         ]
@@ -313,15 +321,7 @@ class ArmPlant:
                 f"travel 0..{[round(s, 4) for s in self._smax]} m)"
             )
 
-        self._q = [float(v) for v in q0]
         self._qd = [float(v) for v in qd0]
-        # (s, ds/dq, d2s/dq2) per axis at self._q: the sub-step and the stroke properties read
-        # it instead of evaluating the tables again (issue 7: 3 evaluations per sub-step, not 9).
-        self._geo = (
-            self._tables[0].eval(self._q[0]),
-            self._tables[1].eval(self._q[1]),
-            self._tables[2].eval(self._q[2]),
-        )
         self._t = 0.0
         self._force = [0.0, 0.0, 0.0]
         self._power = 0.0
@@ -712,6 +712,14 @@ class ArmPlant:
         """True stroke rates ``(3,)``."""
         geo, qd = self._geo, self._qd
         return _vec3(geo[0][1] * qd[0], geo[1][1] * qd[1], geo[2][1] * qd[2])
+
+    def stroke_state(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """True strokes and stroke rates as floats, ``((s0, s1, s2), (sd0, sd1, sd2))``: the
+        values of :attr:`stroke_m` and :attr:`stroke_rate_m_s` without building arrays (the HIL
+        reads them every servo sub-step)."""
+        (s0, d0, _), (s1, d1, _), (s2, d2, _) = self._geo
+        qd = self._qd
+        return (s0, s1, s2), (d0 * qd[0], d1 * qd[1], d2 * qd[2])
 
     @property
     def tip_xy_m(self) -> FloatArray:

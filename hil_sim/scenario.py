@@ -81,6 +81,7 @@ from rt_runtime.trajectory.mixed_order import GAO_TABLE2_JOINTS_DEG
 
 __all__ = [
     "GAO_TABLE2_JOINTS_DEG",
+    "NO_RT",
     "FaultSpec",
     "KeyPointPath",
     "PathScenario",
@@ -95,7 +96,7 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 
 #: RT settings of a lockstep run: simulated time needs none of them.
-_NO_RT = RtSettings(
+NO_RT = RtSettings(
     sched_fifo_priority=None, lock_memory=False, cpu=None, timer_slack_ns=None, freeze_gc=False
 )
 
@@ -279,7 +280,7 @@ def _execute(
     master = CanMaster(hil.master_bus, rig, period_s=sc.period_s, react_to_faults=False)
     loop = FixedRateLoop(
         clock,
-        LoopConfig(period_s=sc.period_s, rt=RtSettings() if sc.realtime else _NO_RT),
+        LoopConfig(period_s=sc.period_s, rt=RtSettings() if sc.realtime else NO_RT),
         executor_telemetry(int(run_s / sc.period_s)),
     )
     executor = make_executor(master, loop, _fault_injector(hil, faults))

@@ -284,12 +284,11 @@ class HilCore:
         nodes = self.nodes
         while remaining > 1e-12:
             h = self._servo_dt_s if remaining > self._servo_dt_s * (1.0 + 1e-9) else remaining
-            s = plant.stroke_m
-            sd = plant.stroke_rate_m_s
+            s, sd = plant.stroke_state()
             efforts = [
-                nodes[0].servo_step(h, float(s[0]), float(sd[0])),
-                nodes[1].servo_step(h, float(s[1]), float(sd[1])),
-                nodes[2].servo_step(h, float(s[2]), float(sd[2])),
+                nodes[0].servo_step(h, s[0], sd[0]),
+                nodes[1].servo_step(h, s[1], sd[1]),
+                nodes[2].servo_step(h, s[2], sd[2]),
             ]
             if self._load is not None:
                 self._load.offset_m = self.machine_x_m

@@ -16,11 +16,13 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import restore_pending, rpdo1_limit_check
 
+from hil_sim.scenario import NO_RT
 from hil_sim.sim import FaultKind, LockstepHil
 from hil_sim.terrain import Terrain
 from rt_runtime.canbus import CanMaster
-from rt_runtime.control import FixedRateLoop, LoopConfig, OverrunPolicy, RtSettings
+from rt_runtime.control import FixedRateLoop, LoopConfig, OverrunPolicy
 from rt_runtime.control.executor import (
     DigRecord,
     ExecStatus,
@@ -31,13 +33,12 @@ from rt_runtime.control.executor import (
     StopRequest,
     executor_telemetry,
 )
-from rt_runtime.control.guard import GuardState, StrokeLimits, check_setpoint_trace, rpdo1_setpoints
+from rt_runtime.control.guard import GuardState, TraceCheck
 from rt_runtime.errors import ConfigurationError, DriveFault, PlanningError
-from rt_runtime.planning.trench import TrenchPlanner, TrenchSession, TrenchTask, load_task
+from rt_runtime.planning.trench import TrenchPlanner, TrenchSession, TrenchTask
 from rt_runtime.rig import Rig, load_rig
 
 PERIOD_S = 0.002
-NO_RT = RtSettings(None, False, None, None, False)
 
 
 @pytest.fixture(scope="module")
@@ -46,20 +47,18 @@ def rig() -> Rig:
 
 
 @pytest.fixture(scope="module")
-def planner(rig: Rig) -> TrenchPlanner:
-    return TrenchPlanner(rig)
+def planner(pending: tuple[TrenchPlanner, TrenchTask, dict[str, Any]]) -> TrenchPlanner:
+    return pending[0]
 
 
 @pytest.fixture(scope="module")
-def task(rig: Rig) -> TrenchTask:
-    return load_task("A", rig)
+def task(pending: tuple[TrenchPlanner, TrenchTask, dict[str, Any]]) -> TrenchTask:
+    return pending[1]
 
 
 @pytest.fixture(scope="module")
-def pending_state(planner: TrenchPlanner, task: TrenchTask) -> dict[str, Any]:
-    session = planner.start(task)
-    session.next_dig()
-    return json.loads(json.dumps(session.state()))
+def pending_state(pending: tuple[TrenchPlanner, TrenchTask, dict[str, Any]]) -> dict[str, Any]:
+    return json.loads(json.dumps(pending[2]))
 
 
 class _Run:
@@ -114,12 +113,8 @@ class _Run:
         self.result: ExecutorResult = self.executor.run()
         self.hil.close()
 
-    def trace_check(self, rig: Rig) -> Any:
-        nodes = [n for _, n in rig.can.node_ids]
-        target, velocity = rpdo1_setpoints(self.hil.core.frames, nodes)
-        return check_setpoint_trace(
-            target, StrokeLimits.from_rig(rig), PERIOD_S, velocity_um_s=velocity
-        )
+    def trace_check(self, rig: Rig) -> TraceCheck:
+        return rpdo1_limit_check(rig, self.hil.core.frames)
 
     def phases(self) -> list[Phase]:
         """The phases in order, consecutive repeats merged."""
@@ -132,9 +127,11 @@ def _restore(planner: TrenchPlanner, task: TrenchTask, state: dict[str, Any]) ->
     return TrenchSession.restore(planner, task, json.loads(json.dumps(state)))
 
 
-def _entry(session: TrenchSession) -> np.ndarray:
-    assert session.pending is not None
-    return np.asarray(session.pending.problem.q_start_rad)
+def _restore_pending(
+    planner: TrenchPlanner, task: TrenchTask, state: dict[str, Any]
+) -> tuple[TrenchSession, np.ndarray]:
+    """The pending dig's session restored from a JSON copy of ``state``, and its entry pose."""
+    return restore_pending(planner, task, json.loads(json.dumps(state)))
 
 
 def _assert_at_rest(run: _Run, rig: Rig) -> None:
@@ -148,8 +145,8 @@ def _assert_at_rest(run: _Run, rig: Rig) -> None:
 def first_run(
     rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
 ) -> _Run:
-    session = _restore(planner, task, pending_state)
-    return _Run(rig, session, _entry(session))
+    session, q0 = _restore_pending(planner, task, pending_state)
+    return _Run(rig, session, q0)
 
 
 # -- a job ---------------------------------------------------------------------------------------
@@ -228,7 +225,7 @@ def test_resume_from_a_restored_state_digs_the_next_dig(
 def test_pause_takes_effect_at_the_next_motion_boundary(
     rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
 ) -> None:
-    session = _restore(planner, task, pending_state)
+    session, q0 = _restore_pending(planner, task, pending_state)
     seen: dict[str, float] = {}
 
     def pause_then_resume(run: _Run, _sync: int, now_s: float) -> None:
@@ -243,7 +240,7 @@ def test_pause_takes_effect_at_the_next_motion_boundary(
             run.executor.resume()
             seen["resumed"] = t
 
-    run = _Run(rig, session, _entry(session), on_cycle=pause_then_resume, terrain=False)
+    run = _Run(rig, session, q0, on_cycle=pause_then_resume, terrain=False)
     assert run.result.status is ExecStatus.DONE, run.result.fault
     # The dig ran to its end, the arm held (at rest, at the dig's exit) until resumed.
     assert run.phases() == [
@@ -267,14 +264,14 @@ def test_pause_takes_effect_at_the_next_motion_boundary(
 def test_cancel_mid_dig_is_a_jerk_limited_stop(
     rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
 ) -> None:
-    session = _restore(planner, task, pending_state)
+    session, q0 = _restore_pending(planner, task, pending_state)
 
     def cancel(run: _Run, _sync: int, now_s: float) -> None:
         assert run.start_s is not None
         if now_s - run.start_s >= 1.5:
             run.executor.request_stop(StopRequest.CANCEL)
 
-    run = _Run(rig, session, _entry(session), on_cycle=cancel, terrain=False)
+    run = _Run(rig, session, q0, on_cycle=cancel, terrain=False)
     res = run.result
     assert res.status is ExecStatus.CANCELLED, res.fault
     assert res.digs == () and session.pending is not None
@@ -292,7 +289,7 @@ def test_cancel_mid_dig_is_a_jerk_limited_stop(
 def test_an_injected_following_error_stops_the_other_axes_within_limits(
     rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
 ) -> None:
-    session = _restore(planner, task, pending_state)
+    session, q0 = _restore_pending(planner, task, pending_state)
     stick = 1
 
     def jam(run: _Run, _sync: int, now_s: float) -> None:
@@ -301,7 +298,7 @@ def test_an_injected_following_error_stops_the_other_axes_within_limits(
             run.hil.inject(FaultKind.FOLLOWING_ERROR, stick)
 
     config = ExecutorConfig(max_digs=1, following_error_m=1e-3)
-    run = _Run(rig, session, _entry(session), config=config, on_cycle=jam, terrain=False)
+    run = _Run(rig, session, q0, config=config, on_cycle=jam, terrain=False)
     res = run.result
     assert res.status is ExecStatus.FAULT
     assert res.fault.startswith("following error on the stick axis"), res.fault
@@ -318,32 +315,38 @@ def test_an_injected_following_error_stops_the_other_axes_within_limits(
         assert tel["drive_state"][-1, axis] == 4  # OPERATION_ENABLED until disabled at the end
 
 
-class _StallingClock:
-    """The lockstep clock, oversleeping every deadline by 1.2 periods after ``at_s``."""
+class _WrappedClock:
+    """The lockstep clock, declared real time or not (``realtime``: the executor plans in its
+    planner process), oversleeping every deadline by 1.2 periods from ``stall_at_s`` on (never
+    if None)."""
 
-    realtime = False
-
-    def __init__(self, inner: Any, at_s: float) -> None:
+    def __init__(
+        self, inner: Any, *, realtime: bool = False, stall_at_s: float | None = None
+    ) -> None:
         self.inner = inner
-        self.at_s = at_s
+        self.realtime = realtime
+        self.stall_at_s = stall_at_s
 
     def now(self) -> float:
         return float(self.inner.now())
 
     def sleep_until(self, t_s: float) -> None:
-        late = 1.2 * PERIOD_S if t_s >= self.at_s else 0.0
+        if self.stall_at_s is None:
+            self.inner.sleep_until(t_s)
+            return
+        late = 1.2 * PERIOD_S if t_s >= self.stall_at_s else 0.0
         self.inner.sleep_until(t_s + late)
 
 
 def test_a_stalling_clock_leads_to_an_overrun_safe_stop(
     rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
 ) -> None:
-    session = _restore(planner, task, pending_state)
+    session, q0 = _restore_pending(planner, task, pending_state)
     run = _Run(
         rig,
         session,
-        _entry(session),
-        wrap_clock=lambda clock: _StallingClock(clock, clock.now() + 1.0),
+        q0,
+        wrap_clock=lambda clock: _WrappedClock(clock, stall_at_s=clock.now() + 1.0),
         loop_config=LoopConfig(rt=NO_RT, overrun=OverrunPolicy(max_consecutive=5)),
         terrain=False,
     )
@@ -357,31 +360,16 @@ def test_a_stalling_clock_leads_to_an_overrun_safe_stop(
 # -- the planner process -------------------------------------------------------------------------
 
 
-class _RealtimeLockstep:
-    """The lockstep clock declared real time: the executor plans in its planner process."""
-
-    realtime = True
-
-    def __init__(self, inner: Any) -> None:
-        self.inner = inner
-
-    def now(self) -> float:
-        return float(self.inner.now())
-
-    def sleep_until(self, t_s: float) -> None:
-        self.inner.sleep_until(t_s)
-
-
 def test_the_next_dig_is_planned_in_the_planner_process(
     rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
 ) -> None:
-    session = _restore(planner, task, pending_state)
+    session, q0 = _restore_pending(planner, task, pending_state)
     run = _Run(
         rig,
         session,
-        _entry(session),
+        q0,
         config=ExecutorConfig(max_digs=2),
-        wrap_clock=_RealtimeLockstep,
+        wrap_clock=lambda clock: _WrappedClock(clock, realtime=True),
         cut=False,  # on_dig_done runs on the callback thread; the lockstep HIL is single-threaded
     )
     res = run.result
@@ -412,8 +400,8 @@ def test_bad_configuration_is_refused(
         ExecutorConfig(stale_cycles=0)
     with pytest.raises(ConfigurationError, match="following_error_m"):
         ExecutorConfig(following_error_m=-1.0)
-    session = _restore(planner, task, pending_state)
-    hil = LockstepHil(rig, _entry(session))
+    session, q0 = _restore_pending(planner, task, pending_state)
+    hil = LockstepHil(rig, q0)
     master = CanMaster(hil.master_bus, rig, period_s=PERIOD_S)
     loop = FixedRateLoop(hil.clock, LoopConfig(period_s=0.001, rt=NO_RT))
     with pytest.raises(ConfigurationError, match="period"):

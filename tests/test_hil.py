@@ -21,12 +21,13 @@ import cantools
 import numpy as np
 import pytest
 from canopen.objectdictionary import ODVariable, import_od
+from conftest import fault_on_cycle, restore_pending, rpdo1_limit_check
 
 from firmware_models import CIA402_DRIVE_EDS, VCU_DBC, VCU_DBC_NODE_ID
-from hil_sim.scenario import Scenario, run_scenario
+from hil_sim.scenario import NO_RT, Scenario, run_scenario
 from hil_sim.sim import FaultKind, LockstepHil
 from rt_runtime.canbus import CanMaster, CycleStatus, DriveState
-from rt_runtime.control import FixedRateLoop, LoopConfig, RtSettings
+from rt_runtime.control import FixedRateLoop, LoopConfig
 from rt_runtime.control.executor import (
     ExecStatus,
     Executor,
@@ -34,12 +35,11 @@ from rt_runtime.control.executor import (
     ExecutorResult,
     executor_telemetry,
 )
-from rt_runtime.control.guard import StrokeLimits, check_setpoint_trace, rpdo1_setpoints
-from rt_runtime.planning.trench import TrenchPlanner, TrenchSession
+from rt_runtime.control.guard import StrokeLimits
+from rt_runtime.planning.trench import TrenchPlanner
 from rt_runtime.rig import Rig, load_rig
 
 AXES = ("boom", "stick", "bucket")
-NO_RT = RtSettings(None, False, None, None, False)
 
 
 @pytest.fixture(scope="module")
@@ -87,9 +87,7 @@ def test_lockstep_runs_are_deterministic(one_dig: dict[str, Any], tmp_path: Path
 
 
 def test_the_whole_run_commands_within_the_limits(one_dig: dict[str, Any], rig: Rig) -> None:
-    nodes = [n for _, n in rig.can.node_ids]
-    target, velocity = rpdo1_setpoints(one_dig["_frames"], nodes)
-    check = check_setpoint_trace(target, StrokeLimits.from_rig(rig), 0.002, velocity_um_s=velocity)
+    check = rpdo1_limit_check(rig, one_dig["_frames"])
     assert check.frames > 5000
     assert check.ok, check
 
@@ -104,24 +102,12 @@ def _short_run(
     trace: Path | None = None,
 ) -> tuple[LockstepHil, CanMaster, ExecutorResult, list[float]]:
     """The pending dig from its entry, a fault injected at a time after the first cycle."""
-    planner, task, state = pending
-    session = TrenchSession.restore(planner, task, state)
-    assert session.pending is not None
-    q0 = np.asarray(session.pending.problem.q_start_rad)
+    session, q0 = restore_pending(*pending)
     hil = LockstepHil(rig, q0, keep_frames=True, trace_path=trace)
     master = CanMaster(hil.master_bus, rig, period_s=0.002, react_to_faults=False)
     master.boot(hil.clock.now, 1.0)
     master.enable(hil.clock.now, 1.0)
-    injected: list[float] = []
-    start: list[float] = []
-
-    def on_cycle(_sync: int, now_s: float) -> None:
-        if not start:
-            start.append(now_s)
-        if fault is not None and not injected and now_s - start[0] >= fault[2]:
-            hil.inject(fault[0], fault[1])
-            injected.append(now_s)
-
+    on_cycle, injected = fault_on_cycle(hil, fault)
     loop = FixedRateLoop(hil.clock, LoopConfig(rt=NO_RT), executor_telemetry(20_000))
     executor = Executor(master, rig, loop, session, ExecutorConfig(max_digs=1), on_cycle=on_cycle)
     result = executor.run()
@@ -133,10 +119,7 @@ def _assert_others_stopped(hil: LockstepHil, rig: Rig, res: ExecutorResult, faul
     tel = res.telemetry
     assert not tel["tracking"][-1]
     rates = hil.core.plant.stroke_rate_m_s
-    nodes = [n for _, n in rig.can.node_ids]
-    target, velocity = rpdo1_setpoints(hil.core.frames, nodes)
-    limits = StrokeLimits.from_rig(rig)
-    check = check_setpoint_trace(target, limits, 0.002, velocity_um_s=velocity)
+    check = rpdo1_limit_check(rig, hil.core.frames)
     for axis in range(3):
         # Every frame, for every axis (the faulted drive ignores them), within the limits.
         assert check.velocity[axis] <= 1.0 and check.acceleration[axis] <= 1.0, check
@@ -147,7 +130,7 @@ def _assert_others_stopped(hil: LockstepHil, rig: Rig, res: ExecutorResult, faul
         assert tel["drive_state"][-1, axis] == DriveState.OPERATION_ENABLED, tel["drive_state"][-1]
         assert abs(rates[axis]) < 1e-3, (axis, rates)
     # A jerk-limited stop from the streamed speed: no longer than the guard's stop time.
-    v_max, a_max, j_max = limits.as_arrays()
+    v_max, a_max, j_max = StrokeLimits.from_rig(rig).as_arrays()
     stop_cycles = int(np.count_nonzero(tel["phase"] == 8))
     assert stop_cycles * 0.002 <= float(np.max(v_max / a_max + 2 * a_max / j_max)) + 0.3
 

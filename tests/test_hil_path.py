@@ -19,22 +19,22 @@ import pytest
 import hil_sim.scenario as scenario_mod
 from hil_sim.scenario import (
     GAO_TABLE2_JOINTS_DEG,
+    NO_RT,
     PathScenario,
     key_point_path,
     run_path_scenario,
 )
 from hil_sim.sim import LockstepHil
 from rt_runtime import actuation
+from rt_runtime.actuation import AXES
 from rt_runtime.canbus import CanMaster
-from rt_runtime.control import FixedRateLoop, LoopConfig, RtSettings
+from rt_runtime.control import FixedRateLoop, LoopConfig
 from rt_runtime.control.executor import Executor, executor_telemetry
 from rt_runtime.control.planner_worker import PathJob, PathLink, PathPlan, PolynomialMotion
 from rt_runtime.errors import JointLimitError, PlanningError
 from rt_runtime.rig import Rig, load_rig
 from rt_runtime.trajectory.mixed_order import interpolate
 
-AXES = ("boom", "stick", "bucket")
-NO_RT = RtSettings(None, False, None, None, False)
 PERIOD_S = 0.002
 #: Start pose away from the path's first key point (34.83, -40.32, -56.16): a real CONNECT move.
 START_DEG = (30.0, -45.0, -52.0)

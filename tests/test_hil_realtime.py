@@ -24,8 +24,10 @@ from typing import Any
 import can
 import numpy as np
 import pytest
+from conftest import fault_on_cycle, restore_pending
 
 from hil_sim.realtime import RealtimeHilProcess
+from hil_sim.scenario import NO_RT
 from hil_sim.sim import FaultKind
 from rt_runtime.canbus import CanMaster, CycleStatus, DriveState
 from rt_runtime.control import (
@@ -43,11 +45,10 @@ from rt_runtime.control.executor import (
     ExecutorResult,
     executor_telemetry,
 )
-from rt_runtime.planning.trench import TrenchPlanner, TrenchSession
+from rt_runtime.planning.trench import TrenchPlanner
 from rt_runtime.rig import Rig, load_rig
 
 MAX_WALL_S = 60.0
-NO_RT = RtSettings(None, False, None, None, False)
 rt: list[dict[str, Any]] = []
 
 
@@ -67,10 +68,7 @@ def _run(
     fault: tuple[FaultKind, int, float] | None = None,
     trace: Path | None = None,
 ) -> tuple[ExecutorResult, CanMaster, dict[str, Any], np.ndarray]:
-    planner, task, state = pending
-    session = TrenchSession.restore(planner, task, state)
-    assert session.pending is not None
-    q0 = np.asarray(session.pending.problem.q_start_rad)
+    session, q0 = restore_pending(*pending)
     hil = RealtimeHilProcess.start(
         rig_name="scale_model",
         q0_rad=q0,
@@ -80,16 +78,7 @@ def _run(
     )
     try:
         master = CanMaster(hil.master_bus, _patient(rig), period_s=0.002, react_to_faults=False)
-        start: list[float] = []
-        injected: list[float] = []
-
-        def on_cycle(_sync: int, now_s: float) -> None:
-            if not start:
-                start.append(now_s)
-            if fault is not None and not injected and now_s - start[0] >= fault[2]:
-                hil.inject(fault[0], fault[1])
-                injected.append(now_s)
-
+        on_cycle, _injected = fault_on_cycle(hil, fault)
         config = ExecutorConfig(max_digs=1, plan_in_worker=fault is None, stale_cycles=100)
         loop = FixedRateLoop(
             hil.clock,

@@ -361,13 +361,36 @@ PINNED_PERIOD_S = 2e-3
 PINNED_SUBSTEPS = 8
 
 
+def _plant_in_soil(rig: Rig, depth_m: float) -> tuple[ArmPlant, np.ndarray]:
+    """The plant at the mid pose, its tip ``depth_m`` below the ground of a 0.3 m wide terrain
+    4 m long around the tip; and the pose."""
+    q0 = _mid(rig)
+    tip = kinematics.forward(rig, q0)
+    terrain = Terrain(float(tip[1]) + depth_m, (float(tip[0]) - 2.0, float(tip[0]) + 2.0), 0.3)
+    return ArmPlant(rig, q0, terrain), q0
+
+
+def _pinned_state(plant: ArmPlant, path_sum: float, **extra: list[float]) -> dict[str, list[float]]:
+    """The plant's state the pinned trajectories compare, with ``extra`` keys."""
+    out = {
+        "q_rad": plant.q_rad.tolist(),
+        "qd_rad_s": plant.qd_rad_s.tolist(),
+        **extra,
+        "force_n": plant.cylinder_force_n.tolist(),
+        "soil_n": plant.soil_force_xy_n.tolist(),
+        "energy_j": [plant.energy_j, plant.energy_signed_j, plant.soil_energy_j],
+        "path_sum_m": [path_sum],
+    }
+    if plant.pressures_pa is not None and plant.spool is not None:
+        out["pressures_pa"] = plant.pressures_pa.ravel().tolist()
+        out["spool"] = plant.spool.tolist()
+    return out
+
+
 def _pinned_closed_loop(rig: Rig) -> dict[str, list[float]]:
     """500 SYNC periods of the plant in soil under three CSP drives on a seeded motion."""
     rng = np.random.default_rng(20260607)
-    q0 = _mid(rig)
-    tip = kinematics.forward(rig, q0)
-    terrain = Terrain(float(tip[1]) + 0.04, (float(tip[0]) - 2.0, float(tip[0]) + 2.0), 0.3)
-    plant = ArmPlant(rig, q0, terrain)
+    plant, _ = _plant_in_soil(rig, 0.04)
     s0 = plant.stroke_m
     ids = [dict(rig.can.node_ids)[name] for name in actuation.AXES]
     drives = [
@@ -401,31 +424,20 @@ def _pinned_closed_loop(rig: Rig) -> dict[str, list[float]]:
             efforts = [fw.servo_step(h, float(s[i]), float(sd[i])) for i, fw in enumerate(drives)]
             plant.step(h, efforts)
         path_sum += float(plant.stroke_m.sum())
-    out = {
-        "q_rad": plant.q_rad.tolist(),
-        "qd_rad_s": plant.qd_rad_s.tolist(),
-        "stroke_m": plant.stroke_m.tolist(),
-        "stroke_rate_m_s": plant.stroke_rate_m_s.tolist(),
-        "efforts": efforts,
-        "force_n": plant.cylinder_force_n.tolist(),
-        "soil_n": plant.soil_force_xy_n.tolist(),
-        "energy_j": [plant.energy_j, plant.energy_signed_j, plant.soil_energy_j],
-        "path_sum_m": [path_sum],
-        "states": [float(fw.state) for fw in drives],
-    }
-    if plant.pressures_pa is not None and plant.spool is not None:
-        out["pressures_pa"] = plant.pressures_pa.ravel().tolist()
-        out["spool"] = plant.spool.tolist()
-    return out
+    return _pinned_state(
+        plant,
+        path_sum,
+        stroke_m=plant.stroke_m.tolist(),
+        stroke_rate_m_s=plant.stroke_rate_m_s.tolist(),
+        efforts=efforts,
+        states=[float(fw.state) for fw in drives],
+    )
 
 
 def _pinned_open_loop(rig: Rig) -> dict[str, list[float]]:
     """Seeded efforts: end stops, brakes (exact zeros), a tip force, odd step lengths, soil."""
     rng = np.random.default_rng(7011)
-    q0 = _mid(rig)
-    tip = kinematics.forward(rig, q0)
-    terrain = Terrain(float(tip[1]) + 0.02, (float(tip[0]) - 2.0, float(tip[0]) + 2.0), 0.3)
-    plant = ArmPlant(rig, q0, terrain)
+    plant, q0 = _plant_in_soil(rig, 0.02)
     hold = _holding_effort(rig, q0) if rig.cylinders.kind == "electric" else np.zeros(3)
     path_sum = 0.0
     for k in range(120):
@@ -438,20 +450,12 @@ def _pinned_open_loop(rig: Rig) -> dict[str, list[float]]:
         dt = 0.0023 if k % 11 == 0 else 0.002
         plant.step(dt, np.clip(effort, -1.0, 1.0).tolist(), force)
         path_sum += float(plant.stroke_m.sum())
-    out = {
-        "q_rad": plant.q_rad.tolist(),
-        "qd_rad_s": plant.qd_rad_s.tolist(),
-        "force_n": plant.cylinder_force_n.tolist(),
-        "soil_n": plant.soil_force_xy_n.tolist(),
-        "energy_j": [plant.energy_j, plant.energy_signed_j, plant.soil_energy_j],
-        "power_w": [plant.power_w, plant.power_signed_w],
-        "path_sum_m": [path_sum],
-        "brakes": [float(b) for b in plant.brakes_engaged],
-    }
-    if plant.pressures_pa is not None and plant.spool is not None:
-        out["pressures_pa"] = plant.pressures_pa.ravel().tolist()
-        out["spool"] = plant.spool.tolist()
-    return out
+    return _pinned_state(
+        plant,
+        path_sum,
+        power_w=[plant.power_w, plant.power_signed_w],
+        brakes=[float(b) for b in plant.brakes_engaged],
+    )
 
 
 # Computed before the optimisation (see the comment above); do not edit by hand.

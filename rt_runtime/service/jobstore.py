@@ -32,7 +32,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
-import os
 import threading
 import time
 from collections.abc import Iterator
@@ -41,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from rt_runtime.errors import ConfigurationError
+from rt_runtime.fileio import atomic_write
 
 __all__ = [
     "ACTIVE",
@@ -62,7 +62,8 @@ FINAL = ("done", "cancelled")
 ACTIVE = ("running", "queued")
 STORE_NAME = "jobs.json"
 _TASK_KEYS = ("name", "length_m", "depth_m", "beta1_deg", "beta2_deg", "start_x_m")
-_DIG_KEYS = ("index", "dig_type", "T_s", "plan_us", "planned_volume_m3", "measured_volume_m3")
+#: Keys of a dig summary in a job record (the daemon builds them from the executor's record).
+DIG_KEYS = ("index", "dig_type", "T_s", "plan_us", "planned_volume_m3", "measured_volume_m3")
 
 
 class JobError(ConfigurationError):
@@ -132,9 +133,9 @@ class Job:
                 raise ValueError(f"task must have keys {', '.join(_TASK_KEYS)}")
             digs = raw["digs"]
             if not isinstance(digs, list) or not all(
-                isinstance(d, dict) and set(_DIG_KEYS) <= set(d) for d in digs
+                isinstance(d, dict) and set(DIG_KEYS) <= set(d) for d in digs
             ):
-                raise ValueError(f"digs must be a list of objects with {', '.join(_DIG_KEYS)}")
+                raise ValueError(f"digs must be a list of objects with {', '.join(DIG_KEYS)}")
             state = raw.get("session_state")
             if state is not None and not isinstance(state, dict):
                 raise ValueError("session_state must be an object or null")
@@ -165,17 +166,6 @@ class Job:
             raise ValueError(f"job {job}: {exc}") from exc
 
 
-def _fsync_dir(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-_tmp_counter = iter(range(1, 1 << 62))
-
-
 def atomic_write_json(path: Path, obj: Any) -> None:
     """Replace ``path`` with ``obj`` as JSON, atomically and durably.
 
@@ -190,19 +180,7 @@ def atomic_write_json(path: Path, obj: Any) -> None:
         OSError: The write failed (the old file is untouched; the temporary file is removed).
     """
     data = json.dumps(obj, separators=(",", ":"), allow_nan=False).encode("utf-8")
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{next(_tmp_counter)}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
-    _fsync_dir(path.parent)
+    atomic_write(path, lambda f: f.write(data), mode=0o600)
 
 
 def _stale_temps(path: Path) -> Iterator[Path]:

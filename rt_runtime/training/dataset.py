@@ -67,6 +67,7 @@ from numpy.typing import NDArray
 
 from rt_runtime import __version__
 from rt_runtime.errors import CommunicationError, ConfigurationError, ExcavatorRtError
+from rt_runtime.fileio import atomic_write
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import DigType, Problem, SamplerRanges, Solution
 from rt_runtime.planning.pinn import INPUT_NAMES, OUTPUT_NAMES
@@ -417,34 +418,10 @@ def _sha256_json(data: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _write_atomic(path: Path, write: Callable[[IO[bytes]], None]) -> None:
-    """Write ``path`` through a temporary file in the same directory: fsync, rename, fsync dir.
-
-    A reader (or a resumed run) sees the old file or the whole new one, never a partial one.
-    """
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)
-
-
 def _write_npz(path: Path, arrays: Mapping[str, NDArray[Any]]) -> None:
-    _write_atomic(path, lambda f: np.savez(f, **arrays))  # type: ignore[arg-type]
+    # Atomic (tmp, fsync, rename, fsync dir): a reader or a resumed run sees the old file or the
+    # whole new one, never a partial one; likewise _write_json.
+    atomic_write(path, lambda f: np.savez(f, **arrays))  # type: ignore[arg-type]
 
 
 def _write_json(path: Path, data: Mapping[str, Any]) -> None:
@@ -453,7 +430,7 @@ def _write_json(path: Path, data: Mapping[str, Any]) -> None:
     def write(f: IO[bytes]) -> None:
         f.write(text.encode())
 
-    _write_atomic(path, write)
+    atomic_write(path, write)
 
 
 def _require_keys(what: str, data: Any, keys: set[str]) -> None:

@@ -758,10 +758,19 @@ class Executor:
 
     # -- stops and endings ----------------------------------------------------------------------
 
+    def _escalates(self, status: ExecStatus) -> bool:
+        """:meth:`_begin_stop` with ``status`` would change the status: no stop yet, or a more
+        severe cause than the current one."""
+        return (
+            not self._stopping
+            or self._status is None
+            or _SEVERITY[status] > _SEVERITY[self._status]
+        )
+
     def _begin_stop(self, status: ExecStatus, text: str) -> None:
         """Start the guard's stop (or, during one, report a more severe cause)."""
         if self._stopping:
-            if self._status is None or _SEVERITY[status] > _SEVERITY[self._status]:
+            if self._escalates(status):
                 self._status = status
                 self._fault = f"{self._fault}; then {text}" if self._fault else text
             return
@@ -995,7 +1004,8 @@ class Executor:
                 self._begin_stop(ExecStatus.STOPPED, "shutdown requested")
             elif request is StopRequest.CANCEL:
                 self._begin_stop(ExecStatus.CANCELLED, "cancelled")
-        if info.safe_stop:
+        if info.safe_stop and self._escalates(ExecStatus.OVERRUN_STOP):
+            # safe_stop stays True: build the message only when it would change the status
             self._begin_stop(
                 ExecStatus.OVERRUN_STOP,
                 f"{info.consecutive_overruns} consecutive loop overruns (last "
@@ -1133,7 +1143,8 @@ class Executor:
         # is not waited for.
         known = ~fb.heartbeat_lost
         slow = np.abs(fb.velocity_um_s) * 1e-6 < self.config.rest_velocity_m_s
-        ramping = np.isin(fb.state, _STOPPING_STATES)
+        state = fb.state
+        ramping = (state == _STOPPING_STATES[0]) | (state == _STOPPING_STATES[1])
         return bool(((slow & ~ramping) | ~known).all())
 
     def _maybe_end(self, fb: Any) -> LoopAction:
@@ -1156,12 +1167,9 @@ class Executor:
         if self._settle_t0 is None:
             self._settle_t0 = now
         if now - self._settle_t0 + 1e-12 >= self.config.settle_s and self._drives_at_rest(fb):
-            if self._final is not None:
-                self._status, self._fault = self._final
-            else:
-                self._status, self._fault = ExecStatus.DONE, ""
-            if self._status is ExecStatus.DONE:
-                self._fault = ""
+            self._status, self._fault = (
+                self._final if self._final is not None else (ExecStatus.DONE, "")
+            )
             self._end()
             return LoopAction.STOP
         return LoopAction.CONTINUE

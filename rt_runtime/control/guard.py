@@ -193,7 +193,7 @@ class LimitGuard:
             raise ConfigurationError(f"guard period_s {period_s}; allowed: a finite number > 0")
         self.limits = limits
         self.period_s = float(period_s)
-        self._v_max, self._a_max, self._j_max = limits.as_arrays()
+        self._v_max, self._a_max, _ = limits.as_arrays()
         self._otg = Ruckig(3, self.period_s)
         self._inp = InputParameter(3)
         self._out = OutputParameter(3)

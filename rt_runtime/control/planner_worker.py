@@ -128,14 +128,12 @@ class Recorded:
         measured_volume_m3: Material the measured path removed from the session's material.
         tip_path_m: Measured tip path, work-site frame, ``(n, 2)``.
         state: ``TrenchSession.state()`` after the record (JSON-able).
-        record_us: Wall time of the request.
     """
 
     index: int
     measured_volume_m3: float
     tip_path_m: FloatArray
     state: dict[str, Any]
-    record_us: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -165,9 +163,10 @@ class PolynomialMotion:
     """A piecewise polynomial joint path as a :class:`JointMotion` (loop-safe sampling).
 
     Wraps :class:`~rt_runtime.trajectory.mixed_order.PiecewisePolynomial` (three joints, rad):
-    the position, velocity and acceleration tables of every piece are built once here, so one
-    :meth:`sample` is a bisection, one power vector and three small products (~5 us, against
-    ~100 us for three ``PiecewisePolynomial.sample`` calls). Time 0 is the path's first knot.
+    the position, velocity and acceleration tables of every piece are the path's own (built once
+    with the path), so one :meth:`sample` is a bisection, one power vector and three small
+    products (~5 us, against ~100 us for three ``PiecewisePolynomial.sample`` calls). Time 0 is
+    the path's first knot.
 
     Args:
         path: The path (``n_joints == 3``).
@@ -189,17 +188,11 @@ class PolynomialMotion:
         self.path = path
         self.name = name
         knots = np.asarray(path.knots_s, dtype=np.float64)
-        durations = np.diff(knots)
-        m, width, _ = coef.shape
-        # tables[d, i, k, j]: coefficient of u**k in the d-th time derivative of piece i, joint j.
-        tables = np.zeros((3, m, width, 3))
-        for d in range(3):
-            for k in range(width - d):
-                falling = math.perm(k + d, d)
-                tables[d, :, k, :] = coef[:, k + d, :] * (falling / durations[:, None] ** d)
-        self._tables = tables
-        self._width = width
-        self._durations = durations
+        # The path's own tables (PiecewisePolynomial.__post_init__): tables[d, i, k, j] is the
+        # coefficient of u**k in the d-th time derivative of piece i, joint j.
+        self._tables = path._tables[:3]
+        self._width = coef.shape[1]
+        self._durations = path._durations_s
         self._starts = (knots - knots[0]).tolist()
         self._knots = knots
 
@@ -457,7 +450,6 @@ class SessionDriver:
         Raises:
             PlanningError: No dig is pending, or fewer than two finite samples.
         """
-        t0 = time.perf_counter()
         s = self.session
         dig = s.pending
         if dig is None:
@@ -469,7 +461,7 @@ class SessionDriver:
         tip = tip[np.isfinite(tip).all(axis=1)]
         tip[:, 0] += dig.machine_x_m
         volume = s.record(dig, tip)
-        return Recorded(dig.index, volume, tip, s.state(), (time.perf_counter() - t0) * 1e6)
+        return Recorded(dig.index, volume, tip, s.state())
 
 
 class PlannerLink(Protocol):
@@ -487,11 +479,6 @@ class PlannerLink(Protocol):
         """The next reply, or None (never waits)."""
         ...
 
-    @property
-    def busy(self) -> bool:
-        """Requests are outstanding."""
-        ...
-
     def close(self) -> None:
         """Release the planner (outside the loop)."""
         ...
@@ -507,11 +494,6 @@ class _AnsweredLink:
     def poll(self) -> Reply | None:
         """The oldest reply, or None."""
         return self._replies.popleft() if self._replies else None
-
-    @property
-    def busy(self) -> bool:
-        """Replies not yet polled."""
-        return bool(self._replies)
 
     def close(self) -> None:
         """Nothing to release."""
@@ -651,7 +633,6 @@ class ProcessPlanner:
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=True)
         self._outbox: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
-        self._outstanding = 0
         self._dead = False
         # The state goes first through the sender thread (see _worker_main), so start()
         # returns once the child is spawned, whatever the size of the job.
@@ -684,13 +665,11 @@ class ProcessPlanner:
 
     def request_plan(self, q_from_rad: FloatArray | None) -> None:
         """Queue a plan request (loop safe: a queue put)."""
-        self._outstanding += 1
         q = None if q_from_rad is None else np.array(q_from_rad, dtype=np.float64)
         self._outbox.put(("plan", q))
 
     def request_record(self, strokes_m: FloatArray, plan_next: bool) -> None:
         """Queue a record request (loop safe: a copy of the strokes and a queue put)."""
-        self._outstanding += 2 if plan_next else 1
         self._outbox.put(("record", np.array(strokes_m, dtype=np.float64), plan_next))
 
     def poll(self) -> Reply | None:
@@ -709,13 +688,7 @@ class ProcessPlanner:
         except (EOFError, OSError) as exc:
             self._dead = True
             return PlannerError(f"the planner process is gone: {exc!r}")
-        self._outstanding = max(0, self._outstanding - 1)
         return reply
-
-    @property
-    def busy(self) -> bool:
-        """Requests sent and not answered."""
-        return self._outstanding > 0
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Stop the process (outside the loop): ask, wait ``timeout_s``, then terminate."""

@@ -238,7 +238,8 @@ def make_task(
     return task
 
 
-_TASK_KEYS = ("length_m", "depth_m", "beta1_deg", "beta2_deg", "start_x_m")
+#: Keys of a task file or object: the four sizes (required), then start_x_m (optional).
+TASK_KEYS = ("length_m", "depth_m", "beta1_deg", "beta2_deg", "start_x_m")
 
 
 def read_task_file(path: str | Path) -> dict[str, Any]:
@@ -267,13 +268,13 @@ def check_task_keys(data: Mapping[str, Any], source: str, extra: tuple[str, ...]
     Raises:
         ConfigurationError: Unknown or missing keys, each named with what is allowed.
     """
-    allowed = (*extra, *_TASK_KEYS)
+    allowed = (*extra, *TASK_KEYS)
     unknown = sorted(set(data) - set(allowed))
     if unknown:
         raise ConfigurationError(
             f"{source}: unknown key(s) {', '.join(unknown)}; allowed: {', '.join(allowed)}"
         )
-    missing = [k for k in _TASK_KEYS[:4] if k not in data]
+    missing = [k for k in TASK_KEYS[:4] if k not in data]
     if missing:
         raise ConfigurationError(f"{source}: missing key(s) {', '.join(missing)}")
 

@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from rt_runtime.service.config import DEFAULT_SOCKET
+from rt_runtime.service.config import DEFAULT_SOCKET, PLANNERS
 from rt_runtime.service.control import request
 
 __all__ = ["add_parser", "format_job", "run"]
@@ -56,7 +56,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="job_command", required=True, metavar="COMMAND")
     s = sub.add_parser("submit", parents=[common], help="queue a trench job")
     s.add_argument("--task", required=True, help="A, B, C, D (Yao Table 3) or a task TOML file")
-    s.add_argument("--planner", choices=("pinn", "pso"), help="one-shot planner (daemon default)")
+    s.add_argument("--planner", choices=PLANNERS, help="one-shot planner (daemon default)")
     s.add_argument("--max-digs", type=int, help="the job is done after this many digs")
     st = sub.add_parser("status", parents=[common], help="the daemon and a job (default: current)")
     st.add_argument("id", type=int, nargs="?")

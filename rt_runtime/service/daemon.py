@@ -100,7 +100,7 @@ from rt_runtime.service.config import (
     load_planning,
 )
 from rt_runtime.service.control import ControlServer
-from rt_runtime.service.jobstore import ACTIVE, Job, JobError, JobStore
+from rt_runtime.service.jobstore import ACTIVE, DIG_KEYS, Job, JobError, JobStore
 from rt_runtime.service.notify import Notifier, watchdog_interval_s
 
 if TYPE_CHECKING:
@@ -139,7 +139,6 @@ SETTLE_TIMEOUT_S = 2.0
 JOB_TELEMETRY_ROWS = 16_384
 #: Main-thread poll interval: status lines, runner liveness (s).
 _POLL_S = 0.1
-_TASK_NUMBERS = ("length_m", "depth_m", "beta1_deg", "beta2_deg", "start_x_m")
 
 
 # -- tasks ------------------------------------------------------------------------------------
@@ -161,14 +160,14 @@ def resolve_task(spec: Any, rig: Rig) -> tuple[TrenchTask, dict[str, Any]]:
         ConfigurationError: Unknown name, unknown or missing keys, values out of range (the
             planner's message, naming the key and the allowed range).
     """
-    from rt_runtime.planning.trench import BUILTIN_TASKS, check_task_keys, make_task
+    from rt_runtime.planning.trench import BUILTIN_TASKS, TASK_KEYS, check_task_keys, make_task
 
     if isinstance(spec, str):
         name = spec.strip().upper()
         if name not in BUILTIN_TASKS:
             raise ConfigurationError(
                 f"task {spec!r}: not a built-in task; allowed: {', '.join(BUILTIN_TASKS)}, or an "
-                f"object with {', '.join(_TASK_NUMBERS)} (start_x_m optional)"
+                f"object with {', '.join(TASK_KEYS)} (start_x_m optional)"
             )
         length, depth, b1, b2 = BUILTIN_TASKS[name]
         spec = {"name": name, "length_m": length, "depth_m": depth, "beta1_deg": b1,
@@ -731,7 +730,6 @@ class RigRunner:
         if job.max_digs is not None and done >= job.max_digs:
             self.store.set_status(job.id, "done")
             self._job_id = None
-            self.store.changed.set()
             return
         try:
             planner = self._planner(job.planner)
@@ -761,7 +759,6 @@ class RigRunner:
             log.error("job %d cannot start: %s", job.id, exc)
             self.store.set_status(job.id, "failed", f"cannot start: {exc}")
             self._job_id = None
-            self.store.changed.set()
             return
         # Everything alive now (the session, the executor) moves out of the collector's reach, so
         # the job loop's collect at its start scans nothing: O(1) here, no pause there. Cyclic
@@ -776,18 +773,7 @@ class RigRunner:
 
     def _dig_done(self, job_id: int, rec: DigRecord) -> None:
         """``on_dig_done``: the dig's summary and the session state into the store (no I/O)."""
-        self.store.record_dig(
-            job_id,
-            {
-                "index": rec.index,
-                "dig_type": rec.dig_type,
-                "T_s": rec.T_s,
-                "plan_us": rec.plan_us,
-                "planned_volume_m3": rec.planned_volume_m3,
-                "measured_volume_m3": rec.measured_volume_m3,
-            },
-            rec.session_state,
-        )
+        self.store.record_dig(job_id, {k: getattr(rec, k) for k in DIG_KEYS}, rec.session_state)
         log.info(
             "job %d: dig %d done (%s, planned %.2f L, measured %.2f L)",
             job_id,
@@ -810,23 +796,24 @@ class RigRunner:
             "job %d: running (task %s, %d dig(s) done)", job.id, job.task["name"], len(job.digs)
         )
         self._gap_s = -1.0  # set by the executor's first cycle (_beat)
+        result: ExecutorResult | None = None  # None: the executor raised
         try:
             result = ex.run()
         except Exception as exc:
             log.exception("job %d: the executor failed", job.id)
             master.quick_stop()
             self._fault = f"executor failed: {type(exc).__name__}: {exc}"
-            np.copyto(self._hold_um, master.last_target_um())
-            self.store.set_status(job.id, "failed", self._fault)
-            with self._lock:
-                self._executor, self._job_id = None, None
-            return
         # Straight back to holding: only what the next cycles need happens here; the reports
         # (logs, telemetry file) go to a thread.
         np.copyto(self._hold_um, master.last_target_um())
-        self._record_outcome(job, result)
+        if result is None:
+            self.store.set_status(job.id, "failed", self._fault)
+        else:
+            self._record_outcome(job, result)
         with self._lock:
             self._executor, self._job_id = None, None
+        if result is None:
+            return
         threading.Thread(
             target=self._report_run, args=(job, result, self._gap_s), name="job-report",
             daemon=True,

@@ -1019,12 +1019,14 @@ static void vk_retime(const double *p, const double *s, int m, const double *in,
  * bounds its worst case (the old bisection's was 8 probes and a retime). */
 #define VK_PL_PROBES 5
 /* The scan runs on every VK_PL_STRIDE-th sample (26 of 101): it only picks the bracket, which
- * the full grid then judges and refines (vk_plan_scale_coarse). Off (VK_PL_COARSE 0) until the
- * lead decides: measured on the 400 held-out PINN rows it saves ~2 us per plan (p50 23.2 ->
- * 21.2 us), and picks another bracket on 1 row (objective +0.0016, gap_mean +8e-6); every
- * test of tests/test_verify.py passes either way. */
+ * the full grid then judges and refines (vk_plan_scale_coarse). On since session 17: per-row
+ * minimum kernel plan time over the 400 held-out PINN rows 13.9 -> 11.4 us (AVX2). On the 1600
+ * rows of the kernel check (held-out and perturbed), feasibility is the same row for row; one
+ * row's fill scale lands in another bracket (c 0.008 apart, objective 6e-4 apart); the others
+ * agree to ~1e-14 (the refinement starts from other probes). Set VK_PL_COARSE 0 for the
+ * full-grid scan everywhere. */
 #define VK_PL_STRIDE 4
-#define VK_PL_COARSE 0
+#define VK_PL_COARSE 1
 
 /* Plan scratch: VK_N_PLAN arrays of m doubles: A and B per joint, three trig buffers and a
  * rotation (6 arrays each: cos of the three absolute angles, then their sin). */

@@ -301,16 +301,17 @@ class _FixedNetwork:
 
 def _fixed_planner(kind: DigType, y: list[float], **options: bool) -> tuple[PinnPlanner, list[str]]:
     """The shipped planner with ``kind``'s network answering ``y``, and a log of its kernel
-    calls."""
+    calls (``_front``: the normal path's staging, inference and plan)."""
     planner = PinnPlanner(RIG, DEFAULT_MODEL_DIR, **options)
     planner._sessions[kind] = _FixedNetwork(y)  # type: ignore[assignment]
+    planner._bind_front()
     calls: list[str] = []
-    for name in ("_eval_rows", "_plan_rows", "_retime_rows", "_coarse_rows"):
+    for name in ("_front", "_eval_rows", "_plan_rows", "_retime_rows", "_coarse_rows"):
         kernel = getattr(planner, name)
 
-        def counted(*args: object, _kernel: object = kernel, _name: str = name) -> None:
+        def counted(*args: object, _kernel: object = kernel, _name: str = name) -> object:
             calls.append(_name)
-            _kernel(*args)  # type: ignore[operator]
+            return _kernel(*args)  # type: ignore[operator]
 
         setattr(planner, name, counted)
     return planner, calls
@@ -340,8 +341,8 @@ def test_fast_repair_fixes_a_boom_below_its_limit() -> None:
     assert plan.status == PlanStatus.REPAIRED
     assert plan.verification.feasible
     assert _reference(BOOM_X, kind, plan).feasible[0, 0]
-    # The normal path's plan_into, then at most FAST_REPAIR_CALLS kernel calls.
-    assert calls[0] == "_plan_rows"
+    # The normal path's plan, then at most FAST_REPAIR_CALLS kernel calls.
+    assert calls[0] == "_front"
     assert 2 <= len(calls) <= 1 + FAST_REPAIR_CALLS, calls
     # The repair lands on the boom's limit (the teacher's optimum lies there), within 1 %.
     boom = plan.verification.violations[CONSTRAINT_NAMES.index("angle_min_boom")]
@@ -398,7 +399,7 @@ def test_fast_repair_without_retiming() -> None:
     assert plan.status == PlanStatus.REPAIRED
     assert plan.bulge_scale == 1.0
     assert _reference(BOOM_X, kind, plan).feasible[0, 0]
-    assert "_plan_rows" not in calls and calls[-1] == "_retime_rows"
+    assert "_front" not in calls and "_plan_rows" not in calls and calls[-1] == "_retime_rows"
 
 
 def _scipy_nearest(w: np.ndarray, A: np.ndarray, r: np.ndarray) -> tuple[bool, float]:

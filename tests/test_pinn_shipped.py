@@ -111,3 +111,67 @@ def test_bench_pinn_small() -> None:
     assert r["verified_feasible"] + r["refused"] == pytest.approx(1.0)
     assert set(r["plan_us"]) >= {"p50", "p99"}
     assert set(r["table4"]) == {"downward", "backward"}
+
+
+def _front_state(planner: PinnPlanner) -> np.ndarray:
+    return np.concatenate([planner._row[0], planner._out[0], planner._retimed[0], planner._scale])
+
+
+@pytest.mark.parametrize("kind", list(DigType))
+def test_c_front_is_the_python_path(planner: PinnPlanner, kind: DigType) -> None:
+    """The C kernel's Front (staging, inference, plan in one call) leaves the planner's
+    buffers bit for bit as the same steps in Python do, with capped and default fills."""
+    assert planner._front != planner._front_py  # the C one is bound
+    with np.load(DEFAULT_MODEL_DIR / f"pinn_{kind.name.lower()}_heldout.npz") as z:
+        X = z["X"][:SUBSET]
+    feasible = 0
+    for x, (c_lo, c_hi) in zip(X, [(0.3, 2.0), (0.2, 0.9)] * SUBSET, strict=False):
+        got = planner._front(x[0:3], x[3:6], float(x[6]), kind, c_lo, c_hi)
+        c_state = _front_state(planner)
+        want = planner._front_py(x[0:3], x[3:6], float(x[6]), kind, c_lo, c_hi)
+        assert got is not None and want is not None
+        assert got[0] == want[0] and got[1] > 0.0
+        np.testing.assert_array_equal(c_state, _front_state(planner))
+        feasible += got[0]
+    assert feasible > SUBSET // 2
+
+
+def test_c_front_reads_poses_of_any_form(planner: PinnPlanner) -> None:
+    """Tuples, lists, strided arrays or arrays of another dtype plan the same; a wrong pose is
+    named."""
+    kind = DigType.DOWNWARD
+    with np.load(DEFAULT_MODEL_DIR / "pinn_downward_heldout.npz") as z:
+        x = np.asarray(z["X"][0])
+    want = planner.plan(x[0:3], x[3:6], float(x[6]), kind)
+    cols = np.repeat(x[None, 0:6], 2, axis=0).T  # (6, 2): x[0:3] as a strided column
+    for qs, qe in (
+        (tuple(x[0:3]), list(x[3:6])),
+        (cols[0:3, 1], cols[3:6, 0]),
+        (x[0:3].astype(np.longdouble), x[3:6]),  # another dtype: read as a sequence
+    ):
+        got = planner.plan(qs, qe, float(x[6]), kind)
+        assert (got.a6, got.T_s, got.status) == (want.a6, want.T_s, want.status)
+        assert got.problem == want.problem
+    with pytest.raises(ValueError, match=r"q_start_rad must have 3 values .*got 2"):
+        planner.plan(x[0:2], x[3:6], float(x[6]), kind)
+    with pytest.raises(TypeError, match=r"q_end_rad must hold 3 numbers; item 1 is str"):
+        planner.plan(x[0:3], [x[3], "a", x[5]], float(x[6]), kind)
+    with pytest.raises(TypeError, match=r"q_start_rad must be a sequence of 3 numbers"):
+        planner.plan(1.0, x[3:6], float(x[6]), kind)
+    # After the errors the planner plans as before.
+    again = planner.plan(x[0:3], x[3:6], float(x[6]), kind)
+    assert (again.a6, again.T_s) == (want.a6, want.T_s)
+
+
+def test_numpy_verifier_plans_through_the_python_front() -> None:
+    """Without the C kernel the same steps run in Python; the plans verify."""
+    slow = PinnPlanner(RIG, DEFAULT_MODEL_DIR, verifier_backend="numpy")
+    assert slow._front == slow._front_py
+    with np.load(DEFAULT_MODEL_DIR / "pinn_backward_heldout.npz") as z:
+        x = np.asarray(z["X"][1])
+    plan = slow.plan(x[0:3], x[3:6], float(x[6]), DigType.BACKWARD)
+    assert plan.verification.feasible
+    fast = PinnPlanner(RIG, DEFAULT_MODEL_DIR).plan(x[0:3], x[3:6], float(x[6]), DigType.BACKWARD)
+    # The numpy search stops within its own tolerance of the same fill (VK_PL_TOL).
+    np.testing.assert_allclose(plan.a6, fast.a6, rtol=1e-3)
+    assert plan.T_s == pytest.approx(fast.T_s, rel=1e-3)

@@ -2096,6 +2096,15 @@ static void Kernel_dealloc(KernelObject *self)
 }
 
 /* A C-contiguous float64 buffer of the given rank; shape[k] < 0 accepts any length. */
+/* Whether a buffer holds native items of struct code ``code`` ('d' float64, 'f' float32) of
+ * ``size`` bytes (an explicit native or little-endian prefix allowed). */
+static int vk_format_is(const Py_buffer *view, char code, Py_ssize_t size)
+{
+    const char *f = view->format;
+    if (f != NULL && (f[0] == '<' || f[0] == '=' || f[0] == '@')) f++;
+    return view->itemsize == size && f != NULL && f[0] == code && f[1] == '\0';
+}
+
 static int get_f64(PyObject *obj, Py_buffer *view, int writable, int ndim, const Py_ssize_t *shape,
                    const char *name)
 {
@@ -2106,9 +2115,7 @@ static int get_f64(PyObject *obj, Py_buffer *view, int writable, int ndim, const
                      writable ? " writable" : "");
         return -1;
     }
-    const char *f = view->format;
-    if (f != NULL && (f[0] == '<' || f[0] == '=' || f[0] == '@')) f++;
-    if (view->itemsize != 8 || f == NULL || f[0] != 'd' || f[1] != '\0') {
+    if (!vk_format_is(view, 'd', 8)) {
         PyErr_Format(PyExc_ValueError, "%s must have dtype float64; got buffer format '%s'", name,
                      view->format ? view->format : "B");
         PyBuffer_Release(view);
@@ -2423,9 +2430,7 @@ static int get_f32(PyObject *obj, Py_buffer *view, Py_ssize_t rows, Py_ssize_t c
         PyErr_Format(PyExc_ValueError, "%s must be a C-contiguous writable float32 array", name);
         return -1;
     }
-    const char *f = view->format;
-    if (f != NULL && (f[0] == '<' || f[0] == '=' || f[0] == '@')) f++;
-    if (view->itemsize != 4 || f == NULL || f[0] != 'f' || f[1] != '\0' || view->ndim != 2 ||
+    if (!vk_format_is(view, 'f', 4) || view->ndim != 2 ||
         view->shape[0] != rows || view->shape[1] != cols) {
         PyErr_Format(PyExc_ValueError, "%s must be a float32 array of shape (%zd, %zd)", name,
                      rows, cols);
@@ -2441,10 +2446,7 @@ static int front_pose(PyObject *obj, double *dst, const char *name)
     Py_buffer v;
     if (PyObject_CheckBuffer(obj)) {
         if (PyObject_GetBuffer(obj, &v, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) == 0) {
-            const char *f = v.format;
-            if (f != NULL && (f[0] == '<' || f[0] == '=' || f[0] == '@')) f++;
-            const int ok = v.itemsize == 8 && f != NULL && f[0] == 'd' && f[1] == '\0' &&
-                           v.ndim == 1 && v.shape[0] == 3;
+            const int ok = vk_format_is(&v, 'd', 8) && v.ndim == 1 && v.shape[0] == 3;
             if (ok) {
                 const double *b = (const double *)v.buf;
                 dst[0] = b[0];

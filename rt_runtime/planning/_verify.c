@@ -2340,6 +2340,18 @@ static int get_double(PyObject *obj, double *v, const char *name)
     return 0;
 }
 
+/* The fill's range of bulge scales (plan's c_lo, c_hi): finite, 0 <= c_lo <= c_hi. */
+static int get_c_range(PyObject *lo, PyObject *hi, double *c_lo, double *c_hi)
+{
+    if (get_double(lo, c_lo, "c_lo") != 0 || get_double(hi, c_hi, "c_hi") != 0) return -1;
+    if (!(isfinite(*c_lo) && isfinite(*c_hi) && *c_lo >= 0.0 && *c_lo <= *c_hi)) {
+        PyErr_Format(PyExc_ValueError,
+                     "c_range must be finite with 0 <= c_lo <= c_hi; got (%R, %R)", lo, hi);
+        return -1;
+    }
+    return 0;
+}
+
 static PyObject *Kernel_plan(KernelObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     if (nargs < 5 || nargs > 7) {
@@ -2353,14 +2365,7 @@ static PyObject *Kernel_plan(KernelObject *self, PyObject *const *args, Py_ssize
         return NULL;
     }
     double c_lo, c_hi;
-    if (get_double(args[3], &c_lo, "c_lo") != 0 || get_double(args[4], &c_hi, "c_hi") != 0)
-        return NULL;
-    if (!(isfinite(c_lo) && isfinite(c_hi) && c_lo >= 0.0 && c_lo <= c_hi)) {
-        PyErr_Format(PyExc_ValueError,
-                     "c_range must be finite with 0 <= c_lo <= c_hi; got (%R, %R)", args[3],
-                     args[4]);
-        return NULL;
-    }
+    if (get_c_range(args[3], args[4], &c_lo, &c_hi) != 0) return NULL;
     const int m = self->m;
     vk_arg a[5] = {
         {args[0], "inputs", 0, 2, {-1, VK_N_IN}},
@@ -2507,8 +2512,8 @@ static PyObject *Front_plan(FrontObject *self, PyObject *const *args, Py_ssize_t
     double H, c_lo, c_hi;
     if (front_pose(args[0], row + I_Q_START, "q_start_rad") != 0 ||
         front_pose(args[1], row + I_Q_END, "q_end_rad") != 0 ||
-        get_double(args[2], &H, "surface_y_m") != 0 || get_double(args[4], &c_lo, "c_lo") != 0 ||
-        get_double(args[5], &c_hi, "c_hi") != 0)
+        get_double(args[2], &H, "surface_y_m") != 0 ||
+        get_c_range(args[4], args[5], &c_lo, &c_hi) != 0)
         return NULL;
     row[I_SURFACE] = H;
     const long kind = PyLong_AsLong(args[3]);
@@ -2516,12 +2521,6 @@ static PyObject *Front_plan(FrontObject *self, PyObject *const *args, Py_ssize_t
     if (kind != 0 && kind != 1) {
         PyErr_Format(PyExc_ValueError, "dig_type must be 0 (downward) or 1 (backward); got %ld",
                      kind);
-        return NULL;
-    }
-    if (!(isfinite(c_lo) && isfinite(c_hi) && c_lo >= 0.0 && c_lo <= c_hi)) {
-        PyErr_Format(PyExc_ValueError,
-                     "c_range must be finite with 0 <= c_lo <= c_hi; got (%R, %R)", args[4],
-                     args[5]);
         return NULL;
     }
     const double *lo = self->lo[kind], *hi = self->hi[kind];

@@ -187,7 +187,8 @@ def bench_pinn(
         verification alone), ``pso_solve_s`` (p50, p99),
         ``speedup_vs_pso``, ``table4`` (per type: PSO vs PINN mean T, V_p, W_E and planning time),
         ``paths`` (problems per path of :class:`rt_runtime.planning.pinn.PlanStatus`: ``retimed``,
-        ``raw``, ``time-scaled``, ``repaired-fast``, ``refined``, ``teacher``, and ``refused``;
+        ``raw``, ``time-scaled``, ``repaired-fast``, ``refined``, ``teacher``, ``library`` and
+        ``refused``;
         counts, not fractions), ``types`` (the same per type), ``goals``, ``paper``.
     """
     from pathlib import Path
@@ -218,6 +219,7 @@ def bench_pinn(
         PlanStatus.REPAIRED: "repaired-fast",
         PlanStatus.REFINED: "refined",
         PlanStatus.TEACHER: "teacher",
+        PlanStatus.LIBRARY: "library",
     }
     path_keys = (*path_names.values(), "refused")
     all_paths = dict.fromkeys(path_keys, 0)

@@ -480,7 +480,12 @@ def cmd_export(args: argparse.Namespace) -> int:
     for kind in _types(args.type):
         data = Path(args.data) / f"{kind}.npz" if args.data else None
         model = out / f"pinn_{kind}.onnx"
-        card = export(Path(args.checkpoints) / f"pinn_{kind}.pt", model, dataset_path=data)
+        card = export(
+            Path(args.checkpoints) / f"pinn_{kind}.pt",
+            model,
+            dataset_path=data,
+            library=args.library,
+        )
         held = out / card["heldout_file"]["name"]
         report["types"][kind] = {
             "model": str(model),
@@ -825,6 +830,12 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--data", help="dataset directory (default: the path recorded at training)")
     ex.add_argument("--type", choices=("downward", "backward", "both"), default="both")
     ex.add_argument("--out", default="onnx")
+    ex.add_argument(
+        "--library",
+        action="store_true",
+        help="also write the solution library (the training split's teacher answers) that "
+        "the runtime tries where the network's bulge is filled far up (pinn.py, step 4a)",
+    )
     ex.add_argument("--json", action="store_true")
     ex.set_defaults(handler=cmd_export)
 

@@ -149,6 +149,130 @@ def test_planner_returns_only_verified_plans(pipeline: Path) -> None:
     assert returned > 0
 
 
+@pytest.fixture(scope="module")
+def library_models(pipeline: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The pipeline's checkpoints exported with their solution libraries."""
+    out = tmp_path_factory.mktemp("library")
+    for kind in DigType:
+        name = kind.name.lower()
+        export(pipeline / "ckpt" / f"pinn_{name}.pt", out / f"pinn_{name}.onnx", library=True)
+    return out
+
+
+def _set_library(models: Path, name: str, **entry: object) -> None:
+    card_path = models / f"pinn_{name}.json"
+    card = json.loads(card_path.read_text())
+    card["library"].update(entry)
+    card_path.write_text(json.dumps(card))
+
+
+def test_library_holds_the_training_split_only(pipeline: Path, library_models: Path) -> None:
+    for kind in DigType:
+        name = kind.name.lower()
+        card = json.loads((library_models / f"pinn_{name}.json").read_text())
+        entry = card["library"]
+        path = library_models / entry["name"]
+        assert entry["sha256"] == sha256_file(path)
+        data = ds.load(pipeline / "data" / f"{name}.npz")
+        with np.load(path) as z:
+            np.testing.assert_array_equal(z["X"], np.asarray(data.X)[data.train_idx])
+            np.testing.assert_array_equal(z["Y"], np.asarray(data.Y)[data.train_idx])
+        assert entry["rows"] == data.train_idx.size
+        # Exported without --library: no library named, none planned with.
+        plain = json.loads((pipeline / "onnx" / f"pinn_{name}.json").read_text())
+        assert plain["library"] is None
+
+
+def test_library_plans_are_verified_and_beat_the_network(
+    pipeline: Path, library_models: Path, tmp_path: Path
+) -> None:
+    """Triggered on every retimed plan (trigger 1e-3): a training problem's nearest library
+    entry is its own teacher answer, so some plans must come from the library; each is
+    feasible by the numpy reference and better than the network's plan of the problem."""
+    models = Path(shutil.copytree(library_models, tmp_path / "m"))
+    for name in ("downward", "backward"):
+        _set_library(models, name, trigger_bulge_scale=1e-3)
+    with_lib = PinnPlanner(RIG, models)
+    without = PinnPlanner(RIG, models, library=False)
+    from_library = 0
+    for kind in DigType:
+        data = ds.load(pipeline / "data" / f"{kind.name.lower()}.npz")
+        for x in np.asarray(data.X)[np.concatenate([data.train_idx, data.test_idx])]:
+            args = (x[0:3], x[3:6], float(x[6]), kind)
+            try:
+                net = without.plan(*args)
+            except PlanningError:
+                with pytest.raises(PlanningError):
+                    with_lib.plan(*args)
+                continue
+            plan = with_lib.plan(*args)
+            off = with_lib.plan(*args, library=False)
+            assert off.status == net.status and off.a6 == net.a6 and off.T_s == net.T_s
+            if plan.status != PlanStatus.LIBRARY:
+                assert plan.a6 == net.a6 and plan.T_s == net.T_s
+                continue
+            from_library += 1
+            assert net.status == PlanStatus.RETIMED
+            assert plan.raw_a6 == net.raw_a6  # the network's answer is still reported
+            ev = _reference(list(x), kind, plan)
+            assert ev.feasible[0, 0]
+            assert ev.objective[0, 0] < net.verification.objective
+    assert from_library > 0
+
+
+def test_library_untriggered_and_off_plan_as_the_network(library_models: Path) -> None:
+    """Above every fill scale (trigger 1e9) or switched off, the library changes nothing."""
+    models = library_models
+    planner = PinnPlanner(RIG, models, library=False)
+    assert planner._libraries == {}
+    with np.load(models / "pinn_backward_heldout.npz") as z:
+        X = z["X"]
+    loaded = PinnPlanner(RIG, models)
+    assert set(loaded._libraries) == set(DigType)
+    for lib in loaded._libraries.values():
+        lib.trigger = 1e9
+    for x in X:
+        args = (x[0:3], x[3:6], float(x[6]), DigType.BACKWARD)
+        try:
+            a = planner.plan(*args)
+        except PlanningError:
+            continue
+        b = loaded.plan(*args)
+        assert (a.status, a.a6, a.T_s) == (b.status, b.a6, b.T_s)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ("corrupt", r"library .*pinn_backward_library.npz is corrupt or was replaced"),
+        ("missing", r"library file .* does not exist"),
+        ("k", r"library k must be in \[1, \d+\] and trigger_bulge_scale > 0"),
+        ("entry", r"invalid library entry"),
+    ],
+)
+def test_bad_library_refused(
+    library_models: Path, tmp_path: Path, change: str, message: str
+) -> None:
+    models = Path(shutil.copytree(library_models, tmp_path / "m"))
+    path = models / "pinn_backward_library.npz"
+    if change == "corrupt":
+        data = bytearray(path.read_bytes())
+        data[len(data) // 2] ^= 0xFF
+        path.write_bytes(bytes(data))
+    elif change == "missing":
+        path.unlink()
+    elif change == "k":
+        _set_library(models, "backward", k=0)
+    else:
+        card_path = models / "pinn_backward.json"
+        card = json.loads(card_path.read_text())
+        del card["library"]["trigger_bulge_scale"]
+        card_path.write_text(json.dumps(card))
+    with pytest.raises(ConfigurationError, match=message):
+        PinnPlanner(RIG, models)
+    PinnPlanner(RIG, models, library=False)  # the networks alone still load
+
+
 def test_planner_without_retiming_verifies_or_repairs(pipeline: Path) -> None:
     planner = PinnPlanner(RIG, pipeline / "onnx", retime=False, refine=False)
     with np.load(pipeline / "onnx" / "pinn_backward_heldout.npz") as z:

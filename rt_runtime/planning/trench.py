@@ -352,7 +352,12 @@ class OneShotPlanner(Protocol):
 
 
 class PinnOneShot:
-    """The PINN planner (default): what :meth:`PinnPlanner.plan` returns, bulge capped."""
+    """The PINN planner (default): what :meth:`PinnPlanner.plan` returns, bulge capped.
+
+    Without the solution library (:mod:`rt_runtime.planning.pinn`, step 4a): the screening
+    predicts each candidate's cut from the network's bulge direction (only its scale changes
+    in the plan), and a library path would cut elsewhere.
+    """
 
     name = "pinn"
 
@@ -366,6 +371,7 @@ class PinnOneShot:
             problem.surface_y_m,
             problem.dig_type,
             c_max=c_max,
+            library=False,
         )
         return OneShotResult(p.a6, p.T_s, p.evaluation, p.plan_us, p.status.name.lower())
 

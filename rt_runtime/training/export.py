@@ -36,6 +36,10 @@ OPSET = 17
 PARITY_TOLERANCE = 1e-5
 #: Widening of the domain beyond the training inputs' range, as a fraction of that range.
 DOMAIN_MARGIN = 0.01
+#: The solution library's trigger (the fill's bulge scale at or above which the runtime tries
+#: it) and candidates per try (:mod:`rt_runtime.planning.pinn`, step 4a, where they were chosen).
+LIBRARY_TRIGGER_BULGE_SCALE = 1.3
+LIBRARY_K = 4
 
 
 def folded_network(net: Any) -> Any:
@@ -188,9 +192,10 @@ def export(
     *,
     rig: Rig | str | None = None,
     dataset_path: Path | None = None,
+    library: bool = False,
 ) -> dict[str, Any]:
     """Export a checkpoint to ONNX, check parity, measure held-out quality, write the held-out
-    set and the card.
+    set (and, with ``library``, the solution library) and the card.
 
     Args:
         checkpoint_path: Written by :func:`rt_runtime.training.train.save_checkpoint`.
@@ -198,6 +203,9 @@ def export(
         rig: The rig (default: the checkpoint's); must match the checkpoint's.
         dataset_path: The dataset the checkpoint was trained on, for the held-out metrics and
             the domain (default: the path recorded in the checkpoint).
+        library: Also write the solution library (:func:`_write_library`) and name it in the
+            card. Off by default: with the Python nearest-neighbour search, the triggered plans
+            cost ~110 us (design notes, "Solution library").
 
     Returns:
         The model card.
@@ -300,6 +308,7 @@ def export(
         },
         "heldout": held,
         "heldout_file": _write_heldout(data, out_path),
+        "library": _write_library(data, out_path) if library else None,
         "parity_max_rel": worst,
         "opset": OPSET,
         "exporter": f"torch {torch.__version__} torch.onnx.export (TorchScript)",
@@ -341,6 +350,34 @@ def _write_heldout(data: Any, model_path: Path) -> dict[str, str]:
     )
     os.replace(tmp, out)
     return {"name": out.name, "sha256": sha256_file(out)}
+
+
+def _write_library(data: Any, model_path: Path) -> dict[str, Any]:
+    """Write the solution library beside the model: the training split's problems ``X`` and
+    the teacher's answers ``Y`` (a16, a26, a36, T), float64 (the held-out split is not in it).
+
+    Returns:
+        The card's ``library`` entry: file name, SHA-256, rows, ``trigger_bulge_scale`` and
+        ``k`` (:data:`LIBRARY_TRIGGER_BULGE_SCALE`, :data:`LIBRARY_K`).
+    """
+    idx = np.asarray(data.train_idx)
+    out = model_path.with_name(model_path.stem + "_library.npz")
+    tmp = out.with_name(out.name + ".tmp.npz")
+    np.savez_compressed(
+        tmp,
+        X=np.asarray(data.X, dtype=np.float64)[idx],
+        Y=np.asarray(data.Y, dtype=np.float64)[idx],
+    )
+    os.replace(tmp, out)
+    return {
+        "name": out.name,
+        "sha256": sha256_file(out),
+        "rows": int(idx.size),
+        "trigger_bulge_scale": LIBRARY_TRIGGER_BULGE_SCALE,
+        "k": min(LIBRARY_K, int(idx.size)),
+        "note": "teacher answers to the training problems; the runtime plans the k nearest "
+        "where the fill scales the network's bulge by trigger_bulge_scale or more",
+    }
 
 
 def record_planned_heldout(rig: Rig, model_dir: Path) -> dict[str, dict[str, Any]]:

@@ -428,7 +428,8 @@ class PinnPlan(NamedTuple):
         infer_us: Inference time (onnxruntime call).
         plan_us: Whole planning time (domain check, inference, verification, repair).
         bulge_scale: c of the executed path K = c K_net (1.0: the network's own path); for
-            :attr:`PlanStatus.REPAIRED`, c of the fill relative to the repaired direction.
+            :attr:`PlanStatus.REPAIRED`, c of the fill relative to the repaired direction; for
+            :attr:`PlanStatus.LIBRARY`, relative to the library answer's bulge.
     """
 
     problem: Problem

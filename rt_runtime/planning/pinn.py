@@ -373,12 +373,7 @@ class _Library:
             self.k = int(entry["k"])
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigurationError(f"{where}: invalid library entry: {exc}") from exc
-        if not path.is_file():
-            raise ConfigurationError(f"{where}: library file {path} does not exist")
-        if sha256_file(path) != digest:
-            raise ConfigurationError(
-                f"library {path} is corrupt or was replaced: its SHA-256 differs from its card's"
-            )
+        check_file(where, "library", path, digest)
         with np.load(path, allow_pickle=False) as z:
             X = np.array(z["X"], dtype=np.float64)
             Y = np.array(z["Y"], dtype=np.float64)
@@ -402,6 +397,19 @@ class _Library:
         self.out = np.zeros((self.k, N_OUT), dtype=np.float64)
         self.retimed = np.zeros((self.k, 4), dtype=np.float64)
         self.scale = np.ones(self.k, dtype=np.float64)
+
+
+def check_file(where: str, what: str, path: Path, expected_sha256: str) -> None:
+    """Raise ConfigurationError unless the file a card names (``what``: model, library) exists
+    and has the card's SHA-256 (``where``: the card)."""
+    if not path.is_file():
+        raise ConfigurationError(f"{where}: {what} file {path} does not exist")
+    digest = sha256_file(path)
+    if digest != expected_sha256:
+        raise ConfigurationError(
+            f"{what} {path} is corrupt or was replaced: SHA-256 {digest[:12]}... differs from "
+            f"its card's {expected_sha256[:12]}..."
+        )
 
 
 def sha256_file(path: Path) -> str:
@@ -654,14 +662,7 @@ class PinnPlanner:
                 f"fingerprint {card.rig_planning_fingerprint[:12]}..., the profile now has "
                 f"{self.rig.planning_fingerprint[:12]}...); retrain for the current profile"
             )
-        if not card.model_path.is_file():
-            raise ConfigurationError(f"{where}: model file {card.model_path} does not exist")
-        digest = sha256_file(card.model_path)
-        if digest != card.model_sha256:
-            raise ConfigurationError(
-                f"model {card.model_path} is corrupt or was replaced: SHA-256 {digest[:12]}... "
-                f"differs from its card's {card.model_sha256[:12]}..."
-            )
+        check_file(where, "model", card.model_path, card.model_sha256)
 
     # -- the cheap path ---------------------------------------------------------------------
 
@@ -817,9 +818,9 @@ class PinnPlanner:
                 ok
                 and library
                 and status is PlanStatus.RETIMED
-                and kind in self._libraries
-                and self._scale[0] >= self._libraries[kind].trigger
-                and self._from_library(self._libraries[kind], x, kind, c_lo, c_hi)
+                and (lib := self._libraries.get(kind)) is not None
+                and self._scale[0] >= lib.trigger
+                and self._from_library(lib, x, kind, c_lo, c_hi)
             ):
                 status = PlanStatus.LIBRARY
             if ok:

@@ -337,10 +337,9 @@ def _write_heldout(data: Any, model_path: Path) -> dict[str, str]:
         The card's ``heldout_file`` entry: the file's name and SHA-256.
     """
     idx = np.asarray(data.test_idx)
-    out = model_path.with_name(model_path.stem + "_heldout.npz")
-    tmp = out.with_name(out.name + ".tmp.npz")
-    np.savez_compressed(
-        tmp,
+    return _write_beside(
+        model_path,
+        "_heldout.npz",
         X=np.asarray(data.X)[idx],
         Y=np.asarray(data.Y)[idx],
         objective=np.asarray(data.objective)[idx],
@@ -348,6 +347,14 @@ def _write_heldout(data: Any, model_path: Path) -> dict[str, str]:
         volume_m3=np.asarray(data.volume_m3)[idx],
         energy_j=np.asarray(data.energy_j)[idx],
     )
+
+
+def _write_beside(model_path: Path, suffix: str, **arrays: Any) -> dict[str, Any]:
+    """Write ``arrays`` atomically to ``<model stem><suffix>`` (compressed npz) beside the model;
+    returns the card's entry for the file: its name and SHA-256."""
+    out = model_path.with_name(model_path.stem + suffix)
+    tmp = out.with_name(out.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
     os.replace(tmp, out)
     return {"name": out.name, "sha256": sha256_file(out)}
 
@@ -361,17 +368,13 @@ def _write_library(data: Any, model_path: Path) -> dict[str, Any]:
         ``k`` (:data:`LIBRARY_TRIGGER_BULGE_SCALE`, :data:`LIBRARY_K`).
     """
     idx = np.asarray(data.train_idx)
-    out = model_path.with_name(model_path.stem + "_library.npz")
-    tmp = out.with_name(out.name + ".tmp.npz")
-    np.savez_compressed(
-        tmp,
-        X=np.asarray(data.X, dtype=np.float64)[idx],
-        Y=np.asarray(data.Y, dtype=np.float64)[idx],
-    )
-    os.replace(tmp, out)
     return {
-        "name": out.name,
-        "sha256": sha256_file(out),
+        **_write_beside(
+            model_path,
+            "_library.npz",
+            X=np.asarray(data.X, dtype=np.float64)[idx],
+            Y=np.asarray(data.Y, dtype=np.float64)[idx],
+        ),
         "rows": int(idx.size),
         "trigger_bulge_scale": LIBRARY_TRIGGER_BULGE_SCALE,
         "k": min(LIBRARY_K, int(idx.size)),

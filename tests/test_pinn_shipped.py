@@ -130,7 +130,7 @@ def test_c_front_is_the_python_path(planner: PinnPlanner, kind: DigType) -> None
         c_state = _front_state(planner)
         want = planner._front_py(x[0:3], x[3:6], float(x[6]), kind, c_lo, c_hi)
         assert got is not None and want is not None
-        assert got[0] == want[0] and got[1] > 0.0
+        assert got[0] == want[0] and got[1] > 0.0 and got[2] == want[2]
         np.testing.assert_array_equal(c_state, _front_state(planner))
         feasible += got[0]
     assert feasible > SUBSET // 2

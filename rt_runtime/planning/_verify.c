@@ -48,7 +48,7 @@
 /* ---------------------------------------------------------------------------------------------
  * Layouts shared with verify.py (bump VK_ABI on any change: verify.py refuses a stale build).
  * ------------------------------------------------------------------------------------------- */
-#define VK_ABI 5
+#define VK_ABI 6
 
 enum vk_param {
     P_LEN = 0,           /* link lengths l0, l1, l2 (m) */
@@ -2125,15 +2125,18 @@ static int get_f64(PyObject *obj, Py_buffer *view, int writable, int ndim, const
     for (int k = 0; ok && k < ndim; k++)
         if (shape[k] >= 0 && view->shape[k] != shape[k]) ok = 0;
     if (!ok) {
-        if (ndim == 1 && shape[0] < 0)
-            PyErr_Format(PyExc_ValueError, "%s must have shape (N,)", name);
-        else if (ndim == 1)
-            PyErr_Format(PyExc_ValueError, "%s must have shape (%zd,)", name, shape[0]);
-        else if (ndim == 2)
-            PyErr_Format(PyExc_ValueError, "%s must have shape (N, %zd)", name, shape[1]);
-        else
-            PyErr_Format(PyExc_ValueError, "%s must have shape (N, %zd, %zd)", name, shape[1],
-                         shape[2]);
+        /* The expected shape, a free length as N: "(N,)", "(2, 7)", "(N, 11, 2)", "(7, N)". */
+        char want[96];
+        size_t l = 0;
+        for (int k = 0; k < ndim; k++) {
+            const char *sep = k == 0 ? "(" : ", ";
+            if (shape[k] < 0)
+                l += (size_t)snprintf(want + l, sizeof want - l, "%sN", sep);
+            else
+                l += (size_t)snprintf(want + l, sizeof want - l, "%s%zd", sep, shape[k]);
+        }
+        snprintf(want + l, sizeof want - l, ndim == 1 ? ",)" : ")");
+        PyErr_Format(PyExc_ValueError, "%s must have shape %s", name, want);
         PyBuffer_Release(view);
         return -1;
     }
@@ -2403,11 +2406,35 @@ static PyObject *Kernel_plan(KernelObject *self, PyObject *const *args, Py_ssize
  * outside the domain (or not finite) return None before anything runs: the caller names the
  * bound. The buffers' views are held for the Front's life, so numpy cannot resize them.
  *
+ * Where a dig type has a solution library (set_library) and the call allows it, a feasible plan
+ * whose fill scaled the bulge by the library's trigger or more goes on to step 4a of
+ * PinnPlanner.plan (vk_library_plan): the library's k nearest problems (brute force, in C) and
+ * their teacher paths planned for this row, the best kept when it beats the network's.
+ *
  * The network call may release the GIL; it runs before the kernel's scratch is touched, and the
  * row and network buffers are the planner's own (a planner serves one thread at a time, as
  * before).
  * ------------------------------------------------------------------------------------------- */
 enum { F_ROW = 0, F_OUT, F_PLANNED, F_SCALE, F_X0, F_X1, F_Y0, F_Y1, VK_N_FRONT };
+
+/* A dig type's solution library (PinnPlanner step 4a; Front.set_library): the problems scaled
+ * by inv_std, one input per row of xs (7, n), so that the distance loop runs along n; the
+ * teacher's answers y (n, 4); the trigger on the fill's bulge scale; k candidates and their
+ * scratch rows (k * (VK_N_IN + VK_N_OUT + 4 + 2) doubles). n == 0: no library. */
+typedef struct {
+    Py_buffer xs, y;
+    Py_ssize_t n;
+    double inv_std[7];
+    double trigger;
+    int k;
+    double *scratch;
+    Py_ssize_t *idx;
+} vk_library;
+
+/* Bound on a library's k (the scratch is allocated once per library). */
+#define VK_LIB_K_MAX 64
+/* Rows per block of the neighbour search: their distances stay in L1. */
+#define VK_LIB_BLOCK 256
 
 typedef struct {
     PyObject_HEAD
@@ -2416,10 +2443,101 @@ typedef struct {
     Py_buffer views[VK_N_FRONT];
     int held;
     double lo[2][7], hi[2][7];
+    vk_library lib[2];
 } FrontObject;
+
+static void vk_library_clear(vk_library *lib)
+{
+    if (lib->n > 0) {
+        PyBuffer_Release(&lib->xs);
+        PyBuffer_Release(&lib->y);
+    }
+    free(lib->scratch);
+    free(lib->idx);
+    lib->scratch = NULL;
+    lib->idx = NULL;
+    lib->n = 0;
+}
+
+/* The k nearest rows of xs (7, n) to q (7), by squared distance, nearest first (ties: the lower
+ * row first), into idx (k <= n); brute force in blocks (a few microseconds for 8000 rows, the
+ * inner loop vectorised), the sums in the same order as numpy's ((q - xs.T) ** 2).sum(axis=1)
+ * over axis 0 of xs, so that the Python path finds the same rows. */
+static void vk_nearest(const double *xs, Py_ssize_t n, const double *q, int k, Py_ssize_t *idx,
+                       double *best)
+{
+    for (int i = 0; i < k; i++) {
+        best[i] = INFINITY;
+        idx[i] = 0;
+    }
+    double d[VK_LIB_BLOCK];
+    for (Py_ssize_t b = 0; b < n; b += VK_LIB_BLOCK) {
+        const int m = (int)(n - b < VK_LIB_BLOCK ? n - b : VK_LIB_BLOCK);
+        {
+            const double *col = xs + b, q0 = q[0];
+            for (int i = 0; i < m; i++) {
+                const double e = q0 - col[i];
+                d[i] = e * e;
+            }
+        }
+        for (int j = 1; j < 7; j++) {
+            const double *col = xs + (Py_ssize_t)j * n + b, qj = q[j];
+            for (int i = 0; i < m; i++) {
+                const double e = qj - col[i];
+                d[i] += e * e;
+            }
+        }
+        for (int i = 0; i < m; i++) {
+            if (!(d[i] < best[k - 1])) continue;
+            int pos = k - 1;
+            while (pos > 0 && best[pos - 1] > d[i]) {
+                best[pos] = best[pos - 1];
+                idx[pos] = idx[pos - 1];
+                pos--;
+            }
+            best[pos] = d[i];
+            idx[pos] = b + i;
+        }
+    }
+}
+
+/* Step 4a of PinnPlanner.plan for the row just planned (feasible, in out/planned/scale): the
+ * library's k nearest problems' teacher paths planned for this row (vk_plan, as the network's);
+ * the best feasible one replaces out, planned and scale when its objective is smaller: 1. */
+static int vk_library_plan(const KernelObject *kn, const vk_library *lib, const double *row,
+                           double c_lo, double c_hi, double *out, double *planned, double *scale)
+{
+    double q[7];
+    for (int j = 0; j < 7; j++) q[j] = row[j] * lib->inv_std[j];
+    const int k = lib->k;
+    double *rows = lib->scratch, *outs = rows + k * VK_N_IN, *pls = outs + k * VK_N_OUT;
+    double *scs = pls + 4 * k, *best = scs + k;
+    vk_nearest((const double *)lib->xs.buf, lib->n, q, k, lib->idx, best);
+    const double *y = (const double *)lib->y.buf;
+    int win = -1;
+    double objective = out[O_OBJECTIVE];
+    for (int c = 0; c < k; c++) {
+        double *r = rows + c * VK_N_IN, *o = outs + c * VK_N_OUT;
+        for (int j = 0; j < I_A6; j++) r[j] = row[j];
+        for (int j = 0; j < 4; j++) r[I_A6 + j] = y[lib->idx[c] * 4 + j];
+        vk_plan(kn->params, kn->s, kn->basis, kn->m, kn->basis_c, kn->m_c, r, c_lo, c_hi, o,
+                pls + 4 * c, NULL, scs + c, kn->cache, kn->scratch, kn->scratch_c);
+        if (o[O_TOTAL] <= 0.0 && o[O_OBJECTIVE] < objective) {
+            objective = o[O_OBJECTIVE];
+            win = c;
+        }
+    }
+    if (win < 0) return 0;
+    for (int j = 0; j < VK_N_OUT; j++) out[j] = outs[win * VK_N_OUT + j];
+    for (int j = 0; j < 4; j++) planned[j] = pls[4 * win + j];
+    *scale = scs[win];
+    return 1;
+}
 
 static void Front_dealloc(FrontObject *self)
 {
+    vk_library_clear(&self->lib[0]);
+    vk_library_clear(&self->lib[1]);
     for (int k = 0; k < self->held; k++) PyBuffer_Release(&self->views[k]);
     Py_XDECREF(self->runs[0]);
     Py_XDECREF(self->runs[1]);
@@ -2498,13 +2616,14 @@ static double front_now_us(void)
     return (double)ts.tv_sec * 1e6 + (double)ts.tv_nsec * 1e-3;
 }
 
-/* plan(q_start, q_end, H, dig_type, c_lo, c_hi) -> None (outside the domain: nothing ran) or
- * (feasible, infer_us). */
+/* plan(q_start, q_end, H, dig_type, c_lo, c_hi[, library]) -> None (outside the domain: nothing
+ * ran) or (feasible, infer_us, from_library). */
 static PyObject *Front_plan(FrontObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    if (nargs != 6) {
+    if (nargs != 6 && nargs != 7) {
         PyErr_SetString(PyExc_TypeError,
-                        "plan(q_start, q_end, H, dig_type, c_lo, c_hi) takes 6 arguments");
+                        "plan(q_start, q_end, H, dig_type, c_lo, c_hi, library=True) takes 6 or "
+                        "7 arguments");
         return NULL;
     }
     KernelObject *kn = self->kernel;
@@ -2515,6 +2634,8 @@ static PyObject *Front_plan(FrontObject *self, PyObject *const *args, Py_ssize_t
         get_double(args[2], &H, "surface_y_m") != 0 ||
         get_c_range(args[4], args[5], &c_lo, &c_hi) != 0)
         return NULL;
+    int use_library = 1;
+    if (nargs == 7 && (use_library = PyObject_IsTrue(args[6])) < 0) return NULL;
     row[I_SURFACE] = H;
     const long kind = PyLong_AsLong(args[3]);
     if (kind == -1 && PyErr_Occurred()) return NULL;
@@ -2537,20 +2658,108 @@ static PyObject *Front_plan(FrontObject *self, PyObject *const *args, Py_ssize_t
     row[I_DIG_TYPE] = (double)kind;
     for (int j = 0; j < 4; j++) row[I_A6 + j] = (double)y[j];
     double *out = (double *)self->views[F_OUT].buf;
+    double *planned = (double *)self->views[F_PLANNED].buf;
+    double *scale = (double *)self->views[F_SCALE].buf;
     vk_plan(kn->params, kn->s, kn->basis, kn->m, kn->basis_c, kn->m_c, row, c_lo, c_hi, out,
-            (double *)self->views[F_PLANNED].buf, NULL, (double *)self->views[F_SCALE].buf,
-            kn->cache, kn->scratch, kn->scratch_c);
+            planned, NULL, scale, kn->cache, kn->scratch, kn->scratch_c);
+    const int feasible = out[O_TOTAL] <= 0.0;
+    const vk_library *lib = &self->lib[kind];
+    const int from_library = use_library && feasible && lib->n > 0 && *scale >= lib->trigger &&
+                             vk_library_plan(kn, lib, row, c_lo, c_hi, out, planned, scale);
     PyObject *us = PyFloat_FromDouble(infer_us);
     if (us == NULL) return NULL;
-    PyObject *r = PyTuple_Pack(2, out[O_TOTAL] <= 0.0 ? Py_True : Py_False, us);
+    PyObject *r = PyTuple_Pack(3, feasible ? Py_True : Py_False, us,
+                               from_library ? Py_True : Py_False);
     Py_DECREF(us);
     return r;
 }
 
+/* set_library(dig_type, xs (7, n), inv_std (7,), y (n, 4), trigger, k) or
+ * set_library(dig_type, None): bind (or unbind) a dig type's solution library; the arrays are
+ * held until replaced or the Front is gone. */
+static PyObject *Front_set_library(FrontObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 2 && nargs != 6) {
+        PyErr_SetString(PyExc_TypeError,
+                        "set_library(dig_type, xs, inv_std, y, trigger, k) or "
+                        "set_library(dig_type, None) takes 6 or 2 arguments");
+        return NULL;
+    }
+    const long kind = PyLong_AsLong(args[0]);
+    if (kind == -1 && PyErr_Occurred()) return NULL;
+    if (kind != 0 && kind != 1) {
+        PyErr_Format(PyExc_ValueError, "dig_type must be 0 (downward) or 1 (backward); got %ld",
+                     kind);
+        return NULL;
+    }
+    vk_library *lib = &self->lib[kind];
+    if (nargs == 2) {
+        if (args[1] != Py_None) {
+            PyErr_SetString(PyExc_TypeError, "set_library(dig_type, None) unbinds; got 2 "
+                                             "arguments, the second not None");
+            return NULL;
+        }
+        vk_library_clear(lib);
+        Py_RETURN_NONE;
+    }
+    double trigger;
+    if (get_double(args[4], &trigger, "trigger") != 0) return NULL;
+    const long k = PyLong_AsLong(args[5]);
+    if (k == -1 && PyErr_Occurred()) return NULL;
+    vk_arg a[3] = {
+        {args[1], "xs", 0, 2, {7, -1}},
+        {args[2], "inv_std", 0, 1, {7}},
+        {args[3], "y", 0, 2, {-1, 4}},
+    };
+    for (int i = 0; i < 3; i++) {
+        a[i].held = 0;
+        if (get_f64(a[i].obj, &a[i].view, 0, a[i].ndim, a[i].shape, a[i].name) != 0) {
+            release_rows(a, i);
+            return NULL;
+        }
+        a[i].held = 1;
+    }
+    const Py_ssize_t n = a[0].view.shape[1];
+    const double *inv = (const double *)a[1].view.buf;
+    int finite = isfinite(trigger) && trigger > 0.0;
+    for (int j = 0; j < 7; j++)
+        if (!(isfinite(inv[j]) && inv[j] > 0.0)) finite = 0;
+    if (n < 1 || a[2].view.shape[0] != n || k < 1 || k > n || k > VK_LIB_K_MAX || !finite) {
+        PyErr_Format(PyExc_ValueError,
+                     "library: xs (7, n) and y (n, 4) with n >= 1, 1 <= k <= min(n, %d), "
+                     "trigger and inv_std finite and > 0; got n %zd and %zd, k %ld, trigger %g",
+                     VK_LIB_K_MAX, n, a[2].view.shape[0], k, trigger);
+        release_rows(a, 3);
+        return NULL;
+    }
+    double *scratch = malloc(sizeof(double) * (size_t)k * (VK_N_IN + VK_N_OUT + 4 + 2));
+    Py_ssize_t *idx = malloc(sizeof(Py_ssize_t) * (size_t)k);
+    if (scratch == NULL || idx == NULL) {
+        free(scratch);
+        free(idx);
+        release_rows(a, 3);
+        return PyErr_NoMemory();
+    }
+    vk_library_clear(lib);
+    lib->xs = a[0].view;
+    lib->y = a[2].view;
+    for (int j = 0; j < 7; j++) lib->inv_std[j] = inv[j];
+    PyBuffer_Release(&a[1].view);
+    lib->n = n;
+    lib->trigger = trigger;
+    lib->k = (int)k;
+    lib->scratch = scratch;
+    lib->idx = idx;
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef Front_methods[] = {
     {"plan", (PyCFunction)(void (*)(void))Front_plan, METH_FASTCALL,
-     "plan(q_start, q_end, H, dig_type, c_lo, c_hi) -> None (input outside the domain or not "
-     "finite: nothing ran) or (feasible, infer_us)"},
+     "plan(q_start, q_end, H, dig_type, c_lo, c_hi, library=True) -> None (input outside the "
+     "domain or not finite: nothing ran) or (feasible, infer_us, from_library)"},
+    {"set_library", (PyCFunction)(void (*)(void))Front_set_library, METH_FASTCALL,
+     "set_library(dig_type, xs (7, n), inv_std (7,), y (n, 4), trigger, k) or "
+     "set_library(dig_type, None)"},
     {NULL, NULL, 0, NULL},
 };
 
@@ -2591,6 +2800,11 @@ static PyObject *Kernel_front(KernelObject *self, PyObject *const *args, Py_ssiz
     FrontObject *f = PyObject_New(FrontObject, &FrontType);
     if (f == NULL) return NULL;
     f->held = 0;
+    for (int k = 0; k < 2; k++) {
+        f->lib[k].n = 0;
+        f->lib[k].scratch = NULL;
+        f->lib[k].idx = NULL;
+    }
     f->kernel = self;
     Py_INCREF(self);
     for (int k = 0; k < 2; k++) {

@@ -40,11 +40,13 @@ checked before anyone may execute it:
    c >= 1.3 and k = 4 (2.44 % at c >= 1.2 and k = 8, but triggered twice as often and at twice
    the cost: four full plans, ~50 us, keep the triggered plans inside the 100 us p99); the
    downward model triggers on under 1 % of its problems (its fill scale stays near 1).
-   Measured (``bench pinn``, a lower-gap downward model with the b4 backward one, both
-   exported with ``--library``): gap_mean 3.21 % -> 2.96 %, but a triggered plan costs
-   ~110 us (k-d tree query ~21 us from Python, four plans ~48 us), which takes the plan p99
-   to ~170 us and the p50 to ~20.7 us; the shipped models are exported without a library
-   until the search and the candidates' plans run in the kernel.
+   With the C kernel the whole step runs inside the ``Front`` call (brute-force search over
+   the library's scaled problems, then the k plans); the numpy verifier's path does the same
+   in Python (:meth:`_Library.nearest`, :meth:`_from_library`), and both pick the same rows
+   in the same order. Measured (a lower-gap downward model with the b4 backward one, both
+   exported with ``--library``): gap_mean 3.21 % -> 2.96 %; a plan that comes from the
+   library costs ~77 us in the kernel (median, under load), against ~120 us when the search
+   was a k-d tree queried from Python.
 5. **Repair**, when that still fails (or with ``retime=False``, whenever the raw answer fails).
    Time scaling first, where only time-dependent limits fail (velocity, acceleration, torque,
    power, t_min): the kernel's exact retiming keeps the path (so angles, theta_p and volume)
@@ -118,6 +120,9 @@ from rt_runtime.trajectory.sextic import SexticTrajectory
 FloatArray = NDArray[np.float64]
 
 CARD_FORMAT = "excavator-rt-pinn-card/1"
+
+# Bound on a solution library's k (the C kernel's VK_LIB_K_MAX: its scratch rows).
+LIBRARY_K_MAX = 64
 #: The network's inputs and outputs (DESIGN.md "Models"): rad, rad, ..., m; rad/s^6 x 3, s.
 INPUT_NAMES = ("theta11", "theta12", "theta13", "theta21", "theta22", "theta23", "H")
 OUTPUT_NAMES = ("a16", "a26", "a36", "T")
@@ -357,13 +362,13 @@ class _Library:
 
     Module docstring, step 4a. ``X`` are the problems, ``Y`` the teacher's ``(a16, a26, a36,
     T)``; nearest neighbours are found in inputs scaled by the library's own per-input
-    standard deviation (scipy's k-d tree). The scratch rows for the ``k`` candidates are
-    allocated once.
+    standard deviation, by brute force over ``xs`` (the scaled problems, one input per row:
+    the C kernel's ``Front`` runs the same search, in the same summation order, in a few
+    microseconds; a k-d tree queried from Python cost ~20 us). The scratch rows for the ``k``
+    candidates are allocated once.
     """
 
     def __init__(self, card: ModelCard) -> None:
-        from scipy.spatial import cKDTree
-
         entry = card.raw["library"]
         where = str(card.path)
         try:
@@ -385,18 +390,26 @@ class _Library:
             )
         if not (np.all(np.isfinite(X)) and np.all(np.isfinite(Y)) and np.all(Y[:, 3] > 0.0)):
             raise ConfigurationError(f"library {path}: values must be finite, T > 0")
-        if not (1 <= self.k <= min(n, 64) and self.trigger > 0.0):
+        if not (1 <= self.k <= min(n, LIBRARY_K_MAX) and self.trigger > 0.0):
             raise ConfigurationError(
-                f"{where}: library k must be in [1, {min(n, 64)}] and trigger_bulge_scale > 0; "
+                f"{where}: library k must be in [1, {min(n, LIBRARY_K_MAX)}] and "
+                "trigger_bulge_scale > 0; "
                 f"got {self.k}, {self.trigger}"
             )
         self.inv_std = 1.0 / np.maximum(X.std(axis=0), 1e-12)
-        self.tree = cKDTree(X * self.inv_std)
+        self.xs = np.ascontiguousarray((X * self.inv_std).T)
         self.Y = Y
         self.rows = np.zeros((self.k, 12), dtype=np.float64)
         self.out = np.zeros((self.k, N_OUT), dtype=np.float64)
         self.retimed = np.zeros((self.k, 4), dtype=np.float64)
         self.scale = np.ones(self.k, dtype=np.float64)
+
+    def nearest(self, x: list[float]) -> NDArray[np.intp]:
+        """Rows of the ``k`` problems nearest to ``x``, nearest first (ties: lower row first),
+        as the C kernel's search finds them."""
+        q = np.asarray(x, dtype=np.float64) * self.inv_std
+        d = ((q[:, None] - self.xs) ** 2).sum(axis=0)
+        return np.argsort(d, kind="stable")[: self.k]
 
 
 def check_file(where: str, what: str, path: Path, expected_sha256: str) -> None:
@@ -617,7 +630,7 @@ class PinnPlanner:
         self._eval_rows = self.verifier._run
         self._retime_rows = self.verifier._retime
         self._c_default = (float(PLAN_C_RANGE[0]), float(PLAN_C_RANGE[1]))
-        self._front: Callable[..., tuple[bool, float] | None] = self._front_py
+        self._front: Callable[..., tuple[bool, float, bool] | None] = self._front_py
         self._bind_front()
         # The fast repair's constants and scratch rows (module docstring, step 5).
         n = self.verifier.n_samples
@@ -692,20 +705,23 @@ class PinnPlanner:
             return
         kinds = list(DigType)  # indexed by value: 0 downward, 1 backward
         sessions = [self._sessions[k] for k in kinds]
-        self._front = kernel.front(
+        front = kernel.front(
             self._row, self._out, self._retimed, self._scale,
             np.array([self._lo[k] for k in kinds], dtype=np.float64),
             np.array([self._hi[k] for k in kinds], dtype=np.float64),
             tuple(s.x for s in sessions), tuple(s.y for s in sessions),
             tuple(s.run for s in sessions),
-        ).plan  # fmt: skip
+        )  # fmt: skip
+        for kind, lib in self._libraries.items():
+            front.set_library(int(kind), lib.xs, lib.inv_std, lib.Y, lib.trigger, lib.k)
+        self._front = front.plan
 
     def _stage(
         self, q_start_rad: ArrayLike, q_end_rad: ArrayLike, surface_y_m: float, kind: DigType
-    ) -> tuple[bool, float] | None:
+    ) -> tuple[bool, float, bool] | None:
         """The input into the row, checked against ``kind``'s domain, and the network's answer
         into the row: None outside the domain (or not finite; nothing run), else
-        ``(False, infer_us)``."""
+        ``(False, infer_us, False)``."""
         self._qs_view[:] = q_start_rad
         self._qe_view[:] = q_end_rad
         row = self._row
@@ -723,7 +739,7 @@ class PinnPlanner:
         infer_us = (time.perf_counter() - t1) * 1e6
         row[0, 7] = kind
         self._y_view[:] = sess.y[0]
-        return False, infer_us
+        return False, infer_us, False
 
     def _front_py(
         self,
@@ -733,15 +749,25 @@ class PinnPlanner:
         kind: DigType,
         c_lo: float,
         c_hi: float,
-    ) -> tuple[bool, float] | None:
+        library: bool = True,
+    ) -> tuple[bool, float, bool] | None:
         """What the C kernel's ``Front.plan`` does, in Python (the numpy verifier's path):
         :meth:`_stage`, then the fill and retime of the answer into ``_out``, ``_retimed``
-        and ``_scale``; ``(feasible, infer_us)``, or None outside the domain."""
+        and ``_scale``, then step 4a where it applies (:meth:`_from_library`);
+        ``(feasible, infer_us, from_library)``, or None outside the domain."""
         staged = self._stage(q_start_rad, q_end_rad, surface_y_m, kind)
         if staged is None:
             return None
         self._plan_rows(self._row, self._out, self._retimed, c_lo, c_hi, None, self._scale)
-        return bool(self._out_row[COL_TOTAL] <= 0.0), staged[1]
+        ok = bool(self._out_row[COL_TOTAL] <= 0.0)
+        from_library = (
+            ok
+            and library
+            and (lib := self._libraries.get(kind)) is not None
+            and self._scale[0] >= lib.trigger
+            and self._from_library(lib, self._x_view.tolist(), kind, c_lo, c_hi)
+        )
+        return ok, staged[1], from_library
 
     def plan(
         self,
@@ -784,7 +810,7 @@ class PinnPlanner:
         tried: _Repair | None = None  # the fast repair's outcome, once tried
         if self.retime:
             c_lo, c_hi = self._c_default if c_max is None else fill_c_range(c_max)
-            done = self._front(q_start_rad, q_end_rad, surface_y_m, kind, c_lo, c_hi)
+            done = self._front(q_start_rad, q_end_rad, surface_y_m, kind, c_lo, c_hi, library)
         else:
             done = self._stage(q_start_rad, q_end_rad, surface_y_m, kind)
         x = self._x_view.tolist()
@@ -794,7 +820,7 @@ class PinnPlanner:
             if self.teacher_fallback and all(map(math.isfinite, x)):
                 return self._teacher(problem, t0)
             raise PlanningError(f"refused: {why}; nothing was planned")
-        ok, infer_us = done
+        ok, infer_us, from_library = done
         y = self._y_view.tolist()
         raw_a6 = (y[0], y[1], y[2])
         raw_T = y[3]
@@ -802,7 +828,7 @@ class PinnPlanner:
         row = self._row
 
         if self.retime:
-            status = PlanStatus.RETIMED
+            status = PlanStatus.LIBRARY if from_library else PlanStatus.RETIMED
             if not ok and self.fast_repair:
                 # A failed plan reports the network's own path (scale 1): retimed, or, where a
                 # path-only limit fails (no T fixes it), at the network's own T. Its path-only
@@ -814,15 +840,6 @@ class PinnPlanner:
                 tried = self._fast_repair(kind, self._out_row.tolist(), (c_lo, c_hi))
                 ok = tried == _Repair.DONE
                 status = PlanStatus.REPAIRED
-            if (
-                ok
-                and library
-                and status is PlanStatus.RETIMED
-                and (lib := self._libraries.get(kind)) is not None
-                and self._scale[0] >= lib.trigger
-                and self._from_library(lib, x, kind, c_lo, c_hi)
-            ):
-                status = PlanStatus.LIBRARY
             if ok:
                 r = self._retimed_row.tolist()
                 return _planned(
@@ -853,11 +870,10 @@ class PinnPlanner:
         """Plan the ``k`` nearest library solutions' paths for the problem ``x`` (filled and
         retimed as the network's) and, where the best feasible one has a smaller objective than
         the plan in ``_out``, put it there (and in ``_retimed``, ``_scale``): True."""
-        _, idx = lib.tree.query(np.asarray(x) * lib.inv_std, k=lib.k)
         rows = lib.rows
         rows[:, 0:7] = x
         rows[:, 7] = kind
-        rows[:, 8:12] = lib.Y[np.atleast_1d(idx)]
+        rows[:, 8:12] = lib.Y[lib.nearest(x)]
         self._plan_rows(rows, lib.out, lib.retimed, c_lo, c_hi, None, lib.scale)
         objective = np.where(lib.out[:, COL_TOTAL] <= 0.0, lib.out[:, COL_OBJECTIVE], np.inf)
         best = int(np.argmin(objective))

@@ -158,7 +158,7 @@ BUILD_HINT = (
 )
 
 # Layout of the kernel's constants; _verify.c's enum vk_param must list the same offsets.
-_ABI = 5
+_ABI = 6
 _PARAM_FIELDS: tuple[tuple[str, int], ...] = (
     ("lengths", 3),
     ("chain_h", 3),

@@ -2616,6 +2616,19 @@ static double front_now_us(void)
     return (double)ts.tv_sec * 1e6 + (double)ts.tv_nsec * 1e-3;
 }
 
+/* A dig type's value (0 downward, 1 backward), the Front's index of its per-type state. */
+static int get_dig_type(PyObject *obj, long *kind)
+{
+    *kind = PyLong_AsLong(obj);
+    if (*kind == -1 && PyErr_Occurred()) return -1;
+    if (*kind != 0 && *kind != 1) {
+        PyErr_Format(PyExc_ValueError, "dig_type must be 0 (downward) or 1 (backward); got %ld",
+                     *kind);
+        return -1;
+    }
+    return 0;
+}
+
 /* plan(q_start, q_end, H, dig_type, c_lo, c_hi[, library]) -> None (outside the domain: nothing
  * ran) or (feasible, infer_us, from_library). */
 static PyObject *Front_plan(FrontObject *self, PyObject *const *args, Py_ssize_t nargs)
@@ -2637,13 +2650,8 @@ static PyObject *Front_plan(FrontObject *self, PyObject *const *args, Py_ssize_t
     int use_library = 1;
     if (nargs == 7 && (use_library = PyObject_IsTrue(args[6])) < 0) return NULL;
     row[I_SURFACE] = H;
-    const long kind = PyLong_AsLong(args[3]);
-    if (kind == -1 && PyErr_Occurred()) return NULL;
-    if (kind != 0 && kind != 1) {
-        PyErr_Format(PyExc_ValueError, "dig_type must be 0 (downward) or 1 (backward); got %ld",
-                     kind);
-        return NULL;
-    }
+    long kind;
+    if (get_dig_type(args[3], &kind) != 0) return NULL;
     const double *lo = self->lo[kind], *hi = self->hi[kind];
     for (int j = 0; j < 7; j++)
         if (!(lo[j] <= row[j] && row[j] <= hi[j])) Py_RETURN_NONE; /* NaN fails too */
@@ -2685,13 +2693,8 @@ static PyObject *Front_set_library(FrontObject *self, PyObject *const *args, Py_
                         "set_library(dig_type, None) takes 6 or 2 arguments");
         return NULL;
     }
-    const long kind = PyLong_AsLong(args[0]);
-    if (kind == -1 && PyErr_Occurred()) return NULL;
-    if (kind != 0 && kind != 1) {
-        PyErr_Format(PyExc_ValueError, "dig_type must be 0 (downward) or 1 (backward); got %ld",
-                     kind);
-        return NULL;
-    }
+    long kind;
+    if (get_dig_type(args[0], &kind) != 0) return NULL;
     vk_library *lib = &self->lib[kind];
     if (nargs == 2) {
         if (args[1] != Py_None) {

@@ -121,7 +121,7 @@ FloatArray = NDArray[np.float64]
 
 CARD_FORMAT = "excavator-rt-pinn-card/1"
 
-# Bound on a solution library's k (the C kernel's VK_LIB_K_MAX: its scratch rows).
+#: Bound on a solution library's k (the C kernel's VK_LIB_K_MAX: its scratch rows).
 LIBRARY_K_MAX = 64
 #: The network's inputs and outputs (DESIGN.md "Models"): rad, rad, ..., m; rad/s^6 x 3, s.
 INPUT_NAMES = ("theta11", "theta12", "theta13", "theta21", "theta22", "theta23", "H")
@@ -393,8 +393,7 @@ class _Library:
         if not (1 <= self.k <= min(n, LIBRARY_K_MAX) and self.trigger > 0.0):
             raise ConfigurationError(
                 f"{where}: library k must be in [1, {min(n, LIBRARY_K_MAX)}] and "
-                "trigger_bulge_scale > 0; "
-                f"got {self.k}, {self.trigger}"
+                f"trigger_bulge_scale > 0; got {self.k}, {self.trigger}"
             )
         self.inv_std = 1.0 / np.maximum(X.std(axis=0), 1e-12)
         self.xs = np.ascontiguousarray((X * self.inv_std).T)

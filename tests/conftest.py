@@ -19,6 +19,7 @@ from rt_runtime.rig import Rig
 
 if TYPE_CHECKING:
     from hil_sim.sim import FaultKind
+    from rt_runtime.planning.pinn import PinnPlanner
 
 
 @pytest.fixture(scope="module")
@@ -70,3 +71,9 @@ def rpdo1_limit_check(rig: Rig, frames: Iterable[tuple[int, bytes]]) -> TraceChe
     nodes = [n for _, n in rig.can.node_ids]
     target, velocity = rpdo1_setpoints(frames, nodes)
     return check_setpoint_trace(target, StrokeLimits.from_rig(rig), 0.002, velocity_um_s=velocity)
+
+
+def front_state(planner: PinnPlanner) -> np.ndarray:
+    """A PINN planner's front buffers (row, out, retimed, scale) in one vector: what the C
+    kernel's front and the Python path must leave bit for bit equal."""
+    return np.concatenate([planner._row[0], planner._out[0], planner._retimed[0], planner._scale])

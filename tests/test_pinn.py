@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import front_state
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("distributed")
@@ -265,13 +266,13 @@ def test_library_search_in_c_is_the_python_path(
             np.testing.assert_array_equal(lib.nearest(list(x)), want_idx)
             args = (x[0:3], x[3:6], float(x[6]), kind, 0.3, 2.0)
             got = planner._front(*args)
-            state = _front_state(planner)
+            state = front_state(planner)
             want = planner._front_py(*args)
             if got is None:  # outside the tiny training set's domain
                 assert want is None
                 continue
             assert want is not None and (got[0], got[2]) == (want[0], want[2])
-            np.testing.assert_array_equal(state, _front_state(planner))
+            np.testing.assert_array_equal(state, front_state(planner))
             from_library += got[2]
     assert from_library > 0
 
@@ -281,13 +282,7 @@ def test_front_set_library_checks_its_arrays(library_models: Path) -> None:
     allowed; unbound (None), it plans as the network alone."""
     planner = PinnPlanner(RIG, library_models)
     lib = planner._libraries[DigType.BACKWARD]
-    front = planner.verifier.kernel.front(  # type: ignore[union-attr]
-        planner._row, planner._out, planner._retimed, planner._scale,
-        np.array([planner._lo[k] for k in DigType]), np.array([planner._hi[k] for k in DigType]),
-        tuple(planner._sessions[k].x for k in DigType),
-        tuple(planner._sessions[k].y for k in DigType),
-        tuple(planner._sessions[k].run for k in DigType),
-    )  # fmt: skip
+    front = planner._front.__self__  # type: ignore[attr-defined]  # the bound C Front
     n = lib.xs.shape[1]
     bad = [
         ((1, lib.xs.T.copy(), lib.inv_std, lib.Y, 1.0, 2), r"xs must have shape \(7, N\)"),
@@ -307,14 +302,10 @@ def test_front_set_library_checks_its_arrays(library_models: Path) -> None:
     front.set_library(1, lib.xs, lib.inv_std, lib.Y, 1e-3, 2)
     front.set_library(1, None)
     got = front.plan(*args)
-    state = _front_state(planner)
+    state = front_state(planner)
     want = planner._front_py(*args, False)
     assert got is not None and want is not None and got[2] is False
-    np.testing.assert_array_equal(state, _front_state(planner))
-
-
-def _front_state(planner: PinnPlanner) -> np.ndarray:
-    return np.concatenate([planner._row[0], planner._out[0], planner._retimed[0], planner._scale])
+    np.testing.assert_array_equal(state, front_state(planner))
 
 
 def test_library_with_the_numpy_verifier(library_models: Path, tmp_path: Path) -> None:

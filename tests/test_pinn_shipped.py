@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import front_state
 
 from rt_runtime.bench import bench_pinn
 from rt_runtime.errors import PlanningError
@@ -113,10 +114,6 @@ def test_bench_pinn_small() -> None:
     assert set(r["table4"]) == {"downward", "backward"}
 
 
-def _front_state(planner: PinnPlanner) -> np.ndarray:
-    return np.concatenate([planner._row[0], planner._out[0], planner._retimed[0], planner._scale])
-
-
 @pytest.mark.parametrize("kind", list(DigType))
 def test_c_front_is_the_python_path(planner: PinnPlanner, kind: DigType) -> None:
     """The C kernel's Front (staging, inference, plan in one call) leaves the planner's
@@ -127,11 +124,11 @@ def test_c_front_is_the_python_path(planner: PinnPlanner, kind: DigType) -> None
     feasible = 0
     for x, (c_lo, c_hi) in zip(X, [(0.3, 2.0), (0.2, 0.9)] * SUBSET, strict=False):
         got = planner._front(x[0:3], x[3:6], float(x[6]), kind, c_lo, c_hi)
-        c_state = _front_state(planner)
+        c_state = front_state(planner)
         want = planner._front_py(x[0:3], x[3:6], float(x[6]), kind, c_lo, c_hi)
         assert got is not None and want is not None
         assert got[0] == want[0] and got[1] > 0.0 and got[2] == want[2]
-        np.testing.assert_array_equal(c_state, _front_state(planner))
+        np.testing.assert_array_equal(c_state, front_state(planner))
         feasible += got[0]
     assert feasible > SUBSET // 2
 

@@ -2242,9 +2242,9 @@ static void release_rows(vk_arg *a, int count)
         }
 }
 
-/* Acquire every present argument; all must have the same number of rows N as a[0] (absent
-   ones count as N in the message). Returns N, or -1 with the error set and nothing held. */
-static Py_ssize_t get_rows(vk_arg *a, int count)
+/* Acquire every present argument (absent: NULL or None). Returns 0, or -1 with the error set
+   and nothing held. */
+static int get_args(vk_arg *a, int count)
 {
     for (int k = 0; k < count; k++) {
         a[k].held = 0;
@@ -2255,6 +2255,14 @@ static Py_ssize_t get_rows(vk_arg *a, int count)
         }
         a[k].held = 1;
     }
+    return 0;
+}
+
+/* Acquire every present argument; all must have the same number of rows N as a[0] (absent
+   ones count as N in the message). Returns N, or -1 with the error set and nothing held. */
+static Py_ssize_t get_rows(vk_arg *a, int count)
+{
+    if (get_args(a, count) != 0) return -1;
     const Py_ssize_t n = a[0].view.shape[0];
     int bad = 0;
     for (int k = 1; k < count; k++)
@@ -2714,14 +2722,12 @@ static PyObject *Front_set_library(FrontObject *self, PyObject *const *args, Py_
         {args[2], "inv_std", 0, 1, {7}},
         {args[3], "y", 0, 2, {-1, 4}},
     };
-    for (int i = 0; i < 3; i++) {
-        a[i].held = 0;
-        if (get_f64(a[i].obj, &a[i].view, 0, a[i].ndim, a[i].shape, a[i].name) != 0) {
-            release_rows(a, i);
+    for (int i = 0; i < 3; i++)
+        if (a[i].obj == Py_None) { /* required here; get_args would skip it */
+            PyErr_Format(PyExc_ValueError, "%s must be a C-contiguous float64 array", a[i].name);
             return NULL;
         }
-        a[i].held = 1;
-    }
+    if (get_args(a, 3) != 0) return NULL;
     const Py_ssize_t n = a[0].view.shape[1];
     const double *inv = (const double *)a[1].view.buf;
     int finite = isfinite(trigger) && trigger > 0.0;

@@ -473,8 +473,15 @@ def cmd_export(args: argparse.Namespace) -> int:
     """``excavator-rt export``: ONNX models with their cards and held-out sets."""
     from pathlib import Path
 
-    from rt_runtime.training.export import export, record_planned_heldout
+    from rt_runtime.training.export import (
+        LIBRARY_KEEP_BULGE_SCALE,
+        export,
+        record_planned_heldout,
+    )
 
+    keep = LIBRARY_KEEP_BULGE_SCALE if args.library_keep_scale is None else args.library_keep_scale
+    if not (math.isfinite(keep) and keep >= 0.0):
+        raise ConfigurationError(f"--library-keep-scale must be finite and >= 0; got {keep}")
     out = Path(args.out)
     report: dict[str, Any] = {"types": {}}
     for kind in _types(args.type):
@@ -485,6 +492,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             model,
             dataset_path=data,
             library=args.library,
+            library_keep_scale=keep,
         )
         held = out / card["heldout_file"]["name"]
         report["types"][kind] = {
@@ -835,6 +843,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also write the solution library (the training split's teacher answers) that "
         "the runtime tries where the network's bulge is filled far up (pinn.py, step 4a)",
+    )
+    ex.add_argument(
+        "--library-keep-scale",
+        type=float,
+        help="the library keeps the training problems whose network plan fills the bulge by "
+        "this scale or more (default: export.LIBRARY_KEEP_BULGE_SCALE; 0: all of them)",
     )
     ex.add_argument("--json", action="store_true")
     ex.set_defaults(handler=cmd_export)

@@ -32,7 +32,7 @@ from rt_runtime.planning.pinn import (  # noqa: E402
 )
 from rt_runtime.rig import load_rig  # noqa: E402
 from rt_runtime.training import dataset as ds  # noqa: E402
-from rt_runtime.training.export import export, sha256_file  # noqa: E402
+from rt_runtime.training.export import LIBRARY_K, export, sha256_file  # noqa: E402
 from rt_runtime.training.train import (  # noqa: E402
     TrainConfig,
     load_checkpoint,
@@ -152,11 +152,17 @@ def test_planner_returns_only_verified_plans(pipeline: Path) -> None:
 
 @pytest.fixture(scope="module")
 def library_models(pipeline: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The pipeline's checkpoints exported with their solution libraries."""
+    """The pipeline's checkpoints exported with their solution libraries of every training
+    problem (keep scale 0)."""
     out = tmp_path_factory.mktemp("library")
     for kind in DigType:
         name = kind.name.lower()
-        export(pipeline / "ckpt" / f"pinn_{name}.pt", out / f"pinn_{name}.onnx", library=True)
+        export(
+            pipeline / "ckpt" / f"pinn_{name}.pt",
+            out / f"pinn_{name}.onnx",
+            library=True,
+            library_keep_scale=0.0,
+        )
     return out
 
 
@@ -178,10 +184,59 @@ def test_library_holds_the_training_split_only(pipeline: Path, library_models: P
         with np.load(path) as z:
             np.testing.assert_array_equal(z["X"], np.asarray(data.X)[data.train_idx])
             np.testing.assert_array_equal(z["Y"], np.asarray(data.Y)[data.train_idx])
-        assert entry["rows"] == data.train_idx.size
+        assert entry["rows"] == entry["train_rows"] == data.train_idx.size
+        assert entry["k"] == min(LIBRARY_K, data.train_idx.size)
         # Exported without --library: no library named, none planned with.
         plain = json.loads((pipeline / "onnx" / f"pinn_{name}.json").read_text())
         assert plain["library"] is None
+
+
+def test_library_keeps_the_problems_the_network_fills_far_up(
+    pipeline: Path, library_models: Path, tmp_path: Path
+) -> None:
+    """With a keep scale, the library holds exactly the training problems whose network plan
+    (as the runtime plans it, library off) is retimed with a bulge scale at or above it; at a
+    scale above every plan's, no library is written."""
+    planner = PinnPlanner(RIG, library_models, library=False)
+    kind = DigType.BACKWARD
+    data = ds.load(pipeline / "data" / "backward.npz")
+    X = np.asarray(data.X)[data.train_idx]
+    scales = []
+    for x in X:
+        try:
+            plan = planner.plan(x[0:3], x[3:6], float(x[6]), kind)
+        except PlanningError:
+            scales.append(0.0)
+            continue
+        scales.append(plan.bulge_scale if plan.status == PlanStatus.RETIMED else 0.0)
+    c = np.asarray(scales)
+    distinct = np.unique(c[c > 0.0])
+    assert distinct.size >= 2, "the reduced pipeline must fill some plans to different scales"
+    mid = distinct.size // 2
+    keep_scale = float(0.5 * (distinct[mid - 1] + distinct[mid]))  # no plan sits on it
+    card = export(
+        pipeline / "ckpt" / "pinn_backward.pt",
+        tmp_path / "pinn_backward.onnx",
+        library=True,
+        library_keep_scale=keep_scale,
+    )
+    entry = card["library"]
+    kept = c >= keep_scale
+    assert 0 < kept.sum() < X.shape[0]
+    assert entry["rows"] == kept.sum() and entry["train_rows"] == X.shape[0]
+    assert entry["keep_bulge_scale"] == keep_scale
+    assert entry["k"] == min(LIBRARY_K, int(kept.sum()))
+    with np.load(tmp_path / entry["name"]) as z:
+        np.testing.assert_array_equal(z["X"], X[kept])
+        np.testing.assert_array_equal(z["Y"], np.asarray(data.Y)[data.train_idx][kept])
+    none = export(
+        pipeline / "ckpt" / "pinn_backward.pt",
+        tmp_path / "none" / "pinn_backward.onnx",
+        library=True,
+        library_keep_scale=float(c.max()) + 1.0,
+    )
+    assert none["library"] is None
+    assert not (tmp_path / "none" / "pinn_backward_library.npz").exists()
 
 
 def test_library_plans_are_verified_and_beat_the_network(

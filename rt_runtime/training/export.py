@@ -37,9 +37,17 @@ PARITY_TOLERANCE = 1e-5
 #: Widening of the domain beyond the training inputs' range, as a fraction of that range.
 DOMAIN_MARGIN = 0.01
 #: The solution library's trigger (the fill's bulge scale at or above which the runtime tries
-#: it) and candidates per try (:mod:`rt_runtime.planning.pinn`, step 4a, where they were chosen).
+#: it) and candidates per try (:mod:`rt_runtime.planning.pinn`, step 4a, where they were chosen;
+#: k = 2: each candidate costs a plan, ~11 us, and k = 4 put the triggered plans past the
+#: 100 us p99 goal; design notes, session 20).
 LIBRARY_TRIGGER_BULGE_SCALE = 1.3
-LIBRARY_K = 4
+LIBRARY_K = 2
+#: The training problems a library keeps: those whose own network plan (fill and retime, as at
+#: run time) scales the bulge by this much or more. A triggered problem's useful neighbours are
+#: of that kind (where the teacher has two families of optima); the search then reads ~45 % of
+#: the backward rows (less of the cache, which the p50 and p99 show) for the same gap (design
+#: notes, session 20). 0 keeps every training problem.
+LIBRARY_KEEP_BULGE_SCALE = 1.2
 
 
 def folded_network(net: Any) -> Any:
@@ -193,6 +201,7 @@ def export(
     rig: Rig | str | None = None,
     dataset_path: Path | None = None,
     library: bool = False,
+    library_keep_scale: float = LIBRARY_KEEP_BULGE_SCALE,
 ) -> dict[str, Any]:
     """Export a checkpoint to ONNX, check parity, measure held-out quality, write the held-out
     set (and, with ``library``, the solution library) and the card.
@@ -204,8 +213,9 @@ def export(
         dataset_path: The dataset the checkpoint was trained on, for the held-out metrics and
             the domain (default: the path recorded in the checkpoint).
         library: Also write the solution library (:func:`_write_library`) and name it in the
-            card. Off by default: with the Python nearest-neighbour search, the triggered plans
-            cost ~110 us (design notes, "Solution library").
+            card (None there when no training problem is kept).
+        library_keep_scale: The library keeps the training problems whose network plan fills
+            to this bulge scale or more (:data:`LIBRARY_KEEP_BULGE_SCALE`; 0: all of them).
 
     Returns:
         The model card.
@@ -308,7 +318,11 @@ def export(
         },
         "heldout": held,
         "heldout_file": _write_heldout(data, out_path),
-        "library": _write_library(data, out_path) if library else None,
+        "library": (
+            _write_library(data, out_path, rig_obj, dig_type, library_keep_scale)
+            if library
+            else None
+        ),
         "parity_max_rel": worst,
         "opset": OPSET,
         "exporter": f"torch {torch.__version__} torch.onnx.export (TorchScript)",
@@ -359,28 +373,54 @@ def _write_beside(model_path: Path, suffix: str, **arrays: Any) -> dict[str, Any
     return {"name": out.name, "sha256": sha256_file(out)}
 
 
-def _write_library(data: Any, model_path: Path) -> dict[str, Any]:
-    """Write the solution library beside the model: the training split's problems ``X`` and
-    the teacher's answers ``Y`` (a16, a26, a36, T), float64 (the held-out split is not in it).
+def _write_library(
+    data: Any, model_path: Path, rig: Rig, dig_type: DigType, keep_scale: float
+) -> dict[str, Any] | None:
+    """Write the solution library beside the model: the training problems ``X`` whose network
+    plan fills to ``keep_scale`` or more (:func:`network_fill_scales`; all of them at 0) and the
+    teacher's answers ``Y`` (a16, a26, a36, T), float64 (the held-out split is not in it).
 
     Returns:
-        The card's ``library`` entry: file name, SHA-256, rows, ``trigger_bulge_scale`` and
-        ``k`` (:data:`LIBRARY_TRIGGER_BULGE_SCALE`, :data:`LIBRARY_K`).
+        The card's ``library`` entry: file name, SHA-256, ``rows`` (kept), ``train_rows``,
+        ``keep_bulge_scale``, ``trigger_bulge_scale`` and ``k``
+        (:data:`LIBRARY_TRIGGER_BULGE_SCALE`, :data:`LIBRARY_K`); None (and no file) when no
+        training problem is kept.
     """
     idx = np.asarray(data.train_idx)
+    X = np.asarray(data.X, dtype=np.float64)[idx]
+    Y = np.asarray(data.Y, dtype=np.float64)[idx]
+    if keep_scale > 0.0:
+        keep = network_fill_scales(rig, model_path, dig_type, X) >= keep_scale
+        X, Y = X[keep], Y[keep]
+    if X.shape[0] == 0:
+        return None
     return {
-        **_write_beside(
-            model_path,
-            "_library.npz",
-            X=np.asarray(data.X, dtype=np.float64)[idx],
-            Y=np.asarray(data.Y, dtype=np.float64)[idx],
-        ),
-        "rows": int(idx.size),
+        **_write_beside(model_path, "_library.npz", X=X, Y=Y),
+        "rows": int(X.shape[0]),
+        "train_rows": int(idx.size),
+        "keep_bulge_scale": float(keep_scale),
         "trigger_bulge_scale": LIBRARY_TRIGGER_BULGE_SCALE,
-        "k": min(LIBRARY_K, int(idx.size)),
-        "note": "teacher answers to the training problems; the runtime plans the k nearest "
-        "where the fill scales the network's bulge by trigger_bulge_scale or more",
+        "k": min(LIBRARY_K, int(X.shape[0])),
+        "note": "teacher answers to the training problems whose network plan fills to "
+        "keep_bulge_scale or more; the runtime plans the k nearest where the fill scales the "
+        "network's bulge by trigger_bulge_scale or more",
     }
+
+
+def network_fill_scales(rig: Rig, model_path: Path, dig_type: DigType, X: FloatArray) -> FloatArray:
+    """The bulge scale ``c`` of the runtime's plan of the network's answer to each problem of
+    ``X`` (fill and retime over the default range, as :class:`~rt_runtime.planning.pinn.
+    PinnPlanner` plans it before any repair or library step); 0 where that plan fails."""
+    from rt_runtime.planning.verify import COL_TOTAL, N_OUT, Verifier
+
+    x = np.ascontiguousarray(X, dtype=np.float64)
+    n = x.shape[0]
+    y = onnx_session(model_path).run(["output"], {"input": x.astype(np.float32)})[0]
+    rows = np.concatenate([x, np.full((n, 1), float(int(dig_type))), y.astype(np.float64)], 1)
+    out = np.zeros((n, N_OUT))
+    scale = np.zeros(n)
+    Verifier(rig).plan_into(rows, out, np.zeros((n, 4)), scale=scale)
+    return np.where(out[:, COL_TOTAL] <= 0.0, scale, 0.0)
 
 
 def record_planned_heldout(rig: Rig, model_dir: Path) -> dict[str, dict[str, Any]]:

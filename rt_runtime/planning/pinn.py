@@ -43,10 +43,12 @@ checked before anyone may execute it:
    With the C kernel the whole step runs inside the ``Front`` call (brute-force search over
    the library's scaled problems, then the k plans); the numpy verifier's path does the same
    in Python (:meth:`_Library.nearest`, :meth:`_from_library`), and both pick the same rows
-   in the same order. Measured (a lower-gap downward model with the b4 backward one, both
-   exported with ``--library``): gap_mean 3.21 % -> 2.96 %; a plan that comes from the
-   library costs ~77 us in the kernel (median, under load), against ~120 us when the search
-   was a k-d tree queried from Python.
+   in the same order. The shipped cards use k = 2 (each candidate is a plan, ~11.5 us; the
+   triggered plans set the p99) and libraries of the training problems whose own network
+   plan fills to c >= 1.2 (:data:`rt_runtime.training.export.LIBRARY_KEEP_BULGE_SCALE`: 45 %
+   of the backward rows, the same gap, less of the cache read per search). Measured on the
+   shipped backward model: held-out gap 3.62 % -> 3.21 %, a triggered plan ~50 us (per-row
+   minimum; design notes, session 20).
 5. **Repair**, when that still fails (or with ``retime=False``, whenever the raw answer fails).
    Time scaling first, where only time-dependent limits fail (velocity, acceleration, torque,
    power, t_min): the kernel's exact retiming keeps the path (so angles, theta_p and volume)

@@ -229,14 +229,14 @@ def test_library_keeps_the_problems_the_network_fills_far_up(
     with np.load(tmp_path / entry["name"]) as z:
         np.testing.assert_array_equal(z["X"], X[kept])
         np.testing.assert_array_equal(z["Y"], np.asarray(data.Y)[data.train_idx][kept])
-    none = export(
+    none = export(  # over the export above: its library file goes too
         pipeline / "ckpt" / "pinn_backward.pt",
-        tmp_path / "none" / "pinn_backward.onnx",
+        tmp_path / "pinn_backward.onnx",
         library=True,
         library_keep_scale=float(c.max()) + 1.0,
     )
     assert none["library"] is None
-    assert not (tmp_path / "none" / "pinn_backward_library.npz").exists()
+    assert not (tmp_path / "pinn_backward_library.npz").exists()
 
 
 def test_library_plans_are_verified_and_beat_the_network(

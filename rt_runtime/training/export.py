@@ -392,7 +392,8 @@ def _write_library(
     if keep_scale > 0.0:
         keep = network_fill_scales(rig, model_path, dig_type, X) >= keep_scale
         X, Y = X[keep], Y[keep]
-    if X.shape[0] == 0:
+    if X.shape[0] == 0:  # and no library left from an earlier export beside the model
+        model_path.with_name(model_path.stem + "_library.npz").unlink(missing_ok=True)
         return None
     return {
         **_write_beside(model_path, "_library.npz", X=X, Y=Y),

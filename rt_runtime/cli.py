@@ -473,15 +473,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     """``excavator-rt export``: ONNX models with their cards and held-out sets."""
     from pathlib import Path
 
-    from rt_runtime.training.export import (
-        LIBRARY_KEEP_BULGE_SCALE,
-        export,
-        record_planned_heldout,
-    )
+    from rt_runtime.training.export import export, record_planned_heldout
 
-    keep = LIBRARY_KEEP_BULGE_SCALE if args.library_keep_scale is None else args.library_keep_scale
-    if not (math.isfinite(keep) and keep >= 0.0):
-        raise ConfigurationError(f"--library-keep-scale must be finite and >= 0; got {keep}")
     out = Path(args.out)
     report: dict[str, Any] = {"types": {}}
     for kind in _types(args.type):
@@ -492,7 +485,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             model,
             dataset_path=data,
             library=args.library,
-            library_keep_scale=keep,
+            library_keep_scale=args.library_keep_scale,
         )
         held = out / card["heldout_file"]["name"]
         report["types"][kind] = {

@@ -237,6 +237,15 @@ def test_library_keeps_the_problems_the_network_fills_far_up(
     )
     assert none["library"] is None
     assert not (tmp_path / "pinn_backward_library.npz").exists()
+    for bad in (float("nan"), -0.1):
+        with pytest.raises(ConfigurationError, match="keep scale must be finite and >= 0"):
+            export(
+                pipeline / "ckpt" / "pinn_backward.pt",
+                tmp_path / "bad" / "pinn_backward.onnx",
+                library=True,
+                library_keep_scale=bad,
+            )
+    assert not (tmp_path / "bad").exists()  # refused before anything was written
 
 
 def test_library_plans_are_verified_and_beat_the_network(

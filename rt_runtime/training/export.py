@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -149,6 +150,13 @@ def onnx_session(path: Path) -> Any:
     return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
 
 
+def onnx_answers(path: Path, X: FloatArray) -> FloatArray:
+    """The exported network's answers ``(N, 4)`` (a16, a26, a36, T) to the problems ``X``,
+    staged as float32 as the runtime stages them, returned as float64."""
+    x = np.asarray(X, dtype=np.float32)
+    return np.asarray(onnx_session(path).run(["output"], {"input": x})[0], dtype=np.float64)
+
+
 def parity(net: Any, path: Path, X: FloatArray) -> float:
     """Largest relative difference between torch and onnxruntime outputs on ``X``.
 
@@ -161,7 +169,7 @@ def parity(net: Any, path: Path, X: FloatArray) -> float:
     x = np.asarray(X, dtype=np.float32)
     with torch.no_grad():
         ref = net(torch.from_numpy(x)).numpy().astype(np.float64)
-    got = onnx_session(path).run(["output"], {"input": x})[0].astype(np.float64)
+    got = onnx_answers(path, x)
     scale = np.maximum(np.max(np.abs(ref), axis=0), np.finfo(np.float64).tiny)
     return float(np.max(np.abs(got - ref) / scale))
 
@@ -177,7 +185,7 @@ def holdout_metrics(
         frequently violated constraints.
     """
     x = np.asarray(X, dtype=np.float64)
-    y = onnx_session(path).run(["output"], {"input": x.astype(np.float32)})[0].astype(np.float64)
+    y = onnx_answers(path, x)
     ev = evaluate(rig, x[:, 0:3], x[:, 3:6], x[:, 6], int(dig_type), y[:, None, :3], y[:, None, 3])
     obj = ev.objective[:, 0]
     gap = (obj - teacher_objective) / np.abs(teacher_objective)
@@ -201,7 +209,7 @@ def export(
     rig: Rig | str | None = None,
     dataset_path: Path | None = None,
     library: bool = False,
-    library_keep_scale: float = LIBRARY_KEEP_BULGE_SCALE,
+    library_keep_scale: float | None = None,
 ) -> dict[str, Any]:
     """Export a checkpoint to ONNX, check parity, measure held-out quality, write the held-out
     set (and, with ``library``, the solution library) and the card.
@@ -215,16 +223,21 @@ def export(
         library: Also write the solution library (:func:`_write_library`) and name it in the
             card (None there when no training problem is kept).
         library_keep_scale: The library keeps the training problems whose network plan fills
-            to this bulge scale or more (:data:`LIBRARY_KEEP_BULGE_SCALE`; 0: all of them).
+            to this bulge scale or more (None: :data:`LIBRARY_KEEP_BULGE_SCALE`; 0: all of
+            them); finite and >= 0.
 
     Returns:
         The model card.
 
     Raises:
-        ConfigurationError: Rig mismatch, missing dataset, or parity above
-            :data:`PARITY_TOLERANCE`.
+        ConfigurationError: Rig mismatch, missing dataset, a keep scale that is not finite
+            and >= 0, or parity above :data:`PARITY_TOLERANCE`.
     """
     import torch
+
+    keep = LIBRARY_KEEP_BULGE_SCALE if library_keep_scale is None else float(library_keep_scale)
+    if not (math.isfinite(keep) and keep >= 0.0):
+        raise ConfigurationError(f"library keep scale must be finite and >= 0; got {keep}")
 
     from rt_runtime.training import dataset as ds
     from rt_runtime.training.train import load_checkpoint, network_from_checkpoint
@@ -318,11 +331,7 @@ def export(
         },
         "heldout": held,
         "heldout_file": _write_heldout(data, out_path),
-        "library": (
-            _write_library(data, out_path, rig_obj, dig_type, library_keep_scale)
-            if library
-            else None
-        ),
+        "library": (_write_library(data, out_path, rig_obj, dig_type, keep) if library else None),
         "parity_max_rel": worst,
         "opset": OPSET,
         "exporter": f"torch {torch.__version__} torch.onnx.export (TorchScript)",
@@ -412,12 +421,12 @@ def network_fill_scales(rig: Rig, model_path: Path, dig_type: DigType, X: FloatA
     """The bulge scale ``c`` of the runtime's plan of the network's answer to each problem of
     ``X`` (fill and retime over the default range, as :class:`~rt_runtime.planning.pinn.
     PinnPlanner` plans it before any repair or library step); 0 where that plan fails."""
-    from rt_runtime.planning.verify import COL_TOTAL, N_OUT, Verifier
+    from rt_runtime.planning.verify import COL_TOTAL, N_OUT, Verifier, pack_inputs
 
-    x = np.ascontiguousarray(X, dtype=np.float64)
+    x = np.asarray(X, dtype=np.float64)
     n = x.shape[0]
-    y = onnx_session(model_path).run(["output"], {"input": x.astype(np.float32)})[0]
-    rows = np.concatenate([x, np.full((n, 1), float(int(dig_type))), y.astype(np.float64)], 1)
+    y = onnx_answers(model_path, x)
+    rows = pack_inputs(x[:, 0:3], x[:, 3:6], x[:, 6], int(dig_type), y[:, 0:3], y[:, 3])
     out = np.zeros((n, N_OUT))
     scale = np.zeros(n)
     Verifier(rig).plan_into(rows, out, np.zeros((n, 4)), scale=scale)

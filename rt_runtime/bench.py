@@ -399,31 +399,51 @@ def bench_plan(
     Each task is planned ``passes`` times with the PINN planner (the plans are deterministic;
     the times are the distribution) and, with ``pso``, once with the PSO teacher as the one-shot
     planner. Reported per task: digs (with T, V_p, W_E, theta_p), coverage error, maximum
-    over-dig, whole-plan time (p50/p99), the PSO plan's totals and the ratio of the totals,
-    and (``same_problems``) both planners on the PINN plan's own dig problems, summed.
+    over-dig, whole-plan time (p50/p99) and where it goes (``stage_us``, medians per stage),
+    the PSO plan's totals and the ratio of the totals, and (``same_problems``) both planners
+    on the PINN plan's own dig problems, summed.
+
+    The reference measured in the same run: the same planner with its geometry in numpy
+    (``geometry="numpy"``, the reference of the C screening geometry), its passes interleaved
+    with the timed ones; ``numpy_geometry_same_plan`` says whether it planned the same digs.
 
     Returns:
         JSON-ready dict: ``tasks`` (per name), ``trench.plan_us`` (p50/p99 over all tasks and
-        passes), ``goals``, ``paper``.
+        passes) and ``trench.numpy_geometry_plan_us``, ``goals``, ``paper``.
     """
     from rt_runtime.planning.trench import YAO_FIG14, TrenchPlanner, load_task
 
     pinn = TrenchPlanner(rig, "pinn", model_dir=model_dir)
+    ref = TrenchPlanner(rig, "pinn", model_dir=model_dir, geometry="numpy")
+    geometry = "c" if pinn.geo_kernel is not None else "numpy"
     out: dict[str, Any] = {}
     all_us: list[float] = []
+    all_ref: list[float] = []
     for name in tasks:
         task = load_task(name, rig)
         times: list[float] = []
+        ref_times: list[float] = []
+        stages: list[dict[str, float]] = []
         report: dict[str, Any] = {}
-        plan = None
+        plan = ref_plan = None
         for _ in range(max(1, passes)):
             plan = pinn.plan(task)
             times.append(plan.plan_total_us)
+            stages.append(plan.stage_us)
+            ref_plan = ref.plan(task)
+            ref_times.append(ref_plan.plan_total_us)
             report = plan.to_json()
+        assert plan is not None and ref_plan is not None
         all_us += times
+        all_ref += ref_times
         entry: dict[str, Any] = {
             "pinn": report,
             "plan_us": percentiles(times),
+            "stage_us": {k: float(np.median([st[k] for st in stages])) for k in stages[0]},
+            "numpy_geometry_plan_us": percentiles(ref_times),
+            "speedup_vs_numpy_geometry": float(np.median(ref_times) / np.median(times)),
+            "numpy_geometry_same_plan": len(ref_plan.digs) == len(plan.digs)
+            and abs(ref_plan.coverage_error - plan.coverage_error) <= 1e-9,
             "totals": _plan_totals(report),
         }
         if pso:
@@ -446,7 +466,11 @@ def bench_plan(
     return {
         "rig": rig.name,
         "tasks": out,
-        "trench": {"plan_us": percentiles(all_us)},
+        "trench": {
+            "geometry": geometry,
+            "plan_us": percentiles(all_us),
+            "numpy_geometry_plan_us": percentiles(all_ref),
+        },
         "goals": {
             "coverage_error_max": 0.02,
             "overdig_max_mm": 5.0,

@@ -723,8 +723,14 @@ def cmd_bench_plan(args: argparse.Namespace) -> int:
                 vs = sp["pinn_vs_pso"]
                 cmp = " / ".join(f"{vs[k]:+.1%}" for k in ("T_s", "volume_L", "energy_Wh"))
                 print(f"    {name:<4} {sp['pinn']['digs']:3.0f} digs  PINN {sp['pinn']['T_s']:.1f} s / {sp['pinn']['volume_L']:.2f} L / {sp['pinn']['energy_Wh']:.3f} Wh  PSO {sp['pso']['T_s']:.1f} s / {sp['pso']['volume_L']:.2f} L / {sp['pso']['energy_Wh']:.3f} Wh  ({cmp})")
+    print("  where the whole plan's time goes (ms, medians): " + ", ".join(r["tasks"][next(iter(r["tasks"]))]["stage_us"]))
+    for name, e in r["tasks"].items():
+        st = e["stage_us"]
+        ref = e["numpy_geometry_plan_us"]["p50"] / 1e3
+        print(f"    {name:<4} " + "  ".join(f"{v / 1e3:5.1f}" for v in st.values()) + f"   (numpy geometry: {ref:.1f} ms, {e['speedup_vs_numpy_geometry']:.1f}x)")
     g = r["goals"]
-    print(f"  whole plan, all tasks: p50 {r['trench']['plan_us']['p50'] / 1e3:.1f} ms, p99 {r['trench']['plan_us']['p99'] / 1e3:.1f} ms (goal p50 <= {g['plan_us_p50_max'] / 1e3:.0f} ms; Yao 4.2-4.5 ms per dig)")
+    tr = r["trench"]
+    print(f"  whole plan, all tasks ({tr['geometry']} geometry): p50 {tr['plan_us']['p50'] / 1e3:.1f} ms, p99 {tr['plan_us']['p99'] / 1e3:.1f} ms; numpy geometry p50 {tr['numpy_geometry_plan_us']['p50'] / 1e3:.1f} ms (goal p50 <= {g['plan_us_p50_max'] / 1e3:.0f} ms; Yao 4.2-4.5 ms per dig)")
     return 0
 
 

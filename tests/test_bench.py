@@ -55,3 +55,9 @@ def test_bench_plan_compares_pinn_and_pso_on_the_same_dig_problems() -> None:
     assert planning is not None
     assert planning.t_min_s * len(roughing) <= sp["pinn"]["T_s"] <= planning.t_max_s * len(roughing)
     assert "pso_totals" in e and "pinn_vs_pso" in e
+    # The reference in the same run: the numpy geometry plans the same digs; the stages split
+    # the whole plan's time.
+    assert e["numpy_geometry_same_plan"] is True
+    assert e["numpy_geometry_plan_us"]["p50"] > 0.0 and e["speedup_vs_numpy_geometry"] > 0.0
+    assert sum(e["stage_us"].values()) == pytest.approx(e["plan_us"]["p50"], rel=1e-9)
+    assert r["trench"]["geometry"] == "c"

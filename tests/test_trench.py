@@ -148,6 +148,122 @@ def test_overdig_is_the_distance_to_the_design(planner: TrenchPlanner) -> None:
     assert np.any(got > 0.0)
 
 
+def test_swept_region_keeps_only_the_envelopes_kinks() -> None:
+    import shapely
+
+    from rt_runtime.planning.trench import _swept_polygon
+
+    # The envelope is straight between the path's samples: the region drops those grid
+    # points and is the same region (every polygon operation on the material gets cheaper).
+    grid = np.arange(0.0, 0.5001, 0.001)
+    s = np.linspace(0.0, 1.0, 31)
+    path = np.stack([0.05 + 0.4 * s, -0.12 * np.sin(np.pi * s) - 0.02 * s], axis=1)
+    poly = _swept_polygon(path, grid, 1.0)
+    env = lower_envelope(path, grid)
+    ok = np.isfinite(env)
+    full = shapely.Polygon(
+        [
+            (path[0, 0], 1.0),
+            (path[0, 0], path[0, 1]),
+            *zip(grid[ok], env[ok], strict=True),
+            (path[-1, 0], path[-1, 1]),
+            (path[-1, 0], 1.0),
+        ]
+    )
+    assert shapely.is_valid(poly)
+    assert poly.area == pytest.approx(full.area, abs=1e-12)
+    assert poly.symmetric_difference(full).area < 1e-11
+    n_full, n_kept = len(full.exterior.coords), len(poly.exterior.coords)
+    assert n_kept < n_full / 5  # ~30 kinks of a 400-point span
+
+
+# -- the C geometry against its numpy reference ---------------------------------------------------
+
+
+def test_geometry_option_is_checked() -> None:
+    with pytest.raises(ConfigurationError, match="allowed: auto, c, numpy"):
+        TrenchPlanner(RIG, geometry="gpu")
+
+
+def test_c_envelope_and_overdig_equal_the_numpy_reference(planner: TrenchPlanner) -> None:
+    session = TrenchPlanner(RIG, geometry="c").start(load_task("D", RIG))
+    rng = np.random.default_rng(11)
+    # Polylines that turn back in x and have vertical and flat segments.
+    for _ in range(50):
+        path = np.cumsum(rng.normal(0.0, 0.03, size=(40, 2)), axis=0) + np.array([0.7, -0.05])
+        path[5, 0] = path[4, 0]
+        path[9, 1] = path[8, 1]
+        for grid in (session.grid, np.array([0.6, 0.75])):
+            want = lower_envelope(path, grid)
+            got = session._envelope(path, grid)
+            np.testing.assert_array_equal(got, want)
+    # A dug surface, then sampled paths through it and through the walls and corners.
+    session.surface = np.minimum(
+        session.surface, session.ground_y - 0.3 * rng.uniform(0.0, 1.0) * session.task.depth_m
+    )
+    session.surface[::7] -= 0.01
+    start = np.stack(
+        [
+            rng.uniform(session.x_lo, session.x_hi, size=300),
+            rng.uniform(session.bottom_y - 0.01, session.ground_y + 0.01, size=300),
+        ],
+        axis=-1,
+    )
+    paths = start[:, None, :] + np.cumsum(rng.normal(0.0, 0.003, size=(300, 25, 2)), axis=1)
+    got = session._overdig_many(paths)
+    want = session._overdig_many_numpy(paths)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)
+    assert np.count_nonzero(want > 0.0) > 20 and np.count_nonzero(want == 0.0) > 0
+
+
+def test_c_screening_geometry_matches_the_numpy_reference(monkeypatch) -> None:
+    # Every screening of a whole plan with a travel (D), on the dug surfaces: the kernel's
+    # V_p, cut and over-dig against the numpy reference. The over-dig is discontinuous where a
+    # sample lies on the surface (the entry sample does, at H): there the two may count it on
+    # either side, and the kernel's value must lie between the reference's with the surface
+    # 1 nm lower and 1 nm higher.
+    planner = TrenchPlanner(RIG, geometry="c")
+    calls: list[int] = []
+    c_paths = TrenchSession._screen_paths
+
+    def compare(self: TrenchSession, X: np.ndarray, K: np.ndarray) -> np.ndarray:
+        got = c_paths(self, X, K)
+        want = self._screen_paths_numpy(X, K)
+        np.testing.assert_allclose(got[[0, 2, 3]], want[[0, 2, 3]], rtol=0, atol=1e-13)
+        differ = np.abs(got[1] - want[1]) > 1e-13
+        if np.any(differ):
+            surface = self.surface
+            try:
+                self.surface = surface - 1e-9
+                lo = self._screen_paths_numpy(X, K)[1]
+                self.surface = surface + 1e-9
+                hi = self._screen_paths_numpy(X, K)[1]
+            finally:
+                self.surface = surface
+            assert np.all(got[1][differ] >= lo[differ] - 1e-13)
+            assert np.all(got[1][differ] <= hi[differ] + 1e-13)
+        calls.append(X.shape[0])
+        return got
+
+    monkeypatch.setattr(TrenchSession, "_screen_paths", compare)
+    plan = planner.plan(load_task("D", RIG))
+    assert plan.coverage_error <= 0.02
+    assert len(calls) >= len(plan.digs) and sum(calls) > 1000
+
+
+def test_numpy_geometry_plans_the_same_digs(plans: dict) -> None:
+    ref = TrenchPlanner(RIG, geometry="numpy")
+    assert ref.geo_kernel is None and ref.geo_module is None
+    for name in "AC":
+        want = plans[name]
+        got = ref.plan(load_task(name, RIG))
+        assert len(got.digs) == len(want.digs)
+        assert got.coverage_error == pytest.approx(want.coverage_error, abs=1e-9)
+        for a, b in zip(got.digs, want.digs, strict=True):
+            np.testing.assert_allclose(a.problem.q_start_rad, b.problem.q_start_rad, atol=1e-9)
+            assert a.T_s == pytest.approx(b.T_s, abs=1e-9)
+
+
 # -- plans of A-D ---------------------------------------------------------------------------------
 
 
@@ -204,8 +320,23 @@ def test_transitions_are_within_the_joint_limits(plans: dict) -> None:
 
 def test_report_keys(plans: dict) -> None:
     j = plans["B"].to_json()
-    for key in ("digs", "coverage_error", "overdig_max_mm", "plan_total_us"):
+    for key in ("digs", "coverage_error", "overdig_max_mm", "plan_total_us", "stage_us"):
         assert key in j
+    stages = j["stage_us"]
+    assert set(stages) == {
+        "screen",
+        "oneshot",
+        "checks",
+        "passes",
+        "transitions",
+        "record",
+        "finish",
+        "other",
+    }
+    assert all(v >= 0.0 for v in stages.values())
+    # the stages split the whole plan's time: other is what the named ones leave
+    assert sum(stages.values()) == pytest.approx(j["plan_total_us"], rel=1e-9)
+    assert stages["screen"] > 0.0 and stages["transitions"] > 0.0
     for key in ("type", "T_s", "volume_L", "energy_Wh", "theta_p_deg", "plan_us"):
         assert key in j["digs"][0]
     assert j["digs"][0]["type"] in ("downward", "backward")

@@ -48,7 +48,7 @@
 /* ---------------------------------------------------------------------------------------------
  * Layouts shared with verify.py (bump VK_ABI on any change: verify.py refuses a stale build).
  * ------------------------------------------------------------------------------------------- */
-#define VK_ABI 6
+#define VK_ABI 7
 
 enum vk_param {
     P_LEN = 0,           /* link lengths l0, l1, l2 (m) */
@@ -2063,6 +2063,149 @@ static void vk_plan(const double *p, const double *s, const double *basis, int m
 }
 
 /* ---------------------------------------------------------------------------------------------
+ * Trench screening (rt_runtime.planning.trench.TrenchSession._screen_kind): the geometry of
+ * every candidate dig's tip path at a few bulge scales, on a coarse grid of samples.
+ *
+ * Why C: a screening computes ~400 candidates x 4 scales x 9 samples (~15k tip points) and
+ * their excavated area, over-dig and cut on the height field; numpy spends ~1.7 ms of a 2.5 ms
+ * screening on it (a dozen passes over (N, 4, 9) arrays with temporaries), the loop here
+ * ~0.1 ms. The same formulas in the same association order as trench.py's numpy path
+ * (_screen_paths_numpy, the reference; tests/test_trench.py holds the two together):
+ * q = base + c (pf K) with base = q1 + qf (q2 - q1), kinematics.FastArm.tip_xy,
+ * oneshot.excavated_area_m2 (vk_segment_area), TrenchSession._overdig_many, _on_grid and
+ * _cut_estimate. Sums run in sample order (numpy's pairwise sums group 8 terms differently:
+ * ~1e-16 relative).
+ * ------------------------------------------------------------------------------------------- */
+
+/* The height field and the design a screening measures against (trench.py's session state). */
+typedef struct {
+    const double *surface, *floor; /* on the grid, n points */
+    double x0, h, machine_x;
+    Py_ssize_t n;
+    const double *walls;           /* 3 x 3: n_x, n_y, c of the far wall, near wall, bottom */
+    double xf, xn, ground;         /* the trench's x range and the ground line */
+    const double *edges;           /* E x 5: ax, ay, abx, aby, |ab|^2 (the design's edges) */
+    Py_ssize_t n_edges;
+} vk_field;
+
+/* TrenchSession._on_grid: linear interpolation on the uniform grid, clamped at the ends. */
+static inline void vk_on_grid(const vk_field *f, double x, double *surf, double *floor)
+{
+    double u = (x - f->x0) / f->h;
+    const double top = (double)f->n - 1.000001;
+    u = u < 0.0 ? 0.0 : (u > top ? top : u);
+    const Py_ssize_t i = (Py_ssize_t)u;
+    const double w = u - (double)i;
+    *surf = f->surface[i] * (1.0 - w) + f->surface[i + 1] * w;
+    if (floor != NULL) *floor = f->floor[i] * (1.0 - w) + f->floor[i + 1] * w;
+}
+
+/* TrenchSession._overdig_many of one sample: its distance to the design where it lies in the
+ * material and outside the design, else 0. */
+static inline double vk_sample_overdig(const vk_field *f, double x, double y)
+{
+    double surf;
+    vk_on_grid(f, x, &surf, NULL);
+    if (!(y < surf)) return 0.0;
+    const double *w = f->walls;
+    double d = vk_max(vk_max(w[0] * x + w[1] * y - w[2], w[3] * x + w[4] * y - w[5]),
+                      w[6] * x + w[7] * y - w[8]);
+    if (x > f->xf || x < f->xn) d = vk_max(d, f->ground - y);
+    if (!(d > 0.0)) return 0.0;
+    double best = INFINITY;
+    for (Py_ssize_t e = 0; e < f->n_edges; e++) {
+        const double *g = f->edges + 5 * e;
+        double t = ((x - g[0]) * g[2] + (y - g[1]) * g[3]) / g[4];
+        t = t < 0.0 ? 0.0 : (t > 1.0 ? 1.0 : t);
+        const double ex = x - (g[0] + t * g[2]);
+        const double ey = y - (g[1] + t * g[3]);
+        best = vk_min(best, ex * ex + ey * ey);
+    }
+    return sqrt(best);
+}
+
+/* trench.lower_envelope: the lowest y of a polyline over each point of a uniform grid it
+ * spans, +inf where it spans none (env must hold +inf on entry); the same formulas. */
+static void vk_lower_envelope(const double *path, Py_ssize_t n, const double *grid, Py_ssize_t M,
+                              double *env)
+{
+    const double x0 = grid[0], h = grid[1] - grid[0];
+    for (Py_ssize_t k = 0; k + 1 < n; k++) {
+        const double xa = path[2 * k], ya = path[2 * k + 1];
+        const double xb = path[2 * k + 2], yb = path[2 * k + 3];
+        const double lo = vk_min(xa, xb);
+        double f0 = ceil((lo - x0) / h - 1e-9), f1 = floor((lo + fabs(xb - xa) - x0) / h + 1e-9) + 1;
+        f0 = f0 < 0.0 ? 0.0 : (f0 > (double)M ? (double)M : f0);
+        f1 = f1 < 0.0 ? 0.0 : (f1 > (double)M ? (double)M : f1);
+        const Py_ssize_t i0 = (Py_ssize_t)f0, i1 = (Py_ssize_t)f1;
+        const double dx = xb - xa;
+        const int flat = fabs(dx) <= 1e-12;
+        const double slope = flat ? 0.0 : (yb - ya) / dx;
+        const double y_lo = vk_min(ya, yb), y_hi = vk_max(ya, yb);
+        const double base = flat ? y_lo : ya;
+        for (Py_ssize_t i = i0; i < i1; i++) {
+            double y = base + slope * (grid[i] - xa);
+            y = vk_min(vk_max(y, y_lo), y_hi);
+            if (y < env[i]) env[i] = y;
+        }
+    }
+}
+
+#define VK_SCREEN_MAX 512 /* samples x scales per candidate */
+
+/* One candidate (x7: q1, q2, H; K: the bulge direction) at nG scales G of S samples (shape
+ * functions qf, pf): for each scale its V_p against H, over-dig, and total and design-inside
+ * cut on the height field (m^2), written at stride `stride` apart (out[k * stride + g]). */
+static void vk_screen_row(const double *p, const double *x7, const double *K, const double *qf,
+                          const double *pf, int S, const double *G, int nG, const vk_field *f,
+                          double *out, Py_ssize_t stride)
+{
+    double ang[3 * VK_SCREEN_MAX], sn[3 * VK_SCREEN_MAX], cs[3 * VK_SCREEN_MAX];
+    const int n = S * nG;
+    for (int g = 0; g < nG; g++)
+        for (int s = 0; s < S; s++) {
+            const int i = g * S + s;
+            double q[3];
+            for (int j = 0; j < 3; j++) {
+                const double base = x7[j] + qf[s] * (x7[3 + j] - x7[j]);
+                q[j] = base + G[g] * (pf[s] * K[j]);
+            }
+            ang[i] = q[0];
+            ang[n + i] = q[0] + q[1];
+            ang[2 * n + i] = (q[0] + q[1]) + q[2];
+        }
+    vk_sincos_n(ang, sn, cs, 3 * n);
+    const double l0 = p[P_LEN], l1 = p[P_LEN + 1], l2 = p[P_LEN + 2], m = f->machine_x;
+    const double H = x7[6];
+    for (int g = 0; g < nG; g++) {
+        double area = 0.0, over = 0.0, total = 0.0, useful = 0.0, xp = 0.0, yp = 0.0, xr = 0.0;
+        for (int s = 0; s < S; s++) {
+            const int i = g * S + s;
+            const double xa = l0 * cs[i] + l1 * cs[n + i] + l2 * cs[2 * n + i];
+            const double y = l0 * sn[i] + l1 * sn[n + i] + l2 * sn[2 * n + i];
+            const double x = xa + m;
+            const double xrel = x - m; /* excavated_area_m2 takes x - m, as trench.py passes */
+            over = vk_max(over, vk_sample_overdig(f, x, y));
+            if (s > 0) {
+                area += vk_segment_area(H - yp, H - y, xrel - xr);
+                const double xm = 0.5 * (x + xp), ym = 0.5 * (y + yp), dx = fabs(x - xp);
+                double surf, floor;
+                vk_on_grid(f, xm, &surf, &floor);
+                total += vk_pos(surf - ym) * dx;
+                useful += vk_pos(surf - vk_max(ym, floor)) * dx;
+            }
+            xp = x;
+            yp = y;
+            xr = xrel;
+        }
+        out[g] = fabs(area);
+        out[stride + g] = over;
+        out[2 * stride + g] = total;
+        out[3 * stride + g] = useful;
+    }
+}
+
+/* ---------------------------------------------------------------------------------------------
  * CPython binding.
  * ------------------------------------------------------------------------------------------- */
 typedef struct {
@@ -2859,6 +3002,141 @@ static PyObject *Kernel_front(KernelObject *self, PyObject *const *args, Py_ssiz
     return (PyObject *)f;
 }
 
+/* The design and height-field arguments of screen and overdig (a[0..3]: field, frame, walls,
+ * edges, already acquired) as a vk_field. */
+static vk_field vk_field_of(const vk_arg *a)
+{
+    const double *fr = (const double *)a[1].view.buf;
+    const double *field = (const double *)a[0].view.buf;
+    const Py_ssize_t M = a[0].view.shape[1];
+    vk_field f = {
+        .surface = field, .floor = field + M, .x0 = fr[0], .h = fr[1], .machine_x = fr[2],
+        .n = M, .walls = (const double *)a[2].view.buf, .xf = fr[3], .xn = fr[4],
+        .ground = fr[5], .edges = (const double *)a[3].view.buf, .n_edges = a[3].view.shape[0],
+    };
+    return f;
+}
+
+static PyObject *vk_py_overdig(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    if (nargs != 6) {
+        PyErr_SetString(PyExc_TypeError,
+                        "overdig(paths, field, frame, walls, edges, out) takes 6 arguments");
+        return NULL;
+    }
+    vk_arg a[6] = {
+        {args[1], "field", 0, 2, {2, -1}},
+        {args[2], "frame", 0, 1, {6}},
+        {args[3], "walls", 0, 2, {3, 3}},
+        {args[4], "edges", 0, 2, {-1, 5}},
+        {args[0], "paths", 0, 3, {-1, -1, 2}},
+        {args[5], "out", 1, 1, {-1}},
+    };
+    if (get_args(a, 6) != 0) return NULL;
+    const Py_ssize_t N = a[4].view.shape[0], n = a[4].view.shape[1];
+    const char *bad = NULL;
+    if (a[5].view.shape[0] != N)
+        bad = "out must have one value per path (N,)";
+    else if (a[0].view.shape[1] < 2)
+        bad = "field must hold 2 or more grid points";
+    if (bad != NULL) {
+        release_rows(a, 6);
+        PyErr_SetString(PyExc_ValueError, bad);
+        return NULL;
+    }
+    const vk_field f = vk_field_of(a);
+    const double *paths = (const double *)a[4].view.buf;
+    double *out = (double *)a[5].view.buf;
+    for (Py_ssize_t r = 0; r < N; r++) {
+        double worst = 0.0;
+        for (Py_ssize_t s = 0; s < n; s++) {
+            const double *pt = paths + 2 * (r * n + s);
+            worst = vk_max(worst, vk_sample_overdig(&f, pt[0], pt[1]));
+        }
+        out[r] = worst;
+    }
+    release_rows(a, 6);
+    Py_RETURN_NONE;
+}
+
+static PyObject *vk_py_envelope(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    if (nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "envelope(path, grid, out) takes 3 arguments");
+        return NULL;
+    }
+    vk_arg a[3] = {
+        {args[0], "path", 0, 2, {-1, 2}},
+        {args[1], "grid", 0, 1, {-1}},
+        {args[2], "out", 1, 1, {-1}},
+    };
+    if (get_args(a, 3) != 0) return NULL;
+    const Py_ssize_t M = a[1].view.shape[0];
+    if (a[2].view.shape[0] != M || M < 2) {
+        release_rows(a, 3);
+        PyErr_SetString(PyExc_ValueError, "grid must hold 2 or more points and out one per point");
+        return NULL;
+    }
+    double *env = (double *)a[2].view.buf;
+    for (Py_ssize_t i = 0; i < M; i++) env[i] = INFINITY;
+    vk_lower_envelope((const double *)a[0].view.buf, a[0].view.shape[0],
+                      (const double *)a[1].view.buf, M, env);
+    release_rows(a, 3);
+    Py_RETURN_NONE;
+}
+
+static PyObject *Kernel_screen(KernelObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 9) {
+        PyErr_SetString(PyExc_TypeError,
+                        "screen(rows, K, shapes, scales, field, frame, walls, edges, out) takes 9 "
+                        "arguments");
+        return NULL;
+    }
+    vk_arg a[9] = {
+        {args[0], "rows", 0, 2, {-1, 7}},
+        {args[1], "K", 0, 2, {-1, 3}},
+        {args[2], "shapes", 0, 2, {2, -1}},
+        {args[3], "scales", 0, 1, {-1}},
+        {args[4], "field", 0, 2, {2, -1}},
+        {args[5], "frame", 0, 1, {6}},
+        {args[6], "walls", 0, 2, {3, 3}},
+        {args[7], "edges", 0, 2, {-1, 5}},
+        {args[8], "out", 1, 3, {4, -1, -1}},
+    };
+    if (get_args(a, 9) != 0) return NULL;
+    const Py_ssize_t n = a[0].view.shape[0];
+    const Py_ssize_t S = a[2].view.shape[1], nG = a[3].view.shape[0];
+    const Py_ssize_t M = a[4].view.shape[1];
+    const char *bad = NULL;
+    if (a[1].view.shape[0] != n)
+        bad = "K must have as many rows as rows";
+    else if (a[8].view.shape[1] != n || a[8].view.shape[2] != nG)
+        bad = "out must have shape (4, N, G): N rows, G scales";
+    else if (S < 2 || nG < 1 || S * nG > VK_SCREEN_MAX)
+        bad = "shapes and scales must give 2 or more samples, 1 or more scales, at most 512 "
+              "samples x scales";
+    else if (M < 2)
+        bad = "field must hold 2 or more grid points";
+    if (bad != NULL) {
+        release_rows(a, 9);
+        PyErr_SetString(PyExc_ValueError, bad);
+        return NULL;
+    }
+    const double *shapes = (const double *)a[2].view.buf;
+    const vk_field f = vk_field_of(a + 4);
+    const double *rows = (const double *)a[0].view.buf, *K = (const double *)a[1].view.buf;
+    const double *G = (const double *)a[3].view.buf;
+    double *out = (double *)a[8].view.buf;
+    for (Py_ssize_t r = 0; r < n; r++)
+        vk_screen_row(self->params, rows + 7 * r, K + 3 * r, shapes, shapes + S, (int)S, G,
+                      (int)nG, &f, out + r * nG, n * nG);
+    release_rows(a, 9);
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef Kernel_methods[] = {
     {"run", (PyCFunction)(void (*)(void))Kernel_run, METH_FASTCALL,
      "run(inputs (N, 12), out (N, 32), path (N, m, 2) or None) -> None"},
@@ -2870,6 +3148,9 @@ static PyMethodDef Kernel_methods[] = {
     {"front", (PyCFunction)(void (*)(void))Kernel_front, METH_FASTCALL,
      "front(row (1, 12), out (1, 32), planned (1, 4), scale (1,), lo (2, 7), hi (2, 7), "
      "x (2 float32 (1, 7)), y (2 float32 (1, 4)), runs (2 callables)) -> Front"},
+    {"screen", (PyCFunction)(void (*)(void))Kernel_screen, METH_FASTCALL,
+     "screen(rows (N, 7), K (N, 3), shapes (2, S), scales (G,), field (2, M), frame (6,), "
+     "walls (3, 3), edges (E, 5), out (4, N, G)) -> None"},
     {NULL, NULL, 0, NULL},
 };
 
@@ -2897,9 +3178,20 @@ static PyTypeObject KernelType = {
     .tp_new = PyType_GenericNew,
 };
 
+/* The trench planner's geometry (no rig constants: module functions). */
+static PyMethodDef verify_functions[] = {
+    {"overdig", (PyCFunction)(void (*)(void))vk_py_overdig, METH_FASTCALL,
+     "overdig(paths (N, n, 2), field (2, M), frame (6,), walls (3, 3), edges (E, 5), out (N,)) "
+     "-> None"},
+    {"envelope", (PyCFunction)(void (*)(void))vk_py_envelope, METH_FASTCALL,
+     "envelope(path (n, 2), grid (M,) uniform, out (M,)) -> None"},
+    {NULL, NULL, 0, NULL},
+};
+
 static struct PyModuleDef verify_module = {
     PyModuleDef_HEAD_INIT, VK_MODULE_NAME,
-    "C kernel of rt_runtime.planning.verify (one-shot dig verification).", -1, NULL,
+    "C kernel of rt_runtime.planning.verify (one-shot dig verification) and of the trench "
+    "planner's screening geometry.", -1, verify_functions,
     NULL, NULL, NULL, NULL,
 };
 

@@ -158,7 +158,7 @@ BUILD_HINT = (
 )
 
 # Layout of the kernel's constants; _verify.c's enum vk_param must list the same offsets.
-_ABI = 6
+_ABI = 7
 _PARAM_FIELDS: tuple[tuple[str, int], ...] = (
     ("lengths", 3),
     ("chain_h", 3),
@@ -441,7 +441,17 @@ class Verifier:
             names the output).
     """
 
-    __slots__ = ("_plan", "_retime", "_run", "backend", "build", "kernel", "n_samples", "rig")
+    __slots__ = (
+        "_plan",
+        "_retime",
+        "_run",
+        "backend",
+        "build",
+        "kernel",
+        "module",
+        "n_samples",
+        "rig",
+    )
 
     def __init__(self, rig: Rig, n_samples: int = DEFAULT_SAMPLES, backend: str = "auto") -> None:
         if backend not in BACKENDS:
@@ -471,6 +481,8 @@ class Verifier:
         self.build: str | None = None
         #: The C kernel object (None with numpy): its ``front`` binds a planner's buffers.
         self.kernel: Any = None
+        #: The C kernel's module (None with numpy): the trench planner's geometry functions.
+        self.module: ModuleType | None = None
         if module is not None:
             try:
                 kernel = module.Kernel(pack_params(rig), self.n_samples)
@@ -488,6 +500,7 @@ class Verifier:
                 self._retime = kernel.retime
                 self._plan = kernel.plan
                 self.kernel = kernel
+                self.module = module
                 self.backend = "c"
                 self.build = "avx2" if module.__name__.endswith("_avx2") else "baseline"
 

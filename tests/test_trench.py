@@ -197,6 +197,10 @@ def test_c_envelope_and_overdig_equal_the_numpy_reference(planner: TrenchPlanner
             want = lower_envelope(path, grid)
             got = session._envelope(path, grid)
             np.testing.assert_array_equal(got, want)
+    # Not-a-number samples span nothing and cut nothing (no index from a NaN).
+    bad = np.array([[0.5, -0.01], [np.nan, -0.02], [0.6, np.nan]])
+    assert not np.any(np.isfinite(session._envelope(bad, session.grid)))
+    assert session._overdig_many(bad[None])[0] == 0.0
     # A dug surface, then sampled paths through it and through the walls and corners.
     session.surface = np.minimum(
         session.surface, session.ground_y - 0.3 * rng.uniform(0.0, 1.0) * session.task.depth_m

@@ -2093,7 +2093,7 @@ static inline void vk_on_grid(const vk_field *f, double x, double *surf, double 
 {
     double u = (x - f->x0) / f->h;
     const double top = (double)f->n - 1.000001;
-    u = u < 0.0 ? 0.0 : (u > top ? top : u);
+    u = u > 0.0 ? (u < top ? u : top) : 0.0; /* NaN: 0, never an index out of the grid */
     const Py_ssize_t i = (Py_ssize_t)u;
     const double w = u - (double)i;
     *surf = f->surface[i] * (1.0 - w) + f->surface[i + 1] * w;
@@ -2135,8 +2135,9 @@ static void vk_lower_envelope(const double *path, Py_ssize_t n, const double *gr
         const double xb = path[2 * k + 2], yb = path[2 * k + 3];
         const double lo = vk_min(xa, xb);
         double f0 = ceil((lo - x0) / h - 1e-9), f1 = floor((lo + fabs(xb - xa) - x0) / h + 1e-9) + 1;
-        f0 = f0 < 0.0 ? 0.0 : (f0 > (double)M ? (double)M : f0);
-        f1 = f1 < 0.0 ? 0.0 : (f1 > (double)M ? (double)M : f1);
+        /* NaN: 0 (an empty span), never an index out of the grid */
+        f0 = f0 > 0.0 ? (f0 < (double)M ? f0 : (double)M) : 0.0;
+        f1 = f1 > 0.0 ? (f1 < (double)M ? f1 : (double)M) : 0.0;
         const Py_ssize_t i0 = (Py_ssize_t)f0, i1 = (Py_ssize_t)f1;
         const double dx = xb - xa;
         const int flat = fabs(dx) <= 1e-12;

@@ -663,8 +663,8 @@ def _swept_polygon(
     # Interior grid points on a straight piece of the envelope add nothing to the region: only
     # its kinks are kept (the envelope is linear between the path's samples, so ~3-4 of every
     # 4 points go). The region is the same to ~1e-8 m (1e-12 m per dropped point, k^2 / 8 of
-    # it over a run of k), and every polygon operation on the
-    # material after it (which accumulates these vertices dig after dig) costs that much less.
+    # it over a run of k), and every later polygon operation on the material, which would
+    # accumulate these vertices dig after dig, costs that much less.
     keep = np.ones(y.shape[0], dtype=bool)
     keep[1:-1] = np.abs(y[2:] - 2.0 * y[1:-1] + y[:-2]) > _COLLINEAR_M
     m = int(np.count_nonzero(keep))

@@ -3003,19 +3003,33 @@ static PyObject *Kernel_front(KernelObject *self, PyObject *const *args, Py_ssiz
     return (PyObject *)f;
 }
 
-/* The design and height-field arguments of screen and overdig (a[0..3]: field, frame, walls,
- * edges, already acquired) as a vk_field. */
-static vk_field vk_field_of(const vk_arg *a)
+/* The height-field and design arguments of screen and overdig (field, frame, walls, edges:
+ * args[0..3]) as the argument specs a[0..3]. */
+static void vk_field_args(vk_arg *a, PyObject *const *args)
 {
+    const vk_arg spec[4] = {
+        {args[0], "field", 0, 2, {2, -1}},
+        {args[1], "frame", 0, 1, {6}},
+        {args[2], "walls", 0, 2, {3, 3}},
+        {args[3], "edges", 0, 2, {-1, 5}},
+    };
+    for (int k = 0; k < 4; k++) a[k] = spec[k];
+}
+
+/* Those arguments, acquired (a[0..3]), as a vk_field: NULL, or what is wrong with them. */
+static const char *vk_field_of(const vk_arg *a, vk_field *f)
+{
+    const Py_ssize_t M = a[0].view.shape[1];
+    if (M < 2) return "field must hold 2 or more grid points";
     const double *fr = (const double *)a[1].view.buf;
     const double *field = (const double *)a[0].view.buf;
-    const Py_ssize_t M = a[0].view.shape[1];
-    vk_field f = {
+    const vk_field g = {
         .surface = field, .floor = field + M, .x0 = fr[0], .h = fr[1], .machine_x = fr[2],
         .n = M, .walls = (const double *)a[2].view.buf, .xf = fr[3], .xn = fr[4],
         .ground = fr[5], .edges = (const double *)a[3].view.buf, .n_edges = a[3].view.shape[0],
     };
-    return f;
+    *f = g;
+    return NULL;
 }
 
 static PyObject *vk_py_overdig(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
@@ -3027,26 +3041,20 @@ static PyObject *vk_py_overdig(PyObject *module, PyObject *const *args, Py_ssize
         return NULL;
     }
     vk_arg a[6] = {
-        {args[1], "field", 0, 2, {2, -1}},
-        {args[2], "frame", 0, 1, {6}},
-        {args[3], "walls", 0, 2, {3, 3}},
-        {args[4], "edges", 0, 2, {-1, 5}},
-        {args[0], "paths", 0, 3, {-1, -1, 2}},
-        {args[5], "out", 1, 1, {-1}},
+        [4] = {args[0], "paths", 0, 3, {-1, -1, 2}},
+        [5] = {args[5], "out", 1, 1, {-1}},
     };
+    vk_field_args(a, args + 1);
     if (get_args(a, 6) != 0) return NULL;
     const Py_ssize_t N = a[4].view.shape[0], n = a[4].view.shape[1];
-    const char *bad = NULL;
-    if (a[5].view.shape[0] != N)
-        bad = "out must have one value per path (N,)";
-    else if (a[0].view.shape[1] < 2)
-        bad = "field must hold 2 or more grid points";
+    vk_field f;
+    const char *bad = vk_field_of(a, &f);
+    if (bad == NULL && a[5].view.shape[0] != N) bad = "out must have one value per path (N,)";
     if (bad != NULL) {
         release_rows(a, 6);
         PyErr_SetString(PyExc_ValueError, bad);
         return NULL;
     }
-    const vk_field f = vk_field_of(a);
     const double *paths = (const double *)a[4].view.buf;
     double *out = (double *)a[5].view.buf;
     for (Py_ssize_t r = 0; r < N; r++) {
@@ -3101,33 +3109,26 @@ static PyObject *Kernel_screen(KernelObject *self, PyObject *const *args, Py_ssi
         {args[1], "K", 0, 2, {-1, 3}},
         {args[2], "shapes", 0, 2, {2, -1}},
         {args[3], "scales", 0, 1, {-1}},
-        {args[4], "field", 0, 2, {2, -1}},
-        {args[5], "frame", 0, 1, {6}},
-        {args[6], "walls", 0, 2, {3, 3}},
-        {args[7], "edges", 0, 2, {-1, 5}},
-        {args[8], "out", 1, 3, {4, -1, -1}},
+        [8] = {args[8], "out", 1, 3, {4, -1, -1}},
     };
+    vk_field_args(a + 4, args + 4);
     if (get_args(a, 9) != 0) return NULL;
     const Py_ssize_t n = a[0].view.shape[0];
     const Py_ssize_t S = a[2].view.shape[1], nG = a[3].view.shape[0];
-    const Py_ssize_t M = a[4].view.shape[1];
-    const char *bad = NULL;
-    if (a[1].view.shape[0] != n)
-        bad = "K must have as many rows as rows";
-    else if (a[8].view.shape[1] != n || a[8].view.shape[2] != nG)
+    vk_field f;
+    const char *bad = vk_field_of(a + 4, &f);
+    if (bad == NULL && a[1].view.shape[0] != n) bad = "K must have as many rows as rows";
+    if (bad == NULL && (a[8].view.shape[1] != n || a[8].view.shape[2] != nG))
         bad = "out must have shape (4, N, G): N rows, G scales";
-    else if (S < 2 || nG < 1 || S * nG > VK_SCREEN_MAX)
+    if (bad == NULL && (S < 2 || nG < 1 || S * nG > VK_SCREEN_MAX))
         bad = "shapes and scales must give 2 or more samples, 1 or more scales, at most 512 "
               "samples x scales";
-    else if (M < 2)
-        bad = "field must hold 2 or more grid points";
     if (bad != NULL) {
         release_rows(a, 9);
         PyErr_SetString(PyExc_ValueError, bad);
         return NULL;
     }
     const double *shapes = (const double *)a[2].view.buf;
-    const vk_field f = vk_field_of(a + 4);
     const double *rows = (const double *)a[0].view.buf, *K = (const double *)a[1].view.buf;
     const double *G = (const double *)a[3].view.buf;
     double *out = (double *)a[8].view.buf;

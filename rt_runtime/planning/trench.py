@@ -966,12 +966,11 @@ class TrenchSession:
                 [0.0, -1.0, -self.bottom_y],
             ]
         )
-        # The design's edges for the over-dig distance: start points, vectors, squared lengths.
+        # The design's edges for the over-dig distance, one row per edge: start point, vector,
+        # squared length (ax, ay, abx, aby, |ab|^2; the C geometry takes the same rows).
         ring = np.asarray(self.design.exterior.coords)  # closed: last == first
         edge = ring[1:] - ring[:-1]
-        self._design_edges = (ring[:-1].copy(), edge, np.sum(edge * edge, axis=1))
-        # The same, one row per edge (ax, ay, abx, aby, |ab|^2), for the screening kernel.
-        self._design_edge_rows = np.column_stack([ring[:-1], edge, self._design_edges[2]])
+        self._design_edges = np.column_stack([ring[:-1], edge, np.sum(edge * edge, axis=1)])
         self.steps: list[PlannedDig | Transition | TravelMove] = []
         self.digs: list[PlannedDig] = []
         self.machine_x = 0.0
@@ -1024,7 +1023,7 @@ class TrenchSession:
             [self.grid[0], GRID_STEP_M, self.machine_x, xf, xf - self.task.length_m, self.ground_y]
         )
         heights = np.stack([self.surface, self.design_floor])
-        return heights, frame, self._walls, self._design_edge_rows
+        return heights, frame, self._walls, self._design_edges
 
     def _overdig_many(self, paths: FloatArray) -> FloatArray:
         """Over-dig of many paths ``(N, n, 2)`` at once (m, 0 where none); in C with the C
@@ -1061,7 +1060,8 @@ class TrenchSession:
         worst: FloatArray = np.zeros(x.shape[:-1])
         if np.any(out):
             px, py = x[out], y[out]
-            a, ab, ab2 = self._design_edges
+            e = self._design_edges
+            a, ab, ab2 = e[:, 0:2], e[:, 2:4], e[:, 4]
             # distance to each edge (segment) of the convex design, the nearest one counts
             t = ((px[:, None] - a[:, 0]) * ab[:, 0] + (py[:, None] - a[:, 1]) * ab[:, 1]) / ab2
             t = np.clip(t, 0.0, 1.0)

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rt_runtime.errors import ConfigurationError
+from rt_runtime.fileio import atomic_write
 from rt_runtime.planning.oneshot import CONSTRAINT_NAMES, DigType, evaluate
 from rt_runtime.planning.pinn import CARD_FORMAT, INPUT_NAMES, OUTPUT_NAMES, sha256_file
 from rt_runtime.rig import Rig, load_rig
@@ -343,9 +344,8 @@ def export(
 
 def _write_card(path: Path, card: dict[str, Any]) -> None:
     """Write a model card atomically (a reader never sees half a card)."""
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(card, indent=2) + "\n")
-    os.replace(tmp, path)
+    data = (json.dumps(card, indent=2) + "\n").encode()
+    atomic_write(path, lambda f: f.write(data))
 
 
 def _write_heldout(data: Any, model_path: Path) -> dict[str, str]:
@@ -376,9 +376,7 @@ def _write_beside(model_path: Path, suffix: str, **arrays: Any) -> dict[str, Any
     """Write ``arrays`` atomically to ``<model stem><suffix>`` (compressed npz) beside the model;
     returns the card's entry for the file: its name and SHA-256."""
     out = model_path.with_name(model_path.stem + suffix)
-    tmp = out.with_name(out.name + ".tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, out)
+    atomic_write(out, lambda f: np.savez_compressed(f, **arrays))
     return {"name": out.name, "sha256": sha256_file(out)}
 
 

@@ -446,7 +446,6 @@ class Verifier:
         "_retime",
         "_run",
         "backend",
-        "build",
         "kernel",
         "module",
         "n_samples",
@@ -477,8 +476,6 @@ class Verifier:
         self._retime = self._retime_numpy
         self._plan: _PlanFn = self._plan_numpy
         self.backend = "numpy"
-        #: Which build of the C kernel runs ("avx2" or "baseline"; None with numpy).
-        self.build: str | None = None
         #: The C kernel object (None with numpy): its ``front`` binds a planner's buffers.
         self.kernel: Any = None
         #: The C kernel's module (None with numpy): the trench planner's geometry functions.
@@ -502,7 +499,13 @@ class Verifier:
                 self.kernel = kernel
                 self.module = module
                 self.backend = "c"
-                self.build = "avx2" if module.__name__.endswith("_avx2") else "baseline"
+
+    @property
+    def build(self) -> str | None:
+        """Which build of the C kernel runs ("avx2" or "baseline"; None with numpy)."""
+        if self.module is None:
+            return None
+        return "avx2" if self.module.__name__.endswith("_avx2") else "baseline"
 
     def _self_check(
         self, run: Callable[[FloatArray, FloatArray, FloatArray | None], None]

@@ -704,14 +704,12 @@ class ArmPlant:
     @property
     def stroke_m(self) -> FloatArray:
         """True cylinder strokes ``(3,)`` (what the drives' encoders read, before quantisation)."""
-        geo = self._geo
-        return _vec3(geo[0][0], geo[1][0], geo[2][0])
+        return _vec3(*self.stroke_state()[0])
 
     @property
     def stroke_rate_m_s(self) -> FloatArray:
         """True stroke rates ``(3,)``."""
-        geo, qd = self._geo, self._qd
-        return _vec3(geo[0][1] * qd[0], geo[1][1] * qd[1], geo[2][1] * qd[2])
+        return _vec3(*self.stroke_state()[1])
 
     def stroke_state(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
         """True strokes and stroke rates as floats, ``((s0, s1, s2), (sd0, sd1, sd2))``: the

@@ -54,6 +54,7 @@ import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from enum import IntEnum
 from typing import Any, Protocol, TypeVar, cast
 
 import numpy as np
@@ -80,6 +81,29 @@ from rt_runtime.planning.verify import (
 from rt_runtime.rig import Rig
 
 FloatArray = NDArray[np.float64]
+
+
+class Stage(IntEnum):
+    """Where a section's digging is; a section goes through them in this order.
+
+    The design is cut in horizontal layers, top first (:meth:`TrenchSession._choose_layers`).
+    In each layer above the bottom one: ``ROUGH``, the network's digs (Yao Fig. 5: downward,
+    then backward), each filled on the material left and judged against the layer's floor;
+    then ``LAYER``, digs along the layer's floor (and the walls above it) take the rest of
+    the layer in columns, far to near, each a full bucket. In the bottom layer: ``FAR_WALL``,
+    the far wall's dig (it takes what the layers left on the wall); ``BOTTOM``, columns along
+    the design's bottom, straight, far to near; ``NEAR_WALL``, the near wall's dig.
+    ``FINISH``: finishing passes trim what is left. Digs that do not fill the bucket (the
+    walls' mostly) are finishing passes, at most :data:`MAX_FINISHING_PER_SECTION` a section.
+    """
+
+    ROUGH = 0
+    LAYER = 1
+    FAR_WALL = 2
+    BOTTOM = 3
+    NEAR_WALL = 4
+    FINISH = 5
+
 
 #: Yao Table 3: (L m, D m, beta1 deg, beta2 deg).
 BUILTIN_TASKS: dict[str, tuple[float, float, float, float]] = {
@@ -380,6 +404,41 @@ class PinnOneShot:
         )
         return OneShotResult(p.a6, p.T_s, p.evaluation, p.plan_us, p.status.name.lower())
 
+    def plan_scaled(
+        self, problem: Problem, K_rad: FloatArray, T_s: float, c: float
+    ) -> OneShotResult:
+        """The network's path for ``problem`` with its bulge ``K_rad`` (``(3,)``, rad, the
+        network's answer at ``T_s``) scaled by ``c``, retimed to the shortest feasible time.
+
+        The trench planner chooses ``c`` so that the real cut on the material left fills the
+        bucket (the fill rule); the one-shot volume window against a flat surface at H does
+        not apply and is not checked here (the caller checks the real cut), every other limit
+        of Yao eq 12 is.
+
+        Raises:
+            PlanningError: No time in the range makes the scaled path feasible.
+        """
+        t0 = time.perf_counter()
+        verifier = self.planner.verifier
+        a6 = -c * np.asarray(K_rad, dtype=np.float64) / T_s**6
+        row = pack_inputs(
+            problem.q_start_rad, problem.q_end_rad, problem.surface_y_m, problem.dig_type,
+            a6, T_s,
+        )  # fmt: skip
+        out = np.zeros((1, N_OUT))
+        retimed = np.zeros((1, 4))
+        verifier.retime_into(row, out, retimed)
+        if not np.isfinite(retimed[0, 3]) or _total_without_volume(out[0]) > 0.0:
+            raise PlanningError("the scaled network path has no feasible time")
+        r = retimed[0]
+        return OneShotResult(
+            (float(r[0]), float(r[1]), float(r[2])),
+            float(r[3]),
+            out[0].copy(),
+            (time.perf_counter() - t0) * 1e6,
+            "filled",
+        )
+
 
 class PsoOneShot:
     """The PSO teacher (seconds per dig): Yao's reference, same interface."""
@@ -433,8 +492,12 @@ class PlannedDig:
         overdig_m: Deepest cut below the design profile (0 if none).
         plan_us: Time the one-shot planner took for this dig (excluding screening).
         select_us: Time of this dig's candidate screening and selection.
-        planner: ``pinn`` or ``pso``; status: how the one-shot planner got the plan.
+        planner: ``pinn`` or ``pso``; status: how the one-shot planner got the plan
+            (``filled``: the network's path filled on the material left; ``profile``: a
+            full dig along the design's outline; ``profile_pass``: a finishing pass).
         evaluation: The verifier's row for the plan.
+        finishing: Whether the dig is a finishing pass (exempt from the fill rule).
+        section: The section of the trench the dig belongs to (0 at the far end).
     """
 
     index: int
@@ -454,6 +517,8 @@ class PlannedDig:
     planner: str
     status: str
     evaluation: FloatArray = field(repr=False)
+    finishing: bool = False
+    section: int = 0
 
     @property
     def dig_type(self) -> DigType:
@@ -568,6 +633,8 @@ class TrenchPlan:
                 "overdig_mm": d.overdig_m * 1e3,
                 "machine_x_m": d.machine_x_m,
                 "status": d.status,
+                "finishing": d.finishing,
+                "section": d.section,
             }
             for d in self.digs
         ]
@@ -979,11 +1046,72 @@ class TrenchSession:
         self.design_area = float(self.design.area)
         self.phase = DigType.DOWNWARD
         self._finish_index = 0
-        self._travels = 0
+        self.finishing_used = 0
+        #: The sections (work-site x ranges, far first) and where the machine stands for each.
+        self.sections, self.stands = self._plan_sections()
+        self.section = 0
+        self.section_lo, self.section_hi = self.sections[0]
+        self.layer_floors: tuple[float, ...] = ()
+        self.layer = 0
+        self.stage = Stage.ROUGH
+        self._wall_piece = 0
+        self._begin_section(0)
         #: Time spent per stage so far (us; TrenchPlan.stage_us).
         self.stage_us: dict[str, float] = dict.fromkeys(_STAGES, 0.0)
         #: The pending dig's planned tip path, its envelope and swept region (for record()).
         self._planned_region: tuple[FloatArray, FloatArray, Any] | None = None
+
+    def _plan_sections(self) -> tuple[list[tuple[float, float]], list[float]]:
+        """The trench's sections, far first, and the machine's position (travel from its
+        first position) for each: one section where the trench lies within reach of the
+        first stand; else equal sections, each within ``[_STAND_NEAR_X_M, _STAND_FAR_X_M]``
+        (scaled) of the arm from its stand, the machine travelling back by one section each
+        time (first back to put the far edge at _STAND_FAR_X_M where it lies nearer)."""
+        s = self.planner.scale
+        t = self.task
+        xf = t.start_x_m
+        near = _STAND_NEAR_X_M * s
+        if xf - t.length_m >= near - 1e-9:
+            return [(xf - t.length_m, xf)], [0.0]
+        m0 = min(0.0, xf - _STAND_FAR_X_M * s)
+        n = math.ceil(t.length_m / (xf - m0 - near) - 1e-9)
+        step = t.length_m / n
+        sections = [(xf - (k + 1) * step, xf - k * step) for k in range(n)]
+        return sections, [m0 - k * step for k in range(n)]
+
+    def _begin_section(self, k: int) -> None:
+        """Start section ``k``: travel to its stand, choose its layers, first stage."""
+        self.section = k
+        self.section_lo, self.section_hi = self.sections[k]
+        move = self.stands[k] - self.machine_x
+        if abs(move) > 1e-9:
+            self._travel(move)
+        self.finishing_used = 0
+        self.layer_floors = self._choose_layers()
+        self.layer = 0
+        self.stage = Stage.ROUGH if self.layer_floors else Stage.FAR_WALL
+        self.phase = DigType.DOWNWARD
+        self._wall_piece = 0
+        self._set_layer()
+
+    def _set_layer(self) -> None:
+        """The current layer's design (the design above its floor) as the screening and the
+        columns take it: ``layer_y``, its floor on the grid, half-planes, edges and polygon
+        (the bottom layer's are the design's)."""
+        if self.layer < len(self.layer_floors):
+            y = self.layer_floors[self.layer]
+        else:
+            y = self.bottom_y
+        self.layer_y = y
+        self._layer_floor = np.maximum(self.design_floor, min(y, self.ground_y))
+        self._layer_walls = self._walls.copy()
+        self._layer_walls[2, 2] = -y
+        top = shapely.box(self.x_lo, y, self.x_hi, self.top_y)
+        part = self.design.intersection(top)
+        self.layer_design: Any = part if not part.is_empty else self.design
+        ring = np.asarray(shapely.get_exterior_ring(shapely.normalize(self.layer_design)).coords)
+        edge = ring[1:] - ring[:-1]
+        self._layer_edges = np.column_stack([ring[:-1], edge, np.sum(edge * edge, axis=1)])
 
     # -- state --------------------------------------------------------------------------------
 
@@ -1014,7 +1142,16 @@ class TrenchSession:
         geo.envelope(np.ascontiguousarray(path_xy, dtype=np.float64), grid_x, env)
         return env
 
-    def _geometry_args(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    def _design_arrays(self, layer: bool) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """The design's floor on the grid, its half-planes and its edges (the layer's design
+        above the profile layer with ``layer``: what the network's digs are judged on)."""
+        if layer:
+            return self._layer_floor, self._layer_walls, self._layer_edges
+        return self.design_floor, self._walls, self._design_edges
+
+    def _geometry_args(
+        self, layer: bool = False
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """The height field and design as the C geometry takes them: ``field`` (surface and
         design floor on the grid), ``frame`` (grid start and step, machine x, the trench's far
         and near x, the ground), ``walls`` and ``edges``."""
@@ -1022,8 +1159,8 @@ class TrenchSession:
         frame = np.array(
             [self.grid[0], GRID_STEP_M, self.machine_x, xf, xf - self.task.length_m, self.ground_y]
         )
-        heights = np.stack([self.surface, self.design_floor])
-        return heights, frame, self._walls, self._design_edges
+        floor, walls, edges = self._design_arrays(layer)
+        return np.stack([self.surface, floor]), frame, walls, edges
 
     def _overdig_many(self, paths: FloatArray) -> FloatArray:
         """Over-dig of many paths ``(N, n, 2)`` at once (m, 0 where none); in C with the C
@@ -1035,7 +1172,7 @@ class TrenchSession:
         geo.overdig(np.ascontiguousarray(paths, dtype=np.float64), *self._geometry_args(), out)
         return out
 
-    def _overdig_many_numpy(self, paths: FloatArray) -> FloatArray:
+    def _overdig_many_numpy(self, paths: FloatArray, layer: bool = False) -> FloatArray:
         """Over-dig of many paths ``(N, n, 2)`` at once (m, 0 where none).
 
         A sample counts where it lies below the current surface (in material) and outside the
@@ -1049,7 +1186,7 @@ class TrenchSession:
         x = paths[..., 0]
         y = paths[..., 1]
         inside = y < self._on_grid(x, self.surface)[0]
-        w = self._walls
+        _, w, e = self._design_arrays(layer)
         d = np.maximum(
             np.maximum(w[0, 0] * x + w[0, 1] * y - w[0, 2], w[1, 0] * x + w[1, 1] * y - w[1, 2]),
             w[2, 0] * x + w[2, 1] * y - w[2, 2],
@@ -1060,7 +1197,6 @@ class TrenchSession:
         worst: FloatArray = np.zeros(x.shape[:-1])
         if np.any(out):
             px, py = x[out], y[out]
-            e = self._design_edges
             a, ab, ab2 = e[:, 0:2], e[:, 2:4], e[:, 4]
             # distance to each edge (segment) of the convex design, the nearest one counts
             t = ((px[:, None] - a[:, 0]) * ab[:, 0] + (py[:, None] - a[:, 1]) * ab[:, 1]) / ab2
@@ -1100,58 +1236,10 @@ class TrenchSession:
 
     def _phase(self) -> DigType:
         """Fig. 5: downward until the depth is reached, then backward."""
-        if (
-            self.phase is DigType.DOWNWARD
-            and float(np.min(self.surface)) <= self.bottom_y + OVERDIG_LIMIT_M
-        ):
+        floor_y = self.layer_y if self.stage is Stage.ROUGH else self.bottom_y
+        if self.phase is DigType.DOWNWARD and float(np.min(self.surface)) <= floor_y + OVERDIG_LIMIT_M:
             self.phase = DigType.BACKWARD
         return self.phase
-
-    def _entry_x_candidates(self, remaining: Any) -> list[float]:
-        """Where on the surface digs may enter: the far edge of the remaining design material
-        within the entries' reach from where the machine stands.
-
-        After a travel, the edge is taken on the height field, where the material left above
-        the design floor is at least :data:`_ENTRY_MIN_THICKNESS_M` (scaled) thick: the profile
-        passes dug from the previous stand leave slivers along the floor, and the polygon's
-        bounds put the entries over dug ground (every candidate there over-digs, and a long
-        trench's near part was never roughed out: 32-52 % left on 1.0-1.2 m trenches 0.10-0.15 m
-        deep). Before any travel the polygon's bounds within reach are used, as they were: the
-        height-field edge changes the plans of Yao's tasks, D for the worse (27 % left), a
-        trade not made here.
-        """
-        s = self.planner.scale
-        lo, hi = self.planner.entry_x_range
-        m = self.machine_x
-        grid = self.grid
-        thick = (self.surface - self.design_floor > _ENTRY_MIN_THICKNESS_M * s) & (
-            (grid >= m + lo) & (grid <= m + hi)
-        )
-        idx = np.flatnonzero(thick) if self._travels else np.empty(0, dtype=np.intp)
-        step = 0.04 * s
-        edges: list[float] = []
-        if idx.size:
-            minx, maxx = float(grid[idx[0]]), float(grid[idx[-1]])
-            # The far edge of the bulk as well: where the previous stand's digs sloped the
-            # material off, the thin edge lies on that slope, below the ground the bulk
-            # behind it stands at, and every dig entering there would fill the bucket from
-            # the face above its path (1.0 m x 0.15 m: 40 % left). The bulk's edge is where
-            # the material is at least 90 % of its thickest within reach.
-            t = self.surface[idx] - self.design_floor[idx]
-            bulk = idx[t >= _ENTRY_BULK_FRACTION * float(np.max(t))]
-            bulk_x = float(grid[bulk[-1]])
-            if bulk_x < maxx - step:
-                edges.append(bulk_x)
-        else:
-            reach = self._reachable(remaining)
-            part = reach if reach.area >= 0.005 * self.design_area else remaining
-            minx, _, maxx, _ = part.bounds
-        xs = [
-            float(x)
-            for edge in (maxx, *edges)
-            for x in np.arange(edge, minx + 0.05 * s, -step)[:_N_ENTRY_X]
-        ]
-        return xs or [maxx]
 
     def next_dig(self) -> PlannedDig | None:
         """Plan the next dig from the current material, or None when the task is done.
@@ -1172,43 +1260,410 @@ class TrenchSession:
                 f"after {len(self.digs)} digs (the bound)"
             )
         t0 = time.perf_counter()
-        self._relocate_if_needed(remaining)
-        # The entries do not depend on the dig type or the phase: computed once for both
-        # screenings (nothing but the phase changes between them).
-        xe = np.asarray(self._entry_x_candidates(remaining))
+        dig = self._next_in_section(remaining, t0)
+        while dig is None and self.section + 1 < len(self.sections):
+            self._begin_section(self.section + 1)
+            dig = self._next_in_section(remaining, t0)
+        if dig is None:
+            return None
+        self._append_transitions(dig)
+        self.pending = dig
+        return dig
+
+    def _next_in_section(self, remaining: Any, t0: float) -> PlannedDig | None:
+        """The section's next dig through its stages (:class:`Stage`), or None when the
+        section is done."""
+        dig: PlannedDig | None = None
+        while dig is None and self.stage is not Stage.FINISH:
+            stage = self.stage
+            if stage is Stage.ROUGH:
+                dig = self._next_rough(t0)
+            elif stage is Stage.LAYER:
+                dig = self._next_layer_column(remaining, t0)
+            elif stage is Stage.BOTTOM:
+                dig = self._next_column(remaining, t0)
+            else:
+                dig = self._next_wall(stage is Stage.FAR_WALL, remaining, t0)
+            if dig is None:
+                self._advance()
+        if dig is None:
+            dig = self._next_finishing(remaining, t0)
+        return dig
+
+    def _next_rough(self, t0: float) -> PlannedDig | None:
+        """The network's next dig above the profile layer (Fig. 5), filled on the material
+        left, or None when none carries a full bucket there."""
+        layer_left = self.layer_design.intersection(self.material)
+        if float(layer_left.area) <= 0.005 * self.design_area:
+            return None
+        xe = self._rough_entries()
+        if xe.size == 0:
+            return None
         H = np.interp(xe, self.grid, self.surface)
         ranked = self._screen(xe, H)
         if not ranked and self.phase is DigType.DOWNWARD:
             self.phase = DigType.BACKWARD
             ranked = self._screen(xe, H)
-        dig = self._first_plannable(ranked, remaining, t0)
-        exhausted = False
-        if dig is None:
-            dig, exhausted = self._next_pass(remaining, t0)
-        # Nothing more from here: the rest within reach in layers (_finishing) before any
-        # travel away from it, when it is more than a sliver (on Yao's B the ~1 % left are
-        # slivers along the profile, which layers over-cut: 1.0 -> 1.4 %). (Travelling first
-        # left a short deep trench 69 % undug: the travel was for a 4 % wedge by the near
-        # wall, and from the new stand the bulk was out of reach.)
-        layered = False
-        min_left = _LAYER_MIN_LEFT * self.design_area
-        if dig is None and exhausted and float(self._reachable(remaining).area) > min_left:
-            dig, _ = self._next_pass(remaining, t0, layers=True)
-            layered = True
-        if dig is None and self._relocate_for_rest(remaining):
-            return self.next_dig()
-        # Nothing more from here or from another stand: the rest in layers.
-        if dig is None and exhausted and not layered and left > min_left:
-            dig, _ = self._next_pass(remaining, t0, layers=True)
-        if dig is None and exhausted:
+        return self._first_plannable(ranked, self.remaining_design(), t0)
+
+    def _area_above(self, depth_m: float) -> float:
+        """Cross-section area of the section's design above ``depth_m`` below the ground
+        (m^2; on the grid)."""
+        x = self.grid
+        inside = (x >= self.section_lo) & (x <= self.section_hi)
+        floor = np.maximum(self.design_floor[inside], self.ground_y - depth_m)
+        return float(np.sum(self.ground_y - floor)) * GRID_STEP_M
+
+    def _digs_for(self, area: float, spare: float) -> float:
+        """Full buckets an area takes (``spare``: the fraction of the fill band's ends kept
+        free, for what the digs' shapes miss); inf when no whole number of them fits."""
+        lo_a, hi_a = self._fill_band()
+        n = max(1, math.ceil(area / (hi_a * (1.0 - spare))))
+        return float(n) if area / n >= lo_a * (1.0 + spare) else math.inf
+
+    def _advance(self) -> None:
+        """The next stage (:class:`Stage`): after a layer's columns the next layer's network
+        digs, after the last the bottom layer's far wall."""
+        self._wall_piece = 0
+        if self.stage is Stage.LAYER and self.layer + 1 < len(self.layer_floors):
+            self.layer += 1
+            self.stage = Stage.ROUGH
+            self.phase = DigType.DOWNWARD
+        else:
+            if self.stage is Stage.LAYER:
+                self.layer = len(self.layer_floors)
+            self.stage = Stage(self.stage + 1)
+        self._set_layer()
+
+    def _choose_layers(self) -> tuple[float, ...]:
+        """The floors of the layers above the bottom one (work-site y, top first).
+
+        The bottom layer is cut by straight columns along the bottom, the layers above by
+        the network's digs and columns along their floors; no layer is thicker than the
+        boom's torque allows through a full cut (:data:`_LAYER_RANGE_M`,
+        :data:`_UPPER_LAYER_MAX_M`). Among the bottom layer's thicknesses on a 2.5 mm grid
+        (scaled; the whole depth when that is thin enough), the one whose layers split into
+        the fewest full buckets (each layer's area in as few as the fill band allows with a
+        spare at its ends; walls aside) is taken, ties to the thicker bottom layer.
+        """
+        s = self.planner.scale
+        t = self.task
+        lo, hi = (v * s for v in _LAYER_RANGE_M)
+        up_max = _UPPER_LAYER_MAX_M * s
+        options = [float(v) for v in np.arange(lo, hi + 1e-9, 0.0025 * s) if v < t.depth_m]
+        if t.depth_m <= hi:
+            options.append(t.depth_m)
+        best: tuple[float, float, tuple[float, ...]] = (math.inf, 0.0, ())
+        for bottom_layer in options or [t.depth_m]:
+            rest = t.depth_m - bottom_layer
+            n_up = math.ceil(rest / up_max - 1e-9) if rest > 1e-9 else 0
+            depths = [rest * k / n_up for k in range(1, n_up + 1)] if n_up else []
+            digs = 0.0
+            top = 0.0
+            for d in depths:
+                digs += self._digs_for(self._area_above(d) - self._area_above(top), _ROUGH_SPARE)
+                top = d
+            b_lo, b_hi = self._bottom_span()
+            cols = max(b_hi - b_lo, 0.0) * (bottom_layer - _COLUMN_SKIN_M * s)
+            n_cols = self._digs_for(cols, _FILL_MARGIN)
+            if cols / max(n_cols, 1.0) > bottom_layer * _COLUMN_MAX_M * s:
+                n_cols = math.inf  # a column longer than a straight dig follows
+            key = (digs + n_cols, -bottom_layer, tuple(self.ground_y - d for d in depths))
+            if key[:2] < best[:2]:
+                best = key
+        if not math.isfinite(best[0]):
+            # No split fills every bucket: layers of the thickest the torque allows.
+            rest = max(t.depth_m - hi, 0.0)
+            n_up = math.ceil(rest / up_max - 1e-9) if rest > 1e-9 else 0
+            return tuple(self.ground_y - rest * k / n_up for k in range(1, n_up + 1))
+        return best[2]
+
+    def _rest_estimate(self, surface: FloatArray) -> tuple[int, int]:
+        """What the current layer still takes were the surface ``surface``: per run of its
+        material thicker than 1 cm (scaled), the full buckets its area fills; and the runs
+        that fill none but are too big for the walls' digs and the finishing passes to take
+        (a quarter of V_min or more): ``(buckets, awkward runs)``."""
+        s = self.planner.scale
+        lo_a, hi_a = self._fill_band()
+        x = self.grid
+        t = np.clip(surface - self._layer_floor, 0.0, None)
+        t[(x < self.section_lo) | (x > self.section_hi)] = 0.0
+        on = np.zeros(x.shape[0] + 2, dtype=np.int8)
+        on[1:-1] = t > 0.01 * s
+        change = np.diff(on)
+        buckets = awkward = 0
+        for i0, i1 in zip(np.flatnonzero(change == 1), np.flatnonzero(change == -1)):
+            area = float(np.sum(t[i0:i1])) * GRID_STEP_M
+            if area < 0.25 * lo_a:
+                continue
+            n = math.ceil(area / (hi_a * (1.0 - _ROUGH_SPARE)))
+            if area / n >= lo_a * (1.0 + _FILL_MARGIN):
+                buckets += n
+            else:
+                awkward += 1
+        return buckets, awkward
+
+    def _next_wall(self, far: bool, remaining: Any, t0: float) -> PlannedDig | None:
+        """The next piece of the far (``far``) or near wall's profile dig: the wall's line from
+        its top edge to the bottom, in pieces no longer than :data:`_COLUMN_MAX_M` (scaled),
+        top first; a full dig where it fills the bucket, else a finishing pass. None when the
+        wall is done or nothing is left on it."""
+        t = self.task
+        g = self.ground_y
+        xf = t.start_x_m
+        xn = xf - t.length_m
+        if far:
+            if self.section != 0:
+                return None
+            top = np.array([xf, g])
+            foot = np.array([xf - t.depth_m / math.tan(t.beta1_rad), self.bottom_y])
+            beta = t.beta1_rad
+        else:
+            if self.section_lo > xn + 1e-9:
+                return None
+            top = np.array([xn, g])
+            foot = np.array([xn + t.depth_m / math.tan(t.beta2_rad), self.bottom_y])
+            beta = t.beta2_rad
+        n = max(1, math.ceil(abs(top[0] - foot[0]) / (_COLUMN_MAX_M * self.planner.scale)))
+        lo_d, hi_d = oneshot.theta_p_range(self.planning, int(DigType.DOWNWARD))
+        kind = DigType.DOWNWARD if float(lo_d) + 0.02 <= beta <= float(hi_d) else DigType.BACKWARD
+        atts = _WALL_ATTITUDES_DEG[kind]
+        # The last piece stops short of the corner: a path that reaches into it cuts past the
+        # bottom before the bottom's columns have opened it (and the columns start there).
+        span = foot - top
+        short = foot - span * (_CORNER_GAP_M * self.planner.scale / float(np.hypot(*span)))
+        while self._wall_piece < n:
+            k = self._wall_piece
+            self._wall_piece += 1
+            a = top + (short - top) * k / n
+            b = top + (short - top) * (k + 1) / n
+            # Nothing on this piece: skip it.
+            xs = np.linspace(min(a[0], b[0]), max(a[0], b[0]), 16)
+            above = np.interp(xs, self.grid, self.surface) - np.interp(xs, self.grid, self.design_floor)
+            if float(np.max(above)) < _COLUMN_EDGE_M * self.planner.scale:
+                continue
+            found = self._fit_pass(kind, np.array([a, b]), atts)
+            if found is None:
+                continue
+            dig = self._plan_profile(found, remaining, t0)
+            if dig is not None:
+                return dig
+        return None
+
+    def _plan_profile(self, found: dict[str, Any], remaining: Any, t0: float) -> PlannedDig | None:
+        """A fitted profile dig planned as a full dig, or else (when the section's finishing
+        passes allow) as a finishing pass."""
+        found["full"] = True
+        dig = self._first_plannable([found], remaining, t0)
+        if dig is None and self.finishing_used < MAX_FINISHING_PER_SECTION:
+            found["finishing_pass"] = True
+            dig = self._first_plannable([found], remaining, t0)
+            if dig is not None:
+                self.finishing_used += 1
+        return dig
+
+    def _rough_entries(self) -> FloatArray:
+        """Where the network's digs may enter (x, work-site frame): from the far edge of the
+        material above the profile layer, and from the far end of each run of its bulk (where
+        it is at least half its thickest), :data:`_N_ENTRY_X` of each 4 cm apart (scaled) towards the
+        machine, within the entries' reach from where the machine stands and within the
+        section."""
+        s = self.planner.scale
+        lo, hi = self.planner.entry_x_range
+        m = self.machine_x
+        x = self.grid
+        t = self.surface - self._layer_floor
+        sec = (x >= max(self.section_lo, m + lo)) & (x <= min(self.section_hi, m + hi))
+        idx = np.flatnonzero((t > _ENTRY_MIN_THICKNESS_M * s) & sec)
+        if not idx.size:
+            return np.empty(0)
+        edges = [float(x[idx[-1]])]
+        # The far ends of the runs of bulk at least 3 cm long (scaled), farthest first.
+        bulk = np.zeros(x.shape[0] + 2, dtype=np.int8)
+        bulk[1:-1][idx[t[idx] >= 0.5 * float(np.max(t[idx]))]] = 1
+        change = np.diff(bulk)
+        starts, ends = np.flatnonzero(change == 1), np.flatnonzero(change == -1)
+        for i0, i1 in sorted(zip(starts, ends), reverse=True):
+            if (i1 - i0) * GRID_STEP_M >= 0.03 * s and float(x[i1 - 1]) < edges[-1] - 0.02 * s:
+                edges.append(float(x[i1 - 1]))
+        lo_x = float(x[idx[0]])
+        step = 0.04 * s
+        xs = [float(v) for e in edges for v in np.arange(e, lo_x - 1e-9, -step)[:_N_ENTRY_X]]
+        return np.asarray(xs)
+
+    # -- profile digs -------------------------------------------------------------------------
+
+    def _bottom_span(self) -> tuple[float, float]:
+        """The design's flat bottom within the section (x range, work-site frame)."""
+        t = self.task
+        xf = t.start_x_m
+        bx = xf - t.depth_m / math.tan(t.beta1_rad)
+        cx = xf - t.length_m + t.depth_m / math.tan(t.beta2_rad)
+        return max(cx, self.section_lo), min(bx, self.section_hi)
+
+    def _column_ends(
+        self, floor: FloatArray, x_lo: float, x_hi: float, partial: bool = False
+    ) -> list[float]:
+        """The next column of the material above ``floor`` (on the grid) within ``[x_lo,
+        x_hi]``: its start (just beyond the far edge of that material, at most ``x_hi``) and
+        where it may end (x, work-site frame), best first. The material (less a skin) from the
+        far edge towards the machine is split into as few full buckets as the fill band
+        allows, equal in area, and the column is the far one; what no bucket would fill is
+        taken with the last. Empty when what is left cannot fill one bucket, unless
+        ``partial``: then the rest in as few columns as the bucket and the longest dig allow
+        (under-filled: finishing passes)."""
+        lo_a, hi_a = self._fill_band()
+        s = self.planner.scale
+        x = self.grid
+        t = np.clip(self.surface - floor - _COLUMN_SKIN_M * s, 0.0, None)
+        t[(x < x_lo - 1e-9) | (x > x_hi + 1e-9)] = 0.0
+        # The far edge of the material a dig along the floor leaves (its fit and offset leave
+        # a few mm on the outline: the finishing passes' part), thick over a few mm (the grid
+        # point beside a wall's foot can stand alone).
+        thick = np.convolve(t > _COLUMN_EDGE_M * s, np.ones(5), mode="same") >= 5
+        # Runs too small to count (a quarter of V_min) are left to the walls' digs and the
+        # finishing passes: a column that starts at one would carry little else.
+        on = np.zeros(x.shape[0] + 2, dtype=np.int8)
+        on[1:-1] = thick
+        change = np.diff(on)
+        for i0, i1 in zip(np.flatnonzero(change == 1), np.flatnonzero(change == -1)):
+            if float(np.sum(t[i0:i1])) * GRID_STEP_M < 0.25 * lo_a:
+                thick[i0:i1] = False
+        idx = np.flatnonzero(thick)
+        if not idx.size:
+            return []
+        i_lo = int(np.searchsorted(x, x_lo - 1e-9))
+        # The column enters just beyond the face (on dug ground, so that it enters from the
+        # air), at most at the span's far end.
+        i_hi = int(np.searchsorted(x, x_hi + 1e-9)) - 1
+        i_start = min(int(idx[-1]) + 2 + int(_FACE_GAP_M * s / GRID_STEP_M), i_hi)
+        cum = np.cumsum(t[i_lo : i_start + 1][::-1]) * GRID_STEP_M  # from the far edge
+        total = float(cum[-1])
+        w_max = int(round(_COLUMN_MAX_M * s / GRID_STEP_M))
+        if partial:
+            n = max(math.ceil(total / (hi_a * _FILL_AIM)), math.ceil(cum.shape[0] / w_max), 1)
+            k = min(int(np.searchsorted(cum, total / n)), cum.shape[0] - 1, w_max)
+            return [float(x[i_start]), float(x[i_start - k])]
+        if total < lo_a * (1.0 + _FILL_MARGIN):
+            return []
+        n = max(1, math.ceil(total / (hi_a * _FILL_AIM)))
+        if n > 1 and total / n < lo_a:
+            n -= 1  # no even split fills every bucket: this one full, the rest left over
+        target = total / n
+        ends: list[float] = []
+        last = min(cum.shape[0] - 1, w_max)
+        if n == 1 and total <= hi_a:
+            ends.append(float(x[i_start - last]))  # the whole rest in one bucket
+        for f in (1.0, 1.06, 0.94, 1.12, 0.88):
+            area = min(target * f, hi_a * (1.0 - _FILL_MARGIN))
+            if area < lo_a:
+                continue
+            k = min(int(np.searchsorted(cum, area)), last)
+            # What would be left behind this column that no bucket fills goes with it.
+            if float(cum[-1] - cum[k]) < lo_a and total <= hi_a:
+                k = last
+            x_end = float(x[i_start - k])
+            if all(abs(x_end - e) > 2.0 * GRID_STEP_M for e in ends):
+                ends.append(x_end)
+        return [float(x[i_start]), *ends]
+
+    def _next_layer_column(self, remaining: Any, t0: float) -> PlannedDig | None:
+        """The next column of the current layer (above the bottom one): a dig along the
+        layer's floor, and down the far wall or up the near wall where the column reaches
+        them (:meth:`_fit_profile` on the layer's outline), carrying a full bucket; where
+        what is left fills none but is too much to leave to the next layer (a quarter of
+        V_min), the rest under-filled. None when the layer is done."""
+        floor = self._layer_floor
+        y_floor = self.layer_y
+        walls = self._layer_walls
+        lo_d, hi_d = oneshot.theta_p_range(self.planning, int(DigType.DOWNWARD))
+        steep = float(lo_d) + 0.02 <= self.task.beta1_rad <= float(hi_d)
+        rise = 0.005 * self.planner.scale
+        for partial in (False, True):
+            ends = self._column_ends(floor, self.section_lo, self.section_hi, partial)
+            if not ends:
+                continue
+            if partial and self._layer_left() < 0.25 * self._fill_band()[0]:
+                return None
+            x_start = ends[0]
+            a = np.array([x_start, float(np.interp(x_start, self.grid, floor))])
+            on_wall = a[1] > y_floor + rise
+            kind = DigType.DOWNWARD if on_wall and steep else DigType.BACKWARD
+            if not on_wall:
+                a[1] += 0.002  # enters descending (theta_p >= 0)
+            for x_end in ends[1:]:
+                b = np.array([x_end, float(np.interp(x_end, self.grid, floor))])
+                rows = [0] if on_wall else []
+                rows.append(2)
+                if b[1] > y_floor + rise:
+                    rows.append(1)
+                found = self._fit_profile(
+                    kind, a, b, walls[rows], _LAYER_ATTITUDES_DEG[kind], _PASS_OFFSETS_M
+                )
+                dig = self._plan_column(found, partial, remaining, t0)
+                if dig is not None:
+                    return dig
+        return None
+
+    def _layer_left(self) -> float:
+        """Area of material above the current layer's floor within the section (m^2)."""
+        x = self.grid
+        t = np.clip(self.surface - self._layer_floor, 0.0, None)
+        t[(x < self.section_lo) | (x > self.section_hi)] = 0.0
+        return float(np.sum(t)) * GRID_STEP_M
+
+    def _next_column(self, remaining: Any, t0: float) -> PlannedDig | None:
+        """The next bottom column (:meth:`_column_ends`): a straight backward dig along the
+        bottom over its span (:meth:`_fit_pass`), carrying a full bucket of real material;
+        where what is left fills none, the rest under-filled (finishing passes). None when
+        nothing thicker than the skin is left on the bottom."""
+        x_lo, x_hi = self._bottom_span()
+        atts = _COLUMN_ATTITUDES_DEG[DigType.BACKWARD]
+        for partial in (False, True):
+            ends = self._column_ends(self.design_floor, x_lo, x_hi, partial)
+            if not ends:
+                continue
+            a = (ends[0], self.bottom_y + 0.002)  # enters descending (theta_p >= 0)
+            for x_end in ends[1:]:
+                line = np.array([a, (x_end, self.bottom_y)])
+                found = self._fit_pass(DigType.BACKWARD, line, atts)
+                dig = self._plan_column(found, partial, remaining, t0)
+                if dig is not None:
+                    return dig
+        return None
+
+    def _plan_column(
+        self, found: dict[str, Any] | None, partial: bool, remaining: Any, t0: float
+    ) -> PlannedDig | None:
+        """A fitted column planned: a full dig, or with ``partial`` a finishing pass."""
+        if found is None:
             return None
-        if dig is None:
-            raise PlanningError(
-                f"task {self.task.name}: no verified dig removes the remaining "
-                f"{left / self.design_area:.1%} of the design without over-digging"
-            )
-        self._append_transitions(dig)
-        self.pending = dig
+        found["full"] = not partial
+        found["finishing_pass"] = partial
+        dig = self._first_plannable([found], remaining, t0)
+        if dig is not None and partial:
+            self.finishing_used += 1
+        return dig
+
+    def _next_finishing(self, remaining: Any, t0: float) -> PlannedDig | None:
+        """The finishing pass that removes the most design material of those the section
+        allows (:data:`MAX_FINISHING_PER_SECTION`): the far wall, the bottom in pieces, the
+        near wall (:meth:`_finishing`'s lines); None when none is left or none helps."""
+        if self.finishing_used >= MAX_FINISHING_PER_SECTION:
+            return None
+        found: list[dict[str, Any]] = []
+        self._finish_index = 0
+        while True:
+            ranked = self._finishing(remaining)
+            if not ranked:
+                break
+            found.extend(ranked)
+        found.sort(key=lambda c: -float(c["useful"]))
+        for cand in found:
+            cand["finishing_pass"] = True
+        dig = self._first_plannable(found, remaining, t0)
+        if dig is not None:
+            self.finishing_used += 1
         return dig
 
     def _first_plannable(
@@ -1229,20 +1684,6 @@ class TrenchSession:
                 continue
             return dig
         return None
-
-    def _next_pass(
-        self, remaining: Any, t0: float, *, layers: bool = False
-    ) -> tuple[PlannedDig | None, bool]:
-        """The next plannable profile pass (:meth:`_finishing`, with ``layers``), and whether
-        the passes ran out (False also when the bound :data:`_N_MAX_PASSES` stopped them)."""
-        while self._finish_index < _N_MAX_PASSES:
-            ranked = self._finishing(remaining, layers=layers)
-            if not ranked:
-                return None, True
-            dig = self._first_plannable(ranked, remaining, t0)
-            if dig is not None:
-                return dig, False
-        return None, False
 
     def _check_transition_poses(self, dig: PlannedDig) -> None:
         """PlanningError unless the poses of the moves around ``dig`` are reachable: the
@@ -1266,53 +1707,11 @@ class TrenchSession:
             self.planner.arm, start[0], start[1] + _APPROACH_M * self.planner.scale, start[2]
         )
 
-    def _reachable(self, remaining: Any) -> Any:
-        """The part of ``remaining`` between the nearest and farthest entries."""
-        lo, hi = self.planner.entry_x_range
-        m = self.machine_x
-        return remaining.intersection(shapely.box(m + lo, self.bottom_y - 1.0, m + hi, self.top_y))
-
-    def _relocate_for_rest(self, remaining: Any) -> bool:
-        """Travel away from the trench when nothing more can be dug here and design material
-        is left nearer to the machine than the nearest entry (a trench longer than the reach):
-        the far edge of that part comes 5 cm inside the farthest entry. Returns whether the
-        machine moved (at most :data:`_MAX_TRAVELS` times a task)."""
-        if self._travels >= _MAX_TRAVELS:
-            return False
-        lo, hi = self.planner.entry_x_range
-        s = self.planner.scale
-        near = remaining.intersection(
-            shapely.box(self.x_lo, self.bottom_y - 1.0, self.machine_x + lo, self.top_y)
-        )
-        if near.is_empty or near.area < 0.005 * self.design_area:
-            return False
-        move = (near.bounds[2] - self.machine_x) - (hi - 0.05 * s)
-        if move >= -1e-3:
-            return False
-        self._travel(move)
-        self.phase = DigType.DOWNWARD
-        self._finish_index = 0
-        return True
-
-    def _relocate_if_needed(self, remaining: Any) -> None:
-        """Crawler travel when the rest of the design is beyond the entries' reach."""
-        lo, hi = self.planner.entry_x_range
-        maxx = remaining.bounds[2] - self.machine_x  # arm frame
-        if lo <= maxx <= hi:
-            return
-        if self._travels >= _MAX_TRAVELS:
-            return
-        if self._reachable(remaining).area >= 0.005 * self.design_area:
-            return  # material is left within reach: dig that first
-        # Travel so that the far edge of the rest comes 5 cm inside the farthest entry:
-        # negative (backing away) when the rest is too close to the machine.
-        self._travel(maxx - (hi - 0.05 * self.planner.scale))
-
     def _travel(self, move: float) -> None:
-        """Crawler travel by ``move`` (m along the trench); the arm's pose is unknown after."""
+        """Crawler travel by ``move`` (m along the trench, negative: back, away from the dug
+        part); the arm's pose is unknown after."""
         self.steps.append(TravelMove(move, self.machine_x, self.machine_x + move))
         self.machine_x += move
-        self._travels += 1
         self.q_now = None
 
     @_stage("screen")
@@ -1336,6 +1735,7 @@ class TrenchSession:
         """
         arm = self.planner.arm
         cand = _CANDIDATES[kind]
+        self._screen_kind_now = kind
         m = self.machine_x
         lo, hi = self.planner.domain[kind]
         # Every (entry, exit) pose of the grid at once: entries (x, attitude) x exits
@@ -1361,53 +1761,115 @@ class TrenchSession:
         K = -Y[:, 0:3] * Y[:, 3:4] ** 6
         G = self.planner.screen_c
         vp, over, total, useful = self._screen_paths(X, K)
-        cap_area = self.v_max_m3 / self.width_m
-        # The fill's scale: the largest c <= c_max with V_p <= V_max (linear between scales).
-        above = vp > cap_area * (1.0 - 1e-3)
-        k = np.where(above.any(axis=1), np.argmax(above, axis=1), G.shape[0])
-        kk = np.clip(k, 1, G.shape[0] - 1)
+        # The fill on the material left: the largest bulge scale whose real cut stays inside
+        # the bucket (V_max) and whose over-dig stays within the screening limit; kept when
+        # that cut carries at least V_min (the fill rule).
+        lo_area, hi_area = self._fill_band()
+        c_cut = _largest_scale_below(total, hi_area * (1.0 - _FILL_MARGIN), G)
+        c_over = _largest_scale_below(over, _SCREEN_OVERDIG_M, G)
+        c = self._path_feasible_scale(X, K, np.minimum(c_cut, c_over))
         r = np.arange(X.shape[0])
-        v0, v1 = vp[r, kk - 1], vp[r, kk]
-        frac = np.clip((cap_area - v0) / np.where(v1 > v0, v1 - v0, 1.0), 0.0, 1.0)
-        c_cap = np.where(k == G.shape[0], G[-1], G[kk - 1] + frac * (G[kk] - G[kk - 1]))
-        c_cap = np.where(k == 0, G[0] * cap_area / np.maximum(vp[:, 0], 1e-12), c_cap)
+        kc = np.clip(np.searchsorted(G, c), 1, G.shape[0] - 1)
+        w = np.clip((c - G[kc - 1]) / (G[kc] - G[kc - 1]), 0.0, 1.0)
+        o, t, u = (a[r, kc - 1] * (1.0 - w) + a[r, kc] * w for a in (over, total, useful))
         min_useful = MIN_USEFUL_FRACTION * self.design_area
-        min_area = self.planning.volume_min_m3 / self.width_m * 1.02
-        rows, caps, uses, totals = [], [], [], []
-        for j, c_max in enumerate(sorted(cand.c_max, reverse=True)):
-            c = np.minimum(c_max, c_cap)
-            # A smaller cap than the fill reaches anyway is the same path: screened once.
-            valid = c >= min(PLAN_C_RANGE[0], c_max)
-            if j:
-                valid &= c_cap >= c_max
-            kc = np.clip(np.searchsorted(G, c), 1, G.shape[0] - 1)
-            w = np.clip((c - G[kc - 1]) / (G[kc] - G[kc - 1]), 0.0, 1.0)
-            o, t, u, v = (
-                a[r, kc - 1] * (1.0 - w) + a[r, kc] * w for a in (over, total, useful, vp)
-            )
-            # Below V_min the fill finds no scale and falls back to the network's own path.
-            valid &= v >= min_area
-            good = np.flatnonzero(
-                valid & (o <= _SCREEN_OVERDIG_M) & (t <= cap_area) & (u >= min_useful)
-            )
-            rows.append(good)
-            caps.append(np.full(good.shape[0], c_max))
-            uses.append(u[good])
-            totals.append(t[good])
-        idx, cm, u, t = (np.concatenate(a) for a in (rows, caps, uses, totals))
+        good = np.flatnonzero(
+            (c >= G[0]) & (o <= _SCREEN_OVERDIG_M) & (t >= lo_area * (1.0 + _FILL_MARGIN))
+            & (u >= min_useful)
+        )  # fmt: skip
+        u, t, cs = u[good], t[good], c[good]
         score = u - 2.0 * (t - u)
-        best = np.argsort(-score, kind="stable")[:_N_RANKED]
+        best = np.argsort(-score, kind="stable")[:_N_LOOKAHEAD]
+        if self.stage is Stage.ROUGH and best.shape[0] > 1:
+            # Look ahead: the fewest full digs the material above the layer still takes after
+            # the dig, then the fullest bucket, then the score.
+            rest = [
+                self._rest_estimate(self._surface_after(X[good[b]], K[good[b]], float(cs[b])))
+                for b in best
+            ]
+            # A dig that leaves part of the layer no bucket fills is not taken: the layer's
+            # columns would have to take it under-filled.
+            order = sorted(
+                (i for i in range(best.shape[0]) if rest[i][1] == 0),
+                key=lambda i: (rest[i][0], -t[best[i]], -score[best[i]]),
+            )
+            best = best[order]
+        best = best[:_N_RANKED]
         return [
             {
                 "kind": kind,
-                "x7": X[idx[b]],
-                "c_max": float(cm[b]),
+                "x7": X[good[b]],
+                "K": K[good[b]],
+                "T": float(Y[good[b], 3]),
+                "c": float(cs[b]),
+                "c_max": float(cs[b]),
                 "useful": float(u[b]),
                 "total": float(t[b]),
                 "score": float(score[b]),
             }
             for b in best
         ]
+
+    def _path_feasible_scale(self, X: FloatArray, K: FloatArray, c_top: FloatArray) -> FloatArray:
+        """The largest bulge scale ``<= c_top`` (per candidate row of ``X`` ``(N, 7)`` with
+        bulge ``K`` ``(N, 3)``) at which the path-only limits hold: every joint within its
+        range at the screening samples (each angle is linear in the scale: an interval in
+        closed form) and theta_p, the entry direction ``J(q1) (10 D + c K)``, in the dig
+        type's range (on a grid of scales 1/40 apart below ``c_top``). 0 where none does."""
+        arm = self.planner.arm
+        qf, pf = self.planner.screen_qf, self.planner.screen_pf
+        q1, q2 = X[:, 0:3], X[:, 3:6]
+        base = q1[:, None] + qf[None, :, None] * (q2 - q1)[:, None]
+        slope = pf[None, :, None] * K[:, None, :]
+        margin = 1e-6
+        lo_q = arm.q_min + margin - base
+        hi_q = arm.q_max - margin - base
+        with np.errstate(divide="ignore", invalid="ignore"):
+            up = np.where(slope > 0, hi_q / slope, np.where(slope < 0, lo_q / slope, np.inf))
+            down = np.where(slope > 0, lo_q / slope, np.where(slope < 0, hi_q / slope, -np.inf))
+        inside = np.all((lo_q <= 0.0) | (slope != 0.0), axis=(1, 2)) & np.all(
+            (hi_q >= 0.0) | (slope != 0.0), axis=(1, 2)
+        )
+        c_hi = np.where(inside, np.min(up, axis=(1, 2)), -np.inf)
+        c_lo = np.max(down, axis=(1, 2))
+        # theta_p on a grid of scales from c_top down (the entry direction is linear in c).
+        phi = np.cumsum(q1, axis=1)
+        lengths = arm.lengths
+        sn = np.sin(phi) * lengths
+        cs = np.cos(phi) * lengths
+        jx = -np.cumsum(sn[:, ::-1], axis=1)[:, ::-1]
+        jy = np.cumsum(cs[:, ::-1], axis=1)[:, ::-1]
+        D10 = 10.0 * (q2 - q1)
+        ux, uy = np.sum(jx * D10, axis=1), np.sum(jy * D10, axis=1)
+        vx, vy = np.sum(jx * K, axis=1), np.sum(jy * K, axis=1)
+        top = np.minimum(c_top, c_hi)
+        steps = np.arange(_N_SCALE_STEPS + 1) / _N_SCALE_STEPS
+        cg = top[:, None] * (1.0 - steps[None, :])  # from top down to 0
+        ang = np.arctan2(-(uy[:, None] + cg * vy[:, None]), np.abs(ux[:, None] + cg * vx[:, None]))
+        kind = X.shape[0] and int(self._screen_kind_now)
+        tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, kind))
+        ok = (ang >= tp_lo + 1e-3) & (ang <= tp_hi - 1e-3) & (cg >= c_lo[:, None])
+        first = np.argmax(ok, axis=1)
+        found = ok[np.arange(X.shape[0]), first]
+        return np.where(found & (top > 0.0), cg[np.arange(X.shape[0]), first], 0.0)
+
+    def _surface_after(self, x7: FloatArray, K: FloatArray, c: float) -> FloatArray:
+        """The height field after a screened dig (poses and H ``x7``, bulge ``K`` scaled by
+        ``c``), its path on the screening's samples."""
+        pl = self.planner
+        q1, q2 = x7[0:3], x7[3:6]
+        q = q1 + pl.screen_qf[:, None] * (q2 - q1) + c * pl.screen_pf[:, None] * K
+        px, py = pl.arm.tip_xy(q)
+        path = np.stack([px + self.machine_x, py], axis=1)
+        return np.minimum(self.surface, self._envelope(path, self.grid))
+
+    def _fill_band(self) -> tuple[float, float]:
+        """The fill rule as cross-section areas (m^2): a dig carries between V_min and V_max of
+        real material (Yao's V_p range, 0.8-1.2 x the struck volume on ``scale_model``)."""
+        return (
+            self.planning.volume_min_m3 / self.width_m,
+            self.planning.volume_max_m3 / self.width_m,
+        )
 
     def _screen_paths(self, X: FloatArray, K: FloatArray) -> FloatArray:
         """The screening geometry of candidates ``X`` ``(N, 7)`` with bulge directions ``K``
@@ -1420,8 +1882,9 @@ class TrenchSession:
         reference and the fallback.
         """
         kernel = self.planner.geo_kernel
+        layer = self.stage is Stage.ROUGH
         if kernel is None:
-            return self._screen_paths_numpy(X, K)
+            return self._screen_paths_numpy(X, K, layer)
         pl = self.planner
         out = np.empty((4, X.shape[0], pl.screen_c.shape[0]))
         kernel.screen(
@@ -1429,13 +1892,14 @@ class TrenchSession:
             np.ascontiguousarray(K),
             pl.screen_shapes,
             pl.screen_c,
-            *self._geometry_args(),
+            *self._geometry_args(layer),
             out,
         )
         return out
 
-    def _screen_paths_numpy(self, X: FloatArray, K: FloatArray) -> FloatArray:
-        """:meth:`_screen_paths` in numpy (the reference of the C kernel)."""
+    def _screen_paths_numpy(self, X: FloatArray, K: FloatArray, layer: bool = False) -> FloatArray:
+        """:meth:`_screen_paths` in numpy (the reference of the C kernel; ``layer``: judged
+        against the layer's design, :meth:`_design_arrays`)."""
         arm = self.planner.arm
         m = self.machine_x
         # Paths at the screening scales: q(s) = q1 + qf(s) (q2 - q1) + c pf(s) K.
@@ -1447,8 +1911,8 @@ class TrenchSession:
         x, y = arm.tip_xy(q)
         x += m
         vp = oneshot.excavated_area_m2(x - m, y, X[:, 6, None])
-        over = self._overdig_many_numpy(np.stack([x, y], axis=-1))
-        total, useful = self._cut_estimate(x, y)
+        over = self._overdig_many_numpy(np.stack([x, y], axis=-1), layer)
+        total, useful = self._cut_estimate(x, y, layer)
         return np.stack([vp, over, total, useful])
 
     def _on_grid(self, x: FloatArray, *fields: FloatArray) -> list[FloatArray]:
@@ -1458,13 +1922,15 @@ class TrenchSession:
         w = u - i
         return [f[i] * (1.0 - w) + f[i + 1] * w for f in fields]
 
-    def _cut_estimate(self, x: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def _cut_estimate(
+        self, x: FloatArray, y: FloatArray, layer: bool = False
+    ) -> tuple[FloatArray, FloatArray]:
         """(total, inside-design) area sampled paths ``(..., n)`` cut from the height field,
         integrated along each path (exact for a path that does not turn back in x)."""
         xm = 0.5 * (x[..., 1:] + x[..., :-1])
         ym = 0.5 * (y[..., 1:] + y[..., :-1])
         dx = np.abs(np.diff(x, axis=-1))
-        surf, floor = self._on_grid(xm, self.surface, self.design_floor)
+        surf, floor = self._on_grid(xm, self.surface, self._design_arrays(layer)[0])
         total = np.sum(np.maximum(surf - ym, 0.0) * dx, axis=-1)
         useful = np.sum(np.maximum(surf - np.maximum(ym, floor), 0.0) * dx, axis=-1)
         return total, useful
@@ -1537,42 +2003,75 @@ class TrenchSession:
         poly: FloatArray,
         atts: tuple[tuple[float, ...], tuple[float, ...]],
     ) -> dict[str, Any] | None:
-        """Fit one straight profile pass ``poly`` (2 points, work-site frame).
-
-        For each pair of end attitudes of ``atts`` the sextic's path is linear in its bulge
-        ``K`` in joint space, so the signed distances of the path samples from the line are
-        fitted in ``K`` by Gauss-Newton (two linearised least-squares steps of a 3 x 3 system,
-        microseconds); a pair whose fit leaves the joint limits or the theta_p range is
-        skipped. The first pair that fits within ~1 mm RMS, or else the best, is taken; the
-        line is shifted inwards (0, 2, 4, 7 mm) until the over-dig limit holds.
-        """
-        arm = self.planner.arm
-        m = self.machine_x
+        """Fit one straight profile pass ``poly`` (2 points, work-site frame): the line as a
+        half-plane, inwards towards the design's centroid (:meth:`_fit_profile`)."""
         a, b = np.asarray(poly[0], dtype=np.float64), np.asarray(poly[-1], dtype=np.float64)
         seg = b - a
         normal = np.array([-seg[1], seg[0]]) / math.hypot(seg[0], seg[1])
-        # Inwards: towards the design's centroid.
         c = self.design.centroid
         if (c.x - a[0]) * normal[0] + (c.y - a[1]) * normal[1] < 0.0:
             normal = -normal
+        # Outward normal and offset: inside is -normal . p <= -normal . a.
+        edge = np.array([[-normal[0], -normal[1], -float(normal @ a)]])
+        return self._fit_profile(kind, a, b, edge, atts, _PASS_OFFSETS_M)
+
+    def _fit_profile(
+        self,
+        kind: DigType,
+        a: FloatArray,
+        b: FloatArray,
+        edges: FloatArray,
+        atts: tuple[tuple[float, ...], tuple[float, ...]],
+        offsets: tuple[float, ...],
+        good_cost: float | None = None,
+    ) -> dict[str, Any] | None:
+        """Fit a profile dig from ``a`` to ``b`` (work-site frame) along the boundary of the
+        half-planes ``edges`` (rows ``(nx, ny, c)``, unit outward normal, inside where
+        ``nx x + ny y <= c``; a convex piece of the design's outline: a wall, the bottom, or
+        a wall and the bottom).
+
+        For each pair of end attitudes of ``atts`` the sextic's path is linear in its bulge
+        ``K`` in joint space, so the inward distances of the path samples from the outline
+        (the least over the half-planes, exact for a convex outline) are fitted in ``K`` by
+        Gauss-Newton (:meth:`_fit_bulge`, 3 x 3 systems, microseconds); a pair whose fit
+        leaves the joint limits or the theta_p range is skipped. The first pair that fits
+        within ``good_cost`` (m^2 on 101 samples; :data:`_GOOD_FIT_COST`, ~1 mm RMS, by
+        default), or else the best, is taken; the outline
+        is shifted inwards by ``offsets`` in turn (the ends with it, along the inward normal
+        of the half-plane they lie on) until the over-dig limit holds. Returns the candidate
+        of :meth:`_pass_candidate` with the fit's RMS distance (``fit_rms_m``), or None.
+        """
+        arm = self.planner.arm
+        m = self.machine_x
         qf, pf = self.planner.fit_qf, self.planner.fit_pf
         margin = math.radians(0.5)
         lo_q, hi_q = arm.q_min + margin, arm.q_max - margin
         tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
         qf_full, pf_full = self.planner.full_qf, self.planner.full_pf
-        good = _GOOD_FIT_COST * qf.shape[0] / 101.0
+        good = (_GOOD_FIT_COST if good_cost is None else good_cost) * qf.shape[0] / 101.0
 
-        def candidate(q1: FloatArray, q2: FloatArray, K: FloatArray) -> dict[str, Any] | None:
+        def inward(p: FloatArray) -> FloatArray:
+            k = int(np.argmin(edges[:, 2] - edges[:, 0:2] @ p))
+            return -edges[k, 0:2]
+
+        n_a, n_b = inward(a), inward(b)
+
+        def candidate(
+            q1: FloatArray, q2: FloatArray, K: FloatArray, cost: float
+        ) -> dict[str, Any] | None:
             qp = q1 + qf_full[:, None] * (q2 - q1) + pf_full[:, None] * K
             px, py = arm.tip_xy(qp)
             tip = np.stack([px + m, py], axis=1)
             if self.overdig_of(tip) > OVERDIG_LIMIT_M:
                 return None
-            return self._pass_candidate(kind, q1, q2, K, tip)
+            found = self._pass_candidate(kind, q1, q2, K, tip)
+            if found is not None:
+                found["fit_rms_m"] = math.sqrt(cost / qf.shape[0])
+            return found
 
-        for offset in (0.0, 0.002, 0.004, 0.007):
-            a_s = a + offset * normal
-            b_s = b + offset * normal
+        for offset in offsets:
+            a_s = a + offset * n_a
+            b_s = b + offset * n_b
             mid = [(v[0], v[-1], *np.linspace(v[0], v[-1], 5)[1:-1].tolist()) for v in atts]
             starts = [self._pass_pose(a_s, mid[0]), self._pass_pose(b_s, mid[1])]
             fits: list[tuple[float, FloatArray, FloatArray, FloatArray]] = []
@@ -1581,7 +2080,7 @@ class TrenchSession:
                 for qe in starts[1]:
                     q1, q2 = np.asarray(qs), np.asarray(qe)
                     base = q1 + qf[:, None] * (q2 - q1)
-                    K, cost = self._fit_bulge(base, q1, q2, a_s, normal, offset, kind)
+                    K, cost = self._fit_bulge(base, q1, q2, edges, offset, kind)
                     q = base + pf[:, None] * K
                     if np.any(q < lo_q) or np.any(q > hi_q):
                         continue
@@ -1592,13 +2091,13 @@ class TrenchSession:
                     if not tp_lo + 0.01 <= ang <= tp_hi - 0.01:
                         continue
                     if cost < good:
-                        found = candidate(q1, q2, K)
+                        found = candidate(q1, q2, K, cost)
                         if found is not None:
                             return found
                     else:
                         fits.append((cost, q1, q2, K))
-            for _, q1, q2, K in sorted(fits, key=lambda f: f[0]):
-                found = candidate(q1, q2, K)
+            for cost, q1, q2, K in sorted(fits, key=lambda f: f[0]):
+                found = candidate(q1, q2, K, cost)
                 if found is not None:
                     return found
         return None
@@ -1628,19 +2127,21 @@ class TrenchSession:
         base: FloatArray,
         q1: FloatArray,
         q2: FloatArray,
-        a_s: FloatArray,
-        normal: FloatArray,
+        edges: FloatArray,
         offset: float,
         kind: DigType,
     ) -> tuple[FloatArray, float]:
-        """Damped Gauss-Newton fit of the bulge ``K`` (3) of a profile pass: the signed
-        distances of the path samples from the shifted line (weighted 21x where the path
-        crosses the design line outwards by > 3 mm) and, while it is violated, the entry
-        direction's theta_p bound as a heavily weighted row. Returns ``(K, cost)``."""
+        """Damped Gauss-Newton fit of the bulge ``K`` (3) of a profile dig: the inward
+        distances of the path samples from the outline ``edges`` (:meth:`_fit_profile`) less
+        ``offset`` (weighted 21x where the path crosses the outline outwards by > 3 mm) and,
+        while it is violated, the entry direction's theta_p bound as a heavily weighted row.
+        Returns ``(K, cost)``."""
         arm = self.planner.arm
         pf = self.planner.fit_pf
         lengths = arm.lengths
         m = self.machine_x
+        n = pf.shape[0]
+        rows_n = np.arange(n)
         tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
         jac0 = kinematics.jacobian(self.rig, q1)[:2]
         d_ent = jac0 @ (10.0 * (q2 - q1))
@@ -1652,12 +2153,16 @@ class TrenchSession:
             q = base + pf[:, None] * K
             phi = np.cumsum(q, axis=1)
             cs, sn = np.cos(phi) * lengths, np.sin(phi) * lengths
-            d = (cs.sum(axis=1) + m - a_s[0]) * normal[0] + (sn.sum(axis=1) - a_s[1]) * normal[1]
-            w = np.where(d + offset + 0.003 < 0.0, 21.0, 1.0)
-            r = w * d
+            x = cs.sum(axis=1) + m
+            y = sn.sum(axis=1)
+            inside = edges[:, 2, None] - edges[:, 0, None] * x - edges[:, 1, None] * y
+            k = np.argmin(inside, axis=0)
+            d = inside[k, rows_n]
+            w = np.where(d < -0.003, 21.0, 1.0)
+            r = w * (d - offset)
             jx = -np.cumsum(sn[:, ::-1], axis=1)[:, ::-1]
             jy = np.cumsum(cs[:, ::-1], axis=1)[:, ::-1]
-            J = (normal[0] * jx + normal[1] * jy) * (pf * w)[:, None]
+            J = -(edges[k, 0, None] * jx + edges[k, 1, None] * jy) * (pf * w)[:, None]
             # theta_p of the entry direction d0 = J(q1) (10 D + K), linear in K.
             d0 = d_ent + jac0 @ K
             ang = math.atan2(-d0[1], abs(d0[0]))
@@ -1691,10 +2196,14 @@ class TrenchSession:
     ) -> dict[str, Any] | None:
         """A fitted profile pass retimed and checked, as a ranked candidate (None: refused)."""
         # The verifier's soil model takes depth below a flat H; here the material over the
-        # path is a thin layer, so H is the level of the deepest real cut: the real depth at
-        # the path's lowest point, the layer's thickness elsewhere approximated by it.
-        depth = np.interp(tip[:, 0], self.grid, self.surface) - tip[:, 1]
-        H = float(np.min(tip[:, 1]) + max(0.0, float(np.max(depth))))
+        # path is a layer along it, so H is set for the thickest chip the path cuts: the
+        # material's thickness across the path's direction (its depth above the path times
+        # the cosine of the path's slope: a wall's pass cuts the wedge beside the wall, not
+        # the wedge's height), above the path's lowest point.
+        depth = np.clip(np.interp(tip[:, 0], self.grid, self.surface) - tip[:, 1], 0.0, None)
+        step = np.gradient(tip, axis=0)
+        across = np.abs(step[:, 0]) / np.maximum(np.hypot(step[:, 0], step[:, 1]), 1e-12)
+        H = float(np.min(tip[:, 1]) + float(np.max(depth * across)))
         T0 = 0.5 * (self.planning.t_min_s + self.planning.t_max_s)
         a6 = -K / T0**6
         row = pack_inputs(
@@ -1755,11 +2264,18 @@ class TrenchSession:
             dig_type=best["kind"],
         )
         finishing = best.get("finishing")
+        oneshot_planner = self.planner.oneshot
+        # Judged on the material left (the fill band on the real cut), not on V_p against H.
+        real_fill = finishing is not None or isinstance(oneshot_planner, PinnOneShot)
         if finishing is not None:
-            res = OneShotResult(finishing[0], finishing[1], np.zeros(N_OUT), 0.0, "profile_pass")
+            status = "profile_pass" if best.get("finishing_pass") else "profile"
+            res = OneShotResult(finishing[0], finishing[1], np.zeros(N_OUT), 0.0, status)
         else:
             t_plan = time.perf_counter()
-            res = self.planner.oneshot.plan_dig(problem, float(best["c_max"]))
+            if isinstance(oneshot_planner, PinnOneShot):
+                res = oneshot_planner.plan_scaled(problem, best["K"], best["T"], best["c"])
+            else:
+                res = oneshot_planner.plan_dig(problem, float(best["c_max"]))
             spent = (time.perf_counter() - t_plan) * 1e6
             self.stage_us["oneshot"] += spent
             self.stage_us["checks"] -= spent
@@ -1769,13 +2285,13 @@ class TrenchSession:
         out = np.zeros((1, N_OUT))
         path = np.zeros((1, self.planner.verifier.n_samples, 2))
         self.planner.verifier.evaluate_into(row, out, path=path)
-        violation = _total_without_volume(out[0]) if finishing else out[0, COL_TOTAL]
+        violation = _total_without_volume(out[0]) if real_fill else out[0, COL_TOTAL]
         if violation > 0.0 and T_s != res.T_s:  # the slower plan fails: keep the verified one
             a6, T_s = res.a6, res.T_s
             row[0, 8:11] = a6
             row[0, 11] = T_s
             self.planner.verifier.evaluate_into(row, out, path=path)
-            violation = _total_without_volume(out[0]) if finishing else out[0, COL_TOTAL]
+            violation = _total_without_volume(out[0]) if real_fill else out[0, COL_TOTAL]
         if violation > 0.0:
             raise PlanningError("one-shot plan fails verification; nothing was planned")
         p = path[0].copy()
@@ -1812,6 +2328,14 @@ class TrenchSession:
                     f"the {self.planner.oneshot.name} plan of dig {len(self.digs) + 1} "
                     f"over-digs {over * 1e3:.1f} mm (the region it removes)"
                 )
+        finishing_pass = bool(best.get("finishing_pass", False))
+        lo_a, hi_a = self._fill_band()
+        if not finishing_pass and not lo_a <= total <= hi_a:
+            raise PlanningError(
+                f"the {self.planner.oneshot.name} plan of dig {len(self.digs) + 1} carries "
+                f"{total * self.width_m * 1e3:.2f} L of material, outside the fill band "
+                f"{lo_a * self.width_m * 1e3:.2f}-{hi_a * self.width_m * 1e3:.2f} L"
+            )
         return PlannedDig(
             index=len(self.digs),
             problem=problem,
@@ -1830,6 +2354,8 @@ class TrenchSession:
             planner=self.planner.oneshot.name,
             status=res.status,
             evaluation=out[0].copy(),
+            finishing=finishing_pass,
+            section=self.section,
         )
 
     # -- recording ----------------------------------------------------------------------------
@@ -2115,6 +2641,8 @@ def _step_to_json(step: PlannedDig | Transition | TravelMove) -> dict[str, Any]:
             "planner": step.planner,
             "status": step.status,
             "evaluation": np.asarray(step.evaluation, dtype=np.float64).tolist(),
+            "finishing": step.finishing,
+            "section": step.section,
         }
     if isinstance(step, Transition):
         return {
@@ -2169,6 +2697,8 @@ def _step_from_json(item: dict[str, Any]) -> PlannedDig | Transition | TravelMov
             planner=str(item["planner"]),
             status=str(item["status"]),
             evaluation=np.asarray(item["evaluation"], dtype=np.float64),
+            finishing=bool(item.get("finishing", False)),
+            section=int(item.get("section", 0)),
         )
     if kind == "transition":
         return Transition(
@@ -2192,11 +2722,59 @@ def _step_from_json(item: dict[str, Any]) -> PlannedDig | Transition | TravelMov
 # them is interpolated.
 _SCREEN_C = (0.3, 0.6, 1.0, 2.0)
 # Samples per path in the screening (the plan is checked on the verifier's full grid).
-_SCREEN_SAMPLES = 9
+_SCREEN_SAMPLES = 17
 # Over-dig a screened path may show at its coarse samples (the plan's own check is exact).
 _SCREEN_OVERDIG_M = 0.8 * OVERDIG_LIMIT_M
+#: Finishing passes a section may take (they need not fill the bucket).
+MAX_FINISHING_PER_SECTION = 2
+#: Range of the profile layer's thickness (scale model, m): thin enough for the boom's torque
+#: through a full cut along the bottom (a 0.25 m column verifies up to ~0.11 m), thick
+#: enough that a column of it no longer than _COLUMN_MAX_M fills the bucket.
+_LAYER_RANGE_M = (0.045, 0.10)
+#: Thickest layer above the bottom one (scale model, m): what the layer's columns cut, with
+#: room for what the network's digs leave above the layer's floor.
+_UPPER_LAYER_MAX_M = 0.09
+#: Spare fraction of the fill band's ends for the upper layers in the layer choice (the
+#: network's scoops do not follow the layer's floor).
+_ROUGH_SPARE = 0.04
+#: Where a stand puts the far edge of its section, and the nearest the section reaches
+#: (arm frame, scale model, m): the entries' far end less 5 cm, and the near edge of Yao's
+#: task B from its default start (0.35 m: the nearest a 0.10 m trench was dug to).
+_STAND_FAR_X_M = 1.05
+_STAND_NEAR_X_M = 0.35
+#: How far short of the design's bottom corners the walls' digs stop (scale model, m).
+_CORNER_GAP_M = 0.01
+#: How far beyond the face of the material a bottom column enters (scale model, m).
+_FACE_GAP_M = 0.004
+#: End attitudes of wall digs (deg; the table's first and last of each end).
+_WALL_ATTITUDES_DEG = {
+    DigType.DOWNWARD: ((-80.0, -100.0), (-95.0, -130.0)),
+    DigType.BACKWARD: ((-100.0, -125.0), (-120.0, -160.0)),
+}
+#: Material within this of the design's floor is not counted for a column (scale model, m).
+_COLUMN_SKIN_M = 0.003
+#: A column starts where the material above the design's floor is thicker than this (scale
+#: model, m).
+_COLUMN_EDGE_M = 0.012
+#: Longest profile dig (scale model, m).
+_COLUMN_MAX_M = 0.45
+#: Fraction of V_max a column aims at.
+_FILL_AIM = 0.93
+#: End attitudes of a layer's columns (deg; the table's first and last of each end).
+_LAYER_ATTITUDES_DEG = {
+    DigType.DOWNWARD: ((-60.0, -120.0), (-110.0, -190.0)),
+    DigType.BACKWARD: ((-100.0, -140.0), (-140.0, -200.0)),
+}
+#: End attitudes of bottom columns (deg; the table's first and last of each end).
+_COLUMN_ATTITUDES_DEG = {DigType.BACKWARD: ((-110.0, -135.0), (-150.0, -175.0))}
+# Steps of the bulge scale searched for theta_p in the screening (from the top down to 0).
+_N_SCALE_STEPS = 40
+# Fraction of the fill band kept free at each end in the screening (its cut is interpolated).
+_FILL_MARGIN = 0.03
 # Candidates kept per screening, tried in order when the one-shot planner's plan fails.
-_N_RANKED = 4
+_N_RANKED = 8
+# Screened candidates whose material left is estimated (the look-ahead), best score first.
+_N_LOOKAHEAD = 32
 # Crawler travels per task at most.
 _MAX_TRAVELS = 4
 # Upper bound on profile passes (far wall, bottom pieces, near wall).
@@ -2206,6 +2784,8 @@ _ENTRY_MIN_THICKNESS_M = 0.01
 #: After a travel, entries also start at the far edge of the material at least this fraction of
 #: its thickest within reach (:meth:`TrenchSession._entry_x_candidates`).
 _ENTRY_BULK_FRACTION = 0.9
+# Inward shifts of a profile pass's line tried in turn (m).
+_PASS_OFFSETS_M = (0.0, 0.002, 0.004, 0.007)
 # A profile fit this good (least-squares cost, m^2: ~1 mm RMS) ends the search of starts.
 _GOOD_FIT_COST = 2e-4
 # Samples of a profile pass's path in its fit.
@@ -2230,6 +2810,21 @@ def _total_without_volume(row: FloatArray) -> float:
     v = row[0 : len(oneshot.CONSTRAINT_NAMES)].copy()
     v[list(_VOLUME_COLUMNS)] = 0.0
     return float(np.sum(np.maximum(v, 0.0)))
+
+
+def _largest_scale_below(f: FloatArray, limit: float, G: FloatArray) -> FloatArray:
+    """Per row of ``f`` ``(N, len(G))`` (a value growing with the bulge scale, sampled at the
+    scales ``G``): the largest scale at which it is still ``<= limit``, linear between the
+    samples; ``G[-1]`` where no sample exceeds it, and 0 where even ``G[0]`` does."""
+    above = f > limit
+    k = np.where(above.any(axis=1), np.argmax(above, axis=1), G.shape[0])
+    kk = np.clip(k, 1, G.shape[0] - 1)
+    r = np.arange(f.shape[0])
+    f0, f1 = f[r, kk - 1], f[r, kk]
+    frac = np.clip((limit - f0) / np.where(f1 > f0, f1 - f0, 1.0), 0.0, 1.0)
+    c = G[kk - 1] + frac * (G[kk] - G[kk - 1])
+    c = np.where(k == G.shape[0], G[-1], c)
+    return np.where(k == 0, 0.0, c)
 
 
 def _safe_ik(arm: kinematics.FastArm, x: float, y: float, attitude: float) -> FloatArray:

@@ -1455,10 +1455,11 @@ class TrenchSession:
         passes allow) as a finishing pass."""
         found["full"] = True
         dig = self._first_plannable([found], remaining, t0)
-        if dig is None and self.finishing_used < MAX_FINISHING_PER_SECTION:
+        if dig is None:
+            found["full"] = False
             found["finishing_pass"] = True
             dig = self._first_plannable([found], remaining, t0)
-            if dig is not None:
+            if dig is not None and dig.finishing:
                 self.finishing_used += 1
         return dig
 
@@ -1583,7 +1584,7 @@ class TrenchSession:
             ends = self._column_ends(floor, self.section_lo, self.section_hi, partial)
             if not ends:
                 continue
-            if partial and self._layer_left() < 0.25 * self._fill_band()[0]:
+            if partial and not self._layer_must_be_taken():
                 return None
             x_start = ends[0]
             a = np.array([x_start, float(np.interp(x_start, self.grid, floor))])
@@ -1605,12 +1606,16 @@ class TrenchSession:
                     return dig
         return None
 
-    def _layer_left(self) -> float:
-        """Area of material above the current layer's floor within the section (m^2)."""
+    def _layer_must_be_taken(self) -> bool:
+        """Whether what is left above the current layer's floor must be taken under-filled:
+        left to the layer below, it would make that layer thicker anywhere than the boom's
+        torque cuts through (:data:`_CUT_MAX_M`, scaled)."""
         x = self.grid
-        t = np.clip(self.surface - self._layer_floor, 0.0, None)
-        t[(x < self.section_lo) | (x > self.section_hi)] = 0.0
-        return float(np.sum(t)) * GRID_STEP_M
+        inside = (x >= self.section_lo) & (x <= self.section_hi)
+        nxt = self.layer + 1
+        below = self.layer_floors[nxt] if nxt < len(self.layer_floors) else self.bottom_y
+        floor = np.maximum(self.design_floor[inside], below)
+        return bool(np.any(self.surface[inside] - floor > _CUT_MAX_M * self.planner.scale))
 
     def _next_column(self, remaining: Any, t0: float) -> PlannedDig | None:
         """The next bottom column (:meth:`_column_ends`): a straight backward dig along the
@@ -1641,7 +1646,7 @@ class TrenchSession:
         found["full"] = not partial
         found["finishing_pass"] = partial
         dig = self._first_plannable([found], remaining, t0)
-        if dig is not None and partial:
+        if dig is not None and dig.finishing:
             self.finishing_used += 1
         return dig
 
@@ -1662,7 +1667,7 @@ class TrenchSession:
         for cand in found:
             cand["finishing_pass"] = True
         dig = self._first_plannable(found, remaining, t0)
-        if dig is not None:
+        if dig is not None and dig.finishing:
             self.finishing_used += 1
         return dig
 
@@ -2069,27 +2074,69 @@ class TrenchSession:
                 found["fit_rms_m"] = math.sqrt(cost / qf.shape[0])
             return found
 
+        def fitted(
+            q1: FloatArray, q2: FloatArray, offset: float
+        ) -> tuple[float, FloatArray] | None:
+            """The bulge fitted for end poses ``q1``, ``q2``; None outside the joint limits
+            or theta_p's range."""
+            base = q1 + qf[:, None] * (q2 - q1)
+            K, cost = self._fit_bulge(base, q1, q2, edges, offset, kind)
+            q = base + pf[:, None] * K
+            if np.any(q < lo_q) or np.any(q > hi_q):
+                return None
+            # theta_p: the entry direction J(q1) (10 D + K) in the type's range.
+            jac = kinematics.jacobian(self.rig, q1)[:2]
+            d0 = jac @ (10.0 * (q2 - q1) + K)
+            ang = math.atan2(-d0[1], abs(d0[0]))
+            if not tp_lo + 0.01 <= ang <= tp_hi - 0.01:
+                return None
+            return cost, K
+
+        # Every table pair fitted on the outline itself; the best few shifted inwards just
+        # enough that the path's farthest sample outside the outline is _FIT_OUTSIDE_M out
+        # (a least-squares path crosses the outline both ways), and refitted.
+        mid = [(v[0], v[-1], *np.linspace(v[0], v[-1], 5)[1:-1].tolist()) for v in atts]
+        starts = [self._pass_pose(a, mid[0]), self._pass_pose(b, mid[1])]
+        fits: list[tuple[float, FloatArray, FloatArray, FloatArray]] = []
+        for qs in starts[0]:
+            for qe in starts[1]:
+                q1, q2 = np.asarray(qs), np.asarray(qe)
+                got = fitted(q1, q2, 0.0)
+                if got is not None:
+                    fits.append((got[0], q1, q2, got[1]))
+        fits.sort(key=lambda f: f[0])
+        for cost, q1, q2, K in fits[:_N_FIT_SHIFTS]:
+            qp = q1 + qf_full[:, None] * (q2 - q1) + pf_full[:, None] * K
+            px, py = arm.tip_xy(qp)
+            inside = np.min(edges[:, 2, None] - edges[:, 0, None] * (px + m) - edges[:, 1, None] * py, axis=0)
+            shift = max(0.0, -float(np.min(inside)) - _FIT_OUTSIDE_M)
+            if shift > 0.0:
+                q1s = arm.ik(*(a + shift * n_a - np.array([m, 0.0])), float(np.sum(q1)))
+                q2s = arm.ik(*(b + shift * n_b - np.array([m, 0.0])), float(np.sum(q2)))
+                if q1s is None or q2s is None:
+                    continue
+                q1, q2 = np.asarray(q1s), np.asarray(q2s)
+                got = fitted(q1, q2, shift)
+                if got is None:
+                    continue
+                cost, K = got
+            found = candidate(q1, q2, K, cost)
+            if found is not None:
+                return found
+        # Fixed shifts as before where the adaptive one found nothing.
         for offset in offsets:
             a_s = a + offset * n_a
             b_s = b + offset * n_b
-            mid = [(v[0], v[-1], *np.linspace(v[0], v[-1], 5)[1:-1].tolist()) for v in atts]
             starts = [self._pass_pose(a_s, mid[0]), self._pass_pose(b_s, mid[1])]
-            fits: list[tuple[float, FloatArray, FloatArray, FloatArray]] = []
+            fits = []
             # Table pairs first; a good fit is tried at once, the others by cost at the end.
             for qs in starts[0]:
                 for qe in starts[1]:
                     q1, q2 = np.asarray(qs), np.asarray(qe)
-                    base = q1 + qf[:, None] * (q2 - q1)
-                    K, cost = self._fit_bulge(base, q1, q2, edges, offset, kind)
-                    q = base + pf[:, None] * K
-                    if np.any(q < lo_q) or np.any(q > hi_q):
+                    got = fitted(q1, q2, offset)
+                    if got is None:
                         continue
-                    # theta_p: the entry direction J(q1) (10 D + K) in the type's range.
-                    jac = kinematics.jacobian(self.rig, q1)[:2]
-                    d0 = jac @ (10.0 * (q2 - q1) + K)
-                    ang = math.atan2(-d0[1], abs(d0[0]))
-                    if not tp_lo + 0.01 <= ang <= tp_hi - 0.01:
-                        continue
+                    cost, K = got
                     if cost < good:
                         found = candidate(q1, q2, K, cost)
                         if found is not None:
@@ -2135,7 +2182,7 @@ class TrenchSession:
         distances of the path samples from the outline ``edges`` (:meth:`_fit_profile`) less
         ``offset`` (weighted 21x where the path crosses the outline outwards by > 3 mm) and,
         while it is violated, the entry direction's theta_p bound as a heavily weighted row.
-        Returns ``(K, cost)``."""
+        Returns ``(K, cost)``, the cost that of the K returned (the best one evaluated)."""
         arm = self.planner.arm
         pf = self.planner.fit_pf
         lengths = arm.lengths
@@ -2149,7 +2196,8 @@ class TrenchSession:
         K = np.zeros(3)
         step = np.zeros(3)
         cost = math.inf
-        for _ in range(8):
+        best_K = K
+        for _ in range(9):
             q = base + pf[:, None] * K
             phi = np.cumsum(q, axis=1)
             cs, sn = np.cos(phi) * lengths, np.sin(phi) * lengths
@@ -2180,16 +2228,18 @@ class TrenchSession:
             new_cost = float(r @ r) + pen
             if new_cost > cost:  # the step made it worse: back off, damp harder
                 K = K - 0.5 * step
+                step = 0.5 * step
                 mu *= 10.0
                 continue
             cost = new_cost
+            best_K = K
+            if float(step @ step) < 1e-6 and _ > 0:
+                break  # converged: the cost is that of the K returned
             A = np.concatenate(rows)
             b = np.concatenate(rhs)
             step = np.linalg.solve(A.T @ A + mu * np.eye(3), A.T @ b - mu * K)
             K = K + step
-            if float(step @ step) < 1e-6:
-                break
-        return K, cost
+        return best_K, cost
 
     def _pass_candidate(
         self, kind: DigType, qs: FloatArray, qe: FloatArray, K: FloatArray, tip: FloatArray
@@ -2268,8 +2318,7 @@ class TrenchSession:
         # Judged on the material left (the fill band on the real cut), not on V_p against H.
         real_fill = finishing is not None or isinstance(oneshot_planner, PinnOneShot)
         if finishing is not None:
-            status = "profile_pass" if best.get("finishing_pass") else "profile"
-            res = OneShotResult(finishing[0], finishing[1], np.zeros(N_OUT), 0.0, status)
+            res = OneShotResult(finishing[0], finishing[1], np.zeros(N_OUT), 0.0, "profile")
         else:
             t_plan = time.perf_counter()
             if isinstance(oneshot_planner, PinnOneShot):
@@ -2328,9 +2377,10 @@ class TrenchSession:
                     f"the {self.planner.oneshot.name} plan of dig {len(self.digs) + 1} "
                     f"over-digs {over * 1e3:.1f} mm (the region it removes)"
                 )
-        finishing_pass = bool(best.get("finishing_pass", False))
         lo_a, hi_a = self._fill_band()
-        if not finishing_pass and not lo_a <= total <= hi_a:
+        # A dig allowed out of the fill band is a finishing pass only where it is out of it.
+        finishing_pass = bool(best.get("finishing_pass", False)) and not lo_a <= total <= hi_a
+        if not best.get("finishing_pass", False) and not lo_a <= total <= hi_a:
             raise PlanningError(
                 f"the {self.planner.oneshot.name} plan of dig {len(self.digs) + 1} carries "
                 f"{total * self.width_m * 1e3:.2f} L of material, outside the fill band "
@@ -2352,7 +2402,7 @@ class TrenchSession:
             plan_us=res.plan_us,
             select_us=select_us,
             planner=self.planner.oneshot.name,
-            status=res.status,
+            status="profile_pass" if finishing_pass else res.status,
             evaluation=out[0].copy(),
             finishing=finishing_pass,
             section=self.section,
@@ -2731,6 +2781,9 @@ MAX_FINISHING_PER_SECTION = 2
 #: through a full cut along the bottom (a 0.25 m column verifies up to ~0.11 m), thick
 #: enough that a column of it no longer than _COLUMN_MAX_M fills the bucket.
 _LAYER_RANGE_M = (0.045, 0.10)
+#: Thickest material a dig along the floor cuts through in one pass (scale model, m; a
+#: 0.25 m column verifies up to ~0.11 m).
+_CUT_MAX_M = 0.105
 #: Thickest layer above the bottom one (scale model, m): what the layer's columns cut, with
 #: room for what the network's digs leave above the layer's floor.
 _UPPER_LAYER_MAX_M = 0.09
@@ -2743,7 +2796,7 @@ _ROUGH_SPARE = 0.04
 _STAND_FAR_X_M = 1.05
 _STAND_NEAR_X_M = 0.35
 #: How far short of the design's bottom corners the walls' digs stop (scale model, m).
-_CORNER_GAP_M = 0.01
+_CORNER_GAP_M = 0.005
 #: How far beyond the face of the material a bottom column enters (scale model, m).
 _FACE_GAP_M = 0.004
 #: End attitudes of wall digs (deg; the table's first and last of each end).
@@ -2784,7 +2837,11 @@ _ENTRY_MIN_THICKNESS_M = 0.01
 #: After a travel, entries also start at the far edge of the material at least this fraction of
 #: its thickest within reach (:meth:`TrenchSession._entry_x_candidates`).
 _ENTRY_BULK_FRACTION = 0.9
-# Inward shifts of a profile pass's line tried in turn (m).
+# Profile fits shifted adaptively (the best by cost), and how far outside the outline the
+# shifted path's farthest sample may lie (m; the over-dig limit is 5 mm).
+_N_FIT_SHIFTS = 4
+_FIT_OUTSIDE_M = 0.0025
+# Inward shifts of a profile pass's line tried in turn where the adaptive shift fails (m).
 _PASS_OFFSETS_M = (0.0, 0.002, 0.004, 0.007)
 # A profile fit this good (least-squares cost, m^2: ~1 mm RMS) ends the search of starts.
 _GOOD_FIT_COST = 2e-4

@@ -126,3 +126,27 @@ def test_interp_bad_input(capsys: pytest.CaptureFixture[str]) -> None:
     assert "--durations needs 5 values" in capsys.readouterr().err
     assert main(["interp", "--points", "9,9,0", "2.1,0.2,-70"]) == 2
     assert "error" in capsys.readouterr().err
+
+
+# -- plan: the task domain and the status ---------------------------------------------------------
+
+
+def test_plan_refuses_a_task_outside_the_domain_and_plans_nothing(
+    capsys: pytest.CaptureFixture[str],
+    tmp_path,
+    monkeypatch: pytest.MonkeyPatch,  # type: ignore[no-untyped-def]
+) -> None:
+    from rt_runtime.planning import trench
+
+    planned: list[object] = []
+    monkeypatch.setattr(trench.TrenchPlanner, "plan", lambda self, task: planned.append(task))
+    f = tmp_path / "huge.toml"
+    f.write_text("length_m = 1e308\ndepth_m = 0.1\nbeta1_deg = 60\nbeta2_deg = 60\n")
+    assert main(["plan", "--task", str(f), "--json"]) == 2
+    out = capsys.readouterr()
+    assert out.out == "" and "Traceback" not in out.err
+    assert "task huge: length_m = 1e+308 is outside [0.3, 20] m" in out.err
+    f.write_text("length_m = 0.6\ndepth_m = 0.15\nbeta1_deg = 60\nbeta2_deg = 90\n")
+    assert main(["plan", "--task", str(f)]) == 2
+    assert "beta2_deg = 90 is outside [30, 85] deg" in capsys.readouterr().err
+    assert planned == []

@@ -20,6 +20,7 @@ from rt_runtime.planning.trench import (
     load_task,
     lower_envelope,
     make_task,
+    task_limits,
 )
 from rt_runtime.planning.verify import COL_VIOLATIONS
 from rt_runtime.rig import load_rig
@@ -57,24 +58,68 @@ def test_builtin_tasks_are_yao_table3() -> None:
 @pytest.mark.parametrize(
     ("kwargs", "words"),
     [
-        ({"depth_m": 0.9}, ["depth_m", "0.9", "outside"]),
-        ({"depth_m": -0.1}, ["depth_m"]),
-        ({"length_m": float("nan")}, ["length_m", "not finite"]),
-        ({"length_m": -0.5}, ["length_m", "> 0"]),
-        ({"beta1_deg": 90.0}, ["beta1_deg", "(0, 90)"]),
-        ({"beta2_deg": 95.0}, ["beta2_deg", "(0, 90)"]),
-        ({"start_x_m": -0.5}, ["behind the machine"]),
-        ({"start_x_m": 3.0}, ["start_x_m", "reach"]),
-        ({"length_m": 0.1, "depth_m": 0.2}, ["meet", "length_m must be >="]),
+        ({"depth_m": 0.9}, ["depth_m = 0.9 is outside", "[0.02, 0.3] m"]),
+        ({"depth_m": -0.1}, ["depth_m = -0.1 is outside", "[0.02, 0.3] m"]),
+        ({"depth_m": 0.01}, ["depth_m = 0.01 is outside", "[0.02, 0.3] m"]),
+        ({"depth_m": float("inf")}, ["depth_m = inf is not finite", "[0.02, 0.3] m"]),
+        ({"length_m": float("nan")}, ["length_m = nan is not finite", "[0.3, 20] m"]),
+        ({"length_m": 1e308}, ["length_m = 1e+308 is outside", "[0.3, 20] m"]),
+        ({"length_m": 1e-12}, ["length_m = 1e-12 is outside", "[0.3, 20] m"]),
+        ({"length_m": -0.5}, ["length_m = -0.5 is outside", "[0.3, 20] m"]),
+        ({"length_m": 0.0}, ["length_m = 0 is outside", "[0.3, 20] m"]),
+        ({"length_m": 20.5}, ["length_m = 20.5 is outside", "[0.3, 20] m", "length_max_m"]),
+        ({"length_m": 10**400}, ["length_m is beyond the float range", "[0.3, 20] m"]),
+        ({"length_m": True}, ["length_m must be a number in [0.3, 20] m", "True"]),
+        ({"depth_m": "0.1"}, ["depth_m must be a number in [0.02, 0.3] m", "'0.1'"]),
+        ({"beta1_deg": 90.0}, ["beta1_deg = 90 is outside", "[30, 85] deg"]),
+        ({"beta2_deg": 95.0}, ["beta2_deg = 95 is outside", "[30, 85] deg"]),
+        ({"beta1_deg": 0.0}, ["beta1_deg = 0 is outside", "[30, 85] deg"]),
+        ({"beta2_deg": -60.0}, ["beta2_deg = -60 is outside", "[30, 85] deg"]),
+        ({"beta1_deg": 29.0}, ["beta1_deg = 29 is outside", "[30, 85] deg"]),
+        ({"start_x_m": -0.5}, ["start_x_m = -0.5 is outside", "[0.55, 1.1] m", "reach"]),
+        ({"start_x_m": 3.0}, ["start_x_m = 3 is outside", "[0.55, 1.1] m", "reach"]),
+        (
+            {"length_m": 0.35, "depth_m": 0.25, "beta1_deg": 40.0, "beta2_deg": 40.0},
+            ["meet", "length_m must be >= 0.5959 m"],
+        ),
     ],
 )
-def test_impossible_tasks_fail_naming_the_bound(kwargs: dict[str, float], words: list[str]) -> None:
-    args = {"length_m": 0.6, "depth_m": 0.15, "beta1_deg": 60.0, "beta2_deg": 60.0}
+def test_impossible_tasks_fail_naming_the_bound(
+    kwargs: dict[str, object], words: list[str]
+) -> None:
+    args: dict[str, object] = {
+        "length_m": 0.6,
+        "depth_m": 0.15,
+        "beta1_deg": 60.0,
+        "beta2_deg": 60.0,
+    }
     args.update(kwargs)
     with pytest.raises(ConfigurationError) as e:
-        make_task(RIG, **args)
+        make_task(RIG, **args)  # type: ignore[arg-type]
     for w in words:
         assert w in str(e.value)
+
+
+def test_task_limits_cover_every_key_and_bound_the_domain() -> None:
+    limits = task_limits(RIG)
+    assert set(limits) == {"length_m", "depth_m", "beta1_deg", "beta2_deg", "start_x_m"}
+    assert limits["length_m"] == (0.3, 20.0)
+    assert limits["depth_m"] == (0.02, 0.3)
+    assert limits["beta1_deg"] == limits["beta2_deg"] == (30.0, 85.0)
+    assert limits["start_x_m"] == (0.55, 1.1)
+    # the ends are allowed
+    for length_m, depth_m, b1, b2, x in (
+        (0.3, 0.02, 30.0, 85.0, 0.55),
+        (20.0, 0.3, 85.0, 30.0, 1.1),
+    ):
+        make_task(RIG, length_m, depth_m, b1, b2, x)
+    # another rig: the minimums and the reach scale, the maximum is its profile's
+    bench = load_rig("test_bench")
+    s = float(np.sum(bench.lengths_m)) / 1.31
+    lb = task_limits(bench)
+    assert lb["length_m"] == pytest.approx((0.3 * s, bench.trench.length_max_m))
+    assert lb["depth_m"] == pytest.approx((0.02 * s, 0.3 * s))
+    assert bench.trench.length_max_m == pytest.approx(20.0 * s, abs=0.01)
 
 
 def test_task_file(tmp_path) -> None:

@@ -49,6 +49,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import numbers
 import time
 import tomllib
 from collections.abc import Callable, Mapping, Sequence
@@ -78,6 +79,7 @@ from rt_runtime.planning.verify import (
     pack_inputs,
 )
 from rt_runtime.rig import Rig
+from rt_runtime.rig.model import SCALE_MODEL_REACH_M
 
 FloatArray = NDArray[np.float64]
 
@@ -110,7 +112,7 @@ _COLLINEAR_M = 1e-12
 # Reach figures of the scale model (m), scaled by the rig's l1 + l2 + l3 against 1.31 m: where
 # digs may enter (the PINN's domain, oneshot.SAMPLER_RANGES), the deepest trench the backward
 # digs' domain serves, and the default far edge of a trench.
-_SCALE_REACH_M = 1.31
+_SCALE_REACH_M = SCALE_MODEL_REACH_M
 _ENTRY_X_M = (0.55, 1.10)
 _MAX_DEPTH_M = 0.30
 _DEFAULT_START_X_M = 1.05
@@ -159,14 +161,81 @@ def _reach_scale(rig: Rig) -> float:
     return float(np.sum(rig.lengths_m)) / _SCALE_REACH_M
 
 
+# The task domain's minimums on the scale model (m), scaled by reach like the planner's other
+# figures: a trench shorter than about 1.4 bucket lengths (l3 = 0.22 m) is a hole one scoop
+# takes, and one shallower than four over-dig limits (OVERDIG_LIMIT_M) is grading within the
+# tolerance of the profile, neither a trench this planner digs.
+_TASK_LENGTH_MIN_M = 0.30
+_TASK_DEPTH_MIN_M = 0.02
+#: Wall slopes (deg from the horizontal) a task may have: the domain the planner is measured on
+#: (``excavator-rt bench plan --random`` draws its walls from it), and nothing wider: a task
+#: accepted is one the planner's measured results cover. Flatter than 30 deg a wall runs out
+#: more than 1.7 D (a slope more than a trench wall), steeper than 85 deg it is a vertical cut;
+#: neither is measured, and 0 or 90 deg is no trench at all.
+WALL_SLOPE_DEG = (30.0, 85.0)
+
+
 def task_limits(rig: Rig) -> dict[str, tuple[float, float]]:
-    """The allowed ranges of a task's values on ``rig`` (m, deg), as the validation uses them."""
+    """The allowed range of every task value on ``rig``, closed at both ends, as
+    :func:`make_task` checks them (units as the key names say: m, deg).
+
+    ``length_m``: from 0.30 m (scale model, scaled by reach) to the profile's
+    ``trench.length_max_m``. ``depth_m``: from 0.02 m (scaled) to the deepest trench the
+    backward digs' domain serves (0.30 m scaled). ``beta1_deg``, ``beta2_deg``:
+    :data:`WALL_SLOPE_DEG`. ``start_x_m``: where the rig's digs may enter, the PINN's domain
+    (0.55..1.10 m scaled). A valid task also needs its walls to meet no higher than its depth.
+    """
     s = _reach_scale(rig)
+
+    def scaled(lo_m: float, hi_m: float) -> tuple[float, float]:
+        # To the nanometre: the scale model's own scale is 1 - 2e-16, and a depth of 0.3 m
+        # must not be refused for lying 5e-17 m beyond 0.3 x that.
+        return round(lo_m * s, 9), round(hi_m * s, 9)
+
     return {
-        "depth_m": (0.0, _MAX_DEPTH_M * s),
-        "start_x_m": (_ENTRY_X_M[0] * s, _ENTRY_X_M[1] * s),
-        "beta_deg": (0.0, 90.0),
+        "length_m": (scaled(_TASK_LENGTH_MIN_M, 0.0)[0], rig.trench.length_max_m),
+        "depth_m": scaled(_TASK_DEPTH_MIN_M, _MAX_DEPTH_M),
+        "beta1_deg": WALL_SLOPE_DEG,
+        "beta2_deg": WALL_SLOPE_DEG,
+        "start_x_m": scaled(*_ENTRY_X_M),
     }
+
+
+def _limit_text(rig: Rig, key: str, lo: float, hi: float) -> str:
+    """``[lo, hi] unit`` of a task key and what the range is."""
+    unit = key.rsplit("_", 1)[1]
+    why = {
+        "length_m": f"the trench lengths {rig.name} takes (its profile's trench.length_max_m)",
+        "depth_m": f"the depths {rig.name}'s digs reach below the ground",
+        "beta1_deg": "the wall slopes from the horizontal the planner is measured on",
+        "beta2_deg": "the wall slopes from the horizontal the planner is measured on",
+        "start_x_m": f"the reach where {rig.name}'s digs can start",
+    }[key]
+    return f"[{lo:.4g}, {hi:.4g}] {unit}, {why}"
+
+
+def _task_value(rig: Rig, name: str, key: str, value: object) -> float:
+    """``value`` as a float inside ``task_limits(rig)[key]``.
+
+    Raises:
+        ConfigurationError: Not a real number (a bool, a string), not finite, or outside the
+            range; the message names the task, the key, the value and the range with units.
+    """
+    lo, hi = task_limits(rig)[key]
+    allowed = _limit_text(rig, key, lo, hi)
+    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real):
+        raise ConfigurationError(f"task {name}: {key} must be a number in {allowed}; got {value!r}")
+    try:
+        x = float(value)
+    except OverflowError as e:  # an integer beyond the float range
+        raise ConfigurationError(
+            f"task {name}: {key} is beyond the float range; allowed {allowed}"
+        ) from e
+    if not math.isfinite(x):
+        raise ConfigurationError(f"task {name}: {key} = {x:g} is not finite; allowed {allowed}")
+    if not lo <= x <= hi:
+        raise ConfigurationError(f"task {name}: {key} = {x:g} is outside {allowed}")
+    return x
 
 
 def make_task(
@@ -178,67 +247,41 @@ def make_task(
     start_x_m: float | None = None,
     name: str = "task",
 ) -> TrenchTask:
-    """A validated task.
+    """A validated task: every value inside :func:`task_limits` and the walls meeting no
+    higher than the depth.
+
+    Args:
+        rig: The rig whose domain applies.
+        length_m, depth_m, beta1_deg, beta2_deg: The trench (m, deg).
+        start_x_m: The far top edge (m, arm frame); None: 1.05 m scaled by reach.
+        name: The task's name, the start of every message.
 
     Raises:
-        ConfigurationError: A value is not finite, out of its range (naming the key and what is
-            allowed), the slopes meet above the depth, or the trench lies behind the machine.
+        ConfigurationError: A value is not a real number, not finite or out of its range (the
+            message names the key, the value and the allowed range with units), or the walls
+            meet above the depth.
     """
-    limits = task_limits(rig)
-    values = {
-        "length_m": length_m,
-        "depth_m": depth_m,
-        "beta1_deg": beta1_deg,
-        "beta2_deg": beta2_deg,
-    }
-    if start_x_m is not None:
-        values["start_x_m"] = start_x_m
-    for key, v in values.items():
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise ConfigurationError(f"task {name}: {key} must be a number; got {v!r}")
-        if not math.isfinite(v):
-            raise ConfigurationError(f"task {name}: {key} = {v} is not finite")
-    if length_m <= 0.0:
-        raise ConfigurationError(f"task {name}: length_m = {length_m:g} must be > 0")
-    lo, hi = limits["depth_m"]
-    if not lo < depth_m <= hi:
-        raise ConfigurationError(
-            f"task {name}: depth_m = {depth_m:g} is outside ({lo:g}, {hi:.3g}] m, the depth "
-            f"{rig.name}'s digs reach below the ground"
-        )
-    for key in ("beta1_deg", "beta2_deg"):
-        b = values[key]
-        if not 0.0 < b < 90.0:
-            raise ConfigurationError(
-                f"task {name}: {key} = {b:g} must lie in (0, 90) deg (a wall slope from the "
-                "horizontal)"
-            )
     if start_x_m is None:
         start_x_m = _DEFAULT_START_X_M * _reach_scale(rig)
-    lo, hi = limits["start_x_m"]
-    if start_x_m <= 0.0:
-        raise ConfigurationError(
-            f"task {name}: start_x_m = {start_x_m:g} puts the trench behind the machine; the "
-            f"far edge must lie in front of it, within [{lo:.3g}, {hi:.3g}] m"
+    length, depth, beta1, beta2, start_x = (
+        _task_value(rig, name, key, value)
+        for key, value in zip(
+            TASK_KEYS, (length_m, depth_m, beta1_deg, beta2_deg, start_x_m), strict=True
         )
-    if not lo <= start_x_m <= hi:
-        raise ConfigurationError(
-            f"task {name}: start_x_m = {start_x_m:g} is outside the reach [{lo:.3g}, {hi:.3g}] m "
-            f"where {rig.name}'s digs can start"
-        )
+    )
     task = TrenchTask(
         name=name,
-        length_m=float(length_m),
-        depth_m=float(depth_m),
-        beta1_rad=math.radians(beta1_deg),
-        beta2_rad=math.radians(beta2_deg),
-        start_x_m=float(start_x_m),
+        length_m=length,
+        depth_m=depth,
+        beta1_rad=math.radians(beta1),
+        beta2_rad=math.radians(beta2),
+        start_x_m=start_x,
     )
     if task.bottom_length_m < 0.0:
-        need = depth_m / math.tan(task.beta1_rad) + depth_m / math.tan(task.beta2_rad)
+        need = depth / math.tan(task.beta1_rad) + depth / math.tan(task.beta2_rad)
         raise ConfigurationError(
-            f"task {name}: the walls (beta1 {beta1_deg:g}, beta2 {beta2_deg:g} deg) meet above "
-            f"depth_m = {depth_m:g}; length_m must be >= {need:.4g} m for that depth"
+            f"task {name}: the walls (beta1 {beta1:g}, beta2 {beta2:g} deg) meet above "
+            f"depth_m = {depth:g}; length_m must be >= {need:.4g} m for that depth"
         )
     return task
 
@@ -2250,6 +2293,7 @@ def plan_task(rig: Rig, task: TrenchTask | str, planner: str = "pinn", **kwargs:
 __all__: Sequence[str] = (
     "BUILTIN_TASKS",
     "OVERDIG_LIMIT_M",
+    "WALL_SLOPE_DEG",
     "OneShotPlanner",
     "OneShotResult",
     "PinnOneShot",

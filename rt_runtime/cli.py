@@ -640,31 +640,47 @@ def _plot_interp(path: str, rig: str, name: str, t, q, qd, qdd, stroke, names) -
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
-    """``excavator-rt plan``: a trench task planned dig by dig."""
-    from rt_runtime.planning.trench import TrenchPlanner, load_task
+    """``excavator-rt plan``: a trench task planned dig by dig.
+
+    Exit 0 when the plan is done, 1 when it is incomplete (the report is printed either way),
+    2 on bad input (a task outside the domain is refused before anything is planned).
+    """
+    from rt_runtime.planning.trench import (
+        COVERAGE_GOAL,
+        OVERDIG_GOAL_M,
+        PlanStatus,
+        TrenchPlanner,
+        load_task,
+    )
 
     rig = load_rig(args.rig)
     task = load_task(args.task, rig)
     plan = TrenchPlanner(rig, args.planner, model_dir=args.models).plan(task)
+    code = 0 if plan.status is PlanStatus.DONE else 1
     report = plan.to_json()
     if args.plot:
         plot_trench(plan, args.plot)
         report["plot"] = args.plot
     if args.json:
         _print_json(report)
-        return 0
+        return code
     t = report["task"]
     print(f"Trench task {t['name']} on {rig.name}: L {t['length_m']:.3g} m, D {t['depth_m']:.3g} m, beta1 {t['beta1_deg']:.0f} deg, beta2 {t['beta2_deg']:.0f} deg, far edge at x {t['start_x_m']:.3g} m ({args.planner})")
     print("   #  type       T [s]  V real [L]  V_p [L]  W_E [Wh]  theta_p [deg]  over [mm]  plan [us]  how")
     for i, d in enumerate(report["digs"], 1):
         print(f"  {i:2d}  {d['type']:<9} {d['T_s']:6.2f}  {d['volume_L']:10.2f}  {d['predicted_volume_L']:7.2f}  {d['energy_Wh']:8.4f}  {d['theta_p_deg']:13.1f}  {d['overdig_mm']:9.1f}  {d['plan_us']:9.0f}  {d['status']}")
-    yao = report.get("yao_fig14") or {}
-    print(f"  coverage error {report['coverage_error']:.2%} (goal <= 2 %; Yao {yao.get('coverage_error', float('nan')):.1%}), over-dig max {report['overdig_max_mm']:.1f} mm (goal <= 5 mm)")
+    yao = report.get("yao_fig14")
+    yao_text = f"; Yao {yao['coverage_error']:.1%}" if yao else ""
+    print(f"  coverage error {report['coverage_error']:.2%} (goal <= {COVERAGE_GOAL:.0%}{yao_text}), over-dig max {report['overdig_max_mm']:.1f} mm (goal <= {OVERDIG_GOAL_M * 1e3:g} mm)")
     print(f"  removed {report['removed_L']:.2f} L of a {report['design_L']:.2f} L design; dig time {report['dig_time_s']:.1f} s + transitions {report['transition_time_s']:.1f} s; energy {report['energy_Wh']:.3f} Wh")
     print(f"  whole plan in {report['plan_total_us'] / 1e3:.1f} ms")
     if args.plot:
         print(f"  plot: {args.plot}")
-    return 0
+    if code:
+        print(f"  status: incomplete, {report['volume_left_L']:.2f} L of the design left: {report['reason']}")
+    else:
+        print("  status: done")
+    return code
 
 
 def plot_trench(plan: Any, path: str) -> None:
@@ -873,7 +889,7 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--json", action="store_true")
     ip.set_defaults(handler=cmd_interp)
 
-    pl = sub.add_parser("plan", help="plan a trench task dig by dig (Yao Fig. 5, Table 3)")
+    pl = sub.add_parser("plan", help="plan a trench task dig by dig (Yao Fig. 5, Table 3); exit 1 when the plan is incomplete")
     pl.add_argument("--task", required=True, help="A, B, C, D (Yao Table 3) or a TOML file")
     pl.add_argument("--rig", default=DEFAULT_RIG)
     pl.add_argument("--planner", choices=("pinn", "pso"), default="pinn")

@@ -11,8 +11,11 @@ import pytest
 from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.trench import (
+    COVERAGE_GOAL,
+    OVERDIG_GOAL_M,
     OVERDIG_LIMIT_M,
     PlannedDig,
+    PlanStatus,
     Transition,
     TrenchPlanner,
     TrenchSession,
@@ -20,6 +23,7 @@ from rt_runtime.planning.trench import (
     load_task,
     lower_envelope,
     make_task,
+    plan_goals,
     task_limits,
 )
 from rt_runtime.planning.verify import COL_VIOLATIONS
@@ -142,6 +146,67 @@ def test_task_file(tmp_path) -> None:
 def test_impossible_task_plans_nothing(planner: TrenchPlanner) -> None:
     with pytest.raises(ConfigurationError):
         planner.plan(make_task(RIG, 0.6, 0.15, 60.0, 90.0))
+
+
+# -- status ---------------------------------------------------------------------------------------
+
+
+def test_status_is_done_on_task_a(plans: dict) -> None:
+    plan = plans["A"]
+    assert plan.status is PlanStatus.DONE and plan.reason is None and plan_goals(plan) == []
+    j = plan.to_json()
+    assert j["status"] == "done" and j["reason"] is None
+    # what is left is the coverage error's undug part: a fraction of the design
+    assert 0.0 <= j["volume_left_L"] <= COVERAGE_GOAL * j["design_L"]
+    assert all(d["finishing"] == (d["status"] == "profile_pass") for d in j["digs"])
+    assert {d["section"] for d in j["digs"]} == {0}
+
+
+def test_status_is_incomplete_after_one_dig(planner: TrenchPlanner) -> None:
+    session = planner.start(load_task("A", RIG))
+    dig = session.next_dig()
+    session.record(dig, dig.tip_path_m)
+    plan = session.finish(plan_total_us=0.0)
+    assert plan.coverage_error > COVERAGE_GOAL
+    assert plan.status is PlanStatus.INCOMPLETE
+    assert plan.reason is not None and "coverage error" in plan.reason and "2%" in plan.reason
+    left = float(session.remaining_design().area) * RIG.bucket.width_m
+    assert plan.volume_left_m3 == pytest.approx(left, rel=1e-9)
+    assert plan.volume_left_m3 == pytest.approx(plan.design_m3 - dig.design_volume_m3, rel=1e-6)
+    j = plan.to_json()
+    assert j["status"] == "incomplete" and j["reason"] == plan.reason
+    assert j["volume_left_L"] == pytest.approx(plan.volume_left_m3 * 1e3)
+
+
+def test_overdig_beyond_the_goal_is_incomplete(plans: dict) -> None:
+    import dataclasses
+
+    plan = dataclasses.replace(plans["A"], overdig_max_m=OVERDIG_GOAL_M + 1e-4)
+    assert plan.status is PlanStatus.INCOMPLETE
+    assert plan_goals(plan) == ["over-dig 5.10 mm is beyond the goal 5 mm"]
+
+
+def test_planning_error_mid_way_gives_the_partial_plan(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A session that raises at its third dig (no dig removes the rest): the plan keeps the
+    # two digs before it, ends with the second, and is incomplete with the error as reason.
+    original = TrenchSession.next_dig
+
+    def third_fails(self: TrenchSession) -> object:
+        if len(self.digs) == 2:
+            self._append_transitions(self.digs[-1])  # moves towards a dig that never comes
+            raise PlanningError("no verified dig removes the rest (test)")
+        return original(self)
+
+    monkeypatch.setattr(TrenchSession, "next_dig", third_fails)
+    plan = planner.plan(load_task("A", RIG))
+    assert len(plan.digs) == 2 and isinstance(plan.steps[-1], PlannedDig)
+    assert plan.planning_error == "no verified dig removes the rest (test)"
+    assert plan.status is PlanStatus.INCOMPLETE
+    assert plan.reason is not None
+    assert plan.reason.startswith("planning stopped: no verified dig removes the rest (test)")
+    assert plan.volume_left_m3 > 0.0
 
 
 # -- geometry -------------------------------------------------------------------------------------

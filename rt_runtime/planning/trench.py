@@ -54,6 +54,7 @@ import time
 import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from enum import IntEnum
 from pathlib import Path
 from typing import Any, Protocol, TypeVar, cast
 
@@ -553,9 +554,28 @@ class TravelMove:
     machine_x_to_m: float
 
 
+class PlanStatus(IntEnum):
+    """Whether a plan digs its task: ``DONE`` when it meets every goal of :func:`plan_goals`."""
+
+    DONE = 0
+    INCOMPLETE = 1
+
+
+#: A plan is done only when its coverage error (:attr:`TrenchPlan.coverage_error`) is at most
+#: this fraction of the design's area.
+COVERAGE_GOAL = 0.02
+#: ... and its deepest cut below the design (:attr:`TrenchPlan.overdig_max_m`) at most this (m),
+#: the limit every dig is planned to.
+OVERDIG_GOAL_M = OVERDIG_LIMIT_M
+
+
 @dataclass(frozen=True, slots=True)
 class TrenchPlan:
     """A frozen plan for one trench task.
+
+    Its :attr:`status` is ``DONE`` only when it meets every goal of :func:`plan_goals`; an
+    ``INCOMPLETE`` plan says why in :attr:`reason` and how much design material it leaves in
+    :attr:`volume_left_m3`.
 
     Attributes:
         task: The task.
@@ -578,6 +598,9 @@ class TrenchPlan:
             passes), ``transitions`` (the ruckig moves and their ground checks), ``record``
             (the material update), ``finish`` (this plan's coverage and over-dig), ``other``
             (the rest: entries, the remaining design, relocation).
+        planning_error: What stopped the planning before the planner found the task finished
+            (the message of the PlanningError: no dig removes the rest, the bound on the digs),
+            or None when it ran to its end; the plan then holds the digs before it.
     """
 
     task: TrenchTask
@@ -594,6 +617,25 @@ class TrenchPlan:
     design_m3: float
     plan_total_us: float
     stage_us: dict[str, float] = field(default_factory=dict)
+    planning_error: str | None = None
+
+    @property
+    def status(self) -> PlanStatus:
+        """``DONE`` when :func:`plan_goals` finds no goal unmet, else ``INCOMPLETE``."""
+        return PlanStatus.INCOMPLETE if plan_goals(self) else PlanStatus.DONE
+
+    @property
+    def reason(self) -> str | None:
+        """Why the plan is incomplete (the unmet goals, ``; ``-joined), None when done."""
+        unmet = plan_goals(self)
+        return "; ".join(unmet) if unmet else None
+
+    @property
+    def volume_left_m3(self) -> float:
+        """Design material the plan leaves (m^3): the design's volume times the part of its
+        area not dug."""
+        left = float(self.design.difference(self.dug).area)
+        return self.design_m3 * left / float(self.design.area)
 
     def to_json(self) -> dict[str, Any]:
         """The report of ``excavator-rt plan --json`` (keys in DESIGN.md "Reports")."""
@@ -611,6 +653,9 @@ class TrenchPlan:
                 "overdig_mm": d.overdig_m * 1e3,
                 "machine_x_m": d.machine_x_m,
                 "status": d.status,
+                "finishing": d.status == "profile_pass",
+                # The planner does not number sections yet: every dig is in section 0.
+                "section": 0,
             }
             for d in self.digs
         ]
@@ -627,6 +672,9 @@ class TrenchPlan:
             },
             "rig": self.rig,
             "planner": self.planner,
+            "status": self.status.name.lower(),
+            "reason": self.reason,
+            "volume_left_L": self.volume_left_m3 * 1e3,
             "digs": digs,
             "n_digs": len(digs),
             "coverage_error": self.coverage_error,
@@ -644,6 +692,28 @@ class TrenchPlan:
             "energy_Wh": sum(d.energy_j for d in self.digs) / 3600.0,
             "yao_fig14": YAO_FIG14.get(self.task.name),
         }
+
+
+def plan_goals(plan: TrenchPlan) -> list[str]:
+    """The goals ``plan`` does not meet, each a sentence with its numbers; empty when done.
+
+    Goals: the planning ran to its end (no :attr:`TrenchPlan.planning_error`), the coverage
+    error is at most :data:`COVERAGE_GOAL` and the deepest over-dig at most
+    :data:`OVERDIG_GOAL_M`. Every goal a plan must meet to be done belongs here.
+    """
+    unmet = []
+    if plan.planning_error is not None:
+        unmet.append(f"planning stopped: {plan.planning_error}")
+    if not plan.coverage_error <= COVERAGE_GOAL:
+        unmet.append(
+            f"coverage error {plan.coverage_error:.2%} is above the goal {COVERAGE_GOAL:.0%}"
+        )
+    if not plan.overdig_max_m <= OVERDIG_GOAL_M:
+        unmet.append(
+            f"over-dig {plan.overdig_max_m * 1e3:.2f} mm is beyond the goal "
+            f"{OVERDIG_GOAL_M * 1e3:g} mm"
+        )
+    return unmet
 
 
 # -- geometry helpers -----------------------------------------------------------------------------
@@ -917,21 +987,36 @@ class TrenchPlanner:
     def plan(self, task: TrenchTask) -> TrenchPlan:
         """The whole plan for ``task`` on the predicted paths (open loop).
 
-        Raises:
-            PlanningError: A dig cannot be planned (no verified candidate removes material).
+        A PlanningError mid-way (no verified dig removes the rest, the bound on the digs) does
+        not propagate: the plan holds the digs before it, ends after the last of them (the
+        moves towards the dig that failed are dropped) and is incomplete with that error as
+        its :attr:`TrenchPlan.planning_error`. Check :attr:`TrenchPlan.status`.
         """
         t0 = time.perf_counter()
         session = self.start(task)
-        while True:
-            dig = session.next_dig()
-            if dig is None:
-                break
-            session.record(dig, dig.tip_path_m)
+        error: str | None = None
+        try:
+            while True:
+                dig = session.next_dig()
+                if dig is None:
+                    break
+                session.record(dig, dig.tip_path_m)
+        except PlanningError as e:
+            error = str(e)
         plan = session.finish(plan_total_us=0.0)
         total = (time.perf_counter() - t0) * 1e6
         stages = dict(session.stage_us)
         stages["other"] = max(0.0, total - sum(stages.values()))
-        return dataclasses.replace(plan, plan_total_us=total, stage_us=stages)
+        if error is None:
+            return dataclasses.replace(plan, plan_total_us=total, stage_us=stages)
+        last = max((i for i, st in enumerate(plan.steps) if isinstance(st, PlannedDig)), default=-1)
+        return dataclasses.replace(
+            plan,
+            steps=plan.steps[: last + 1],
+            plan_total_us=total,
+            stage_us=stages,
+            planning_error=error,
+        )
 
 
 #: The stages of TrenchPlan.stage_us that TrenchSession times (``other`` is the rest).
@@ -2292,11 +2377,14 @@ def plan_task(rig: Rig, task: TrenchTask | str, planner: str = "pinn", **kwargs:
 
 __all__: Sequence[str] = (
     "BUILTIN_TASKS",
+    "COVERAGE_GOAL",
+    "OVERDIG_GOAL_M",
     "OVERDIG_LIMIT_M",
     "WALL_SLOPE_DEG",
     "OneShotPlanner",
     "OneShotResult",
     "PinnOneShot",
+    "PlanStatus",
     "PlannedDig",
     "PsoOneShot",
     "Transition",
@@ -2310,6 +2398,7 @@ __all__: Sequence[str] = (
     "load_task",
     "lower_envelope",
     "make_task",
+    "plan_goals",
     "plan_task",
     "task_limits",
 )

@@ -541,6 +541,224 @@ def _plan_totals(report: dict[str, Any]) -> dict[str, float]:
 
 
 # ---------------------------------------------------------------------------------------------
+# The random suite: `excavator-rt bench plan --random N --seed S` (issue 23).
+
+#: Lengths of the random suite's tasks (scale model, m; scaled by reach): from the domain's
+#: shortest trench to one that takes two or three stands of the machine.
+RANDOM_LENGTH_M = (0.30, 1.50)
+#: The random suite's goals on the coverage error (fractions within which it counts tasks).
+RANDOM_COVERAGE_BANDS = {"within_2pct": 0.02, "within_4pct": 0.04}
+#: Tasks listed under ``worst`` in the random suite's report.
+RANDOM_WORST = 5
+#: Calls of the PINN planner on one dig problem for the suite's same-run reference.
+RANDOM_REFERENCE_CALLS = 100
+
+
+def random_tasks(rig: Rig, n: int, seed: int) -> list[Any]:
+    """``n`` trench tasks drawn uniformly over the task domain of ``rig``.
+
+    Each value is drawn uniformly and independently, in this order: length
+    (:data:`RANDOM_LENGTH_M` scaled by reach, within the domain), depth, far wall, near wall
+    and far edge ``start_x_m``, each over its whole range of
+    :func:`rt_runtime.planning.trench.task_limits`. A draw whose walls meet above its depth is
+    drawn again, all five values, from the same generator, so the suite is a function of
+    ``(rig, n, seed)``.
+
+    Returns:
+        ``n`` :class:`~rt_runtime.planning.trench.TrenchTask`, named ``random-<seed>-<i>``.
+    """
+    from rt_runtime.planning.trench import make_task, task_limits
+    from rt_runtime.rig.model import SCALE_MODEL_REACH_M
+
+    rng = np.random.default_rng(seed)
+    limits = task_limits(rig)
+    s = float(np.sum(rig.lengths_m)) / SCALE_MODEL_REACH_M
+    lo_l, hi_l = limits["length_m"]
+    ranges = (
+        (max(lo_l, RANDOM_LENGTH_M[0] * s), min(hi_l, RANDOM_LENGTH_M[1] * s)),
+        limits["depth_m"],
+        limits["beta1_deg"],
+        limits["beta2_deg"],
+        limits["start_x_m"],
+    )
+    tasks = []
+    for i in range(n):
+        while True:
+            L, D, b1, b2, x = (float(rng.uniform(lo, hi)) for lo, hi in ranges)
+            bottom = L - D / math.tan(math.radians(b1)) - D / math.tan(math.radians(b2))
+            if bottom >= 0.0:
+                break
+        tasks.append(make_task(rig, L, D, b1, b2, x, name=f"random-{seed}-{i}"))
+    return tasks
+
+
+def _group(values: list[float], keys: tuple[str, ...]) -> dict[str, float] | None:
+    """The named statistics (``min``, ``p50``, ``p99``, ``max``) of ``values``; None if empty."""
+    if not values:
+        return None
+    a = np.asarray(values, dtype=np.float64)
+    every = {
+        "min": float(np.min(a)),
+        "p50": float(np.percentile(a, 50)),
+        "p99": float(np.percentile(a, 99)),
+        "max": float(np.max(a)),
+    }
+    return {k: every[k] for k in keys}
+
+
+def bench_plan_random(
+    rig: Rig,
+    n: int,
+    seed: int = 0,
+    *,
+    model_dir: str | None = None,
+    planner: Any = None,
+) -> dict[str, Any]:
+    """The random suite: ``n`` seeded tasks over the whole domain (:func:`random_tasks`),
+    each planned with the PINN planner.
+
+    An exception while planning a task is caught and kept with the task (``error``: its type
+    and message) instead of ending the run; such a task counts as neither within a coverage
+    band nor done. The same-run reference is the PINN planner's own call on one dig problem
+    (the first roughing dig of the first task that has one, planned
+    :data:`RANDOM_REFERENCE_CALLS` times as the trench planner calls it), beside the whole
+    plans' time per dig.
+
+    Args:
+        rig: The rig.
+        n: Number of tasks.
+        seed: Seed of the task generator.
+        model_dir: PINN model directory (default: the shipped ``onnx/``).
+        planner: A :class:`~rt_runtime.planning.trench.TrenchPlanner` to use (default: a PINN
+            planner built for ``rig``).
+
+    Returns:
+        JSON-ready dict (README "bench plan --random"): ``tasks``, ``seed``, ``within_2pct``,
+        ``within_4pct``, ``coverage_error`` {p50, p99, max}, ``overdig_max_mm`` {p50, max},
+        ``digs`` {p50, max}, ``fill`` (real volume per roughing dig in L {min, p50, max},
+        ``band_L``, ``within_band``, ``n``), ``finishing_per_section_max``,
+        ``transition_penetration_max_mm`` {p50, max}, ``plan_ms`` {p50, p99} per task,
+        ``plan_per_dig_ms`` {p50, p99}, ``status_done``, ``errors``, ``error_tasks``,
+        ``worst``, ``reference`` and ``per_task``. Groups over no task are None.
+    """
+    from rt_runtime.planning import oneshot
+    from rt_runtime.planning.trench import TrenchPlanner
+
+    if planner is None:
+        planner = TrenchPlanner(rig, "pinn", model_dir=model_dir)
+    planning = oneshot.require_planning(rig)
+    band_l = (planning.volume_min_m3 * 1e3, planning.volume_max_m3 * 1e3)
+    tasks = random_tasks(rig, n, seed)
+    records: list[dict[str, Any]] = []
+    fills: list[float] = []
+    finishing_max = 0
+    first_problem: Any = None
+    for task in tasks:
+        rec: dict[str, Any] = {
+            "name": task.name,
+            "length_m": task.length_m,
+            "depth_m": task.depth_m,
+            "beta1_deg": math.degrees(task.beta1_rad),
+            "beta2_deg": math.degrees(task.beta2_rad),
+            "start_x_m": task.start_x_m,
+        }
+        try:
+            plan = planner.plan(task)
+            report = plan.to_json()
+        except Exception as e:  # every failure is a result of the suite, kept with its task
+            rec["error"] = f"{type(e).__name__}: {e}"
+            records.append(rec)
+            continue
+        digs = report["digs"]
+        roughing = [d for d in digs if not d["finishing"]]
+        fills += [d["volume_L"] for d in roughing]
+        per_section: dict[int, int] = {}
+        for d in digs:
+            if d["finishing"]:
+                per_section[d["section"]] = per_section.get(d["section"], 0) + 1
+        finishing_max = max(finishing_max, *per_section.values(), 0)
+        if first_problem is None:
+            first = next((d for d in plan.digs if d.status != "profile_pass"), None)
+            if first is not None:
+                first_problem = (task.name, first.index, first.problem)
+        rec.update(
+            coverage_error=report["coverage_error"],
+            overdig_max_mm=report["overdig_max_mm"],
+            digs=len(digs),
+            status=report["status"],
+            reason=report["reason"],
+            volume_left_L=report["volume_left_L"],
+            transition_penetration_max_mm=report["transition_penetration_max_mm"],
+            plan_ms=report["plan_total_us"] / 1e3,
+        )
+        records.append(rec)
+    planned = [r for r in records if "error" not in r]
+    coverage = [r["coverage_error"] for r in planned]
+    per_dig = [r["plan_ms"] / r["digs"] for r in planned if r["digs"]]
+    reference = _pinn_reference(planner, first_problem)
+    out: dict[str, Any] = {
+        "rig": rig.name,
+        "tasks": n,
+        "seed": seed,
+        **{k: sum(c <= v for c in coverage) / max(n, 1) for k, v in RANDOM_COVERAGE_BANDS.items()},
+        "coverage_error": _group(coverage, ("p50", "p99", "max")),
+        "overdig_max_mm": _group([r["overdig_max_mm"] for r in planned], ("p50", "max")),
+        "digs": _group([float(r["digs"]) for r in planned], ("p50", "max")),
+        "fill": {
+            **(_group(fills, ("min", "p50", "max")) or {"min": None, "p50": None, "max": None}),
+            "band_L": list(band_l),
+            "within_band": (
+                sum(band_l[0] <= v <= band_l[1] for v in fills) / len(fills) if fills else None
+            ),
+            "n": len(fills),
+        },
+        "finishing_per_section_max": finishing_max,
+        "transition_penetration_max_mm": _group(
+            [r["transition_penetration_max_mm"] for r in planned], ("p50", "max")
+        ),
+        "plan_ms": _group([r["plan_ms"] for r in planned], ("p50", "p99")),
+        "plan_per_dig_ms": _group(per_dig, ("p50", "p99")),
+        "status_done": sum(r["status"] == "done" for r in planned) / max(n, 1),
+        "errors": n - len(planned),
+        "error_tasks": [r for r in records if "error" in r],
+        "worst": sorted(planned, key=lambda r: -r["coverage_error"])[:RANDOM_WORST],
+        "reference": reference,
+        "per_task": records,
+    }
+    if reference is not None and per_dig:
+        out["plan_per_dig_over_pinn_plan"] = float(
+            np.median(per_dig) / reference["pinn_plan_ms"]["p50"]
+        )
+    else:
+        out["plan_per_dig_over_pinn_plan"] = None
+    return out
+
+
+def _pinn_reference(planner: Any, first: Any) -> dict[str, Any] | None:
+    """The PINN planner's own time on one dig problem (``(task, dig index, problem)``), called
+    as the trench planner calls it (no solution library); None without a problem or when the
+    call fails."""
+    from rt_runtime.errors import PlanningError
+
+    if first is None:
+        return None
+    name, index, p = first
+    times: list[float] = []
+    try:
+        for _ in range(RANDOM_REFERENCE_CALLS):
+            t0 = time.perf_counter()
+            planner.pinn.plan(p.q_start_rad, p.q_end_rad, p.surface_y_m, p.dig_type, library=False)
+            times.append((time.perf_counter() - t0) * 1e3)
+    except PlanningError:
+        return None
+    return {
+        "pinn_plan_ms": percentiles(times),
+        "calls": len(times),
+        "problem": {"task": name, "dig": index, "type": p.dig_type.name.lower()},
+    }
+
+
+# ---------------------------------------------------------------------------------------------
 # The full suite: `excavator-rt bench` without a subcommand (issue 7).
 
 #: Goal of the issue: loop lateness at 500 Hz, p99 (us).

@@ -640,31 +640,47 @@ def _plot_interp(path: str, rig: str, name: str, t, q, qd, qdd, stroke, names) -
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
-    """``excavator-rt plan``: a trench task planned dig by dig."""
-    from rt_runtime.planning.trench import TrenchPlanner, load_task
+    """``excavator-rt plan``: a trench task planned dig by dig.
+
+    Exit 0 when the plan is done, 1 when it is incomplete (the report is printed either way),
+    2 on bad input (a task outside the domain is refused before anything is planned).
+    """
+    from rt_runtime.planning.trench import (
+        COVERAGE_GOAL,
+        OVERDIG_GOAL_M,
+        PlanStatus,
+        TrenchPlanner,
+        load_task,
+    )
 
     rig = load_rig(args.rig)
     task = load_task(args.task, rig)
     plan = TrenchPlanner(rig, args.planner, model_dir=args.models).plan(task)
+    code = 0 if plan.status is PlanStatus.DONE else 1
     report = plan.to_json()
     if args.plot:
         plot_trench(plan, args.plot)
         report["plot"] = args.plot
     if args.json:
         _print_json(report)
-        return 0
+        return code
     t = report["task"]
     print(f"Trench task {t['name']} on {rig.name}: L {t['length_m']:.3g} m, D {t['depth_m']:.3g} m, beta1 {t['beta1_deg']:.0f} deg, beta2 {t['beta2_deg']:.0f} deg, far edge at x {t['start_x_m']:.3g} m ({args.planner})")
     print("   #  type       T [s]  V real [L]  V_p [L]  W_E [Wh]  theta_p [deg]  over [mm]  plan [us]  how")
     for i, d in enumerate(report["digs"], 1):
         print(f"  {i:2d}  {d['type']:<9} {d['T_s']:6.2f}  {d['volume_L']:10.2f}  {d['predicted_volume_L']:7.2f}  {d['energy_Wh']:8.4f}  {d['theta_p_deg']:13.1f}  {d['overdig_mm']:9.1f}  {d['plan_us']:9.0f}  {d['status']}")
-    yao = report.get("yao_fig14") or {}
-    print(f"  coverage error {report['coverage_error']:.2%} (goal <= 2 %; Yao {yao.get('coverage_error', float('nan')):.1%}), over-dig max {report['overdig_max_mm']:.1f} mm (goal <= 5 mm)")
+    yao = report.get("yao_fig14")
+    yao_text = f"; Yao {yao['coverage_error']:.1%}" if yao else ""
+    print(f"  coverage error {report['coverage_error']:.2%} (goal <= {COVERAGE_GOAL:.0%}{yao_text}), over-dig max {report['overdig_max_mm']:.1f} mm (goal <= {OVERDIG_GOAL_M * 1e3:g} mm)")
     print(f"  removed {report['removed_L']:.2f} L of a {report['design_L']:.2f} L design; dig time {report['dig_time_s']:.1f} s + transitions {report['transition_time_s']:.1f} s; energy {report['energy_Wh']:.3f} Wh")
     print(f"  whole plan in {report['plan_total_us'] / 1e3:.1f} ms")
     if args.plot:
         print(f"  plot: {args.plot}")
-    return 0
+    if code:
+        print(f"  status: incomplete, {report['volume_left_L']:.2f} L of the design left: {report['reason']}")
+    else:
+        print("  status: done")
+    return code
 
 
 def plot_trench(plan: Any, path: str) -> None:
@@ -697,16 +713,56 @@ def plot_trench(plan: Any, path: str) -> None:
 
 
 def cmd_bench_plan(args: argparse.Namespace) -> int:
-    """``excavator-rt bench plan``: tasks A-D planned with the PINN (timed) and the PSO."""
-    from rt_runtime.bench import bench_plan
+    """``excavator-rt bench plan``: tasks A-D planned with the PINN (timed) and the PSO; with
+    ``--random N`` the random suite over the task domain (and the named tasks only if given)."""
+    from rt_runtime.bench import bench_plan, bench_plan_random
 
     rig = load_rig(args.rig)
-    tasks = tuple(t.strip() for t in args.tasks.split(",") if t.strip())
-    r = bench_plan(rig, tasks, passes=args.passes, pso=not args.no_pso, model_dir=args.models)
+    if args.random is not None and args.random < 1:
+        raise ConfigurationError(f"--random {args.random}: allowed a number of tasks >= 1")
+    spec = args.tasks if args.tasks is not None else ("" if args.random else "A,B,C,D")
+    tasks = tuple(t.strip() for t in spec.split(",") if t.strip())
+    r: dict[str, Any] = {"rig": rig.name}
+    if tasks:
+        r = bench_plan(rig, tasks, passes=args.passes, pso=not args.no_pso, model_dir=args.models)
+    if args.random:
+        r["random"] = bench_plan_random(rig, args.random, args.seed, model_dir=args.models)
     if args.json:
         _print_json(r)
         return 0
-    print(f"Trench planning on {rig.name} (Yao Table 3 tasks); PINN plan times over {args.passes} passes")
+    if tasks:
+        _print_bench_plan(r, rig.name, args.passes)
+    if args.random:
+        _print_bench_random(r["random"])
+    return 0
+
+
+def _print_bench_random(q: dict[str, Any]) -> None:
+    """The random suite's summary as text."""
+    print(f"Random suite on {q['rig']}: {q['tasks']} tasks, seed {q['seed']} (PINN planner)")
+    if q["errors"]:
+        print(f"  errors: {q['errors']} (first: {q['error_tasks'][0]['name']}: {q['error_tasks'][0]['error']})")
+    if q["coverage_error"] is None:
+        return
+    c, o, d = q["coverage_error"], q["overdig_max_mm"], q["digs"]
+    print(f"  done {q['status_done']:.0%}; coverage error within 2 % {q['within_2pct']:.0%}, within 4 % {q['within_4pct']:.0%}; p50 {c['p50']:.2%}, p99 {c['p99']:.2%}, max {c['max']:.2%}")
+    print(f"  over-dig p50 {o['p50']:.2f} mm, max {o['max']:.2f} mm; digs p50 {d['p50']:.0f}, max {d['max']:.0f}; finishing passes per section max {q['finishing_per_section_max']}")
+    f = q["fill"]
+    if f["n"]:
+        print(f"  roughing fill {f['min']:.2f} / {f['p50']:.2f} / {f['max']:.2f} L (min / p50 / max), {f['within_band']:.0%} of {f['n']} digs within {f['band_L'][0]:.2f}-{f['band_L'][1]:.2f} L")
+    tp = q["transition_penetration_max_mm"]
+    print(f"  transitions into the material p50 {tp['p50']:.1f} mm, max {tp['max']:.1f} mm")
+    ref = q["reference"]
+    ref_text = f"; PINN plan of one dig p50 {ref['pinn_plan_ms']['p50']:.2f} ms, plan per dig / PINN plan {q['plan_per_dig_over_pinn_plan']:.1f}x" if ref and q["plan_per_dig_over_pinn_plan"] is not None else ""
+    print(f"  plan per task p50 {q['plan_ms']['p50']:.1f} ms, p99 {q['plan_ms']['p99']:.1f} ms; per dig p50 {q['plan_per_dig_ms']['p50']:.2f} ms{ref_text}")
+    print("  worst:  task              L [m]  D [m]  beta1  beta2  x [m]  coverage  over [mm]  digs  status")
+    for w in q["worst"]:
+        print(f"          {w['name']:<16} {w['length_m']:6.3f} {w['depth_m']:6.3f} {w['beta1_deg']:6.1f} {w['beta2_deg']:6.1f} {w['start_x_m']:6.3f}  {w['coverage_error']:7.2%}  {w['overdig_max_mm']:9.2f}  {w['digs']:4d}  {w['status']}")
+
+
+def _print_bench_plan(r: dict[str, Any], rig_name: str, passes: int) -> None:
+    """The report of ``bench plan`` on named tasks as text."""
+    print(f"Trench planning on {rig_name} (Yao Table 3 tasks); PINN plan times over {passes} passes")
     print("  task  digs  coverage  Yao     over-dig  plan p50     plan p99     PSO plan   totals T / V / W_E vs PSO")
     for name, e in r["tasks"].items():
         p = e["pinn"]
@@ -731,7 +787,6 @@ def cmd_bench_plan(args: argparse.Namespace) -> int:
     g = r["goals"]
     tr = r["trench"]
     print(f"  whole plan, all tasks ({tr['geometry']} geometry): p50 {tr['plan_us']['p50'] / 1e3:.1f} ms, p99 {tr['plan_us']['p99'] / 1e3:.1f} ms; numpy geometry p50 {tr['numpy_geometry_plan_us']['p50'] / 1e3:.1f} ms (goal p50 <= {g['plan_us_p50_max'] / 1e3:.0f} ms; Yao 4.2-4.5 ms per dig)")
-    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -873,7 +928,7 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--json", action="store_true")
     ip.set_defaults(handler=cmd_interp)
 
-    pl = sub.add_parser("plan", help="plan a trench task dig by dig (Yao Fig. 5, Table 3)")
+    pl = sub.add_parser("plan", help="plan a trench task dig by dig (Yao Fig. 5, Table 3); exit 1 when the plan is incomplete")
     pl.add_argument("--task", required=True, help="A, B, C, D (Yao Table 3) or a TOML file")
     pl.add_argument("--rig", default=DEFAULT_RIG)
     pl.add_argument("--planner", choices=("pinn", "pso"), default="pinn")
@@ -884,7 +939,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     b3 = bench_sub.add_parser("plan", help="whole-trench planning on tasks A-D: coverage, over-dig, time, PINN vs PSO")
     b3.add_argument("--rig", default=DEFAULT_RIG)
-    b3.add_argument("--tasks", default="A,B,C,D")
+    b3.add_argument("--tasks", help="named tasks, comma-separated (default A,B,C,D; none with --random)")
+    b3.add_argument("--random", type=int, metavar="N", help="the random suite: N seeded tasks over the whole task domain, PINN planner")
+    b3.add_argument("--seed", type=int, default=0, help="seed of the random suite's tasks")
     b3.add_argument("--passes", type=int, default=3, help="timed PINN plans per task")
     b3.add_argument("--no-pso", action="store_true", help="skip the PSO plans (minutes)")
     b3.add_argument("--models", help="model directory (default: the shipped onnx/)")

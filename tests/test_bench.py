@@ -61,3 +61,76 @@ def test_bench_plan_compares_pinn_and_pso_on_the_same_dig_problems() -> None:
     assert e["numpy_geometry_plan_us"]["p50"] > 0.0 and e["speedup_vs_numpy_geometry"] > 0.0
     assert sum(e["stage_us"].values()) == pytest.approx(e["plan_us"]["p50"], rel=1e-9)
     assert r["trench"]["geometry"] == "c"
+
+
+def test_random_suite_is_seeded_and_has_every_key() -> None:
+    from rt_runtime.planning.trench import task_limits
+
+    rig = load_rig("scale_model")
+    tasks = bench.random_tasks(rig, 3, seed=5)
+    again = bench.random_tasks(rig, 3, seed=5)
+    assert tasks == again and tasks != bench.random_tasks(rig, 3, seed=6)
+    limits = task_limits(rig)
+    for t in tasks:
+        assert limits["depth_m"][0] <= t.depth_m <= limits["depth_m"][1]
+        assert 0.3 <= t.length_m <= 1.5 and t.bottom_length_m >= 0.0
+    r = bench.bench_plan_random(rig, 3, seed=5)
+    keys = {
+        "tasks", "seed", "within_2pct", "within_4pct", "coverage_error", "overdig_max_mm",
+        "digs", "fill", "finishing_per_section_max", "transition_penetration_max_mm",
+        "plan_ms", "plan_per_dig_ms", "status_done", "errors", "error_tasks", "worst",
+        "reference", "plan_per_dig_over_pinn_plan", "per_task",
+    }  # fmt: skip
+    assert keys <= set(r)
+    assert r["tasks"] == 3 and r["seed"] == 5 and r["errors"] == 0
+    assert set(r["coverage_error"]) == {"p50", "p99", "max"}
+    for key in ("overdig_max_mm", "digs", "transition_penetration_max_mm"):
+        assert set(r[key]) == {"p50", "max"}
+    for key in ("plan_ms", "plan_per_dig_ms"):
+        assert set(r[key]) == {"p50", "p99"} and r[key]["p50"] > 0.0
+    assert set(r["fill"]) == {"min", "p50", "max", "band_L", "within_band", "n"}
+    assert r["fill"]["band_L"] == pytest.approx([3.74, 5.72])
+    assert 0.0 <= r["within_2pct"] <= r["within_4pct"] <= 1.0
+    assert 0.0 <= r["status_done"] <= 1.0
+    assert len(r["worst"]) == 3
+    worst = r["worst"][0]
+    assert worst["coverage_error"] == r["coverage_error"]["max"]
+    for key in ("length_m", "depth_m", "beta1_deg", "beta2_deg", "start_x_m", "coverage_error",
+                "overdig_max_mm", "digs", "status", "reason"):  # fmt: skip
+        assert key in worst
+    assert r["reference"]["pinn_plan_ms"]["p50"] > 0.0 and r["plan_per_dig_over_pinn_plan"] > 0.0
+    # a task of the suite replays: the same values plan to the same coverage
+    from rt_runtime.planning.trench import TrenchPlanner, make_task
+
+    t = make_task(rig, *(worst[k] for k in ("length_m", "depth_m", "beta1_deg", "beta2_deg",
+                                            "start_x_m")))  # fmt: skip
+    assert TrenchPlanner(rig).plan(t).coverage_error == pytest.approx(worst["coverage_error"])
+
+
+def test_random_suite_counts_a_failing_task_and_goes_on(monkeypatch: pytest.MonkeyPatch) -> None:
+    from rt_runtime.planning import trench
+
+    rig = load_rig("scale_model")
+    planner = trench.TrenchPlanner(rig)
+    original = trench.TrenchPlanner.plan
+
+    def fails_once(self: trench.TrenchPlanner, task: trench.TrenchTask) -> trench.TrenchPlan:
+        if task.name.endswith("-0"):
+            raise ValueError("boom (test)")
+        return original(self, task)
+
+    monkeypatch.setattr(trench.TrenchPlanner, "plan", fails_once)
+    r = bench.bench_plan_random(rig, 2, seed=5, planner=planner)
+    assert r["errors"] == 1 and len(r["per_task"]) == 2
+    assert r["error_tasks"][0]["error"] == "ValueError: boom (test)"
+    assert r["error_tasks"][0]["name"] == "random-5-0"
+    assert r["coverage_error"] is not None and len(r["worst"]) == 1
+
+
+def test_bench_plan_random_cli(capsys) -> None:  # type: ignore[no-untyped-def]
+    assert main(["bench", "plan", "--random", "1", "--seed", "3", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert set(r) == {"rig", "random"} and r["random"]["tasks"] == 1  # no named tasks
+    assert main(["bench", "plan", "--random", "1", "--seed", "3"]) == 0
+    assert "Random suite on scale_model: 1 tasks, seed 3" in capsys.readouterr().out
+    assert main(["bench", "plan", "--random", "0"]) == 2

@@ -126,3 +126,60 @@ def test_interp_bad_input(capsys: pytest.CaptureFixture[str]) -> None:
     assert "--durations needs 5 values" in capsys.readouterr().err
     assert main(["interp", "--points", "9,9,0", "2.1,0.2,-70"]) == 2
     assert "error" in capsys.readouterr().err
+
+
+# -- plan: the task domain and the status ---------------------------------------------------------
+
+
+def test_plan_refuses_a_task_outside_the_domain_and_plans_nothing(
+    capsys: pytest.CaptureFixture[str],
+    tmp_path,
+    monkeypatch: pytest.MonkeyPatch,  # type: ignore[no-untyped-def]
+) -> None:
+    from rt_runtime.planning import trench
+
+    planned: list[object] = []
+    monkeypatch.setattr(trench.TrenchPlanner, "plan", lambda self, task: planned.append(task))
+    f = tmp_path / "huge.toml"
+    f.write_text("length_m = 1e308\ndepth_m = 0.1\nbeta1_deg = 60\nbeta2_deg = 60\n")
+    assert main(["plan", "--task", str(f), "--json"]) == 2
+    out = capsys.readouterr()
+    assert out.out == "" and "Traceback" not in out.err
+    assert "task huge: length_m = 1e+308 is outside [0.3, 20] m" in out.err
+    f.write_text("length_m = 0.6\ndepth_m = 0.15\nbeta1_deg = 60\nbeta2_deg = 90\n")
+    assert main(["plan", "--task", str(f)]) == 2
+    assert "beta2_deg = 90 is outside [30, 85] deg" in capsys.readouterr().err
+    assert planned == []
+
+
+def test_plan_exits_0_when_done(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["plan", "--task", "A", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["status"] == "done" and r["reason"] is None and r["volume_left_L"] >= 0.0
+    for d in r["digs"]:
+        assert isinstance(d["finishing"], bool) and d["section"] == 0
+
+
+def test_plan_exits_1_when_incomplete_and_prints_the_plan(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rt_runtime.errors import PlanningError
+    from rt_runtime.planning import trench
+
+    # The session stops after its first dig (no dig removes the rest).
+    original = trench.TrenchSession.next_dig
+
+    def second_fails(self: trench.TrenchSession) -> object:
+        if self.digs:
+            raise PlanningError("no verified dig removes the rest (test)")
+        return original(self)
+
+    monkeypatch.setattr(trench.TrenchSession, "next_dig", second_fails)
+    assert main(["plan", "--task", "A", "--json"]) == 1
+    r = json.loads(capsys.readouterr().out)
+    assert r["status"] == "incomplete" and len(r["digs"]) == 1
+    assert r["reason"].startswith("planning stopped: no verified dig removes the rest (test)")
+    assert "coverage error" in r["reason"] and r["volume_left_L"] > 0.0
+    assert main(["plan", "--task", "A"]) == 1
+    out = capsys.readouterr().out
+    assert "status: incomplete" in out and "L of the design left" in out

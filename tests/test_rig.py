@@ -330,3 +330,38 @@ def test_bad_drive_and_actuator_values_name_the_key(
     with pytest.raises(RigProfileError, match=message) as info:
         parse_rig(doc, source="bad.toml")
     assert str(info.value).startswith("bad.toml: ")
+
+
+# --- the trench task domain (issue 23) ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", profile_names())
+def test_trench_length_max_is_the_scale_model_s_20_m_scaled_by_reach(name: str) -> None:
+    rig = load_rig(name)
+    assert rig.trench.length_max_m == pytest.approx(20.0 * sum(rig.lengths_m) / 1.31, abs=0.01)
+    assert rig.is_assumed("trench.length_max_m")
+    # without the table the loader applies the same rule
+    doc = copy.deepcopy(_raw(name))
+    del doc["trench"]
+    del doc["assumed"]["trench.length_max_m"]
+    rule = parse_rig(doc).trench.length_max_m
+    assert rule == pytest.approx(20.0 * sum(rig.lengths_m) / 1.31, rel=1e-12)
+
+
+def test_trench_domain_is_checked_and_stays_out_of_the_planning_fingerprint() -> None:
+    doc = copy.deepcopy(_raw("scale_model"))
+    base = parse_rig(doc).planning_fingerprint
+    doc["trench"]["length_max_m"] = 5.0
+    rig = parse_rig(doc)
+    assert rig.trench.length_max_m == 5.0 and rig.planning_fingerprint == base
+    for bad, message in (
+        (0.0, r"trench\.length_max_m: must be > 0 and <= 1310"),
+        (1e308, r"trench\.length_max_m: must be > 0 and <= 1310"),
+        ("20", r"trench\.length_max_m: must be a number"),
+    ):
+        doc["trench"]["length_max_m"] = bad
+        with pytest.raises(RigProfileError, match=message):
+            parse_rig(doc)
+    doc["trench"] = {"length_max_m": 20.0, "width_m": 1.0}
+    with pytest.raises(RigProfileError, match=r"trench\.width_m: unknown key"):
+        parse_rig(doc)

@@ -11,8 +11,11 @@ import pytest
 from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.trench import (
+    COVERAGE_GOAL,
+    OVERDIG_GOAL_M,
     OVERDIG_LIMIT_M,
     PlannedDig,
+    PlanStatus,
     Transition,
     TrenchPlanner,
     TrenchSession,
@@ -20,6 +23,8 @@ from rt_runtime.planning.trench import (
     load_task,
     lower_envelope,
     make_task,
+    plan_goals,
+    task_limits,
 )
 from rt_runtime.planning.verify import COL_VIOLATIONS
 from rt_runtime.rig import load_rig
@@ -57,24 +62,68 @@ def test_builtin_tasks_are_yao_table3() -> None:
 @pytest.mark.parametrize(
     ("kwargs", "words"),
     [
-        ({"depth_m": 0.9}, ["depth_m", "0.9", "outside"]),
-        ({"depth_m": -0.1}, ["depth_m"]),
-        ({"length_m": float("nan")}, ["length_m", "not finite"]),
-        ({"length_m": -0.5}, ["length_m", "> 0"]),
-        ({"beta1_deg": 90.0}, ["beta1_deg", "(0, 90)"]),
-        ({"beta2_deg": 95.0}, ["beta2_deg", "(0, 90)"]),
-        ({"start_x_m": -0.5}, ["behind the machine"]),
-        ({"start_x_m": 3.0}, ["start_x_m", "reach"]),
-        ({"length_m": 0.1, "depth_m": 0.2}, ["meet", "length_m must be >="]),
+        ({"depth_m": 0.9}, ["depth_m = 0.9 is outside", "[0.02, 0.3] m"]),
+        ({"depth_m": -0.1}, ["depth_m = -0.1 is outside", "[0.02, 0.3] m"]),
+        ({"depth_m": 0.01}, ["depth_m = 0.01 is outside", "[0.02, 0.3] m"]),
+        ({"depth_m": float("inf")}, ["depth_m = inf is not finite", "[0.02, 0.3] m"]),
+        ({"length_m": float("nan")}, ["length_m = nan is not finite", "[0.3, 20] m"]),
+        ({"length_m": 1e308}, ["length_m = 1e+308 is outside", "[0.3, 20] m"]),
+        ({"length_m": 1e-12}, ["length_m = 1e-12 is outside", "[0.3, 20] m"]),
+        ({"length_m": -0.5}, ["length_m = -0.5 is outside", "[0.3, 20] m"]),
+        ({"length_m": 0.0}, ["length_m = 0 is outside", "[0.3, 20] m"]),
+        ({"length_m": 20.5}, ["length_m = 20.5 is outside", "[0.3, 20] m", "length_max_m"]),
+        ({"length_m": 10**400}, ["length_m is beyond the float range", "[0.3, 20] m"]),
+        ({"length_m": True}, ["length_m must be a number in [0.3, 20] m", "True"]),
+        ({"depth_m": "0.1"}, ["depth_m must be a number in [0.02, 0.3] m", "'0.1'"]),
+        ({"beta1_deg": 90.0}, ["beta1_deg = 90 is outside", "[30, 85] deg"]),
+        ({"beta2_deg": 95.0}, ["beta2_deg = 95 is outside", "[30, 85] deg"]),
+        ({"beta1_deg": 0.0}, ["beta1_deg = 0 is outside", "[30, 85] deg"]),
+        ({"beta2_deg": -60.0}, ["beta2_deg = -60 is outside", "[30, 85] deg"]),
+        ({"beta1_deg": 29.0}, ["beta1_deg = 29 is outside", "[30, 85] deg"]),
+        ({"start_x_m": -0.5}, ["start_x_m = -0.5 is outside", "[0.55, 1.1] m", "reach"]),
+        ({"start_x_m": 3.0}, ["start_x_m = 3 is outside", "[0.55, 1.1] m", "reach"]),
+        (
+            {"length_m": 0.35, "depth_m": 0.25, "beta1_deg": 40.0, "beta2_deg": 40.0},
+            ["meet", "length_m must be >= 0.5959 m"],
+        ),
     ],
 )
-def test_impossible_tasks_fail_naming_the_bound(kwargs: dict[str, float], words: list[str]) -> None:
-    args = {"length_m": 0.6, "depth_m": 0.15, "beta1_deg": 60.0, "beta2_deg": 60.0}
+def test_impossible_tasks_fail_naming_the_bound(
+    kwargs: dict[str, object], words: list[str]
+) -> None:
+    args: dict[str, object] = {
+        "length_m": 0.6,
+        "depth_m": 0.15,
+        "beta1_deg": 60.0,
+        "beta2_deg": 60.0,
+    }
     args.update(kwargs)
     with pytest.raises(ConfigurationError) as e:
-        make_task(RIG, **args)
+        make_task(RIG, **args)  # type: ignore[arg-type]
     for w in words:
         assert w in str(e.value)
+
+
+def test_task_limits_cover_every_key_and_bound_the_domain() -> None:
+    limits = task_limits(RIG)
+    assert set(limits) == {"length_m", "depth_m", "beta1_deg", "beta2_deg", "start_x_m"}
+    assert limits["length_m"] == (0.3, 20.0)
+    assert limits["depth_m"] == (0.02, 0.3)
+    assert limits["beta1_deg"] == limits["beta2_deg"] == (30.0, 85.0)
+    assert limits["start_x_m"] == (0.55, 1.1)
+    # the ends are allowed
+    for length_m, depth_m, b1, b2, x in (
+        (0.3, 0.02, 30.0, 85.0, 0.55),
+        (20.0, 0.3, 85.0, 30.0, 1.1),
+    ):
+        make_task(RIG, length_m, depth_m, b1, b2, x)
+    # another rig: the minimums and the reach scale, the maximum is its profile's
+    bench = load_rig("test_bench")
+    s = float(np.sum(bench.lengths_m)) / 1.31
+    lb = task_limits(bench)
+    assert lb["length_m"] == pytest.approx((0.3 * s, bench.trench.length_max_m))
+    assert lb["depth_m"] == pytest.approx((0.02 * s, 0.3 * s))
+    assert bench.trench.length_max_m == pytest.approx(20.0 * s, abs=0.01)
 
 
 def test_task_file(tmp_path) -> None:
@@ -97,6 +146,67 @@ def test_task_file(tmp_path) -> None:
 def test_impossible_task_plans_nothing(planner: TrenchPlanner) -> None:
     with pytest.raises(ConfigurationError):
         planner.plan(make_task(RIG, 0.6, 0.15, 60.0, 90.0))
+
+
+# -- status ---------------------------------------------------------------------------------------
+
+
+def test_status_is_done_on_task_a(plans: dict) -> None:
+    plan = plans["A"]
+    assert plan.status is PlanStatus.DONE and plan.reason is None and plan_goals(plan) == []
+    j = plan.to_json()
+    assert j["status"] == "done" and j["reason"] is None
+    # what is left is the coverage error's undug part: a fraction of the design
+    assert 0.0 <= j["volume_left_L"] <= COVERAGE_GOAL * j["design_L"]
+    assert all(d["finishing"] == (d["status"] == "profile_pass") for d in j["digs"])
+    assert {d["section"] for d in j["digs"]} == {0}
+
+
+def test_status_is_incomplete_after_one_dig(planner: TrenchPlanner) -> None:
+    session = planner.start(load_task("A", RIG))
+    dig = session.next_dig()
+    session.record(dig, dig.tip_path_m)
+    plan = session.finish(plan_total_us=0.0)
+    assert plan.coverage_error > COVERAGE_GOAL
+    assert plan.status is PlanStatus.INCOMPLETE
+    assert plan.reason is not None and "coverage error" in plan.reason and "2%" in plan.reason
+    left = float(session.remaining_design().area) * RIG.bucket.width_m
+    assert plan.volume_left_m3 == pytest.approx(left, rel=1e-9)
+    assert plan.volume_left_m3 == pytest.approx(plan.design_m3 - dig.design_volume_m3, rel=1e-6)
+    j = plan.to_json()
+    assert j["status"] == "incomplete" and j["reason"] == plan.reason
+    assert j["volume_left_L"] == pytest.approx(plan.volume_left_m3 * 1e3)
+
+
+def test_overdig_beyond_the_goal_is_incomplete(plans: dict) -> None:
+    import dataclasses
+
+    plan = dataclasses.replace(plans["A"], overdig_max_m=OVERDIG_GOAL_M + 1e-4)
+    assert plan.status is PlanStatus.INCOMPLETE
+    assert plan_goals(plan) == ["over-dig 5.10 mm is beyond the goal 5 mm"]
+
+
+def test_planning_error_mid_way_gives_the_partial_plan(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A session that raises at its third dig (no dig removes the rest): the plan keeps the
+    # two digs before it, ends with the second, and is incomplete with the error as reason.
+    original = TrenchSession.next_dig
+
+    def third_fails(self: TrenchSession) -> object:
+        if len(self.digs) == 2:
+            self._append_transitions(self.digs[-1])  # moves towards a dig that never comes
+            raise PlanningError("no verified dig removes the rest (test)")
+        return original(self)
+
+    monkeypatch.setattr(TrenchSession, "next_dig", third_fails)
+    plan = planner.plan(load_task("A", RIG))
+    assert len(plan.digs) == 2 and isinstance(plan.steps[-1], PlannedDig)
+    assert plan.planning_error == "no verified dig removes the rest (test)"
+    assert plan.status is PlanStatus.INCOMPLETE
+    assert plan.reason is not None
+    assert plan.reason.startswith("planning stopped: no verified dig removes the rest (test)")
+    assert plan.volume_left_m3 > 0.0
 
 
 # -- geometry -------------------------------------------------------------------------------------

@@ -49,10 +49,12 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import numbers
 import time
 import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from enum import IntEnum
 from pathlib import Path
 from enum import IntEnum
 from typing import Any, Protocol, TypeVar, cast
@@ -79,6 +81,7 @@ from rt_runtime.planning.verify import (
     pack_inputs,
 )
 from rt_runtime.rig import Rig
+from rt_runtime.rig.model import SCALE_MODEL_REACH_M
 
 FloatArray = NDArray[np.float64]
 
@@ -134,7 +137,7 @@ _COLLINEAR_M = 1e-12
 # Reach figures of the scale model (m), scaled by the rig's l1 + l2 + l3 against 1.31 m: where
 # digs may enter (the PINN's domain, oneshot.SAMPLER_RANGES), the deepest trench the backward
 # digs' domain serves, and the default far edge of a trench.
-_SCALE_REACH_M = 1.31
+_SCALE_REACH_M = SCALE_MODEL_REACH_M
 _ENTRY_X_M = (0.55, 1.10)
 _MAX_DEPTH_M = 0.30
 _DEFAULT_START_X_M = 1.05
@@ -183,14 +186,81 @@ def _reach_scale(rig: Rig) -> float:
     return float(np.sum(rig.lengths_m)) / _SCALE_REACH_M
 
 
+# The task domain's minimums on the scale model (m), scaled by reach like the planner's other
+# figures: a trench shorter than about 1.4 bucket lengths (l3 = 0.22 m) is a hole one scoop
+# takes, and one shallower than four over-dig limits (OVERDIG_LIMIT_M) is grading within the
+# tolerance of the profile, neither a trench this planner digs.
+_TASK_LENGTH_MIN_M = 0.30
+_TASK_DEPTH_MIN_M = 0.02
+#: Wall slopes (deg from the horizontal) a task may have: the domain the planner is measured on
+#: (``excavator-rt bench plan --random`` draws its walls from it), and nothing wider: a task
+#: accepted is one the planner's measured results cover. Flatter than 30 deg a wall runs out
+#: more than 1.7 D (a slope more than a trench wall), steeper than 85 deg it is a vertical cut;
+#: neither is measured, and 0 or 90 deg is no trench at all.
+WALL_SLOPE_DEG = (30.0, 85.0)
+
+
 def task_limits(rig: Rig) -> dict[str, tuple[float, float]]:
-    """The allowed ranges of a task's values on ``rig`` (m, deg), as the validation uses them."""
+    """The allowed range of every task value on ``rig``, closed at both ends, as
+    :func:`make_task` checks them (units as the key names say: m, deg).
+
+    ``length_m``: from 0.30 m (scale model, scaled by reach) to the profile's
+    ``trench.length_max_m``. ``depth_m``: from 0.02 m (scaled) to the deepest trench the
+    backward digs' domain serves (0.30 m scaled). ``beta1_deg``, ``beta2_deg``:
+    :data:`WALL_SLOPE_DEG`. ``start_x_m``: where the rig's digs may enter, the PINN's domain
+    (0.55..1.10 m scaled). A valid task also needs its walls to meet no higher than its depth.
+    """
     s = _reach_scale(rig)
+
+    def scaled(lo_m: float, hi_m: float) -> tuple[float, float]:
+        # To the nanometre: the scale model's own scale is 1 - 2e-16, and a depth of 0.3 m
+        # must not be refused for lying 5e-17 m beyond 0.3 x that.
+        return round(lo_m * s, 9), round(hi_m * s, 9)
+
     return {
-        "depth_m": (0.0, _MAX_DEPTH_M * s),
-        "start_x_m": (_ENTRY_X_M[0] * s, _ENTRY_X_M[1] * s),
-        "beta_deg": (0.0, 90.0),
+        "length_m": (scaled(_TASK_LENGTH_MIN_M, 0.0)[0], rig.trench.length_max_m),
+        "depth_m": scaled(_TASK_DEPTH_MIN_M, _MAX_DEPTH_M),
+        "beta1_deg": WALL_SLOPE_DEG,
+        "beta2_deg": WALL_SLOPE_DEG,
+        "start_x_m": scaled(*_ENTRY_X_M),
     }
+
+
+def _limit_text(rig: Rig, key: str, lo: float, hi: float) -> str:
+    """``[lo, hi] unit`` of a task key and what the range is."""
+    unit = key.rsplit("_", 1)[1]
+    why = {
+        "length_m": f"the trench lengths {rig.name} takes (its profile's trench.length_max_m)",
+        "depth_m": f"the depths {rig.name}'s digs reach below the ground",
+        "beta1_deg": "the wall slopes from the horizontal the planner is measured on",
+        "beta2_deg": "the wall slopes from the horizontal the planner is measured on",
+        "start_x_m": f"the reach where {rig.name}'s digs can start",
+    }[key]
+    return f"[{lo:.4g}, {hi:.4g}] {unit}, {why}"
+
+
+def _task_value(rig: Rig, name: str, key: str, value: object) -> float:
+    """``value`` as a float inside ``task_limits(rig)[key]``.
+
+    Raises:
+        ConfigurationError: Not a real number (a bool, a string), not finite, or outside the
+            range; the message names the task, the key, the value and the range with units.
+    """
+    lo, hi = task_limits(rig)[key]
+    allowed = _limit_text(rig, key, lo, hi)
+    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real):
+        raise ConfigurationError(f"task {name}: {key} must be a number in {allowed}; got {value!r}")
+    try:
+        x = float(value)
+    except OverflowError as e:  # an integer beyond the float range
+        raise ConfigurationError(
+            f"task {name}: {key} is beyond the float range; allowed {allowed}"
+        ) from e
+    if not math.isfinite(x):
+        raise ConfigurationError(f"task {name}: {key} = {x:g} is not finite; allowed {allowed}")
+    if not lo <= x <= hi:
+        raise ConfigurationError(f"task {name}: {key} = {x:g} is outside {allowed}")
+    return x
 
 
 def make_task(
@@ -202,67 +272,41 @@ def make_task(
     start_x_m: float | None = None,
     name: str = "task",
 ) -> TrenchTask:
-    """A validated task.
+    """A validated task: every value inside :func:`task_limits` and the walls meeting no
+    higher than the depth.
+
+    Args:
+        rig: The rig whose domain applies.
+        length_m, depth_m, beta1_deg, beta2_deg: The trench (m, deg).
+        start_x_m: The far top edge (m, arm frame); None: 1.05 m scaled by reach.
+        name: The task's name, the start of every message.
 
     Raises:
-        ConfigurationError: A value is not finite, out of its range (naming the key and what is
-            allowed), the slopes meet above the depth, or the trench lies behind the machine.
+        ConfigurationError: A value is not a real number, not finite or out of its range (the
+            message names the key, the value and the allowed range with units), or the walls
+            meet above the depth.
     """
-    limits = task_limits(rig)
-    values = {
-        "length_m": length_m,
-        "depth_m": depth_m,
-        "beta1_deg": beta1_deg,
-        "beta2_deg": beta2_deg,
-    }
-    if start_x_m is not None:
-        values["start_x_m"] = start_x_m
-    for key, v in values.items():
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise ConfigurationError(f"task {name}: {key} must be a number; got {v!r}")
-        if not math.isfinite(v):
-            raise ConfigurationError(f"task {name}: {key} = {v} is not finite")
-    if length_m <= 0.0:
-        raise ConfigurationError(f"task {name}: length_m = {length_m:g} must be > 0")
-    lo, hi = limits["depth_m"]
-    if not lo < depth_m <= hi:
-        raise ConfigurationError(
-            f"task {name}: depth_m = {depth_m:g} is outside ({lo:g}, {hi:.3g}] m, the depth "
-            f"{rig.name}'s digs reach below the ground"
-        )
-    for key in ("beta1_deg", "beta2_deg"):
-        b = values[key]
-        if not 0.0 < b < 90.0:
-            raise ConfigurationError(
-                f"task {name}: {key} = {b:g} must lie in (0, 90) deg (a wall slope from the "
-                "horizontal)"
-            )
     if start_x_m is None:
         start_x_m = _DEFAULT_START_X_M * _reach_scale(rig)
-    lo, hi = limits["start_x_m"]
-    if start_x_m <= 0.0:
-        raise ConfigurationError(
-            f"task {name}: start_x_m = {start_x_m:g} puts the trench behind the machine; the "
-            f"far edge must lie in front of it, within [{lo:.3g}, {hi:.3g}] m"
+    length, depth, beta1, beta2, start_x = (
+        _task_value(rig, name, key, value)
+        for key, value in zip(
+            TASK_KEYS, (length_m, depth_m, beta1_deg, beta2_deg, start_x_m), strict=True
         )
-    if not lo <= start_x_m <= hi:
-        raise ConfigurationError(
-            f"task {name}: start_x_m = {start_x_m:g} is outside the reach [{lo:.3g}, {hi:.3g}] m "
-            f"where {rig.name}'s digs can start"
-        )
+    )
     task = TrenchTask(
         name=name,
-        length_m=float(length_m),
-        depth_m=float(depth_m),
-        beta1_rad=math.radians(beta1_deg),
-        beta2_rad=math.radians(beta2_deg),
-        start_x_m=float(start_x_m),
+        length_m=length,
+        depth_m=depth,
+        beta1_rad=math.radians(beta1),
+        beta2_rad=math.radians(beta2),
+        start_x_m=start_x,
     )
     if task.bottom_length_m < 0.0:
-        need = depth_m / math.tan(task.beta1_rad) + depth_m / math.tan(task.beta2_rad)
+        need = depth / math.tan(task.beta1_rad) + depth / math.tan(task.beta2_rad)
         raise ConfigurationError(
-            f"task {name}: the walls (beta1 {beta1_deg:g}, beta2 {beta2_deg:g} deg) meet above "
-            f"depth_m = {depth_m:g}; length_m must be >= {need:.4g} m for that depth"
+            f"task {name}: the walls (beta1 {beta1:g}, beta2 {beta2:g} deg) meet above "
+            f"depth_m = {depth:g}; length_m must be >= {need:.4g} m for that depth"
         )
     return task
 
@@ -575,9 +619,28 @@ class TravelMove:
     machine_x_to_m: float
 
 
+class PlanStatus(IntEnum):
+    """Whether a plan digs its task: ``DONE`` when it meets every goal of :func:`plan_goals`."""
+
+    DONE = 0
+    INCOMPLETE = 1
+
+
+#: A plan is done only when its coverage error (:attr:`TrenchPlan.coverage_error`) is at most
+#: this fraction of the design's area.
+COVERAGE_GOAL = 0.02
+#: ... and its deepest cut below the design (:attr:`TrenchPlan.overdig_max_m`) at most this (m),
+#: the limit every dig is planned to.
+OVERDIG_GOAL_M = OVERDIG_LIMIT_M
+
+
 @dataclass(frozen=True, slots=True)
 class TrenchPlan:
     """A frozen plan for one trench task.
+
+    Its :attr:`status` is ``DONE`` only when it meets every goal of :func:`plan_goals`; an
+    ``INCOMPLETE`` plan says why in :attr:`reason` and how much design material it leaves in
+    :attr:`volume_left_m3`.
 
     Attributes:
         task: The task.
@@ -600,6 +663,9 @@ class TrenchPlan:
             passes), ``transitions`` (the ruckig moves and their ground checks), ``record``
             (the material update), ``finish`` (this plan's coverage and over-dig), ``other``
             (the rest: entries, the remaining design, relocation).
+        planning_error: What stopped the planning before the planner found the task finished
+            (the message of the PlanningError: no dig removes the rest, the bound on the digs),
+            or None when it ran to its end; the plan then holds the digs before it.
     """
 
     task: TrenchTask
@@ -616,6 +682,25 @@ class TrenchPlan:
     design_m3: float
     plan_total_us: float
     stage_us: dict[str, float] = field(default_factory=dict)
+    planning_error: str | None = None
+
+    @property
+    def status(self) -> PlanStatus:
+        """``DONE`` when :func:`plan_goals` finds no goal unmet, else ``INCOMPLETE``."""
+        return PlanStatus.INCOMPLETE if plan_goals(self) else PlanStatus.DONE
+
+    @property
+    def reason(self) -> str | None:
+        """Why the plan is incomplete (the unmet goals, ``; ``-joined), None when done."""
+        unmet = plan_goals(self)
+        return "; ".join(unmet) if unmet else None
+
+    @property
+    def volume_left_m3(self) -> float:
+        """Design material the plan leaves (m^3): the design's volume times the part of its
+        area not dug."""
+        left = float(self.design.difference(self.dug).area)
+        return self.design_m3 * left / float(self.design.area)
 
     def to_json(self) -> dict[str, Any]:
         """The report of ``excavator-rt plan --json`` (keys in DESIGN.md "Reports")."""
@@ -651,6 +736,9 @@ class TrenchPlan:
             },
             "rig": self.rig,
             "planner": self.planner,
+            "status": self.status.name.lower(),
+            "reason": self.reason,
+            "volume_left_L": self.volume_left_m3 * 1e3,
             "digs": digs,
             "n_digs": len(digs),
             "coverage_error": self.coverage_error,
@@ -668,6 +756,28 @@ class TrenchPlan:
             "energy_Wh": sum(d.energy_j for d in self.digs) / 3600.0,
             "yao_fig14": YAO_FIG14.get(self.task.name),
         }
+
+
+def plan_goals(plan: TrenchPlan) -> list[str]:
+    """The goals ``plan`` does not meet, each a sentence with its numbers; empty when done.
+
+    Goals: the planning ran to its end (no :attr:`TrenchPlan.planning_error`), the coverage
+    error is at most :data:`COVERAGE_GOAL` and the deepest over-dig at most
+    :data:`OVERDIG_GOAL_M`. Every goal a plan must meet to be done belongs here.
+    """
+    unmet = []
+    if plan.planning_error is not None:
+        unmet.append(f"planning stopped: {plan.planning_error}")
+    if not plan.coverage_error <= COVERAGE_GOAL:
+        unmet.append(
+            f"coverage error {plan.coverage_error:.2%} is above the goal {COVERAGE_GOAL:.0%}"
+        )
+    if not plan.overdig_max_m <= OVERDIG_GOAL_M:
+        unmet.append(
+            f"over-dig {plan.overdig_max_m * 1e3:.2f} mm is beyond the goal "
+            f"{OVERDIG_GOAL_M * 1e3:g} mm"
+        )
+    return unmet
 
 
 # -- geometry helpers -----------------------------------------------------------------------------
@@ -941,21 +1051,36 @@ class TrenchPlanner:
     def plan(self, task: TrenchTask) -> TrenchPlan:
         """The whole plan for ``task`` on the predicted paths (open loop).
 
-        Raises:
-            PlanningError: A dig cannot be planned (no verified candidate removes material).
+        A PlanningError mid-way (no verified dig removes the rest, the bound on the digs) does
+        not propagate: the plan holds the digs before it, ends after the last of them (the
+        moves towards the dig that failed are dropped) and is incomplete with that error as
+        its :attr:`TrenchPlan.planning_error`. Check :attr:`TrenchPlan.status`.
         """
         t0 = time.perf_counter()
         session = self.start(task)
-        while True:
-            dig = session.next_dig()
-            if dig is None:
-                break
-            session.record(dig, dig.tip_path_m)
+        error: str | None = None
+        try:
+            while True:
+                dig = session.next_dig()
+                if dig is None:
+                    break
+                session.record(dig, dig.tip_path_m)
+        except PlanningError as e:
+            error = str(e)
         plan = session.finish(plan_total_us=0.0)
         total = (time.perf_counter() - t0) * 1e6
         stages = dict(session.stage_us)
         stages["other"] = max(0.0, total - sum(stages.values()))
-        return dataclasses.replace(plan, plan_total_us=total, stage_us=stages)
+        if error is None:
+            return dataclasses.replace(plan, plan_total_us=total, stage_us=stages)
+        last = max((i for i, st in enumerate(plan.steps) if isinstance(st, PlannedDig)), default=-1)
+        return dataclasses.replace(
+            plan,
+            steps=plan.steps[: last + 1],
+            plan_total_us=total,
+            stage_us=stages,
+            planning_error=error,
+        )
 
 
 #: The stages of TrenchPlan.stage_us that TrenchSession times (``other`` is the rest).
@@ -2901,10 +3026,14 @@ def plan_task(rig: Rig, task: TrenchTask | str, planner: str = "pinn", **kwargs:
 
 __all__: Sequence[str] = (
     "BUILTIN_TASKS",
+    "COVERAGE_GOAL",
+    "OVERDIG_GOAL_M",
     "OVERDIG_LIMIT_M",
+    "WALL_SLOPE_DEG",
     "OneShotPlanner",
     "OneShotResult",
     "PinnOneShot",
+    "PlanStatus",
     "PlannedDig",
     "PsoOneShot",
     "Transition",
@@ -2918,6 +3047,7 @@ __all__: Sequence[str] = (
     "load_task",
     "lower_envelope",
     "make_task",
+    "plan_goals",
     "plan_task",
     "task_limits",
 )

@@ -16,6 +16,7 @@ from rt_runtime.rig.model import (
     Rig,
     Soil,
     Swing,
+    TrenchDomain,
     YaoSoil,
 )
 
@@ -37,6 +38,7 @@ __all__ = [
     "Rig",
     "Soil",
     "Swing",
+    "TrenchDomain",
     "YaoSoil",
     "load_rig",
     "parse_rig",

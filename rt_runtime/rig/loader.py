@@ -19,6 +19,8 @@ from rt_runtime.rig._schema import Table
 from rt_runtime.rig.cylinders import parse_cylinders
 from rt_runtime.rig.model import (
     ARM_JOINTS,
+    SCALE_MODEL_REACH_M,
+    SCALE_MODEL_TRENCH_LENGTH_MAX_M,
     Actuators,
     Bucket,
     Can,
@@ -31,6 +33,7 @@ from rt_runtime.rig.model import (
     Rig,
     Soil,
     Swing,
+    TrenchDomain,
     YaoSoil,
 )
 
@@ -110,6 +113,9 @@ def parse_rig(raw: dict[str, Any], source: str = "") -> Rig:
     can = _can(root.table("can"), swing is not None)
     drives = _drives(root.table("drives"))
     actuators = _actuators(root.table("actuators"), cylinders.kind)
+    trench_t = root.optional_table("trench")
+    reach_m = sum(link.length_m for link in links)
+    trench = _trench(trench_t, reach_m) if trench_t is not None else _trench_default(reach_m)
     assumed = _assumed(root.table("assumed"), raw)
     root.finish()
 
@@ -131,6 +137,7 @@ def parse_rig(raw: dict[str, Any], source: str = "") -> Rig:
         assumed=assumed,
         drives=drives,
         actuators=actuators,
+        trench=trench,
     )
     # Imported here: actuation imports this package.
     from rt_runtime.actuation import validate_cylinders
@@ -244,6 +251,27 @@ def _planning(t: Table) -> Planning:
     )
     t.finish()
     return planning
+
+
+def _trench_default(reach_m: float) -> TrenchDomain:
+    """The task domain of a profile without ``[trench]``: the scale model's longest trench
+    (20 m) scaled by the rig's reach l1 + l2 + l3 against the scale model's 1.31 m."""
+    return TrenchDomain(
+        length_max_m=SCALE_MODEL_TRENCH_LENGTH_MAX_M * reach_m / SCALE_MODEL_REACH_M
+    )
+
+
+def _trench(t: Table, reach_m: float) -> TrenchDomain:
+    default = _trench_default(reach_m)
+    # Bounded so that a typo (20000 for 20) is refused: a thousand times the reach is already
+    # more than any crawler digs in one task.
+    trench = TrenchDomain(
+        length_max_m=t.number(
+            "length_max_m", gt=0.0, le=1000.0 * reach_m, default=default.length_max_m
+        )
+    )
+    t.finish()
+    return trench
 
 
 def _can(t: Table, has_swing: bool) -> Can:

@@ -1,5 +1,5 @@
 """Frozen dataclasses describing a rig: geometry, limits, masses, bucket, soil, planning, CAN,
-drives and actuators.
+drives, actuators and the trench task domain.
 
 A :class:`Rig` is built only by :func:`rt_runtime.rig.load_rig`, which validates every field.
 Everything is SI (m, rad, s, kg, N, N*m, W, J, m^3); the profile's edge units (deg, L, Wh,
@@ -22,6 +22,12 @@ from numpy.typing import NDArray
 from rt_runtime.rig.cylinders import Cylinders
 
 ARM_JOINTS: tuple[str, str, str] = ("boom", "stick", "bucket")
+#: Reach of the scale model (Yao Table 1: l1 + l2 + l3, m): the trench planner scales its
+#: figures, and the loader the default task domain, by a rig's l1 + l2 + l3 against it.
+SCALE_MODEL_REACH_M = 1.31
+#: Longest trench task on the scale model (m) where a profile gives no
+#: ``trench.length_max_m``; other rigs scale it by reach (:data:`SCALE_MODEL_REACH_M`).
+SCALE_MODEL_TRENCH_LENGTH_MAX_M = 20.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -176,6 +182,19 @@ class Planning:
 
 
 @dataclass(frozen=True, slots=True)
+class TrenchDomain:
+    """The trench tasks a rig accepts (profile ``[trench]``), beyond what the planner's own
+    figures bound (depth, wall slopes and where the far edge may lie; see
+    :func:`rt_runtime.planning.trench.task_limits`).
+
+    Attributes:
+        length_max_m: Longest top length L of a task (the machine travels back along it).
+    """
+
+    length_max_m: float
+
+
+@dataclass(frozen=True, slots=True)
 class Can:
     """CAN bus settings.
 
@@ -318,6 +337,8 @@ class Rig:
             :attr:`planning_fingerprint`.
         actuators: Cylinder actuator data (force, speed, friction, hydraulics); not part of
             :attr:`planning_fingerprint`.
+        trench: The trench task domain; not part of :attr:`planning_fingerprint` (no one-shot
+            plan depends on it).
     """
 
     name: str
@@ -337,6 +358,7 @@ class Rig:
     assumed: tuple[tuple[str, str], ...]
     drives: Drives
     actuators: Actuators
+    trench: TrenchDomain
     lengths_m: NDArray[np.float64] = field(init=False, repr=False, compare=False)
     q_min_rad: NDArray[np.float64] = field(init=False, repr=False, compare=False)
     q_max_rad: NDArray[np.float64] = field(init=False, repr=False, compare=False)

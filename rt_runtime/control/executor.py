@@ -28,15 +28,21 @@ the guard's stroke rate at ``t_k + T`` (feed-forward), or 0 without feed-forward
 
 The job. From the measured pose (the drives' position after ``enable``) the executor asks the
 planner for the first dig (:class:`~rt_runtime.control.planner_worker.DigPlan`) and streams:
-lead-in (lift out when the tip is in the material, then to the dump pose; nothing when the arm is
-already at the dig's entry), approach, enter, the dig, lift-out, dump. The reported strokes of the
-dig's SYNCs go back to the session (``record``: the measured tip path updates the surface) and
-the next dig is planned while lift-out and dump stream; at the dump pose the arm holds until the
-plan is there. When the session has no dig left (or ``max_digs`` digs ran) the job ends at the dump
-pose (status DONE). Any gap between the commanded pose and the next motion's start (a resumed
-job, a measured pose) is bridged by a ruckig joint-space move (phase CONNECT), as the trench
-planner's transitions are. A dig that was cut short by a stop is not recorded: a restart plans it
-again from the session's state (:meth:`TrenchSession.restore`), the next undone dig.
+lead-in (lift out straight up when the bucket is in or near the material, then to the dump pose;
+nothing when the arm is already at the dig's entry), approach, enter, the dig, lift-out, dump.
+Each of these is one or more rest-to-rest ruckig moves that the session checked against the
+material (:meth:`TrenchSession.exit_transitions`; a lift may come in pieces), streamed in the
+phase of its ``kind``. The reported strokes of the dig's SYNCs go back to the session
+(``record``: the measured tip path updates the surface) and the next dig is planned while
+lift-out and dump stream; at the dump pose the arm holds until the plan is there. When the
+session has no dig left (or ``max_digs`` digs ran) the job ends at the dump pose (status DONE).
+Any gap between the commanded pose and the next motion's start (a resumed job, a measured pose)
+is bridged by a ruckig joint-space move (phase CONNECT), as the trench planner's transitions
+are; in a trench job every move starts where the one before ends and the lead-in at the
+measured pose, so these gaps are within ``AT_ENTRY_TOLERANCE_M`` of stroke (the bridge is not
+checked against the material).
+A dig that was cut short by a stop is not recorded: a restart plans it again from the session's
+state (:meth:`TrenchSession.restore`), the next undone dig.
 
 Prescribed paths (issue 8 item 3). The same executor runs a :class:`~rt_runtime.control.
 planner_worker.PathJob` (a fixed sequence of joint motions, e.g. Gao's mixed-order interpolation

@@ -66,7 +66,6 @@ from rt_runtime.planning.trench import (
     TrenchPlanner,
     TrenchSession,
     TrenchTask,
-    joint_move,
 )
 from rt_runtime.rig import Rig
 
@@ -102,11 +101,14 @@ class DigPlan:
 
     Attributes:
         dig: The dig, or None when the task is done.
-        lead_in: Moves from the measured pose to the dump pose (first request only): lift-out
-            and dump when the tip is below the clearance height, else one move to the dump
-            pose; empty when the arm is already at the dig's entry.
+        lead_in: Moves from the measured pose to the dump pose (first request only): the
+            session's exit moves from there (:meth:`TrenchSession.exit_transitions`: lift-out
+            straight up, in pieces where needed, where the bucket is in or near the material,
+            then dump), checked against the material before the dig; empty when the arm is
+            already at the dig's entry or at the dump pose.
         entry: Approach and enter (from the dump pose); empty when the arm is at the entry.
-        exit: Lift-out and dump after the dig.
+        exit: Lift-out and dump after the dig, checked against the material the dig's planned
+            path leaves (they are planned before it runs).
         travel: Crawler moves the session put before the dig (the executor cannot drive them).
         plan_us: Wall time of the request (s * 1e6).
     """
@@ -408,7 +410,7 @@ class SessionDriver:
         travel = tuple(t for t in tail if isinstance(t, TravelMove))
         exit_moves: tuple[Transition, ...] = ()
         if dig is not None:
-            exit_moves = s.exit_transitions(dig.problem.q_end_rad)
+            exit_moves = s.exit_transitions(dig.problem.q_end_rad, after=dig)
         lead_in: tuple[Transition, ...] = ()
         if q_from_rad is not None:
             q0 = np.asarray(q_from_rad, dtype=np.float64)
@@ -424,25 +426,13 @@ class SessionDriver:
         return bool(np.max(np.abs(s_a - s_b)) <= AT_ENTRY_TOLERANCE_M)
 
     def _lead_in(self, q0: FloatArray) -> tuple[Transition, ...]:
-        """Measured pose -> dump pose: lift out first when the tip is below the clearance."""
+        """Measured pose -> dump pose: the session's exit moves from there (a lift first where
+        the bucket is in or near the material), checked against the material before the
+        pending dig; nothing at the dump pose."""
         s = self.session
-        dump = np.asarray(s.planner.dump_pose_rad, dtype=np.float64)
-        if self._at(q0, dump):
+        if self._at(q0, np.asarray(s.planner.dump_pose_rad, dtype=np.float64)):
             return ()
-        tip = kinematics.forward(self.rig, q0)
-        if float(tip[1]) < s.lift_clearance_y_m - 1e-3:
-            return s.exit_transitions(q0)
-        _, duration = joint_move(self.rig, q0, dump)
-        return (
-            Transition(
-                kind="dump",
-                q_from_rad=(float(q0[0]), float(q0[1]), float(q0[2])),
-                q_to_rad=(float(dump[0]), float(dump[1]), float(dump[2])),
-                duration_s=duration,
-                machine_x_m=float(s.machine_x),
-                penetration_m=0.0,
-            ),
-        )
+        return s.exit_transitions(q0)
 
     def record(self, strokes_m: FloatArray) -> Recorded:
         """Record the pending dig from the drives' reported strokes ``(n, 3)`` (SYNC order).

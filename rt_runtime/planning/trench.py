@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import math
 import numbers
 import time
@@ -141,12 +142,26 @@ _SCALE_REACH_M = SCALE_MODEL_REACH_M
 _ENTRY_X_M = (0.55, 1.10)
 _MAX_DEPTH_M = 0.30
 _DEFAULT_START_X_M = 1.05
-# Transition poses (scale model, m / deg), assumed: Yao gives none. The bucket lifts to
-# _LIFT_CLEAR_M above the ground, dumps at _DUMP_POSE (tip x, height above ground, attitude;
-# bucket opened, beside the machine) and approaches each entry from _APPROACH_M above it.
-_LIFT_CLEAR_M = 0.08
+# Transition poses (scale model, m / deg), assumed: Yao gives none. The bucket dumps at
+# _DUMP_POSE (tip x, height above ground, attitude; bucket opened, beside the machine). The
+# poses between are chosen from the surface (TrenchSession.exit_transitions and
+# entry_transitions): the lift pose puts the whole bucket _LIFT_CLEAR_M above the material under
+# it, the approach pose backs off from the entry by the first of _APPROACH_M that puts the bucket
+# _LIFT_CLEAR_M above the material.
+_LIFT_CLEAR_M = 0.02
 _DUMP_POSE = (0.60, 0.25, -80.0)
-_APPROACH_M = 0.05
+_APPROACH_M = (0.03, 0.05, 0.08, 0.12, 0.18, 0.25)
+#: Deepest a transition may take the bucket into the material left (m): every move is checked
+#: on its samples and refused beyond it (:meth:`TrenchSession.exit_transitions`).
+TRANSITION_PENETRATION_M = 0.005
+# Sampling of a move's check (m, every rig; TrenchSession._move_depth): from one sample to the
+# next no point of the bucket outline moves farther than _MOVE_STEP_M where the bucket is near
+# the material, _COARSE_STEP_M where it is not; the outline's points lie _OUTLINE_STEP_M apart.
+_MOVE_STEP_M = 0.002
+_OUTLINE_STEP_M = 0.005
+_COARSE_STEP_M = 0.01
+# Depth into the material beyond which a move's check stops measuring (m): it is refused anyway.
+_DEPTH_CAP_M = 0.05
 
 
 # -- the task -----------------------------------------------------------------------------------
@@ -591,11 +606,15 @@ class Transition:
     """A state-to-state joint motion between digs (ruckig, rest to rest, no waypoints).
 
     Attributes:
-        kind: ``lift_out``, ``dump``, ``approach`` or ``enter``.
+        kind: ``lift_out``, ``dump``, ``approach`` or ``enter``: the phase of the cycle it is
+            part of (a phase may take several moves: a lift in pieces).
         q_from_rad, q_to_rad: End poses (arm frame).
         duration_s: Time-optimal duration within the joint velocity/acceleration/jerk limits.
         machine_x_m: The machine's travel from its first position.
-        penetration_m: Deepest point of the motion below the remaining material (0 if clear).
+        penetration_m: How far the bucket (its tip, bottom and back plate) goes into the
+            material left, as a distance, beyond what the move is allowed at a dig's pose
+            (:meth:`TrenchSession.exit_transitions`, :meth:`TrenchSession.entry_transitions`);
+            0 if clear, at most :data:`TRANSITION_PENETRATION_M` in a plan.
     """
 
     kind: str
@@ -887,7 +906,13 @@ def _sextic_shapes(n: int) -> tuple[FloatArray, FloatArray]:
 
 class _Mover:
     """Rest-to-rest ruckig moves with the rig's limits, reusing one generator (the transitions'
-    hot path: ~2 us a move instead of ~15 us building the objects each time)."""
+    hot path: ~2 us a move instead of ~15 us building the objects each time), and the bucket
+    outline the transitions' checks sample along them.
+
+    The outline is ``rig.bucket.profile_m`` (the cutting edge, the bottom and the back plate)
+    at points at most :data:`_OUTLINE_STEP_M` apart, the tip first: ``outline`` ``(m, 2)``,
+    (along, normal) in the bucket link frame shifted to the tip.
+    """
 
     def __init__(self, rig: Rig) -> None:
         from ruckig import InputParameter, Result, Ruckig, Trajectory
@@ -899,6 +924,20 @@ class _Mover:
         self._inp.max_acceleration = [float(v) for v in rig.qdd_max_rad_s2]
         self._inp.max_jerk = [float(v) for v in rig.qddd_max_rad_s3]
         self._traj = Trajectory(3)
+        self.arm = kinematics.FastArm(rig)
+        corners = np.asarray(rig.bucket.profile_m, dtype=np.float64)
+        points = [corners[:1]]
+        for a, b in itertools.pairwise(corners):
+            k = max(1, math.ceil(float(np.hypot(*(b - a))) / _OUTLINE_STEP_M))
+            points.append(a + (b - a) * (np.arange(1, k + 1) / k)[:, None])
+        self.outline = np.concatenate(points)
+        #: Where the profile's corners are in ``outline``: the outline lies in their hull.
+        self.corners = np.cumsum([0] + [p.shape[0] for p in points[1:]])
+        # How far a point of the outline can be from each joint: a joint's turn moves it at
+        # most that far per radian (the samples' spacing).
+        l1, l2, l3 = (float(v) for v in rig.lengths_m)
+        r3 = float(np.max(np.hypot(self.outline[:, 0] + l3, self.outline[:, 1])))
+        self.radius_m = np.array([l1 + l2 + r3, l2 + r3, r3])
 
     def move(self, q0: Sequence[float] | FloatArray, q1: Sequence[float] | FloatArray) -> Any:
         """The move's trajectory (valid until the next call).
@@ -912,6 +951,49 @@ class _Mover:
         if result not in self._ok:
             raise PlanningError(f"ruckig could not plan a transition: {result}")
         return self._traj
+
+    def n_samples(self, q0: FloatArray, q1: FloatArray, step_m: float) -> int:
+        """Uniform time samples of a move from ``q0`` to ``q1`` so many that no point of the
+        bucket moves more than ``step_m`` from one to the next (a rest-to-rest ruckig move
+        turns each joint one way, so a joint turns ``|q1 - q0|`` in all)."""
+        travel = float(np.abs(np.asarray(q1) - np.asarray(q0)) @ self.radius_m)
+        return min(max(math.ceil(travel / step_m) + 1, 2), 20000)
+
+    @staticmethod
+    def poses(traj: Any, times_s: FloatArray) -> FloatArray:
+        """Joint poses ``(n, 3)`` of a ruckig trajectory at ``times_s`` ``(n,)`` (within it).
+
+        A rest-to-rest move is one section of seven constant-jerk pieces per joint
+        (``Profile.t, j, a, v, p``: durations and the state where each starts), evaluated
+        here in numpy: ruckig's ``at_time`` takes one time per call, ~0.5 us each, and the
+        checks sample hundreds (tests/test_trench.py compares the two). A profile with a
+        braking or accelerating lead-in (not a rest-to-rest move) goes through ``at_time``.
+        """
+        profiles = traj.profiles[0]
+        if len(traj.profiles) != 1 or any(
+            p.brake.duration > 0.0 or p.accel.duration > 0.0 for p in profiles
+        ):
+            at = traj.at_time
+            return np.array([at(t)[0] for t in times_s.tolist()])
+        out = np.empty((times_s.shape[0], len(profiles)))
+        for k, p in enumerate(profiles):
+            starts = np.concatenate([[0.0], np.cumsum(p.t)])
+            i = np.clip(np.searchsorted(starts, times_s, side="right") - 1, 0, 6)
+            dt = times_s - starts[i]
+            jerk, acc = np.asarray(p.j)[i], np.asarray(p.a)[i]
+            vel, pos = np.asarray(p.v)[i], np.asarray(p.p)[i]
+            out[:, k] = pos + dt * (vel + dt * (0.5 * acc + dt * jerk / 6.0))
+        return out
+
+    def bucket_xy(self, q: FloatArray, *, corners: bool = False) -> tuple[FloatArray, FloatArray]:
+        """The outline's points (or only its corners) of joint poses ``(..., 3)``: x and y
+        ``(..., m)``, arm frame."""
+        x, y = self.arm.tip_xy(q)
+        z = q[..., 0] + q[..., 1] + q[..., 2]
+        c, s = np.cos(z)[..., None], np.sin(z)[..., None]
+        pts = self.outline[self.corners] if corners else self.outline
+        a, b = pts[:, 0], pts[:, 1]
+        return x[..., None] + c * a - s * b, y[..., None] + s * a + c * b
 
 
 @dataclass(frozen=True, slots=True)
@@ -1185,6 +1267,10 @@ class TrenchSession:
         self.stage_us: dict[str, float] = dict.fromkeys(_STAGES, 0.0)
         #: The pending dig's planned tip path, its envelope and swept region (for record()).
         self._planned_region: tuple[FloatArray, FloatArray, Any] | None = None
+        #: Transitions planned lately: key -> (the height field they were checked on, moves).
+        self._moves: dict[tuple[Any, ...], tuple[FloatArray, tuple[Transition, ...]]] = {}
+        #: The sparse max table of the height field the last move was checked on.
+        self._max_tables: tuple[FloatArray, FloatArray] = (np.empty(0), np.empty((0, 0)))
 
     def _plan_sections(self) -> tuple[list[tuple[float, float]], list[float]]:
         """The trench's sections, far first, and the machine's position (travel from its
@@ -1815,27 +1901,6 @@ class TrenchSession:
             return dig
         return None
 
-    def _check_transition_poses(self, dig: PlannedDig) -> None:
-        """PlanningError unless the poses of the moves around ``dig`` are reachable: the
-        approach above its entry and the lift out above its exit (a layer pass may end too
-        near the machine to lift the bucket straight up, and that was only found when the next
-        dig was planned, as an error)."""
-        self._approach_pose(np.asarray(dig.problem.q_start_rad))
-        self._lift_pose(np.asarray(dig.problem.q_end_rad))
-
-    def _lift_pose(self, q: FloatArray) -> FloatArray:
-        """The tip of pose ``q`` raised to the lift clearance, same x and attitude
-        (PlanningError: out of reach)."""
-        end = self.planner.arm.tip(q)
-        return _safe_ik(self.planner.arm, end[0], self.lift_clearance_y_m, end[2])
-
-    def _approach_pose(self, q: FloatArray) -> FloatArray:
-        """The pose above entry pose ``q`` that the approach goes to (PlanningError: out of
-        reach)."""
-        start = self.planner.arm.tip(q)
-        return _safe_ik(
-            self.planner.arm, start[0], start[1] + _APPROACH_M * self.planner.scale, start[2]
-        )
 
     def _travel(self, move: float) -> None:
         """Crawler travel by ``move`` (m along the trench, negative: back, away from the dug
@@ -1914,7 +1979,7 @@ class TrenchSession:
             # Look ahead: the fewest full digs the material above the layer still takes after
             # the dig, then the fullest bucket, then the score.
             rest = [
-                self._rest_estimate(self._surface_after(X[good[b]], K[good[b]], float(cs[b])))
+                self._rest_estimate(self._screened_surface_after(X[good[b]], K[good[b]], float(cs[b])))
                 for b in best
             ]
             # A dig that leaves part of the layer no bucket fills is not taken: the layer's
@@ -1983,7 +2048,7 @@ class TrenchSession:
         found = ok[np.arange(X.shape[0]), first]
         return np.where(found & (top > 0.0), cg[np.arange(X.shape[0]), first], 0.0)
 
-    def _surface_after(self, x7: FloatArray, K: FloatArray, c: float) -> FloatArray:
+    def _screened_surface_after(self, x7: FloatArray, K: FloatArray, c: float) -> FloatArray:
         """The height field after a screened dig (poses and H ``x7``, bulge ``K`` scaled by
         ``c``), its path on the screening's samples."""
         pl = self.planner
@@ -2571,6 +2636,8 @@ class TrenchSession:
         self.pending = None
         return removed
 
+    # -- transitions --------------------------------------------------------------------------
+
     @_stage("transitions")
     def _append_transitions(self, dig: PlannedDig) -> None:
         """Dump the previous load and approach this dig's entry (ruckig, rest to rest)."""
@@ -2578,63 +2645,310 @@ class TrenchSession:
             self.steps.extend(self.exit_transitions(self.q_now))
         self.steps.extend(self.entry_transitions(dig, self.planner.dump_pose_rad))
 
-    def _transition(self, kind: str, qa: FloatArray, qb: FloatArray) -> Transition:
+    def exit_transitions(
+        self, q_from_rad: ArrayLike, *, after: PlannedDig | None = None
+    ) -> tuple[Transition, ...]:
+        """Lift out of the material and go to the dump pose, from any pose (arm frame).
+
+        ``lift_out`` goes straight up, the tip's x and attitude kept, until the whole bucket is
+        :data:`_LIFT_CLEAR_M` above the material under it, or higher where the way to the dump
+        pose needs it (the lowest clear one of :meth:`_lift_heights`: on A-D the lowest is
+        always clear and a higher lift only adds time); a lift whose joint-space move strays
+        from the vertical into the material is made in pieces through poses on it. ``dump``
+        goes from there to the dump pose. A pose already clear of the material goes to the
+        dump pose without a lift. The executor streams these after each dig while the next one
+        is planned, and from a measured pose inside the material when a run resumes.
+
+        Every move is checked on its samples (:meth:`_checked`) against the material as it is
+        when it runs: the current material, or with ``after`` the material the pending dig
+        ``after`` leaves (its planned path cut; the executor plans a dig's exit moves before it
+        runs). The first move starts where the bucket is, possibly in the material (a dig's
+        curled bucket hangs below its tip's path; a stopped dig leaves it deep): it may cross
+        the material straight above the bucket's outline at its start, which the bucket carries
+        out going straight up, and nothing else.
+
+        Args:
+            q_from_rad: Start pose ``(3,)``, e.g. a dig's exit or the measured pose.
+            after: The pending dig the moves follow (None: they run now).
+
+        Returns:
+            The moves in order: ``lift_out`` (none, one or several) then ``dump``; the same
+            moves :meth:`next_dig` puts before the next dig.
+
+        Raises:
+            PlanningError: No lift pose is reachable, ruckig cannot plan a move, or every
+                candidate has a move deeper than :data:`TRANSITION_PENETRATION_M` in the
+                material (the message names the move and the depth).
+        """
+        q0 = np.asarray(q_from_rad, dtype=np.float64)
+        surface = self.surface if after is None else self._surface_after(after)
+        key = ("exit", *q0.tolist(), self.machine_x)
+        moves = self._cached(key, surface)
+        if moves is None:
+            moves = self._plan_exit(q0, surface)
+            self._remember(key, surface, moves)
+        return moves
+
+    def entry_transitions(self, dig: PlannedDig, q_from_rad: ArrayLike) -> tuple[Transition, ...]:
+        """Approach ``dig``'s entry from ``q_from_rad`` (the dump pose) and enter the material.
+
+        ``enter`` lowers the bucket straight down into the entry pose, or where no such move is
+        clear slides it in along its own axis (pin to tip), from an approach pose backed off by
+        the first of :data:`_APPROACH_M` (scaled) that puts the whole bucket
+        :data:`_LIFT_CLEAR_M` above the material and whose moves are clear; ``approach`` goes
+        there from ``q_from_rad``. Straight down first: on A-D it was clear at every entry and
+        as fast or faster than along the axis. Checked against the material before the dig.
+        The dig starts at its entry, on the surface or (a profile pass into a corner, a layer)
+        below it, and the bucket's back may lie in a wall there: each point of the bucket may
+        go as deep during ``enter`` as it is at the entry pose, plus the tolerance.
+
+        Returns:
+            ``(approach, enter)``.
+
+        Raises:
+            PlanningError: No reachable approach pose, ruckig cannot plan a move, or every
+                candidate has a move deeper than :data:`TRANSITION_PENETRATION_M` in the
+                material (the message names the move and the depth).
+        """
+        q_from = np.asarray(q_from_rad, dtype=np.float64)
+        q_entry = np.asarray(dig.problem.q_start_rad, dtype=np.float64)
+        key = ("entry", *q_from.tolist(), *q_entry.tolist(), self.machine_x)
+        moves = self._cached(key, self.surface)
+        if moves is None:
+            moves = self._plan_entry(q_from, q_entry, self.surface)
+            self._remember(key, self.surface, moves)
+        return moves
+
+    @_stage("transitions")
+    def _check_transition_poses(self, dig: PlannedDig) -> None:
+        """PlanningError unless the moves around ``dig`` can be made clear: into its entry from
+        the dump pose, and out of its exit over the material it leaves (a layer pass may end
+        too near the machine to lift the bucket straight up, and that was only found when the
+        next dig was planned, as an error). The moves are kept for when they are asked for."""
+        self.entry_transitions(dig, self.planner.dump_pose_rad)
+        self.exit_transitions(dig.problem.q_end_rad, after=dig)
+
+    def _cached(self, key: tuple[Any, ...], surface: FloatArray) -> tuple[Transition, ...] | None:
+        """The moves planned for ``key`` on this very height field, if they are kept."""
+        hit = self._moves.get(key)
+        if hit is not None and np.array_equal(hit[0], surface):
+            return hit[1]
+        return None
+
+    def _remember(
+        self, key: tuple[Any, ...], surface: FloatArray, moves: tuple[Transition, ...]
+    ) -> None:
+        """Keep ``moves`` (planned for ``key`` on ``surface``), the oldest dropped."""
+        self._moves[key] = (surface.copy(), moves)
+        while len(self._moves) > _N_CACHED_MOVES:
+            del self._moves[next(iter(self._moves))]
+
+    def _surface_after(self, dig: PlannedDig) -> FloatArray:
+        """The height field once ``dig``'s planned path has cut it."""
+        planned = self._planned_region
+        if planned is not None and planned[0] is dig.tip_path_m:
+            env = planned[1]
+        else:
+            env = self._envelope(np.asarray(dig.tip_path_m, dtype=np.float64), self.grid)
+        after: FloatArray = np.minimum(self.surface, env)
+        return after
+
+    def _plan_exit(self, q0: FloatArray, surface: FloatArray) -> tuple[Transition, ...]:
+        """:meth:`exit_transitions` on the height field ``surface``."""
+        mover = self.planner.mover
+        x0, y0, z0 = mover.arm.tip(q0)
+        dump = np.asarray(self.planner.dump_pose_rad, dtype=np.float64)
+        # The material straight above the bucket's outline at the start is what it carries
+        # out going straight up.
+        bx, by = mover.bucket_xy(q0)
+        start = np.stack([bx + self.machine_x, by], axis=1)
+        carry = np.minimum(surface, self._envelope(start, self.grid))
+        refused: list[Transition] = []
+        for y_lift in self._lift_heights(q0, surface):
+            moves: list[Transition] = []
+            q_top = q0
+            if y_lift > y0 + 1e-6:
+                lift = self._lift(q0, y_lift, carry)
+                if lift is None:
+                    continue
+                moves.extend(lift)
+                q_top = np.asarray(lift[-1].q_to_rad)
+            moves.append(self._checked("dump", q_top, dump, surface if moves else carry))
+            bad = [m for m in moves if m.penetration_m > TRANSITION_PENETRATION_M]
+            if bad:
+                refused.append(max(bad, key=lambda m: m.penetration_m))
+                continue
+            return tuple(moves)
+        raise PlanningError(
+            self._refusal("exit", (x0 + self.machine_x, y0, z0), refused, "no lift pose")
+        )
+
+    def _lift_heights(self, q0: FloatArray, surface: FloatArray) -> list[float]:
+        """Candidate tip heights of the lift from ``q0`` (arm frame, ascending): the whole
+        bucket :data:`_LIFT_CLEAR_M` above the material within that distance of it, then
+        higher in steps of twice that; the start's own height first where it is higher."""
+        mover = self.planner.mover
+        s = self.planner.scale
+        clear = _LIFT_CLEAR_M * s
+        y0 = mover.arm.tip(q0)[1]
+        bx, by = mover.bucket_xy(q0)
+        k = math.ceil(clear / GRID_STEP_M)
+        i = np.rint((bx + self.machine_x - self.grid[0]) / GRID_STEP_M).astype(np.int64)
+        cols = np.clip(i[:, None] + np.arange(-k, k + 1), 0, self.grid.shape[0] - 1)
+        # Heights over the tip of the outline's points at the start attitude.
+        need = float(np.max(np.max(surface[cols], axis=1) - (by - y0))) + clear
+        return sorted({max(need + 2.0 * clear * j, y0) for j in range(_N_LIFT_HEIGHTS)})
+
+    def _lift(
+        self, q0: FloatArray, y_lift: float, carry: FloatArray
+    ) -> tuple[Transition, ...] | None:
+        """``lift_out`` from ``q0`` straight up to tip height ``y_lift``: one move, or where it
+        strays from the vertical into the material, pieces through poses on the vertical
+        (the fewest that are clear; else the one move, to be refused). None: out of reach."""
+        arm = self.planner.mover.arm
+        x0, y0, z0 = arm.tip(q0)
+        first: tuple[Transition, ...] | None = None
+        for pieces in (1, 2, 3):
+            poses = [q0]
+            for y in np.linspace(y0, y_lift, pieces + 1)[1:].tolist():
+                q = arm.ik(x0, y, z0)
+                if q is None:
+                    try:
+                        q = tuple(_safe_ik(arm, x0, y, z0))
+                    except PlanningError:
+                        return first
+                poses.append(np.asarray(q, dtype=np.float64))
+            moves = tuple(
+                self._checked("lift_out", a, b, carry) for a, b in itertools.pairwise(poses)
+            )
+            if first is None:
+                first = moves
+            if all(m.penetration_m <= TRANSITION_PENETRATION_M for m in moves):
+                return moves
+        return first
+
+    def _plan_entry(
+        self, q_from: FloatArray, q_entry: FloatArray, surface: FloatArray
+    ) -> tuple[Transition, ...]:
+        """:meth:`entry_transitions` on the height field ``surface``."""
+        mover = self.planner.mover
+        arm = mover.arm
+        s = self.planner.scale
+        xe, ye, ze = arm.tip(q_entry)
+        allow = self._bucket_depth(q_entry[None], surface, np.inf)[0]
+        clear = _LIFT_CLEAR_M * s
+        refused: list[Transition] = []
+        # The enter's direction of travel: straight down, else along the bucket's axis.
+        for ux, uy in ((0.0, -1.0), (math.cos(ze), math.sin(ze))):
+            for d in _APPROACH_M:
+                qa = arm.ik(xe - d * s * ux, ye - d * s * uy, ze)
+                if qa is None:
+                    continue
+                q_above = np.asarray(qa, dtype=np.float64)
+                bx, by = mover.bucket_xy(q_above)
+                if np.any(by < np.interp(bx + self.machine_x, self.grid, surface) + clear):
+                    continue
+                enter = self._checked("enter", q_above, q_entry, surface, allow)
+                if enter.penetration_m > TRANSITION_PENETRATION_M:
+                    refused.append(enter)
+                    continue
+                approach = self._checked("approach", q_from, q_above, surface)
+                if approach.penetration_m > TRANSITION_PENETRATION_M:
+                    refused.append(approach)
+                    continue
+                return (approach, enter)
+        raise PlanningError(
+            self._refusal("entry", (xe + self.machine_x, ye, ze), refused, "no approach pose")
+        )
+
+    def _refusal(
+        self, what: str, pose: tuple[float, float, float], refused: list[Transition], none: str
+    ) -> str:
+        """The message of a refused exit or entry: the least deep refused move, or ``none``."""
+        where = f"x={pose[0]:.3f} m, y={pose[1]:.3f} m, attitude {math.degrees(pose[2]):.1f} deg"
+        if not refused:
+            return f"no clear {what} moves at {where}: {none} is reachable and clear"
+        m = min(refused, key=lambda t: t.penetration_m)
+        depth = f"{m.penetration_m * 1e3:.1f} mm"
+        if m.penetration_m >= _DEPTH_CAP_M:
+            depth = f"{_DEPTH_CAP_M * 1e3:.0f} mm or more"
+        return (
+            f"no clear {what} moves at {where}: the {m.kind} move goes {depth} into the "
+            f"material at best (limit {TRANSITION_PENETRATION_M * 1e3:.0f} mm)"
+        )
+
+    def _checked(
+        self,
+        kind: str,
+        qa: FloatArray,
+        qb: FloatArray,
+        surface: FloatArray,
+        allow: FloatArray | None = None,
+    ) -> Transition:
+        """The ruckig move ``qa -> qb`` with its penetration (:meth:`_move_depth`)."""
         traj = self.planner.mover.move(qa, qb)
-        duration = float(traj.duration)
         return Transition(
             kind=kind,
             q_from_rad=(float(qa[0]), float(qa[1]), float(qa[2])),
             q_to_rad=(float(qb[0]), float(qb[1]), float(qb[2])),
-            duration_s=duration,
+            duration_s=float(traj.duration),
             machine_x_m=self.machine_x,
-            penetration_m=self._penetration(traj, duration),
+            penetration_m=self._move_depth(traj, qa, qb, surface, allow),
         )
 
-    def exit_transitions(self, q_from_rad: ArrayLike) -> tuple[Transition, Transition]:
-        """Lift out of the material and go to the dump pose, from any pose (arm frame).
+    def _move_depth(
+        self,
+        traj: Any,
+        qa: FloatArray,
+        qb: FloatArray,
+        surface: FloatArray,
+        allow: FloatArray | None,
+    ) -> float:
+        """The deepest any point of the bucket outline goes into the material under
+        ``surface`` (:func:`_depth_below`) on the move ``traj`` from ``qa`` to ``qb``, less
+        ``allow`` ``(m,)`` per outline point where given (m, >= 0).
 
-        The lift keeps the tip's x and attitude and raises it to the clearance height above
-        the ground; the executor streams these after each dig while the next one is planned,
-        and from a measured pose inside the material when a run resumes.
-
-        Args:
-            q_from_rad: Start pose ``(3,)``, e.g. a dig's exit or the measured pose.
-
-        Returns:
-            ``(lift_out, dump)``, the same moves :meth:`next_dig` puts before the next dig.
-
-        Raises:
-            PlanningError: No reachable lift pose, or ruckig cannot plan a move.
+        Sampled where the bucket comes near the material: on samples that no point of the
+        bucket moves :data:`_COARSE_STEP_M` between, a stretch where the bucket's bounding box
+        stays that far above the highest material under it (that far to either side) cannot
+        touch it; the rest is sampled every :data:`_MOVE_STEP_M` of the bucket's travel with
+        the whole outline. Between samples and outline points a point can be deeper by at
+        most half their spacing (a point's depth changes no faster than the point moves).
+        Depths beyond :data:`_DEPTH_CAP_M` (past ``allow``) count as that.
         """
-        q0 = np.asarray(q_from_rad, dtype=np.float64)
-        lift = self._lift_pose(q0)
-        return (
-            self._transition("lift_out", q0, lift),
-            self._transition("dump", lift, self.planner.dump_pose_rad),
-        )
+        mover = self.planner.mover
+        h = GRID_STEP_M
+        last = self.grid.shape[0] - 1
+        reach = _COARSE_STEP_M
+        times = np.linspace(0.0, float(traj.duration), mover.n_samples(qa, qb, reach))
+        x, y = mover.bucket_xy(mover.poses(traj, times), corners=True)
+        x = x + self.machine_x
+        i0 = np.clip(np.floor((np.min(x, axis=1) - reach - self.grid[0]) / h), 0, last)
+        i1 = np.clip(np.ceil((np.max(x, axis=1) + reach - self.grid[0]) / h), 0, last)
+        if not np.array_equal(self._max_tables[0], surface):
+            self._max_tables = (surface.copy(), _max_table(surface))
+        top = _range_max(self._max_tables[1], i0.astype(np.int64), i1.astype(np.int64))
+        far = np.min(y, axis=1) >= top + reach
+        near = np.flatnonzero(~(far[:-1] | far[1:]))
+        if near.size == 0:
+            return 0.0
+        k = math.ceil(reach / _MOVE_STEP_M)
+        frac = np.arange(k + 1) / k
+        fine = np.unique(times[near, None] + (times[near + 1] - times[near])[:, None] * frac)
+        if allow is None:
+            depth = self._bucket_depth(mover.poses(traj, fine), surface)
+        else:
+            depth = self._bucket_depth(mover.poses(traj, fine), surface, allow + _DEPTH_CAP_M)
+            depth -= allow
+        return max(0.0, float(np.max(depth)))
 
-    def entry_transitions(
-        self, dig: PlannedDig, q_from_rad: ArrayLike
-    ) -> tuple[Transition, Transition]:
-        """Approach ``dig``'s entry from ``q_from_rad`` (the dump pose) and enter the material.
-
-        Returns:
-            ``(approach, enter)``: to a pose above the entry, then down to the entry.
-
-        Raises:
-            PlanningError: No reachable approach pose, or ruckig cannot plan a move.
-        """
-        q_entry = np.asarray(dig.problem.q_start_rad)
-        approach = self._approach_pose(q_entry)
-        return (
-            self._transition("approach", np.asarray(q_from_rad, dtype=np.float64), approach),
-            self._transition("enter", approach, q_entry),
-        )
-
-    @property
-    def lift_clearance_y_m(self) -> float:
-        """Height the tip lifts to before moving to the dump pose (arm frame)."""
-        return float(self.ground_y + _LIFT_CLEAR_M * self.planner.scale)
+    def _bucket_depth(
+        self, q: FloatArray, surface: FloatArray, cap_m: ArrayLike = _DEPTH_CAP_M
+    ) -> FloatArray:
+        """How deep each point of the bucket outline is in the material, poses ``(n, 3)`` ->
+        ``(n, m)`` (m, up to ``cap_m``, :func:`_depth_below`)."""
+        x, y = self.planner.mover.bucket_xy(q)
+        return _depth_below(self.grid, surface, x + self.machine_x, y, cap_m)
 
     # -- persistence --------------------------------------------------------------------------
 
@@ -2751,13 +3065,6 @@ class TrenchSession:
         # The travels so far are the steps' travel moves (the entries and the travel bound
         # depend on them; a resumed session counted none before).
         self._travels = sum(isinstance(s, TravelMove) for s in steps)
-
-    def _penetration(self, traj: Any, duration: float) -> float:
-        at = traj.at_time
-        q = np.array([at(t)[0] for t in np.linspace(0.0, duration, 60).tolist()])
-        x, y = self.planner.arm.tip_xy(q)
-        x += self.machine_x
-        return float(max(0.0, float(np.max(np.interp(x, self.grid, self.surface) - y)) - 1e-3))
 
     @_stage("finish")
     def finish(self, plan_total_us: float) -> TrenchPlan:
@@ -2953,6 +3260,10 @@ _FILL_MARGIN = 0.03
 _N_RANKED = 8
 # Screened candidates whose material left is estimated (the look-ahead), best score first.
 _N_LOOKAHEAD = 32
+# Lift heights a transition tries (TrenchSession._lift_heights).
+_N_LIFT_HEIGHTS = 4
+# Transitions kept for when they are asked for again (a dig's, its next dig's).
+_N_CACHED_MOVES = 16
 # Crawler travels per task at most.
 _MAX_TRAVELS = 4
 # Upper bound on profile passes (far wall, bottom pieces, near wall).
@@ -3009,6 +3320,70 @@ def _largest_scale_below(f: FloatArray, limit: float, G: FloatArray) -> FloatArr
     return np.where(k == 0, 0.0, c)
 
 
+def _depth_below(
+    grid: FloatArray, surface: FloatArray, x: FloatArray, y: FloatArray, cap_m: ArrayLike
+) -> FloatArray:
+    """How far points are inside the material under a height field (m, 0 outside it), up to
+    ``cap_m``: ``min(depth, cap_m)``.
+
+    The depth of a point ``(x, y)`` below ``surface`` (on the uniform ``grid``, linear between)
+    is its distance to the nearest point above the surface, not the height of the surface over
+    it: beside a steep face the two differ by the face's height (a tip 2 mm into the face of
+    an 8 cm step is 2 mm deep, not 80 mm). The nearest point is sought in the grid columns
+    within reach (the vertical depth, at most the cap), so the result is at most half a grid
+    step too deep. Shapes: ``x``, ``y`` and the result alike; ``cap_m`` broadcasts to them.
+    """
+    h = float(grid[1] - grid[0])
+    n = grid.shape[0]
+    u = np.clip((x - grid[0]) / h, 0.0, n - 1.000001)
+    i = u.astype(np.int64)
+    w = u - i
+    vertical = surface[i] * (1.0 - w) + surface[i + 1] * w - y
+    out = np.zeros(np.shape(x))
+    inside = vertical > 0.0
+    if not np.any(inside):
+        return out
+    reach = np.minimum(vertical, np.broadcast_to(cap_m, np.shape(x)))[inside]
+    px, py = x[inside], y[inside]
+    col = np.rint((px - grid[0]) / h).astype(np.int64)
+    depth = reach.copy()
+    # Points in classes of reach (16 columns each): one window as wide as the deepest point's
+    # costs ~10x more where a few points are deep (a bucket's back in a wall).
+    cls = np.ceil(reach / (16.0 * h)).astype(np.int64)
+    for j in np.unique(cls).tolist():
+        m = cls == j
+        k = 16 * j
+        cols = np.clip(col[m, None] + np.arange(-k, k + 1), 0, n - 1)
+        dx = grid[cols] - px[m, None]
+        dy = np.maximum(surface[cols] - py[m, None], 0.0)
+        depth[m] = np.minimum(np.sqrt(np.min(dx * dx + dy * dy, axis=1)), reach[m])
+    out[inside] = depth
+    return out
+
+
+def _max_table(values: FloatArray) -> FloatArray:
+    """A sparse table of ``values`` ``(n,)``: row j holds the maxima of the runs of 2^j
+    starting at each index (the last 2^j - 1 entries of a row, where no full run starts, are
+    not meaningful and :func:`_range_max` does not read them)."""
+    rows = [values]
+    j = 1
+    while 2 * j <= values.shape[0]:
+        prev = rows[-1]
+        row = prev.copy()
+        row[:-j] = np.maximum(prev[:-j], prev[j:])
+        rows.append(row)
+        j *= 2
+    return np.stack(rows)
+
+
+def _range_max(table: FloatArray, i0: NDArray[np.int64], i1: NDArray[np.int64]) -> FloatArray:
+    """Maxima of ``values[i0 : i1 + 1]`` (index arrays alike, ``i0 <= i1``) from its
+    :func:`_max_table`."""
+    level = np.floor(np.log2(i1 - i0 + 1)).astype(np.int64)
+    top: FloatArray = np.maximum(table[level, i0], table[level, i1 - (1 << level) + 1])
+    return top
+
+
 def _safe_ik(arm: kinematics.FastArm, x: float, y: float, attitude: float) -> FloatArray:
     """IK of a transition pose, trying attitudes nearer the middle when the first fails."""
     for att in (attitude, attitude + 0.3, attitude - 0.3, -math.pi / 2):
@@ -3030,6 +3405,7 @@ __all__: Sequence[str] = (
     "OVERDIG_GOAL_M",
     "OVERDIG_LIMIT_M",
     "WALL_SLOPE_DEG",
+    "TRANSITION_PENETRATION_M",
     "OneShotPlanner",
     "OneShotResult",
     "PinnOneShot",

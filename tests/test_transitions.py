@@ -1,0 +1,278 @@
+"""The moves between digs (issue 23): every lift, dump, approach and enter keeps the bucket out
+of the material left, checked here independently of the planner's own check.
+
+The independent measure: the move resampled with ruckig's own ``at_time`` (200 samples), the
+bucket outline (``rig.bucket.profile_m``, every 2.5 mm) placed with :func:`kinematics.forward`,
+and each point's depth as its distance to the boundary of the session's material polygon where
+the polygon contains it (shapely), against the material as it is when the move runs. The
+planner measures on its 1 mm height field with its own sampling; the two agree to ~1 mm.
+
+The allowances are the planner's documented ones: the lift out of a pose (and a first move
+that leaves it without a lift) may cross the material straight above the bucket's outline at
+that pose; during ``enter`` each point of the bucket may be as deep as at the entry pose.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+import shapely
+from shapely.geometry import Polygon
+
+from rt_runtime import kinematics
+from rt_runtime.control.planner_worker import SessionDriver
+from rt_runtime.errors import PlanningError
+from rt_runtime.planning.trench import (
+    GRID_STEP_M,
+    PlannedDig,
+    Transition,
+    TrenchPlanner,
+    TrenchSession,
+    joint_move,
+    load_task,
+)
+from rt_runtime.rig import load_rig
+
+RIG = load_rig("scale_model")
+SAMPLES = 200
+#: The requirement (m): no move takes the bucket deeper into the material left.
+LIMIT_M = 0.005
+#: How far the planner's measure may lie from this one (m): its height field and sampling.
+AGREE_M = 1.5e-3
+
+
+@pytest.fixture(scope="module")
+def planner() -> TrenchPlanner:
+    return TrenchPlanner(RIG)
+
+
+def _outline(step_m: float = 0.0025) -> np.ndarray:
+    corners = np.asarray(RIG.bucket.profile_m, dtype=np.float64)
+    points = [corners[:1]]
+    for a, b in itertools.pairwise(corners):
+        k = max(1, math.ceil(float(np.hypot(*(b - a))) / step_m))
+        points.append(a + (b - a) * (np.arange(1, k + 1) / k)[:, None])
+    return np.concatenate(points)
+
+
+OUTLINE = _outline()
+
+
+def _bucket(q: np.ndarray, machine_x_m: float) -> np.ndarray:
+    """The outline's points ``(n, m, 2)`` (work-site frame) of joint poses ``(n, 3)``."""
+    tip = kinematics.forward(RIG, q)
+    z = tip[:, 2:3]
+    a, b = OUTLINE[:, 0], OUTLINE[:, 1]
+    x = tip[:, 0:1] + np.cos(z) * a - np.sin(z) * b + machine_x_m
+    y = tip[:, 1:2] + np.sin(z) * a + np.cos(z) * b
+    return np.stack([x, y], axis=-1)
+
+
+def _depth(material: Any, points: np.ndarray) -> np.ndarray:
+    x, y = points[..., 0].ravel(), points[..., 1].ravel()
+    inside = shapely.contains_xy(material, x, y)
+    d = np.zeros(x.shape)
+    if inside.any():
+        d[inside] = shapely.distance(shapely.points(x[inside], y[inside]), material.boundary)
+    return d.reshape(points.shape[:-1])
+
+
+def _carried(material: Any, q: np.ndarray, machine_x_m: float) -> Any:
+    """``material`` without what lies straight above the bucket's outline at pose ``q``."""
+    pts = _bucket(np.asarray(q, dtype=np.float64)[None], machine_x_m)[0]
+    strips = [
+        Polygon([tuple(a), tuple(b), (b[0], 10.0), (a[0], 10.0)])
+        for a, b in itertools.pairwise(pts)
+        if abs(a[0] - b[0]) > 1e-12
+    ]
+    return material.difference(shapely.union_all(strips))
+
+
+def _poses(move: Transition) -> np.ndarray:
+    traj, _ = joint_move(RIG, move.q_from_rad, move.q_to_rad)
+    at = traj.at_time
+    return np.array([at(float(t))[0] for t in np.linspace(0.0, traj.duration, SAMPLES)])
+
+
+def _penetration(move: Transition, material: Any) -> float:
+    """The move's depth in ``material`` beyond the enter's allowance (m)."""
+    pts = _bucket(_poses(move), move.machine_x_m)
+    d = _depth(material, pts)
+    if move.kind == "enter":
+        d = d - d[-1]
+    return max(0.0, float(d.max()))
+
+
+def _check_moves(
+    moves: tuple[Transition, ...] | list[Transition], material: Any, exit_from: Any = None
+) -> list[float]:
+    """Every move's independent penetration; ``exit_from``: the pose an exit sequence starts
+    at (its lift and a first move without a lift get the carried material)."""
+    out = []
+    carried = None
+    if exit_from is not None:
+        carried = _carried(material, exit_from, moves[0].machine_x_m)
+    for i, m in enumerate(moves):
+        mat = carried if carried is not None and (m.kind == "lift_out" or i == 0) else material
+        p = _penetration(m, mat)
+        assert p <= LIMIT_M, (m.kind, i, p)
+        assert abs(p - m.penetration_m) <= AGREE_M, (m.kind, i, p, m.penetration_m)
+        out.append(p)
+    return out
+
+
+def _assert_straight_up(moves: tuple[Transition, ...] | list[Transition]) -> None:
+    for m in moves:
+        if m.kind != "lift_out":
+            continue
+        a = kinematics.forward(RIG, np.asarray(m.q_from_rad))
+        b = kinematics.forward(RIG, np.asarray(m.q_to_rad))
+        assert b[0] == pytest.approx(a[0], abs=1e-9) and b[2] == pytest.approx(a[2], abs=1e-9)
+        assert b[1] > a[1]
+
+
+@pytest.mark.parametrize("name", list("ABCD"))
+def test_every_move_of_a_plan_keeps_the_bucket_out_of_the_material(
+    planner: TrenchPlanner, name: str
+) -> None:
+    s = planner.start(load_task(name, RIG))
+    kinds: list[str] = []
+    worst = 0.0
+    while True:
+        n0 = len(s.steps)
+        dig = s.next_dig()
+        if dig is None:
+            break
+        new = [t for t in s.steps[n0:] if isinstance(t, Transition)]
+        kinds.extend(t.kind for t in new)
+        exit_moves = [t for t in new if t.kind in ("lift_out", "dump")]
+        entry_moves = [t for t in new if t.kind in ("approach", "enter")]
+        assert new == exit_moves + entry_moves
+        assert [t.kind for t in entry_moves] == ["approach", "enter"]
+        if s.digs:  # the moves out of the previous dig, on the material it left
+            assert exit_moves and exit_moves[-1].kind == "dump"
+            assert exit_moves[0].q_from_rad == s.digs[-1].problem.q_end_rad
+            _assert_straight_up(exit_moves)
+            worst = max(worst, *_check_moves(exit_moves, s.material, s.q_now))
+        else:
+            assert not exit_moves
+        assert entry_moves[-1].q_to_rad == dig.problem.q_start_rad
+        worst = max(worst, *_check_moves(entry_moves, s.material))
+        s.record(dig, dig.tip_path_m)
+    assert {"lift_out", "dump", "approach", "enter"} <= set(kinds)
+    report = s.finish(0.0).to_json()
+    assert report["transition_penetration_max_mm"] <= LIMIT_M * 1e3
+    assert worst <= LIMIT_M
+
+
+def _partly_dug(planner: TrenchPlanner, digs: int = 3) -> TrenchSession:
+    s = planner.start(load_task("A", RIG))
+    for _ in range(digs):
+        d = s.next_dig()
+        assert d is not None
+        s.record(d, d.tip_path_m)
+    return s
+
+
+def test_exit_from_a_pose_inside_the_material_lifts_straight_up_and_is_clear(
+    planner: TrenchPlanner,
+) -> None:
+    s = _partly_dug(planner)
+    t = s.task
+    rng = np.random.default_rng(23)
+    dump = np.asarray(planner.dump_pose_rad)
+    done = 0
+    while done < 20:
+        x = rng.uniform(t.start_x_m - t.length_m, t.start_x_m)
+        depth = rng.uniform(0.0, 0.08)
+        y = float(np.interp(x, s.grid, s.surface)) - depth
+        att = math.radians(rng.uniform(-175.0, -75.0))
+        q = planner.arm.ik(x - s.machine_x, y, att)
+        if q is None:
+            continue
+        case = (round(x, 4), round(depth, 4), round(math.degrees(att), 1))
+        moves = s.exit_transitions(q)
+        assert [m.kind for m in moves[:-1]] == ["lift_out"] * (len(moves) - 1), case
+        assert moves[0].q_from_rad == pytest.approx(q, abs=0.0)
+        assert np.allclose(moves[-1].q_to_rad, dump, atol=0.0), case
+        _assert_straight_up(moves)
+        _check_moves(moves, s.material, q)
+        done += 1
+
+
+def test_exit_moves_planned_before_the_dig_are_clear_of_what_it_leaves(
+    planner: TrenchPlanner,
+) -> None:
+    # As the executor gets them: the planner side plans a dig's exit before the dig runs.
+    s = _partly_dug(planner)
+    plan = SessionDriver(s).plan()
+    assert plan.dig is not None and plan.exit and plan.exit[-1].kind == "dump"
+    s.record(plan.dig, plan.dig.tip_path_m)
+    _check_moves(plan.exit, s.material, plan.dig.problem.q_end_rad)
+    # The session puts the same moves before the next dig (the open loop cut as planned).
+    n0 = len(s.steps)
+    s.next_dig()
+    after = [m for m in s.steps[n0:] if isinstance(m, Transition)]
+    assert tuple(m for m in after if m.kind in ("lift_out", "dump")) == plan.exit
+
+
+def test_lead_in_from_a_measured_pose_in_the_material_lifts_out_first(
+    planner: TrenchPlanner,
+) -> None:
+    s = _partly_dug(planner, digs=1)
+    q_end = np.asarray(s.digs[0].problem.q_end_rad)
+    x, y, att = planner.arm.tip(q_end)
+    q_in = planner.arm.ik(x, y - 0.03, att)  # stopped 3 cm deeper than the exit
+    assert q_in is not None
+    plan = SessionDriver(s).plan(np.asarray(q_in))
+    assert plan.lead_in and plan.lead_in[0].kind == "lift_out"
+    _check_moves(plan.lead_in, s.material, q_in)
+
+
+def test_a_move_that_cannot_be_made_clear_is_refused(planner: TrenchPlanner) -> None:
+    s = _partly_dug(planner, digs=1)
+    dig = s.next_dig()
+    assert isinstance(dig, PlannedDig)
+    # Material heaped over the dump pose: every way to it ends in the material. (Only the
+    # height field, which the moves are checked on, is changed.)
+    x_dump, y_dump, _ = planner.arm.tip(np.asarray(planner.dump_pose_rad))
+    heap = np.abs(s.grid - (x_dump + s.machine_x)) < 0.1
+    s.surface = np.where(heap, y_dump + 0.1, s.surface)
+    with pytest.raises(PlanningError, match=r"exit moves .*: the dump move goes .*mm.* into"):
+        s.exit_transitions(dig.problem.q_end_rad)
+    with pytest.raises(PlanningError, match=r"entry moves .*: the approach move goes .*mm.* into"):
+        s.entry_transitions(dig, planner.dump_pose_rad)
+
+
+def test_numpy_sampling_of_ruckig_moves_equals_at_time(planner: TrenchPlanner) -> None:
+    mover = planner.mover
+    rng = np.random.default_rng(5)
+    lo, hi = RIG.q_min_rad, RIG.q_max_rad
+    for i in range(300):
+        q0 = rng.uniform(lo, hi)
+        q1 = q0 + rng.normal(0.0, 0.01, 3) if i % 3 == 0 else rng.uniform(lo, hi)
+        traj = mover.move(q0, q1)
+        times = np.linspace(0.0, traj.duration, 97)
+        ref = np.array([traj.at_time(float(t))[0] for t in times])
+        assert np.abs(mover.poses(traj, times) - ref).max() <= 1e-12, (q0, q1)
+        # Each joint turns one way (the samples' spacing relies on it).
+        step = np.diff(ref, axis=0) * np.sign(q1 - q0)
+        assert np.all(step >= -1e-12), (q0, q1)
+
+
+def test_depth_is_the_distance_into_the_material_not_the_height_over_it() -> None:
+    from rt_runtime.planning.trench import _depth_below
+
+    grid = np.arange(0.0, 0.2 + GRID_STEP_M / 2, GRID_STEP_M)
+    surface = np.where(grid < 0.1, -0.02, -0.10)  # an 8 cm step at x = 0.1
+    x = np.array([0.098, 0.05, 0.15, 0.0995])
+    y = np.array([-0.06, -0.03, -0.09, -0.099])
+    d = _depth_below(grid, surface, x, y, np.inf)
+    # 2 mm into the face of the step (the surface is 4 cm over it), 1 cm below the top, above
+    # the low side, and 0.5 mm into the face near its foot.
+    assert d == pytest.approx([0.002, 0.01, 0.0, 0.0005], abs=GRID_STEP_M / 2)
+    assert _depth_below(grid, surface, x, y, 0.005) == pytest.approx(np.minimum(d, 0.005))

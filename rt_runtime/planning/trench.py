@@ -1821,6 +1821,8 @@ class TrenchSession:
         """Whether what is left above the current layer's floor must be taken under-filled:
         left to the layer below, it would make that layer thicker anywhere than the boom's
         torque cuts through (:data:`_CUT_MAX_M`, scaled)."""
+        if self.layer >= len(self.layer_floors):
+            return True  # the bottom layer: nothing below takes it
         x = self.grid
         inside = (x >= self.section_lo) & (x <= self.section_hi)
         nxt = self.layer + 1
@@ -1846,7 +1848,9 @@ class TrenchSession:
                 dig = self._plan_column(found, partial, remaining, t0)
                 if dig is not None:
                     return dig
-        return None
+        # No straight column enters (a steep far wall whose dig could not open the face, or
+        # a column whose moves would plough): one down the wall and along the bottom.
+        return self._next_layer_column(remaining, t0)
 
     def _plan_column(
         self, found: dict[str, Any] | None, partial: bool, remaining: Any, t0: float

@@ -1865,26 +1865,79 @@ class TrenchSession:
             self.finishing_used += 1
         return dig
 
+    @_stage("passes")
     def _next_finishing(self, remaining: Any, t0: float) -> PlannedDig | None:
-        """The finishing pass that removes the most design material of those the section
-        allows (:data:`MAX_FINISHING_PER_SECTION`): the far wall, the bottom in pieces, the
-        near wall (:meth:`_finishing`'s lines); None when none is left or none helps."""
-        if self.finishing_used >= MAX_FINISHING_PER_SECTION:
+        """The finishing pass that removes the most design material of the section's
+        (:meth:`_finishing_lines`); None when the section's design is dug (within half a
+        percent), no pass removes a useful amount, or :data:`MAX_FINISHING_HARD` passes are
+        spent. Passes beyond :data:`MAX_FINISHING_PER_SECTION` are taken only where the
+        section would otherwise miss the coverage goal: a finished trench comes first."""
+        if self.finishing_used >= MAX_FINISHING_HARD:
+            return None
+        box = shapely.box(self.section_lo, self.bottom_y - 1.0, self.section_hi, self.top_y)
+        part = self.design.intersection(box)
+        left = float(part.intersection(self.material).area)
+        if left <= 0.005 * float(part.area):
+            return None
+        if self.finishing_used >= MAX_FINISHING_PER_SECTION and left <= 0.015 * float(part.area):
             return None
         found: list[dict[str, Any]] = []
-        self._finish_index = 0
-        while True:
-            ranked = self._finishing(remaining)
-            if not ranked:
-                break
-            found.extend(ranked)
+        for kind, line, atts in self._finishing_lines():
+            fit = self._fit_pass(kind, line, atts)
+            if fit is not None:
+                fit["finishing_pass"] = True
+                found.append(fit)
         found.sort(key=lambda c: -float(c["useful"]))
-        for cand in found:
-            cand["finishing_pass"] = True
         dig = self._first_plannable(found, remaining, t0)
         if dig is not None and dig.finishing:
             self.finishing_used += 1
         return dig
+
+    def _finishing_lines(self) -> list[_Pass]:
+        """The section's finishing passes: the far wall (in the first section), the bottom in
+        pieces (:meth:`_bottom_passes`), the near wall (in the last), and where the material
+        left is thicker than a dig cuts through, lines across it every :data:`_LAYER_M`
+        (scaled) from the top (the bottom-like passes at those heights); each only where
+        material is left on it."""
+        t = self.task
+        g = self.ground_y
+        s = self.planner.scale
+        xf, xn = t.start_x_m, t.start_x_m - t.length_m
+        lo, hi = self.section_lo, self.section_hi
+        far_foot = xf - t.depth_m / math.tan(t.beta1_rad)
+        near_foot = xn + t.depth_m / math.tan(t.beta2_rad)
+        x = self.grid
+        inside = (x >= lo) & (x <= hi)
+        thick = np.where(inside, self.surface - self.design_floor, 0.0)
+        passes: list[_Pass] = []
+        if self.section == 0:
+            passes.append(
+                (DigType.DOWNWARD, np.array([(xf, g), (far_foot, self.bottom_y)]), _FAR_WALL_ATTS)
+            )
+        b_hi, b_lo = min(far_foot, hi), max(near_foot, lo)
+        if b_hi > b_lo:
+            passes += self._bottom_passes((b_hi, self.bottom_y), (b_lo, self.bottom_y))
+        if lo <= xn + 1e-9:
+            passes.append(
+                (DigType.DOWNWARD, np.array([(xn, g), (near_foot, self.bottom_y)]), _NEAR_WALL_ATTS)
+            )
+        top = float(np.max(thick)) if thick.size else 0.0
+        if top > _CUT_MAX_M * s:
+            n = math.ceil(top / (_LAYER_M * s))
+            for k in range(1, n):
+                y = self.bottom_y + top * (1.0 - k / n)
+                far = (min(xf - (g - y) / math.tan(t.beta1_rad), hi), y)
+                near = (max(xn + (g - y) / math.tan(t.beta2_rad), lo), y)
+                if far[0] > near[0]:
+                    passes += self._bottom_passes(far, near)
+        keep = []
+        for kind, line, atts in passes:
+            order = np.argsort(line[:, 0])
+            xs = np.linspace(float(line[order[0], 0]), float(line[order[-1], 0]), 16)
+            above = np.interp(xs, x, self.surface) - np.interp(xs, line[order, 0], line[order, 1])
+            if float(np.max(above)) > _FINISH_MIN_M * s:
+                keep.append((kind, line, atts))
+        return keep
 
     def _first_plannable(
         self, ranked: list[dict[str, Any]], remaining: Any, t0: float
@@ -2135,54 +2188,6 @@ class TrenchSession:
         return total, useful
 
     # -- finishing passes ---------------------------------------------------------------------
-
-    @_stage("passes")
-    def _finishing(self, remaining: Any, *, layers: bool = False) -> list[dict[str, Any]]:
-        """The next profile pass, or None when none is left or none removes enough.
-
-        Roughing digs follow their own (PINN) path shape, which cannot reach into the design's
-        corners; two passes then trace the profile: the far wall and the bottom (a downward
-        dig), and the bottom and the near wall (a backward dig). Each is a sextic of the same
-        family, its entry/exit attitudes and bulge K fitted by least squares to the profile
-        polyline (shifted inwards until the over-dig limit holds), retimed and verified by the
-        kernel like every dig, except for the one-shot volume window: V_p is defined against
-        a flat surface at H, which a finishing pass does not have; the bucket capacity is
-        enforced on the real cut instead.
-        """
-        t = self.task
-        g = self.ground_y
-        xf, xn = t.start_x_m, t.start_x_m - t.length_m
-        A = (xf, g)
-        B = (xf - t.depth_m / math.tan(t.beta1_rad), self.bottom_y)
-        C = (xn + t.depth_m / math.tan(t.beta2_rad), self.bottom_y)
-        D = (xn, g)
-        passes: list[_Pass] = [
-            (DigType.DOWNWARD, np.array([A, B]), ((-80.0, -100.0), (-95.0, -120.0)))
-        ]
-        passes += self._bottom_passes(B, C)
-        passes.append((DigType.DOWNWARD, np.array([D, C]), ((-80.0, -100.0), (-100.0, -130.0))))
-        # ``layers``: where those fail and no other stand helps (the boom's torque through a
-        # thick face: a short trench whose roughing digs do not fit left up to 69 % of its
-        # design), the rest is taken in layers from the top, each a bottom-like pass from
-        # wall to wall at a fixed height, and the profile passes then run again under them.
-        # The list only grows at its end, so _finish_index counts through both; a plan that
-        # never needs the layers is unchanged.
-        standard = len(passes)
-        n_layers = math.ceil(t.depth_m / (_LAYER_M * self.planner.scale)) if layers else 0
-        for k in range(1, n_layers):
-            y = self.bottom_y + t.depth_m * (1.0 - k / n_layers)
-            far = (xf - (g - y) / math.tan(t.beta1_rad), y)
-            near = (xn + (g - y) / math.tan(t.beta2_rad), y)
-            passes += self._bottom_passes(far, near)
-        if len(passes) > standard:
-            passes += passes[:standard]
-        while self._finish_index < len(passes):
-            kind, poly, atts = passes[self._finish_index]
-            self._finish_index += 1
-            fit = self._fit_pass(kind, poly, atts)
-            if fit is not None:
-                return [fit]
-        return []
 
     def _bottom_passes(self, far: tuple[float, float], near: tuple[float, float]) -> list[_Pass]:
         """Backward passes along the straight line from ``far`` to ``near`` (the bottom, or a
@@ -3213,6 +3218,13 @@ _SCREEN_SAMPLES = 17
 _SCREEN_OVERDIG_M = 0.8 * OVERDIG_LIMIT_M
 #: Finishing passes a section may take (they need not fill the bucket).
 MAX_FINISHING_PER_SECTION = 2
+#: Finishing passes a section takes at most where its design is not dug otherwise.
+MAX_FINISHING_HARD = 8
+#: Least material on a finishing pass's line for the pass to be tried (scale model, m).
+_FINISH_MIN_M = 0.002
+#: Attitude tables of the walls' finishing passes (deg; first and last of each end).
+_FAR_WALL_ATTS = ((-80.0, -100.0), (-95.0, -120.0))
+_NEAR_WALL_ATTS = ((-80.0, -100.0), (-100.0, -130.0))
 #: Range of the profile layer's thickness (scale model, m): thin enough for the boom's torque
 #: through a full cut along the bottom (a 0.25 m column verifies up to ~0.11 m), thick
 #: enough that a column of it no longer than _COLUMN_MAX_M fills the bucket.

@@ -1425,7 +1425,8 @@ class TrenchSession:
         which is where the largest distance of a polygon from a convex set lies; the measure
         of the finished plan's ``overdig_max_m``. Slivers that polygon differences leave along
         the ground line (nanometres thick, up to the grid's whole length) are not material: a
-        part counts where its mean thickness (2 area / perimeter) is at least _SLIVER_M."""
+        part counts where its mean thickness (2 area / perimeter) is at least _SLIVER_M, and a
+        vertex beside the trench counts by its depth below the ground."""
         over = region.difference(self.design)
         parts = [
             g
@@ -1435,7 +1436,12 @@ class TrenchSession:
         if not parts:
             return 0.0
         coords = np.concatenate([shapely.get_coordinates(g) for g in parts])
-        return float(np.max(shapely.distance(shapely.points(coords), self.design)))
+        # Beside the trench the ground is the design's surface: a vertex there is as deep as
+        # it lies below the ground (one on the ground line, where a polygon difference leaves
+        # a sliver joined to a real cut, is at 0 however far it lies from the trapezoid).
+        dist = shapely.distance(shapely.points(coords), self.design)
+        depth = np.maximum(self.ground_y - coords[:, 1], 0.0)
+        return float(np.max(np.minimum(dist, depth)))
 
     def _cut_areas(self, env: FloatArray) -> tuple[float, float]:
         """(total, inside-design) area a path envelope removes from the height field."""

@@ -18,6 +18,7 @@ from rt_runtime.planning.trench import (
     PlanStatus,
     Transition,
     TrenchPlanner,
+    Stage,
     TrenchSession,
     design_polygon,
     load_task,
@@ -342,16 +343,17 @@ def test_c_screening_geometry_matches_the_numpy_reference(monkeypatch) -> None:
 
     def compare(self: TrenchSession, X: np.ndarray, K: np.ndarray) -> np.ndarray:
         got = c_paths(self, X, K)
-        want = self._screen_paths_numpy(X, K)
+        layer = self.stage is Stage.ROUGH
+        want = self._screen_paths_numpy(X, K, layer)
         np.testing.assert_allclose(got[[0, 2, 3]], want[[0, 2, 3]], rtol=0, atol=1e-13)
         differ = np.abs(got[1] - want[1]) > 1e-13
         if np.any(differ):
             surface = self.surface
             try:
                 self.surface = surface - 1e-9
-                lo = self._screen_paths_numpy(X, K)[1]
+                lo = self._screen_paths_numpy(X, K, layer)[1]
                 self.surface = surface + 1e-9
-                hi = self._screen_paths_numpy(X, K)[1]
+                hi = self._screen_paths_numpy(X, K, layer)[1]
             finally:
                 self.surface = surface
             assert np.all(got[1][differ] >= lo[differ] - 1e-13)
@@ -362,7 +364,9 @@ def test_c_screening_geometry_matches_the_numpy_reference(monkeypatch) -> None:
     monkeypatch.setattr(TrenchSession, "_screen_paths", compare)
     plan = planner.plan(load_task("D", RIG))
     assert plan.coverage_error <= 0.02
-    assert len(calls) >= len(plan.digs) and sum(calls) > 1000
+    # The network's digs are screened in D's layers above the bottom one.
+    rough = [d for d in plan.digs if d.status == "filled"]
+    assert rough and len(calls) >= len(rough) and sum(calls) > 300
 
 
 def test_numpy_geometry_plans_the_same_digs(plans: dict) -> None:
@@ -400,8 +404,10 @@ def test_every_dig_satisfies_every_hard_limit_at_every_sample(plans: dict, name:
     for d in plan.digs:
         p = d.problem
         v = d.evaluation[COL_VIOLATIONS : COL_VIOLATIONS + len(oneshot.CONSTRAINT_NAMES)].copy()
-        if d.status == "profile_pass":
-            v[VOLUME_COLS] = 0.0  # V_p is defined against a flat surface (trench docstring)
+        if d.status in ("profile", "profile_pass", "filled"):
+            # V_p is defined against a flat surface; these are judged on the material left
+            # (the fill band on the real cut, test_every_dig_fills_the_bucket).
+            v[VOLUME_COLS] = 0.0
         assert np.all(v <= 1e-9), (d.index, d.status, v)
         # Independent check on the verifier's grid (exact) and on a grid 10x finer: retimed
         # plans sit on the acceleration limit at the grid samples, and between them a peak
@@ -480,7 +486,7 @@ def test_shallow_trench_is_dug_by_profile_passes(
     # Shallower than any one-shot dig can cut without over-digging (V_p >= V_min takes a
     # deeper scoop): the profile passes, which need no volume window, dig it from the start.
     plan = planner.plan(make_task(RIG, length_m, depth_m, 60.0, 60.0, name="shallow"))
-    assert plan.digs and all(d.status == "profile_pass" for d in plan.digs)
+    assert plan.digs and all(d.status in ("profile", "profile_pass") for d in plan.digs)
     assert plan.coverage_error <= 0.025
     assert plan.overdig_max_m <= OVERDIG_LIMIT_M
     v_max = RIG.planning.volume_max_m3 if RIG.planning is not None else math.inf

@@ -1035,7 +1035,7 @@ class TrenchPlanner:
         planner: ``pinn`` (default), ``pso``, or an object with ``plan_dig``.
         model_dir: PINN model directory (default: the shipped ``onnx/``).
         pso_options: Keyword arguments for :func:`rt_runtime.planning.oneshot.solve_pso`.
-        max_digs: Safety bound on the number of digs of one task.
+        max_digs: Safety bound on the number of digs of one task (None: 20 a section).
         geometry: Who computes the screening geometry, the over-dig of sampled paths and the
             envelopes: ``"c"`` (the verifier's compiled kernel, ``_verify.c``), ``"numpy"``
             (the reference) or ``"auto"`` (C where the verifier runs on C). The plans are the
@@ -1053,7 +1053,7 @@ class TrenchPlanner:
         *,
         model_dir: Path | str | None = None,
         pso_options: dict[str, Any] | None = None,
-        max_digs: int = 40,
+        max_digs: int | None = None,
         geometry: str = "auto",
     ) -> None:
 
@@ -1252,7 +1252,6 @@ class TrenchSession:
         self.pending: PlannedDig | None = None
         self.design_area = float(self.design.area)
         self.phase = DigType.DOWNWARD
-        self._finish_index = 0
         self.finishing_used = 0
         #: The sections (work-site x ranges, far first) and where the machine stands for each.
         self.sections, self.stands = self._plan_sections()
@@ -1471,7 +1470,8 @@ class TrenchSession:
         left = float(remaining.area)
         if left <= 0.005 * self.design_area:
             return None
-        if len(self.digs) >= self.planner.max_digs:
+        bound = self.planner.max_digs or _MAX_DIGS_PER_SECTION * len(self.sections)
+        if len(self.digs) >= bound:
             raise PlanningError(
                 f"task {self.task.name}: {left / self.design_area:.1%} of the design is left "
                 f"after {len(self.digs)} digs (the bound)"
@@ -2973,7 +2973,8 @@ class TrenchSession:
         Keys: ``version``, ``rig``, ``planner``, ``task`` (name and dimensions), ``material_wkt``
         (the material polygon as WKT, full precision), ``surface_m`` (height field on the 1 mm
         grid), ``machine_x_m``, ``q_now_rad`` (the last dig's exit or None), ``phase``
-        (``downward``/``backward``), ``finish_index`` (profile passes tried), ``digs_done``,
+        (``downward``/``backward``), ``section``, ``stage``, ``layer``, ``layer_floors_m``,
+        ``wall_piece``, ``finishing_used`` (where the section's digging is), ``digs_done``,
         ``steps`` (every recorded dig, transition and travel move, each a dict with ``type``),
         and ``pending`` (the dig :meth:`next_dig` returned and :meth:`record` has not taken yet,
         or None; after :meth:`record` it is always None, which is the state to persist).
@@ -2996,7 +2997,12 @@ class TrenchSession:
             "machine_x_m": float(self.machine_x),
             "q_now_rad": None if self.q_now is None else [float(v) for v in self.q_now],
             "phase": self.phase.name.lower(),
-            "finish_index": int(self._finish_index),
+            "section": int(self.section),
+            "stage": self.stage.name.lower(),
+            "layer": int(self.layer),
+            "layer_floors_m": [float(v) for v in self.layer_floors],
+            "wall_piece": int(self._wall_piece),
+            "finishing_used": int(self.finishing_used),
             "digs_done": len(self.digs),
             "steps": [_step_to_json(step) for step in self.steps],
             "pending": None if self.pending is None else _step_to_json(self.pending),
@@ -3059,7 +3065,16 @@ class TrenchSession:
             q_now = state["q_now_rad"]
             phase = DigType[str(state["phase"]).upper()]
             machine_x = float(state["machine_x_m"])
-            finish_index = int(state["finish_index"])
+            section = int(state["section"])
+            if not 0 <= section < len(self.sections):
+                raise ConfigurationError(
+                    f"session state key 'section' is {section}; allowed: 0..{len(self.sections) - 1}"
+                )
+            stage = Stage[str(state["stage"]).upper()]
+            layer_floors = tuple(float(v) for v in state["layer_floors_m"])
+            layer = int(state["layer"])
+            wall_piece = int(state["wall_piece"])
+            finishing_used = int(state["finishing_used"])
             pending = state.get("pending")
             pending_dig = None if pending is None else _step_from_json(pending)
             if pending_dig is not None and not isinstance(pending_dig, PlannedDig):
@@ -3076,10 +3091,14 @@ class TrenchSession:
         self.q_now = None if q_now is None else np.asarray(q_now, dtype=np.float64)
         self.pending = pending_dig
         self.phase = phase
-        self._finish_index = finish_index
-        # The travels so far are the steps' travel moves (the entries and the travel bound
-        # depend on them; a resumed session counted none before).
-        self._travels = sum(isinstance(s, TravelMove) for s in steps)
+        self.section = section
+        self.section_lo, self.section_hi = self.sections[section]
+        self.layer_floors = layer_floors
+        self.layer = layer
+        self._set_layer()
+        self.stage = stage
+        self._wall_piece = wall_piece
+        self.finishing_used = finishing_used
 
     @_stage("finish")
     def finish(self, plan_total_us: float) -> TrenchPlan:
@@ -3107,7 +3126,7 @@ class TrenchSession:
         )
 
 
-_STATE_VERSION = 1
+_STATE_VERSION = 2
 
 
 def _step_to_json(step: PlannedDig | Transition | TravelMove) -> dict[str, Any]:
@@ -3222,6 +3241,8 @@ _SCREEN_C = (0.3, 0.6, 1.0, 2.0)
 _SCREEN_SAMPLES = 17
 # Over-dig a screened path may show at its coarse samples (the plan's own check is exact).
 _SCREEN_OVERDIG_M = 0.8 * OVERDIG_LIMIT_M
+#: Safety bound on a task's digs per section (TrenchPlanner max_digs=None).
+_MAX_DIGS_PER_SECTION = 20
 #: Finishing passes a section may take (they need not fill the bucket).
 MAX_FINISHING_PER_SECTION = 2
 #: Finishing passes a section takes at most where its design is not dug otherwise.
@@ -3438,6 +3459,7 @@ __all__: Sequence[str] = (
     "TravelMove",
     "TrenchPlan",
     "TrenchPlanner",
+    "Stage",
     "TrenchSession",
     "TrenchTask",
     "design_polygon",

@@ -715,18 +715,21 @@ def plot_trench(plan: Any, path: str) -> None:
 def cmd_bench_plan(args: argparse.Namespace) -> int:
     """``excavator-rt bench plan``: tasks A-D planned with the PINN (timed) and the PSO; with
     ``--random N`` the random suite over the task domain (and the named tasks only if given)."""
-    from rt_runtime.bench import bench_plan, bench_plan_random
+    from rt_runtime.bench import bench_plan, bench_plan_long, bench_plan_random
 
     rig = load_rig(args.rig)
     if args.random is not None and args.random < 1:
         raise ConfigurationError(f"--random {args.random}: allowed a number of tasks >= 1")
-    spec = args.tasks if args.tasks is not None else ("" if args.random else "A,B,C,D")
+    alone = args.random or args.long
+    spec = args.tasks if args.tasks is not None else ("" if alone else "A,B,C,D")
     tasks = tuple(t.strip() for t in spec.split(",") if t.strip())
     r: dict[str, Any] = {"rig": rig.name}
     if tasks:
         r = bench_plan(rig, tasks, passes=args.passes, pso=not args.no_pso, model_dir=args.models)
     if args.random:
         r["random"] = bench_plan_random(rig, args.random, args.seed, model_dir=args.models)
+    if args.long:
+        r["long"] = bench_plan_long(rig, model_dir=args.models)
     if args.json:
         _print_json(r)
         return 0
@@ -734,7 +737,17 @@ def cmd_bench_plan(args: argparse.Namespace) -> int:
         _print_bench_plan(r, rig.name, args.passes)
     if args.random:
         _print_bench_random(r["random"])
+    if args.long:
+        _print_bench_long(r["long"])
     return 0
+
+
+def _print_bench_long(q: dict[str, Any]) -> None:
+    """The long trenches' summary as text."""
+    print("Long trenches, section by section (walls 60/60 deg):")
+    print("  trench  sections  travels  one-way  coverage  worst section  over-dig  digs  finishing/section  plan      per metre")
+    for name, t in q["trenches"].items():
+        print(f"  {name:<6}  {t['sections']:8d}  {t['travel_moves']:7d}  {t['travel_one_way']!s:>7}  {t['coverage_error']:7.2%}  {t['section_coverage_max']:12.2%}  {t['overdig_max_mm']:5.2f} mm  {t['digs']:4d}  {t['finishing_per_section_max']:17d}  {t['plan_s']:6.2f} s  {t['plan_s_per_m']:.3f} s/m")
 
 
 def _print_bench_random(q: dict[str, Any]) -> None:
@@ -786,7 +799,16 @@ def _print_bench_plan(r: dict[str, Any], rig_name: str, passes: int) -> None:
         print(f"    {name:<4} " + "  ".join(f"{v / 1e3:5.1f}" for v in st.values()) + f"   (numpy geometry: {ref:.1f} ms, {e['speedup_vs_numpy_geometry']:.1f}x)")
     g = r["goals"]
     tr = r["trench"]
-    print(f"  whole plan, all tasks ({tr['geometry']} geometry): p50 {tr['plan_us']['p50'] / 1e3:.1f} ms, p99 {tr['plan_us']['p99'] / 1e3:.1f} ms; numpy geometry p50 {tr['numpy_geometry_plan_us']['p50'] / 1e3:.1f} ms (goal p50 <= {g['plan_us_p50_max'] / 1e3:.0f} ms; Yao 4.2-4.5 ms per dig)")
+    print(f"  whole plan, all tasks ({tr['geometry']} geometry): p50 {tr['plan_us']['p50'] / 1e3:.1f} ms, p99 {tr['plan_us']['p99'] / 1e3:.1f} ms; numpy geometry p50 {tr['numpy_geometry_plan_us']['p50'] / 1e3:.1f} ms")
+    ref = tr["reference"]
+    ratio = f"; one PINN plan call p50 {ref['pinn_plan_ms']['p50']:.3f} ms, ratio {tr['plan_per_dig_over_pinn_plan']:.0f}x" if ref and tr["plan_per_dig_over_pinn_plan"] else ""
+    pd = tr["plan_per_dig_ms"]
+    print(f"  planning per dig p50 {pd['p50']:.1f} ms, p99 {pd['p99']:.1f} ms (goal {g['plan_per_dig_ms']['p50']:.0f} / {g['plan_per_dig_ms']['p99']:.0f} ms){ratio}")
+    print("  task  fill of each dig [L] (* finishing)                      finishing  travels  digs+moves  vs first design (goal <= 60 %)")
+    for name, e in r["tasks"].items():
+        fills = " ".join(f"{d['volume_L']:.2f}{'*' if d['finishing'] else ''}" for d in e["pinn"]["digs"])
+        vs = e["task_time_vs_first_design"]
+        print(f"  {name:<4}  {fills:<55} {e['finishing']:9d}  {e['travel_moves']:7d}  {e['task_time_s']:8.1f} s  {'-' if vs is None else f'{vs:.0%}'}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -942,6 +964,7 @@ def build_parser() -> argparse.ArgumentParser:
     b3.add_argument("--tasks", help="named tasks, comma-separated (default A,B,C,D; none with --random)")
     b3.add_argument("--random", type=int, metavar="N", help="the random suite: N seeded tasks over the whole task domain, PINN planner")
     b3.add_argument("--seed", type=int, default=0, help="seed of the random suite's tasks")
+    b3.add_argument("--long", action="store_true", help="long trenches (3, 8 and 20 m) dug section by section, one-way travel, plan time per metre")
     b3.add_argument("--passes", type=int, default=3, help="timed PINN plans per task")
     b3.add_argument("--no-pso", action="store_true", help="skip the PSO plans (minutes)")
     b3.add_argument("--models", help="model directory (default: the shipped onnx/)")

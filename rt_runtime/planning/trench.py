@@ -57,7 +57,6 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
-from enum import IntEnum
 from typing import Any, Protocol, TypeVar, cast
 
 import numpy as np
@@ -77,7 +76,6 @@ from rt_runtime.planning.verify import (
     COL_TOTAL,
     COL_VOLUME_M3,
     N_OUT,
-    PLAN_C_RANGE,
     VerifyResult,
     pack_inputs,
 )
@@ -1308,10 +1306,8 @@ class TrenchSession:
         """The current layer's design (the design above its floor) as the screening and the
         columns take it: ``layer_y``, its floor on the grid, half-planes, edges and polygon
         (the bottom layer's are the design's)."""
-        if self.layer < len(self.layer_floors):
-            y = self.layer_floors[self.layer]
-        else:
-            y = self.bottom_y
+        upper = self.layer < len(self.layer_floors)
+        y = self.layer_floors[self.layer] if upper else self.bottom_y
         self.layer_y = y
         self._layer_floor = np.maximum(self.design_floor, min(y, self.ground_y))
         self._layer_walls = self._walls.copy()
@@ -1453,7 +1449,10 @@ class TrenchSession:
     def _phase(self) -> DigType:
         """Fig. 5: downward until the depth is reached, then backward."""
         floor_y = self.layer_y if self.stage is Stage.ROUGH else self.bottom_y
-        if self.phase is DigType.DOWNWARD and float(np.min(self.surface)) <= floor_y + OVERDIG_LIMIT_M:
+        if (
+            self.phase is DigType.DOWNWARD
+            and float(np.min(self.surface)) <= floor_y + OVERDIG_LIMIT_M
+        ):
             self.phase = DigType.BACKWARD
         return self.phase
 
@@ -1609,7 +1608,7 @@ class TrenchSession:
         on[1:-1] = t > 0.01 * s
         change = np.diff(on)
         buckets = awkward = 0
-        for i0, i1 in zip(np.flatnonzero(change == 1), np.flatnonzero(change == -1)):
+        for i0, i1 in zip(np.flatnonzero(change == 1), np.flatnonzero(change == -1), strict=True):
             area = float(np.sum(t[i0:i1])) * GRID_STEP_M
             if area < 0.25 * lo_a:
                 continue
@@ -1656,7 +1655,9 @@ class TrenchSession:
             b = top + (short - top) * (k + 1) / n
             # Nothing on this piece: skip it.
             xs = np.linspace(min(a[0], b[0]), max(a[0], b[0]), 16)
-            above = np.interp(xs, self.grid, self.surface) - np.interp(xs, self.grid, self.design_floor)
+            above = np.interp(xs, self.grid, self.surface) - np.interp(
+                xs, self.grid, self.design_floor
+            )
             if float(np.max(above)) < _COLUMN_EDGE_M * self.planner.scale:
                 continue
             found = self._fit_pass(kind, np.array([a, b]), atts)
@@ -1683,8 +1684,8 @@ class TrenchSession:
     def _rough_entries(self) -> FloatArray:
         """Where the network's digs may enter (x, work-site frame): from the far edge of the
         material above the profile layer, and from the far end of each run of its bulk (where
-        it is at least half its thickest), :data:`_N_ENTRY_X` of each 4 cm apart (scaled) towards the
-        machine, within the entries' reach from where the machine stands and within the
+        it is at least half its thickest), :data:`_N_ENTRY_X` of each 4 cm apart (scaled)
+        towards the machine, within the entries' reach from where the machine stands and within the
         section."""
         s = self.planner.scale
         lo, hi = self.planner.entry_x_range
@@ -1701,7 +1702,7 @@ class TrenchSession:
         bulk[1:-1][idx[t[idx] >= 0.5 * float(np.max(t[idx]))]] = 1
         change = np.diff(bulk)
         starts, ends = np.flatnonzero(change == 1), np.flatnonzero(change == -1)
-        for i0, i1 in sorted(zip(starts, ends), reverse=True):
+        for i0, i1 in sorted(zip(starts, ends, strict=True), reverse=True):
             if (i1 - i0) * GRID_STEP_M >= 0.03 * s and float(x[i1 - 1]) < edges[-1] - 0.02 * s:
                 edges.append(float(x[i1 - 1]))
         lo_x = float(x[idx[0]])
@@ -1744,7 +1745,7 @@ class TrenchSession:
         on = np.zeros(x.shape[0] + 2, dtype=np.int8)
         on[1:-1] = thick
         change = np.diff(on)
-        for i0, i1 in zip(np.flatnonzero(change == 1), np.flatnonzero(change == -1)):
+        for i0, i1 in zip(np.flatnonzero(change == 1), np.flatnonzero(change == -1), strict=True):
             if float(np.sum(t[i0:i1])) * GRID_STEP_M < 0.25 * lo_a:
                 thick[i0:i1] = False
         idx = np.flatnonzero(thick)
@@ -1757,7 +1758,7 @@ class TrenchSession:
         i_start = min(int(idx[-1]) + 2 + int(_FACE_GAP_M * s / GRID_STEP_M), i_hi)
         cum = np.cumsum(t[i_lo : i_start + 1][::-1]) * GRID_STEP_M  # from the far edge
         total = float(cum[-1])
-        w_max = int(round(_COLUMN_MAX_M * s / GRID_STEP_M))
+        w_max = round(_COLUMN_MAX_M * s / GRID_STEP_M)
         if partial:
             n = max(math.ceil(total / (hi_a * _FILL_AIM)), math.ceil(cum.shape[0] / w_max), 1)
             k = min(int(np.searchsorted(cum, total / n)), cum.shape[0] - 1, w_max)
@@ -1964,7 +1965,6 @@ class TrenchSession:
             return dig
         return None
 
-
     def _travel(self, move: float) -> None:
         """Crawler travel by ``move`` (m along the trench, negative: back, away from the dug
         part); the arm's pose is unknown after."""
@@ -2018,7 +2018,7 @@ class TrenchSession:
         Y = self.planner.pinn.infer(kind, X)
         K = -Y[:, 0:3] * Y[:, 3:4] ** 6
         G = self.planner.screen_c
-        vp, over, total, useful = self._screen_paths(X, K)
+        _, over, total, useful = self._screen_paths(X, K)
         # The fill on the material left: the largest bulge scale whose real cut stays inside
         # the bucket (V_max) and whose over-dig stays within the screening limit; kept when
         # that cut carries at least V_min (the fill rule).
@@ -2042,7 +2042,9 @@ class TrenchSession:
             # Look ahead: the fewest full digs the material above the layer still takes after
             # the dig, then the fullest bucket, then the score.
             rest = [
-                self._rest_estimate(self._screened_surface_after(X[good[b]], K[good[b]], float(cs[b])))
+                self._rest_estimate(
+                    self._screened_surface_after(X[good[b]], K[good[b]], float(cs[b]))
+                )
                 for b in best
             ]
             # A dig that leaves part of the layer no bucket fills is not taken: the layer's
@@ -2119,7 +2121,8 @@ class TrenchSession:
         q = q1 + pl.screen_qf[:, None] * (q2 - q1) + c * pl.screen_pf[:, None] * K
         px, py = pl.arm.tip_xy(q)
         path = np.stack([px + self.machine_x, py], axis=1)
-        return np.minimum(self.surface, self._envelope(path, self.grid))
+        after: FloatArray = np.minimum(self.surface, self._envelope(path, self.grid))
+        return after
 
     def _fill_band(self) -> tuple[float, float]:
         """The fill rule as cross-section areas (m^2): a dig carries between V_min and V_max of
@@ -2301,33 +2304,9 @@ class TrenchSession:
         # enough that the path's farthest sample outside the outline is _FIT_OUTSIDE_M out
         # (a least-squares path crosses the outline both ways), and refitted.
         mid = [(v[0], v[-1], *np.linspace(v[0], v[-1], 5)[1:-1].tolist()) for v in atts]
-        starts = [self._pass_pose(a, mid[0]), self._pass_pose(b, mid[1])]
-        fits: list[tuple[float, FloatArray, FloatArray, FloatArray]] = []
-        for qs in starts[0]:
-            for qe in starts[1]:
-                q1, q2 = np.asarray(qs), np.asarray(qe)
-                got = fitted(q1, q2, 0.0)
-                if got is not None:
-                    fits.append((got[0], q1, q2, got[1]))
-        fits.sort(key=lambda f: f[0])
-        for cost, q1, q2, K in fits[:_N_FIT_SHIFTS]:
-            qp = q1 + qf_full[:, None] * (q2 - q1) + pf_full[:, None] * K
-            px, py = arm.tip_xy(qp)
-            inside = np.min(edges[:, 2, None] - edges[:, 0, None] * (px + m) - edges[:, 1, None] * py, axis=0)
-            shift = max(0.0, -float(np.min(inside)) - _FIT_OUTSIDE_M)
-            if shift > 0.0:
-                q1s = arm.ik(*(a + shift * n_a - np.array([m, 0.0])), float(np.sum(q1)))
-                q2s = arm.ik(*(b + shift * n_b - np.array([m, 0.0])), float(np.sum(q2)))
-                if q1s is None or q2s is None:
-                    continue
-                q1, q2 = np.asarray(q1s), np.asarray(q2s)
-                got = fitted(q1, q2, shift)
-                if got is None:
-                    continue
-                cost, K = got
-            found = candidate(q1, q2, K, cost)
-            if found is not None:
-                return found
+        found = self._fit_shifted(kind, a, b, n_a, n_b, mid, edges, fitted, candidate)
+        if found is not None:
+            return found
         # Fixed shifts as before where the adaptive one found nothing.
         for offset in offsets:
             a_s = a + offset * n_a
@@ -2352,6 +2331,65 @@ class TrenchSession:
                 found = candidate(q1, q2, K, cost)
                 if found is not None:
                     return found
+        return None
+
+    def _fit_shifted(
+        self,
+        kind: DigType,
+        a: FloatArray,
+        b: FloatArray,
+        n_a: FloatArray,
+        n_b: FloatArray,
+        table: list[tuple[float, ...]],
+        edges: FloatArray,
+        fitted: Callable[[FloatArray, FloatArray, float], tuple[float, FloatArray] | None],
+        candidate: Callable[..., dict[str, Any] | None],
+    ) -> dict[str, Any] | None:
+        """:meth:`_fit_profile`'s adaptive shift on one attitude table: every pair fitted on
+        the outline itself (``fitted`` at offset 0), the best :data:`_N_FIT_SHIFTS` by cost
+        shifted inwards (the ends along their inward normals ``n_a``, ``n_b``) just enough
+        that the path's farthest sample outside the outline is :data:`_FIT_OUTSIDE_M` out,
+        refitted there, and the first that ``candidate`` plans returned."""
+        arm = self.planner.arm
+        m = self.machine_x
+        qf_full, pf_full = self.planner.full_qf, self.planner.full_pf
+        starts = [self._pass_pose(a, table[0]), self._pass_pose(b, table[1])]
+        fits: list[tuple[float, FloatArray, FloatArray, FloatArray]] = []
+        for qs in starts[0]:
+            for qe in starts[1]:
+                got = fitted(qs, qe, 0.0)
+                if got is not None:
+                    fits.append((got[0], qs, qe, got[1]))
+        fits.sort(key=lambda f: f[0])
+        for cost, q1, q2, K in fits[:_N_FIT_SHIFTS]:
+            qp = q1 + qf_full[:, None] * (q2 - q1) + pf_full[:, None] * K
+            px, py = arm.tip_xy(qp)
+            x = px + m
+            inside = np.min(
+                edges[:, 2, None] - edges[:, 0, None] * x - edges[:, 1, None] * py, axis=0
+            )
+            shift = max(0.0, -float(np.min(inside)) - _FIT_OUTSIDE_M)
+            if shift > 0.0:
+                q1s = arm.ik(
+                    float(a[0] + shift * n_a[0] - m),
+                    float(a[1] + shift * n_a[1]),
+                    float(np.sum(q1)),
+                )
+                q2s = arm.ik(
+                    float(b[0] + shift * n_b[0] - m),
+                    float(b[1] + shift * n_b[1]),
+                    float(np.sum(q2)),
+                )
+                if q1s is None or q2s is None:
+                    continue
+                q1, q2 = np.asarray(q1s), np.asarray(q2s)
+                got = fitted(q1, q2, shift)
+                if got is None:
+                    continue
+                cost, K = got
+            found = candidate(q1, q2, K, cost)
+            if found is not None:
+                return found
         return None
 
     def _pass_pose(self, point: FloatArray, attitudes_deg: tuple[float, ...]) -> list[FloatArray]:
@@ -3068,7 +3106,8 @@ class TrenchSession:
             section = int(state["section"])
             if not 0 <= section < len(self.sections):
                 raise ConfigurationError(
-                    f"session state key 'section' is {section}; allowed: 0..{len(self.sections) - 1}"
+                    f"session state key 'section' is {section}; allowed: "
+                    f"0..{len(self.sections) - 1}"
                 )
             stage = Stage[str(state["stage"]).upper()]
             layer_floors = tuple(float(v) for v in state["layer_floors_m"])
@@ -3307,15 +3346,8 @@ _N_LOOKAHEAD = 32
 _N_LIFT_HEIGHTS = 4
 # Transitions kept for when they are asked for again (a dig's, its next dig's).
 _N_CACHED_MOVES = 16
-# Crawler travels per task at most.
-_MAX_TRAVELS = 4
-# Upper bound on profile passes (far wall, bottom pieces, near wall).
-_N_MAX_PASSES = 40
 #: Least material above the design floor where an entry may be placed (m, scale model).
 _ENTRY_MIN_THICKNESS_M = 0.01
-#: After a travel, entries also start at the far edge of the material at least this fraction of
-#: its thickest within reach (:meth:`TrenchSession._entry_x_candidates`).
-_ENTRY_BULK_FRACTION = 0.9
 # Profile fits shifted adaptively (the best by cost), and how far outside the outline the
 # shifted path's farthest sample may lie (m; the over-dig limit is 5 mm).
 _N_FIT_SHIFTS = 4
@@ -3330,8 +3362,6 @@ _FIT_SAMPLES = 41
 _PASS_LENGTH_M = 0.30
 #: Thickest layer of a layer pass (:meth:`TrenchSession._finishing`), m on the scale model.
 _LAYER_M = 0.05
-#: Least part of the design left (fraction) for which layer passes are tried.
-_LAYER_MIN_LEFT = 0.03
 #: A profile pass: its dig type, its line (2 points, work-site frame) and the attitude table of
 #: its two ends (deg).
 _Pass = tuple[DigType, FloatArray, tuple[tuple[float, ...], tuple[float, ...]]]
@@ -3447,19 +3477,19 @@ __all__: Sequence[str] = (
     "COVERAGE_GOAL",
     "OVERDIG_GOAL_M",
     "OVERDIG_LIMIT_M",
-    "WALL_SLOPE_DEG",
     "TRANSITION_PENETRATION_M",
+    "WALL_SLOPE_DEG",
     "OneShotPlanner",
     "OneShotResult",
     "PinnOneShot",
     "PlanStatus",
     "PlannedDig",
     "PsoOneShot",
+    "Stage",
     "Transition",
     "TravelMove",
     "TrenchPlan",
     "TrenchPlanner",
-    "Stage",
     "TrenchSession",
     "TrenchTask",
     "design_polygon",

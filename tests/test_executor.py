@@ -253,7 +253,9 @@ def test_pause_takes_effect_at_the_next_motion_boundary(
     ]
     tel = run.result.telemetry
     wait = tel["phase"] == Phase.WAIT
-    assert 0.45 <= wait.sum() * PERIOD_S <= 0.6
+    # Held 0.5 s from when progress() first said "wait": it is published every 64 cycles,
+    # so the hold seen in the telemetry is up to 64 cycles longer.
+    assert 0.45 <= wait.sum() * PERIOD_S <= 0.5 + 65 * PERIOD_S
     assert np.abs(tel["vel_cmd_m_s"][wait]).max() < 1e-12
     assert not run.executor.progress()["paused"]
 

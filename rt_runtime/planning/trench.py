@@ -528,6 +528,43 @@ class PsoOneShot:
         )
 
 
+# -- candidates -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Candidate:
+    """A dig chosen on its geometry, before it is planned for real and checked.
+
+    Attributes:
+        kind: Downward or backward.
+        x7: ``(7,)`` entry pose and exit pose (rad, arm frame at the machine's position) and H
+            (m, the surface the one-shot model and the soil model take).
+        useful_m2: Design material it is estimated to remove (cross-section area, m^2).
+        total_m2: Material it is estimated to remove in all (m^2).
+        score: The ranking's score (larger first).
+        K_rad: A network dig's bulge ``(3,)`` (rad, the network's answer at ``T_s``), which
+            ``c`` scales; None for a dig fitted along the outline.
+        c: The bulge scale that fills the bucket on the material left.
+        T_s: The network's time (network digs), or the retimed time (fitted digs).
+        a6: A fitted dig's retimed sixth-order coefficients (rad/s^6); None for network digs.
+        fit_rms_m: RMS distance of a fitted dig's path from its outline (m).
+        may_underfill: Planned even where its real cut is below the fill band (then it is a
+            finishing pass); a dig without it is refused outside the band.
+    """
+
+    kind: DigType
+    x7: FloatArray
+    useful_m2: float
+    total_m2: float
+    score: float
+    K_rad: FloatArray | None = None
+    c: float = 1.0
+    T_s: float = 0.0
+    a6: tuple[float, float, float] | None = None
+    fit_rms_m: float = math.nan
+    may_underfill: bool = False
+
+
 # -- the plan -------------------------------------------------------------------------------------
 
 
@@ -1668,15 +1705,14 @@ class TrenchSession:
                 return dig
         return None
 
-    def _plan_profile(self, found: dict[str, Any], remaining: Any, t0: float) -> PlannedDig | None:
+    def _plan_profile(self, found: Candidate, remaining: Any, t0: float) -> PlannedDig | None:
         """A fitted profile dig planned as a full dig, or else (when the section's finishing
         passes allow) as a finishing pass."""
-        found["full"] = True
         dig = self._first_plannable([found], remaining, t0)
         if dig is None:
-            found["full"] = False
-            found["finishing_pass"] = True
-            dig = self._first_plannable([found], remaining, t0)
+            dig = self._first_plannable(
+                [dataclasses.replace(found, may_underfill=True)], remaining, t0
+            )
             if dig is not None and dig.finishing:
                 self.finishing_used += 1
         return dig
@@ -1860,14 +1896,14 @@ class TrenchSession:
         return self._next_layer_column(remaining, t0)
 
     def _plan_column(
-        self, found: dict[str, Any] | None, partial: bool, remaining: Any, t0: float
+        self, found: Candidate | None, partial: bool, remaining: Any, t0: float
     ) -> PlannedDig | None:
         """A fitted column planned: a full dig, or with ``partial`` a finishing pass."""
         if found is None:
             return None
-        found["full"] = not partial
-        found["finishing_pass"] = partial
-        dig = self._first_plannable([found], remaining, t0)
+        dig = self._first_plannable(
+            [dataclasses.replace(found, may_underfill=partial)], remaining, t0
+        )
         if dig is not None and dig.finishing:
             self.finishing_used += 1
         return dig
@@ -1888,13 +1924,12 @@ class TrenchSession:
             return None
         if self.finishing_used >= MAX_FINISHING_PER_SECTION and left <= 0.015 * float(part.area):
             return None
-        found: list[dict[str, Any]] = []
+        found: list[Candidate] = []
         for kind, line, atts in self._finishing_lines():
             fit = self._fit_pass(kind, line, atts)
             if fit is not None:
-                fit["finishing_pass"] = True
-                found.append(fit)
-        found.sort(key=lambda c: -float(c["useful"]))
+                found.append(dataclasses.replace(fit, may_underfill=True))
+        found.sort(key=lambda c: -c.useful_m2)
         dig = self._first_plannable(found, remaining, t0)
         if dig is not None and dig.finishing:
             self.finishing_used += 1
@@ -1947,7 +1982,7 @@ class TrenchSession:
         return keep
 
     def _first_plannable(
-        self, ranked: list[dict[str, Any]], remaining: Any, t0: float
+        self, ranked: list[Candidate], remaining: Any, t0: float
     ) -> PlannedDig | None:
         """The best screened candidate the one-shot planner plans within the limits
         (``remaining``: :meth:`remaining_design` of the current material).
@@ -1973,14 +2008,14 @@ class TrenchSession:
         self.q_now = None
 
     @_stage("screen")
-    def _screen(self, xe: FloatArray, H: FloatArray) -> list[dict[str, Any]]:
+    def _screen(self, xe: FloatArray, H: FloatArray) -> list[Candidate]:
         """The best candidates of the phase's dig types, best first, entering at ``xe``
         (:meth:`_entry_x_candidates`) where the surface is at ``H``."""
         kinds = [DigType.DOWNWARD] if self._phase() is DigType.DOWNWARD else list(DigType)
         found = [b for k in kinds for b in self._screen_kind(xe, H, k)]
-        return sorted(found, key=lambda b: -b["score"])[:_N_RANKED]
+        return sorted(found, key=lambda b: -b.score)[:_N_RANKED]
 
-    def _screen_kind(self, xe: FloatArray, H: FloatArray, kind: DigType) -> list[dict[str, Any]]:
+    def _screen_kind(self, xe: FloatArray, H: FloatArray, kind: DigType) -> list[Candidate]:
         """The best candidates of one dig type, best first, screened on their geometry.
 
         Every (entry, exit) pose of the grid goes through the network at once; the tip path of
@@ -2056,17 +2091,16 @@ class TrenchSession:
             best = best[order]
         best = best[:_N_RANKED]
         return [
-            {
-                "kind": kind,
-                "x7": X[good[b]],
-                "K": K[good[b]],
-                "T": float(Y[good[b], 3]),
-                "c": float(cs[b]),
-                "c_max": float(cs[b]),
-                "useful": float(u[b]),
-                "total": float(t[b]),
-                "score": float(score[b]),
-            }
+            Candidate(
+                kind=kind,
+                x7=X[good[b]],
+                useful_m2=float(u[b]),
+                total_m2=float(t[b]),
+                score=float(score[b]),
+                K_rad=K[good[b]],
+                c=float(cs[b]),
+                T_s=float(Y[good[b], 3]),
+            )
             for b in best
         ]
 
@@ -2215,7 +2249,7 @@ class TrenchSession:
         kind: DigType,
         poly: FloatArray,
         atts: tuple[tuple[float, ...], tuple[float, ...]],
-    ) -> dict[str, Any] | None:
+    ) -> Candidate | None:
         """Fit one straight profile pass ``poly`` (2 points, work-site frame): the line as a
         half-plane, inwards towards the design's centroid (:meth:`_fit_profile`)."""
         a, b = np.asarray(poly[0], dtype=np.float64), np.asarray(poly[-1], dtype=np.float64)
@@ -2237,7 +2271,7 @@ class TrenchSession:
         atts: tuple[tuple[float, ...], tuple[float, ...]],
         offsets: tuple[float, ...],
         good_cost: float | None = None,
-    ) -> dict[str, Any] | None:
+    ) -> Candidate | None:
         """Fit a profile dig from ``a`` to ``b`` (work-site frame) along the boundary of the
         half-planes ``edges`` (rows ``(nx, ny, c)``, unit outward normal, inside where
         ``nx x + ny y <= c``; a convex piece of the design's outline: a wall, the bottom, or
@@ -2271,7 +2305,7 @@ class TrenchSession:
 
         def candidate(
             q1: FloatArray, q2: FloatArray, K: FloatArray, cost: float
-        ) -> dict[str, Any] | None:
+        ) -> Candidate | None:
             qp = q1 + qf_full[:, None] * (q2 - q1) + pf_full[:, None] * K
             px, py = arm.tip_xy(qp)
             tip = np.stack([px + m, py], axis=1)
@@ -2279,7 +2313,7 @@ class TrenchSession:
                 return None
             found = self._pass_candidate(kind, q1, q2, K, tip)
             if found is not None:
-                found["fit_rms_m"] = math.sqrt(cost / qf.shape[0])
+                found = dataclasses.replace(found, fit_rms_m=math.sqrt(cost / qf.shape[0]))
             return found
 
         def fitted(
@@ -2343,8 +2377,8 @@ class TrenchSession:
         table: list[tuple[float, ...]],
         edges: FloatArray,
         fitted: Callable[[FloatArray, FloatArray, float], tuple[float, FloatArray] | None],
-        candidate: Callable[..., dict[str, Any] | None],
-    ) -> dict[str, Any] | None:
+        candidate: Callable[..., Candidate | None],
+    ) -> Candidate | None:
         """:meth:`_fit_profile`'s adaptive shift on one attitude table: every pair fitted on
         the outline itself (``fitted`` at offset 0), the best :data:`_N_FIT_SHIFTS` by cost
         shifted inwards (the ends along their inward normals ``n_a``, ``n_b``) just enough
@@ -2486,7 +2520,7 @@ class TrenchSession:
 
     def _pass_candidate(
         self, kind: DigType, qs: FloatArray, qe: FloatArray, K: FloatArray, tip: FloatArray
-    ) -> dict[str, Any] | None:
+    ) -> Candidate | None:
         """A fitted profile pass retimed and checked, as a ranked candidate (None: refused)."""
         # The verifier's soil model takes depth below a flat H; here the material over the
         # path is a layer along it, so H is set for the thickest chip the path cuts: the
@@ -2514,15 +2548,16 @@ class TrenchSession:
         ):
             return None
         x7 = np.concatenate([qs, qe, [H]])
-        return {
-            "kind": kind,
-            "x7": x7,
-            "finishing": (tuple(float(v) for v in retimed[0, 0:3]), float(retimed[0, 3])),
-            "c_max": 1.0,
-            "useful": useful,
-            "total": total,
-            "score": useful,
-        }
+        r = retimed[0]
+        return Candidate(
+            kind=kind,
+            x7=x7,
+            useful_m2=useful,
+            total_m2=total,
+            score=useful,
+            T_s=float(r[3]),
+            a6=(float(r[0]), float(r[1]), float(r[2])),
+        )
 
     def _fine_grid_time(
         self, problem: Problem, a6: tuple[float, float, float], T_s: float
@@ -2546,28 +2581,28 @@ class TrenchSession:
         return (float(a_new[0]), float(a_new[1]), float(a_new[2])), T_new
 
     @_stage("checks")
-    def _plan_chosen(self, best: dict[str, Any], remaining: Any, select_us: float) -> PlannedDig:
+    def _plan_chosen(self, best: Candidate, remaining: Any, select_us: float) -> PlannedDig:
         """Plan ``best`` for real and check it; ``remaining`` is :meth:`remaining_design` (the
         caller's, the material being unchanged since)."""
-        x7 = best["x7"]
+        x7 = best.x7
         problem = Problem(
             q_start_rad=(float(x7[0]), float(x7[1]), float(x7[2])),
             q_end_rad=(float(x7[3]), float(x7[4]), float(x7[5])),
             surface_y_m=float(x7[6]),
-            dig_type=best["kind"],
+            dig_type=best.kind,
         )
-        finishing = best.get("finishing")
         oneshot_planner = self.planner.oneshot
+        fitted = best.a6 is not None
         # Judged on the material left (the fill band on the real cut), not on V_p against H.
-        real_fill = finishing is not None or isinstance(oneshot_planner, PinnOneShot)
-        if finishing is not None:
-            res = OneShotResult(finishing[0], finishing[1], np.zeros(N_OUT), 0.0, "profile")
+        real_fill = fitted or isinstance(oneshot_planner, PinnOneShot)
+        if best.a6 is not None:
+            res = OneShotResult(best.a6, best.T_s, np.zeros(N_OUT), 0.0, "profile")
         else:
             t_plan = time.perf_counter()
-            if isinstance(oneshot_planner, PinnOneShot):
-                res = oneshot_planner.plan_scaled(problem, best["K"], best["T"], best["c"])
+            if isinstance(oneshot_planner, PinnOneShot) and best.K_rad is not None:
+                res = oneshot_planner.plan_scaled(problem, best.K_rad, best.T_s, best.c)
             else:
-                res = oneshot_planner.plan_dig(problem, float(best["c_max"]))
+                res = oneshot_planner.plan_dig(problem, best.c)
             spent = (time.perf_counter() - t_plan) * 1e6
             self.stage_us["oneshot"] += spent
             self.stage_us["checks"] -= spent
@@ -2591,7 +2626,7 @@ class TrenchSession:
         over = self.overdig_of(p)
         env = self._envelope(p, self.grid)
         total, useful = self._cut_areas(env)
-        if finishing is None and useful < 0.5 * MIN_USEFUL_FRACTION * self.design_area:
+        if not fitted and useful < 0.5 * MIN_USEFUL_FRACTION * self.design_area:
             raise PlanningError(
                 f"the {self.planner.oneshot.name} plan of dig {len(self.digs) + 1} removes "
                 f"{useful * self.width_m * 1e3:.3f} L of the design, less than the screening "
@@ -2622,8 +2657,8 @@ class TrenchSession:
                 )
         lo_a, hi_a = self._fill_band()
         # A dig allowed out of the fill band is a finishing pass only where it is out of it.
-        finishing_pass = bool(best.get("finishing_pass", False)) and not lo_a <= total <= hi_a
-        if not best.get("finishing_pass", False) and not lo_a <= total <= hi_a:
+        finishing_pass = best.may_underfill and not lo_a <= total <= hi_a
+        if not best.may_underfill and not lo_a <= total <= hi_a:
             raise PlanningError(
                 f"the {self.planner.oneshot.name} plan of dig {len(self.digs) + 1} carries "
                 f"{total * self.width_m * 1e3:.2f} L of material, outside the fill band "

@@ -265,7 +265,7 @@ def test_numpy_sampling_of_ruckig_moves_equals_at_time(planner: TrenchPlanner) -
 
 
 def test_depth_is_the_distance_into_the_material_not_the_height_over_it() -> None:
-    from rt_runtime.planning.trench import _depth_below
+    from rt_runtime.planning.trench.geometry import _depth_below
 
     grid = np.arange(0.0, 0.2 + GRID_STEP_M / 2, GRID_STEP_M)
     surface = np.where(grid < 0.1, -0.02, -0.10)  # an 8 cm step at x = 0.1

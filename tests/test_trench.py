@@ -228,7 +228,7 @@ def test_lower_envelope_is_exact_for_the_polyline() -> None:
 
 
 def test_swept_region_ends_where_the_path_does() -> None:
-    from rt_runtime.planning.trench import _swept_polygon
+    from rt_runtime.planning.trench.geometry import _swept_polygon
 
     # A steep cut whose ends fall between grid points: the region must not reach below the
     # path there (it ended at the next grid point's depth, a step's worth of slope deeper:
@@ -264,7 +264,7 @@ def test_overdig_is_the_distance_to_the_design(planner: TrenchPlanner) -> None:
 def test_swept_region_keeps_only_the_envelopes_kinks() -> None:
     import shapely
 
-    from rt_runtime.planning.trench import _swept_polygon
+    from rt_runtime.planning.trench.geometry import _swept_polygon
 
     # The envelope is straight between the path's samples: the region drops those grid
     # points and is the same region (every polygon operation on the material gets cheaper).
@@ -519,7 +519,7 @@ def test_measured_path_that_cut_less_makes_the_next_dig_take_the_rest(
     missed = left.difference(planned.remaining_design())
     m2 = measured.next_dig()
     # The next dig removes material the first one left behind.
-    from rt_runtime.planning.trench import _swept_polygon
+    from rt_runtime.planning.trench.geometry import _swept_polygon
 
     swept = _swept_polygon(m2.tip_path_m, measured.grid, measured.top_y)
     assert swept.intersection(missed).area > 0.0

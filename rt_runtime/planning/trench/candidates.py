@@ -1,0 +1,116 @@
+"""A dig before it is planned: the typed candidate the screening and the profile fits hand
+to the planning step, the network's candidate grid per dig type, and the screening's
+settings."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from rt_runtime.planning.oneshot import DigType
+from rt_runtime.planning.trench.geometry import OVERDIG_LIMIT_M, FloatArray
+
+
+@dataclass(frozen=True, slots=True)
+class Candidate:
+    """A dig chosen on its geometry, before it is planned for real and checked.
+
+    Attributes:
+        kind: Downward or backward.
+        x7: ``(7,)`` entry pose and exit pose (rad, arm frame at the machine's position) and H
+            (m, the surface the one-shot model and the soil model take).
+        useful_m2: Design material it is estimated to remove (cross-section area, m^2).
+        total_m2: Material it is estimated to remove in all (m^2).
+        score: The ranking's score (larger first).
+        K_rad: A network dig's bulge ``(3,)`` (rad, the network's answer at ``T_s``), which
+            ``c`` scales; None for a dig fitted along the outline.
+        c: The bulge scale that fills the bucket on the material left.
+        T_s: The network's time (network digs), or the retimed time (fitted digs).
+        a6: A fitted dig's retimed sixth-order coefficients (rad/s^6); None for network digs.
+        fit_rms_m: RMS distance of a fitted dig's path from its outline (m).
+        may_underfill: Planned even where its real cut is below the fill band (then it is a
+            finishing pass); a dig without it is refused outside the band.
+    """
+
+    kind: DigType
+    x7: FloatArray
+    useful_m2: float
+    total_m2: float
+    score: float
+    K_rad: FloatArray | None = None
+    c: float = 1.0
+    T_s: float = 0.0
+    a6: tuple[float, float, float] | None = None
+    fit_rms_m: float = math.nan
+    may_underfill: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class _Candidates:
+    """The candidate grid of one dig type (arm-frame values relative to the entry)."""
+
+    entry_attitude_deg: tuple[float, ...]
+    length_m: tuple[float, ...]
+    exit_rise_m: tuple[float, ...]
+    exit_attitude_deg: tuple[float, ...]
+    c_max: tuple[float, ...]
+
+
+_CANDIDATES: dict[DigType, _Candidates] = {
+    DigType.DOWNWARD: _Candidates(
+        entry_attitude_deg=(-75.0, -90.0, -105.0, -118.0),
+        length_m=(0.22, 0.34, 0.39),
+        exit_rise_m=(0.01, 0.05, 0.15),
+        exit_attitude_deg=(-145.0, -160.0, -175.0),
+        c_max=(2.0, 1.0, 0.6, 0.3),
+    ),
+    DigType.BACKWARD: _Candidates(
+        entry_attitude_deg=(-102.0, -115.0, -128.0),
+        length_m=(0.28, 0.40, 0.46),
+        exit_rise_m=(0.01, 0.05),
+        exit_attitude_deg=(-152.0, -165.0, -180.0),
+        c_max=(2.0, 1.0, 0.6, 0.3),
+    ),
+}
+
+
+#: Entry x candidates per screening: from the far edge of the remaining design inwards.
+_N_ENTRY_X = 4
+
+
+# Bulge scales at which the screening computes each candidate's path; the fill's scale between
+# them is interpolated.
+_SCREEN_C = (0.3, 0.6, 1.0, 2.0)
+
+
+# Samples per path in the screening (the plan is checked on the verifier's full grid).
+_SCREEN_SAMPLES = 17
+
+
+# Over-dig a screened path may show at its coarse samples (the plan's own check is exact).
+_SCREEN_OVERDIG_M = 0.8 * OVERDIG_LIMIT_M
+
+
+# Steps of the bulge scale searched for theta_p in the screening (from the top down to 0).
+_N_SCALE_STEPS = 40
+
+
+# Fraction of the fill band kept free at each end in the screening (its cut is interpolated).
+_FILL_MARGIN = 0.03
+
+
+# Candidates kept per screening, tried in order when the one-shot planner's plan fails.
+_N_RANKED = 8
+
+
+# Screened candidates whose material left is estimated (the look-ahead), best score first.
+_N_LOOKAHEAD = 32
+
+
+#: Least material above the design floor where an entry may be placed (m, scale model).
+_ENTRY_MIN_THICKNESS_M = 0.01
+
+
+#: Spare fraction of the fill band's ends for the upper layers in the layer choice (the
+#: network's scoops do not follow the layer's floor).
+_ROUGH_SPARE = 0.04

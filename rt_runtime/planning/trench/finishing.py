@@ -1,0 +1,119 @@
+"""Finishing passes: the walls, the bottom in pieces and lines across thick material, taken
+where the section's digs left design material (at most two a section where the material
+allows, more only where the section would otherwise miss the coverage goal)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+import shapely
+
+from rt_runtime.planning.oneshot import DigType
+from rt_runtime.planning.trench.candidates import Candidate
+from rt_runtime.planning.trench.geometry import _Pass
+from rt_runtime.planning.trench.layers import _CUT_MAX_M, LayersMixin
+from rt_runtime.planning.trench.plan import PlannedDig
+from rt_runtime.planning.trench.state import _stage
+
+#: Finishing passes a section may take (they need not fill the bucket).
+MAX_FINISHING_PER_SECTION = 2
+
+
+#: Finishing passes a section takes at most where its design is not dug otherwise.
+MAX_FINISHING_HARD = 8
+
+
+#: Least material on a finishing pass's line for the pass to be tried (scale model, m).
+_FINISH_MIN_M = 0.002
+
+
+#: Attitude tables of the walls' finishing passes (deg; first and last of each end).
+_FAR_WALL_ATTS = ((-80.0, -100.0), (-95.0, -120.0))
+
+
+_NEAR_WALL_ATTS = ((-80.0, -100.0), (-100.0, -130.0))
+
+
+#: Spacing of the finishing lines across thick material (:meth:`FinishingMixin._finishing_lines`),
+#: m on the scale model.
+_LAYER_M = 0.05
+
+
+class FinishingMixin(LayersMixin):
+    """A session's finishing passes (see the module)."""
+
+    @_stage("passes")
+    def _next_finishing(self, remaining: Any, t0: float) -> PlannedDig | None:
+        """The finishing pass that removes the most design material of the section's
+        (:meth:`_finishing_lines`); None when the section's design is dug (within half a
+        percent), no pass removes a useful amount, or :data:`MAX_FINISHING_HARD` passes are
+        spent. Passes beyond :data:`MAX_FINISHING_PER_SECTION` are taken only where the
+        section would otherwise miss the coverage goal: a finished trench comes first."""
+        if self.finishing_used >= MAX_FINISHING_HARD:
+            return None
+        box = shapely.box(self.section_lo, self.bottom_y - 1.0, self.section_hi, self.top_y)
+        part = self.design.intersection(box)
+        left = float(part.intersection(self.material).area)
+        if left <= 0.005 * float(part.area):
+            return None
+        if self.finishing_used >= MAX_FINISHING_PER_SECTION and left <= 0.015 * float(part.area):
+            return None
+        found: list[Candidate] = []
+        for kind, line, atts in self._finishing_lines():
+            fit = self._fit_pass(kind, line, atts)
+            if fit is not None:
+                found.append(dataclasses.replace(fit, may_underfill=True))
+        found.sort(key=lambda c: -c.useful_m2)
+        dig = self._first_plannable(found, remaining, t0)
+        if dig is not None and dig.finishing:
+            self.finishing_used += 1
+        return dig
+
+    def _finishing_lines(self) -> list[_Pass]:
+        """The section's finishing passes: the far wall (in the first section), the bottom in
+        pieces (:meth:`_bottom_passes`), the near wall (in the last), and where the material
+        left is thicker than a dig cuts through, lines across it every :data:`_LAYER_M`
+        (scaled) from the top (the bottom-like passes at those heights); each only where
+        material is left on it."""
+        t = self.task
+        g = self.ground_y
+        s = self.planner.scale
+        xf, xn = t.start_x_m, t.start_x_m - t.length_m
+        lo, hi = self.section_lo, self.section_hi
+        far_foot = xf - t.depth_m / math.tan(t.beta1_rad)
+        near_foot = xn + t.depth_m / math.tan(t.beta2_rad)
+        x = self.grid
+        inside = (x >= lo) & (x <= hi)
+        thick = np.where(inside, self.surface - self.design_floor, 0.0)
+        passes: list[_Pass] = []
+        if self.section == 0:
+            passes.append(
+                (DigType.DOWNWARD, np.array([(xf, g), (far_foot, self.bottom_y)]), _FAR_WALL_ATTS)
+            )
+        b_hi, b_lo = min(far_foot, hi), max(near_foot, lo)
+        if b_hi > b_lo:
+            passes += self._bottom_passes((b_hi, self.bottom_y), (b_lo, self.bottom_y))
+        if lo <= xn + 1e-9:
+            passes.append(
+                (DigType.DOWNWARD, np.array([(xn, g), (near_foot, self.bottom_y)]), _NEAR_WALL_ATTS)
+            )
+        top = float(np.max(thick)) if thick.size else 0.0
+        if top > _CUT_MAX_M * s:
+            n = math.ceil(top / (_LAYER_M * s))
+            for k in range(1, n):
+                y = self.bottom_y + top * (1.0 - k / n)
+                far = (min(xf - (g - y) / math.tan(t.beta1_rad), hi), y)
+                near = (max(xn + (g - y) / math.tan(t.beta2_rad), lo), y)
+                if far[0] > near[0]:
+                    passes += self._bottom_passes(far, near)
+        keep = []
+        for kind, line, atts in passes:
+            order = np.argsort(line[:, 0])
+            xs = np.linspace(float(line[order[0], 0]), float(line[order[-1], 0]), 16)
+            above = np.interp(xs, x, self.surface) - np.interp(xs, line[order, 0], line[order, 1])
+            if float(np.max(above)) > _FINISH_MIN_M * s:
+                keep.append((kind, line, atts))
+        return keep

@@ -1,0 +1,382 @@
+"""Digs fitted along the design's outline: the sextic's end attitudes from a table and its bulge
+by Gauss-Newton on the inward distances to the outline (a wall, the bottom, a layer's floor),
+shifted inwards just enough for the over-dig limit, retimed and verified like every dig."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from rt_runtime import kinematics
+from rt_runtime.planning import oneshot
+from rt_runtime.planning.oneshot import DigType
+from rt_runtime.planning.trench.candidates import Candidate
+from rt_runtime.planning.trench.geometry import (
+    MIN_USEFUL_FRACTION,
+    OVERDIG_LIMIT_M,
+    FloatArray,
+    _Pass,
+    _total_without_volume,
+)
+from rt_runtime.planning.trench.moves import MovesMixin
+from rt_runtime.planning.verify import (
+    N_OUT,
+    pack_inputs,
+)
+
+# Inward shifts of a profile pass's line tried in turn where the adaptive shift fails (m).
+_PASS_OFFSETS_M = (0.0, 0.002, 0.004, 0.007)
+
+
+# Profile fits shifted adaptively (the best by cost), and how far outside the outline the
+# shifted path's farthest sample may lie (m; the over-dig limit is 5 mm).
+_N_FIT_SHIFTS = 4
+
+
+_FIT_OUTSIDE_M = 0.0025
+
+
+# A profile fit this good (least-squares cost, m^2: ~1 mm RMS) ends the search of starts.
+_GOOD_FIT_COST = 2e-4
+
+
+# Samples of a profile pass's path in its fit.
+_FIT_SAMPLES = 41
+
+
+# Longest straight profile pass (scale model, m).
+_PASS_LENGTH_M = 0.30
+
+
+class FitMixin(MovesMixin):
+    """A session's digs fitted along the design's outline (see the module)."""
+
+    def _bottom_passes(self, far: tuple[float, float], near: tuple[float, float]) -> list[_Pass]:
+        """Backward passes along the straight line from ``far`` to ``near`` (the bottom, or a
+        layer): a sextic follows a straight line within a few mm over ~0.3 m (scale model), so
+        a longer line is cut in equal pieces, far to near, each starting 2 mm up so that it
+        enters descending (theta_p >= 0)."""
+        lift = np.array([0.0, 0.002])
+        n = max(1, math.ceil((far[0] - near[0]) / (_PASS_LENGTH_M * self.planner.scale)))
+        a, b = np.asarray(far), np.asarray(near)
+        cuts = [a + (b - a) * k / n for k in range(n + 1)]
+        atts = ((-110.0, -135.0), (-150.0, -175.0))
+        return [(DigType.BACKWARD, np.array([cuts[k] + lift, cuts[k + 1]]), atts) for k in range(n)]
+
+    def _fit_pass(
+        self,
+        kind: DigType,
+        poly: FloatArray,
+        atts: tuple[tuple[float, ...], tuple[float, ...]],
+    ) -> Candidate | None:
+        """Fit one straight profile pass ``poly`` (2 points, work-site frame): the line as a
+        half-plane, inwards towards the design's centroid (:meth:`_fit_profile`)."""
+        a, b = np.asarray(poly[0], dtype=np.float64), np.asarray(poly[-1], dtype=np.float64)
+        seg = b - a
+        normal = np.array([-seg[1], seg[0]]) / math.hypot(seg[0], seg[1])
+        c = self.design.centroid
+        if (c.x - a[0]) * normal[0] + (c.y - a[1]) * normal[1] < 0.0:
+            normal = -normal
+        # Outward normal and offset: inside is -normal . p <= -normal . a.
+        edge = np.array([[-normal[0], -normal[1], -float(normal @ a)]])
+        return self._fit_profile(kind, a, b, edge, atts, _PASS_OFFSETS_M)
+
+    def _fit_profile(
+        self,
+        kind: DigType,
+        a: FloatArray,
+        b: FloatArray,
+        edges: FloatArray,
+        atts: tuple[tuple[float, ...], tuple[float, ...]],
+        offsets: tuple[float, ...],
+        good_cost: float | None = None,
+    ) -> Candidate | None:
+        """Fit a profile dig from ``a`` to ``b`` (work-site frame) along the boundary of the
+        half-planes ``edges`` (rows ``(nx, ny, c)``, unit outward normal, inside where
+        ``nx x + ny y <= c``; a convex piece of the design's outline: a wall, the bottom, or
+        a wall and the bottom).
+
+        For each pair of end attitudes of ``atts`` the sextic's path is linear in its bulge
+        ``K`` in joint space, so the inward distances of the path samples from the outline
+        (the least over the half-planes, exact for a convex outline) are fitted in ``K`` by
+        Gauss-Newton (:meth:`_fit_bulge`, 3 x 3 systems, microseconds); a pair whose fit
+        leaves the joint limits or the theta_p range is skipped. The first pair that fits
+        within ``good_cost`` (m^2 on 101 samples; :data:`_GOOD_FIT_COST`, ~1 mm RMS, by
+        default), or else the best, is taken; the outline
+        is shifted inwards by ``offsets`` in turn (the ends with it, along the inward normal
+        of the half-plane they lie on) until the over-dig limit holds. Returns the candidate
+        of :meth:`_pass_candidate` with the fit's RMS distance (``fit_rms_m``), or None.
+        """
+        arm = self.planner.arm
+        m = self.machine_x
+        qf, pf = self.planner.fit_qf, self.planner.fit_pf
+        margin = math.radians(0.5)
+        lo_q, hi_q = arm.q_min + margin, arm.q_max - margin
+        tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
+        qf_full, pf_full = self.planner.full_qf, self.planner.full_pf
+        good = (_GOOD_FIT_COST if good_cost is None else good_cost) * qf.shape[0] / 101.0
+
+        def inward(p: FloatArray) -> FloatArray:
+            k = int(np.argmin(edges[:, 2] - edges[:, 0:2] @ p))
+            return -edges[k, 0:2]
+
+        n_a, n_b = inward(a), inward(b)
+
+        def candidate(
+            q1: FloatArray, q2: FloatArray, K: FloatArray, cost: float
+        ) -> Candidate | None:
+            qp = q1 + qf_full[:, None] * (q2 - q1) + pf_full[:, None] * K
+            px, py = arm.tip_xy(qp)
+            tip = np.stack([px + m, py], axis=1)
+            if self.overdig_of(tip) > OVERDIG_LIMIT_M:
+                return None
+            found = self._pass_candidate(kind, q1, q2, K, tip)
+            if found is not None:
+                found = dataclasses.replace(found, fit_rms_m=math.sqrt(cost / qf.shape[0]))
+            return found
+
+        def fitted(
+            q1: FloatArray, q2: FloatArray, offset: float
+        ) -> tuple[float, FloatArray] | None:
+            """The bulge fitted for end poses ``q1``, ``q2``; None outside the joint limits
+            or theta_p's range."""
+            base = q1 + qf[:, None] * (q2 - q1)
+            K, cost = self._fit_bulge(base, q1, q2, edges, offset, kind)
+            q = base + pf[:, None] * K
+            if np.any(q < lo_q) or np.any(q > hi_q):
+                return None
+            # theta_p: the entry direction J(q1) (10 D + K) in the type's range.
+            jac = kinematics.jacobian(self.rig, q1)[:2]
+            d0 = jac @ (10.0 * (q2 - q1) + K)
+            ang = math.atan2(-d0[1], abs(d0[0]))
+            if not tp_lo + 0.01 <= ang <= tp_hi - 0.01:
+                return None
+            return cost, K
+
+        # Every table pair fitted on the outline itself; the best few shifted inwards just
+        # enough that the path's farthest sample outside the outline is _FIT_OUTSIDE_M out
+        # (a least-squares path crosses the outline both ways), and refitted.
+        mid = [(v[0], v[-1], *np.linspace(v[0], v[-1], 5)[1:-1].tolist()) for v in atts]
+        found = self._fit_shifted(kind, a, b, n_a, n_b, mid, edges, fitted, candidate)
+        if found is not None:
+            return found
+        # Fixed shifts as before where the adaptive one found nothing.
+        for offset in offsets:
+            a_s = a + offset * n_a
+            b_s = b + offset * n_b
+            starts = [self._pass_pose(a_s, mid[0]), self._pass_pose(b_s, mid[1])]
+            fits = []
+            # Table pairs first; a good fit is tried at once, the others by cost at the end.
+            for qs in starts[0]:
+                for qe in starts[1]:
+                    q1, q2 = np.asarray(qs), np.asarray(qe)
+                    got = fitted(q1, q2, offset)
+                    if got is None:
+                        continue
+                    cost, K = got
+                    if cost < good:
+                        found = candidate(q1, q2, K, cost)
+                        if found is not None:
+                            return found
+                    else:
+                        fits.append((cost, q1, q2, K))
+            for cost, q1, q2, K in sorted(fits, key=lambda f: f[0]):
+                found = candidate(q1, q2, K, cost)
+                if found is not None:
+                    return found
+        return None
+
+    def _fit_shifted(
+        self,
+        kind: DigType,
+        a: FloatArray,
+        b: FloatArray,
+        n_a: FloatArray,
+        n_b: FloatArray,
+        table: list[tuple[float, ...]],
+        edges: FloatArray,
+        fitted: Callable[[FloatArray, FloatArray, float], tuple[float, FloatArray] | None],
+        candidate: Callable[..., Candidate | None],
+    ) -> Candidate | None:
+        """:meth:`_fit_profile`'s adaptive shift on one attitude table: every pair fitted on
+        the outline itself (``fitted`` at offset 0), the best :data:`_N_FIT_SHIFTS` by cost
+        shifted inwards (the ends along their inward normals ``n_a``, ``n_b``) just enough
+        that the path's farthest sample outside the outline is :data:`_FIT_OUTSIDE_M` out,
+        refitted there, and the first that ``candidate`` plans returned."""
+        arm = self.planner.arm
+        m = self.machine_x
+        qf_full, pf_full = self.planner.full_qf, self.planner.full_pf
+        starts = [self._pass_pose(a, table[0]), self._pass_pose(b, table[1])]
+        fits: list[tuple[float, FloatArray, FloatArray, FloatArray]] = []
+        for qs in starts[0]:
+            for qe in starts[1]:
+                got = fitted(qs, qe, 0.0)
+                if got is not None:
+                    fits.append((got[0], qs, qe, got[1]))
+        fits.sort(key=lambda f: f[0])
+        for cost, q1, q2, K in fits[:_N_FIT_SHIFTS]:
+            qp = q1 + qf_full[:, None] * (q2 - q1) + pf_full[:, None] * K
+            px, py = arm.tip_xy(qp)
+            x = px + m
+            inside = np.min(
+                edges[:, 2, None] - edges[:, 0, None] * x - edges[:, 1, None] * py, axis=0
+            )
+            shift = max(0.0, -float(np.min(inside)) - _FIT_OUTSIDE_M)
+            if shift > 0.0:
+                q1s = arm.ik(
+                    float(a[0] + shift * n_a[0] - m),
+                    float(a[1] + shift * n_a[1]),
+                    float(np.sum(q1)),
+                )
+                q2s = arm.ik(
+                    float(b[0] + shift * n_b[0] - m),
+                    float(b[1] + shift * n_b[1]),
+                    float(np.sum(q2)),
+                )
+                if q1s is None or q2s is None:
+                    continue
+                q1, q2 = np.asarray(q1s), np.asarray(q2s)
+                got = fitted(q1, q2, shift)
+                if got is None:
+                    continue
+                cost, K = got
+            found = candidate(q1, q2, K, cost)
+            if found is not None:
+                return found
+        return None
+
+    def _pass_pose(self, point: FloatArray, attitudes_deg: tuple[float, ...]) -> list[FloatArray]:
+        """Joint poses of a pass end at the table's attitudes; where one is out of reach or
+        limits, the nearest attitude (5 deg steps, up to 45 deg away) that is not."""
+        arm = self.planner.arm
+        found: list[FloatArray] = []
+        for att in attitudes_deg:
+            for step in range(10):
+                for sign in (1.0,) if step == 0 else (1.0, -1.0):
+                    q = arm.ik(
+                        float(point[0]) - self.machine_x,
+                        float(point[1]),
+                        math.radians(att + sign * 5.0 * step),
+                    )
+                    if q is not None:
+                        break
+                if q is not None:
+                    found.append(np.asarray(q))
+                    break
+        return found
+
+    def _fit_bulge(
+        self,
+        base: FloatArray,
+        q1: FloatArray,
+        q2: FloatArray,
+        edges: FloatArray,
+        offset: float,
+        kind: DigType,
+    ) -> tuple[FloatArray, float]:
+        """Damped Gauss-Newton fit of the bulge ``K`` (3) of a profile dig: the inward
+        distances of the path samples from the outline ``edges`` (:meth:`_fit_profile`) less
+        ``offset`` (weighted 21x where the path crosses the outline outwards by > 3 mm) and,
+        while it is violated, the entry direction's theta_p bound as a heavily weighted row.
+        Returns ``(K, cost)``, the cost that of the K returned (the best one evaluated)."""
+        arm = self.planner.arm
+        pf = self.planner.fit_pf
+        lengths = arm.lengths
+        m = self.machine_x
+        n = pf.shape[0]
+        rows_n = np.arange(n)
+        tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
+        jac0 = kinematics.jacobian(self.rig, q1)[:2]
+        d_ent = jac0 @ (10.0 * (q2 - q1))
+        mu = 1e-7
+        K = np.zeros(3)
+        step = np.zeros(3)
+        cost = math.inf
+        best_K = K
+        for _ in range(9):
+            q = base + pf[:, None] * K
+            phi = np.cumsum(q, axis=1)
+            cs, sn = np.cos(phi) * lengths, np.sin(phi) * lengths
+            x = cs.sum(axis=1) + m
+            y = sn.sum(axis=1)
+            inside = edges[:, 2, None] - edges[:, 0, None] * x - edges[:, 1, None] * y
+            k = np.argmin(inside, axis=0)
+            d = inside[k, rows_n]
+            w = np.where(d < -0.003, 21.0, 1.0)
+            r = w * (d - offset)
+            jx = -np.cumsum(sn[:, ::-1], axis=1)[:, ::-1]
+            jy = np.cumsum(cs[:, ::-1], axis=1)[:, ::-1]
+            J = -(edges[k, 0, None] * jx + edges[k, 1, None] * jy) * (pf * w)[:, None]
+            # theta_p of the entry direction d0 = J(q1) (10 D + K), linear in K.
+            d0 = d_ent + jac0 @ K
+            ang = math.atan2(-d0[1], abs(d0[0]))
+            sx = 1.0 if d0[0] >= 0.0 else -1.0
+            rows, rhs = [J], [-r]
+            pen = 0.0
+            for bound, up in ((tp_lo + 0.02, False), (tp_hi - 0.02, True)):
+                if (ang > bound) if up else (ang < bound):
+                    # g(K) = -d0_y cos(b) - |d0_x| sin(b): zero on the bound.
+                    gk = -jac0[1] * math.cos(bound) - sx * jac0[0] * math.sin(bound)
+                    g = -d0[1] * math.cos(bound) - abs(d0[0]) * math.sin(bound)
+                    rows.append(gk[None] * 0.5)
+                    rhs.append(np.array([-g * 0.5]))
+                    pen += (0.5 * g) ** 2
+            new_cost = float(r @ r) + pen
+            if new_cost > cost:  # the step made it worse: back off, damp harder
+                K = K - 0.5 * step
+                step = 0.5 * step
+                mu *= 10.0
+                continue
+            cost = new_cost
+            best_K = K
+            if float(step @ step) < 1e-6 and _ > 0:
+                break  # converged: the cost is that of the K returned
+            A = np.concatenate(rows)
+            b = np.concatenate(rhs)
+            step = np.linalg.solve(A.T @ A + mu * np.eye(3), A.T @ b - mu * K)
+            K = K + step
+        return best_K, cost
+
+    def _pass_candidate(
+        self, kind: DigType, qs: FloatArray, qe: FloatArray, K: FloatArray, tip: FloatArray
+    ) -> Candidate | None:
+        """A fitted profile pass retimed and checked, as a ranked candidate (None: refused)."""
+        # The verifier's soil model takes depth below a flat H; here the material over the
+        # path is a layer along it, so H is set for the thickest chip the path cuts: the
+        # material's thickness across the path's direction (its depth above the path times
+        # the cosine of the path's slope: a wall's pass cuts the wedge beside the wall, not
+        # the wedge's height), above the path's lowest point.
+        depth = np.clip(np.interp(tip[:, 0], self.grid, self.surface) - tip[:, 1], 0.0, None)
+        step = np.gradient(tip, axis=0)
+        across = np.abs(step[:, 0]) / np.maximum(np.hypot(step[:, 0], step[:, 1]), 1e-12)
+        H = float(np.min(tip[:, 1]) + float(np.max(depth * across)))
+        T0 = 0.5 * (self.planning.t_min_s + self.planning.t_max_s)
+        a6 = -K / T0**6
+        row = pack_inputs(
+            qs[None], qe[None], np.array([H]), np.array([int(kind)]), a6[None], np.array([T0])
+        )
+        out = np.zeros((1, N_OUT))
+        retimed = np.zeros((1, 4))
+        self.planner.verifier.retime_into(row, out, retimed)
+        if not np.isfinite(retimed[0, 3]) or _total_without_volume(out[0]) > 0.0:
+            return None
+        total, useful = self._cut_areas(self._envelope(tip, self.grid))
+        if (
+            total > self.v_max_m3 / self.width_m
+            or useful < 0.1 * MIN_USEFUL_FRACTION * self.design_area
+        ):
+            return None
+        x7 = np.concatenate([qs, qe, [H]])
+        r = retimed[0]
+        return Candidate(
+            kind=kind,
+            x7=x7,
+            useful_m2=useful,
+            total_m2=total,
+            score=useful,
+            T_s=float(r[3]),
+            a6=(float(r[0]), float(r[1]), float(r[2])),
+        )

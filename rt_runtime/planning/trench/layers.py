@@ -1,0 +1,385 @@
+"""Layers and columns: the layers the design is cut in (chosen so that each splits into the
+fewest full buckets), columns along a layer's floor, far to near, the bottom's straight columns,
+and the walls' digs."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+import shapely
+
+from rt_runtime.planning import oneshot
+from rt_runtime.planning.oneshot import DigType
+from rt_runtime.planning.trench.candidates import _FILL_MARGIN, _ROUGH_SPARE, Candidate
+from rt_runtime.planning.trench.fit import _PASS_OFFSETS_M
+from rt_runtime.planning.trench.geometry import GRID_STEP_M, FloatArray
+from rt_runtime.planning.trench.plan import PlannedDig
+from rt_runtime.planning.trench.rough import RoughMixin
+from rt_runtime.planning.trench.state import Stage
+
+#: Range of the profile layer's thickness (scale model, m): thin enough for the boom's torque
+#: through a full cut along the bottom (a 0.25 m column verifies up to ~0.11 m), thick
+#: enough that a column of it no longer than _COLUMN_MAX_M fills the bucket.
+_LAYER_RANGE_M = (0.045, 0.10)
+
+
+#: Thickest material a dig along the floor cuts through in one pass (scale model, m; a
+#: 0.25 m column verifies up to ~0.11 m).
+_CUT_MAX_M = 0.105
+
+
+#: Thickest layer above the bottom one (scale model, m): what the layer's columns cut, with
+#: room for what the network's digs leave above the layer's floor.
+_UPPER_LAYER_MAX_M = 0.09
+
+
+#: How far short of the design's bottom corners the walls' digs stop (scale model, m).
+_CORNER_GAP_M = 0.005
+
+
+#: How far beyond the face of the material a bottom column enters (scale model, m).
+_FACE_GAP_M = 0.004
+
+
+#: End attitudes of wall digs (deg; the table's first and last of each end).
+_WALL_ATTITUDES_DEG = {
+    DigType.DOWNWARD: ((-80.0, -100.0), (-95.0, -130.0)),
+    DigType.BACKWARD: ((-100.0, -125.0), (-120.0, -160.0)),
+}
+
+
+#: Material within this of the design's floor is not counted for a column (scale model, m).
+_COLUMN_SKIN_M = 0.003
+
+
+#: A column starts where the material above the design's floor is thicker than this (scale
+#: model, m).
+_COLUMN_EDGE_M = 0.012
+
+
+#: Longest profile dig (scale model, m).
+_COLUMN_MAX_M = 0.45
+
+
+#: Fraction of V_max a column aims at.
+_FILL_AIM = 0.93
+
+
+#: End attitudes of a layer's columns (deg; the table's first and last of each end).
+_LAYER_ATTITUDES_DEG = {
+    DigType.DOWNWARD: ((-60.0, -120.0), (-110.0, -190.0)),
+    DigType.BACKWARD: ((-100.0, -140.0), (-140.0, -200.0)),
+}
+
+
+#: End attitudes of bottom columns (deg; the table's first and last of each end).
+_COLUMN_ATTITUDES_DEG = {DigType.BACKWARD: ((-110.0, -135.0), (-150.0, -175.0))}
+
+
+class LayersMixin(RoughMixin):
+    """A session's layers, columns and walls' digs (see the module)."""
+
+    def _digs_for(self, area: float, spare: float) -> float:
+        """Full buckets an area takes (``spare``: the fraction of the fill band's ends kept
+        free, for what the digs' shapes miss); inf when no whole number of them fits."""
+        lo_a, hi_a = self._fill_band()
+        n = max(1, math.ceil(area / (hi_a * (1.0 - spare))))
+        return float(n) if area / n >= lo_a * (1.0 + spare) else math.inf
+
+    def _advance(self) -> None:
+        """The next stage (:class:`Stage`): after a layer's columns the next layer's network
+        digs, after the last the bottom layer's far wall."""
+        self._wall_piece = 0
+        if self.stage is Stage.LAYER and self.layer + 1 < len(self.layer_floors):
+            self.layer += 1
+            self.stage = Stage.ROUGH
+            self.phase = DigType.DOWNWARD
+        else:
+            if self.stage is Stage.LAYER:
+                self.layer = len(self.layer_floors)
+            self.stage = Stage(self.stage + 1)
+        self._set_layer()
+
+    def _choose_layers(self) -> tuple[float, ...]:
+        """The floors of the layers above the bottom one (work-site y, top first).
+
+        The bottom layer is cut by straight columns along the bottom, the layers above by
+        the network's digs and columns along their floors; no layer is thicker than the
+        boom's torque allows through a full cut (:data:`_LAYER_RANGE_M`,
+        :data:`_UPPER_LAYER_MAX_M`). Among the bottom layer's thicknesses on a 2.5 mm grid
+        (scaled; the whole depth when that is thin enough), the one whose layers split into
+        the fewest full buckets (each layer's area in as few as the fill band allows with a
+        spare at its ends; walls aside) is taken, ties to the thicker bottom layer.
+        """
+        s = self.planner.scale
+        t = self.task
+        lo, hi = (v * s for v in _LAYER_RANGE_M)
+        up_max = _UPPER_LAYER_MAX_M * s
+        options = [float(v) for v in np.arange(lo, hi + 1e-9, 0.0025 * s) if v < t.depth_m]
+        if t.depth_m <= hi:
+            options.append(t.depth_m)
+        best: tuple[float, float, tuple[float, ...]] = (math.inf, 0.0, ())
+        for bottom_layer in options or [t.depth_m]:
+            rest = t.depth_m - bottom_layer
+            n_up = math.ceil(rest / up_max - 1e-9) if rest > 1e-9 else 0
+            depths = [rest * k / n_up for k in range(1, n_up + 1)] if n_up else []
+            digs = 0.0
+            top = 0.0
+            for d in depths:
+                digs += self._digs_for(self._area_above(d) - self._area_above(top), _ROUGH_SPARE)
+                top = d
+            b_lo, b_hi = self._bottom_span()
+            cols = max(b_hi - b_lo, 0.0) * (bottom_layer - _COLUMN_SKIN_M * s)
+            n_cols = self._digs_for(cols, _FILL_MARGIN)
+            if cols / max(n_cols, 1.0) > bottom_layer * _COLUMN_MAX_M * s:
+                n_cols = math.inf  # a column longer than a straight dig follows
+            key = (digs + n_cols, -bottom_layer, tuple(self.ground_y - d for d in depths))
+            if key[:2] < best[:2]:
+                best = key
+        if not math.isfinite(best[0]):
+            # No split fills every bucket: layers of the thickest the torque allows.
+            rest = max(t.depth_m - hi, 0.0)
+            n_up = math.ceil(rest / up_max - 1e-9) if rest > 1e-9 else 0
+            return tuple(self.ground_y - rest * k / n_up for k in range(1, n_up + 1))
+        return best[2]
+
+    def _set_layer(self) -> None:
+        """The current layer's design (the design above its floor) as the screening and the
+        columns take it: ``layer_y``, its floor on the grid, half-planes, edges and polygon
+        (the bottom layer's are the design's)."""
+        upper = self.layer < len(self.layer_floors)
+        y = self.layer_floors[self.layer] if upper else self.bottom_y
+        self.layer_y = y
+        self._layer_floor = np.maximum(self.design_floor, min(y, self.ground_y))
+        self._layer_walls = self._walls.copy()
+        self._layer_walls[2, 2] = -y
+        top = shapely.box(self.x_lo, y, self.x_hi, self.top_y)
+        part = self.design.intersection(top)
+        self.layer_design: Any = part if not part.is_empty else self.design
+        ring = np.asarray(shapely.get_exterior_ring(shapely.normalize(self.layer_design)).coords)
+        edge = ring[1:] - ring[:-1]
+        self._layer_edges = np.column_stack([ring[:-1], edge, np.sum(edge * edge, axis=1)])
+
+    def _next_wall(self, far: bool, remaining: Any, t0: float) -> PlannedDig | None:
+        """The next piece of the far (``far``) or near wall's profile dig: the wall's line from
+        its top edge to the bottom, in pieces no longer than :data:`_COLUMN_MAX_M` (scaled),
+        top first; a full dig where it fills the bucket, else a finishing pass. None when the
+        wall is done or nothing is left on it."""
+        t = self.task
+        g = self.ground_y
+        xf = t.start_x_m
+        xn = xf - t.length_m
+        if far:
+            if self.section != 0:
+                return None
+            top = np.array([xf, g])
+            foot = np.array([xf - t.depth_m / math.tan(t.beta1_rad), self.bottom_y])
+            beta = t.beta1_rad
+        else:
+            if self.section_lo > xn + 1e-9:
+                return None
+            top = np.array([xn, g])
+            foot = np.array([xn + t.depth_m / math.tan(t.beta2_rad), self.bottom_y])
+            beta = t.beta2_rad
+        n = max(1, math.ceil(abs(top[0] - foot[0]) / (_COLUMN_MAX_M * self.planner.scale)))
+        lo_d, hi_d = oneshot.theta_p_range(self.planning, int(DigType.DOWNWARD))
+        kind = DigType.DOWNWARD if float(lo_d) + 0.02 <= beta <= float(hi_d) else DigType.BACKWARD
+        atts = _WALL_ATTITUDES_DEG[kind]
+        # The last piece stops short of the corner: a path that reaches into it cuts past the
+        # bottom before the bottom's columns have opened it (and the columns start there).
+        span = foot - top
+        short = foot - span * (_CORNER_GAP_M * self.planner.scale / float(np.hypot(*span)))
+        while self._wall_piece < n:
+            k = self._wall_piece
+            self._wall_piece += 1
+            a = top + (short - top) * k / n
+            b = top + (short - top) * (k + 1) / n
+            # Nothing on this piece: skip it.
+            xs = np.linspace(min(a[0], b[0]), max(a[0], b[0]), 16)
+            above = np.interp(xs, self.grid, self.surface) - np.interp(
+                xs, self.grid, self.design_floor
+            )
+            if float(np.max(above)) < _COLUMN_EDGE_M * self.planner.scale:
+                continue
+            found = self._fit_pass(kind, np.array([a, b]), atts)
+            if found is None:
+                continue
+            dig = self._plan_profile(found, remaining, t0)
+            if dig is not None:
+                return dig
+        return None
+
+    def _plan_profile(self, found: Candidate, remaining: Any, t0: float) -> PlannedDig | None:
+        """A fitted profile dig planned as a full dig, or else (when the section's finishing
+        passes allow) as a finishing pass."""
+        dig = self._first_plannable([found], remaining, t0)
+        if dig is None:
+            dig = self._first_plannable(
+                [dataclasses.replace(found, may_underfill=True)], remaining, t0
+            )
+            if dig is not None and dig.finishing:
+                self.finishing_used += 1
+        return dig
+
+    def _bottom_span(self) -> tuple[float, float]:
+        """The design's flat bottom within the section (x range, work-site frame)."""
+        t = self.task
+        xf = t.start_x_m
+        bx = xf - t.depth_m / math.tan(t.beta1_rad)
+        cx = xf - t.length_m + t.depth_m / math.tan(t.beta2_rad)
+        return max(cx, self.section_lo), min(bx, self.section_hi)
+
+    def _column_ends(
+        self, floor: FloatArray, x_lo: float, x_hi: float, partial: bool = False
+    ) -> list[float]:
+        """The next column of the material above ``floor`` (on the grid) within ``[x_lo,
+        x_hi]``: its start (just beyond the far edge of that material, at most ``x_hi``) and
+        where it may end (x, work-site frame), best first. The material (less a skin) from the
+        far edge towards the machine is split into as few full buckets as the fill band
+        allows, equal in area, and the column is the far one; what no bucket would fill is
+        taken with the last. Empty when what is left cannot fill one bucket, unless
+        ``partial``: then the rest in as few columns as the bucket and the longest dig allow
+        (under-filled: finishing passes)."""
+        lo_a, hi_a = self._fill_band()
+        s = self.planner.scale
+        x = self.grid
+        t = np.clip(self.surface - floor - _COLUMN_SKIN_M * s, 0.0, None)
+        t[(x < x_lo - 1e-9) | (x > x_hi + 1e-9)] = 0.0
+        # The far edge of the material a dig along the floor leaves (its fit and offset leave
+        # a few mm on the outline: the finishing passes' part), thick over a few mm (the grid
+        # point beside a wall's foot can stand alone).
+        thick = np.convolve(t > _COLUMN_EDGE_M * s, np.ones(5), mode="same") >= 5
+        # Runs too small to count (a quarter of V_min) are left to the walls' digs and the
+        # finishing passes: a column that starts at one would carry little else.
+        on = np.zeros(x.shape[0] + 2, dtype=np.int8)
+        on[1:-1] = thick
+        change = np.diff(on)
+        for i0, i1 in zip(np.flatnonzero(change == 1), np.flatnonzero(change == -1), strict=True):
+            if float(np.sum(t[i0:i1])) * GRID_STEP_M < 0.25 * lo_a:
+                thick[i0:i1] = False
+        idx = np.flatnonzero(thick)
+        if not idx.size:
+            return []
+        i_lo = int(np.searchsorted(x, x_lo - 1e-9))
+        # The column enters just beyond the face (on dug ground, so that it enters from the
+        # air), at most at the span's far end.
+        i_hi = int(np.searchsorted(x, x_hi + 1e-9)) - 1
+        i_start = min(int(idx[-1]) + 2 + int(_FACE_GAP_M * s / GRID_STEP_M), i_hi)
+        cum = np.cumsum(t[i_lo : i_start + 1][::-1]) * GRID_STEP_M  # from the far edge
+        total = float(cum[-1])
+        w_max = round(_COLUMN_MAX_M * s / GRID_STEP_M)
+        if partial:
+            n = max(math.ceil(total / (hi_a * _FILL_AIM)), math.ceil(cum.shape[0] / w_max), 1)
+            k = min(int(np.searchsorted(cum, total / n)), cum.shape[0] - 1, w_max)
+            return [float(x[i_start]), float(x[i_start - k])]
+        if total < lo_a * (1.0 + _FILL_MARGIN):
+            return []
+        n = max(1, math.ceil(total / (hi_a * _FILL_AIM)))
+        if n > 1 and total / n < lo_a:
+            n -= 1  # no even split fills every bucket: this one full, the rest left over
+        target = total / n
+        ends: list[float] = []
+        last = min(cum.shape[0] - 1, w_max)
+        if n == 1 and total <= hi_a:
+            ends.append(float(x[i_start - last]))  # the whole rest in one bucket
+        for f in (1.0, 1.06, 0.94, 1.12, 0.88):
+            area = min(target * f, hi_a * (1.0 - _FILL_MARGIN))
+            if area < lo_a:
+                continue
+            k = min(int(np.searchsorted(cum, area)), last)
+            # What would be left behind this column that no bucket fills goes with it.
+            if float(cum[-1] - cum[k]) < lo_a and total <= hi_a:
+                k = last
+            x_end = float(x[i_start - k])
+            if all(abs(x_end - e) > 2.0 * GRID_STEP_M for e in ends):
+                ends.append(x_end)
+        return [float(x[i_start]), *ends]
+
+    def _next_layer_column(self, remaining: Any, t0: float) -> PlannedDig | None:
+        """The next column of the current layer (above the bottom one): a dig along the
+        layer's floor, and down the far wall or up the near wall where the column reaches
+        them (:meth:`_fit_profile` on the layer's outline), carrying a full bucket; where
+        what is left fills none but is too much to leave to the next layer (a quarter of
+        V_min), the rest under-filled. None when the layer is done."""
+        floor = self._layer_floor
+        y_floor = self.layer_y
+        walls = self._layer_walls
+        lo_d, hi_d = oneshot.theta_p_range(self.planning, int(DigType.DOWNWARD))
+        steep = float(lo_d) + 0.02 <= self.task.beta1_rad <= float(hi_d)
+        rise = 0.005 * self.planner.scale
+        for partial in (False, True):
+            ends = self._column_ends(floor, self.section_lo, self.section_hi, partial)
+            if not ends:
+                continue
+            if partial and not self._layer_must_be_taken():
+                return None
+            x_start = ends[0]
+            a = np.array([x_start, float(np.interp(x_start, self.grid, floor))])
+            on_wall = a[1] > y_floor + rise
+            kind = DigType.DOWNWARD if on_wall and steep else DigType.BACKWARD
+            if not on_wall:
+                a[1] += 0.002  # enters descending (theta_p >= 0)
+            for x_end in ends[1:]:
+                b = np.array([x_end, float(np.interp(x_end, self.grid, floor))])
+                rows = [0] if on_wall else []
+                rows.append(2)
+                if b[1] > y_floor + rise:
+                    rows.append(1)
+                found = self._fit_profile(
+                    kind, a, b, walls[rows], _LAYER_ATTITUDES_DEG[kind], _PASS_OFFSETS_M
+                )
+                dig = self._plan_column(found, partial, remaining, t0)
+                if dig is not None:
+                    return dig
+        return None
+
+    def _layer_must_be_taken(self) -> bool:
+        """Whether what is left above the current layer's floor must be taken under-filled:
+        left to the layer below, it would make that layer thicker anywhere than the boom's
+        torque cuts through (:data:`_CUT_MAX_M`, scaled)."""
+        if self.layer >= len(self.layer_floors):
+            return True  # the bottom layer: nothing below takes it
+        x = self.grid
+        inside = (x >= self.section_lo) & (x <= self.section_hi)
+        nxt = self.layer + 1
+        below = self.layer_floors[nxt] if nxt < len(self.layer_floors) else self.bottom_y
+        floor = np.maximum(self.design_floor[inside], below)
+        return bool(np.any(self.surface[inside] - floor > _CUT_MAX_M * self.planner.scale))
+
+    def _next_column(self, remaining: Any, t0: float) -> PlannedDig | None:
+        """The next bottom column (:meth:`_column_ends`): a straight backward dig along the
+        bottom over its span (:meth:`_fit_pass`), carrying a full bucket of real material;
+        where what is left fills none, the rest under-filled (finishing passes). None when
+        nothing thicker than the skin is left on the bottom."""
+        x_lo, x_hi = self._bottom_span()
+        atts = _COLUMN_ATTITUDES_DEG[DigType.BACKWARD]
+        for partial in (False, True):
+            ends = self._column_ends(self.design_floor, x_lo, x_hi, partial)
+            if not ends:
+                continue
+            a = (ends[0], self.bottom_y + 0.002)  # enters descending (theta_p >= 0)
+            for x_end in ends[1:]:
+                line = np.array([a, (x_end, self.bottom_y)])
+                found = self._fit_pass(DigType.BACKWARD, line, atts)
+                dig = self._plan_column(found, partial, remaining, t0)
+                if dig is not None:
+                    return dig
+        # No straight column enters (a steep far wall whose dig could not open the face, or
+        # a column whose moves would plough): one down the wall and along the bottom.
+        return self._next_layer_column(remaining, t0)
+
+    def _plan_column(
+        self, found: Candidate | None, partial: bool, remaining: Any, t0: float
+    ) -> PlannedDig | None:
+        """A fitted column planned: a full dig, or with ``partial`` a finishing pass."""
+        if found is None:
+            return None
+        dig = self._first_plannable(
+            [dataclasses.replace(found, may_underfill=partial)], remaining, t0
+        )
+        if dig is not None and dig.finishing:
+            self.finishing_used += 1
+        return dig

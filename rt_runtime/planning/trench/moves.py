@@ -1,0 +1,390 @@
+"""The moves between digs: lift out, dump, approach, enter, as rest-to-rest ruckig moves
+(never intermediate waypoints: the PyPI build sends those to a cloud service) whose poses come
+from the material left, each checked on the whole bucket and refused where it would plough."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rt_runtime import kinematics
+from rt_runtime.errors import PlanningError
+from rt_runtime.planning.trench.geometry import (
+    GRID_STEP_M,
+    FloatArray,
+    _depth_below,
+    _max_table,
+    _range_max,
+)
+from rt_runtime.planning.trench.material import MaterialMixin
+from rt_runtime.planning.trench.plan import PlannedDig, Transition
+from rt_runtime.planning.trench.state import _stage
+
+# Transition poses (scale model, m / deg), assumed: Yao gives none. The bucket dumps at
+# _DUMP_POSE (tip x, height above ground, attitude; bucket opened, beside the machine). The
+# poses between are chosen from the surface (TrenchSession.exit_transitions and
+# entry_transitions): the lift pose puts the whole bucket _LIFT_CLEAR_M above the material under
+# it, the approach pose backs off from the entry by the first of _APPROACH_M that puts the bucket
+# _LIFT_CLEAR_M above the material.
+_LIFT_CLEAR_M = 0.02
+
+
+_DUMP_POSE = (0.60, 0.25, -80.0)
+
+
+_APPROACH_M = (0.03, 0.05, 0.08, 0.12, 0.18, 0.25)
+
+
+#: Deepest a transition may take the bucket into the material left (m): every move is checked
+#: on its samples and refused beyond it (:meth:`TrenchSession.exit_transitions`).
+TRANSITION_PENETRATION_M = 0.005
+
+
+# Sampling of a move's check (m, every rig; TrenchSession._move_depth): from one sample to the
+# next no point of the bucket outline moves farther than _MOVE_STEP_M where the bucket is near
+# the material, _COARSE_STEP_M where it is not; the outline's points lie _OUTLINE_STEP_M apart.
+_MOVE_STEP_M = 0.002
+
+
+_COARSE_STEP_M = 0.01
+
+
+# Depth into the material beyond which a move's check stops measuring (m): it is refused anyway.
+_DEPTH_CAP_M = 0.05
+
+
+# Lift heights a transition tries (TrenchSession._lift_heights).
+_N_LIFT_HEIGHTS = 4
+
+
+# Transitions kept for when they are asked for again (a dig's, its next dig's).
+_N_CACHED_MOVES = 16
+
+
+def _safe_ik(arm: kinematics.FastArm, x: float, y: float, attitude: float) -> FloatArray:
+    """IK of a transition pose, trying attitudes nearer the middle when the first fails."""
+    for att in (attitude, attitude + 0.3, attitude - 0.3, -math.pi / 2):
+        q = arm.ik(x, y, att)
+        if q is not None:
+            return np.asarray(q)
+    raise PlanningError(f"no reachable transition pose at x={x:.3f} m, y={y:.3f} m")
+
+
+class MovesMixin(MaterialMixin):
+    """The moves between a session's digs (see the module)."""
+
+    @_stage("transitions")
+    def _append_transitions(self, dig: PlannedDig) -> None:
+        """Dump the previous load and approach this dig's entry (ruckig, rest to rest)."""
+        if self.q_now is not None:
+            self.steps.extend(self.exit_transitions(self.q_now))
+        self.steps.extend(self.entry_transitions(dig, self.planner.dump_pose_rad))
+
+    def exit_transitions(
+        self, q_from_rad: ArrayLike, *, after: PlannedDig | None = None
+    ) -> tuple[Transition, ...]:
+        """Lift out of the material and go to the dump pose, from any pose (arm frame).
+
+        ``lift_out`` goes straight up, the tip's x and attitude kept, until the whole bucket is
+        :data:`_LIFT_CLEAR_M` above the material under it, or higher where the way to the dump
+        pose needs it (the lowest clear one of :meth:`_lift_heights`: on A-D the lowest is
+        always clear and a higher lift only adds time); a lift whose joint-space move strays
+        from the vertical into the material is made in pieces through poses on it. ``dump``
+        goes from there to the dump pose. A pose already clear of the material goes to the
+        dump pose without a lift. The executor streams these after each dig while the next one
+        is planned, and from a measured pose inside the material when a run resumes.
+
+        Every move is checked on its samples (:meth:`_checked`) against the material as it is
+        when it runs: the current material, or with ``after`` the material the pending dig
+        ``after`` leaves (its planned path cut; the executor plans a dig's exit moves before it
+        runs). The first move starts where the bucket is, possibly in the material (a dig's
+        curled bucket hangs below its tip's path; a stopped dig leaves it deep): it may cross
+        the material straight above the bucket's outline at its start, which the bucket carries
+        out going straight up, and nothing else.
+
+        Args:
+            q_from_rad: Start pose ``(3,)``, e.g. a dig's exit or the measured pose.
+            after: The pending dig the moves follow (None: they run now).
+
+        Returns:
+            The moves in order: ``lift_out`` (none, one or several) then ``dump``; the same
+            moves :meth:`next_dig` puts before the next dig.
+
+        Raises:
+            PlanningError: No lift pose is reachable, ruckig cannot plan a move, or every
+                candidate has a move deeper than :data:`TRANSITION_PENETRATION_M` in the
+                material (the message names the move and the depth).
+        """
+        q0 = np.asarray(q_from_rad, dtype=np.float64)
+        surface = self.surface if after is None else self._surface_after(after)
+        key = ("exit", *q0.tolist(), self.machine_x)
+        moves = self._cached(key, surface)
+        if moves is None:
+            moves = self._plan_exit(q0, surface)
+            self._remember(key, surface, moves)
+        return moves
+
+    def entry_transitions(self, dig: PlannedDig, q_from_rad: ArrayLike) -> tuple[Transition, ...]:
+        """Approach ``dig``'s entry from ``q_from_rad`` (the dump pose) and enter the material.
+
+        ``enter`` lowers the bucket straight down into the entry pose, or where no such move is
+        clear slides it in along its own axis (pin to tip), from an approach pose backed off by
+        the first of :data:`_APPROACH_M` (scaled) that puts the whole bucket
+        :data:`_LIFT_CLEAR_M` above the material and whose moves are clear; ``approach`` goes
+        there from ``q_from_rad``. Straight down first: on A-D it was clear at every entry and
+        as fast or faster than along the axis. Checked against the material before the dig.
+        The dig starts at its entry, on the surface or (a profile pass into a corner, a layer)
+        below it, and the bucket's back may lie in a wall there: each point of the bucket may
+        go as deep during ``enter`` as it is at the entry pose, plus the tolerance.
+
+        Returns:
+            ``(approach, enter)``.
+
+        Raises:
+            PlanningError: No reachable approach pose, ruckig cannot plan a move, or every
+                candidate has a move deeper than :data:`TRANSITION_PENETRATION_M` in the
+                material (the message names the move and the depth).
+        """
+        q_from = np.asarray(q_from_rad, dtype=np.float64)
+        q_entry = np.asarray(dig.problem.q_start_rad, dtype=np.float64)
+        key = ("entry", *q_from.tolist(), *q_entry.tolist(), self.machine_x)
+        moves = self._cached(key, self.surface)
+        if moves is None:
+            moves = self._plan_entry(q_from, q_entry, self.surface)
+            self._remember(key, self.surface, moves)
+        return moves
+
+    @_stage("transitions")
+    def _check_transition_poses(self, dig: PlannedDig) -> None:
+        """PlanningError unless the moves around ``dig`` can be made clear: into its entry from
+        the dump pose, and out of its exit over the material it leaves (a layer pass may end
+        too near the machine to lift the bucket straight up, and that was only found when the
+        next dig was planned, as an error). The moves are kept for when they are asked for."""
+        self.entry_transitions(dig, self.planner.dump_pose_rad)
+        self.exit_transitions(dig.problem.q_end_rad, after=dig)
+
+    def _cached(self, key: tuple[Any, ...], surface: FloatArray) -> tuple[Transition, ...] | None:
+        """The moves planned for ``key`` on this very height field, if they are kept."""
+        hit = self._moves.get(key)
+        if hit is not None and np.array_equal(hit[0], surface):
+            return hit[1]
+        return None
+
+    def _remember(
+        self, key: tuple[Any, ...], surface: FloatArray, moves: tuple[Transition, ...]
+    ) -> None:
+        """Keep ``moves`` (planned for ``key`` on ``surface``), the oldest dropped."""
+        self._moves[key] = (surface.copy(), moves)
+        while len(self._moves) > _N_CACHED_MOVES:
+            del self._moves[next(iter(self._moves))]
+
+    def _surface_after(self, dig: PlannedDig) -> FloatArray:
+        """The height field once ``dig``'s planned path has cut it."""
+        planned = self._planned_region
+        if planned is not None and planned[0] is dig.tip_path_m:
+            env = planned[1]
+        else:
+            env = self._envelope(np.asarray(dig.tip_path_m, dtype=np.float64), self.grid)
+        after: FloatArray = np.minimum(self.surface, env)
+        return after
+
+    def _plan_exit(self, q0: FloatArray, surface: FloatArray) -> tuple[Transition, ...]:
+        """:meth:`exit_transitions` on the height field ``surface``."""
+        mover = self.planner.mover
+        x0, y0, z0 = mover.arm.tip(q0)
+        dump = np.asarray(self.planner.dump_pose_rad, dtype=np.float64)
+        # The material straight above the bucket's outline at the start is what it carries
+        # out going straight up.
+        bx, by = mover.bucket_xy(q0)
+        start = np.stack([bx + self.machine_x, by], axis=1)
+        carry = np.minimum(surface, self._envelope(start, self.grid))
+        refused: list[Transition] = []
+        for y_lift in self._lift_heights(q0, surface):
+            moves: list[Transition] = []
+            q_top = q0
+            if y_lift > y0 + 1e-6:
+                lift = self._lift(q0, y_lift, carry)
+                if lift is None:
+                    continue
+                moves.extend(lift)
+                q_top = np.asarray(lift[-1].q_to_rad)
+            moves.append(self._checked("dump", q_top, dump, surface if moves else carry))
+            bad = [m for m in moves if m.penetration_m > TRANSITION_PENETRATION_M]
+            if bad:
+                refused.append(max(bad, key=lambda m: m.penetration_m))
+                continue
+            return tuple(moves)
+        raise PlanningError(
+            self._refusal("exit", (x0 + self.machine_x, y0, z0), refused, "no lift pose")
+        )
+
+    def _lift_heights(self, q0: FloatArray, surface: FloatArray) -> list[float]:
+        """Candidate tip heights of the lift from ``q0`` (arm frame, ascending): the whole
+        bucket :data:`_LIFT_CLEAR_M` above the material within that distance of it, then
+        higher in steps of twice that; the start's own height first where it is higher."""
+        mover = self.planner.mover
+        s = self.planner.scale
+        clear = _LIFT_CLEAR_M * s
+        y0 = mover.arm.tip(q0)[1]
+        bx, by = mover.bucket_xy(q0)
+        k = math.ceil(clear / GRID_STEP_M)
+        i = np.rint((bx + self.machine_x - self.grid[0]) / GRID_STEP_M).astype(np.int64)
+        cols = np.clip(i[:, None] + np.arange(-k, k + 1), 0, self.grid.shape[0] - 1)
+        # Heights over the tip of the outline's points at the start attitude.
+        need = float(np.max(np.max(surface[cols], axis=1) - (by - y0))) + clear
+        return sorted({max(need + 2.0 * clear * j, y0) for j in range(_N_LIFT_HEIGHTS)})
+
+    def _lift(
+        self, q0: FloatArray, y_lift: float, carry: FloatArray
+    ) -> tuple[Transition, ...] | None:
+        """``lift_out`` from ``q0`` straight up to tip height ``y_lift``: one move, or where it
+        strays from the vertical into the material, pieces through poses on the vertical
+        (the fewest that are clear; else the one move, to be refused). None: out of reach."""
+        arm = self.planner.mover.arm
+        x0, y0, z0 = arm.tip(q0)
+        first: tuple[Transition, ...] | None = None
+        for pieces in (1, 2, 3):
+            poses = [q0]
+            for y in np.linspace(y0, y_lift, pieces + 1)[1:].tolist():
+                q = arm.ik(x0, y, z0)
+                if q is None:
+                    try:
+                        q = tuple(_safe_ik(arm, x0, y, z0))
+                    except PlanningError:
+                        return first
+                poses.append(np.asarray(q, dtype=np.float64))
+            moves = tuple(
+                self._checked("lift_out", a, b, carry) for a, b in itertools.pairwise(poses)
+            )
+            if first is None:
+                first = moves
+            if all(m.penetration_m <= TRANSITION_PENETRATION_M for m in moves):
+                return moves
+        return first
+
+    def _plan_entry(
+        self, q_from: FloatArray, q_entry: FloatArray, surface: FloatArray
+    ) -> tuple[Transition, ...]:
+        """:meth:`entry_transitions` on the height field ``surface``."""
+        mover = self.planner.mover
+        arm = mover.arm
+        s = self.planner.scale
+        xe, ye, ze = arm.tip(q_entry)
+        allow = self._bucket_depth(q_entry[None], surface, np.inf)[0]
+        clear = _LIFT_CLEAR_M * s
+        refused: list[Transition] = []
+        # The enter's direction of travel: straight down, else along the bucket's axis.
+        for ux, uy in ((0.0, -1.0), (math.cos(ze), math.sin(ze))):
+            for d in _APPROACH_M:
+                qa = arm.ik(xe - d * s * ux, ye - d * s * uy, ze)
+                if qa is None:
+                    continue
+                q_above = np.asarray(qa, dtype=np.float64)
+                bx, by = mover.bucket_xy(q_above)
+                if np.any(by < np.interp(bx + self.machine_x, self.grid, surface) + clear):
+                    continue
+                enter = self._checked("enter", q_above, q_entry, surface, allow)
+                if enter.penetration_m > TRANSITION_PENETRATION_M:
+                    refused.append(enter)
+                    continue
+                approach = self._checked("approach", q_from, q_above, surface)
+                if approach.penetration_m > TRANSITION_PENETRATION_M:
+                    refused.append(approach)
+                    continue
+                return (approach, enter)
+        raise PlanningError(
+            self._refusal("entry", (xe + self.machine_x, ye, ze), refused, "no approach pose")
+        )
+
+    def _refusal(
+        self, what: str, pose: tuple[float, float, float], refused: list[Transition], none: str
+    ) -> str:
+        """The message of a refused exit or entry: the least deep refused move, or ``none``."""
+        where = f"x={pose[0]:.3f} m, y={pose[1]:.3f} m, attitude {math.degrees(pose[2]):.1f} deg"
+        if not refused:
+            return f"no clear {what} moves at {where}: {none} is reachable and clear"
+        m = min(refused, key=lambda t: t.penetration_m)
+        depth = f"{m.penetration_m * 1e3:.1f} mm"
+        if m.penetration_m >= _DEPTH_CAP_M:
+            depth = f"{_DEPTH_CAP_M * 1e3:.0f} mm or more"
+        return (
+            f"no clear {what} moves at {where}: the {m.kind} move goes {depth} into the "
+            f"material at best (limit {TRANSITION_PENETRATION_M * 1e3:.0f} mm)"
+        )
+
+    def _checked(
+        self,
+        kind: str,
+        qa: FloatArray,
+        qb: FloatArray,
+        surface: FloatArray,
+        allow: FloatArray | None = None,
+    ) -> Transition:
+        """The ruckig move ``qa -> qb`` with its penetration (:meth:`_move_depth`)."""
+        traj = self.planner.mover.move(qa, qb)
+        return Transition(
+            kind=kind,
+            q_from_rad=(float(qa[0]), float(qa[1]), float(qa[2])),
+            q_to_rad=(float(qb[0]), float(qb[1]), float(qb[2])),
+            duration_s=float(traj.duration),
+            machine_x_m=self.machine_x,
+            penetration_m=self._move_depth(traj, qa, qb, surface, allow),
+        )
+
+    def _move_depth(
+        self,
+        traj: Any,
+        qa: FloatArray,
+        qb: FloatArray,
+        surface: FloatArray,
+        allow: FloatArray | None,
+    ) -> float:
+        """The deepest any point of the bucket outline goes into the material under
+        ``surface`` (:func:`_depth_below`) on the move ``traj`` from ``qa`` to ``qb``, less
+        ``allow`` ``(m,)`` per outline point where given (m, >= 0).
+
+        Sampled where the bucket comes near the material: on samples that no point of the
+        bucket moves :data:`_COARSE_STEP_M` between, a stretch where the bucket's bounding box
+        stays that far above the highest material under it (that far to either side) cannot
+        touch it; the rest is sampled every :data:`_MOVE_STEP_M` of the bucket's travel with
+        the whole outline. Between samples and outline points a point can be deeper by at
+        most half their spacing (a point's depth changes no faster than the point moves).
+        Depths beyond :data:`_DEPTH_CAP_M` (past ``allow``) count as that.
+        """
+        mover = self.planner.mover
+        h = GRID_STEP_M
+        last = self.grid.shape[0] - 1
+        reach = _COARSE_STEP_M
+        times = np.linspace(0.0, float(traj.duration), mover.n_samples(qa, qb, reach))
+        x, y = mover.bucket_xy(mover.poses(traj, times), corners=True)
+        x = x + self.machine_x
+        i0 = np.clip(np.floor((np.min(x, axis=1) - reach - self.grid[0]) / h), 0, last)
+        i1 = np.clip(np.ceil((np.max(x, axis=1) + reach - self.grid[0]) / h), 0, last)
+        if not np.array_equal(self._max_tables[0], surface):
+            self._max_tables = (surface.copy(), _max_table(surface))
+        top = _range_max(self._max_tables[1], i0.astype(np.int64), i1.astype(np.int64))
+        far = np.min(y, axis=1) >= top + reach
+        near = np.flatnonzero(~(far[:-1] | far[1:]))
+        if near.size == 0:
+            return 0.0
+        k = math.ceil(reach / _MOVE_STEP_M)
+        frac = np.arange(k + 1) / k
+        fine = np.unique(times[near, None] + (times[near + 1] - times[near])[:, None] * frac)
+        if allow is None:
+            depth = self._bucket_depth(mover.poses(traj, fine), surface)
+        else:
+            depth = self._bucket_depth(mover.poses(traj, fine), surface, allow + _DEPTH_CAP_M)
+            depth -= allow
+        return max(0.0, float(np.max(depth)))
+
+    def _bucket_depth(
+        self, q: FloatArray, surface: FloatArray, cap_m: ArrayLike = _DEPTH_CAP_M
+    ) -> FloatArray:
+        """How deep each point of the bucket outline is in the material, poses ``(n, 3)`` ->
+        ``(n, m)`` (m, up to ``cap_m``, :func:`_depth_below`)."""
+        x, y = self.planner.mover.bucket_xy(q)
+        return _depth_below(self.grid, surface, x + self.machine_x, y, cap_m)

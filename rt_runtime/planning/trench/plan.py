@@ -1,0 +1,289 @@
+"""A trench plan: its digs, moves between digs and travel moves (frozen dataclasses), its
+honest status against the goals, and its report (``excavator-rt plan --json``)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any
+
+import numpy as np
+from shapely.geometry import Polygon
+
+from rt_runtime.planning.oneshot import DigType, Problem
+from rt_runtime.planning.trench.geometry import OVERDIG_LIMIT_M, FloatArray
+from rt_runtime.planning.trench.motion import joint_move
+from rt_runtime.planning.trench.task import YAO_FIG14, TrenchTask
+from rt_runtime.planning.verify import (
+    VerifyResult,
+)
+from rt_runtime.rig import Rig
+
+
+@dataclass(frozen=True, slots=True)
+class PlannedDig:
+    """One verified dig of a trench plan.
+
+    Attributes:
+        index: 0-based position in the plan.
+        problem: Entry/exit poses (arm frame at the machine's position) and H.
+        a6, T_s: The verified sextic.
+        machine_x_m: The machine's travel from its first position when this dig runs.
+        tip_path_m: Planned tip path in the work-site frame, ``(n, 2)``.
+        volume_m3: Real material the dig removes (polygon accounting, planned path).
+        design_volume_m3: Of that, the part inside the design.
+        predicted_volume_m3: V_p of the one-shot model (flat surface at H), bounded by the
+            verifier.
+        energy_j, theta_p_rad: W_E and the initial digging angle of the verified plan.
+        overdig_m: Deepest cut below the design profile (0 if none).
+        plan_us: Time the one-shot planner took for this dig (excluding screening).
+        select_us: Time of this dig's candidate screening and selection.
+        planner: ``pinn`` or ``pso``; status: how the one-shot planner got the plan
+            (``filled``: the network's path filled on the material left; ``profile``: a
+            full dig along the design's outline; ``profile_pass``: a finishing pass).
+        evaluation: The verifier's row for the plan.
+        finishing: Whether the dig is a finishing pass (exempt from the fill rule).
+        section: The section of the trench the dig belongs to (0 at the far end).
+    """
+
+    index: int
+    problem: Problem
+    a6: tuple[float, float, float]
+    T_s: float
+    machine_x_m: float
+    tip_path_m: FloatArray
+    volume_m3: float
+    design_volume_m3: float
+    predicted_volume_m3: float
+    energy_j: float
+    theta_p_rad: float
+    overdig_m: float
+    plan_us: float
+    select_us: float
+    planner: str
+    status: str
+    evaluation: FloatArray = field(repr=False)
+    finishing: bool = False
+    section: int = 0
+
+    @property
+    def dig_type(self) -> DigType:
+        """Downward or backward."""
+        return self.problem.dig_type
+
+    @property
+    def verification(self) -> VerifyResult:
+        """The verifier's result for the plan."""
+        return VerifyResult.from_row(self.evaluation)
+
+    def trajectory(self) -> Any:
+        """The joint trajectory (:class:`rt_runtime.trajectory.sextic.SexticTrajectory`)."""
+        from rt_runtime.trajectory.sextic import SexticTrajectory
+
+        return SexticTrajectory(
+            np.asarray(self.problem.q_start_rad),
+            np.asarray(self.problem.q_end_rad),
+            np.asarray(self.a6),
+            self.T_s,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class Transition:
+    """A state-to-state joint motion between digs (ruckig, rest to rest, no waypoints).
+
+    Attributes:
+        kind: ``lift_out``, ``dump``, ``approach`` or ``enter``: the phase of the cycle it is
+            part of (a phase may take several moves: a lift in pieces).
+        q_from_rad, q_to_rad: End poses (arm frame).
+        duration_s: Time-optimal duration within the joint velocity/acceleration/jerk limits.
+        machine_x_m: The machine's travel from its first position.
+        penetration_m: How far the bucket (its tip, bottom and back plate) goes into the
+            material left, as a distance, beyond what the move is allowed at a dig's pose
+            (:meth:`TrenchSession.exit_transitions`, :meth:`TrenchSession.entry_transitions`);
+            0 if clear, at most :data:`TRANSITION_PENETRATION_M` in a plan.
+    """
+
+    kind: str
+    q_from_rad: tuple[float, float, float]
+    q_to_rad: tuple[float, float, float]
+    duration_s: float
+    machine_x_m: float
+    penetration_m: float
+
+    def trajectory(self, rig: Rig) -> Any:
+        """The ruckig trajectory (``ruckig.Trajectory``), recomputed from the end poses."""
+        return joint_move(rig, self.q_from_rad, self.q_to_rad)[0]
+
+
+@dataclass(frozen=True, slots=True)
+class TravelMove:
+    """Crawler travel through the VCU (+x away from the trench's far end is negative)."""
+
+    distance_m: float
+    machine_x_from_m: float
+    machine_x_to_m: float
+
+
+class PlanStatus(IntEnum):
+    """Whether a plan digs its task: ``DONE`` when it meets every goal of :func:`plan_goals`."""
+
+    DONE = 0
+    INCOMPLETE = 1
+
+
+#: A plan is done only when its coverage error (:attr:`TrenchPlan.coverage_error`) is at most
+#: this fraction of the design's area.
+COVERAGE_GOAL = 0.02
+
+
+#: ... and its deepest cut below the design (:attr:`TrenchPlan.overdig_max_m`) at most this (m),
+#: the limit every dig is planned to.
+OVERDIG_GOAL_M = OVERDIG_LIMIT_M
+
+
+@dataclass(frozen=True, slots=True)
+class TrenchPlan:
+    """A frozen plan for one trench task.
+
+    Its :attr:`status` is ``DONE`` only when it meets every goal of :func:`plan_goals`; an
+    ``INCOMPLETE`` plan says why in :attr:`reason` and how much design material it leaves in
+    :attr:`volume_left_m3`.
+
+    Attributes:
+        task: The task.
+        rig: Rig name.
+        planner: One-shot planner name.
+        steps: Digs, transitions and travel moves in execution order.
+        digs: The digs alone.
+        design: The designed cross-section polygon.
+        dug: The region the plan removes (initial material minus final material).
+        final_surface_m: The final surface over the task's x range, ``(n, 2)``.
+        coverage_error: Area of the symmetric difference of dug and design over the design.
+        overdig_max_m: Deepest cut below the design profile.
+        removed_m3: Total removed volume; equals the sum of the digs' ``volume_m3``.
+        design_m3: Designed volume (area x bucket width).
+        plan_total_us: Wall time of the whole plan (from the task to this frozen plan, its
+            coverage and over-dig measured).
+        stage_us: Where that time went (us): ``screen`` (choosing each dig's poses),
+            ``oneshot`` (the one-shot planner's calls), ``checks`` (each planned dig's
+            verification, over-dig and polygon checks), ``passes`` (fitting the profile
+            passes), ``transitions`` (the ruckig moves and their ground checks), ``record``
+            (the material update), ``finish`` (this plan's coverage and over-dig), ``other``
+            (the rest: entries, the remaining design, relocation).
+        planning_error: What stopped the planning before the planner found the task finished
+            (the message of the PlanningError: no dig removes the rest, the bound on the digs),
+            or None when it ran to its end; the plan then holds the digs before it.
+    """
+
+    task: TrenchTask
+    rig: str
+    planner: str
+    steps: tuple[PlannedDig | Transition | TravelMove, ...]
+    digs: tuple[PlannedDig, ...]
+    design: Polygon
+    dug: Any
+    final_surface_m: FloatArray
+    coverage_error: float
+    overdig_max_m: float
+    removed_m3: float
+    design_m3: float
+    plan_total_us: float
+    stage_us: dict[str, float] = field(default_factory=dict)
+    planning_error: str | None = None
+
+    @property
+    def status(self) -> PlanStatus:
+        """``DONE`` when :func:`plan_goals` finds no goal unmet, else ``INCOMPLETE``."""
+        return PlanStatus.INCOMPLETE if plan_goals(self) else PlanStatus.DONE
+
+    @property
+    def reason(self) -> str | None:
+        """Why the plan is incomplete (the unmet goals, ``; ``-joined), None when done."""
+        unmet = plan_goals(self)
+        return "; ".join(unmet) if unmet else None
+
+    @property
+    def volume_left_m3(self) -> float:
+        """Design material the plan leaves (m^3): the design's volume times the part of its
+        area not dug."""
+        left = float(self.design.difference(self.dug).area)
+        return self.design_m3 * left / float(self.design.area)
+
+    def to_json(self) -> dict[str, Any]:
+        """The report of ``excavator-rt plan --json`` (keys in DESIGN.md "Reports")."""
+        digs = [
+            {
+                "type": d.dig_type.name.lower(),
+                "T_s": d.T_s,
+                "volume_L": d.volume_m3 * 1e3,
+                "predicted_volume_L": d.predicted_volume_m3 * 1e3,
+                "design_volume_L": d.design_volume_m3 * 1e3,
+                "energy_Wh": d.energy_j / 3600.0,
+                "theta_p_deg": math.degrees(d.theta_p_rad),
+                "plan_us": d.plan_us,
+                "select_us": d.select_us,
+                "overdig_mm": d.overdig_m * 1e3,
+                "machine_x_m": d.machine_x_m,
+                "status": d.status,
+                "finishing": d.finishing,
+                "section": d.section,
+            }
+            for d in self.digs
+        ]
+        transitions = [s for s in self.steps if isinstance(s, Transition)]
+        travels = [s for s in self.steps if isinstance(s, TravelMove)]
+        return {
+            "task": {
+                "name": self.task.name,
+                "length_m": self.task.length_m,
+                "depth_m": self.task.depth_m,
+                "beta1_deg": math.degrees(self.task.beta1_rad),
+                "beta2_deg": math.degrees(self.task.beta2_rad),
+                "start_x_m": self.task.start_x_m,
+            },
+            "rig": self.rig,
+            "planner": self.planner,
+            "status": self.status.name.lower(),
+            "reason": self.reason,
+            "volume_left_L": self.volume_left_m3 * 1e3,
+            "digs": digs,
+            "n_digs": len(digs),
+            "coverage_error": self.coverage_error,
+            "overdig_max_mm": self.overdig_max_m * 1e3,
+            "removed_L": self.removed_m3 * 1e3,
+            "design_L": self.design_m3 * 1e3,
+            "plan_total_us": self.plan_total_us,
+            "stage_us": dict(self.stage_us),
+            "dig_time_s": sum(d.T_s for d in self.digs),
+            "transition_time_s": sum(t.duration_s for t in transitions),
+            "transition_penetration_max_mm": max(
+                (t.penetration_m * 1e3 for t in transitions), default=0.0
+            ),
+            "travel": [t.distance_m for t in travels],
+            "energy_Wh": sum(d.energy_j for d in self.digs) / 3600.0,
+            "yao_fig14": YAO_FIG14.get(self.task.name),
+        }
+
+
+def plan_goals(plan: TrenchPlan) -> list[str]:
+    """The goals ``plan`` does not meet, each a sentence with its numbers; empty when done.
+
+    Goals: the planning ran to its end (no :attr:`TrenchPlan.planning_error`), the coverage
+    error is at most :data:`COVERAGE_GOAL` and the deepest over-dig at most
+    :data:`OVERDIG_GOAL_M`. Every goal a plan must meet to be done belongs here.
+    """
+    unmet = []
+    if plan.planning_error is not None:
+        unmet.append(f"planning stopped: {plan.planning_error}")
+    if not plan.coverage_error <= COVERAGE_GOAL:
+        unmet.append(
+            f"coverage error {plan.coverage_error:.2%} is above the goal {COVERAGE_GOAL:.0%}"
+        )
+    if not plan.overdig_max_m <= OVERDIG_GOAL_M:
+        unmet.append(
+            f"over-dig {plan.overdig_max_m * 1e3:.2f} mm is beyond the goal "
+            f"{OVERDIG_GOAL_M * 1e3:g} mm"
+        )
+    return unmet

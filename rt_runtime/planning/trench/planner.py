@@ -1,0 +1,171 @@
+"""The trench planner: what a session needs that does not change from task to task (the rig,
+the one-shot planner, the verifier, the candidate grids), and the open-loop plan of a task."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rt_runtime import kinematics
+from rt_runtime.errors import ConfigurationError, PlanningError
+from rt_runtime.planning import oneshot
+from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR, PinnPlanner
+from rt_runtime.planning.trench.candidates import _CANDIDATES, _SCREEN_C, _SCREEN_SAMPLES
+from rt_runtime.planning.trench.fit import _FIT_SAMPLES
+from rt_runtime.planning.trench.geometry import _sextic_shapes
+from rt_runtime.planning.trench.motion import _Mover
+from rt_runtime.planning.trench.moves import _DUMP_POSE
+from rt_runtime.planning.trench.plan import PlannedDig, TrenchPlan
+from rt_runtime.planning.trench.planners import OneShotPlanner, PinnOneShot, PsoOneShot
+from rt_runtime.planning.trench.session import TrenchSession
+from rt_runtime.planning.trench.task import _ENTRY_X_M, TrenchTask, _reach_scale, load_task
+from rt_runtime.rig import Rig
+
+
+class TrenchPlanner:
+    """Plans trench tasks dig by dig (Yao Fig. 5).
+
+    Args:
+        rig: The rig (needs planning thresholds and shipped PINN models for screening).
+        planner: ``pinn`` (default), ``pso``, or an object with ``plan_dig``.
+        model_dir: PINN model directory (default: the shipped ``onnx/``).
+        pso_options: Keyword arguments for :func:`rt_runtime.planning.oneshot.solve_pso`.
+        max_digs: Safety bound on the number of digs of one task (None: 20 a section).
+        geometry: Who computes the screening geometry, the over-dig of sampled paths and the
+            envelopes: ``"c"`` (the verifier's compiled kernel, ``_verify.c``), ``"numpy"``
+            (the reference) or ``"auto"`` (C where the verifier runs on C). The plans are the
+            same (tests/test_trench.py compares them); C is ~2x faster on a whole plan.
+
+    Raises:
+        ConfigurationError: Unknown planner name or geometry; models that do not load for the
+            rig; ``geometry="c"`` where the verifier has no compiled kernel.
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        planner: str | OneShotPlanner = "pinn",
+        *,
+        model_dir: Path | str | None = None,
+        pso_options: dict[str, Any] | None = None,
+        max_digs: int | None = None,
+        geometry: str = "auto",
+    ) -> None:
+
+        oneshot.require_planning(rig)
+        self.rig = rig
+        #: What built this planner (a planner process rebuilds it from these).
+        self.model_dir = Path(model_dir or DEFAULT_MODEL_DIR)
+        self.pso_options = dict(pso_options or {})
+        self.pinn = PinnPlanner(rig, self.model_dir, refine=True)
+        self.verifier = self.pinn.verifier
+        if geometry not in ("auto", "c", "numpy"):
+            raise ConfigurationError(f"unknown geometry {geometry!r}; allowed: auto, c, numpy")
+        if geometry == "c" and self.verifier.module is None:
+            raise ConfigurationError(
+                "geometry 'c' needs the verifier's compiled kernel, which is not in use here "
+                f"(verifier backend {self.verifier.backend!r})"
+            )
+        use_c = geometry != "numpy" and self.verifier.module is not None
+        #: The compiled kernel and its module for the geometry (None: the numpy reference).
+        self.geo_kernel: Any = self.verifier.kernel if use_c else None
+        self.geo_module: Any = self.verifier.module if use_c else None
+        if isinstance(planner, str):
+            if planner == "pinn":
+                self.oneshot: OneShotPlanner = PinnOneShot(self.pinn)
+            elif planner == "pso":
+                self.oneshot = PsoOneShot(rig, self.verifier, **(pso_options or {}))
+            else:
+                raise ConfigurationError(f"unknown planner {planner!r}; allowed: pinn, pso")
+        else:
+            self.oneshot = planner
+        self.max_digs = max_digs
+        s = _reach_scale(rig)
+        self.scale = s
+        self.entry_x_range = (_ENTRY_X_M[0] * s, _ENTRY_X_M[1] * s)
+        self.arm = kinematics.FastArm(rig)
+        self.screen_qf, self.screen_pf = _sextic_shapes(_SCREEN_SAMPLES)
+        self.screen_shapes = np.stack([self.screen_qf, self.screen_pf])
+        self.screen_c = np.asarray(_SCREEN_C)
+        # Second derivatives of the sextic's shape functions on a 1001-point grid.
+        t = np.linspace(0.0, 1.0, 1001)
+        self.fine_qf2 = 60 * t - 180 * t**2 + 120 * t**3
+        self.fine_pf2 = 6 * t - 36 * t**2 + 60 * t**3 - 30 * t**4
+        self.qdd_max = np.asarray(rig.qdd_max_rad_s2, dtype=np.float64)
+        self.fit_qf, self.fit_pf = _sextic_shapes(_FIT_SAMPLES)
+        # On the verifier's grid: the profile passes' paths as the verifier samples them.
+        self.full_qf, self.full_pf = _sextic_shapes(self.verifier.n_samples)
+        self.mover = _Mover(rig)
+        #: Each dig type's exit candidates relative to the entry, flat: (length, rise, attitude).
+        self.exit_grid = {
+            kind: tuple(
+                g.ravel()
+                for g in np.meshgrid(
+                    np.asarray(cand.length_m) * s,
+                    np.asarray(cand.exit_rise_m) * s,
+                    np.radians(cand.exit_attitude_deg),
+                    indexing="ij",
+                )
+            )
+            for kind, cand in _CANDIDATES.items()
+        }
+        self.domain = {
+            k: (np.asarray(c.domain_min), np.asarray(c.domain_max))
+            for k, c in self.pinn.cards.items()
+        }
+        #: Where the bucket dumps (and where the arm starts a task), joint angles.
+        self.dump_pose_rad = kinematics.inverse(
+            rig,
+            _DUMP_POSE[0] * s,
+            rig.ground_y_m + _DUMP_POSE[1] * s,
+            math.radians(_DUMP_POSE[2]),
+        )
+
+    def start(self, task: TrenchTask) -> TrenchSession:
+        """A closed-loop session for ``task`` (plan a dig, execute it, record its path)."""
+        return TrenchSession(self, task)
+
+    def plan(self, task: TrenchTask) -> TrenchPlan:
+        """The whole plan for ``task`` on the predicted paths (open loop).
+
+        A PlanningError mid-way (no verified dig removes the rest, the bound on the digs) does
+        not propagate: the plan holds the digs before it, ends after the last of them (the
+        moves towards the dig that failed are dropped) and is incomplete with that error as
+        its :attr:`TrenchPlan.planning_error`. Check :attr:`TrenchPlan.status`.
+        """
+        t0 = time.perf_counter()
+        session = self.start(task)
+        error: str | None = None
+        try:
+            while True:
+                dig = session.next_dig()
+                if dig is None:
+                    break
+                session.record(dig, dig.tip_path_m)
+        except PlanningError as e:
+            error = str(e)
+        plan = session.finish(plan_total_us=0.0)
+        total = (time.perf_counter() - t0) * 1e6
+        stages = dict(session.stage_us)
+        stages["other"] = max(0.0, total - sum(stages.values()))
+        if error is None:
+            return dataclasses.replace(plan, plan_total_us=total, stage_us=stages)
+        last = max((i for i, st in enumerate(plan.steps) if isinstance(st, PlannedDig)), default=-1)
+        return dataclasses.replace(
+            plan,
+            steps=plan.steps[: last + 1],
+            plan_total_us=total,
+            stage_us=stages,
+            planning_error=error,
+        )
+
+
+def plan_task(rig: Rig, task: TrenchTask | str, planner: str = "pinn", **kwargs: Any) -> TrenchPlan:
+    """Convenience: load ``task`` if given by name/path and plan it."""
+    t = load_task(task, rig) if isinstance(task, str) else task
+    return TrenchPlanner(rig, planner, **kwargs).plan(t)

@@ -253,12 +253,13 @@ class LayersMixin(RoughMixin):
         # point beside a wall's foot can stand alone).
         thick = np.convolve(t > _COLUMN_EDGE_M * s, np.ones(5), mode="same") >= 5
         # Runs too small to count (a quarter of V_min) are left to the walls' digs and the
-        # finishing passes: a column that starts at one would carry little else.
+        # finishing passes: a column that starts at one would carry little else. Not so for
+        # the rest taken under-filled: that is taken because it must be (too thick to leave).
         on = np.zeros(x.shape[0] + 2, dtype=np.int8)
         on[1:-1] = thick
         change = np.diff(on)
         for i0, i1 in zip(np.flatnonzero(change == 1), np.flatnonzero(change == -1), strict=True):
-            if float(np.sum(t[i0:i1])) * GRID_STEP_M < 0.25 * lo_a:
+            if not partial and float(np.sum(t[i0:i1])) * GRID_STEP_M < 0.25 * lo_a:
                 thick[i0:i1] = False
         idx = np.flatnonzero(thick)
         if not idx.size:

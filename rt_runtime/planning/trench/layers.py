@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 import shapely
+from numpy.typing import NDArray
 
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import DigType
@@ -259,7 +260,8 @@ class LayersMixin(RoughMixin):
         on[1:-1] = thick
         change = np.diff(on)
         for i0, i1 in zip(np.flatnonzero(change == 1), np.flatnonzero(change == -1), strict=True):
-            if not partial and float(np.sum(t[i0:i1])) * GRID_STEP_M < 0.25 * lo_a:
+            small = float(np.sum(t[i0:i1])) * GRID_STEP_M < 0.25 * lo_a
+            if small and not (partial and np.any(self._too_thick_below()[i0:i1])):
                 thick[i0:i1] = False
         idx = np.flatnonzero(thick)
         if not idx.size:
@@ -336,6 +338,20 @@ class LayersMixin(RoughMixin):
                 if dig is not None:
                     return dig
         return None
+
+    def _too_thick_below(self) -> NDArray[np.bool_]:
+        """Where, on the grid, the material left above the current layer's floor would make
+        the layer below thicker than a dig cuts through (:data:`_CUT_MAX_M`, scaled); nowhere
+        in the bottom layer (nothing below takes it)."""
+        x = self.grid
+        if self.layer >= len(self.layer_floors):
+            return np.zeros(x.shape[0], dtype=bool)
+        nxt = self.layer + 1
+        below = self.layer_floors[nxt] if nxt < len(self.layer_floors) else self.bottom_y
+        floor = np.maximum(self.design_floor, below)
+        inside = (x >= self.section_lo) & (x <= self.section_hi)
+        mask: NDArray[np.bool_] = inside & (self.surface - floor > _CUT_MAX_M * self.planner.scale)
+        return mask
 
     def _layer_must_be_taken(self) -> bool:
         """Whether what is left above the current layer's floor must be taken under-filled:

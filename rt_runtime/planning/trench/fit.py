@@ -37,6 +37,8 @@ _N_FIT_SHIFTS = 4
 
 
 _FIT_OUTSIDE_M = 0.0025
+#: Largest adaptive shift of a profile fit (scale model, m): a fit that needs more is not used.
+_FIT_SHIFT_MAX_M = 0.008
 
 
 # A profile fit this good (least-squares cost, m^2: ~1 mm RMS) ends the search of starts.
@@ -232,7 +234,12 @@ class FitMixin(MovesMixin):
             inside = np.min(
                 edges[:, 2, None] - edges[:, 0, None] * x - edges[:, 1, None] * py, axis=0
             )
-            shift = max(0.0, -float(np.min(inside)) - _FIT_OUTSIDE_M)
+            # Over the outline's own span: beyond its ends the path is in dug ground.
+            span = (x >= min(a[0], b[0]) - 1e-9) & (x <= max(a[0], b[0]) + 1e-9)
+            worst = float(np.min(inside[span])) if np.any(span) else 0.0
+            shift = max(0.0, -worst - _FIT_OUTSIDE_M)
+            if shift > _FIT_SHIFT_MAX_M * self.planner.scale:
+                continue  # a path that far off the outline leaves a layer behind: the next
             if shift > 0.0:
                 q1s = arm.ik(
                     float(a[0] + shift * n_a[0] - m),

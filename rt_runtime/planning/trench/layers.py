@@ -65,6 +65,8 @@ _COLUMN_EDGE_M = 0.012
 _COLUMN_MAX_M = 0.45
 
 
+#: Longest piece of a rest taken under-filled (scale model, m).
+_PARTIAL_MAX_M = 0.25
 #: Fraction of V_max a column aims at.
 _FILL_AIM = 0.93
 
@@ -275,9 +277,17 @@ class LayersMixin(RoughMixin):
         total = float(cum[-1])
         w_max = round(_COLUMN_MAX_M * s / GRID_STEP_M)
         if partial:
-            n = max(math.ceil(total / (hi_a * _FILL_AIM)), math.ceil(cum.shape[0] / w_max), 1)
-            k = min(int(np.searchsorted(cum, total / n)), cum.shape[0] - 1, w_max)
-            return [float(x[i_start]), float(x[i_start - k])]
+            # The rest in as few pieces as the bucket and the longest dig allow; where such a
+            # piece fails (a long fit along a corner, a thick rest), shorter ones.
+            ends_p: list[float] = []
+            for w in (w_max, round(_PARTIAL_MAX_M * s / GRID_STEP_M)):
+                n = max(math.ceil(total / (hi_a * _FILL_AIM)), math.ceil(cum.shape[0] / w), 1)
+                k = min(int(np.searchsorted(cum, total / n)), cum.shape[0] - 1, w)
+                for kk in (k, max(k // 2, 1)):
+                    x_end = float(x[i_start - kk])
+                    if all(abs(x_end - e) > 2.0 * GRID_STEP_M for e in ends_p):
+                        ends_p.append(x_end)
+            return [float(x[i_start]), *ends_p]
         if total < lo_a * (1.0 + _FILL_MARGIN):
             return []
         n = max(1, math.ceil(total / (hi_a * _FILL_AIM)))

@@ -15,7 +15,7 @@ from rt_runtime.planning.oneshot import DigType
 from rt_runtime.planning.trench.candidates import Candidate
 from rt_runtime.planning.trench.geometry import _Pass
 from rt_runtime.planning.trench.layers import _CUT_MAX_M, LayersMixin
-from rt_runtime.planning.trench.plan import PlannedDig
+from rt_runtime.planning.trench.plan import COVERAGE_GOAL, PlannedDig
 from rt_runtime.planning.trench.state import _stage
 
 #: Finishing passes a section may take (they need not fill the bucket).
@@ -30,6 +30,8 @@ MAX_FINISHING_HARD = 8
 _FINISH_MIN_M = 0.002
 
 
+#: Least design material a finishing pass removes, as a fraction of its section's design.
+_FINISH_MIN_USEFUL = 0.001
 #: Attitude tables of the walls' finishing passes (deg; first and last of each end).
 _FAR_WALL_ATTS = ((-80.0, -100.0), (-95.0, -120.0))
 
@@ -59,13 +61,18 @@ class FinishingMixin(LayersMixin):
         left = float(part.intersection(self.material).area)
         if left <= 0.005 * float(part.area):
             return None
-        if self.finishing_used >= MAX_FINISHING_PER_SECTION and left <= 0.015 * float(part.area):
+        if self.finishing_used >= MAX_FINISHING_PER_SECTION and left <= COVERAGE_GOAL * float(
+            part.area
+        ):
             return None
         found: list[Candidate] = []
         for kind, line, atts in self._finishing_lines():
             fit = self._fit_pass(kind, line, atts)
             if fit is not None:
                 found.append(dataclasses.replace(fit, may_underfill=True))
+        # A pass that removes next to nothing is no pass (a thousandth of the section's
+        # design: what is left there is within the coverage budget's rounding).
+        found = [c for c in found if c.useful_m2 >= _FINISH_MIN_USEFUL * float(part.area)]
         found.sort(key=lambda c: -c.useful_m2)
         dig = self._first_plannable(found, remaining, t0)
         if dig is not None and dig.finishing:

@@ -77,6 +77,7 @@ class FitMixin(MovesMixin):
         """Fit one straight profile pass ``poly`` (2 points, work-site frame): the line as a
         half-plane, inwards towards the design's centroid (:meth:`_fit_profile`)."""
         a, b = np.asarray(poly[0], dtype=np.float64), np.asarray(poly[-1], dtype=np.float64)
+        on_bottom = abs(b[1] - self.bottom_y) < 1e-9 and abs(a[1] - self.bottom_y) <= 0.0025
         seg = b - a
         normal = np.array([-seg[1], seg[0]]) / math.hypot(seg[0], seg[1])
         c = self.design.centroid
@@ -84,7 +85,16 @@ class FitMixin(MovesMixin):
             normal = -normal
         # Outward normal and offset: inside is -normal . p <= -normal . a.
         edge = np.array([[-normal[0], -normal[1], -float(normal @ a)]])
-        return self._fit_profile(kind, a, b, edge, atts, _PASS_OFFSETS_M)
+        found = self._fit_profile(kind, a, b, edge, atts, _PASS_OFFSETS_M)
+        if on_bottom:
+            # Along the bottom with the start lifted to enter descending, the tilted line
+            # through the lifted start leaves up to 2 mm (4 % of a 0.024 m trench's design):
+            # fitted to the bottom itself as well, the one that removes more design material
+            # is kept.
+            flat = self._fit_profile(kind, a, b, self._walls[[2]], atts, _PASS_OFFSETS_M)
+            if flat is not None and (found is None or flat.useful_m2 > found.useful_m2):
+                found = flat
+        return found
 
     def _fit_profile(
         self,

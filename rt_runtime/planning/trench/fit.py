@@ -246,11 +246,13 @@ class FitMixin(MovesMixin):
             )
             # Over the outline's own span: beyond its ends the path is in dug ground.
             span = (x >= min(a[0], b[0]) - 1e-9) & (x <= max(a[0], b[0]) + 1e-9)
-            worst = float(np.min(inside[span])) if np.any(span) else 0.0
-            shift = max(0.0, -worst - _FIT_OUTSIDE_M)
+            d_span = inside[span] if np.any(span) else np.zeros(1)
+            # Inwards as little as the over-dig allows; outwards (to the median's side) where
+            # the path lies inside on the whole: the least material left and cut past.
+            shift = max(-float(np.min(d_span)) - _FIT_OUTSIDE_M, -float(np.median(d_span)))
             if shift > _FIT_SHIFT_MAX_M * self.planner.scale:
                 continue  # a path that far off the outline leaves a layer behind: the next
-            if shift > 0.0:
+            if abs(shift) > 1e-4:
                 q1s = arm.ik(
                     float(a[0] + shift * n_a[0] - m),
                     float(a[1] + shift * n_a[1]),

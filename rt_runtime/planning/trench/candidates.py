@@ -73,43 +73,33 @@ _CANDIDATES: dict[DigType, _Candidates] = {
     ),
 }
 
-
 #: Entry x candidates per screening: from the far edge of the remaining design inwards.
 _N_ENTRY_X = 4
-
 
 # Bulge scales at which the screening computes each candidate's path; the fill's scale between
 # them is interpolated.
 _SCREEN_C = (0.3, 0.6, 1.0, 2.0)
 
-
 # Samples per path in the screening (the plan is checked on the verifier's full grid).
 _SCREEN_SAMPLES = 17
-
 
 # Over-dig a screened path may show at its coarse samples (the plan's own check is exact).
 _SCREEN_OVERDIG_M = 0.8 * OVERDIG_LIMIT_M
 
-
 # Steps of the bulge scale searched for theta_p in the screening (from the top down to 0).
 _N_SCALE_STEPS = 40
-
 
 # Fraction of the fill band kept free at each end in the screening (its cut is interpolated).
 _FILL_MARGIN = 0.03
 
-
 # Candidates kept per screening, tried in order when the one-shot planner's plan fails.
 _N_RANKED = 8
-
 
 # Screened candidates whose material left is estimated (the look-ahead), best score first.
 _N_LOOKAHEAD = 32
 
-
 #: Least material above the design floor where an entry may be placed (m, scale model).
 _ENTRY_MIN_THICKNESS_M = 0.01
-
 
 #: Spare fraction of the fill band's ends for the upper layers in the layer choice (the
 #: network's scoops do not follow the layer's floor).

@@ -21,23 +21,18 @@ from rt_runtime.planning.trench.state import _stage
 #: Finishing passes a section may take (they need not fill the bucket).
 MAX_FINISHING_PER_SECTION = 2
 
-
 #: Finishing passes a section takes at most where its design is not dug otherwise.
 MAX_FINISHING_HARD = 8
 
-
 #: Least material on a finishing pass's line for the pass to be tried (scale model, m).
 _FINISH_MIN_M = 0.002
-
 
 #: Least design material a finishing pass removes, as a fraction of its section's design.
 _FINISH_MIN_USEFUL = 0.001
 #: Attitude tables of the walls' finishing passes (deg; first and last of each end).
 _FAR_WALL_ATTS = ((-80.0, -100.0), (-95.0, -120.0))
 
-
 _NEAR_WALL_ATTS = ((-80.0, -100.0), (-100.0, -130.0))
-
 
 #: Spacing of the finishing lines across thick material (:meth:`FinishingMixin._finishing_lines`),
 #: m on the scale model.

@@ -30,24 +30,19 @@ from rt_runtime.planning.verify import (
 # Inward shifts of a profile pass's line tried in turn where the adaptive shift fails (m).
 _PASS_OFFSETS_M = (0.0, 0.002, 0.004, 0.007)
 
-
 # Profile fits shifted adaptively (the best by cost), and how far outside the outline the
 # shifted path's farthest sample may lie (m; the over-dig limit is 5 mm).
 _N_FIT_SHIFTS = 4
-
 
 _FIT_OUTSIDE_M = 0.0025
 #: Largest adaptive shift of a profile fit (scale model, m): a fit that needs more is not used.
 _FIT_SHIFT_MAX_M = 0.008
 
-
 # A profile fit this good (least-squares cost, m^2: ~1 mm RMS) ends the search of starts.
 _GOOD_FIT_COST = 2e-4
 
-
 # Samples of a profile pass's path in its fit.
 _FIT_SAMPLES = 41
-
 
 # Longest straight profile pass (scale model, m).
 _PASS_LENGTH_M = 0.30
@@ -114,7 +109,7 @@ class FitMixin(MovesMixin):
         For each pair of end attitudes of ``atts`` the sextic's path is linear in its bulge
         ``K`` in joint space, so the inward distances of the path samples from the outline
         (the least over the half-planes, exact for a convex outline) are fitted in ``K`` by
-        Gauss-Newton (:meth:`_fit_bulge`, 3 x 3 systems, microseconds); a pair whose fit
+        Gauss-Newton (:meth:`_fit_bulges`, every pair at once); a pair whose fit
         leaves the joint limits or the theta_p range is skipped. The first pair that fits
         within ``good_cost`` (m^2 on 101 samples; :data:`_GOOD_FIT_COST`, ~1 mm RMS, by
         default), or else the best, is taken; the outline
@@ -246,13 +241,11 @@ class FitMixin(MovesMixin):
             )
             # Over the outline's own span: beyond its ends the path is in dug ground.
             span = (x >= min(a[0], b[0]) - 1e-9) & (x <= max(a[0], b[0]) + 1e-9)
-            d_span = inside[span] if np.any(span) else np.zeros(1)
-            # Inwards as little as the over-dig allows; outwards (to the median's side) where
-            # the path lies inside on the whole: the least material left and cut past.
-            shift = max(-float(np.min(d_span)) - _FIT_OUTSIDE_M, -float(np.median(d_span)))
+            worst = float(np.min(inside[span])) if np.any(span) else 0.0
+            shift = max(0.0, -worst - _FIT_OUTSIDE_M)
             if shift > _FIT_SHIFT_MAX_M * self.planner.scale:
                 continue  # a path that far off the outline leaves a layer behind: the next
-            if abs(shift) > 1e-4:
+            if shift > 0.0:
                 q1s = arm.ik(
                     float(a[0] + shift * n_a[0] - m),
                     float(a[1] + shift * n_a[1]),
@@ -294,19 +287,6 @@ class FitMixin(MovesMixin):
                     found.append(np.asarray(q))
                     break
         return found
-
-    def _fit_bulge(
-        self,
-        base: FloatArray,
-        q1: FloatArray,
-        q2: FloatArray,
-        edges: FloatArray,
-        offset: float,
-        kind: DigType,
-    ) -> tuple[FloatArray, float]:
-        """:meth:`_fit_bulges` of one pair of end poses: ``(K (3,), cost)``."""
-        K, cost = self._fit_bulges(base[None], q1[None], q2[None], edges, offset, kind)
-        return K[0], float(cost[0])
 
     def _fit_bulges(
         self,

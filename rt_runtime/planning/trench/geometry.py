@@ -18,23 +18,18 @@ from rt_runtime.planning.oneshot import DigType
 
 FloatArray = NDArray[np.float64]
 
-
 #: No dig may cut below the design profile by more than this (m).
 OVERDIG_LIMIT_M = 0.005
-
 
 #: A dig must remove at least this fraction of the design's area of design material; when no
 #: candidate does, the task is finished with what is left reported as coverage error.
 MIN_USEFUL_FRACTION = 0.004
 
-
 #: Grid step of the height field (m).
 GRID_STEP_M = 0.001
 
-
 # Thinner parts of a polygon difference are rounding, not ground (see TrenchSession.finish).
 _SLIVER_M = 1e-6
-
 
 #: Second difference (m) below which an envelope's grid point is on a straight piece of it
 #: (:func:`_swept_polygon` drops it).

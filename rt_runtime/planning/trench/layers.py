@@ -26,24 +26,19 @@ from rt_runtime.planning.trench.state import Stage
 #: enough that a column of it no longer than _COLUMN_MAX_M fills the bucket.
 _LAYER_RANGE_M = (0.045, 0.10)
 
-
 #: Thickest material a dig along the floor cuts through in one pass (scale model, m; a
 #: 0.25 m column verifies up to ~0.11 m).
 _CUT_MAX_M = 0.105
-
 
 #: Thickest layer above the bottom one (scale model, m): what the layer's columns cut, with
 #: room for what the network's digs leave above the layer's floor.
 _UPPER_LAYER_MAX_M = 0.09
 
-
 #: How far short of the design's bottom corners the walls' digs stop (scale model, m).
 _CORNER_GAP_M = 0.005
 
-
 #: How far beyond the face of the material a bottom column enters (scale model, m).
 _FACE_GAP_M = 0.004
-
 
 #: End attitudes of wall digs (deg; the table's first and last of each end).
 _WALL_ATTITUDES_DEG = {
@@ -51,32 +46,26 @@ _WALL_ATTITUDES_DEG = {
     DigType.BACKWARD: ((-100.0, -125.0), (-120.0, -160.0)),
 }
 
-
 #: Material within this of the design's floor is not counted for a column (scale model, m).
 _COLUMN_SKIN_M = 0.003
-
 
 #: A column starts where the material above the design's floor is thicker than this (scale
 #: model, m).
 _COLUMN_EDGE_M = 0.012
 
-
 #: Longest profile dig (scale model, m).
 _COLUMN_MAX_M = 0.45
-
 
 #: Longest piece of a rest taken under-filled (scale model, m).
 _PARTIAL_MAX_M = 0.25
 #: Fraction of V_max a column aims at.
 _FILL_AIM = 0.93
 
-
 #: End attitudes of a layer's columns (deg; the table's first and last of each end).
 _LAYER_ATTITUDES_DEG = {
     DigType.DOWNWARD: ((-60.0, -120.0), (-110.0, -190.0)),
     DigType.BACKWARD: ((-100.0, -140.0), (-140.0, -200.0)),
 }
-
 
 #: End attitudes of bottom columns (deg; the table's first and last of each end).
 _COLUMN_ATTITUDES_DEG = {DigType.BACKWARD: ((-110.0, -135.0), (-150.0, -175.0))}

@@ -32,34 +32,26 @@ from rt_runtime.planning.trench.state import _stage
 # _LIFT_CLEAR_M above the material.
 _LIFT_CLEAR_M = 0.02
 
-
 _DUMP_POSE = (0.60, 0.25, -80.0)
 
-
 _APPROACH_M = (0.03, 0.05, 0.08, 0.12, 0.18, 0.25)
-
 
 #: Deepest a transition may take the bucket into the material left (m): every move is checked
 #: on its samples and refused beyond it (:meth:`TrenchSession.exit_transitions`).
 TRANSITION_PENETRATION_M = 0.005
-
 
 # Sampling of a move's check (m, every rig; TrenchSession._move_depth): from one sample to the
 # next no point of the bucket outline moves farther than _MOVE_STEP_M where the bucket is near
 # the material, _COARSE_STEP_M where it is not; the outline's points lie _OUTLINE_STEP_M apart.
 _MOVE_STEP_M = 0.002
 
-
 _COARSE_STEP_M = 0.01
-
 
 # Depth into the material beyond which a move's check stops measuring (m): it is refused anyway.
 _DEPTH_CAP_M = 0.05
 
-
 # Lift heights a transition tries (TrenchSession._lift_heights).
 _N_LIFT_HEIGHTS = 4
-
 
 # Transitions kept for when they are asked for again (a dig's, its next dig's).
 _N_CACHED_MOVES = 16

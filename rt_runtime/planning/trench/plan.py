@@ -137,7 +137,6 @@ class PlanStatus(IntEnum):
 #: this fraction of the design's area.
 COVERAGE_GOAL = 0.02
 
-
 #: ... and its deepest cut below the design (:attr:`TrenchPlan.overdig_max_m`) at most this (m),
 #: the limit every dig is planned to.
 OVERDIG_GOAL_M = OVERDIG_LIMIT_M

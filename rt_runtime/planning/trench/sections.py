@@ -20,9 +20,7 @@ if TYPE_CHECKING:
 #: task B from its default start (0.35 m: the nearest a 0.10 m trench was dug to).
 _STAND_FAR_X_M = 1.05
 
-
 _STAND_NEAR_X_M = 0.35
-
 
 #: Safety bound on a task's digs per section (TrenchPlanner max_digs=None).
 _MAX_DIGS_PER_SECTION = 20

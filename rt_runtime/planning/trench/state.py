@@ -47,7 +47,6 @@ class Stage(IntEnum):
 #: The stages of TrenchPlan.stage_us that TrenchSession times (``other`` is the rest).
 _STAGES = ("screen", "oneshot", "checks", "passes", "transitions", "record", "finish")
 
-
 _Method = TypeVar("_Method", bound=Callable[..., Any])
 
 

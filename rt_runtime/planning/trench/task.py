@@ -29,7 +29,6 @@ BUILTIN_TASKS: dict[str, tuple[float, float, float, float]] = {
     "D": (0.65, 0.20, 50.0, 60.0),
 }
 
-
 #: Yao Fig. 14: number of trajectories and the profile error per task (for the reports).
 YAO_FIG14: dict[str, dict[str, float]] = {
     "A": {"digs": 4, "coverage_error": 0.087},
@@ -38,18 +37,14 @@ YAO_FIG14: dict[str, dict[str, float]] = {
     "D": {"digs": 5, "coverage_error": 0.033},
 }
 
-
 # Reach figures of the scale model (m), scaled by the rig's l1 + l2 + l3 against 1.31 m: where
 # digs may enter (the PINN's domain, oneshot.SAMPLER_RANGES), the deepest trench the backward
 # digs' domain serves, and the default far edge of a trench.
 _SCALE_REACH_M = SCALE_MODEL_REACH_M
 
-
 _ENTRY_X_M = (0.55, 1.10)
 
-
 _MAX_DEPTH_M = 0.30
-
 
 _DEFAULT_START_X_M = 1.05
 
@@ -94,9 +89,7 @@ def _reach_scale(rig: Rig) -> float:
 # tolerance of the profile, neither a trench this planner digs.
 _TASK_LENGTH_MIN_M = 0.30
 
-
 _TASK_DEPTH_MIN_M = 0.02
-
 
 #: Wall slopes (deg from the horizontal) a task may have: the domain the planner is measured on
 #: (``excavator-rt bench plan --random`` draws its walls from it), and nothing wider: a task

@@ -16,7 +16,6 @@ from rt_runtime.planning.trench.candidates import Candidate
 from rt_runtime.planning.trench.geometry import _Pass
 from rt_runtime.planning.trench.layers import _CUT_MAX_M, LayersMixin
 from rt_runtime.planning.trench.plan import COVERAGE_GOAL, PlannedDig
-from rt_runtime.planning.trench.state import _stage
 
 #: Finishing passes a section may take (they need not fill the bucket).
 MAX_FINISHING_PER_SECTION = 2
@@ -42,7 +41,6 @@ _LAYER_M = 0.05
 class FinishingMixin(LayersMixin):
     """A session's finishing passes (see the module)."""
 
-    @_stage("passes")
     def _next_finishing(self, remaining: Any, t0: float) -> PlannedDig | None:
         """The finishing pass that removes the most design material of the section's
         (:meth:`_finishing_lines`); None when the section's design is dug (within half a

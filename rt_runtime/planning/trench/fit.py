@@ -22,6 +22,7 @@ from rt_runtime.planning.trench.geometry import (
     _total_without_volume,
 )
 from rt_runtime.planning.trench.moves import MovesMixin
+from rt_runtime.planning.trench.state import _stage
 from rt_runtime.planning.verify import (
     N_OUT,
     pack_inputs,
@@ -91,6 +92,7 @@ class FitMixin(MovesMixin):
                 found = flat
         return found
 
+    @_stage("passes")
     def _fit_profile(
         self,
         kind: DigType,

@@ -165,12 +165,13 @@ class TrenchPlan:
         design_m3: Designed volume (area x bucket width).
         plan_total_us: Wall time of the whole plan (from the task to this frozen plan, its
             coverage and over-dig measured).
-        stage_us: Where that time went (us): ``screen`` (choosing each dig's poses),
+        stage_us: Where that time went (us): ``screen`` (choosing the network's digs),
             ``oneshot`` (the one-shot planner's calls), ``checks`` (each planned dig's
-            verification, over-dig and polygon checks), ``passes`` (fitting the profile
-            passes), ``transitions`` (the ruckig moves and their ground checks), ``record``
-            (the material update), ``finish`` (this plan's coverage and over-dig), ``other``
-            (the rest: entries, the remaining design, relocation).
+            verification, over-dig and polygon checks), ``passes`` (fitting digs along the
+            design's outline: the layers' columns, the walls' digs, finishing passes),
+            ``transitions`` (the moves between digs and their checks), ``record`` (the
+            material update), ``finish`` (this plan's coverage and over-dig), ``other`` (the
+            rest: entries, layers, the remaining design).
         planning_error: What stopped the planning before the planner found the task finished
             (the message of the PlanningError: no dig removes the rest, the bound on the digs),
             or None when it ran to its end; the plan then holds the digs before it.

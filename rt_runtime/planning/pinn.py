@@ -48,7 +48,7 @@ checked before anyone may execute it:
    plan fills to c >= 1.2 (:data:`rt_runtime.training.export.LIBRARY_KEEP_BULGE_SCALE`: 45 %
    of the backward rows, the same gap, less of the cache read per search). Measured on the
    shipped backward model: held-out gap 3.62 % -> 3.21 %, a triggered plan ~50 us (per-row
-   minimum; design notes, session 20).
+   minimum; design notes, "Grown downward data").
 5. **Repair**, when that still fails (or with ``retime=False``, whenever the raw answer fails).
    Time scaling first, where only time-dependent limits fail (velocity, acceleration, torque,
    power, t_min): the kernel's exact retiming keeps the path (so angles, theta_p and volume)

@@ -98,6 +98,12 @@ def parse_fault(text: str) -> FaultSpec:
     return FaultSpec(fault_kind, axis, at_s)
 
 
+def register(subparsers: Any) -> None:
+    """Register the ``hil`` sub-command with its handler (the ``excavator_rt.commands`` entry
+    point ``hil``)."""
+    add_parser(subparsers).set_defaults(handler=run)
+
+
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Add the ``hil`` sub-command to an ``argparse`` sub-parser set; returns its parser."""
     p: argparse.ArgumentParser = subparsers.add_parser(

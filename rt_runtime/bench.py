@@ -910,6 +910,11 @@ def _group_us(values_s: np.ndarray) -> dict[str, float] | None:
     return percentiles(a * 1e6, tails=True) if a.size else None
 
 
+#: Entry-point group of what the HIL provides to the runtime's benchmark (``realtime``: the
+#: real-time HIL process class).
+HIL_GROUP = "excavator_rt.hil"
+
+
 def bench_loop(
     rig: Rig,
     rates_hz: tuple[float, ...] = (500.0, 1000.0),
@@ -921,12 +926,11 @@ def bench_loop(
 ) -> tuple[dict[str, Any], dict[str, dict[str, np.ndarray]]]:
     """Loop timing against the real-time HIL in its own process, one run per rate.
 
-    For each rate: start :class:`hil_sim.realtime.RealtimeHilProcess` (127.0.0.1), boot and
-    enable the drives through a :class:`~rt_runtime.canbus.CanMaster` on its bus, then run the
+    For each rate: start the real-time HIL process (:func:`realtime_hil_process`; 127.0.0.1),
+    boot and enable the drives through a :class:`~rt_runtime.canbus.CanMaster` on its bus, run the
     :class:`~rt_runtime.control.FixedRateLoop` for ``seconds`` with a step that holds position
     (RPDO1 of the reported stroke + SYNC, read the TPDOs, heartbeat), with ``rt`` applied.
-    Then disable the drives and stop the process. ``hil_sim`` is imported here, at run time:
-    the runtime package never imports it.
+    Then disable the drives and stop the process.
 
     Args:
         rig: Rig profile (its CAN ids, bitrate and drive set-up).
@@ -945,24 +949,43 @@ def bench_loop(
     Raises:
         CommunicationError, DriveFault: The HIL did not start or the drives did not enable.
     """
-    import importlib
-
     from rt_runtime.control import RtSettings
 
-    realtime = importlib.import_module("hil_sim.realtime")
+    hil_process = realtime_hil_process()
     settings = rt if rt is not None else RtSettings()
     summary: dict[str, Any] = {}
     raw: dict[str, dict[str, np.ndarray]] = {}
     for rate in rates_hz:
         key = f"{rate:g}"
         summary[key], raw[key] = _bench_rate(
-            realtime, rig, float(rate), seconds, settings, sync_timeout_s, hil_rig or rig.name
+            hil_process, rig, float(rate), seconds, settings, sync_timeout_s, hil_rig or rig.name
         )
     return summary, raw
 
 
+def realtime_hil_process() -> Any:
+    """The real-time HIL process class (``start(rig_name, q0_rad, period_s, max_wall_s,
+    sync_timeout_s)``), found through the ``excavator_rt.hil`` entry point ``realtime``: the
+    runtime never imports ``hil_sim``.
+
+    Raises:
+        ConfigurationError: No package provides it (the HIL is not installed).
+    """
+    from importlib.metadata import entry_points
+
+    from rt_runtime.errors import ConfigurationError
+
+    found = [ep for ep in entry_points(group=HIL_GROUP) if ep.name == "realtime"]
+    if not found:
+        raise ConfigurationError(
+            f"no real-time HIL installed: entry point {HIL_GROUP} 'realtime' not found "
+            "(install the project with its hil_sim package)"
+        )
+    return found[0].load()
+
+
 def _bench_rate(
-    realtime: Any,
+    hil_process: Any,
     rig: Rig,
     rate_hz: float,
     seconds: float,
@@ -984,7 +1007,7 @@ def _bench_rate(
 
     period = 1.0 / rate_hz
     n_cycles = max(1, round(seconds * rate_hz))
-    hil = realtime.RealtimeHilProcess.start(
+    hil = hil_process.start(
         rig_name=hil_rig,
         q0_rad=np.radians(np.array(_HOLD_POSE_DEG)),
         period_s=period,

@@ -12,6 +12,7 @@ import json
 import math
 import sys
 from collections.abc import Callable, Sequence
+from importlib.metadata import entry_points
 from typing import Any
 
 import numpy as np
@@ -19,6 +20,10 @@ import numpy as np
 from rt_runtime import __version__
 from rt_runtime.errors import ConfigurationError, ExcavatorRtError
 from rt_runtime.rig import DEFAULT_RIG, Rig, load_rig, profile_names
+
+#: Entry-point group of the commands other packages add to ``excavator-rt`` (a callable taking
+#: the sub-parsers): the HIL's ``hil`` and ``demo``.
+COMMANDS_GROUP = "excavator_rt.commands"
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -971,13 +976,10 @@ def build_parser() -> argparse.ArgumentParser:
     b3.add_argument("--json", action="store_true")
     b3.set_defaults(handler=cmd_bench_plan)
 
-    # The HIL lives outside the runtime (rt_runtime never imports hil_sim); the CLI is the glue.
-    import importlib
-
-    hil_cli = importlib.import_module("hil_sim.cli")
-    hil_cli.add_parser(sub).set_defaults(handler=hil_cli.run)
-
-    importlib.import_module("hil_sim.demo").add_parser(sub)
+    # Commands from outside the runtime (the HIL's ``hil`` and ``demo``) register themselves
+    # through entry points: rt_runtime never imports hil_sim.
+    for ep in sorted(entry_points(group=COMMANDS_GROUP), key=lambda e: e.name):
+        ep.load()(sub)
 
     from rt_runtime.service import client as job_client
 

@@ -53,7 +53,6 @@ class _Candidates:
     length_m: tuple[float, ...]
     exit_rise_m: tuple[float, ...]
     exit_attitude_deg: tuple[float, ...]
-    c_max: tuple[float, ...]
 
 
 _CANDIDATES: dict[DigType, _Candidates] = {
@@ -62,14 +61,12 @@ _CANDIDATES: dict[DigType, _Candidates] = {
         length_m=(0.22, 0.34, 0.39),
         exit_rise_m=(0.01, 0.05, 0.15),
         exit_attitude_deg=(-145.0, -160.0, -175.0),
-        c_max=(2.0, 1.0, 0.6, 0.3),
     ),
     DigType.BACKWARD: _Candidates(
         entry_attitude_deg=(-102.0, -115.0, -128.0),
         length_m=(0.28, 0.40, 0.46),
         exit_rise_m=(0.01, 0.05),
         exit_attitude_deg=(-152.0, -165.0, -180.0),
-        c_max=(2.0, 1.0, 0.6, 0.3),
     ),
 }
 

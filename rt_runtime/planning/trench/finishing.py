@@ -109,11 +109,4 @@ class FinishingMixin(LayersMixin):
                 near = (max(xn + (g - y) / math.tan(t.beta2_rad), lo), y)
                 if far[0] > near[0]:
                     passes += self._bottom_passes(far, near)
-        keep = []
-        for kind, line, atts in passes:
-            order = np.argsort(line[:, 0])
-            xs = np.linspace(float(line[order[0], 0]), float(line[order[-1], 0]), 16)
-            above = np.interp(xs, x, self.surface) - np.interp(xs, line[order, 0], line[order, 1])
-            if float(np.max(above)) > _FINISH_MIN_M * s:
-                keep.append((kind, line, atts))
-        return keep
+        return [p for p in passes if self._material_above(p[1]) > _FINISH_MIN_M * s]

@@ -159,18 +159,12 @@ class FitMixin(MovesMixin):
             K, cost = self._fit_bulges(base, q1, q2, edges, offset, kind)
             q = base + pf[None, :, None] * K[:, None, :]
             ok = np.all((q >= lo_q) & (q <= hi_q), axis=(1, 2))
-            out: list[tuple[float, FloatArray] | None] = []
-            for i in range(q1.shape[0]):
-                if not ok[i]:
-                    out.append(None)
-                    continue
-                # theta_p: the entry direction J(q1) (10 D + K) in the type's range.
-                jac = kinematics.jacobian(self.rig, q1[i])[:2]
-                d0 = jac @ (10.0 * (q2[i] - q1[i]) + K[i])
-                ang = math.atan2(-d0[1], abs(d0[0]))
-                good_theta = tp_lo + 0.01 <= ang <= tp_hi - 0.01
-                out.append((float(cost[i]), K[i]) if good_theta else None)
-            return out
+            # theta_p: the entry direction J(q1) (10 D + K) in the type's range.
+            jac = kinematics.jacobian(self.rig, q1)[:, :2]
+            d0 = np.einsum("pij,pj->pi", jac, 10.0 * (q2 - q1) + K)
+            ang = np.arctan2(-d0[:, 1], np.abs(d0[:, 0]))
+            ok &= (ang >= tp_lo + 0.01) & (ang <= tp_hi - 0.01)
+            return [(float(cost[i]), K[i]) if ok[i] else None for i in range(q1.shape[0])]
 
         # Every table pair fitted on the outline itself; the best few shifted inwards just
         # enough that the path's farthest sample outside the outline is _FIT_OUTSIDE_M out
@@ -316,13 +310,7 @@ class FitMixin(MovesMixin):
         m = self.machine_x
         P = base.shape[0]
         tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
-        phi0 = np.cumsum(q1, axis=1)
-        sn0, cs0 = np.sin(phi0) * lengths, np.cos(phi0) * lengths
-        # Tip Jacobian at q1, (P, 2, 3): d(x, y)/dq.
-        jac0 = np.stack(
-            [-np.cumsum(sn0[:, ::-1], axis=1)[:, ::-1], np.cumsum(cs0[:, ::-1], axis=1)[:, ::-1]],
-            axis=1,
-        )
+        jac0 = kinematics.jacobian(self.rig, q1)[:, :2]  # (P, 2, 3): d(x, y)/dq at q1
         d_ent = np.einsum("pij,pj->pi", jac0, 10.0 * (q2 - q1))
         mu = np.full(P, 1e-7)
         K = np.zeros((P, 3))

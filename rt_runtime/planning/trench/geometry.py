@@ -219,3 +219,13 @@ def _range_max(table: FloatArray, i0: NDArray[np.int64], i1: NDArray[np.int64]) 
 #: A profile pass: its dig type, its line (2 points, work-site frame) and the attitude table of
 #: its two ends (deg).
 _Pass = tuple[DigType, FloatArray, tuple[tuple[float, ...], tuple[float, ...]]]
+
+
+def runs(mask: NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """The runs of True in a 1-D mask: ``(start, stop)`` index pairs (stop exclusive), in
+    order."""
+    on = np.zeros(mask.shape[0] + 2, dtype=np.int8)
+    on[1:-1] = mask
+    change = np.diff(on)
+    starts, stops = np.flatnonzero(change == 1), np.flatnonzero(change == -1)
+    return [(int(a), int(b)) for a, b in zip(starts, stops, strict=True)]

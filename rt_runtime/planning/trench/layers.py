@@ -16,7 +16,7 @@ from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import DigType
 from rt_runtime.planning.trench.candidates import _FILL_MARGIN, _ROUGH_SPARE, Candidate
 from rt_runtime.planning.trench.fit import _PASS_OFFSETS_M
-from rt_runtime.planning.trench.geometry import GRID_STEP_M, FloatArray
+from rt_runtime.planning.trench.geometry import GRID_STEP_M, FloatArray, runs
 from rt_runtime.planning.trench.plan import PlannedDig
 from rt_runtime.planning.trench.rough import RoughMixin
 from rt_runtime.planning.trench.state import Stage
@@ -190,11 +190,7 @@ class LayersMixin(RoughMixin):
             a = top + (short - top) * k / n
             b = top + (short - top) * (k + 1) / n
             # Nothing on this piece: skip it.
-            xs = np.linspace(min(a[0], b[0]), max(a[0], b[0]), 16)
-            above = np.interp(xs, self.grid, self.surface) - np.interp(
-                xs, self.grid, self.design_floor
-            )
-            if float(np.max(above)) < _COLUMN_EDGE_M * self.planner.scale:
+            if self._material_above(np.array([a, b])) < _COLUMN_EDGE_M * self.planner.scale:
                 continue
             found = self._fit_pass(kind, np.array([a, b]), atts)
             if found is None:
@@ -251,12 +247,10 @@ class LayersMixin(RoughMixin):
         # Runs too small to count (a quarter of V_min) are left to the walls' digs and the
         # finishing passes: a column that starts at one would carry little else. Not so for
         # the rest taken under-filled: that is taken because it must be (too thick to leave).
-        on = np.zeros(x.shape[0] + 2, dtype=np.int8)
-        on[1:-1] = thick
-        change = np.diff(on)
-        for i0, i1 in zip(np.flatnonzero(change == 1), np.flatnonzero(change == -1), strict=True):
+        too_thick = self._too_thick_below() if partial else None
+        for i0, i1 in runs(thick):
             small = float(np.sum(t[i0:i1])) * GRID_STEP_M < 0.25 * lo_a
-            if small and not (partial and np.any(self._too_thick_below()[i0:i1])):
+            if small and not (too_thick is not None and np.any(too_thick[i0:i1])):
                 thick[i0:i1] = False
         idx = np.flatnonzero(thick)
         if not idx.size:
@@ -362,12 +356,7 @@ class LayersMixin(RoughMixin):
         torque cuts through (:data:`_CUT_MAX_M`, scaled)."""
         if self.layer >= len(self.layer_floors):
             return True  # the bottom layer: nothing below takes it
-        x = self.grid
-        inside = (x >= self.section_lo) & (x <= self.section_hi)
-        nxt = self.layer + 1
-        below = self.layer_floors[nxt] if nxt < len(self.layer_floors) else self.bottom_y
-        floor = np.maximum(self.design_floor[inside], below)
-        return bool(np.any(self.surface[inside] - floor > _CUT_MAX_M * self.planner.scale))
+        return bool(np.any(self._too_thick_below()))
 
     def _next_column(self, remaining: Any, t0: float) -> PlannedDig | None:
         """The next bottom column (:meth:`_column_ends`): a straight backward dig along the

@@ -175,3 +175,13 @@ class MaterialMixin(SessionState):
             self.planning.volume_min_m3 / self.width_m,
             self.planning.volume_max_m3 / self.width_m,
         )
+
+    def _material_above(self, line: FloatArray) -> float:
+        """Thickest material above the straight segment ``line`` (2 points, work-site frame),
+        on 16 samples of it (m; negative where the surface lies below it everywhere)."""
+        order = np.argsort(line[:, 0])
+        xs = np.linspace(float(line[order[0], 0]), float(line[order[-1], 0]), 16)
+        above = np.interp(xs, self.grid, self.surface) - np.interp(
+            xs, line[order, 0], line[order, 1]
+        )
+        return float(np.max(above))

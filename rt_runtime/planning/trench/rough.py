@@ -5,9 +5,11 @@ left, and chosen with a look-ahead over what the layer still takes."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
+from rt_runtime import kinematics
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import DigType
 from rt_runtime.planning.trench.candidates import (
@@ -29,6 +31,7 @@ from rt_runtime.planning.trench.geometry import (
     OVERDIG_LIMIT_M,
     FloatArray,
     _largest_scale_below,
+    runs,
 )
 from rt_runtime.planning.trench.plan import PlannedDig
 from rt_runtime.planning.trench.state import Stage, _stage
@@ -47,7 +50,7 @@ class RoughMixin(DigsMixin):
             self.phase = DigType.BACKWARD
         return self.phase
 
-    def _next_rough(self, t0: float) -> PlannedDig | None:
+    def _next_rough(self, remaining: Any, t0: float) -> PlannedDig | None:
         """The network's next dig above the profile layer (Fig. 5), filled on the material
         left, or None when none carries a full bucket there."""
         layer_left = self.layer_design.intersection(self.material)
@@ -61,7 +64,7 @@ class RoughMixin(DigsMixin):
         if not ranked and self.phase is DigType.DOWNWARD:
             self.phase = DigType.BACKWARD
             ranked = self._screen(xe, H)
-        return self._first_plannable(ranked, self.remaining_design(), t0)
+        return self._first_plannable(ranked, remaining, t0)
 
     def _rough_entries(self) -> FloatArray:
         """Where the network's digs may enter (x, work-site frame): from the far edge of the
@@ -80,11 +83,9 @@ class RoughMixin(DigsMixin):
             return np.empty(0)
         edges = [float(x[idx[-1]])]
         # The far ends of the runs of bulk at least 3 cm long (scaled), farthest first.
-        bulk = np.zeros(x.shape[0] + 2, dtype=np.int8)
-        bulk[1:-1][idx[t[idx] >= 0.5 * float(np.max(t[idx]))]] = 1
-        change = np.diff(bulk)
-        starts, ends = np.flatnonzero(change == 1), np.flatnonzero(change == -1)
-        for i0, i1 in sorted(zip(starts, ends, strict=True), reverse=True):
+        bulk = np.zeros(x.shape[0], dtype=bool)
+        bulk[idx[t[idx] >= 0.5 * float(np.max(t[idx]))]] = True
+        for i0, i1 in reversed(runs(bulk)):
             if (i1 - i0) * GRID_STEP_M >= 0.03 * s and float(x[i1 - 1]) < edges[-1] - 0.02 * s:
                 edges.append(float(x[i1 - 1]))
         lo_x = float(x[idx[0]])
@@ -113,7 +114,6 @@ class RoughMixin(DigsMixin):
         """
         arm = self.planner.arm
         cand = _CANDIDATES[kind]
-        self._screen_kind_now = kind
         m = self.machine_x
         lo, hi = self.planner.domain[kind]
         # Every (entry, exit) pose of the grid at once: entries (x, attitude) x exits
@@ -145,7 +145,7 @@ class RoughMixin(DigsMixin):
         lo_area, hi_area = self._fill_band()
         c_cut = _largest_scale_below(total, hi_area * (1.0 - _FILL_MARGIN), G)
         c_over = _largest_scale_below(over, _SCREEN_OVERDIG_M, G)
-        c = self._path_feasible_scale(X, K, np.minimum(c_cut, c_over))
+        c = self._path_feasible_scale(X, K, np.minimum(c_cut, c_over), kind)
         r = np.arange(X.shape[0])
         kc = np.clip(np.searchsorted(G, c), 1, G.shape[0] - 1)
         w = np.clip((c - G[kc - 1]) / (G[kc] - G[kc - 1]), 0.0, 1.0)
@@ -189,8 +189,11 @@ class RoughMixin(DigsMixin):
             for b in best
         ]
 
-    def _path_feasible_scale(self, X: FloatArray, K: FloatArray, c_top: FloatArray) -> FloatArray:
-        """The largest bulge scale ``<= c_top`` (per candidate row of ``X`` ``(N, 7)`` with
+    def _path_feasible_scale(
+        self, X: FloatArray, K: FloatArray, c_top: FloatArray, kind: DigType
+    ) -> FloatArray:
+        """The largest bulge scale ``<= c_top`` (per candidate row of ``X`` ``(N, 7)`` of dig
+        type ``kind`` with
         bulge ``K`` ``(N, 3)``) at which the path-only limits hold: every joint within its
         range at the screening samples (each angle is linear in the scale: an interval in
         closed form) and theta_p, the entry direction ``J(q1) (10 D + c K)``, in the dig
@@ -212,21 +215,14 @@ class RoughMixin(DigsMixin):
         c_hi = np.where(inside, np.min(up, axis=(1, 2)), -np.inf)
         c_lo = np.max(down, axis=(1, 2))
         # theta_p on a grid of scales from c_top down (the entry direction is linear in c).
-        phi = np.cumsum(q1, axis=1)
-        lengths = arm.lengths
-        sn = np.sin(phi) * lengths
-        cs = np.cos(phi) * lengths
-        jx = -np.cumsum(sn[:, ::-1], axis=1)[:, ::-1]
-        jy = np.cumsum(cs[:, ::-1], axis=1)[:, ::-1]
-        D10 = 10.0 * (q2 - q1)
-        ux, uy = np.sum(jx * D10, axis=1), np.sum(jy * D10, axis=1)
-        vx, vy = np.sum(jx * K, axis=1), np.sum(jy * K, axis=1)
+        jac = kinematics.jacobian(self.rig, q1)
+        ux, uy = np.einsum("nij,nj->in", jac[:, :2], 10.0 * (q2 - q1))
+        vx, vy = np.einsum("nij,nj->in", jac[:, :2], K)
         top = np.minimum(c_top, c_hi)
         steps = np.arange(_N_SCALE_STEPS + 1) / _N_SCALE_STEPS
         cg = top[:, None] * (1.0 - steps[None, :])  # from top down to 0
         ang = np.arctan2(-(uy[:, None] + cg * vy[:, None]), np.abs(ux[:, None] + cg * vx[:, None]))
-        kind = X.shape[0] and int(self._screen_kind_now)
-        tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, kind))
+        tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
         ok = (ang >= tp_lo + 1e-3) & (ang <= tp_hi - 1e-3) & (cg >= c_lo[:, None])
         first = np.argmax(ok, axis=1)
         found = ok[np.arange(X.shape[0]), first]
@@ -297,11 +293,8 @@ class RoughMixin(DigsMixin):
         x = self.grid
         t = np.clip(surface - self._layer_floor, 0.0, None)
         t[(x < self.section_lo) | (x > self.section_hi)] = 0.0
-        on = np.zeros(x.shape[0] + 2, dtype=np.int8)
-        on[1:-1] = t > 0.01 * s
-        change = np.diff(on)
         buckets = awkward = 0
-        for i0, i1 in zip(np.flatnonzero(change == 1), np.flatnonzero(change == -1), strict=True):
+        for i0, i1 in runs(t > 0.01 * s):
             area = float(np.sum(t[i0:i1])) * GRID_STEP_M
             if area < 0.25 * lo_a:
                 continue

@@ -164,7 +164,7 @@ class TrenchSession(PersistMixin):
         while dig is None and self.stage is not Stage.FINISH:
             stage = self.stage
             if stage is Stage.ROUGH:
-                dig = self._next_rough(t0)
+                dig = self._next_rough(remaining, t0)
             elif stage is Stage.LAYER:
                 dig = self._next_layer_column(remaining, t0)
             elif stage is Stage.BOTTOM:

@@ -117,7 +117,6 @@ class SessionState:
     _layer_floor: FloatArray
     _layer_walls: FloatArray
     _layer_edges: FloatArray
-    _screen_kind_now: DigType
     stage_us: dict[str, float]
     _planned_region: tuple[FloatArray, FloatArray, Any] | None
     _moves: dict[tuple[Any, ...], tuple[FloatArray, tuple[Transition, ...]]]

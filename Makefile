@@ -18,13 +18,15 @@ $(STAMP): pyproject.toml setup.py rt_runtime/planning/_verify.c
 demo: $(STAMP)
 	$(BIN)/excavator-rt demo
 
-test: $(STAMP)
+# The checkers run first and fail the target on any finding: ruff, mypy strict, and the
+# package boundaries as import-linter contracts (pyproject.toml, [tool.importlinter]).
+test: lint
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	$(BIN)/ruff check rt_runtime firmware_models hil_sim tests
 	$(BIN)/mypy
+	$(BIN)/lint-imports
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -360,7 +360,7 @@ def potential_energy(rig: Rig, q_rad: ArrayLike) -> FloatArray:
     ch = _Chain(rig)
     phi = np.cumsum(q, axis=-1)
     heights = np.sin(phi) @ np.asarray(ch.h) + np.cos(phi) @ np.asarray(ch.b)
-    return ch.g * heights
+    return np.asarray(ch.g * heights, dtype=np.float64)
 
 
 def joint_power(tau_nm: ArrayLike, qd_rad_s: ArrayLike) -> FloatArray:

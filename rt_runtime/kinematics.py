@@ -96,7 +96,8 @@ def jacobian(rig: Rig, q_rad: ArrayLike) -> FloatArray:
 
 def tip_velocity(rig: Rig, q_rad: ArrayLike, qd_rad_s: ArrayLike) -> FloatArray:
     """Tip twist (vx_m_s, vy_m_s, omega_rad_s) from joint angles and velocities, ``(..., 3)``."""
-    return np.einsum("...ij,...j->...i", jacobian(rig, q_rad), np.asarray(qd_rad_s, np.float64))
+    v = np.einsum("...ij,...j->...i", jacobian(rig, q_rad), np.asarray(qd_rad_s, np.float64))
+    return np.asarray(v, dtype=np.float64)
 
 
 _TWO_PI = 2.0 * np.pi

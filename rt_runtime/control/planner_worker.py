@@ -346,7 +346,7 @@ class PlannerSpec:
     planner: str
     model_dir: str
     pso_options: dict[str, Any] = field(default_factory=dict)
-    max_digs: int = 40
+    max_digs: int | None = 40
     task: TrenchTask | None = None
 
     @classmethod

@@ -204,7 +204,7 @@ def excavated_area_m2(x_m: FloatArray, y_m: FloatArray, surface_y_m: ArrayLike) 
     denom = np.where(denom > 0.0, denom, 1.0)
     frac = np.where(both, 1.0, np.maximum(d0, d1) / denom)
     seg = np.where(both, 0.5 * (p0 + p1) * dx, 0.5 * (p0 + p1) * frac * dx)
-    return np.abs(np.sum(seg, axis=-1))
+    return np.asarray(np.abs(np.sum(seg, axis=-1)), dtype=np.float64)
 
 
 def _entry_angle(

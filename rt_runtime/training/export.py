@@ -170,7 +170,7 @@ def parity(net: Any, path: Path, X: FloatArray) -> float:
     x = np.asarray(X, dtype=np.float32)
     with torch.no_grad():
         ref = net(torch.from_numpy(x)).numpy().astype(np.float64)
-    got = onnx_answers(path, x)
+    got = onnx_answers(path, np.asarray(X, dtype=np.float64))
     scale = np.maximum(np.max(np.abs(ref), axis=0), np.finfo(np.float64).tiny)
     return float(np.max(np.abs(got - ref) / scale))
 

@@ -369,7 +369,7 @@ class PiecewisePolynomial:
         acc = table[seg, width - 1 - derivative]
         for k in range(width - 2 - derivative, -1, -1):
             acc = acc * uu + table[seg, k]
-        return acc
+        return np.asarray(acc, dtype=np.float64)
 
     def sample(self, t_s: ArrayLike, derivative: int = 0) -> FloatArray:
         """Position or a time derivative at any array of times.
@@ -453,12 +453,12 @@ class PiecewisePolynomial:
         powers = np.arange(p + 1)
         tau = self.u_coefficients[segment, : p + 1, joint] / self._durations_s[segment] ** powers
         if local:
-            return tau[::-1].copy()
+            return np.asarray(tau[::-1], dtype=np.float64).copy()
         # c_tau(t - a) expanded: coefficient of t**j is sum_k c_k C(k, j) (-a)**(k - j).
         a = float(self.knots_s[segment])
         binom = np.array([[math.comb(k, j) for k in range(p + 1)] for j in range(p + 1)])
         shift = binom * (-a) ** np.clip(powers[None, :] - powers[:, None], 0, None)
-        return (shift @ tau)[::-1].copy()
+        return np.asarray((shift @ tau)[::-1], dtype=np.float64).copy()
 
 
 _Condition = tuple[str, int, int]
@@ -717,7 +717,7 @@ def choose_smoothest(comparison: StrategyComparison) -> StrategyResult:
         if not np.any(moving):
             return np.zeros(len(res))
         sel = peaks[:, moving]
-        return np.max(sel / np.min(sel, axis=0), axis=1)
+        return np.asarray(np.max(sel / np.min(sel, axis=0), axis=1), dtype=np.float64)
 
     jerk = scores(np.array([r.peak_jerk for r in res]))
     acc = scores(np.array([r.peak_acceleration for r in res]))

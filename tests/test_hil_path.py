@@ -143,9 +143,12 @@ def test_path_job_link_and_motion(bench: Rig) -> None:
         np.testing.assert_allclose(qdd, traj.sample(t, 2), atol=1e-12)
     link = PathLink(kp.job)
     link.request_plan(None)
+    assert link.poll() is None  # answered between cycles, in service()
+    link.service()
     reply = link.poll()
     assert isinstance(reply, PathPlan) and reply.motions == kp.job.motions
     link.request_plan(None)
+    link.service()
     again = link.poll()
     assert isinstance(again, PathPlan) and again.motions == ()
     # A motion that does not end at rest is refused.

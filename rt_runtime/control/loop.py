@@ -342,7 +342,11 @@ class FixedRateLoop:
         self._ev_lost = 0
 
     def run(
-        self, step: Callable[[CycleInfo], LoopAction], *, max_cycles: int | None = None
+        self,
+        step: Callable[[CycleInfo], LoopAction],
+        *,
+        max_cycles: int | None = None,
+        idle: Callable[[], None] | None = None,
     ) -> LoopStats:
         """Run ``step`` once per cycle until it returns STOP or ``max_cycles`` steps ran.
 
@@ -354,6 +358,8 @@ class FixedRateLoop:
         Args:
             step: Called with :attr:`info` each cycle; returns :class:`LoopAction`.
             max_cycles: Stop after this many steps (None: only the step stops the loop).
+            idle: Called after each step that continues, outside its timing (``exec_s``),
+                before the wait for the next deadline: work between cycles.
 
         Returns:
             The run's statistics (also in :attr:`stats`).
@@ -448,6 +454,8 @@ class FixedRateLoop:
                 if action == LoopAction.STOP:
                     stopped_by_step = True
                     break
+                if idle is not None:
+                    idle()
                 if self._ev_count and end >= next_log_s:
                     # In the slack after the step, at most once per interval.
                     self._flush_overrun_log()

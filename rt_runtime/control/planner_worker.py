@@ -58,6 +58,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rt_runtime import actuation, kinematics
+from rt_runtime.control.setpoints import (
+    CONNECT_TOLERANCE_M,
+    KIND_PHASE,
+    Phase,
+    SampledMotion,
+    connect_motion,
+    sample_motion,
+    stroke_gap_m,
+)
 from rt_runtime.errors import ConfigurationError, ExcavatorRtError, PlanningError
 from rt_runtime.planning.trench import (
     PlannedDig,
@@ -111,6 +120,9 @@ class DigPlan:
             path leaves (they are planned before it runs).
         travel: Crawler moves the session put before the dig (the executor cannot drive them).
         plan_us: Wall time of the request (s * 1e6).
+        sampled: Every motion of the plan in streaming order as setpoint tables on the loop's
+            period grid, with CONNECT moves where two do not meet (empty when the driver has
+            no period).
     """
 
     dig: PlannedDig | None
@@ -119,6 +131,7 @@ class DigPlan:
     exit: tuple[Transition, ...]
     travel: tuple[TravelMove, ...]
     plan_us: float
+    sampled: tuple[SampledMotion, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -318,12 +331,15 @@ class PathPlan:
     Attributes:
         motions: The job's motions.
         name: The job's name.
-        plan_us: Wall time of the request (s * 1e6; nothing is planned: ~0).
+        plan_us: Wall time of the request (s * 1e6: sampling the motions).
+        sampled: The motions as setpoint tables, with CONNECT moves from the pose of the
+            request and between motions that do not meet.
     """
 
     motions: tuple[JointMotion, ...]
     name: str
     plan_us: float = 0.0
+    sampled: tuple[SampledMotion, ...] = ()
 
 
 Reply = DigPlan | Recorded | PlannerError | PathPlan
@@ -340,6 +356,7 @@ class PlannerSpec:
         pso_options: Options of the PSO planner.
         max_digs: The planner's bound on digs per task.
         task: The task.
+        period_s: The loop's period: the replies' motions are sampled on its grid.
     """
 
     rig: Rig
@@ -348,9 +365,10 @@ class PlannerSpec:
     pso_options: dict[str, Any] = field(default_factory=dict)
     max_digs: int | None = 40
     task: TrenchTask | None = None
+    period_s: float | None = None
 
     @classmethod
-    def of(cls, session: TrenchSession) -> PlannerSpec:
+    def of(cls, session: TrenchSession, period_s: float | None = None) -> PlannerSpec:
         """The spec of ``session``'s planner.
 
         Raises:
@@ -371,6 +389,7 @@ class PlannerSpec:
             pso_options=dict(planner.pso_options),
             max_digs=planner.max_digs,
             task=session.task,
+            period_s=period_s,
         )
 
 
@@ -379,11 +398,17 @@ class SessionDriver:
 
     Args:
         session: The session (may hold a pending dig, which is then the next dig).
+        period_s: The loop's period: each :class:`DigPlan` carries its motions sampled on this
+            grid (:attr:`DigPlan.sampled`), chained from the pose of the first request; None:
+            not sampled.
     """
 
-    def __init__(self, session: TrenchSession) -> None:
+    def __init__(self, session: TrenchSession, period_s: float | None = None) -> None:
         self.session = session
         self.rig = session.rig
+        self.period_s = period_s
+        #: Where the last motion handed out ends (the next plan's motions start there).
+        self._end_rad: FloatArray | None = None
 
     def plan(self, q_from_rad: FloatArray | None = None) -> DigPlan:
         """The next dig and its moves (see :class:`DigPlan`).
@@ -418,7 +443,37 @@ class SessionDriver:
                 entry = ()
             else:
                 lead_in = self._lead_in(q0)
-        return DigPlan(dig, lead_in, entry, exit_moves, travel, (time.perf_counter() - t0) * 1e6)
+            self._end_rad = q0
+        sampled = self._sample(dig, lead_in + entry, exit_moves)
+        return DigPlan(
+            dig, lead_in, entry, exit_moves, travel, (time.perf_counter() - t0) * 1e6, sampled
+        )
+
+    def _sample(
+        self,
+        dig: PlannedDig | None,
+        before: tuple[Transition, ...],
+        after: tuple[Transition, ...],
+    ) -> tuple[SampledMotion, ...]:
+        """The plan's motions on the period grid, chained from where the last one ended."""
+        period = self.period_s
+        if period is None:
+            return ()
+        rig = self.rig
+
+        def move(t: Transition) -> SampledMotion:
+            return connect_motion(rig, period, t.q_from_rad, t.q_to_rad, KIND_PHASE[t.kind])
+
+        out = [move(t) for t in before]
+        if dig is not None:
+            out.append(
+                sample_motion(
+                    rig, period, Phase.DIG, dig.T_s, dig.trajectory().sample, dig_index=dig.index
+                )
+            )
+        out.extend(move(t) for t in after)
+        out, self._end_rad = chain(rig, period, self._end_rad, out)
+        return tuple(out)
 
     def _at(self, q_a: FloatArray, q_b: FloatArray) -> bool:
         s_a = actuation.joint_to_stroke(self.rig, q_a, check_limits=False)
@@ -454,8 +509,32 @@ class SessionDriver:
         return Recorded(dig.index, volume, tip, s.state())
 
 
+def chain(
+    rig: Rig, period_s: float, q_at_rad: FloatArray | None, motions: list[SampledMotion]
+) -> tuple[list[SampledMotion], FloatArray | None]:
+    """``motions`` with a CONNECT move before each one that does not start where the arm is
+    (``q_at_rad``, then the end of the motion before it), and the pose where the last ends.
+
+    Raises:
+        PlanningError: ruckig cannot plan a connecting move.
+    """
+    out: list[SampledMotion] = []
+    at = q_at_rad
+    for m in motions:
+        if at is not None and stroke_gap_m(rig, at, m.q_start_rad) > CONNECT_TOLERANCE_M:
+            out.append(connect_motion(rig, period_s, at, m.q_start_rad))
+        out.append(m)
+        at = m.q_rad[-1]
+    return out, at
+
+
 class PlannerLink(Protocol):
-    """The executor's side of a planner: requests, then one non-blocking :meth:`poll` a cycle."""
+    """The job's side of a planner: requests, then one non-blocking :meth:`poll` a cycle.
+
+    A request only queues work; the work runs in a planner process or, for links that answer
+    in-process, in :meth:`service`, which the controller manager calls between cycles (never
+    inside one).
+    """
 
     def request_plan(self, q_from_rad: FloatArray | None) -> None:
         """Ask for the next :class:`DigPlan`."""
@@ -469,36 +548,53 @@ class PlannerLink(Protocol):
         """The next reply, or None (never waits)."""
         ...
 
+    def service(self) -> None:
+        """Run queued in-process work (between cycles; nothing for a process)."""
+        ...
+
     def close(self) -> None:
         """Release the planner (outside the loop)."""
         ...
 
 
 class _AnsweredLink:
-    """A link that answers each request at once on the caller's thread: its replies wait in a
-    queue for :meth:`poll`; nothing to release."""
+    """A link that answers its requests in-process in :meth:`service` (on the thread that calls
+    it, between cycles): the requests wait in one queue, the replies in another for
+    :meth:`poll`; nothing to release."""
 
     def __init__(self) -> None:
+        self._requests: deque[tuple[Any, ...]] = deque()
         self._replies: deque[Reply] = deque()
 
     def poll(self) -> Reply | None:
         """The oldest reply, or None."""
         return self._replies.popleft() if self._replies else None
 
+    def service(self) -> None:
+        """Answer every queued request."""
+        while self._requests:
+            request = self._requests.popleft()
+            self._answer(request)
+
+    def _answer(self, request: tuple[Any, ...]) -> None:
+        raise NotImplementedError
+
     def close(self) -> None:
         """Nothing to release."""
 
 
 class InlinePlanner(_AnsweredLink):
-    """Runs each request at once on the caller's thread (simulated clock; deterministic).
+    """Runs the session's requests in-process in :meth:`service` (simulated clock:
+    deterministic, time stands still while it plans).
 
     Args:
         session: The session.
+        period_s: The loop's period (see :class:`SessionDriver`).
     """
 
-    def __init__(self, session: TrenchSession) -> None:
+    def __init__(self, session: TrenchSession, period_s: float | None = None) -> None:
         super().__init__()
-        self.driver = SessionDriver(session)
+        self.driver = SessionDriver(session, period_s)
 
     def _run(self, fn: Any, *args: Any) -> None:
         try:
@@ -507,13 +603,19 @@ class InlinePlanner(_AnsweredLink):
             self._replies.append(PlannerError(str(exc)))
 
     def request_plan(self, q_from_rad: FloatArray | None) -> None:
-        """Plan now; the reply waits for :meth:`poll`."""
-        self._run(self.driver.plan, q_from_rad)
+        """Queue a plan request (answered in :meth:`service`)."""
+        self._requests.append(("plan", None if q_from_rad is None else np.array(q_from_rad)))
 
     def request_record(self, strokes_m: FloatArray, plan_next: bool) -> None:
-        """Record now (and plan when ``plan_next`` and the record succeeded)."""
-        self._run(self.driver.record, strokes_m)
-        if plan_next and not isinstance(self._replies[-1], PlannerError):
+        """Queue a record request (then a plan when ``plan_next`` and the record succeeds)."""
+        self._requests.append(("record", np.array(strokes_m, dtype=np.float64), plan_next))
+
+    def _answer(self, request: tuple[Any, ...]) -> None:
+        if request[0] == "plan":
+            self._run(self.driver.plan, request[1])
+            return
+        self._run(self.driver.record, request[1])
+        if request[2] and not isinstance(self._replies[-1], PlannerError):
             self._run(self.driver.plan, None)
 
 
@@ -526,22 +628,48 @@ class PathLink(_AnsweredLink):
 
     Args:
         job: The path.
+        rig: The rig, and ``period_s`` the loop's period: with both, the reply carries the
+            motions sampled (:attr:`PathPlan.sampled`), chained from the pose of the request.
     """
 
-    def __init__(self, job: PathJob) -> None:
+    def __init__(self, job: PathJob, rig: Rig | None = None, period_s: float | None = None) -> None:
         super().__init__()
         self.job = job
+        self.rig = rig
+        self.period_s = period_s
         self._handed_out = False
 
     def request_plan(self, q_from_rad: FloatArray | None) -> None:
         """Queue the path's motions (first request) or an empty plan (later ones)."""
-        motions = () if self._handed_out else self.job.motions
-        self._handed_out = True
-        self._replies.append(PathPlan(motions, self.job.name))
+        q = None if q_from_rad is None else np.array(q_from_rad, dtype=np.float64)
+        self._requests.append(("plan", q))
 
     def request_record(self, strokes_m: FloatArray, plan_next: bool) -> None:
         """A path records nothing: answered with a :class:`PlannerError`."""
-        self._replies.append(PlannerError("a path job has no digs to record"))
+        self._requests.append(("record",))
+
+    def _answer(self, request: tuple[Any, ...]) -> None:
+        if request[0] == "record":
+            self._replies.append(PlannerError("a path job has no digs to record"))
+            return
+        t0 = time.perf_counter()
+        motions = () if self._handed_out else self.job.motions
+        self._handed_out = True
+        sampled: tuple[SampledMotion, ...] = ()
+        if self.rig is not None and self.period_s is not None and motions:
+            rig, period = self.rig, self.period_s
+            try:
+                tables = [
+                    sample_motion(rig, period, Phase.PATH, m.duration_s, m.sample)
+                    for m in motions
+                ]
+                sampled = tuple(chain(rig, period, request[1], tables)[0])
+            except ExcavatorRtError as exc:
+                self._replies.append(PlannerError(str(exc)))
+                return
+        self._replies.append(
+            PathPlan(motions, self.job.name, (time.perf_counter() - t0) * 1e6, sampled)
+        )
 
 
 # -- the planner process --------------------------------------------------------------------------
@@ -579,7 +707,7 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
             if state is None
             else TrenchSession.restore(planner, spec.task, state)
         )
-        driver = SessionDriver(session)
+        driver = SessionDriver(session, spec.period_s)
     except ExcavatorRtError as exc:
         conn.send(PlannerError(f"planner process could not start: {exc}"))
         conn.close()
@@ -609,21 +737,34 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
 class ProcessPlanner:
     """The session in a planner process (real-time clock; see the module docstring).
 
+    A sender thread writes the requests to the pipe and a receiver thread reads and unpickles
+    the replies (a plan's setpoint tables are hundreds of kB), so the loop's thread only puts
+    and takes queue items.
+
     Args:
         session: The session to continue (its state, pending dig included, is copied over; the
             object itself is not touched while the process runs).
         spec: How to rebuild the planner; default :meth:`PlannerSpec.of` the session.
+        period_s: The loop's period (replies carry their motions sampled on its grid), when
+            ``spec`` is not given.
 
     Raises:
         ConfigurationError: The session's planner cannot be rebuilt in another process.
     """
 
-    def __init__(self, session: TrenchSession, spec: PlannerSpec | None = None) -> None:
-        self.spec = spec if spec is not None else PlannerSpec.of(session)
+    def __init__(
+        self,
+        session: TrenchSession,
+        spec: PlannerSpec | None = None,
+        period_s: float | None = None,
+    ) -> None:
+        self.spec = spec if spec is not None else PlannerSpec.of(session, period_s)
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=True)
         self._outbox: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
+        self._inbox: queue.SimpleQueue[Reply] = queue.SimpleQueue()
         self._dead = False
+        self._closing = False
         # The state goes first through the sender thread (see _worker_main), so start()
         # returns once the child is spawned, whatever the size of the job.
         self._outbox.put(("init", session.state()))
@@ -642,6 +783,10 @@ class ProcessPlanner:
                 os.setpriority(os.PRIO_PROCESS, self._process.pid, PLANNER_NICE)
         self._sender = threading.Thread(target=self._send_loop, name="planner-send", daemon=True)
         self._sender.start()
+        self._receiver = threading.Thread(
+            target=self._receive_loop, name="planner-receive", daemon=True
+        )
+        self._receiver.start()
 
     def _send_loop(self) -> None:
         while True:
@@ -653,6 +798,21 @@ class ProcessPlanner:
             except (OSError, ValueError):
                 break
 
+    def _receive_loop(self) -> None:
+        while True:
+            try:
+                reply: Reply = self._conn.recv()
+            except (EOFError, OSError) as exc:
+                if not self._closing:
+                    self._inbox.put(
+                        PlannerError(
+                            f"the planner process ended (exit code {self._process.exitcode}): "
+                            f"{exc!r}"
+                        )
+                    )
+                break
+            self._inbox.put(reply)
+
     def request_plan(self, q_from_rad: FloatArray | None) -> None:
         """Queue a plan request (loop safe: a queue put)."""
         q = None if q_from_rad is None else np.array(q_from_rad, dtype=np.float64)
@@ -663,25 +823,24 @@ class ProcessPlanner:
         self._outbox.put(("record", np.array(strokes_m, dtype=np.float64), plan_next))
 
     def poll(self) -> Reply | None:
-        """One reply if the pipe holds one (never waits), PlannerError if the process died."""
+        """One reply if the receiver has one (never waits); a PlannerError once the process
+        is gone."""
         if self._dead:
             return None
         try:
-            if not self._conn.poll(0):
-                if not self._process.is_alive() and not self._conn.poll(0):
-                    self._dead = True
-                    return PlannerError(
-                        f"the planner process ended (exit code {self._process.exitcode})"
-                    )
-                return None
-            reply: Reply = self._conn.recv()
-        except (EOFError, OSError) as exc:
+            reply = self._inbox.get_nowait()
+        except queue.Empty:
+            return None
+        if isinstance(reply, PlannerError) and reply.message.startswith("the planner process"):
             self._dead = True
-            return PlannerError(f"the planner process is gone: {exc!r}")
         return reply
+
+    def service(self) -> None:
+        """Nothing: the process works on its own."""
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Stop the process (outside the loop): ask, wait ``timeout_s``, then terminate."""
+        self._closing = True
         self._outbox.put(("stop",))
         self._outbox.put(None)
         self._sender.join(timeout_s)
@@ -690,3 +849,4 @@ class ProcessPlanner:
             self._process.terminate()
             self._process.join(timeout_s)
         self._conn.close()
+        self._receiver.join(timeout_s)

@@ -1,0 +1,213 @@
+"""The drives as the controllers see them: commands and feedback in SI units over the CiA 402
+master (ros2_control's hardware interface).
+
+:class:`DriveInterface` alone owns the :class:`~rt_runtime.canbus.CanMaster` and the conversion
+between metres and the drives' integer micrometres. One cycle is :meth:`~DriveInterface.write`
+(RPDO1 target stroke and stroke-rate feed-forward to every drive, then SYNC ``k``) and
+:meth:`~DriveInterface.read` (the drives' answers to SYNC ``k``, waiting at most
+``read_timeout_s``, then the master's heartbeat when due). Both are loop safe: preallocated
+buffers, no exceptions for bus conditions (statuses instead).
+
+Units: strokes m, stroke rates m/s, times s. A drive whose TPDO1 for this SYNC did not arrive is
+*stale*: its ``stroke_m`` and ``velocity_m_s`` are NaN this cycle, ``last_velocity_m_s`` keeps its
+last report.
+
+Timing: :attr:`DriveFeedback.wait_s` is the time :meth:`~DriveInterface.read` spent until every
+answer was in (the transport's and the drives' share of a cycle: bus, bridge, the drives'
+response), :attr:`DriveFeedback.io_s` the time of the write and read calls together.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rt_runtime.canbus import CanMaster, CycleStatus, DriveState, Emcy, WriteStatus
+from rt_runtime.control.clock import Clock
+
+__all__ = ["DriveFeedback", "DriveInterface"]
+
+FloatArray = NDArray[np.float64]
+
+
+class DriveFeedback:
+    """The drives' state after one :meth:`DriveInterface.read` (reused: valid until the next).
+
+    Attributes:
+        sync_count: SYNCs sent so far (the one these answers belong to).
+        stroke_m: Reported stroke per axis (m), NaN where stale, ``(n,)``.
+        velocity_m_s: Reported stroke rate (m/s), NaN where stale.
+        last_velocity_m_s: Last reported stroke rate (m/s), stale or not.
+        stale: No TPDO1 answered this SYNC.
+        fresh: Every drive answered (``not stale.any()``).
+        state: CiA 402 state per axis (:class:`~rt_runtime.canbus.DriveState` value, -1 unknown).
+        heartbeat_lost: The drive's heartbeat timed out.
+        status: The cycle's :class:`~rt_runtime.canbus.CycleStatus`.
+        write_status: What the cycle's write returned.
+        emcys: Emergencies received this cycle.
+        rtt_s: SYNC sent -> every TPDO1 in (s), NaN when one was missing.
+        wait_s: Time the read waited for the answers (s).
+        io_s: Time of the cycle's write and read (s).
+    """
+
+    __slots__ = (
+        "emcys",
+        "fresh",
+        "heartbeat_lost",
+        "io_s",
+        "last_velocity_m_s",
+        "rtt_s",
+        "stale",
+        "state",
+        "status",
+        "stroke_m",
+        "sync_count",
+        "velocity_m_s",
+        "wait_s",
+        "write_status",
+    )
+
+    def __init__(self, n: int) -> None:
+        self.sync_count = 0
+        self.stroke_m: FloatArray = np.full(n, np.nan)
+        self.velocity_m_s: FloatArray = np.full(n, np.nan)
+        self.last_velocity_m_s: FloatArray = np.zeros(n)
+        self.stale: NDArray[np.bool_] = np.ones(n, np.bool_)
+        self.fresh = False
+        self.state: NDArray[np.int8] = np.full(n, -1, np.int8)
+        self.heartbeat_lost: NDArray[np.bool_] = np.zeros(n, np.bool_)
+        self.status = CycleStatus.OK
+        self.write_status = WriteStatus.OK
+        self.emcys: list[Emcy] = []
+        self.rtt_s = math.nan
+        self.wait_s = 0.0
+        self.io_s = 0.0
+
+
+class DriveInterface:
+    """The drives in SI units (see the module docstring).
+
+    Args:
+        master: The CAN master (booted and enabled by its owner).
+        clock: The loop's clock (times of SYNC, answers, heartbeat).
+        read_timeout_s: Longest wait for one missing answer after SYNC (s).
+        feedforward: Send the stroke rate as velocity offset 0x60B1 (else 0).
+    """
+
+    def __init__(
+        self, master: CanMaster, clock: Clock, read_timeout_s: float, feedforward: bool = True
+    ) -> None:
+        self.master = master
+        self.clock = clock
+        self.read_timeout_s = float(read_timeout_s)
+        self.feedforward = feedforward
+        self.n = master.n
+        self.axes: tuple[str, ...] = tuple(master.config.axes)
+        self.feedback = DriveFeedback(self.n)
+        self._um = np.zeros(self.n)
+        self._target_um = np.zeros(self.n, np.int32)
+        self._vel_um = np.zeros(self.n, np.int32)
+        self._sent_s = 0.0
+        self._write_s = 0.0
+
+    def measured_stroke_m(self) -> FloatArray:
+        """The strokes the drives reported last (m), a new array (outside the loop)."""
+        return np.asarray(self.master.feedback.position_um, dtype=np.float64) * 1e-6
+
+    def operation_enabled(self) -> bool:
+        """Every drive reports OPERATION_ENABLED."""
+        return bool((self.master.feedback.state == DriveState.OPERATION_ENABLED).all())
+
+    def drive_states(self) -> list[str]:
+        """Each drive's state name (for messages)."""
+        fb = self.master.feedback
+        return [
+            s.name if (s := fb.drive_state(a)) is not None else "undecodable"
+            for a in range(self.n)
+        ]
+
+    def write(self, stroke_m: FloatArray, velocity_m_s: FloatArray) -> WriteStatus:
+        """RPDO1 (target stroke, velocity offset when feed-forward is on) to every drive, then
+        SYNC; rounds to micrometres. Loop safe."""
+        clock = self.clock
+        t0 = clock.now()
+        um = self._um
+        np.multiply(stroke_m, 1e6, out=um)
+        np.rint(um, out=um)
+        self._target_um[:] = um
+        if self.feedforward:
+            np.multiply(velocity_m_s, 1e6, out=um)
+            np.rint(um, out=um)
+            self._vel_um[:] = um
+        status = self.master.write_setpoints(self._target_um, self._vel_um)
+        self.feedback.write_status = status
+        self._sent_s = clock.now()
+        self._write_s = self._sent_s - t0
+        return status
+
+    def read(self) -> DriveFeedback:
+        """The answers to the last SYNC (waits at most ``read_timeout_s`` per missing one),
+        then the master's heartbeat when due. Loop safe."""
+        clock = self.clock
+        t0 = clock.now()
+        raw = self.master.read_feedback(self._sent_s, self.read_timeout_s)
+        t1 = clock.now()
+        out = self.feedback
+        fresh = not raw.stale.any()
+        out.fresh = fresh
+        out.rtt_s = t1 - self._sent_s if fresh else math.nan
+        self.master.heartbeat(clock.now())
+        out.sync_count = raw.sync_count
+        pos = out.stroke_m
+        pos[:] = raw.position_um
+        pos *= 1e-6
+        vel = out.last_velocity_m_s
+        vel[:] = raw.velocity_um_s
+        vel *= 1e-6
+        out.velocity_m_s[:] = vel
+        out.stale[:] = raw.stale
+        if not fresh:
+            pos[raw.stale] = np.nan
+            out.velocity_m_s[raw.stale] = np.nan
+        out.state[:] = raw.state
+        out.heartbeat_lost[:] = raw.heartbeat_lost
+        out.status = raw.status
+        out.emcys = raw.emcys
+        out.wait_s = t1 - t0
+        out.io_s = self._write_s + out.wait_s
+        return out
+
+    def describe(self, status: CycleStatus) -> str:
+        """What the drives report, for a fault message (outside the hot path)."""
+        master = self.master
+        fb = master.feedback
+        parts = [f"cycle status {status.name}"]
+        for axis, name in enumerate(self.axes):
+            state = fb.drive_state(axis)
+            emcy = master.last_emcy[axis]
+            text = f"{name}: {state.name if state is not None else 'undecodable'}"
+            if fb.heartbeat_lost[axis]:
+                text += ", heartbeat lost"
+            if emcy is not None:
+                text += f", EMCY {emcy.description}"
+            parts.append(text)
+        return "; ".join(parts)
+
+    def quick_stop(self) -> WriteStatus:
+        """Quick stop to every drive (their own ramp). Loop safe."""
+        return self.master.quick_stop()
+
+    def disable(self) -> WriteStatus:
+        """Disable voltage to every drive (for axes at rest). Loop safe."""
+        return self.master.disable()
+
+    def react_to_faults(self, on: bool) -> None:
+        """Let the master quick-stop every drive on a fault (off: the controllers react)."""
+        self.master.react_to_faults = on
+
+    def raw(self) -> Any:
+        """The master's own feedback (CiA 402 words; for reports and tests)."""
+        return self.master.feedback

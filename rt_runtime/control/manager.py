@@ -1,0 +1,252 @@
+"""The controller manager: one fixed-rate loop, the drives, the guard, and the controller that
+runs this cycle (ros2_control's controller manager).
+
+Each cycle (:meth:`ControllerManager._cycle`):
+
+1. the command the active controller returned last cycle passes the limit guard
+   (:class:`~rt_runtime.control.controllers.GuardFilter`) and is written: RPDO1 for
+   ``t_k + T`` with SYNC ``k`` (:meth:`~rt_runtime.control.hardware.DriveInterface.write`);
+2. the drives' answers to SYNC ``k`` are read (:meth:`~.hardware.DriveInterface.read`);
+3. the telemetry row ``k`` is written: the demand at ``t_k`` (``stroke_ref_m``, the previous
+   command), the feedback answering SYNC ``k``, the command for ``t_k + T`` and what it streams;
+4. the active controller's :meth:`~.controllers.Controller.update` returns the next command.
+
+A :meth:`switch` (any thread) hands the drives to another controller at the next cycle
+boundary: the new controller's first command, prepared by whoever switches, goes with the next
+SYNC, so the SYNC stream has no gap. When the active controller ends, :attr:`on_ended` names the
+next one, or ends the loop. Work that takes longer than a cycle runs between cycles: the loop's
+idle hook calls the active controller's :meth:`~.controllers.Controller.service` after the step
+(never inside one).
+
+SYNC timing. In cycle ``k`` (SYNC ``k`` at ``t_k``) the RPDO1 carries the setpoint for
+``t_k + T``: the drive latches it at SYNC ``k`` and reaches it one period later (CSP
+interpolation), so the drive's demand at ``t_k`` is the setpoint sent with SYNC ``k - 1``; the
+TPDO1 answering SYNC ``k`` reports the stroke at ``t_k``. The velocity offset 0x60B1 is the
+guard's stroke rate at ``t_k + T`` (feed-forward), or 0 without feed-forward.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from rt_runtime.control.controllers import Command, Controller, ControllerStatus, GuardFilter
+from rt_runtime.control.hardware import DriveInterface
+from rt_runtime.control.loop import CycleInfo, FixedRateLoop, LoopAction, LoopStats
+from rt_runtime.control.telemetry import LOOP_COLUMNS, Column, Telemetry
+
+__all__ = ["EXECUTOR_COLUMNS", "ControllerManager", "executor_telemetry"]
+
+log = logging.getLogger(__name__)
+
+#: The manager's telemetry columns (after the loop's): build the loop's Telemetry with them
+#: (:func:`executor_telemetry`).
+EXECUTOR_COLUMNS: tuple[Column, ...] = (
+    Column("sync", np.int64, (), -1),  # SYNC count of this cycle's SYNC
+    Column("phase", np.int8, (), -1),  # Phase
+    Column("segment", np.int32, (), -1),  # motion number (-1 while holding or stopping)
+    Column("dig", np.int16, (), -1),  # dig index during a dig
+    Column("tracking", np.bool_, (), False),  # streaming a plan's motion
+    Column("q_ref_rad", np.float64, (3,)),  # joint reference at this SYNC
+    Column("stroke_ref_m", np.float64, (3,)),  # demand at this SYNC (last cycle's command)
+    Column("stroke_cmd_m", np.float64, (3,)),  # RPDO1 target with this SYNC (for one period on)
+    Column("vel_cmd_m_s", np.float64, (3,)),  # RPDO1 velocity offset
+    Column("guard", np.int8, (), -1),  # GuardState
+    Column("stroke_fb_m", np.float64, (3,)),  # TPDO1 answering this SYNC (NaN: stale)
+    Column("vel_fb_m_s", np.float64, (3,)),
+    Column("drive_state", np.int8, (3,), -1),
+    Column("cycle_status", np.int8, (), -1),
+    Column("rtt_s", np.float64),  # SYNC sent -> every TPDO1 in (clock), NaN if one was missing
+    Column("wait_s", np.float64),  # time the read waited for the answers (transport + drives)
+)
+
+
+def executor_telemetry(capacity: int) -> Telemetry:
+    """A telemetry ring buffer with the manager's columns (give it to the loop).
+
+    Raises:
+        ConfigurationError: ``capacity`` below 1.
+    """
+    return Telemetry(capacity, EXECUTOR_COLUMNS)
+
+
+OnEnded = Callable[[Any], "tuple[Any, Command] | None"]
+
+
+class ControllerManager:
+    """Runs controllers on the drives in one fixed-rate loop (see the module docstring).
+
+    Args:
+        drives: The drives.
+        guard: The limit guard every command passes.
+        loop: The fixed-rate loop; its telemetry is replaced by one with
+            :data:`EXECUTOR_COLUMNS` added (same capacity) when it lacks them.
+        on_cycle: Called at the end of every cycle with ``(sync_index, now_s)`` on the loop's
+            thread (fault injection in tests, liveness); must be cheap and must not raise.
+        on_ended: Called on the loop's thread when the active controller ends, with it: returns
+            the next controller and its first command, or None to end the loop. Default: end.
+    """
+
+    def __init__(
+        self,
+        drives: DriveInterface,
+        guard: GuardFilter,
+        loop: FixedRateLoop,
+        *,
+        on_cycle: Callable[[int, float], None] | None = None,
+        on_ended: OnEnded | None = None,
+    ) -> None:
+        self.drives = drives
+        self.guard = guard
+        self.loop = loop
+        self.on_cycle = on_cycle
+        self.on_ended = on_ended
+        self.period_s = loop.config.period_s
+        self.realtime = bool(loop.clock.realtime)
+        self.controller: Any = None
+        self._cmd = Command()
+        self._pending: tuple[Any, Command] | None = None
+        self._stop = False
+        self._lock = threading.Lock()
+        self._s_ref = np.zeros(3)
+        self._q_ref = np.zeros(3)
+        self._install_telemetry()
+        tel = self.loop.telemetry
+        self._tel = tel
+        self._cols = tuple(tel.column(c.name) for c in EXECUTOR_COLUMNS)
+
+    def _install_telemetry(self) -> None:
+        tel = self.loop.telemetry
+        names = {c.name for c in tel.columns}
+        if all(c.name in names for c in EXECUTOR_COLUMNS):
+            return
+        loop_names = {c.name for c in LOOP_COLUMNS}
+        extra = [c for c in tel.columns if c.name not in loop_names]
+        extra += [c for c in EXECUTOR_COLUMNS if c.name not in names]
+        self.loop.telemetry = Telemetry(tel.capacity, extra)
+
+    # -- any thread -----------------------------------------------------------------------------
+
+    def switch(self, controller: Controller, first: Command) -> None:
+        """Hand the drives to ``controller`` at the next cycle boundary; ``first`` is its first
+        command (prepared outside the loop). Any thread."""
+        with self._lock:
+            self._pending = (controller, first)
+
+    @property
+    def switch_pending(self) -> bool:
+        """A :meth:`switch` waits for the next boundary."""
+        return self._pending is not None
+
+    def stop(self) -> None:
+        """End the loop at the next cycle boundary (any thread)."""
+        self._stop = True
+
+    # -- the loop's thread ----------------------------------------------------------------------
+
+    def run(
+        self, controller: Controller, first: Command, s_ref_m: Any, q_ref_rad: Any
+    ) -> LoopStats:
+        """Run the loop with ``controller`` (``first`` its first command; ``s_ref_m`` and
+        ``q_ref_rad`` the demand the drives hold now) until :attr:`on_ended` or :meth:`stop`
+        ends it."""
+        self.controller = controller
+        self._cmd = first
+        self._s_ref[:] = s_ref_m
+        self._q_ref[:] = q_ref_rad
+        self._stop = False
+        # Another thread of this process holding the interpreter lock delays the loop by up to
+        # the switch interval (5 ms by default): on a real-time clock it is cut to a tenth of
+        # the period while the loop runs.
+        old_switch = sys.getswitchinterval()
+        if self.realtime:
+            sys.setswitchinterval(min(old_switch, 0.1 * self.period_s))
+        try:
+            return self.loop.run(self._cycle, idle=self._idle)
+        finally:
+            sys.setswitchinterval(old_switch)
+
+    def _idle(self) -> None:
+        controller = self.controller
+        if controller is not None:
+            controller.service()
+
+    def _cycle(self, info: CycleInfo) -> LoopAction:
+        drives = self.drives
+        guard = self.guard
+        cmd = self._cmd
+        if cmd.quick_stop:
+            drives.quick_stop()
+        gstate = guard.apply(cmd)
+        drives.write(guard.position_m, guard.velocity_m_s)
+        fb = drives.read()
+        (
+            c_sync,
+            c_phase,
+            c_segment,
+            c_dig,
+            c_tracking,
+            c_q_ref,
+            c_s_ref,
+            c_s_cmd,
+            c_v_cmd,
+            c_guard,
+            c_s_fb,
+            c_v_fb,
+            c_state,
+            c_status,
+            c_rtt,
+            c_wait,
+        ) = self._cols
+        slot = self._tel.slot
+        c_sync[slot] = fb.sync_count
+        c_phase[slot] = cmd.phase
+        c_segment[slot] = cmd.segment
+        c_dig[slot] = cmd.dig
+        c_tracking[slot] = cmd.tracking
+        c_q_ref[slot] = self._q_ref
+        c_s_ref[slot] = self._s_ref
+        c_s_cmd[slot] = guard.position_m
+        c_v_cmd[slot] = guard.velocity_m_s
+        c_guard[slot] = gstate
+        c_s_fb[slot] = fb.stroke_m
+        c_v_fb[slot] = fb.velocity_m_s
+        c_state[slot] = fb.state
+        c_status[slot] = fb.status
+        c_rtt[slot] = fb.rtt_s
+        c_wait[slot] = fb.wait_s
+        self._s_ref[:] = guard.position_m
+        self._q_ref[:] = cmd.q_rad
+        controller = self.controller
+        now = self.loop.clock.now()
+        if info.safe_stop:
+            overrun = getattr(controller, "overrun", None)
+            if overrun is not None:
+                overrun(info.consecutive_overruns, info.lateness_s)
+        try:
+            nxt, status = controller.update(now, self.period_s, fb)
+        except Exception as exc:  # a bug must still end in the guard's stop, never a dead loop
+            log.exception("controller update failed")
+            nxt, status = controller.fail(f"controller error: {exc!r}")
+        if self.on_cycle is not None:
+            self.on_cycle(int(fb.sync_count), now)
+        if self._pending is not None:
+            with self._lock:
+                pending, self._pending = self._pending, None
+            if pending is not None:
+                self.controller, nxt = pending
+                status = ControllerStatus.RUNNING
+        if status is ControllerStatus.ENDED:
+            after = self.on_ended(controller) if self.on_ended is not None else None
+            if after is None:
+                return LoopAction.STOP
+            self.controller, nxt = after
+        self._cmd = nxt
+        if self._stop:
+            return LoopAction.STOP
+        return LoopAction.CONTINUE

@@ -1,0 +1,191 @@
+"""Motions as setpoint tables: a joint motion sampled on the loop's period grid and mapped to
+cylinder strokes, built by the planner side so that a cycle only reads rows of arrays.
+
+A :class:`SampledMotion` holds, for the samples ``j = 0 .. n-1`` at ``t = (j + 1) T`` (``T`` the
+loop's period; the last sample is the motion's end pose, reached at or before ``n T``), the
+joint reference (rad) and the stroke, stroke rate and stroke acceleration (m, m/s, m/s^2) the
+limit guard tracks: ``s(q)``, ``J qd`` and ``J qdd + J' qd^2`` with ``J' = d^2 s / dq^2`` by a
+central second difference of step :data:`H_RAD`. The cycle that streams sample ``j`` sends it
+with SYNC ``k`` for ``t_k + T`` (see :mod:`rt_runtime.control.manager`).
+
+Every queued motion starts where the one before it ends: the planner side inserts a
+:data:`Phase.CONNECT` move (a rest-to-rest ruckig move within the rig's joint limits) where two
+motions, or the measured pose and the first motion, are further apart than
+:data:`CONNECT_TOLERANCE_M` of stroke. No cycle plans a move.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rt_runtime import actuation
+from rt_runtime.planning.trench import joint_move
+from rt_runtime.rig import Rig
+
+__all__ = [
+    "CONNECT_TOLERANCE_M",
+    "H_RAD",
+    "KIND_PHASE",
+    "Phase",
+    "SampledMotion",
+    "connect_motion",
+    "sample_motion",
+    "stroke_gap_m",
+]
+
+FloatArray = NDArray[np.float64]
+
+#: Step of the second difference for J' = d^2 s / dq^2 (rad): truncation ~h^2, rounding ~1e-8.
+H_RAD = 1e-4
+#: Commanded-pose gap (largest stroke difference, m) above which a connecting move bridges it:
+#: the guard passes a step through exactly only while it fits in one period within the jerk
+#: limit (~j_max T^3 / 32, 4e-11 m at 2 ms), and trails the plan after a larger one.
+CONNECT_TOLERANCE_M = 1e-11
+
+
+class Phase(IntEnum):
+    """What a job streams in a cycle (telemetry column ``phase``)."""
+
+    #: Holding: waiting for a plan, or paused.
+    WAIT = 0
+    #: A ruckig move bridging the commanded pose and the next motion's start.
+    CONNECT = 1
+    LIFT_OUT = 2
+    DUMP = 3
+    APPROACH = 4
+    ENTER = 5
+    DIG = 6
+    #: Holding at the end of the job until the drives report rest.
+    SETTLE = 7
+    #: The guard's jerk-limited stop.
+    STOP = 8
+    #: A prescribed path's motion (:class:`~rt_runtime.control.planner_worker.PathJob`).
+    PATH = 9
+
+
+#: The phase of a trench transition's ``kind``.
+KIND_PHASE = {
+    "lift_out": Phase.LIFT_OUT,
+    "dump": Phase.DUMP,
+    "approach": Phase.APPROACH,
+    "enter": Phase.ENTER,
+}
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SampledMotion:
+    """A motion on the loop's period grid (see the module docstring).
+
+    Attributes:
+        phase: The phase it streams in.
+        q_start_rad: Its start pose (rad), ``(3,)``.
+        q_rad: Joint reference of sample ``j`` (at ``(j + 1) T``), ``(n, 3)``.
+        stroke_m, rate_m_s, accel_m_s2: Stroke, rate and acceleration of sample ``j``, ``(n, 3)``.
+        dig_index: The dig's index (phase DIG), else -1.
+        duration_s: The motion's length (s).
+    """
+
+    phase: Phase
+    q_start_rad: FloatArray
+    q_rad: FloatArray
+    stroke_m: FloatArray
+    rate_m_s: FloatArray
+    accel_m_s2: FloatArray
+    dig_index: int
+    duration_s: float
+
+    @property
+    def n(self) -> int:
+        """Number of samples (cycles it streams)."""
+        return int(self.q_rad.shape[0])
+
+
+def _n_samples(duration_s: float, period_s: float) -> int:
+    """Samples until ``(j + 1) T >= duration - 1e-12`` (at least one)."""
+    n = max(1, math.ceil((duration_s - 1e-12) / period_s))
+    while n > 1 and (n - 1) * period_s >= duration_s - 1e-12:
+        n -= 1
+    while n * period_s < duration_s - 1e-12:
+        n += 1
+    return n
+
+
+def sample_motion(
+    rig: Rig,
+    period_s: float,
+    phase: Phase,
+    duration_s: float,
+    sample: Callable[[float], tuple[Any, Any, Any]],
+    *,
+    q_end_rad: Any = None,
+    dig_index: int = -1,
+) -> SampledMotion:
+    """Sample ``sample(t) -> (q, qd, qdd)`` at ``(j + 1) T`` (clamped to the motion) and map it
+    to strokes (outside the loop: allocates).
+
+    Args:
+        rig: The rig (stroke mapping).
+        period_s: The loop's period ``T`` (s).
+        phase: The phase it streams in.
+        duration_s: The motion's length (s).
+        sample: Joint position, velocity and acceleration at a time in ``[0, duration_s]``.
+        q_end_rad: The exact end pose (at rest) for samples at or past the end, or None to use
+            ``sample(duration_s)``.
+        dig_index: The dig's index for a dig.
+    """
+    duration = float(duration_s)
+    n = _n_samples(duration, period_s)
+    q = np.empty((n, 3))
+    qd = np.empty((n, 3))
+    qdd = np.empty((n, 3))
+    for j in range(n):
+        t = min(max((j + 1) * period_s, 0.0), duration)
+        if q_end_rad is not None and t >= duration:
+            q[j] = q_end_rad
+            qd[j] = 0.0
+            qdd[j] = 0.0
+            continue
+        a, b, c = sample(t)
+        q[j] = a
+        qd[j] = b
+        qdd[j] = c
+    q0 = np.asarray(sample(0.0)[0], dtype=np.float64).copy()
+    q3 = np.repeat(q[:, None, :], 3, axis=1)
+    q3[:, 0] -= H_RAD
+    q3[:, 2] += H_RAD
+    s3 = actuation.joint_to_stroke(rig, q3, check_limits=False)
+    jac = actuation.stroke_jacobian(rig, q, check_limits=False)
+    dj = (s3[:, 2] - 2.0 * s3[:, 1] + s3[:, 0]) * (1.0 / (H_RAD * H_RAD))
+    stroke = np.ascontiguousarray(s3[:, 1])
+    rate = jac * qd
+    accel = jac * qdd + dj * qd * qd
+    return SampledMotion(phase, q0, q, stroke, rate, accel, int(dig_index), duration)
+
+
+def connect_motion(
+    rig: Rig, period_s: float, q_from_rad: Any, q_to_rad: Any, phase: Phase = Phase.CONNECT
+) -> SampledMotion:
+    """A rest-to-rest ruckig move ``q_from -> q_to`` within the rig's joint limits, sampled;
+    its last sample is exactly ``q_to``.
+
+    Raises:
+        PlanningError: ruckig cannot plan it.
+    """
+    q_to = np.asarray(q_to_rad, dtype=np.float64)
+    traj, duration = joint_move(rig, q_from_rad, q_to)
+    motion = sample_motion(rig, period_s, phase, duration, traj.at_time, q_end_rad=q_to)
+    return motion
+
+
+def stroke_gap_m(rig: Rig, q_a_rad: Any, q_b_rad: Any) -> float:
+    """Largest stroke difference between two poses (m)."""
+    s_a = actuation.joint_to_stroke(rig, np.asarray(q_a_rad, dtype=np.float64), check_limits=False)
+    s_b = actuation.joint_to_stroke(rig, np.asarray(q_b_rad, dtype=np.float64), check_limits=False)
+    return float(np.max(np.abs(s_a - s_b)))

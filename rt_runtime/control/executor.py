@@ -1,6 +1,6 @@
 """The executor: a trench job, dig by dig, in the fixed-rate loop, through the limit guard, on CAN.
 
-Role: issue 7 item 2, the product's inner loop. :meth:`Executor.run` hands one step function to
+Role: the product's inner loop. :meth:`Executor.run` hands one step function to
 :class:`~rt_runtime.control.loop.FixedRateLoop`; each cycle it
 
 1. takes the feedback read at the end of the previous cycle and the stop requests (cancel,
@@ -17,7 +17,7 @@ Role: issue 7 item 2, the product's inner loop. :meth:`Executor.run` hands one s
 6. sends the master heartbeat when due and writes the cycle's telemetry row
    (:data:`EXECUTOR_COLUMNS`).
 
-SYNC timing (kept from the first streamer). In cycle ``k`` (SYNC ``k`` at ``t_k``) the RPDO1
+SYNC timing. In cycle ``k`` (SYNC ``k`` at ``t_k``) the RPDO1
 carries the setpoint for ``t_k + T``: the drive latches it at SYNC ``k`` and reaches it one
 period later (CSP interpolation), so the drive's demand at ``t_k`` is the setpoint sent with
 SYNC ``k - 1``; the TPDO1 answering SYNC ``k`` reports the stroke at ``t_k``. Telemetry row ``k``
@@ -44,7 +44,7 @@ checked against the material).
 A dig that was cut short by a stop is not recorded: a restart plans it again from the session's
 state (:meth:`TrenchSession.restore`), the next undone dig.
 
-Prescribed paths (issue 8 item 3). The same executor runs a :class:`~rt_runtime.control.
+Prescribed paths. The same executor runs a :class:`~rt_runtime.control.
 planner_worker.PathJob` (a fixed sequence of joint motions, e.g. Gao's mixed-order interpolation
 through key points) when it is given one in place of the session (:meth:`Executor.for_path` is
 the same call with a clearer name). Its planner link is :class:`~rt_runtime.control.
@@ -55,11 +55,11 @@ stream through the same guard, monitors, stops and telemetry, and the job ends a
 motion's end pose at rest (status DONE). The path is checked when the executor is built
 (:meth:`PathJob.check`: joint ranges -> JointLimitError, joint velocity/acceleration/jerk ->
 PlanningError), so a path the rig cannot follow is refused before any frame. A stopped path is
-not resumable: run the rest as a new path. The trench code path is untouched by this.
+not resumable: run the rest as a new path. The trench code path does not depend on it.
 
-Planning inside the slack (where the paper is silent). ``next_dig`` screens candidates for
-~0.5 s: far beyond a 2 ms slack, and a thread would hold the interpreter lock. On a real-time
-clock the session lives in a planner process (:class:`~rt_runtime.control.planner_worker.
+Planning inside the slack (where the paper is silent). ``next_dig`` takes several loop periods
+(milliseconds a dig), and a thread would hold the interpreter lock (design notes, L3). On a
+real-time clock the session lives in a planner process (:class:`~rt_runtime.control.planner_worker.
 ProcessPlanner`); the loop only queues requests and polls a pipe, so planning never costs a cycle.
 On a simulated clock (``clock.realtime`` False: the lockstep HIL) it plans synchronously in-process
 (:class:`~rt_runtime.control.planner_worker.InlinePlanner`): time stands still, runs repeat

@@ -1,7 +1,7 @@
 """HIL plant: the arm's rigid-body dynamics driven by its cylinders, soil and end stops.
 
 Role: the truth the emulated drives read and act on. Each drive's servo cascade gives an effort
-in [-1, 1] per sub-step (contract in DESIGN.md / issue 6); :meth:`ArmPlant.step` advances the arm
+in [-1, 1] per sub-step (the firmware model's contract); :meth:`ArmPlant.step` advances the arm
 under those efforts and reports the true cylinder strokes and rates the drives measure.
 
 Model, per sub-step (equations of motion in joint space, forces along the cylinders):
@@ -50,15 +50,14 @@ damper of up to ~1e6 N*s/m at low speed) enters as ``(M + dt D) dv = dt f``; the
 likewise take their orifice slope implicitly. That keeps the scheme stable at 250 us for every
 shipped rig, where an explicit step would need ~20 us in soil (2 m / gain at a ~20 kg tip mass).
 
-Speed: everything per sub-step is plain-float arithmetic: about 8 us a sub-step (electric) to
-14 us (hydraulic), in soil, on the build machine, against about 120 us through the batched
-numpy functions of rt_runtime (``benchmarks/hil_step.py`` times the HIL's composition). The
-closed forms are those of :mod:`rt_runtime.dynamics` and :mod:`rt_runtime.kinematics` written
-out for one state, and the stroke maps are cubic Hermite tables built from
-:mod:`rt_runtime.actuation` (2049 nodes over each travel, < 0.1 deg apart: stroke error
-< 1e-13 m, slope error < 1e-9 relative), evaluated by Horner's rule; ``tests/test_plant.py``
-cross-checks all three against the library. Each sub-step evaluates the tables once, at its
-new pose, and keeps the result for the next sub-step and the stroke properties.
+Speed: everything per sub-step is plain-float arithmetic, an order of magnitude cheaper than the
+batched numpy functions of rt_runtime for one state (``benchmarks/hil_step.py`` times the HIL's
+composition; design notes, H2). The closed forms are those of :mod:`rt_runtime.dynamics` and
+:mod:`rt_runtime.kinematics` written out for one state, and the stroke maps are cubic Hermite
+tables built from :mod:`rt_runtime.actuation` (2049 nodes over each travel, < 0.1 deg apart: stroke
+error < 1e-13 m, slope error < 1e-9 relative), evaluated by Horner's rule; ``tests/test_plant.py``
+cross-checks all three against the library. Each sub-step evaluates the tables once, at its new
+pose, and keeps the result for the next sub-step and the stroke properties.
 
 Power: :attr:`ArmPlant.power_w` is the sum over axes of max(F v, 0) with F the actuator force
 (motor force, or p_A A_A - p_B A_B) and v the stroke rate: what drives that do not regenerate
@@ -304,7 +303,7 @@ class ArmPlant:
 
         self._q = [float(v) for v in q0]
         # (s, ds/dq, d2s/dq2) per axis at self._q: the sub-step and the stroke properties read
-        # it instead of evaluating the tables again (issue 7: 3 evaluations per sub-step, not 9).
+        # it instead of evaluating the tables again (3 evaluations per sub-step, not 9).
         self._geo = (
             self._tables[0].eval(self._q[0]),
             self._tables[1].eval(self._q[1]),

@@ -25,7 +25,7 @@ truth by SYNC count; ``tracking`` counts the cycles that streamed a motion.
 Faults (:class:`FaultSpec`) are switched on ``at_s`` seconds after the executor's first cycle,
 from its per-cycle hook, on the HIL's drive node (:mod:`hil_sim.drives`).
 
-Prescribed paths (issue 8 item 3, :class:`PathScenario`, :func:`run_path_scenario`). A joint
+Prescribed paths (:class:`PathScenario`, :func:`run_path_scenario`). A joint
 path through key points (Gao/Yang's mixed-order interpolation, :mod:`rt_runtime.trajectory.
 mixed_order`) runs on the executor as a :class:`~rt_runtime.control.planner_worker.PathJob`:
 from the arm's start pose a CONNECT move to the path's start, the path (phase PATH), settle, DONE.
@@ -100,7 +100,7 @@ NO_RT = RtSettings(
     sched_fifo_priority=None, lock_memory=False, cpu=None, timer_slack_ns=None, freeze_gc=False
 )
 
-#: Goals of issue 6 (mm), for the report's ``goal`` block.
+#: Tracking goals (mm), for the report's ``goal`` block.
 GOALS_MM = {"electric": {"max_mm": 1.0, "rms_mm": 0.3}, "hydraulic": {"max_mm": 3.0}}
 
 
@@ -526,7 +526,7 @@ def _surface_of(material: Any, xs: FloatArray) -> FloatArray:
     return out
 
 
-# -- prescribed paths (issue 8 item 3) ------------------------------------------------------------
+# -- prescribed paths -----------------------------------------------------------------------------
 
 #: Gao's segment duration (s).
 GAO_SEGMENT_S = 3.0

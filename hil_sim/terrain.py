@@ -1,7 +1,7 @@
 """Terrain of the HIL: the material cross-section the bucket digs, cut for real, and its soil force.
 
 Role: the HIL's ground truth for "what was dug". The material in the arm plane is a shapely
-polygon, as in the trench planner (issue 5): the region between the surface line and a bottom
+polygon, as in the trench planner: the region between the surface line and a bottom
 far below it, over ``x_range_m``. :meth:`Terrain.cut` removes what a bucket tip path swept and
 returns the removed area and volume (area x bucket width); the surface the bucket leaves is what
 the HIL report compares with the design profile.
@@ -24,7 +24,7 @@ each cut from the same lower envelope, so grid and polygon agree at every grid a
 
 Soil force: :meth:`Terrain.soil_force` is Yao eq 8 through :func:`rt_runtime.soil.yao_resistance`
 with the ground height looked up above each tip (batched). :class:`YaoTipLoad` is the same law
-written out for one tip in plain floats, about 2 us against 25 us, plus the velocity derivative
+written out for one tip in plain floats (about ten times cheaper), plus the velocity derivative
 the plant needs to integrate the law's stiff low-speed damping implicitly; ``tests/test_terrain.py``
 holds the two to 1e-12.
 

@@ -255,7 +255,7 @@ def bench_pinn(
                 if p == 0:
                     plans.append(plan)
         # The same problems planned without fill and retime: verification of the raw answer
-        # only (the issue's "inference + verification"), refusals not timed.
+        # only (DESIGN.md's "inference + verification"), refusals not timed.
         for i in range(n):
             try:
                 vplan = verify_only.plan(X[i, 0:3], X[i, 3:6], float(X[i, 6]), kind)
@@ -395,7 +395,7 @@ def bench_plan(
     pso_options: dict[str, Any] | None = None,
     model_dir: str | None = None,
 ) -> dict[str, Any]:
-    """Whole-trench planning (issue 5) on Yao's Table 3 tasks: PINN timed, PSO beside it.
+    """Whole-trench planning on Yao's Table 3 tasks: PINN timed, PSO beside it.
 
     Each task is planned ``passes`` times with the PINN planner (the plans are deterministic;
     the times are the distribution) and, with ``pso``, once with the PSO teacher as the one-shot
@@ -564,7 +564,7 @@ def _same_problems(
 
 
 #: Whole task time (digs + moves, s) of A-D with the first trench planner design, which the
-#: second design's goal is measured against (issue 23: <= 60 % of it).
+#: second design's task-time goal is measured against (<= 60 % of it).
 FIRST_DESIGN_TASK_TIME_S = {"A": 158.0, "B": 113.0, "C": 137.0, "D": 216.0}
 #: Long trenches of `bench plan --long` (scale model: length m, depth m; scaled by reach).
 LONG_TRENCHES = ((3.0, 0.15), (8.0, 0.10), (20.0, 0.20))
@@ -651,7 +651,7 @@ def _plan_totals(report: dict[str, Any]) -> dict[str, float]:
 
 
 # ---------------------------------------------------------------------------------------------
-# The random suite: `excavator-rt bench plan --random N --seed S` (issue 23).
+# The random suite: `excavator-rt bench plan --random N --seed S`.
 
 #: Lengths of the random suite's tasks (scale model, m; scaled by reach): from the domain's
 #: shortest trench to one that takes two or three stands of the machine.
@@ -869,9 +869,9 @@ def _pinn_reference(planner: Any, first: Any) -> dict[str, Any] | None:
 
 
 # ---------------------------------------------------------------------------------------------
-# The full suite: `excavator-rt bench` without a subcommand (issue 7).
+# The full suite: `excavator-rt bench` without a subcommand.
 
-#: Goal of the issue: loop lateness at 500 Hz, p99 (us).
+#: Goal: loop lateness at 500 Hz, p99 (us).
 LOOP_LATENESS_P99_GOAL_US = 50.0
 #: A comfortable pose of the scale model for holding (boom 30, stick -90, bucket -60 deg).
 _HOLD_POSE_DEG = (30.0, -90.0, -60.0)

@@ -11,7 +11,7 @@ Frame ids: the DBC is written for node 0x10 (command 0x210, status 0x190, i.e. 0
 0x180 + node like RPDO1/TPDO1 of CiA 301); a VCU at ``rig.can.vcu_node_id`` shifts both by the
 difference.
 
-Cost: one cantools encode or decode is some tens of microseconds (see the test report), small
+Cost: one cantools encode or decode is some tens of microseconds, small
 against a 2 ms cycle; both are safe inside the loop (no I/O; a status frame that does not decode
 returns None and counts in :attr:`VcuClient.decode_errors`).
 """

@@ -1,7 +1,7 @@
 """The limit guard: a ruckig online filter in cylinder-stroke space between the plan and the bus.
 
 Role: the last thing every setpoint passes before it becomes an RPDO1 (DESIGN.md "Loop, HIL and
-time", issue 7). Each cycle the executor hands the guard the next plan sample in stroke space
+time"). Each cycle the executor hands the guard the next plan sample in stroke space
 (position, velocity, acceleration, for the time one period ahead); the guard answers with the
 setpoint to send. When the plan is within the limits the answer *is* the sample (to rounding,
 ~1e-16 m): a verified plan passes through unchanged. When the target steps beyond a limit (a jump,

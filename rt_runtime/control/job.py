@@ -538,10 +538,9 @@ class JobController:
             cmd.dig = -1
             cmd.tracking = False
             return
-        if stream.current is None:
-            if not self._start_next(sync_count):
-                self._next_command(sync_count)
-                return
+        if stream.current is None and not self._start_next(sync_count):
+            self._next_command(sync_count)  # the next motion began a stop
+            return
         motion = stream.current
         if motion is None:
             if stream.phase is Phase.WAIT and self._nothing_left():

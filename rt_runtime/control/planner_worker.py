@@ -1,6 +1,6 @@
 """Planning the next dig without stopping the loop: the session driver, inline or in a process.
 
-Role: the executor's planner side (issue 7 item 2). A :class:`SessionDriver` wraps a
+Role: the executor's planner side. A :class:`SessionDriver` wraps a
 :class:`~rt_runtime.planning.trench.TrenchSession` with the two requests the executor makes:
 
 * ``plan(q_from_rad)``: the next dig with every move the executor streams around it
@@ -10,34 +10,36 @@ Role: the executor's planner side (issue 7 item 2). A :class:`SessionDriver` wra
   work-site frame -> ``session.record`` (the surface follows what was measured) ->
   :class:`Recorded` with the session's JSON state for the job store.
 
+Each :class:`DigPlan` also carries its motions as setpoint tables on the loop's period grid
+(:mod:`rt_runtime.control.setpoints`), chained with CONNECT moves from the pose of the first
+request: everything the job controller streams is computed here, none of it in a cycle.
+
 Two links run it (same requests, same replies, :meth:`poll` once per cycle):
 
-* :class:`InlinePlanner` runs each request at once on the caller's thread. For a simulated clock
-  (the lockstep HIL): time stands still while it plans, the run is deterministic.
+* :class:`InlinePlanner` answers the requests in-process in :meth:`~InlinePlanner.service`,
+  which the controller manager calls between cycles. For a simulated clock (the lockstep HIL):
+  time stands still while it plans, the run is deterministic.
 * :class:`ProcessPlanner` runs the session in a separate process (``multiprocessing``, ``spawn``
   context: the loop's process may hold threads, which ``fork`` would copy in a locked state), so
-  the ~0.5 s of candidate screening of ``next_dig`` never holds the loop's interpreter lock. The
-  loop hands a request to a sender thread (``put`` on a queue: no pickling, no blocking pipe write
-  in the cycle) and polls the pipe without waiting; a reply is read and unpickled in one cycle
-  (tens of kB: the dig, its transitions, the session state). The process rebuilds the planner
-  from :class:`PlannerSpec` (rig, one-shot planner name, model directory) and the session from
-  its state (:meth:`TrenchSession.restore`), so nothing but plain data crosses the pipe.
+  ``next_dig``'s candidate screening (several loop periods) never holds the loop's interpreter
+  lock. A sender thread writes the requests to the pipe and a receiver thread reads and
+  unpickles the replies (the setpoint tables are hundreds of kB); the loop only puts and takes
+  queue items. The process rebuilds the planner from :class:`PlannerSpec` (rig, one-shot planner
+  name, model directory, the loop's period) and the session from its state
+  (:meth:`TrenchSession.restore`), so nothing but plain data crosses the pipe.
 
-The loop calls only the link's ``request_plan``, ``request_record`` and ``poll``: cheap for
-:class:`ProcessPlanner`; for :class:`InlinePlanner` they take the planning time (simulated time
-does not move meanwhile).
-
-Prescribed paths (issue 8 item 3). A :class:`PathJob` is a fixed sequence of joint motions an
+Prescribed paths. A :class:`PathJob` is a fixed sequence of joint motions an
 operator or a task prescribes (e.g. Gao's mixed-order interpolation through key points, wrapped by
 :class:`PolynomialMotion`); :class:`PathLink` is the planner link that hands it out: the first
-``request_plan`` is answered with one :class:`PathPlan` holding every motion, and there is nothing
+``request_plan`` is answered with one :class:`PathPlan` holding every motion (and their setpoint
+tables), and there is nothing
 else to plan or record. The executor streams a path through the same guard, monitors, stops and
-telemetry as a trench job (see :mod:`rt_runtime.control.executor`); the trench code path does
-not change. :meth:`PathJob.check` refuses, before anything is sent, a path that leaves the joint
-ranges (:class:`~rt_runtime.errors.JointLimitError`, from :mod:`rt_runtime.actuation`) or that is
-faster than the rig's joint velocity, acceleration or jerk limits
-(:class:`~rt_runtime.errors.PlanningError`: the guard would otherwise slow it down and it would
-trail its own timing), or whose motions do not start and end at rest.
+telemetry as a trench job (see :mod:`rt_runtime.control.executor`). :meth:`PathJob.check`
+refuses, before anything is sent, a path that leaves the joint ranges
+(:class:`~rt_runtime.errors.JointLimitError`, from :mod:`rt_runtime.actuation`) or that is faster
+than the rig's joint velocity, acceleration or jerk limits (:class:`~rt_runtime.errors.
+PlanningError`: the guard would otherwise slow it down and it would trail its own timing), or
+whose motions do not start and end at rest.
 """
 
 from __future__ import annotations

@@ -1,2 +1,3 @@
-"""Planners: one-shot objective and constraints, PSO teacher, PINN, verification, trench,
-teach-and-plan, minimum torque."""
+"""Planners: the one-shot objective and constraints (``oneshot``), the PSO teacher (``pso``) and
+its differential-evolution reference (``reference``), the verifier and its C kernel
+(``verify``), the PINN runtime planner (``pinn``) and the trench planner (``trench``)."""

@@ -1,8 +1,8 @@
 """Runtime one-shot planner: the PINN through onnxruntime, verified, repaired or refused.
 
-Yao 4.3 replaces the 69 s PSO with a forward pass of a network mapping (entry pose, exit pose,
-H) to the sextic's (a16, a26, a36, T). A network's answer is a guess, so here every answer is
-checked before anyone may execute it:
+Yao 4.3 replaces the PSO with a forward pass of a network mapping (entry pose, exit pose, H) to
+the sextic's (a16, a26, a36, T). A network's answer is a guess, so here every answer is checked
+before anyone may execute it:
 
 1. **Domain.** The inputs must be finite and inside the model card's domain (the range of the
    training inputs); outside it a network extrapolates, so the planner refuses
@@ -10,7 +10,7 @@ checked before anyone may execute it:
    allows it, hands the problem to the PSO teacher.
 2. **Inference.** One onnxruntime session per dig type, tuned for latency: one thread, sequential
    execution, every graph optimisation, inputs and outputs bound once to preallocated buffers
-   (IOBinding) and no RunOptions argument (it costs ~25 us per call in ORT 1.31).
+   (IOBinding) and no RunOptions argument.
 3. **Verification** of every hard limit of Yao eq 12 (joint range, velocity, acceleration,
    torque, power, initial digging angle, volume, time) on a dense grid (101 samples by default)
    by :class:`rt_runtime.planning.verify.Verifier`, the compiled twin of the numpy evaluation.
@@ -19,36 +19,23 @@ checked before anyone may execute it:
    to the largest volume within V_max and the path-only limits (joint range, theta_p), then
    the path is run at its smallest feasible T. Both steps move the answer to where the PSO's
    optima lie (on the volume cap and the time-dependent limits), which a regression network
-   can only approach from inside; measured, they take the mean objective gap to the teacher
-   from ~20 % (raw answers) to a few per cent. What they cannot make feasible falls back to the
-   network's own path retimed, then to step 5.
+   can only approach from inside. What they cannot make feasible falls back to the network's
+   own path retimed, then to step 5.
 
    4a. **Solution library** (when the model card ships one, ``<model>_library.npz``: the
-   teacher's answers to the training problems, never the held-out ones). A regression network
-   where the teacher has two families of optima (two bulges of different direction, nearly
-   equal objective) answers their average, whose direction neither family has; the bulges
-   partly cancel, so the fill then scales the averaged bulge up. Measured on the shipped
-   backward model: the held-out rows whose fill scale c >= 1.3 (23 % of them) carry ~60 % of
-   the mean gap (mean gap 8 % against 1.8 % below), the worst row (gap 71 %) has the network's
-   K = (-11, -5, 9) against the teacher's (0.8, 10.4, 11.8). There, and only there (c at or
-   above the card's ``trigger_bulge_scale``), the ``k`` nearest library problems' teacher paths
-   (nearest in inputs scaled per input by the library's standard deviation) are filled and
-   retimed for this problem like the network's, in one kernel call, and the best verified one
-   replaces the network's plan when its objective is smaller
-   (:attr:`PlanStatus.LIBRARY`). Chosen by leave-one-out on 800 training problems of the
-   backward library (each row's own solution left out): the mean gap 2.80 % -> 2.60 % at
-   c >= 1.3 and k = 4 (2.44 % at c >= 1.2 and k = 8, but triggered twice as often and at twice
-   the cost: four full plans, ~50 us, keep the triggered plans inside the 100 us p99); the
-   downward model triggers on under 1 % of its problems (its fill scale stays near 1).
-   With the C kernel the whole step runs inside the ``Front`` call (brute-force search over
-   the library's scaled problems, then the k plans); the numpy verifier's path does the same
-   in Python (:meth:`_Library.nearest`, :meth:`_from_library`), and both pick the same rows
-   in the same order. The shipped cards use k = 2 (each candidate is a plan, ~11.5 us; the
-   triggered plans set the p99) and libraries of the training problems whose own network
-   plan fills to c >= 1.2 (:data:`rt_runtime.training.export.LIBRARY_KEEP_BULGE_SCALE`: 45 %
-   of the backward rows, the same gap, less of the cache read per search). Measured on the
-   shipped backward model: held-out gap 3.62 % -> 3.21 %, a triggered plan ~50 us (per-row
-   minimum; design notes, "Grown downward data").
+   teacher's answers to training problems, never the held-out ones). Where the teacher has two
+   families of optima a regression network answers their average, whose bulges partly cancel,
+   so the fill scales the averaged bulge up. Where the fill scale c reaches the card's
+   ``trigger_bulge_scale``, the ``k`` nearest library problems' teacher paths (nearest in inputs
+   scaled per input by the library's standard deviation) are filled and retimed for this
+   problem like the network's, and the best verified one replaces the network's plan when its
+   objective is smaller (:attr:`PlanStatus.LIBRARY`). With the C kernel the whole step runs
+   inside the ``Front`` call (brute-force search over the library's scaled problems, then the k
+   plans); the numpy verifier's path does the same in Python (:meth:`_Library.nearest`,
+   :meth:`_from_library`), and both pick the same rows in the same order. The exporter's
+   defaults (:data:`rt_runtime.training.export.LIBRARY_K`,
+   :data:`~rt_runtime.training.export.LIBRARY_TRIGGER_BULGE_SCALE`,
+   :data:`~rt_runtime.training.export.LIBRARY_KEEP_BULGE_SCALE`) set what a card carries.
 5. **Repair**, when that still fails (or with ``retime=False``, whenever the raw answer fails).
    Time scaling first, where only time-dependent limits fail (velocity, acceleration, torque,
    power, t_min): the kernel's exact retiming keeps the path (so angles, theta_p and volume)
@@ -59,24 +46,20 @@ checked before anyone may execute it:
    from the network's answer, :data:`REFINE_ITERATIONS` iterations, milliseconds), when enabled.
    Otherwise :class:`~rt_runtime.errors.PlanningError` names the violated limit.
 
-   The fast repair changes the path's direction where scaling it cannot help (measured on the
-   shipped backward model: the boom dips below its lower limit mid-path, and no scale keeps
-   both the boom in range and V_p >= V_min). The path is ``theta(s) = theta1 + D q(s) +
-   K p(s)``, linear in K, so (a) each joint's range on the verification grid is an interval of
-   its K_i in closed form: a violating joint's K_i is clamped into it; (b) a dig that starts on
-   the surface enters along ``J(q0) (10 D + K)``, so each theta_p limit is a half-space of K: K
-   is projected onto it; (c) V_p is not linear: where V_min fails, one secant per free joint
-   (on a coarse 11-sample grid, ~1 us each) linearises it and K moves to the nearest point (in
-   joint ranges, the joint that sets T weighted 100x heavier) meeting V_min and the theta_p
-   half-spaces, with one chord correction when needed. The teacher's optima on such rows lie on
-   that vertex (boom at its limit, theta_p at its maximum, V_p at V_min). The kernel's fill
-   and retiming (retiming alone where a joint was clamped: its limit caps the fill) then time
-   the repaired path and verify it as on the normal path. Measured on the shipped models: the
-   7 backward rows that SLSQP served (11-42 ms each) now take 70-80 us; 6 are repaired,
-   1 (a repaired path no T can time: boom torque) still goes to SLSQP. Where the fast repair
-   finds no path within the path-only limits near the network's answer, the refinement, which
-   starts from the same answer, is skipped unless ``refine_no_path`` (it never found one there
-   either, measured, and took milliseconds to refuse).
+   The fast repair changes the path's direction where scaling it cannot help. The path is
+   ``theta(s) = theta1 + D q(s) + K p(s)``, linear in K, so (a) each joint's range on the
+   verification grid is an interval of its K_i in closed form: a violating joint's K_i is
+   clamped into it; (b) a dig that starts on the surface enters along ``J(q0) (10 D + K)``, so
+   each theta_p limit is a half-space of K: K is projected onto it; (c) V_p is not linear: where
+   V_min fails, one secant per free joint (on a coarse grid of :data:`_REPAIR_SECANT_SAMPLES`
+   samples) linearises it and K moves to the nearest point (in joint ranges, the joint that
+   sets T weighted 100x heavier) meeting V_min and the theta_p half-spaces, with one chord
+   correction when needed; that vertex (a joint at its limit, theta_p at its maximum, V_p at
+   V_min) is where the teacher's optima on such problems lie. The kernel's fill and retiming
+   (retiming alone where a joint was clamped: its limit caps the fill) then time the repaired
+   path and verify it as on the normal path. Where the fast repair finds no path within the
+   path-only limits near the network's answer, the refinement, which starts from the same
+   answer, is skipped unless ``refine_no_path``.
 
 Nothing unverified leaves :meth:`PinnPlanner.plan`: every returned plan has passed step 3 on
 the dense grid. The model card must name the rig the planner serves (name and
@@ -84,7 +67,8 @@ the dense grid. The model card must name the rig the planner serves (name and
 refused at load time with a :class:`~rt_runtime.errors.ConfigurationError`.
 
 ``plan`` is the cheap path (tens of microseconds when no repair is needed, no allocation of
-large arrays, no I/O); loading is the expensive one and happens once.
+large arrays, no I/O); loading is the expensive one and happens once. The reasons and numbers
+behind steps 2-5 are in docs/design-notes.md, decisions O2-O7.
 """
 
 from __future__ import annotations
@@ -144,15 +128,13 @@ _REPAIR_THETA_P_MARGIN = 1e-3
 _REPAIR_VOLUME_MARGIN = 1e-3
 # The joint that sets the retimed T (acceleration, velocity or torque) moves this much less
 # (its weight in the nearest-point metric): moving it lengthens the dig, which eq 11 punishes
-# most (measured on the shipped backward model: mean gap of the repaired rows 3.3 % -> 2.3 %).
+# most (design notes, O6).
 _REPAIR_BINDING_WEIGHT = 0.01
 # Step of the volume secants, per joint range (K / 64 is the mid-path bulge): about the distance
-# the repair moves (measured: no chord correction needed on the shipped and candidate models,
-# against 2 of 6 rows at 0.5).
+# the repair moves, so that the chord correction is rarely needed (design notes, O6).
 _REPAIR_GRADIENT_STEP = 2.0
-# Samples of the coarse grid on which the volume secants are taken (measured: the same repaired
-# plans, mean objective within 0.1 % of those at 21 or 101 samples, on the shipped and candidate
-# models).
+# Samples of the coarse grid on which the volume secants are taken (as good as 21 or 101 samples
+# for the repaired plans; design notes, O6).
 _REPAIR_SECANT_SAMPLES = 11
 _VOLUME_MIN = CONSTRAINT_NAMES.index("volume_min")
 # Path-only constraints (they need the path, not T): joint ranges, theta_p, volume.
@@ -560,10 +542,9 @@ class PinnPlanner:
         refine: Allow the bounded local refinement when neither time scaling nor the fast
             repair can repair a plan.
         refine_no_path: Run the refinement also where the fast repair found no path meeting the
-            path-only limits near the network's answer. Off by default: measured on the shipped
-            and the candidate models, the refinement (which starts from the same answer) found
-            none either on any such held-out row (7 problems), at 10-40 ms each, and its memory
-            traffic slows the plans after it (the p99 of ``bench pinn`` ~105 us -> ~180 us).
+            path-only limits near the network's answer. Off by default: the refinement starts
+            from the same answer, takes milliseconds, and its memory traffic slows the plans
+            after it (design notes, O6).
         teacher_fallback: Plan out-of-domain problems with the PSO teacher instead of refusing
             them (seconds, not microseconds: never inside the loop).
         verifier_backend: ``auto``, ``c`` or ``numpy`` (see
@@ -697,9 +678,9 @@ class PinnPlanner:
 
     def _bind_front(self) -> None:
         """The cheap path's staging, inference and plan in one call: the C kernel's ``Front``
-        bound to this planner's buffers and sessions (~3 us less per dig than the same steps
-        in Python), or :meth:`_front_py`, the same steps in Python, with the numpy verifier.
-        (Called again where a session is replaced.)"""
+        bound to this planner's buffers and onnxruntime sessions, or :meth:`_front_py`, the
+        same steps in Python, with the numpy verifier (design notes, V5). Called again where a
+        session is replaced."""
         kernel = self.verifier.kernel
         if kernel is None:
             self._front = self._front_py

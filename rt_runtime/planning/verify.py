@@ -9,10 +9,10 @@ before anything is sent.
 
 Two backends compute the same thing:
 
-- ``"c"``: :mod:`rt_runtime.planning._verify`, a C loop over the samples (``_verify.c``),
-  compiled by ``pip install -e .`` (``setup.py``). About 7 us per candidate at 101 samples plus
-  ~0.2 us per call; it allocates nothing, so :meth:`Verifier.evaluate_into` may run in the
-  planning step of a cycle.
+- ``"c"``: :mod:`rt_runtime.planning._verify`, a C loop over the samples (``_verify.c``), compiled
+  by ``pip install -e .`` (``setup.py``). A few microseconds per candidate at 101 samples (design
+  notes, V1-V4); it allocates nothing, so :meth:`Verifier.evaluate_into` may run in the planning
+  step of a cycle.
 - ``"numpy"``: :func:`~rt_runtime.planning.oneshot.evaluate` itself, the reference (0.6-0.8 ms
   for one candidate).
 
@@ -31,8 +31,7 @@ constraints allow (Yao's objective rewards V_p up to the hard cap V_max, which a
 aim below to stay feasible), then retimes that path; when the larger bulge cannot be timed
 feasibly (torque), it backs off towards a smaller one, and as a last resort reports the
 candidate's own path (retimed, unless a path-only limit fails, which no timing fixes). The C
-kernel does it in about 1.6x the cost of a retiming (~23 us per row at 101 samples) on most
-rows, ~38 us where it backs off.
+kernel does it in about 1.6x the cost of a retiming on most rows, more where it backs off.
 
 Input rows are ``[q_start (3) rad, q_end (3) rad, H m, dig_type (0 downward, 1 backward),
 a6 (3) rad/s^6, T s]`` (columns ``IN_*``); output rows are laid out by the ``COL_*`` constants.
@@ -1031,9 +1030,9 @@ class Verifier:
     ) -> None:
         """Step 4 of :meth:`plan_into` for rows ``v`` into ``out[rows]`` etc.: each row's own
         path evaluated as it is where a path-only limit fails (no T fixes it; ``planned`` the
-        row's a6 and T), else retimed (all rows are retimed in one batch, as before this
-        split: the batch's shape rounds the matrix products, and a retimed row must not change
-        with which of its neighbours broke a path limit)."""
+        row's a6 and T), else retimed (all rows are retimed in one batch: the batch's shape
+        rounds the matrix products, and a retimed row must not change with which of its
+        neighbours broke a path limit)."""
         self._plan_retime_numpy(v, np.ones(v.shape[0]), rows, out, planned, path)
         res, res_path = self._numpy_rows(v, path is not None)
         with np.errstate(invalid="ignore"):

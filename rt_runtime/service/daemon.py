@@ -18,7 +18,7 @@ the runner holds; the hold hands over once the drives stand on the held target, 
 executor's start from the measured pose is no step. The job store writes on its own thread; the
 trace (``paths.trace``) too.
 
-Real time (where the issue leaves the daemon's share open): RT settings (SCHED_FIFO with
+Real time (where DESIGN.md leaves the daemon's share open): RT settings (SCHED_FIFO with
 SCHED_RESET_ON_FORK, mlockall, CPU, timer slack) are applied once to the runner thread for its
 life, not per loop run, so no hand-over pays for them. The collector: the heap is frozen after
 start-up, after boot, and when a job is prepared (``gc.freeze`` is O(1)); a job's loop then

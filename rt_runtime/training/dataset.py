@@ -24,7 +24,7 @@ identity: problems are drawn sequentially from one seeded stream, so the first p
 larger run are those of a smaller one, and growing a dataset (1800 -> 100k) reuses every chunk
 solved before (a partial last chunk is detected by its problems and solved again).
 
-Choices where neither the paper nor the issue says:
+Choices where neither the paper nor DESIGN.md says:
 
 - Inputs are ``(theta11..theta13, theta21..theta23, H)`` and outputs ``(a16, a26, a36, T)``
   (DESIGN.md, "Models"). Each sample also keeps the teacher's particle ``K = -a6 T^6`` (the

@@ -39,16 +39,15 @@ PARITY_TOLERANCE = 1e-5
 #: Widening of the domain beyond the training inputs' range, as a fraction of that range.
 DOMAIN_MARGIN = 0.01
 #: The solution library's trigger (the fill's bulge scale at or above which the runtime tries
-#: it) and candidates per try (:mod:`rt_runtime.planning.pinn`, step 4a, where they were chosen;
-#: k = 2: each candidate costs a plan, ~11 us, and k = 4 put the triggered plans past the
-#: 100 us p99 goal; design notes, "Grown downward data").
+#: it) and candidates per try (:mod:`rt_runtime.planning.pinn`, step 4a; k = 2: each candidate
+#: costs a plan, and the triggered plans set the p99; design notes, O7c).
 LIBRARY_TRIGGER_BULGE_SCALE = 1.3
 LIBRARY_K = 2
 #: The training problems a library keeps: those whose own network plan (fill and retime, as at
 #: run time) scales the bulge by this much or more. A triggered problem's useful neighbours are
 #: of that kind (where the teacher has two families of optima); the search then reads ~45 % of
 #: the backward rows (less of the cache, which the p50 and p99 show) for the same gap (design
-#: notes, "Grown downward data"). 0 keeps every training problem.
+#: notes, O7c). 0 keeps every training problem.
 LIBRARY_KEEP_BULGE_SCALE = 1.2
 
 

@@ -7,18 +7,12 @@ of the network's bulge ``K = -a6 T^6``: it scales the bulge to the largest volum
 the network's error in the direction of K. This module measures, per training sample, what that
 error costs, so that the loss can be the benchmark itself.
 
-Measured on the 4000-sample scale_model datasets (held-out backward, teacher direction tilted
-by an angle r in 8 directions of the tangent plane, planned by ``plan_into``): the mean gap is
-about 1 % at r = 0.25 deg, 3.8 % at 1 deg, 7 % at 2 deg, 13 % at 4 deg, i.e. LINEAR in the
-angle, and the best of the 8 tilts is still worse than the teacher (0.7 % at 1 deg). The
-post-pipeline objective has a kink at the teacher's direction, not a smooth minimum: the
+The post-pipeline objective has a kink at the teacher's direction, not a smooth minimum: the
 retimed T is the largest of several limit-induced times (torque, power, velocity per joint),
-and the teacher balances several of them. A quadratic model ``(d - d*)^T H (d - d*)`` would be
-zero to first order and miss the whole gap; the cost is a cone, first order in the angle and
-strongly anisotropic (the 1-deg gap ranges 5x over the tilt directions). Polishing the
-teacher's direction with Nelder-Mead on the post-pipeline objective (2 angles, 80 kernel
-calls) improves it by 3e-4 of the objective on average (median 1e-7): the teacher already
-sits at the kink, so its targets are kept as they are.
+and the teacher balances several of them. The gap is therefore first order in the tilt angle
+(a cone) and strongly anisotropic over the tilt directions; a quadratic model
+``(d - d*)^T H (d - d*)`` would be zero to first order and miss it. The teacher already sits at
+the kink, so its targets are kept as they are (numbers: design notes, N5).
 
 :func:`direction_targets` samples the cone: per sample, the teacher's unit direction ``u*``,
 an orthonormal basis ``(e1, e2)`` of its tangent plane and the relative gap slope ``s(phi_j)``

@@ -24,11 +24,8 @@ Beside them (not in the paper), weighted by ``lambda_d``:
   ``K = -a6 T^6`` (fill and retime, :meth:`rt_runtime.planning.verify.Verifier.plan_into`), and
   fed the teacher's own ``(K, T)`` it reproduces the teacher's objective, so the planned gap is
   entirely the direction error. That gap is linear in the angle (a kink, not a quadratic
-  minimum; measured in :mod:`rt_runtime.training.targets`) and anisotropic, so Loss_1's MSE on
-  standardised ``(K, T)`` weighs it badly: the shipped 3 x 60 backward network fitted its own
-  training directions to 5.6 deg median (train gap = test gap = 8.5 %: underfitting, not
-  noise; Nelder-Mead on the post-pipeline objective from the network's direction reaches the
-  teacher's optimum in 90 % of held-out problems, so the targets are consistent). Loss_D is
+  minimum; see :mod:`rt_runtime.training.targets`) and anisotropic, so Loss_1's MSE on
+  standardised ``(K, T)`` weighs it badly (design notes, N5). Loss_D is
   ``cap * log1p(cone / cap)`` per sample, ``cone = theta * s(phi)`` from the cost cones that
   :func:`rt_runtime.training.targets.direction_targets` measures with the runtime's own kernel
   before training (16 tilts of 1 deg per sample, seconds), averaged. Tilts the runtime cannot
@@ -48,8 +45,7 @@ Choices where the paper is silent or would not work as printed, each measured on
   boundaries, and a network that only learns to land on a boundary lands on the wrong side of
   it half of the time. The margin pushes the prediction inside; the runtime's fill and retime
   (:meth:`rt_runtime.planning.verify.Verifier.plan_into`) take the plan back out to the
-  boundaries, so a conservative network costs little objective (measured: margin 0.01 gave
-  87 % raw-feasible downward answers, hence the default 0.03).
+  boundaries, so a conservative network costs little objective (design notes, N3).
 - Optimiser: Adam with a learning rate that decays on plateaus (Yao: mini-batch gradient descent,
   lr 1e-4, which needs thousands of epochs here), judged through an exponential moving average
   of the weights (``ema_decay``): with the direction loss the validation gap of the raw Adam
@@ -57,15 +53,12 @@ Choices where the paper is silent or would not work as printed, each measured on
   and early stopping then picks noise; the average is what is scored and kept.
 - ``lambda_C`` 40 rather than 20 when the direction loss is on: the direction loss pulls the
   bulge to the teacher's direction, which sits on theta_p or a joint limit in a third of the
-  samples, and the doubled hinge weight keeps the raw answers inside (measured, downward,
-  fine-tuning the 3 x 70 network: lambda_C 20 gave 93 % raw-feasible validation answers at a
-  3.0 % planned gap, lambda_C 40 with the average 96 % at 3.1 %).
-- Warm start (``init_checkpoint``): the shipped networks were trained in two stages, the
-  first without the direction loss (``lambda_d = 0``, ``lambda_C = 20``, no average, from
-  scratch, up to 1500 epochs), the second from its weights with the defaults here for 300
-  epochs (lr 1e-3). A checkpoint with narrower hidden layers of the same depth is widened
-  without changing its function (new units: zero outgoing weights); measured, widening the
-  backward 3 x 60 network to 3 x 100 or 3 x 128 did not lower the gap.
+  samples, and the doubled hinge weight keeps the raw answers inside (design notes, N5).
+- Warm start (``init_checkpoint``): training may continue from a checkpoint, typically one
+  trained without the direction loss (``lambda_d = 0``, ``lambda_C = 20``, no average, from
+  scratch), fine-tuned with the direction loss; the shipped models' chains of stages are in
+  their model cards and the design notes (N6). A checkpoint with narrower hidden layers of the
+  same depth is widened without changing its function (new units: zero outgoing weights).
 - Early stopping on the targets: every ``eval_every`` epochs the model is scored on a validation
   split of the training data (never on the held-out test set) the way the runtime uses it: the
   network's float32 answers are verified on the runtime's grid (raw feasibility and gap) and

@@ -26,7 +26,7 @@ Digs. Each dig carries V_min..V_max of real material (Yao's V_p range, 0.8-1.2 x
 volume), except finishing passes, at most two a section where the material allows. The design
 is cut in horizontal layers, top first; the network's digs and columns along each layer's
 floor take the layers above the bottom one, straight columns along the bottom and the walls'
-digs the bottom one (docs/design-notes.md, "Trench planner, second design").
+digs the bottom one (docs/design-notes.md, decision R8).
 """
 
 from rt_runtime.planning.trench.candidates import Candidate

@@ -125,8 +125,7 @@ class DriveInterface:
         """Each drive's state name (for messages)."""
         fb = self.master.feedback
         return [
-            s.name if (s := fb.drive_state(a)) is not None else "undecodable"
-            for a in range(self.n)
+            s.name if (s := fb.drive_state(a)) is not None else "undecodable" for a in range(self.n)
         ]
 
     def write(self, stroke_m: FloatArray, velocity_m_s: FloatArray) -> WriteStatus:

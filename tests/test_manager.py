@@ -1,0 +1,189 @@
+"""The controller manager on the lockstep HIL: a switch between controllers happens at a cycle
+boundary with no gap in the SYNC stream, and no cycle ever calls a planner (in-process planning
+runs in the loop's idle hook, between cycles)."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import numpy as np
+import pytest
+from conftest import restore_pending
+
+from hil_sim.scenario import NO_RT
+from hil_sim.sim import COB_SYNC, LockstepHil
+from rt_runtime import actuation
+from rt_runtime.canbus import CanMaster
+from rt_runtime.control import FixedRateLoop, LoopConfig
+from rt_runtime.control.controllers import ControllerStatus, GuardFilter, HoldController
+from rt_runtime.control.executor import ExecStatus, Executor, ExecutorConfig, Phase
+from rt_runtime.control.guard import LimitGuard, StrokeLimits
+from rt_runtime.control.hardware import DriveInterface
+from rt_runtime.control.job import JobController, JobLimits
+from rt_runtime.control.manager import ControllerManager, executor_telemetry
+from rt_runtime.control.planner_worker import InlinePlanner
+from rt_runtime.planning.trench import TrenchPlanner, TrenchSession
+from rt_runtime.rig import Rig, load_rig
+
+PERIOD_S = 0.002
+
+
+@pytest.fixture(scope="module")
+def rig() -> Rig:
+    return load_rig("scale_model")
+
+
+def _record_syncs(hil: LockstepHil) -> list[float]:
+    """The simulated times at which the HIL's drives receive each SYNC."""
+    times: list[float] = []
+    on_frame = hil.core.on_frame
+
+    def spy(cob: int, data: bytes, now: float) -> Any:
+        if cob == COB_SYNC:
+            times.append(now)
+        return on_frame(cob, data, now)
+
+    hil.core.on_frame = spy  # type: ignore[method-assign]
+    return times
+
+
+def test_a_switch_hold_to_job_to_hold_keeps_the_sync_stream(rig: Rig, pending: Any) -> None:
+    planner, task, state = pending
+    session, q0 = restore_pending(planner, task, json.loads(json.dumps(state)))
+    hil = LockstepHil(rig, q0, None)
+    syncs = _record_syncs(hil)
+    try:
+        master = CanMaster(hil.master_bus, rig, period_s=PERIOD_S, react_to_faults=False)
+        master.boot(hil.clock.now, 1.0)
+        master.enable(hil.clock.now, 1.0)
+        loop = FixedRateLoop(hil.clock, LoopConfig(rt=NO_RT), executor_telemetry(20_000))
+        drives = DriveInterface(master, hil.clock, 0.5 * PERIOD_S)
+        guard = GuardFilter(LimitGuard(StrokeLimits.from_rig(rig), PERIOD_S))
+        s0 = drives.measured_stroke_m()
+        guard.guard.reset(s0)
+        q_hold = actuation.stroke_to_joint(rig, s0, check_limits=False)
+        hold = HoldController(s0, q_hold)
+        job = JobController(
+            InlinePlanner(session, PERIOD_S),
+            guard,
+            JobLimits(4e-3, 3, 25, 5.0, 1e-3, 0.05, 1),
+            rig,
+            drives.axes,
+            drives.describe,
+            lambda record: None,
+            10_000,
+        )
+        first = job.start(s0, int(master.feedback.sync_count))  # prepared outside the loop
+        back = HoldController(s0, q_hold)
+        switched: dict[str, int] = {}
+
+        def on_ended(ended: Any) -> tuple[Any, Any] | None:
+            if ended is job:
+                back.command.hold(guard.position_m, q_hold, Phase.WAIT)
+                switched["back"] = int(master.feedback.sync_count)
+                return back, back.command
+            return None
+
+        manager: ControllerManager
+
+        def on_cycle(sync: int, _now: float) -> None:
+            if sync == 100:
+                manager.switch(job, first)
+                switched["job"] = sync
+            if "back" in switched and sync >= switched["back"] + 50:
+                manager.stop()
+
+        manager = ControllerManager(drives, guard, loop, on_cycle=on_cycle, on_ended=on_ended)
+        stats = manager.run(hold, hold.command, s0, q_hold)
+        tel = loop.telemetry.snapshot()
+    finally:
+        hil.close()
+    assert job.status is ExecStatus.DONE, job.fault
+    assert stats.overruns == 0
+    # The job's first command went with the SYNC right after the switch; the hold's after its end.
+    sync = tel["sync"]
+    assert (np.diff(sync) == 1).all()
+    row = int(np.flatnonzero(sync == switched["job"])[0])
+    assert tel["phase"][row] == Phase.WAIT and tel["phase"][row + 1] != Phase.WAIT
+    assert tel["tracking"][row + 1]
+    end = int(np.flatnonzero(sync == switched["back"])[0])
+    assert tel["phase"][end] == Phase.SETTLE and tel["phase"][end + 1] == Phase.WAIT
+    # No gap in the SYNC stream the drives saw, across both switches.
+    times = np.array(syncs[-len(sync) :])
+    assert len(times) > 300
+    np.testing.assert_allclose(np.diff(times), PERIOD_S, atol=1e-9)
+
+
+def test_no_cycle_calls_a_planner(rig: Rig, pending: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    planner, task, state = pending
+    session, q0 = restore_pending(planner, task, json.loads(json.dumps(state)))
+    calls: list[tuple[str, bool]] = []
+    in_cycle = [False]
+    for cls, name in (
+        (TrenchSession, "next_dig"),
+        (TrenchSession, "record"),
+        (TrenchSession, "exit_transitions"),
+        (TrenchPlanner, "start"),
+    ):
+        original = getattr(cls, name)
+
+        def spy(*args: Any, _original: Any = original, _name: str = name, **kw: Any) -> Any:
+            calls.append((_name, in_cycle[0]))
+            return _original(*args, **kw)
+
+        monkeypatch.setattr(cls, name, spy)
+    original_cycle = ControllerManager._cycle
+
+    def cycle(self: ControllerManager, info: Any) -> Any:
+        in_cycle[0] = True
+        try:
+            return original_cycle(self, info)
+        finally:
+            in_cycle[0] = False
+
+    monkeypatch.setattr(ControllerManager, "_cycle", cycle)
+    hil = LockstepHil(rig, q0, None)
+    try:
+        master = CanMaster(hil.master_bus, rig, period_s=PERIOD_S)
+        master.boot(hil.clock.now, 1.0)
+        master.enable(hil.clock.now, 1.0)
+        loop = FixedRateLoop(hil.clock, LoopConfig(rt=NO_RT), executor_telemetry(20_000))
+        # Two digs: the second is planned while the first's exit moves stream.
+        result = Executor(master, rig, loop, session, ExecutorConfig(max_digs=2)).run()
+    finally:
+        hil.close()
+    assert result.status is ExecStatus.DONE, result.fault
+    assert len(result.digs) == 2
+    names = {name for name, _ in calls}
+    assert {"record", "exit_transitions"} <= names  # the planner did plan and record...
+    assert [c for c in calls if c[1]] == []  # ...never inside a cycle
+
+
+def test_a_controller_that_raises_ends_in_the_guards_stop(rig: Rig, pending: Any) -> None:
+    planner, task, state = pending
+    session, q0 = restore_pending(planner, task, json.loads(json.dumps(state)))
+    hil = LockstepHil(rig, q0, None)
+    try:
+        master = CanMaster(hil.master_bus, rig, period_s=PERIOD_S)
+        master.boot(hil.clock.now, 1.0)
+        master.enable(hil.clock.now, 1.0)
+        loop = FixedRateLoop(hil.clock, LoopConfig(rt=NO_RT), executor_telemetry(20_000))
+        ex = Executor(master, rig, loop, session, ExecutorConfig(max_digs=1))
+        original = ex.job.update
+        count = [0]
+
+        def update(*args: Any) -> tuple[Any, ControllerStatus]:
+            count[0] += 1
+            if count[0] == 400:  # mid-dig
+                raise RuntimeError("a bug")
+            return original(*args)
+
+        ex.job.update = update  # type: ignore[method-assign]
+        result = ex.run()
+    finally:
+        hil.close()
+    assert result.status is ExecStatus.FAULT
+    assert "controller error: RuntimeError('a bug')" in result.fault
+    assert ex.guard.at_rest
+    assert (result.telemetry["phase"][-10:] == Phase.STOP).all()

@@ -994,16 +994,18 @@ def _bench_rate(
     hil_rig: str,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """One rate of :func:`bench_loop`: its JSON entry and raw arrays."""
+    from rt_runtime import actuation
     from rt_runtime.canbus import CanMaster, CycleStatus
     from rt_runtime.control import (
-        Column,
-        CycleInfo,
         FixedRateLoop,
-        LoopAction,
+        LimitGuard,
         LoopConfig,
         MonotonicClock,
-        Telemetry,
+        StrokeLimits,
     )
+    from rt_runtime.control.controllers import GuardFilter, HoldController
+    from rt_runtime.control.hardware import DriveInterface
+    from rt_runtime.control.manager import ControllerManager, executor_telemetry
 
     period = 1.0 / rate_hz
     n_cycles = max(1, round(seconds * rate_hz))
@@ -1015,7 +1017,9 @@ def _bench_rate(
         sync_timeout_s=sync_timeout_s,
     )
     clock = MonotonicClock()
-    loop = FixedRateLoop(clock, LoopConfig(period_s=period, rt=settings))
+    loop = FixedRateLoop(
+        clock, LoopConfig(period_s=period, rt=settings), executor_telemetry(n_cycles)
+    )
     try:
         # RT settings first: mlockall and gc.collect take longer than the drives' watchdog.
         loop.acquire_rt()
@@ -1023,34 +1027,19 @@ def _bench_rate(
         master.boot(clock.now, 5.0)
         master.enable(clock.now, 5.0)
         hold_um = master.feedback.position_um.copy()
-        zero = np.zeros_like(hold_um)
-        tel = Telemetry(
-            n_cycles,
-            [Column("rtt_s"), Column("status", np.int8, (), -1), Column("sync", np.int64)],
-        )
-        rtt_col = tel.column("rtt_s")
-        status_col = tel.column("status")
-        sync_col = tel.column("sync")
+        # The daemon's cycle between jobs: the hold controller, the guard, the drives in SI.
         # read_feedback waits up to its timeout per missing frame: 15 % of the period each keeps
         # the step under the period even when all three TPDO1 trickle in late; a later one is
         # taken (stale) in the next cycle, so a slow HIL does not hold the loop.
-        read_timeout_s = 0.15 * period
-        nan = math.nan
-
-        def step(info: CycleInfo) -> LoopAction:
-            slot = tel.slot
-            master.write_setpoints(hold_um, zero)
-            sent_s = clock.now()
-            answer = master.read_feedback(sent_s, read_timeout_s)
-            rtt_col[slot] = clock.now() - sent_s if not answer.stale.any() else nan
-            status_col[slot] = answer.status
-            sync_col[slot] = answer.sync_count
-            master.heartbeat(clock.now())
-            return LoopAction.CONTINUE
-
-        loop.telemetry = tel
-        stats = loop.run(step, max_cycles=n_cycles)
-        snap = tel.snapshot()
+        drives = DriveInterface(master, clock, 0.15 * period)
+        s0 = drives.measured_stroke_m()
+        guard = GuardFilter(LimitGuard(StrokeLimits.from_rig(rig), period))
+        guard.guard.reset(s0)
+        q0 = actuation.stroke_to_joint(rig, s0, check_limits=False)
+        hold = HoldController(s0, q0)
+        manager = ControllerManager(drives, guard, loop)
+        stats = manager.run(hold, hold.command, s0, q0, max_cycles=n_cycles)
+        snap = loop.telemetry.snapshot()
         master.disable()
         load = master.bus_load(period)
         realistic = _realistic_bus_load(master, hold_um, period)
@@ -1059,7 +1048,8 @@ def _bench_rate(
         loop.release_rt()
         hil.close()
     jitter = stats.period_jitter_s()
-    status = snap["status"]
+    status = snap["cycle_status"]
+    wait = snap["wait_s"]
     entry: dict[str, Any] = {
         "period_us": period * 1e6,
         "cycles": stats.cycles,
@@ -1071,6 +1061,10 @@ def _bench_rate(
             "max": float(np.max(jitter) * 1e6) if jitter.size else None,
         },
         "exec_us": _group_us(stats.exec_s),
+        # The step's parts: waiting for the drives' answers (bus, bridge, the HIL's response)
+        # and the runtime's own work (write, read's decoding, the controller, the guard).
+        "wait_us": _group_us(wait),
+        "own_us": _group_us(stats.exec_s - wait),
         "overruns": stats.overruns,
         "skipped": stats.skipped,
         "max_consecutive_overruns": stats.max_consecutive_overruns,

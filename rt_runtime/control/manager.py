@@ -150,11 +150,17 @@ class ControllerManager:
     # -- the loop's thread ----------------------------------------------------------------------
 
     def run(
-        self, controller: Controller, first: Command, s_ref_m: Any, q_ref_rad: Any
+        self,
+        controller: Controller,
+        first: Command,
+        s_ref_m: Any,
+        q_ref_rad: Any,
+        *,
+        max_cycles: int | None = None,
     ) -> LoopStats:
         """Run the loop with ``controller`` (``first`` its first command; ``s_ref_m`` and
         ``q_ref_rad`` the demand the drives hold now) until :attr:`on_ended` or :meth:`stop`
-        ends it."""
+        ends it, or ``max_cycles`` cycles ran."""
         self.controller = controller
         self._cmd = first
         self._s_ref[:] = s_ref_m
@@ -167,7 +173,7 @@ class ControllerManager:
         if self.realtime:
             sys.setswitchinterval(min(old_switch, 0.1 * self.period_s))
         try:
-            return self.loop.run(self._cycle, idle=self._idle)
+            return self.loop.run(self._cycle, max_cycles=max_cycles, idle=self._idle)
         finally:
             sys.setswitchinterval(old_switch)
 

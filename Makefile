@@ -9,7 +9,7 @@ STAMP  := $(VENV)/.installed-stamp
 
 .PHONY: demo test lint clean
 
-$(STAMP): pyproject.toml setup.py rt_runtime/planning/_verify.c
+$(STAMP): pyproject.toml setup.py $(wildcard rt_runtime/planning/kernel/*.c rt_runtime/planning/kernel/*.h)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test,plot,train]'

@@ -3,7 +3,7 @@
 :meth:`~rt_runtime.planning.verify.Verifier.plan_into`.
 
 Times single calls, for one candidate (N = 1, what the PINN planner verifies per dig) and for a
-batch of N = 32, with the C kernel and with the numpy reference backend, and prints the
+batch of N = 32, with the C kernel (and evaluation with the numpy reference backend), and prints the
 distributions as JSON: per-call p50/p90/p99/max in microseconds and the per-candidate p50/p99.
 Retiming is timed at N = 1 on PSO plans whose T is scaled up by 1.0-1.4 (what a conservative
 network gives; about a second of PSO to make them), next to a plain evaluation of the same
@@ -317,32 +317,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     # Retiming (N = 1, what the PINN planner does per dig) on slowed-down PSO plans, against
     # a plain evaluation of the same rows; random particles exercise the slow paths (no T in
     # range works: scan and least-violation grid).
+    # (Retiming and planning are the C kernel's only.)
     plans = retime_candidates(args.rig, 64, args.seed)
-    for backend, calls in (("c", args.calls), ("numpy", max(1, args.numpy_calls // 20))):
-        verifier = verify.Verifier(rig, args.n_samples, backend=backend)
-        for name, x, retime in (
-            ("evaluate, slowed PSO plans", plans, False),
-            ("retime, slowed PSO plans", plans, True),
-            ("retime, random particles", rows, True),
-        ):
-            if backend == "numpy" and not retime:
-                continue
-            times = time_calls(verifier, x, 1, calls, args.path, retime=retime)
-            cases.append({"backend": verifier.backend, "case": name, **summary(times, 1)})
+    c_verifier = verify.Verifier(rig, args.n_samples, backend="c")
+    for name, x, retime in (
+        ("evaluate, slowed PSO plans", plans, False),
+        ("retime, slowed PSO plans", plans, True),
+        ("retime, random particles", rows, True),
+    ):
+        times = time_calls(c_verifier, x, 1, args.calls, args.path, retime=retime)
+        cases.append({"backend": "c", "case": name, **summary(times, 1)})
     # Planning (N = 1) on network-like rows, next to retiming the same rows.
     net = network_candidates(args.rig, 64, args.seed)
-    for backend, calls in (("c", args.calls), ("numpy", max(1, args.numpy_calls // 30))):
-        verifier = verify.Verifier(rig, args.n_samples, backend=backend)
-        for name, x, retime, plan in (
-            ("retime, network-like rows", net, True, False),
-            ("plan, network-like rows", net, False, True),
-            ("plan, random particles", rows, False, True),
-        ):
-            if backend == "numpy" and not plan:
-                continue
-            times = time_calls(verifier, x, 1, calls, args.path, retime=retime, plan=plan)
-            cases.append({"backend": verifier.backend, "case": name, **summary(times, 1)})
-    c_verifier = verify.Verifier(rig, args.n_samples, backend="c")
+    for name, x, retime, plan in (
+        ("retime, network-like rows", net, True, False),
+        ("plan, network-like rows", net, False, True),
+        ("plan, random particles", rows, False, True),
+    ):
+        times = time_calls(c_verifier, x, 1, args.calls, args.path, retime=retime, plan=plan)
+        cases.append({"backend": "c", "case": name, **summary(times, 1)})
     report["plan_outcomes"] = plan_outcomes(c_verifier, net)
     # Planning the PINN's own answers on its held-out problems, per row and by outcome.
     held = pinn_rows(args.rig, args.models) if args.n_samples == oneshot.DEFAULT_SAMPLES else None

@@ -14,13 +14,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import front_state
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("distributed")
 
 from rt_runtime.errors import ConfigurationError, PlanningError  # noqa: E402
-from rt_runtime.planning import oneshot  # noqa: E402
+from rt_runtime.planning import oneshot, verify  # noqa: E402
 from rt_runtime.planning.oneshot import CONSTRAINT_NAMES, DigType, Problem  # noqa: E402
 from rt_runtime.planning.pinn import (  # noqa: E402
     DEFAULT_MODEL_DIR,
@@ -296,7 +295,6 @@ def test_library_untriggered_and_off_plan_as_the_network(library_models: Path) -
     assert set(loaded._libraries) == set(DigType)
     for lib in loaded._libraries.values():
         lib.trigger = 1e9
-    loaded._bind_front()  # the C front holds the trigger it was bound with
     for x in X:
         args = (x[0:3], x[3:6], float(x[6]), DigType.BACKWARD)
         try:
@@ -307,88 +305,44 @@ def test_library_untriggered_and_off_plan_as_the_network(library_models: Path) -
         assert (a.status, a.a6, a.T_s) == (b.status, b.a6, b.T_s)
 
 
-def test_library_search_in_c_is_the_python_path(
+def test_library_search_finds_the_nearest_rows(
     pipeline: Path, library_models: Path, tmp_path: Path
 ) -> None:
-    """The C front's step 4a (brute-force neighbours and the candidates' plans in one call)
-    leaves the planner's buffers bit for bit as the Python path does (numpy's search, the
-    kernel's plan of the k rows), and picks the same rows as a k-d tree would."""
-    from scipy.spatial import cKDTree
-
+    """The library's k-d tree finds the k problems nearest each training problem, nearest first,
+    as a brute-force numpy search over the scaled problems does; with every plan triggered,
+    some plans come from those rows."""
     models = Path(shutil.copytree(library_models, tmp_path / "m"))
     for name in ("downward", "backward"):
         _set_library(models, name, trigger_bulge_scale=1e-3, k=3)
     planner = PinnPlanner(RIG, models)
-    assert planner._front != planner._front_py  # the C one is bound
     from_library = 0
     for kind in DigType:
         lib = planner._libraries[kind]
-        tree = cKDTree(lib.xs.T)
+        scaled = np.asarray(lib.tree.data)
         data = ds.load(pipeline / "data" / f"{kind.name.lower()}.npz")
         for x in np.asarray(data.X):
-            _, want_idx = tree.query(x * lib.inv_std, k=lib.k)
-            np.testing.assert_array_equal(lib.nearest(list(x)), want_idx)
-            args = (x[0:3], x[3:6], float(x[6]), kind, 0.3, 2.0)
-            got = planner._front(*args)
-            state = front_state(planner)
-            want = planner._front_py(*args)
-            if got is None:  # outside the tiny training set's domain
-                assert want is None
+            d = ((x * lib.inv_std - scaled) ** 2).sum(axis=1)
+            want = np.argsort(d, kind="stable")[: lib.k]
+            got = lib.nearest(list(x))
+            if not np.array_equal(got, want):
+                pytest.fail(f"nearest rows {got.tolist()} (distances {d[got].tolist()}), brute "
+                            f"force {want.tolist()} ({d[want].tolist()}); problem {x.tolist()!r}")
+            try:
+                plan = planner.plan(x[0:3], x[3:6], float(x[6]), kind)
+            except PlanningError:
                 continue
-            assert want is not None and (got[0], got[2]) == (want[0], want[2])
-            np.testing.assert_array_equal(state, front_state(planner))
-            from_library += got[2]
+            from_library += plan.status == PlanStatus.LIBRARY
     assert from_library > 0
 
 
-def test_front_set_library_checks_its_arrays(library_models: Path) -> None:
-    """The C front refuses a library it cannot search (shapes, k, trigger) and names what is
-    allowed; unbound (None), it plans as the network alone."""
-    planner = PinnPlanner(RIG, library_models)
-    lib = planner._libraries[DigType.BACKWARD]
-    front = planner._front.__self__  # type: ignore[attr-defined]  # the bound C Front
-    n = lib.xs.shape[1]
-    bad = [
-        ((1, lib.xs.T.copy(), lib.inv_std, lib.Y, 1.0, 2), r"xs must have shape \(7, N\)"),
-        ((1, lib.xs, lib.inv_std, lib.Y[:-1], 1.0, 2), r"y \(n, 4\) with n >= 1"),
-        ((1, lib.xs, lib.inv_std, lib.Y, 1.0, n + 1), rf"1 <= k <= min\(n, 64\).*k {n + 1}"),
-        ((1, lib.xs, lib.inv_std, lib.Y, 0.0, 2), r"trigger and inv_std finite and > 0"),
-        ((1, lib.xs, -lib.inv_std, lib.Y, 1.0, 2), r"trigger and inv_std finite and > 0"),
-        ((2, lib.xs, lib.inv_std, lib.Y, 1.0, 2), r"dig_type must be 0 \(downward\) or 1"),
-    ]
-    for args, message in bad:
-        with pytest.raises(ValueError, match=message):
-            front.set_library(*args)
-    with pytest.raises(TypeError, match=r"set_library\(dig_type, None\) unbinds"):
-        front.set_library(1, lib.xs)
-    x = np.load(library_models / "pinn_backward_heldout.npz")["X"][0]
-    args = (x[0:3], x[3:6], float(x[6]), 1, 0.3, 2.0)
-    front.set_library(1, lib.xs, lib.inv_std, lib.Y, 1e-3, 2)
-    front.set_library(1, None)
-    got = front.plan(*args)
-    state = front_state(planner)
-    want = planner._front_py(*args, False)
-    assert got is not None and want is not None and got[2] is False
-    np.testing.assert_array_equal(state, front_state(planner))
-
-
-def test_library_with_the_numpy_verifier(library_models: Path, tmp_path: Path) -> None:
-    """Without the C kernel, step 4a runs in Python; its plans verify."""
-    models = Path(shutil.copytree(library_models, tmp_path / "m"))
-    _set_library(models, "backward", trigger_bulge_scale=1e-3)
-    slow = PinnPlanner(RIG, models, verifier_backend="numpy")
-    assert slow._front == slow._front_py
-    with np.load(models / "pinn_backward_heldout.npz") as z:
-        X = z["X"]
-    statuses = []
-    for x in X[:8]:
-        try:
-            plan = slow.plan(x[0:3], x[3:6], float(x[6]), DigType.BACKWARD)
-        except PlanningError:
-            continue
-        assert _reference(list(x), DigType.BACKWARD, plan).feasible[0, 0]
-        statuses.append(plan.status)
-    assert PlanStatus.LIBRARY in statuses
+def test_planner_needs_the_c_kernel(
+    library_models: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Without the compiled kernel the planner is not built: the message says how to build
+    it."""
+    monkeypatch.setattr(verify, "_load_extension", lambda: None)
+    with pytest.raises(ConfigurationError, match=r"needs the compiled kernel.*pip install -e"):
+        PinnPlanner(RIG, library_models)
 
 
 @pytest.mark.parametrize(

@@ -27,15 +27,14 @@ before anyone may execute it:
    families of optima a regression network answers their average, whose bulges partly cancel,
    so the fill scales the averaged bulge up. Where the fill scale c reaches the card's
    ``trigger_bulge_scale``, the ``k`` nearest library problems' teacher paths (nearest in inputs
-   scaled per input by the library's standard deviation) are filled and retimed for this
-   problem like the network's, and the best verified one replaces the network's plan when its
-   objective is smaller (:attr:`PlanStatus.LIBRARY`). With the C kernel the whole step runs
-   inside the ``Front`` call (brute-force search over the library's scaled problems, then the k
-   plans); the numpy verifier's path does the same in Python (:meth:`_Library.nearest`,
-   :meth:`_from_library`), and both pick the same rows in the same order. The exporter's
+   scaled per input by the library's standard deviation: a ``scipy.spatial.cKDTree``,
+   :meth:`_Library.nearest`) are filled and retimed for this problem like the network's, in one
+   ``Kernel.plan`` call (:meth:`_from_library`), and the best verified one replaces the
+   network's plan when its objective is smaller (:attr:`PlanStatus.LIBRARY`). The exporter's
    defaults (:data:`rt_runtime.training.export.LIBRARY_K`,
    :data:`~rt_runtime.training.export.LIBRARY_TRIGGER_BULGE_SCALE`,
-   :data:`~rt_runtime.training.export.LIBRARY_KEEP_BULGE_SCALE`) set what a card carries.
+   :data:`~rt_runtime.training.export.LIBRARY_KEEP_BULGE_SCALE`) set what a card carries
+   (design notes, O7 and V6).
 5. **Repair**, when that still fails (or with ``retime=False``, whenever the raw answer fails).
    Time scaling first, where only time-dependent limits fail (velocity, acceleration, torque,
    power, t_min): the kernel's exact retiming keeps the path (so angles, theta_p and volume)
@@ -87,6 +86,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.planning import oneshot
@@ -107,7 +107,7 @@ FloatArray = NDArray[np.float64]
 
 CARD_FORMAT = "excavator-rt-pinn-card/1"
 
-#: Bound on a solution library's k (the C kernel's VK_LIB_K_MAX: its scratch rows).
+#: Bound on a solution library's k (each candidate is a full plan, ~12 us).
 LIBRARY_K_MAX = 64
 #: The network's inputs and outputs (DESIGN.md "Models"): rad, rad, ..., m; rad/s^6 x 3, s.
 INPUT_NAMES = ("theta11", "theta12", "theta13", "theta21", "theta22", "theta23", "H")
@@ -346,10 +346,8 @@ class _Library:
 
     Module docstring, step 4a. ``X`` are the problems, ``Y`` the teacher's ``(a16, a26, a36,
     T)``; nearest neighbours are found in inputs scaled by the library's own per-input
-    standard deviation, by brute force over ``xs`` (the scaled problems, one input per row:
-    the C kernel's ``Front`` runs the same search, in the same summation order, in a few
-    microseconds; a k-d tree queried from Python cost ~20 us). The scratch rows for the ``k``
-    candidates are allocated once.
+    standard deviation, by a k-d tree over the scaled problems (design notes, "The library
+    search in scipy"). The scratch rows for the ``k`` candidates are allocated once.
     """
 
     def __init__(self, card: ModelCard) -> None:
@@ -380,7 +378,7 @@ class _Library:
                 f"trigger_bulge_scale > 0; got {self.k}, {self.trigger}"
             )
         self.inv_std = 1.0 / np.maximum(X.std(axis=0), 1e-12)
-        self.xs = np.ascontiguousarray((X * self.inv_std).T)
+        self.tree = cKDTree(X * self.inv_std)
         self.Y = Y
         self.rows = np.zeros((self.k, 12), dtype=np.float64)
         self.out = np.zeros((self.k, N_OUT), dtype=np.float64)
@@ -388,11 +386,9 @@ class _Library:
         self.scale = np.ones(self.k, dtype=np.float64)
 
     def nearest(self, x: list[float]) -> NDArray[np.intp]:
-        """Rows of the ``k`` problems nearest to ``x``, nearest first (ties: lower row first),
-        as the C kernel's search finds them."""
-        q = np.asarray(x, dtype=np.float64) * self.inv_std
-        d = ((q[:, None] - self.xs) ** 2).sum(axis=0)
-        return np.argsort(d, kind="stable")[: self.k]
+        """Rows of the ``k`` problems nearest to ``x`` (7 inputs, unscaled), nearest first."""
+        _, rows = self.tree.query(np.multiply(x, self.inv_std), k=self.k)
+        return np.atleast_1d(np.asarray(rows, dtype=np.intp))
 
 
 def check_file(where: str, what: str, path: Path, expected_sha256: str) -> None:
@@ -547,13 +543,12 @@ class PinnPlanner:
             after it (design notes, O6).
         teacher_fallback: Plan out-of-domain problems with the PSO teacher instead of refusing
             them (seconds, not microseconds: never inside the loop).
-        verifier_backend: ``auto``, ``c`` or ``numpy`` (see
-            :class:`rt_runtime.planning.verify.Verifier`).
         library: Load the solution libraries the cards name (module docstring, step 4a);
             False plans with the networks alone.
 
     Raises:
-        ConfigurationError: A missing or corrupt model or card, a card for another rig or
+        ConfigurationError: The C kernel is not built (the plan, retiming and repair run in
+            it); a missing or corrupt model or card, a card for another rig or
             another set of rig values, a model file whose hash differs from its card; a
             library file that is missing, differs from its card's hash or holds bad arrays.
     """
@@ -569,7 +564,6 @@ class PinnPlanner:
         refine: bool = True,
         refine_no_path: bool = False,
         teacher_fallback: bool = False,
-        verifier_backend: str = "auto",
         library: bool = True,
     ) -> None:
         planning = oneshot.require_planning(rig)
@@ -579,7 +573,7 @@ class PinnPlanner:
         self.refine = refine
         self.refine_no_path = refine_no_path
         self.teacher_fallback = teacher_fallback
-        self.verifier = Verifier(rig, n_verify, backend=verifier_backend)
+        self.verifier = Verifier(rig, n_verify, backend="c")
         self.cards: dict[DigType, ModelCard] = {}
         self._sessions: dict[DigType, _Session] = {}
         self._libraries: dict[DigType, _Library] = {}
@@ -612,7 +606,7 @@ class PinnPlanner:
         self._eval_rows = self.verifier._run
         self._retime_rows = self.verifier._retime
         self._c_default = (float(PLAN_C_RANGE[0]), float(PLAN_C_RANGE[1]))
-        self._front: Callable[..., tuple[bool, float, bool] | None] = self._front_py
+        self._front: Callable[..., tuple[bool, float] | None]
         self._bind_front()
         # The fast repair's constants and scratch rows (module docstring, step 5).
         n = self.verifier.n_samples
@@ -636,7 +630,7 @@ class PinnPlanner:
         self._fr_out = np.zeros((1, N_OUT), dtype=np.float64)
         self._fr_in = self._fr_row[0]
         self._fr_out_row = self._fr_out[0]
-        self._coarse = Verifier(rig, _REPAIR_SECANT_SAMPLES, backend=verifier_backend)
+        self._coarse = Verifier(rig, _REPAIR_SECANT_SAMPLES, backend="c")
         self._coarse_rows = self._coarse._run
 
     def _check_card(self, card: ModelCard, kind: DigType) -> None:
@@ -678,32 +672,25 @@ class PinnPlanner:
 
     def _bind_front(self) -> None:
         """The cheap path's staging, inference and plan in one call: the C kernel's ``Front``
-        bound to this planner's buffers and onnxruntime sessions, or :meth:`_front_py`, the
-        same steps in Python, with the numpy verifier (design notes, V5). Called again where a
-        session is replaced."""
-        kernel = self.verifier.kernel
-        if kernel is None:
-            self._front = self._front_py
-            return
+        bound to this planner's buffers and onnxruntime sessions (design notes, V5). Called again
+        where a session is replaced."""
         kinds = list(DigType)  # indexed by value: 0 downward, 1 backward
         sessions = [self._sessions[k] for k in kinds]
-        front = kernel.front(
+        front = self.verifier.kernel.front(
             self._row, self._out, self._retimed, self._scale,
             np.array([self._lo[k] for k in kinds], dtype=np.float64),
             np.array([self._hi[k] for k in kinds], dtype=np.float64),
             tuple(s.x for s in sessions), tuple(s.y for s in sessions),
             tuple(s.run for s in sessions),
         )  # fmt: skip
-        for kind, lib in self._libraries.items():
-            front.set_library(int(kind), lib.xs, lib.inv_std, lib.Y, lib.trigger, lib.k)
         self._front = front.plan
 
     def _stage(
         self, q_start_rad: ArrayLike, q_end_rad: ArrayLike, surface_y_m: float, kind: DigType
-    ) -> tuple[bool, float, bool] | None:
+    ) -> tuple[bool, float] | None:
         """The input into the row, checked against ``kind``'s domain, and the network's answer
         into the row: None outside the domain (or not finite; nothing run), else
-        ``(False, infer_us, False)``."""
+        ``(False, infer_us)``."""
         self._qs_view[:] = q_start_rad
         self._qe_view[:] = q_end_rad
         row = self._row
@@ -721,35 +708,7 @@ class PinnPlanner:
         infer_us = (time.perf_counter() - t1) * 1e6
         row[0, 7] = kind
         self._y_view[:] = sess.y[0]
-        return False, infer_us, False
-
-    def _front_py(
-        self,
-        q_start_rad: ArrayLike,
-        q_end_rad: ArrayLike,
-        surface_y_m: float,
-        kind: DigType,
-        c_lo: float,
-        c_hi: float,
-        library: bool = True,
-    ) -> tuple[bool, float, bool] | None:
-        """What the C kernel's ``Front.plan`` does, in Python (the numpy verifier's path):
-        :meth:`_stage`, then the fill and retime of the answer into ``_out``, ``_retimed``
-        and ``_scale``, then step 4a where it applies (:meth:`_from_library`);
-        ``(feasible, infer_us, from_library)``, or None outside the domain."""
-        staged = self._stage(q_start_rad, q_end_rad, surface_y_m, kind)
-        if staged is None:
-            return None
-        self._plan_rows(self._row, self._out, self._retimed, c_lo, c_hi, None, self._scale)
-        ok = bool(self._out_row[COL_TOTAL] <= 0.0)
-        from_library = (
-            ok
-            and library
-            and (lib := self._libraries.get(kind)) is not None
-            and self._scale[0] >= lib.trigger
-            and self._from_library(lib, self._x_view.tolist(), kind, c_lo, c_hi)
-        )
-        return ok, staged[1], from_library
+        return False, infer_us
 
     def plan(
         self,
@@ -792,7 +751,7 @@ class PinnPlanner:
         tried: _Repair | None = None  # the fast repair's outcome, once tried
         if self.retime:
             c_lo, c_hi = self._c_default if c_max is None else fill_c_range(c_max)
-            done = self._front(q_start_rad, q_end_rad, surface_y_m, kind, c_lo, c_hi, library)
+            done = self._front(q_start_rad, q_end_rad, surface_y_m, kind, c_lo, c_hi)
         else:
             done = self._stage(q_start_rad, q_end_rad, surface_y_m, kind)
         x = self._x_view.tolist()
@@ -802,7 +761,14 @@ class PinnPlanner:
             if self.teacher_fallback and all(map(math.isfinite, x)):
                 return self._teacher(problem, t0)
             raise PlanningError(f"refused: {why}; nothing was planned")
-        ok, infer_us, from_library = done
+        ok, infer_us = done
+        from_library = (
+            ok
+            and library
+            and (lib := self._libraries.get(kind)) is not None
+            and self._scale[0] >= lib.trigger
+            and self._from_library(lib, x, kind, c_lo, c_hi)
+        )
         y = self._y_view.tolist()
         raw_a6 = (y[0], y[1], y[2])
         raw_T = y[3]

@@ -7,23 +7,25 @@ objective, V_p, W_E, theta_p, peak power and torques) on the same sample grid, b
 few candidates at a time at microsecond cost: the PINN planner verifies each dig it proposes
 before anything is sent.
 
-Two backends compute the same thing:
+Two backends evaluate:
 
-- ``"c"``: :mod:`rt_runtime.planning._verify`, a C loop over the samples (``_verify.c``), compiled
-  by ``pip install -e .`` (``setup.py``). A few microseconds per candidate at 101 samples (design
-  notes, V1-V4); it allocates nothing, so :meth:`Verifier.evaluate_into` may run in the planning
-  step of a cycle.
-- ``"numpy"``: :func:`~rt_runtime.planning.oneshot.evaluate` itself, the reference (0.6-0.8 ms
-  for one candidate).
+- ``"c"``: :mod:`rt_runtime.planning._verify`, a C loop over the samples
+  (``rt_runtime/planning/kernel/``), compiled by ``pip install -e .`` (``setup.py``). A few
+  microseconds per candidate at 101 samples (design notes, V1-V4); it allocates nothing, so
+  :meth:`Verifier.evaluate_into` may run in the planning step of a cycle.
+- ``"numpy"``: :func:`~rt_runtime.planning.oneshot.evaluate` itself, the independent
+  reference (0.6-0.8 ms for one candidate).
 
 They agree to ~1e-12 relative (the numpy matrix products round differently; ``tests/
-test_verify.py`` holds them to 1e-9).
+test_verify.py`` holds them to 1e-9). Retiming and planning (below) are searches that exist in
+the C kernel only (design notes, "A C compiler is required"); the tests check their answers by
+their properties against the numpy evaluation.
 
 :meth:`Verifier.retime_into` retimes candidates instead: it keeps each one's path (the shape
 term ``K = -a6 T^6``) and finds the shortest T' in the time range at which every time-dependent
 constraint (:data:`TIME_DEPENDENT`) holds, then evaluates it for real. The PINN's paths are
 good but its T conservative, and eq 11 is dominated by T. The C kernel does it in about twice
-the cost of one evaluation; the numpy backend bisects with real evaluations (the reference).
+the cost of one evaluation.
 
 :meth:`Verifier.plan_into` goes one step further: it keeps each candidate's path *direction*
 and scales its bulge, ``K -> c K``, to the largest excavated volume that the path-only
@@ -111,7 +113,7 @@ depend on the path only."""
 
 RETIME_RTOL: Final = 1e-6
 """Retiming returns a T' within this relative distance above the feasible boundary it finds
-(measured: the two backends agree to 5e-10, see :meth:`Verifier.retime_into`)."""
+(about 1e-7 measured, see :meth:`Verifier.retime_into`)."""
 
 PLAN_C_RANGE: Final = (0.5, 2.0)
 """Default range of the path scale c of :meth:`Verifier.plan_into`."""
@@ -119,7 +121,7 @@ PLAN_C_RANGE: Final = (0.5, 2.0)
 PLAN_TOL: Final = 1e-4
 """Where a path constraint caps the path scale (volume_max mostly), :meth:`Verifier.plan_into`
 lands within this of it on the feasible side, in normalised units (for volume_max: V_p within
-1e-4 of the V range below V_max; the numpy reference lands within 1e-9 in c of it)."""
+1e-4 of the V range below V_max)."""
 
 PLAN_MARGIN: Final = 1e-9
 """Path constraints are judged with this much to spare while searching the scale (normalised
@@ -127,36 +129,13 @@ units), so that the real evaluation of the answer holds them."""
 
 BACKENDS: tuple[str, ...] = ("auto", "c", "numpy")
 
-# The numpy reference of retiming: a geometric grid of T over [t_min, t_max] plus the velocity
-# and acceleration bounds, multisection of the first bracket with _REF_SPLIT - 1 points per
-# evaluate call down to _REF_RTOL, and feasibility judged with _REF_MARGIN to spare (normalised
-# units), so that the final evaluation, whose batch shape may round matrix products
-# differently (~1e-13), agrees.
-_REF_GRID = 64
-_REF_SPLIT = 16
-_REF_RTOL = 1e-8
-_REF_MARGIN = 1e-11
-# The velocity and acceleration bounds join the grid this far above their exact values.
-_REF_BOUND_STEP = 1e-9
-# The numpy reference of plan: path constraints on a uniform grid of c, then multisection of
-# the bracket at the best grid point to a relative width of _REF_PLAN_RTOL; the back-off
-# bisects _REF_BACKOFF times (the kernel steers a root search on its retiming bounds instead,
-# to 1e-3 in c).
-_REF_PLAN_GRID = 49
-_REF_PLAN_RTOL = 1e-9
-_REF_BACKOFF = 8
-# A back-off answer's retimed T this far (relative) above its velocity and acceleration bound
-# was raised by a torque bound (the kernel's VK_PL_RAISED).
-_REF_RAISED = 1e-3
-_PATH_ONLY = (*range(6), 16, 17, 18, 19)
-
 BUILD_HINT = (
     "build it with `.venv/bin/pip install -e .` from the repository root (setup.py compiles "
-    "rt_runtime/planning/_verify.c with the machine's C compiler; it needs gcc or cc and the "
+    "rt_runtime/planning/kernel/*.c with the machine's C compiler; it needs gcc or cc and the "
     "Python headers)"
 )
 
-# Layout of the kernel's constants; _verify.c's enum vk_param must list the same offsets.
+# Layout of the kernel's constants; kernel.h's enum vk_param must list the same offsets.
 _ABI = 7
 _PARAM_FIELDS: tuple[tuple[str, int], ...] = (
     ("lengths", 3),
@@ -217,7 +196,7 @@ def _import_kernel(name: str) -> ModuleType | None:
 
 
 def pack_params(rig: Rig) -> FloatArray:
-    """Every rig constant the kernel needs, ``(N_PARAMS,)`` in ``_verify.c``'s layout.
+    """Every rig constant the kernel needs, ``(N_PARAMS,)`` in ``kernel/kernel.h``'s layout.
 
     Raises:
         ConfigurationError: The rig has no ``[planning]`` table, or ``dynamics._Chain`` no
@@ -273,14 +252,15 @@ def _chain_constants(rig: Rig) -> dict[str, FloatArray]:
         raise ConfigurationError(
             "the verifier kernel reads the mass constants h, b, d (3 floats each) and g of "
             f"rt_runtime.dynamics._Chain, which failed: {exc!r}; update verify.pack_params and "
-            "_verify.c to the new dynamics"
+            "kernel/retime.c to the new dynamics"
         ) from exc
     for name, shape in shapes.items():
         v = values[name]
         if v.shape != shape or not np.all(np.isfinite(v)):
             raise ConfigurationError(
                 f"rt_runtime.dynamics._Chain.{name} must be finite with shape {shape} for the "
-                f"verifier kernel; got {v.tolist()!r}; update verify.pack_params and _verify.c"
+                f"verifier kernel; got {v.tolist()!r}; update verify.pack_params and "
+                "kernel/retime.c"
             )
     return values
 
@@ -426,7 +406,9 @@ class Verifier:
         n_samples: Samples per trajectory (uniform in time, ends included), >= 2: the grid of
             :func:`~rt_runtime.planning.oneshot.evaluate`.
         backend: ``"c"``, ``"numpy"`` or ``"auto"`` (C when built and consistent, else numpy
-            with a :class:`RuntimeWarning` when the kernel is built but unusable).
+            with a :class:`RuntimeWarning` when the kernel is built but unusable). The numpy
+            backend evaluates only: its :meth:`retime_into` and :meth:`plan_into` raise
+            :class:`~rt_runtime.errors.ConfigurationError` (the searches are the kernel's).
 
     Attributes:
         rig: The rig.
@@ -472,8 +454,8 @@ class Verifier:
         self._run: Callable[[FloatArray, FloatArray, FloatArray | None], None]
         self._retime: Callable[[FloatArray, FloatArray, FloatArray, FloatArray | None], None]
         self._run = self._evaluate_numpy
-        self._retime = self._retime_numpy
-        self._plan: _PlanFn = self._plan_numpy
+        self._retime = self._retime_needs_c
+        self._plan: _PlanFn = self._plan_needs_c
         self.backend = "numpy"
         #: The C kernel object (None with numpy): its ``front`` binds a planner's buffers.
         self.kernel: Any = None
@@ -535,8 +517,8 @@ class Verifier:
             raise ConfigurationError(
                 f"the compiled kernel disagrees with rt_runtime.planning.oneshot.evaluate on a "
                 f"probe candidate: output column {j} is {got[0, j]!r}, the reference "
-                f"{want[0, j]!r}; rebuild it ({BUILD_HINT}) or bring _verify.c up to date with "
-                "the Python physics"
+                f"{want[0, j]!r}; rebuild it ({BUILD_HINT}) or bring rt_runtime/planning/kernel/ "
+                "up to date with the Python physics"
             )
 
     def evaluate_into(
@@ -608,11 +590,11 @@ class Verifier:
         what it means there (the path-only constraints are reported as they are).
 
         Where no T' in range satisfies them all, T' is the least violating candidate found
-        (C: among t_max, the closed-form bounds, the scan points and a 9-point geometric grid
-        from t_min to t_max; numpy: on its 64-point grid; t_max when no candidate evaluates
-        finite), evaluated the same way so the caller sees the violation.
+        (among t_max, the closed-form bounds, the scan points and a 9-point geometric grid
+        from t_min to t_max; t_max when no candidate evaluates finite), evaluated the same way
+        so the caller sees the violation.
 
-        How (C): at unit time the kernel caches per sample the dynamic torque ``A`` (scales as
+        How: at unit time the kernel caches per sample the dynamic torque ``A`` (scales as
         ``1/T^2``), the gravity and soil torques, ``q'`` and the tip speed; velocity and
         acceleration give closed-form lower bounds on T', each sample's torque an interval of
         ``1/T^2``; power, and the torque of the few samples slower than the soil model's 1 mm/s
@@ -624,12 +606,6 @@ class Verifier:
         scan step (8 steps between the bounds) can be missed. About 1.9x the cost of an
         :meth:`evaluate_into` row (14-15 us at 101 samples); allocates nothing, safe in the
         loop's planning step.
-
-        How (numpy, the reference): :func:`oneshot.evaluate` on a 64-point geometric grid of
-        T over the range plus the velocity and acceleration bounds (exact from the evaluation
-        at t_min), then multisection of the first bracket (15 points per call) to 1e-8
-        relative, judging feasibility with 1e-11 to spare; 10-15 ms per row. It misses a
-        feasible interval narrower than a grid step (1.1 %) that starts at no such bound.
 
         Args:
             inputs: ``(N, N_IN)`` C-contiguous float64 rows (columns ``IN_*``); ``IN_A6`` and
@@ -643,6 +619,7 @@ class Verifier:
 
         Raises:
             ValueError: Wrong shapes, dtypes or memory layout (nothing is written).
+            ConfigurationError: The numpy backend (retiming runs in the C kernel only).
         """
         self._retime(inputs, out, retimed, path)
 
@@ -707,7 +684,7 @@ class Verifier:
            the scan points and the back-off's candidates: where the row's own path retimes
            feasibly, the plan has at least its volume, less :data:`PLAN_TOL`). The kernel lands
            within 1e-3 in ``c`` of that boundary (measured: ~0.3 of objective per unit of
-           ``c`` there), the reference within 1/256 of its bracket. The kernel's one exception:
+           ``c`` there). The one exception:
            where a torque bound has pushed the retimed T there above the velocity and
            acceleration bound (T then rises steeply with ``c``: 6.5 s to 9.8 s over the last
            0.3 % of ``c`` on one held-out row), it also tries the scale where that started and
@@ -725,7 +702,7 @@ class Verifier:
         is worse than the own path's retimed only where it buys volume (no such row among 300
         of a validation set).
 
-        How (C): the path-only search needs forward kinematics on the sample grid and no
+        How: the path-only search needs forward kinematics on the sample grid and no
         dynamics. Joint limits give the interval of ``c`` in closed form (each sample's angle
         is linear in ``c``); theta_p of a dig that starts on the surface too (its entry
         direction ``J(q0)(10 D + c K)``); V_p and the other entries take the path. A 9-point
@@ -743,12 +720,6 @@ class Verifier:
         :meth:`retime_into` at 101 samples (p50 ~23 us per row); rows that take the back-off
         ~38 us (p50; 60 us p90). Allocates nothing; safe in the loop's planning step.
 
-        How (numpy, the reference): :func:`oneshot.evaluate` of the path constraints on a
-        49-point grid of ``c``, multisection of the bracket at the best grid point to 1e-9
-        relative, the back-off's start points with 8 bisection steps (real evaluations,
-        no steering; for a raised T, 8 more towards the kink), and the numpy retiming; slow
-        (0.01-0.2 s per row). Both miss a feasible interval of ``c`` narrower than a grid step.
-
         Args:
             inputs: ``(N, N_IN)`` C-contiguous float64 rows (columns ``IN_*``); ``IN_A6`` and
                 ``IN_T`` define the path direction by ``K = -a6 T^6``.
@@ -764,6 +735,7 @@ class Verifier:
         Raises:
             ValueError: Wrong shapes, dtypes or memory layout, or a bad ``c_range`` (nothing is
                 written).
+            ConfigurationError: The numpy backend (planning runs in the C kernel only).
         """
         lo, hi = _c_range(c_range)
         self._plan(inputs, out, planned, lo, hi, path, scale)
@@ -804,6 +776,29 @@ class Verifier:
         a6_new = planned[0, RT_A6 : RT_A6 + 3].copy()
         return a6_new, float(planned[0, RT_T_S]), VerifyResult.from_row(out[0]), float(scale[0])
 
+    def _retime_needs_c(
+        self,
+        inputs: FloatArray,
+        out: FloatArray,
+        retimed: FloatArray,
+        path: FloatArray | None = None,
+    ) -> None:
+        """The numpy backend's :meth:`retime_into`: none (the search is the kernel's)."""
+        raise ConfigurationError(f"retiming needs the C kernel; {BUILD_HINT}")
+
+    def _plan_needs_c(
+        self,
+        inputs: FloatArray,
+        out: FloatArray,
+        planned: FloatArray,
+        c_lo: float,
+        c_hi: float,
+        path: FloatArray | None = None,
+        scale: FloatArray | None = None,
+    ) -> None:
+        """The numpy backend's :meth:`plan_into`: none (the search is the kernel's)."""
+        raise ConfigurationError(f"planning (fill and retime) needs the C kernel; {BUILD_HINT}")
+
     def _evaluate_numpy(
         self, inputs: FloatArray, out: FloatArray, path: FloatArray | None = None
     ) -> None:
@@ -813,7 +808,7 @@ class Verifier:
             (out, "out", (N_OUT,), True),
             (path, "path", (self.n_samples, 2), True),
         )
-        ok, _ = _valid_rows(x, finite_k=False)
+        ok = _valid_rows(x)
         o[~ok] = np.nan
         o[~ok, COL_TOTAL] = np.inf
         if p is not None:
@@ -850,471 +845,6 @@ class Verifier:
                 paths[i] = row_path[0]
         return rows, paths
 
-    def _retime_numpy(
-        self,
-        inputs: FloatArray,
-        out: FloatArray,
-        retimed: FloatArray,
-        path: FloatArray | None = None,
-    ) -> None:
-        """The numpy backend of :meth:`retime_into`: real evaluations only (the reference)."""
-        x, o, rt, p = _checked_rows(
-            (inputs, "inputs", (N_IN,), False),
-            (out, "out", (N_OUT,), True),
-            (retimed, "retimed", (N_RETIMED,), True),
-            (path, "path", (self.n_samples, 2), True),
-        )
-        ok, K = _valid_rows(x, finite_k=True)
-        o[~ok] = np.nan
-        o[~ok, COL_TOTAL] = np.inf
-        rt[~ok] = np.nan
-        if p is not None:
-            p[~ok] = np.nan
-        if not np.any(ok):
-            return
-        v = x[ok]
-        K = K[ok]
-        T_new = self._retime_search(v, K)
-        rows = v.copy()
-        with np.errstate(all="ignore"):
-            rows[:, IN_A6 : IN_A6 + 3] = -K / T_new[:, None] ** 6  # oneshot.a6_from_particle
-        rows[:, IN_T] = T_new
-        res, res_path = self._numpy_rows(rows, p is not None)
-        o[ok] = res
-        if p is not None and res_path is not None:
-            p[ok] = res_path
-        rt[ok, RT_A6 : RT_A6 + 3] = rows[:, IN_A6 : IN_A6 + 3]
-        rt[ok, RT_T_S] = T_new
-
-    def _retime_search(self, v: FloatArray, K: FloatArray) -> FloatArray:
-        """T' per valid row ``v`` with shape terms ``K`` ``(B, 3)``, by real evaluations."""
-        planning = oneshot.require_planning(self.rig)
-        t_min, t_max = planning.t_min_s, planning.t_max_s
-        n = v.shape[0]
-        grid = t_min * (t_max / t_min) ** np.linspace(0.0, 1.0, _REF_GRID)
-        grid[0], grid[-1] = t_min, t_max
-        grid = np.broadcast_to(grid, (n, grid.size))
-        ok, total, td = self._timed_numpy(v, K, grid)
-        # The velocity and acceleration bounds join the grid, exact from the evaluation at t_min
-        # (peak |qd| scales as 1/T, peak |qdd| as 1/T^2): a feasible interval narrower than a
-        # grid step (a torque limit can close it from above) mostly starts at one of them.
-        with np.errstate(all="ignore"):
-            bounds = t_min * np.concatenate(
-                [td[:, 0, 0:3] + 1.0, np.sqrt(td[:, 0, 3:6] + 1.0)], axis=1
-            ) * (1.0 + _REF_BOUND_STEP)
-        bounds = np.clip(np.where(np.isfinite(bounds), bounds, t_max), t_min, t_max)
-        ok_b, total_b, _ = self._timed_numpy(v, K, bounds)
-        Ts = np.concatenate([grid, bounds], axis=1)
-        order = np.argsort(Ts, axis=1, kind="stable")
-        Ts = np.take_along_axis(Ts, order, axis=1)
-        ok = np.take_along_axis(np.concatenate([ok, ok_b], axis=1), order, axis=1)
-        total = np.take_along_axis(np.concatenate([total, total_b], axis=1), order, axis=1)
-        rows = np.arange(n)
-        found = np.any(ok, axis=1)
-        first = np.argmax(ok, axis=1)
-        total = np.where(np.isnan(total), np.inf, total)
-        least = np.where(
-            np.isfinite(total.min(axis=1)), Ts[rows, np.argmin(total, axis=1)], t_max
-        )
-        T = np.where(found, Ts[rows, first], least)
-        # Multisection of each bracket (Ts[first - 1] fails, Ts[first] holds).
-        idx = np.flatnonzero(found & (first > 0))
-        lo, hi = Ts[idx, first[idx] - 1], Ts[idx, first[idx]]
-        frac = np.arange(1, _REF_SPLIT) / _REF_SPLIT
-        while idx.size and np.any(hi > lo * (1.0 + _REF_RTOL)):
-            pts = lo[:, None] * (hi / lo)[:, None] ** frac
-            ok_p, _, _ = self._timed_numpy(v[idx], K[idx], pts)
-            k = np.where(np.any(ok_p, axis=1), np.argmax(ok_p, axis=1), frac.size)
-            pts = np.concatenate([lo[:, None], pts, hi[:, None]], axis=1)
-            sub = np.arange(idx.size)
-            lo, hi = pts[sub, k], pts[sub, k + 1]
-        T[idx] = hi
-        return np.asarray(T, dtype=np.float64)
-
-    def _timed_numpy(
-        self, v: FloatArray, K: FloatArray, T: FloatArray
-    ) -> tuple[NDArray[np.bool_], FloatArray, FloatArray]:
-        """For rows ``v`` retimed to ``T`` (B, P): whether the time-dependent constraints hold
-        (with _REF_MARGIN to spare), their total violation and their values (B, P, 12), NaN
-        where evaluate refuses."""
-        with np.errstate(all="ignore"):
-            a6 = -K[:, None, :] / T[..., None] ** 6
-        viol = np.full((*T.shape, N_CONSTRAINTS), np.nan)
-
-        def evaluate(rows: slice) -> FloatArray:
-            w = v[rows]
-            with np.errstate(all="ignore"):
-                ev = oneshot.evaluate(
-                    self.rig, w[:, IN_Q_START : IN_Q_START + 3], w[:, IN_Q_END : IN_Q_END + 3],
-                    w[:, IN_SURFACE_Y], w[:, IN_DIG_TYPE].astype(np.int64), a6[rows], T[rows],
-                    self.n_samples,
-                )
-            return ev.violations
-
-        try:
-            viol[...] = evaluate(slice(None))
-        except (PlanningError, ConfigurationError):
-            # A batch evaluate refuses (overflowing coefficients): row by row, refused rows NaN.
-            for b in range(v.shape[0]):
-                try:
-                    viol[b] = evaluate(slice(b, b + 1))[0]
-                except (PlanningError, ConfigurationError):
-                    continue
-        td = viol[..., list(TIME_DEPENDENT)]
-        # T is in range by construction: the margin is for the limits, t_min and t_max may hold
-        # with equality.
-        ok = np.all(td[..., :-2] <= -_REF_MARGIN, axis=-1) & np.all(td[..., -2:] <= 0.0, axis=-1)
-        return ok, np.sum(np.maximum(td, 0.0), axis=-1), td
-
-    def _plan_numpy(
-        self,
-        inputs: FloatArray,
-        out: FloatArray,
-        planned: FloatArray,
-        c_lo: float,
-        c_hi: float,
-        path: FloatArray | None = None,
-        scale: FloatArray | None = None,
-    ) -> None:
-        """The numpy backend of :meth:`plan_into`: real evaluations only (the reference)."""
-        x, o, pl, p, sc = _checked_rows(
-            (inputs, "inputs", (N_IN,), False),
-            (out, "out", (N_OUT,), True),
-            (planned, "planned", (N_RETIMED,), True),
-            (path, "path", (self.n_samples, 2), True),
-            (scale, "scale", (), True),
-        )
-        c_lo, c_hi = _c_range((c_lo, c_hi))
-        ok, _ = _valid_rows(x, finite_k=True)
-        o[~ok] = np.nan
-        o[~ok, COL_TOTAL] = np.inf
-        pl[~ok] = np.nan
-        if p is not None:
-            p[~ok] = np.nan
-        if sc is not None:
-            sc[~ok] = np.nan
-        rows = np.flatnonzero(ok)
-        if rows.size == 0:
-            return
-        v = x[rows]
-        c_star, v_star, grid, g_grid, vol_grid = self._plan_scale_numpy(v, c_lo, c_hi)
-        # The c of each row's plan, tried in turn: c*, then the back-off, then 1.
-        c_final = np.ones(rows.size)
-        todo = np.flatnonzero(np.isfinite(c_star) & (c_star != 1.0))
-        if todo.size:
-            done = self._plan_retime_numpy(v[todo], c_star[todo], rows[todo], o, pl, p)
-            c_final[todo[done]] = c_star[todo[done]]
-            todo = todo[~done]
-        if todo.size:
-            c2 = self._backoff_numpy(
-                v[todo], c_star[todo], v_star[todo], grid[todo], g_grid[todo], vol_grid[todo]
-            )
-            try_c2 = np.isfinite(c2) & (c2 != 1.0)
-            sub = todo[try_c2]
-            if sub.size:
-                done = self._plan_retime_numpy(v[sub], c2[try_c2], rows[sub], o, pl, p)
-                c_final[sub[done]] = c2[try_c2][done]
-        left = np.setdiff1d(np.arange(rows.size), np.flatnonzero(c_final != 1.0))
-        if left.size:
-            self._plan_own_numpy(v[left], rows[left], o, pl, p)
-        if sc is not None:
-            sc[rows] = c_final
-
-    def _plan_own_numpy(
-        self,
-        v: FloatArray,
-        rows: NDArray[np.intp],
-        out: FloatArray,
-        planned: FloatArray,
-        path: FloatArray | None,
-    ) -> None:
-        """Step 4 of :meth:`plan_into` for rows ``v`` into ``out[rows]`` etc.: each row's own
-        path evaluated as it is where a path-only limit fails (no T fixes it; ``planned`` the
-        row's a6 and T), else retimed (all rows are retimed in one batch: the batch's shape
-        rounds the matrix products, and a retimed row must not change with which of its
-        neighbours broke a path limit)."""
-        self._plan_retime_numpy(v, np.ones(v.shape[0]), rows, out, planned, path)
-        res, res_path = self._numpy_rows(v, path is not None)
-        with np.errstate(invalid="ignore"):
-            bad = ~(np.max(res[:, list(_PATH_ONLY)], axis=1) <= 0.0)  # NaN fails too
-        idx = np.flatnonzero(bad)
-        out[rows[idx]] = res[idx]
-        planned[rows[idx], RT_A6 : RT_A6 + 3] = v[idx, IN_A6 : IN_A6 + 3]
-        planned[rows[idx], RT_T_S] = v[idx, IN_T]
-        if path is not None and res_path is not None:
-            path[rows[idx]] = res_path[idx]
-
-    def _plan_retime_numpy(
-        self,
-        v: FloatArray,
-        c: FloatArray,
-        rows: NDArray[np.intp],
-        out: FloatArray,
-        planned: FloatArray,
-        path: FloatArray | None,
-    ) -> NDArray[np.bool_]:
-        """Retime rows ``v`` scaled by ``c`` into ``out[rows]`` etc.; which are feasible."""
-        y = _scaled(v, c)
-        o = np.empty((y.shape[0], N_OUT))
-        pl = np.empty((y.shape[0], N_RETIMED))
-        p = None if path is None else np.empty((y.shape[0], self.n_samples, 2))
-        self._retime_numpy(y, o, pl, p)
-        out[rows] = o
-        planned[rows] = pl
-        if path is not None and p is not None:
-            path[rows] = p
-        return np.asarray(o[:, COL_TOTAL] <= 0.0)
-
-    def _path_g_numpy(self, v: FloatArray, c: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Worst path-only violation plus PLAN_MARGIN (+inf where not finite) and V_p of rows
-        ``v`` scaled by ``c`` ``(B, P)``, by :func:`oneshot.evaluate` at the rows' own T."""
-        T = np.broadcast_to(v[:, IN_T, None], c.shape)
-        a6 = c[..., None] * v[:, None, IN_A6 : IN_A6 + 3]
-        viol, volume = self._grid_numpy(v, a6, T)
-        with np.errstate(invalid="ignore"):
-            g = np.max(viol[..., list(_PATH_ONLY)], axis=-1) + PLAN_MARGIN
-        g = np.where(np.isfinite(g) & np.isfinite(volume), g, np.inf)
-        return g, volume
-
-    def _plan_scale_numpy(
-        self, v: FloatArray, c_lo: float, c_hi: float
-    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-        """c* and V_p there per row (NaN where no grid point holds), and the grid, its g and
-        its V_p ``(B, P)`` (P: _REF_PLAN_GRID points, and c = 1 when in range)."""
-        n = v.shape[0]
-        points = np.linspace(c_lo, c_hi, _REF_PLAN_GRID)
-        if c_lo < 1.0 < c_hi:  # the row's own path among them, as in the kernel's scan
-            points = np.unique(np.append(points, 1.0))
-        grid = np.ascontiguousarray(np.broadcast_to(points, (n, points.size)))
-        g, vol = self._path_g_numpy(v, grid)
-        ok = g <= 0.0
-        vol_ok = np.where(ok, vol, -np.inf)
-        best = np.argmax(vol_ok, axis=1)
-        found = np.any(ok, axis=1)
-        # No bulge: every c is the same path; report the row's own (as the kernel).
-        with np.errstate(all="ignore"):
-            K = -v[:, IN_A6 : IN_A6 + 3] * v[:, IN_T, None] ** 6
-        found &= np.any(K != 0.0, axis=1)
-        r = np.arange(n)
-        c_star = np.where(found, grid[r, best], np.nan)
-        v_star = np.where(found, vol[r, best], np.nan)
-        # The neighbour of larger V_p (it fails: best is the largest that holds).
-        vol_nan = np.where(np.isfinite(vol), vol, -np.inf)
-        left = np.where(best > 0, vol_nan[r, np.maximum(best - 1, 0)], -np.inf)
-        right = np.where(best < grid.shape[1] - 1,
-                         vol_nan[r, np.minimum(best + 1, grid.shape[1] - 1)], -np.inf)
-        v_best = vol_nan[r, best]
-        nb = np.where(right >= left, best + 1, best - 1)
-        refine = found & (np.maximum(left, right) > v_best)
-        idx = np.flatnonzero(refine)
-        if idx.size:
-            c_b, v_b = self._path_boundary_numpy(v[idx], grid[idx, best[idx]], grid[idx, nb[idx]])
-            better = v_b > v_star[idx]
-            c_star[idx[better]] = c_b[better]
-            v_star[idx[better]] = v_b[better]
-        return c_star, v_star, grid, g, vol
-
-    def _path_boundary_numpy(
-        self, v: FloatArray, lo: FloatArray, hi: FloatArray
-    ) -> tuple[FloatArray, FloatArray]:
-        """Multisection of ``[lo, hi]`` per row (lo passes the path constraints, hi fails) to
-        the first failure seen from ``lo``, to _REF_PLAN_RTOL: the passing end and its V_p."""
-        frac = np.arange(1, _REF_SPLIT) / _REF_SPLIT
-        sub = np.arange(v.shape[0])
-        while np.any(np.abs(hi - lo) > _REF_PLAN_RTOL * np.abs(hi)):
-            pts = lo[:, None] + (hi - lo)[:, None] * frac
-            g_p, _ = self._path_g_numpy(v, pts)
-            bad = g_p > 0.0
-            k = np.where(np.any(bad, axis=1), np.argmax(bad, axis=1), frac.size)
-            pts = np.concatenate([lo[:, None], pts, hi[:, None]], axis=1)
-            lo, hi = pts[sub, k], pts[sub, k + 1]
-        _, v_lo = self._path_g_numpy(v, lo[:, None])
-        return lo, v_lo[:, 0]
-
-    def _backoff_numpy(
-        self,
-        v: FloatArray,
-        c_fail: FloatArray,
-        v_fail: FloatArray,
-        grid: FloatArray,
-        g: FloatArray,
-        vol: FloatArray,
-    ) -> FloatArray:
-        """The back-off of :meth:`plan_into` per row (NaN where no start point passes)."""
-        n = v.shape[0]
-        cand = (g <= 0.0) & (vol < v_fail[:, None])
-        has = np.any(cand, axis=1)
-        k1 = np.argmax(np.where(cand, vol, -np.inf), axis=1)
-        k2 = np.argmin(np.where(cand, vol, np.inf), axis=1)
-        # The path boundary beyond k2: towards its neighbour of smaller V if that fails.
-        r = np.arange(n)
-        last = grid.shape[1] - 1
-        vol_nan = np.where(np.isfinite(vol), vol, np.inf)
-        v2 = vol[r, k2]
-        fails = g > 0.0
-        left_ok = (k2 > 0) & fails[r, np.maximum(k2 - 1, 0)] & (
-            vol_nan[r, np.maximum(k2 - 1, 0)] < v2)
-        right_ok = (k2 < last) & fails[r, np.minimum(k2 + 1, last)] & (
-            vol_nan[r, np.minimum(k2 + 1, last)] < v2)
-        nb = np.where(
-            left_ok & (~right_ok | (vol_nan[r, np.maximum(k2 - 1, 0)]
-                                     <= vol_nan[r, np.minimum(k2 + 1, last)])),
-            k2 - 1, k2 + 1,
-        )
-        has_nb = has & (left_ok | right_ok)
-        a = np.full(n, np.nan)
-        b = c_fail.copy()
-        for step in range(3):
-            if step < 2:
-                test = np.flatnonzero(has & np.isnan(a) & ((step == 0) | (k2 != k1)))
-                c = grid[test, (k1 if step == 0 else k2)[test]]
-            else:
-                test = np.flatnonzero(has_nb & np.isnan(a))
-                if test.size == 0:
-                    continue
-                c, _ = self._path_boundary_numpy(
-                    v[test], grid[test, k2[test]], grid[test, nb[test]]
-                )
-            if test.size == 0:
-                continue
-            passed = self._time_found_numpy(v[test], c)
-            a[test[passed]] = c[passed]
-            b[test[~passed]] = c[~passed]
-        # The row's own path replaces the start if it lies between it and c* and passes.
-        one = np.flatnonzero(np.isfinite(a) & (np.minimum(a, b) < 1.0) & (np.maximum(a, b) > 1.0))
-        if one.size:
-            g_1, _ = self._path_g_numpy(v[one], np.ones((one.size, 1)))
-            passed = g_1[:, 0] <= 0.0
-            if np.any(passed):
-                sub = np.flatnonzero(passed)
-                passed[sub] = self._time_found_numpy(v[one[sub]], np.ones(sub.size))
-            a[one[passed]] = 1.0
-            b[one[~passed]] = 1.0
-        start = a.copy()
-        idx = np.flatnonzero(np.isfinite(a))
-        for _ in range(_REF_BACKOFF):
-            if idx.size == 0:
-                break
-            x = 0.5 * (a[idx] + b[idx])
-            g_x, _ = self._path_g_numpy(v[idx], x[:, None])
-            passed = g_x[:, 0] <= 0.0
-            if np.any(passed):
-                sub = np.flatnonzero(passed)
-                passed[sub] = self._time_found_numpy(v[idx[sub]], x[sub])
-            a[idx[passed]] = x[passed]
-            b[idx[~passed]] = x[~passed]
-        return self._backoff_raised_numpy(v, start, a)
-
-    def _backoff_raised_numpy(self, v: FloatArray, start: FloatArray, a: FloatArray) -> FloatArray:
-        """The kernel's exception to the back-off's largest c (:meth:`plan_into`, step 3): where
-        the retimed T at ``a`` lies above its velocity and acceleration bound by more than
-        _REF_RAISED, bisect (_REF_BACKOFF steps) from the back-off's start point for the largest
-        c whose retiming finds a T that does not, and keep the better of the two in
-        lambda1 T_norm - lambda3 V_norm."""
-        out = a.copy()
-        rows = np.flatnonzero(np.isfinite(a) & np.isfinite(start) & (a != start))
-        if rows.size == 0:
-            return out
-        T_a, raised_a, j_a = self._backoff_probe_numpy(v[rows], a[rows])
-        sub = np.flatnonzero(raised_a)
-        if sub.size == 0:
-            return out
-        rows, T_a, j_a = rows[sub], T_a[sub], j_a[sub]
-        _, raised_s, _ = self._backoff_probe_numpy(v[rows], start[rows])
-        keep = ~raised_s  # the start must lie before the kink
-        rows, j_a = rows[keep], j_a[keep]
-        lo, hi = start[rows].copy(), a[rows].copy()
-        j_lo = np.full(rows.size, np.nan)
-        for _ in range(_REF_BACKOFF):
-            if rows.size == 0:
-                break
-            x = 0.5 * (lo + hi)
-            g_x, _ = self._path_g_numpy(v[rows], x[:, None])
-            passed = g_x[:, 0] <= 0.0
-            sub = np.flatnonzero(passed)
-            if sub.size:
-                _, raised_x, j_x = self._backoff_probe_numpy(v[rows[sub]], x[sub])
-                passed[sub] = ~raised_x
-                ok = sub[~raised_x]
-                j_lo[ok] = j_x[~raised_x]
-            lo[passed] = x[passed]
-            hi[~passed] = x[~passed]
-        better = np.isfinite(j_lo) & (j_lo < j_a)
-        out[rows[better]] = lo[better]
-        return out
-
-    def _backoff_probe_numpy(
-        self, v: FloatArray, c: FloatArray
-    ) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
-        """For rows ``v`` scaled by ``c`` whose retiming finds a T (others: T NaN, not raised,
-        objective part +inf): the retimed T, whether it lies above the velocity and
-        acceleration bound by more than _REF_RAISED, and lambda1 T_norm - lambda3 V_norm."""
-        planning = oneshot.require_planning(self.rig)
-        t_min, t_max = planning.t_min_s, planning.t_max_s
-        y, K, T, ok = self._retimed_numpy(v, c)
-        # Peak |qd| scales as 1/T, peak |qdd| as 1/T^2: their bounds from t_min.
-        _, _, td = self._timed_numpy(y, K, np.full((y.shape[0], 1), t_min))
-        with np.errstate(all="ignore"):
-            t_va = np.maximum(
-                t_min,
-                t_min * np.max(np.concatenate(
-                    [td[:, 0, 0:3] + 1.0, np.sqrt(td[:, 0, 3:6] + 1.0)], axis=1), axis=1),
-            )
-            _, vol = self._path_g_numpy(v, c[:, None])
-        lam1, _, lam3 = planning.weights
-        j = lam1 * (T - t_min) / (t_max - t_min) - lam3 * vol[:, 0] / (
-            planning.volume_max_m3 - planning.volume_min_m3)
-        found = ok
-        raised = found & (t_va * (1.0 + _REF_RAISED) < T)
-        return np.where(found, T, np.nan), raised, np.where(found, j, np.inf)
-
-    def _retimed_numpy(
-        self, v: FloatArray, c: FloatArray
-    ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
-        """Rows ``v`` scaled by ``c``, their shape terms K, the numpy retiming's T and whether
-        every time-dependent constraint holds at it."""
-        y = _scaled(v, c)
-        with np.errstate(all="ignore"):
-            K = -y[:, IN_A6 : IN_A6 + 3] * y[:, IN_T, None] ** 6
-        T = self._retime_search(y, K)
-        ok, _, _ = self._timed_numpy(y, K, T[:, None])
-        return y, K, T, np.asarray(ok[:, 0])
-
-    def _time_found_numpy(self, v: FloatArray, c: FloatArray) -> NDArray[np.bool_]:
-        """Whether the numpy retiming of rows ``v`` scaled by ``c`` meets every time-dependent
-        constraint."""
-        return self._retimed_numpy(v, c)[3]
-
-    def _grid_numpy(
-        self, v: FloatArray, a6: FloatArray, T: FloatArray
-    ) -> tuple[FloatArray, FloatArray]:
-        """Violations ``(B, P, 22)`` and V_p ``(B, P)`` of rows ``v`` at ``a6`` ``(B, P, 3)``
-        and ``T`` ``(B, P)``; NaN for a row evaluate refuses."""
-        viol = np.full((*T.shape, N_CONSTRAINTS), np.nan)
-        vol = np.full(T.shape, np.nan)
-
-        def evaluate(rows: slice) -> None:
-            w = v[rows]
-            with np.errstate(all="ignore"):
-                ev = oneshot.evaluate(
-                    self.rig, w[:, IN_Q_START : IN_Q_START + 3], w[:, IN_Q_END : IN_Q_END + 3],
-                    w[:, IN_SURFACE_Y], w[:, IN_DIG_TYPE].astype(np.int64), a6[rows], T[rows],
-                    self.n_samples,
-                )
-            viol[rows] = ev.violations
-            vol[rows] = ev.volume_m3
-
-        try:
-            evaluate(slice(None))
-        except (PlanningError, ConfigurationError):
-            for b in range(v.shape[0]):
-                try:
-                    evaluate(slice(b, b + 1))
-                except (PlanningError, ConfigurationError):
-                    viol[b] = np.nan
-                    vol[b] = np.nan
-        return viol, vol
-
     def _numpy_batch(
         self, v: FloatArray, want_path: bool
     ) -> tuple[FloatArray, FloatArray | None]:
@@ -1345,13 +875,6 @@ class Verifier:
         samples = sextic.evaluate(coeffs, T[:, 0], self.n_samples)
         pose, _ = kinematics.tip_state(self.rig, samples.q_rad, samples.qd_rad_s)
         return rows, pose[..., :2]
-
-
-def _scaled(v: FloatArray, c: ArrayLike) -> FloatArray:
-    """Input rows ``v`` with their bulge scaled by ``c`` (B,): ``a6`` times ``c``, as the kernel."""
-    y = v.copy()
-    y[:, IN_A6 : IN_A6 + 3] *= np.asarray(c, dtype=np.float64)[:, None]
-    return y
 
 
 def _c_range(c_range: tuple[float, float]) -> tuple[float, float]:
@@ -1404,18 +927,14 @@ def _one_row(
     )
 
 
-def _valid_rows(x: FloatArray, *, finite_k: bool) -> tuple[NDArray[np.bool_], FloatArray]:
-    """Rows the kernel accepts (finite, T > 0, dig type 0 or 1) and their ``K = -a6 T^6``
-    (:func:`oneshot.particle_from_a6`); with ``finite_k`` (retiming and plan, which keep the
-    path) a row whose ``K`` overflows is rejected too, as by the kernel."""
+def _valid_rows(x: FloatArray) -> NDArray[np.bool_]:
+    """Rows the kernel accepts: finite, T > 0, dig type 0 or 1."""
     T = x[:, IN_T]
     kind = x[:, IN_DIG_TYPE]
-    ok = np.all(np.isfinite(x), axis=1) & (T > 0.0) & ((kind == 0.0) | (kind == 1.0))
-    with np.errstate(all="ignore"):
-        K = -x[:, IN_A6 : IN_A6 + 3] * T[:, None] ** 6
-    if finite_k:
-        ok &= np.all(np.isfinite(K), axis=1)
-    return ok, K
+    ok: NDArray[np.bool_] = (
+        np.all(np.isfinite(x), axis=1) & (T > 0.0) & ((kind == 0.0) | (kind == 1.0))
+    )
+    return ok
 
 
 def _checked_rows(

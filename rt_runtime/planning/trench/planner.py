@@ -37,7 +37,7 @@ class TrenchPlanner:
         pso_options: Keyword arguments for :func:`rt_runtime.planning.oneshot.solve_pso`.
         max_digs: Safety bound on the number of digs of one task (None: 20 a section).
         geometry: Who computes the screening geometry, the over-dig of sampled paths and the
-            envelopes: ``"c"`` (the verifier's compiled kernel, ``_verify.c``), ``"numpy"``
+            envelopes: ``"c"`` (the verifier's compiled kernel, ``kernel/trench.c``), ``"numpy"``
             (the reference) or ``"auto"`` (C where the verifier runs on C). The plans are the
             same (tests/test_trench.py compares them); C is ~2x faster on a whole plan.
 

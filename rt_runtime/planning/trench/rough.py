@@ -245,7 +245,7 @@ class RoughMixin(DigsMixin):
         H, its over-dig (:meth:`_overdig_many`) and the total and design-inside cut on the
         height field (:meth:`_cut_estimate`), all m or m^2 on the coarse samples.
 
-        The C kernel (``Kernel.screen`` in ``_verify.c``) computes it where the verifier runs
+        The C kernel (``Kernel.screen``, ``kernel/trench.c``) computes it where the verifier runs
         on C (~0.3 ms for ~400 candidates against ~1.7 ms); :meth:`_screen_paths_numpy` is the
         reference and the fallback.
         """

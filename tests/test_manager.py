@@ -74,7 +74,7 @@ def test_a_switch_hold_to_job_to_hold_keeps_the_sync_stream(rig: Rig, pending: A
             lambda record: None,
             10_000,
         )
-        first = job.start(s0, int(master.feedback.sync_count))  # prepared outside the loop
+        first = job.start(s0)  # prepared outside the loop
         back = HoldController(s0, q_hold)
         switched: dict[str, int] = {}
 

@@ -155,6 +155,23 @@ class ExecutorConfig:
                 f"executor max_digs = {self.max_digs}; allowed: None or an integer >= 1"
             )
 
+    def limits(self, rig: Rig) -> JobLimits:
+        """The job controller's monitors and endings on ``rig``."""
+        following = (
+            self.following_error_m
+            if self.following_error_m is not None
+            else 0.8 * rig.drives.following_error_window_m
+        )
+        return JobLimits(
+            following_error_m=following,
+            following_error_cycles=self.following_error_cycles,
+            stale_cycles=self.stale_cycles,
+            stop_timeout_s=self.stop_timeout_s,
+            rest_velocity_m_s=self.rest_velocity_m_s,
+            settle_s=self.settle_s,
+            max_digs=self.max_digs,
+        )
+
 
 
 @dataclass(frozen=True, slots=True)
@@ -271,24 +288,11 @@ class Executor:
                 daemon=True,
             )
             self._cb_thread.start()
-        following = (
-            cfg.following_error_m
-            if cfg.following_error_m is not None
-            else 0.8 * rig.drives.following_error_window_m
-        )
         t_max = rig.planning.t_max_s if rig.planning is not None else 10.0
         self.job = JobController(
             link,
             GuardFilter(self.guard),
-            JobLimits(
-                following_error_m=following,
-                following_error_cycles=cfg.following_error_cycles,
-                stale_cycles=cfg.stale_cycles,
-                stop_timeout_s=cfg.stop_timeout_s,
-                rest_velocity_m_s=cfg.rest_velocity_m_s,
-                settle_s=cfg.settle_s,
-                max_digs=cfg.max_digs,
-            ),
+            cfg.limits(rig),
             rig,
             self.drives.axes,
             self.drives.describe,
@@ -370,7 +374,7 @@ class Executor:
         q0 = actuation.stroke_to_joint(self.rig, s0, check_limits=False)
         job = self.job
         try:
-            first = job.start(s0, int(self.master.feedback.sync_count))
+            first = job.start(s0)
             stats = self.manager.run(job, first, s0, q0)
             if self.config.disable_at_end:
                 drives.disable()

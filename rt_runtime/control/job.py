@@ -425,10 +425,10 @@ class JobController:
 
     # -- outside the loop -----------------------------------------------------------------------
 
-    def start(self, s0_m: FloatArray, sync_count: int) -> Command:
-        """Begin at the commanded stroke ``s0_m`` (the drives stand on it; ``sync_count``
-        SYNCs sent so far): the first plan request, answered in-process here when the link
-        answers in-process; the first command."""
+    def start(self, s0_m: FloatArray) -> Command:
+        """Begin at the commanded stroke ``s0_m`` (the drives stand on it): the first plan
+        request, answered in-process here when the link answers in-process; the first
+        command. Outside the loop (any thread, before the switch to this controller)."""
         s0 = np.asarray(s0_m, dtype=np.float64).copy()
         q0 = actuation.stroke_to_joint(self.rig, s0, check_limits=False)
         self.stream = _Stream(q0, s0)
@@ -437,7 +437,7 @@ class JobController:
         self.planning.link.request_plan(q0.copy())
         self.planning.link.service()
         self._poll()
-        self._next_command(sync_count)
+        self._next_command()
         self.publish()
         return self.command
 
@@ -476,6 +476,8 @@ class JobController:
         if fb.emcys:
             self.emcys.extend(fb.emcys)
         col = self.collector
+        if col.active and col.first < 0:
+            col.first = fb.sync_count  # the SYNC that carried the dig's first sample
         if col.active and fb.fresh and col.n < len(col.buf):
             col.buf[col.n] = fb.stroke_m
             col.n += 1
@@ -501,7 +503,7 @@ class JobController:
                 self._begin_stop(ExecStatus.CANCELLED, "cancelled")
         self._poll()
         self._s_ref[:] = self.guard.position_m
-        self._next_command(fb.sync_count)
+        self._next_command()
         self._updates += 1
         if (self._updates & 63) == 0:
             self.publish(cycles=self._updates)
@@ -515,7 +517,7 @@ class JobController:
             self.state = JobState.ENDED
             return self.command, ControllerStatus.ENDED
         self._begin_stop(ExecStatus.FAULT, text)
-        self._next_command(-1)
+        self._next_command()
         return self.command, ControllerStatus.RUNNING
 
     def _poll(self) -> None:
@@ -523,9 +525,8 @@ class JobController:
         if reply is not None:
             self._handle_reply(reply)
 
-    def _next_command(self, sync_count: int) -> None:
-        """The next sample, a hold, or the stop, into :attr:`command` (``sync_count`` SYNCs
-        sent so far: the command goes with the next)."""
+    def _next_command(self) -> None:
+        """The next sample, a hold, or the stop, into :attr:`command`."""
         cmd = self.command
         stream = self.stream
         assert stream is not None
@@ -538,8 +539,8 @@ class JobController:
             cmd.dig = -1
             cmd.tracking = False
             return
-        if stream.current is None and not self._start_next(sync_count):
-            self._next_command(sync_count)  # the next motion began a stop
+        if stream.current is None and not self._start_next():
+            self._next_command()  # the next motion began a stop
             return
         motion = stream.current
         if motion is None:
@@ -560,7 +561,7 @@ class JobController:
         cmd.tracking = True
         stream.j = j + 1
 
-    def _start_next(self, sync_count: int) -> bool:
+    def _start_next(self) -> bool:
         """At a motion boundary: start the next queued motion; False when that began a stop."""
         stream = self.stream
         assert stream is not None
@@ -590,7 +591,7 @@ class JobController:
             self.planning.digs_started += 1
             col.active = True
             col.n = 0
-            col.first = sync_count + 1
+            col.first = -1  # the SYNC of its first sample, taken at the next update
             col.last = -1
             col.dig = motion.dig_index
         self.publish()

@@ -442,6 +442,7 @@ class FixedRateLoop:
                 info.skipped = skipped
                 info.consecutive_overruns = consecutive
                 info.overruns = overruns
+                tel = self.telemetry  # the step may hand the next rows to another buffer
                 tel.begin(k, start, lateness, overrun)
                 action = step(info)
                 end = clock.now()

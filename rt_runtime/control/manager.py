@@ -138,6 +138,14 @@ class ControllerManager:
         with self._lock:
             self._pending = (controller, first)
 
+    def use_telemetry(self, telemetry: Telemetry) -> None:
+        """Write the rows from the next cycle on into ``telemetry`` (built with
+        :func:`executor_telemetry`; the loop's columns included). On the loop's thread, after
+        the cycle's row: from ``on_cycle`` or ``on_ended``."""
+        self.loop.telemetry = telemetry
+        self._tel = telemetry
+        self._cols = tuple(telemetry.column(c.name) for c in EXECUTOR_COLUMNS)
+
     @property
     def switch_pending(self) -> bool:
         """A :meth:`switch` waits for the next boundary."""

@@ -8,25 +8,23 @@ models have been checked)::
     then holds position every period  ->  sd_notify READY=1  ->  serve requests
 
 Threads: the **main thread** serves the control socket, the signals (through a wake-up pipe)
-and the systemd notifications in one ``selectors`` loop. The **runner thread** owns the bus,
-the master and the fixed-rate loop for the daemon's whole life: between jobs it holds every
-axis at its last commanded stroke at the period (the drives' SYNC watchdog must never starve
-while they are enabled), and it runs each job with the :class:`~rt_runtime.control.executor.
-Executor` (built with ``disable_at_end=False``: the hold takes over). A **preparation thread**
-builds each job's planner session (new, or restored from the job store) and its executor while
-the runner holds; the hold hands over once the drives stand on the held target, so the
-executor's start from the measured pose is no step. The job store writes on its own thread; the
-trace (``paths.trace``) too.
+and the systemd notifications in one ``selectors`` loop. The **runner thread**
+(:class:`~rt_runtime.service.runner.RigRunner`) owns the bus, the master and one controller
+manager on one fixed-rate loop for the daemon's whole life: between jobs the hold controller
+holds every axis at its last commanded stroke at the period (the drives' SYNC watchdog never
+starves while they are enabled), and each job's controller takes over at a cycle boundary once
+a **preparation thread** has built it (its planner session, new or restored from the job
+store, and its planner process) and the drives stand on the held target; the hold takes over
+again at the boundary after the job ends. The job store writes on its own thread; the trace
+(``paths.trace``) too.
 
 Real time (where DESIGN.md leaves the daemon's share open): RT settings (SCHED_FIFO with
 SCHED_RESET_ON_FORK, mlockall, CPU, timer slack) are applied once to the runner thread for its
-life, not per loop run, so no hand-over pays for them. The collector: the heap is frozen after
-start-up, after boot, and when a job is prepared (``gc.freeze`` is O(1)); a job's loop then
-collects nothing at its start and runs with the collector off; the hold loop starts without a
-collect. The price: cyclic garbage made before a freeze is never collected while the daemon
-runs (a restart frees it). The interpreter's switch interval is lowered to 0.2 ms so the loop's
-thread gets the interpreter back quickly from the main and helper threads. Each hand-over
-logs its longest time without a cycle against the drives' SYNC watchdog.
+life. The collector: the heap is frozen after boot and when a job is prepared (``gc.freeze``
+is O(1)), and the collector is off while a job runs. The price: cyclic garbage made before a
+freeze is never collected while the daemon runs (a restart frees it). The interpreter's switch
+interval is lowered to 0.2 ms so the loop's thread gets the interpreter back quickly from the
+main and helper threads.
 
 Signals: SIGTERM / SIGINT (and the ``stop`` request) -> STOPPING=1, the executor's jerk-limited
 stop (``StopRequest.SHUTDOWN``), drives disabled (controlword 0x0000), the job left resumable
@@ -52,7 +50,6 @@ import contextlib
 import dataclasses
 import gc
 import logging
-import math
 import os
 import queue
 import signal
@@ -64,35 +61,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 import can
-import numpy as np
 
-from rt_runtime.canbus import CanMaster, CycleStatus, DriveState
-from rt_runtime.control.clock import Clock, MonotonicClock
-from rt_runtime.control.executor import (
-    DigRecord,
-    ExecStatus,
-    Executor,
-    ExecutorConfig,
-    ExecutorResult,
-    StopRequest,
-    executor_telemetry,
-)
-from rt_runtime.control.loop import (
-    CycleInfo,
-    FixedRateLoop,
-    LoopAction,
-    LoopConfig,
-    OverrunPolicy,
-)
-from rt_runtime.control.rt import RtSettings, apply_rt, restore_rt
-from rt_runtime.control.telemetry import Telemetry
 from rt_runtime.errors import (
     CommunicationError,
     ConfigurationError,
     DriveFault,
-    ExcavatorRtError,
 )
-from rt_runtime.planning.trench import TrenchPlanner, TrenchSession
 from rt_runtime.service.config import (
     PLANNERS,
     DaemonConfig,
@@ -100,8 +74,9 @@ from rt_runtime.service.config import (
     load_planning,
 )
 from rt_runtime.service.control import ControlServer
-from rt_runtime.service.jobstore import ACTIVE, DIG_KEYS, Job, JobError, JobStore
+from rt_runtime.service.jobstore import Job, JobError, JobStore
 from rt_runtime.service.notify import Notifier, watchdog_interval_s
+from rt_runtime.service.runner import STALE_LOOP_S, RigRunner
 
 if TYPE_CHECKING:
     from rt_runtime.planning.trench import TrenchTask
@@ -129,14 +104,6 @@ EXIT_OK = 0
 EXIT_RUNTIME = 1
 EXIT_CONFIG = 2
 EXIT_BUS = 3
-#: The runner's loop must have cycled within this long for WATCHDOG=1 (s).
-STALE_LOOP_S = 0.5
-#: Before a job starts, the drives must stand within this of the held target (um) ...
-SETTLED_UM = 1
-#: ... or this long must have passed (s).
-SETTLE_TIMEOUT_S = 2.0
-#: Telemetry rows of a job's run (the last 32 s at 500 Hz go to the state directory).
-JOB_TELEMETRY_ROWS = 16_384
 #: Main-thread poll interval: status lines, runner liveness (s).
 _POLL_S = 0.1
 
@@ -198,16 +165,6 @@ def resolve_task(spec: Any, rig: Rig) -> tuple[TrenchTask, dict[str, Any]]:
         "start_x_m": task.start_x_m,
     }
     return task, numbers
-
-
-def _task_of(job: Job, rig: Rig) -> TrenchTask:
-    from rt_runtime.planning.trench import make_task
-
-    t = job.task
-    return make_task(
-        rig, t["length_m"], t["depth_m"], t["beta1_deg"], t["beta2_deg"], t["start_x_m"],
-        name=t["name"],
-    )  # fmt: skip
 
 
 # -- the bus and its trace ----------------------------------------------------------------------
@@ -429,471 +386,6 @@ class Runner(Protocol):
     def configure(self, feedforward: bool, stale_cycles: int) -> None:
         """Executor options for the next job (SIGHUP reload)."""
         ...
-
-
-class RigRunner:
-    """The runner thread on a real bus: boot, hold between jobs, jobs through the Executor.
-
-    Args:
-        config: The daemon's configuration (loop, executor options).
-        rig: The rig.
-        planner: The trench planner of ``config.planner`` (models loaded and checked).
-        bus: The bus (traced or not); the runner's master becomes its only reader.
-        store: The job store.
-        clock: Wall clock (``MonotonicClock``).
-
-    Attributes:
-        error: Why the thread ended when it ended on its own (empty otherwise).
-    """
-
-    def __init__(
-        self,
-        config: DaemonConfig,
-        rig: Rig,
-        planner: TrenchPlanner,
-        bus: can.BusABC,
-        store: JobStore,
-        clock: Clock | None = None,
-    ) -> None:
-        self.config = config
-        self.rig = rig
-        self.bus = bus
-        self.store = store
-        self.clock: Clock = clock if clock is not None else MonotonicClock()
-        self.period_s = config.loop.period_s
-        self._planners: dict[str, TrenchPlanner] = {config.planner: planner}
-        self._feedforward = config.feedforward
-        self._stale_cycles = config.stale_cycles
-        self._rt_settings = RtSettings(
-            sched_fifo_priority=config.loop.sched_fifo_priority,
-            lock_memory=config.loop.lock_memory,
-            cpu=config.loop.cpu,
-            timer_slack_ns=1,
-            freeze_gc=False,
-        )
-        # The thread keeps its RT settings for life. A job's loop freezes the collector (its
-        # collect finds nothing: the preparation froze the heap); the hold loop starts without a
-        # collect, so the hand-over after a job costs no collection pause.
-        overrun = OverrunPolicy(max_consecutive=config.loop.max_consecutive_overruns)
-        spin_s = min(2e-4, 0.25 * self.period_s)
-        self._loop_config = LoopConfig(
-            period_s=self.period_s,
-            spin_s=spin_s,
-            rt=RtSettings(None, False, None, None, True),
-            overrun=overrun,
-        )
-        hold_config = LoopConfig(
-            period_s=self.period_s,
-            spin_s=spin_s,
-            rt=RtSettings(None, False, None, None, False),
-            overrun=overrun,
-        )
-        self.error = ""
-        #: SYNCs the master had sent when the drives were enabled (boot and enable's own).
-        self.enable_syncs = 0
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._ready = threading.Event()
-        self._start_error: BaseException | None = None
-        self._stop = False
-        self._executor: Executor | None = None
-        self._job_id: int | None = None
-        self._beat_s = -math.inf
-        self._gap_s = -1.0  # the last hand-over's time without a cycle (s)
-        self._fault = ""
-        self._state = "starting"
-        self._master: CanMaster | None = None
-        self._hold_um = np.zeros(3, np.int32)
-        self._zero_um = np.zeros(3, np.int32)
-        self._prep_thread: threading.Thread | None = None
-        self._prepared: tuple[Job, Executor] | None = None
-        # One hold loop for the daemon's life (no allocation between jobs).
-        self._hold_loop = FixedRateLoop(self.clock, hold_config, Telemetry(1024))
-
-    # -- the service's side -------------------------------------------------------------------
-
-    def start(self) -> None:
-        """See :meth:`Runner.start`."""
-        self._thread = threading.Thread(target=self._main, name="runner", daemon=True)
-        self._thread.start()
-        timeout_s = 4.0 * self.config.bus.boot_timeout_s + 30.0
-        if not self._ready.wait(timeout_s):
-            raise CommunicationError(f"the drives did not boot and enable within {timeout_s} s")
-        if self._start_error is not None:
-            raise self._start_error
-
-    def shutdown(self, timeout_s: float) -> bool:
-        """See :meth:`Runner.shutdown`."""
-        with self._lock:
-            self._stop = True
-            ex = self._executor
-        if ex is not None:
-            ex.request_stop(StopRequest.SHUTDOWN)
-        if self._thread is None:
-            return True
-        self._thread.join(timeout_s)
-        return not self._thread.is_alive()
-
-    def alive(self) -> bool:
-        """See :meth:`Runner.alive`."""
-        return self._thread is not None and self._thread.is_alive()
-
-    def health(self) -> tuple[bool, str]:
-        """See :meth:`Runner.health`."""
-        if self._fault:
-            return False, f"fault latched: {self._fault}"
-        age = self.clock.now() - self._beat_s
-        if age > STALE_LOOP_S:
-            return False, f"the loop has not cycled for {age:.3f} s"
-        return True, ""
-
-    def state(self) -> str:
-        """See :meth:`Runner.state`."""
-        return f"fault: {self._fault}" if self._fault else self._state
-
-    def current_job(self) -> int | None:
-        """See :meth:`Runner.current_job`."""
-        return self._job_id
-
-    def progress(self) -> dict[str, Any] | None:
-        """See :meth:`Runner.progress`."""
-        ex = self._executor
-        return None if ex is None else dict(ex.progress())
-
-    def pause(self) -> None:
-        """See :meth:`Runner.pause` (a job still being prepared: its store status decides)."""
-        with self._lock:
-            if self._executor is not None:
-                self._executor.pause()
-
-    def resume(self) -> None:
-        """See :meth:`Runner.resume`."""
-        with self._lock:
-            if self._executor is not None:
-                self._executor.resume()
-
-    def cancel(self) -> None:
-        """See :meth:`Runner.cancel` (a job still being prepared is cancelled in the store and
-        never starts)."""
-        with self._lock:
-            ex, job_id = self._executor, self._job_id
-        if ex is not None:
-            ex.request_stop(StopRequest.CANCEL)
-        elif job_id is not None:
-            with contextlib.suppress(JobError):
-                self.store.cancel(job_id)
-
-    def configure(self, feedforward: bool, stale_cycles: int) -> None:
-        """See :meth:`Runner.configure`."""
-        self._feedforward = feedforward
-        self._stale_cycles = stale_cycles
-
-    # -- the thread ---------------------------------------------------------------------------
-
-    def _main(self) -> None:
-        report = apply_rt(self._rt_settings)
-        for item in report.refused:
-            log.warning("RT setting %s refused: %s", item.item, item.reason)
-        _reset_rt_on_fork()
-        try:
-            try:
-                self._state = "booting the drives"
-                master = CanMaster(self.bus, self.rig, period_s=self.period_s)
-                timeout_s = self.config.bus.boot_timeout_s
-                infos = master.boot(self.clock.now, timeout_s)
-                log.info(
-                    "drives booted: %s",
-                    ", ".join(f"{i.axis} node {i.node_id} {i.device_name!r}" for i in infos),
-                )
-                # Keep what boot built out of later collections: the hold loop's collect, right
-                # after enable, must be short (the drives' SYNC watchdog runs from enable on).
-                gc.collect()
-                gc.freeze()
-                master.enable(self.clock.now, timeout_s)
-                self._master = master
-                np.copyto(self._hold_um, master.last_target_um())
-                self.enable_syncs = master.feedback.sync_count
-                self._state = self._idle_state()
-            except BaseException as exc:
-                self._start_error = exc
-                return
-            finally:
-                self._ready.set()
-            self._serve(master)
-        except Exception as exc:
-            self.error = f"runner failed: {type(exc).__name__}: {exc}"
-            log.exception("runner failed")
-            with contextlib.suppress(Exception):
-                if self._master is not None:
-                    self._master.quick_stop()
-        finally:
-            restore_rt(report)
-
-    def _serve(self, master: CanMaster) -> None:
-        while True:
-            self._hold(master)
-            if self._stop:
-                break
-            prepared, self._prepared = self._prepared, None
-            if prepared is None:
-                continue
-            job, executor = prepared
-            if self.store.get(job.id).status not in ACTIVE or self._fault:
-                self._job_id = None
-                continue
-            self._run_job(master, job, executor)
-        self._state = "stopping: disabling the drives"
-        master.disable()
-        self._settle(master)
-        self._state = "stopped"
-
-    def _beat(self, _sync: int, now_s: float) -> None:
-        if self._gap_s < 0.0:
-            self._gap_s = now_s - self._beat_s
-        self._beat_s = now_s
-
-    def _hold(self, master: CanMaster) -> None:
-        """Hold at the last commanded stroke at the period until a job is prepared or the
-        runner stops; start the preparation of the next job when the store changed."""
-        clock = self.clock
-        read_timeout_s = 0.5 * self.period_s
-        hold_um, zero = self._hold_um, self._zero_um
-        changed = self.store.changed
-        changed.set()  # look for work once on entry
-        settle_until = [clock.now() + SETTLE_TIMEOUT_S]
-
-        def step(info: CycleInfo) -> LoopAction:
-            if info.count == 0:
-                self._gap_s = info.start_s - self._beat_s
-            master.write_setpoints(hold_um, zero)
-            fb = master.read_feedback(clock.now(), read_timeout_s)
-            master.heartbeat(clock.now())
-            self._beat_s = info.start_s
-            if not self._fault and fb.status >= CycleStatus.EMCY:
-                # The executor switched the master's own reaction off; stop every drive here.
-                self._fault = f"while holding: {fb.status.name}"
-                master.quick_stop()
-            if self._stop:
-                return LoopAction.STOP
-            if self._prepared is not None:
-                # The executor starts from the measured pose: hand over once the drives stand
-                # on the held target, so its first setpoint is no step from this one.
-                settled = not fb.stale.any() and bool(
-                    (np.abs(fb.position_um - hold_um) <= SETTLED_UM).all()
-                )
-                if settled or info.start_s >= settle_until[0]:
-                    if not settled:
-                        log.warning(
-                            "job start: drives %s um off the held target after %.1f s",
-                            (fb.position_um - hold_um).tolist(),
-                            SETTLE_TIMEOUT_S,
-                        )
-                    return LoopAction.STOP
-            else:
-                settle_until[0] = info.start_s + SETTLE_TIMEOUT_S
-            prep = self._prep_thread
-            if changed.is_set() and not self._fault and (prep is None or not prep.is_alive()):
-                changed.clear()
-                self._start_preparation()
-            return LoopAction.CONTINUE
-
-        if not self._job_id:
-            self._state = self._idle_state()
-        self._hold_loop.run(step)
-        self._log_gap("-> hold", self._gap_s)
-
-    def _idle_state(self) -> str:
-        queued = sum(1 for j in self.store.jobs() if j.status in ACTIVE)
-        return f"idle, holding position; {queued} job(s) waiting"
-
-    def _start_preparation(self) -> None:
-        job = self.store.next_runnable()
-        if job is None:
-            self._state = self._idle_state()
-            return
-        self._job_id = job.id
-        self._state = f"preparing job {job.id}"
-        self._prep_thread = threading.Thread(
-            target=self._prepare, args=(job,), name="prepare", daemon=True
-        )
-        self._prep_thread.start()
-
-    def _planner(self, name: str) -> TrenchPlanner:
-        if name not in self._planners:
-            self._planners[name] = TrenchPlanner(self.rig, name, model_dir=self.config.models_dir)
-        return self._planners[name]
-
-    def _prepare(self, job: Job) -> None:
-        """Off the loop's thread: the job's session (new, or restored at the next undone dig)
-        and its executor, so the hold hands over to the executor within one period."""
-        done = len(job.digs)
-        if job.max_digs is not None and done >= job.max_digs:
-            self.store.set_status(job.id, "done")
-            self._job_id = None
-            return
-        try:
-            planner = self._planner(job.planner)
-            task = _task_of(job, self.rig)
-            if job.session_state is None:
-                session = planner.start(task)
-            else:
-                session = TrenchSession.restore(planner, task, job.session_state)
-            loop = FixedRateLoop(
-                self.clock, self._loop_config, executor_telemetry(JOB_TELEMETRY_ROWS)
-            )
-            executor = Executor(
-                self._master_or_fail(),
-                self.rig,
-                loop,
-                session,
-                ExecutorConfig(
-                    feedforward=self._feedforward,
-                    max_digs=None if job.max_digs is None else job.max_digs - done,
-                    stale_cycles=self._stale_cycles,
-                    disable_at_end=False,  # the runner holds between jobs
-                ),
-                on_dig_done=lambda rec: self._dig_done(job.id, rec),
-                on_cycle=self._beat,
-            )
-        except (ExcavatorRtError, KeyError, TypeError, ValueError) as exc:
-            log.error("job %d cannot start: %s", job.id, exc)
-            self.store.set_status(job.id, "failed", f"cannot start: {exc}")
-            self._job_id = None
-            return
-        # Everything alive now (the session, the executor) moves out of the collector's reach, so
-        # the job loop's collect at its start scans nothing: O(1) here, no pause there. Cyclic
-        # garbage made before this point is never collected (see the module docstring).
-        gc.freeze()
-        self._prepared = (job, executor)
-
-    def _master_or_fail(self) -> CanMaster:
-        if self._master is None:
-            raise CommunicationError("the drives are not enabled")
-        return self._master
-
-    def _dig_done(self, job_id: int, rec: DigRecord) -> None:
-        """``on_dig_done``: the dig's summary and the session state into the store (no I/O)."""
-        self.store.record_dig(job_id, {k: getattr(rec, k) for k in DIG_KEYS}, rec.session_state)
-        log.info(
-            "job %d: dig %d done (%s, planned %.2f L, measured %.2f L)",
-            job_id,
-            rec.index,
-            rec.dig_type,
-            rec.planned_volume_m3 * 1e3,
-            rec.measured_volume_m3 * 1e3,
-        )
-
-    def _run_job(self, master: CanMaster, job: Job, ex: Executor) -> None:
-        with self._lock:
-            self._executor = ex
-            self._job_id = job.id
-            if self._stop:
-                ex.request_stop(StopRequest.SHUTDOWN)
-            if self.store.mark_running(job.id).status == "paused":
-                ex.pause()  # paused while it was being prepared: it holds at the start
-        self._state = f"running job {job.id}"
-        log.info(
-            "job %d: running (task %s, %d dig(s) done)", job.id, job.task["name"], len(job.digs)
-        )
-        self._gap_s = -1.0  # set by the executor's first cycle (_beat)
-        result: ExecutorResult | None = None  # None: the executor raised
-        try:
-            result = ex.run()
-        except Exception as exc:
-            log.exception("job %d: the executor failed", job.id)
-            master.quick_stop()
-            self._fault = f"executor failed: {type(exc).__name__}: {exc}"
-        # Straight back to holding: only what the next cycles need happens here; the reports
-        # (logs, telemetry file) go to a thread.
-        np.copyto(self._hold_um, master.last_target_um())
-        if result is None:
-            self.store.set_status(job.id, "failed", self._fault)
-        else:
-            self._record_outcome(job, result)
-        with self._lock:
-            self._executor, self._job_id = None, None
-        if result is None:
-            return
-        threading.Thread(
-            target=self._report_run, args=(job, result, self._gap_s), name="job-report",
-            daemon=True,
-        ).start()  # fmt: skip
-
-    def _log_gap(self, what: str, gap_s: float) -> None:
-        """Log a hand-over's longest time without a cycle (the drives' SYNC watchdog's view)."""
-        if gap_s < 0.0 or not math.isfinite(gap_s):
-            return
-        limit_s = self.rig.drives.sync_timeout_s
-        level = logging.WARNING if gap_s > 0.5 * limit_s else logging.INFO
-        log.log(level, "hand-over %s: %.1f ms between cycles (SYNC watchdog %.0f ms)", what,
-                gap_s * 1e3, limit_s * 1e3)  # fmt: skip
-
-    def _record_outcome(self, job: Job, result: ExecutorResult) -> None:
-        """The job's status from the run's (the store in memory; its writer thread persists)."""
-        st = result.status
-        if st is ExecStatus.DONE:
-            self.store.set_status(job.id, "done")
-        elif st is ExecStatus.CANCELLED:
-            self.store.set_status(job.id, "cancelled", "cancelled by request")
-        elif st is ExecStatus.STOPPED:
-            # Shut down mid-job: resumable at the next undone dig after the restart.
-            paused = self.store.get(job.id).status == "paused"
-            self.store.set_status(job.id, "paused" if paused else "queued")
-        else:
-            fault = f"{st.name.lower()}: {result.fault or 'no detail'}"
-            self.store.set_status(job.id, "failed", fault)
-            if st is not ExecStatus.PLANNING_ERROR:
-                self._fault = f"job {job.id}: {fault}"
-
-    def _report_run(self, job: Job, result: ExecutorResult, gap_s: float) -> None:
-        """Off the loop's thread: log the run, write its telemetry to the state directory."""
-        self._log_gap(f"hold -> job {job.id}", gap_s)
-        log.info(
-            "job %d: %s after %d dig(s) this run, %d overrun(s), max lateness %.0f us%s",
-            job.id,
-            result.status.name.lower(),
-            len(result.digs),
-            result.overruns,
-            result.loop.max_lateness_s * 1e6,
-            f"; {result.fault}" if result.fault else "",
-        )
-        path = self.config.paths.state_dir / "telemetry" / f"job-{job.id}.npz"
-        try:
-            path.parent.mkdir(mode=0o700, exist_ok=True)
-            savez: Any = np.savez  # numpy's stubs read ** as its allow_pickle flag
-            savez(path, **result.telemetry)
-        except OSError as exc:
-            log.warning("telemetry %s not written: %s", path, exc)
-
-    def _settle(self, master: CanMaster, timeout_s: float = 0.5) -> None:
-        """Keep cycling (hold, SYNC) until no drive reports OPERATION_ENABLED or time is up."""
-        end = self.clock.now() + timeout_s
-        next_s = self.clock.now()
-        while self.clock.now() < end:
-            self.clock.sleep_until(next_s)
-            next_s += self.period_s
-            master.write_setpoints(self._hold_um, self._zero_um)
-            fb = master.read_feedback(self.clock.now(), 0.5 * self.period_s)
-            master.heartbeat(self.clock.now())
-            if not (fb.state == int(DriveState.OPERATION_ENABLED)).any():
-                break
-
-
-def _reset_rt_on_fork() -> None:
-    """Keep SCHED_FIFO from passing to processes this thread starts.
-
-    The executor starts its planner process from the loop's thread; a child inherits the
-    scheduling policy, and a planner importing numpy and onnxruntime at SCHED_FIFO starves
-    everything else on the CPU (the drives' answers too) until it lowers itself.
-    SCHED_RESET_ON_FORK makes every child start as SCHED_OTHER.
-    """
-    try:
-        policy = os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK
-        if policy == os.SCHED_FIFO:
-            param = os.sched_getparam(0)
-            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, param)
-    except OSError as exc:
-        log.warning("SCHED_RESET_ON_FORK refused: %s", exc)
 
 
 # -- the service --------------------------------------------------------------------------------

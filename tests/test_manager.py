@@ -5,6 +5,7 @@ runs in the loop's idle hook, between cycles)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -187,3 +188,42 @@ def test_a_controller_that_raises_ends_in_the_guards_stop(rig: Rig, pending: Any
     assert "controller error: RuntimeError('a bug')" in result.fault
     assert ex.guard.at_rest
     assert (result.telemetry["phase"][-10:] == Phase.STOP).all()
+
+
+class _Reached(Exception):
+    """Raised at the first cyclic RPDO1 to end the run there."""
+
+
+def test_the_demo_reaches_its_first_cyclic_rpdo1_in_few_calls(
+    tmp_path: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``excavator-rt demo`` to the first RPDO1 the loop sends: at most 12 calls of the
+    project's code across at most 8 modules (the data flow of DESIGN.md, visible)."""
+    import traceback
+
+    from rt_runtime.canbus import master as master_module
+    from rt_runtime.cli import main
+
+    original = master_module.CanMaster._tx
+    chains: list[list[traceback.FrameSummary]] = []
+
+    def spy(self: Any, msg: Any) -> None:
+        if 0x201 <= msg.arbitration_id <= 0x27F:
+            stack = traceback.extract_stack()
+            if any(f.name == "write_setpoints" for f in stack):
+                chains.append(stack)
+                raise _Reached
+        original(self, msg)
+
+    monkeypatch.setattr(master_module.CanMaster, "_tx", spy)
+    with pytest.raises(_Reached):
+        main(["demo", "--out", str(tmp_path), "--no-plots", "--max-digs", "1"])
+    stack = chains[0]
+    root = Path(__file__).resolve().parents[1]
+    own = [f for f in stack if Path(f.filename).resolve().is_relative_to(root)]
+    own = [f for f in own if "/tests/" not in f.filename and "site-packages" not in f.filename]
+    start = next(i for i, f in enumerate(own) if f.filename.endswith("cli.py") and f.name == "main")
+    chain = own[start:]
+    described = [f"{Path(f.filename).name}:{f.name}" for f in chain]
+    assert len(chain) <= 12, described
+    assert len({f.filename for f in chain}) <= 8, described

@@ -188,7 +188,7 @@ def bench_pinn(
         verification alone), ``pso_solve_s`` (p50, p99),
         ``speedup_vs_pso``, ``table4`` (per type: PSO vs PINN mean T, V_p, W_E and planning time),
         ``paths`` (problems per path of :class:`rt_runtime.planning.pinn.PlanStatus`: ``retimed``,
-        ``raw``, ``time-scaled``, ``repaired-fast``, ``refined``, ``teacher``, ``library`` and
+        ``raw``, ``time_scaled``, ``repaired_fast``, ``refined``, ``teacher``, ``library`` and
         ``refused``;
         counts, not fractions), ``types`` (the same per type), ``goals``, ``paper``.
     """
@@ -216,8 +216,8 @@ def bench_pinn(
     path_names = {
         PlanStatus.RETIMED: "retimed",
         PlanStatus.RAW: "raw",
-        PlanStatus.TIME_SCALED: "time-scaled",
-        PlanStatus.REPAIRED: "repaired-fast",
+        PlanStatus.TIME_SCALED: "time_scaled",
+        PlanStatus.REPAIRED: "repaired_fast",
         PlanStatus.REFINED: "refined",
         PlanStatus.TEACHER: "teacher",
         PlanStatus.LIBRARY: "library",
@@ -330,8 +330,8 @@ def bench_pinn(
             "raw_gap_mean": float(np.mean(raw_gap)),
             "raw_feasible": float(np.mean(ev.feasible[:, 0])),
             "plan_raw": paths["raw"] / n,
-            "time_scaled": paths["time-scaled"] / n,
-            "repaired_fast": paths["repaired-fast"] / n,
+            "time_scaled": paths["time_scaled"] / n,
+            "repaired_fast": paths["repaired_fast"] / n,
             "refined": paths["refined"] / n,
             "refused": len(refused) / n,
             "paths": paths,

@@ -30,6 +30,7 @@ from rt_runtime.planning.trench import (
     GRID_STEP_M,
     PlannedDig,
     Transition,
+    TransitionKind,
     TrenchPlanner,
     TrenchSession,
     joint_move,
@@ -102,7 +103,7 @@ def _penetration(move: Transition, material: Any) -> float:
     """The move's depth in ``material`` beyond the enter's allowance (m)."""
     pts = _bucket(_poses(move), move.machine_x_m)
     d = _depth(material, pts)
-    if move.kind == "enter":
+    if move.kind.label == "enter":
         d = d - d[-1]
     return max(0.0, float(d.max()))
 
@@ -117,7 +118,8 @@ def _check_moves(
     if exit_from is not None:
         carried = _carried(material, exit_from, moves[0].machine_x_m)
     for i, m in enumerate(moves):
-        mat = carried if carried is not None and (m.kind == "lift_out" or i == 0) else material
+        lifting = m.kind is TransitionKind.LIFT_OUT or i == 0
+        mat = carried if carried is not None and lifting else material
         p = _penetration(m, mat)
         assert p <= LIMIT_M, (m.kind, i, p)
         assert abs(p - m.penetration_m) <= AGREE_M, (m.kind, i, p, m.penetration_m)
@@ -127,7 +129,7 @@ def _check_moves(
 
 def _assert_straight_up(moves: tuple[Transition, ...] | list[Transition]) -> None:
     for m in moves:
-        if m.kind != "lift_out":
+        if m.kind.label != "lift_out":
             continue
         a = kinematics.forward(RIG, np.asarray(m.q_from_rad))
         b = kinematics.forward(RIG, np.asarray(m.q_to_rad))
@@ -148,13 +150,13 @@ def test_every_move_of_a_plan_keeps_the_bucket_out_of_the_material(
         if dig is None:
             break
         new = [t for t in s.steps[n0:] if isinstance(t, Transition)]
-        kinds.extend(t.kind for t in new)
-        exit_moves = [t for t in new if t.kind in ("lift_out", "dump")]
-        entry_moves = [t for t in new if t.kind in ("approach", "enter")]
+        kinds.extend(t.kind.label for t in new)
+        exit_moves = [t for t in new if t.kind.label in ("lift_out", "dump")]
+        entry_moves = [t for t in new if t.kind.label in ("approach", "enter")]
         assert new == exit_moves + entry_moves
-        assert [t.kind for t in entry_moves] == ["approach", "enter"]
+        assert [t.kind.label for t in entry_moves] == ["approach", "enter"]
         if s.digs:  # the moves out of the previous dig, on the material it left
-            assert exit_moves and exit_moves[-1].kind == "dump"
+            assert exit_moves and exit_moves[-1].kind.label == "dump"
             assert exit_moves[0].q_from_rad == s.digs[-1].problem.q_end_rad
             _assert_straight_up(exit_moves)
             worst = max(worst, *_check_moves(exit_moves, s.material, s.q_now))
@@ -196,7 +198,7 @@ def test_exit_from_a_pose_inside_the_material_lifts_straight_up_and_is_clear(
             continue
         case = (round(x, 4), round(depth, 4), round(math.degrees(att), 1))
         moves = s.exit_transitions(q)
-        assert [m.kind for m in moves[:-1]] == ["lift_out"] * (len(moves) - 1), case
+        assert [m.kind.label for m in moves[:-1]] == ["lift_out"] * (len(moves) - 1), case
         assert moves[0].q_from_rad == pytest.approx(q, abs=0.0)
         assert np.allclose(moves[-1].q_to_rad, dump, atol=0.0), case
         _assert_straight_up(moves)
@@ -210,14 +212,14 @@ def test_exit_moves_planned_before_the_dig_are_clear_of_what_it_leaves(
     # As the executor gets them: the planner side plans a dig's exit before the dig runs.
     s = _partly_dug(planner)
     plan = SessionDriver(s).plan()
-    assert plan.dig is not None and plan.exit and plan.exit[-1].kind == "dump"
+    assert plan.dig is not None and plan.exit and plan.exit[-1].kind.label == "dump"
     s.record(plan.dig, plan.dig.tip_path_m)
     _check_moves(plan.exit, s.material, plan.dig.problem.q_end_rad)
     # The session puts the same moves before the next dig (the open loop cut as planned).
     n0 = len(s.steps)
     s.next_dig()
     after = [m for m in s.steps[n0:] if isinstance(m, Transition)]
-    assert tuple(m for m in after if m.kind in ("lift_out", "dump")) == plan.exit
+    assert tuple(m for m in after if m.kind.label in ("lift_out", "dump")) == plan.exit
 
 
 def test_lead_in_from_a_measured_pose_in_the_material_lifts_out_first(
@@ -229,7 +231,7 @@ def test_lead_in_from_a_measured_pose_in_the_material_lifts_out_first(
     q_in = planner.arm.ik(x, y - 0.03, att)  # stopped 3 cm deeper than the exit
     assert q_in is not None
     plan = SessionDriver(s).plan(np.asarray(q_in))
-    assert plan.lead_in and plan.lead_in[0].kind == "lift_out"
+    assert plan.lead_in and plan.lead_in[0].kind.label == "lift_out"
     _check_moves(plan.lead_in, s.material, q_in)
 
 

@@ -428,7 +428,7 @@ def test_every_dig_satisfies_every_hard_limit_at_every_sample(plans: dict, name:
 def test_transitions_are_within_the_joint_limits(plans: dict) -> None:
     plan = plans["A"]
     moves = [s for s in plan.steps if isinstance(s, Transition)]
-    assert {m.kind for m in moves} == {"lift_out", "dump", "approach", "enter"}
+    assert {m.kind.label for m in moves} == {"lift_out", "dump", "approach", "enter"}
     for m in moves[:8]:
         traj = m.trajectory(RIG)
         for t in np.linspace(0.0, traj.duration, 50):

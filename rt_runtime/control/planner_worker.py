@@ -73,6 +73,7 @@ from rt_runtime.errors import ConfigurationError, ExcavatorRtError, PlanningErro
 from rt_runtime.planning.trench import (
     PlannedDig,
     Transition,
+    TransitionKind,
     TravelMove,
     TrenchPlanner,
     TrenchSession,
@@ -431,9 +432,8 @@ class SessionDriver:
                 break
             tail.append(step)
         tail.reverse()
-        entry = tuple(
-            t for t in tail if isinstance(t, Transition) and t.kind in ("approach", "enter")
-        )
+        entering = (TransitionKind.APPROACH, TransitionKind.ENTER)
+        entry = tuple(t for t in tail if isinstance(t, Transition) and t.kind in entering)
         travel = tuple(t for t in tail if isinstance(t, TravelMove))
         exit_moves: tuple[Transition, ...] = ()
         if dig is not None:

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rt_runtime import actuation
-from rt_runtime.planning.trench import joint_move
+from rt_runtime.planning.trench import TransitionKind, joint_move
 from rt_runtime.rig import Rig
 
 __all__ = [
@@ -72,10 +72,10 @@ class Phase(IntEnum):
 
 #: The phase of a trench transition's ``kind``.
 KIND_PHASE = {
-    "lift_out": Phase.LIFT_OUT,
-    "dump": Phase.DUMP,
-    "approach": Phase.APPROACH,
-    "enter": Phase.ENTER,
+    TransitionKind.LIFT_OUT: Phase.LIFT_OUT,
+    TransitionKind.DUMP: Phase.DUMP,
+    TransitionKind.APPROACH: Phase.APPROACH,
+    TransitionKind.ENTER: Phase.ENTER,
 }
 
 

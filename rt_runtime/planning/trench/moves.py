@@ -21,7 +21,7 @@ from rt_runtime.planning.trench.geometry import (
     _range_max,
 )
 from rt_runtime.planning.trench.material import MaterialMixin
-from rt_runtime.planning.trench.plan import PlannedDig, Transition
+from rt_runtime.planning.trench.plan import PlannedDig, Transition, TransitionKind
 from rt_runtime.planning.trench.state import _stage
 
 # Transition poses (scale model, m / deg), assumed: Yao gives none. The bucket dumps at
@@ -204,7 +204,9 @@ class MovesMixin(MaterialMixin):
                     continue
                 moves.extend(lift)
                 q_top = np.asarray(lift[-1].q_to_rad)
-            moves.append(self._checked("dump", q_top, dump, surface if moves else carry))
+            moves.append(
+                self._checked(TransitionKind.DUMP, q_top, dump, surface if moves else carry)
+            )
             bad = [m for m in moves if m.penetration_m > TRANSITION_PENETRATION_M]
             if bad:
                 refused.append(max(bad, key=lambda m: m.penetration_m))
@@ -250,7 +252,8 @@ class MovesMixin(MaterialMixin):
                         return first
                 poses.append(np.asarray(q, dtype=np.float64))
             moves = tuple(
-                self._checked("lift_out", a, b, carry) for a, b in itertools.pairwise(poses)
+                self._checked(TransitionKind.LIFT_OUT, a, b, carry)
+                for a, b in itertools.pairwise(poses)
             )
             if first is None:
                 first = moves
@@ -279,11 +282,11 @@ class MovesMixin(MaterialMixin):
                 bx, by = mover.bucket_xy(q_above)
                 if np.any(by < np.interp(bx + self.machine_x, self.grid, surface) + clear):
                     continue
-                enter = self._checked("enter", q_above, q_entry, surface, allow)
+                enter = self._checked(TransitionKind.ENTER, q_above, q_entry, surface, allow)
                 if enter.penetration_m > TRANSITION_PENETRATION_M:
                     refused.append(enter)
                     continue
-                approach = self._checked("approach", q_from, q_above, surface)
+                approach = self._checked(TransitionKind.APPROACH, q_from, q_above, surface)
                 if approach.penetration_m > TRANSITION_PENETRATION_M:
                     refused.append(approach)
                     continue
@@ -304,13 +307,13 @@ class MovesMixin(MaterialMixin):
         if m.penetration_m >= _DEPTH_CAP_M:
             depth = f"{_DEPTH_CAP_M * 1e3:.0f} mm or more"
         return (
-            f"no clear {what} moves at {where}: the {m.kind} move goes {depth} into the "
+            f"no clear {what} moves at {where}: the {m.kind.label} move goes {depth} into the "
             f"material at best (limit {TRANSITION_PENETRATION_M * 1e3:.0f} mm)"
         )
 
     def _checked(
         self,
-        kind: str,
+        kind: TransitionKind,
         qa: FloatArray,
         qb: FloatArray,
         surface: FloatArray,

@@ -11,7 +11,7 @@ from shapely.errors import GEOSException
 
 from rt_runtime.errors import ConfigurationError
 from rt_runtime.planning.oneshot import DigType, Problem
-from rt_runtime.planning.trench.plan import PlannedDig, Transition, TravelMove
+from rt_runtime.planning.trench.plan import PlannedDig, Transition, TransitionKind, TravelMove
 from rt_runtime.planning.trench.sections import SectionsMixin
 from rt_runtime.planning.trench.state import Stage
 
@@ -56,7 +56,7 @@ def _step_to_json(step: PlannedDig | Transition | TravelMove) -> dict[str, Any]:
     if isinstance(step, Transition):
         return {
             "type": "transition",
-            "kind": step.kind,
+            "kind": step.kind.label,
             "q_from_rad": list(step.q_from_rad),
             "q_to_rad": list(step.q_to_rad),
             "duration_s": step.duration_s,
@@ -111,7 +111,7 @@ def _step_from_json(item: dict[str, Any]) -> PlannedDig | Transition | TravelMov
         )
     if kind == "transition":
         return Transition(
-            kind=str(item["kind"]),
+            kind=TransitionKind.parse(item["kind"]),
             q_from_rad=_triple(item["q_from_rad"]),
             q_to_rad=_triple(item["q_to_rad"]),
             duration_s=float(item["duration_s"]),

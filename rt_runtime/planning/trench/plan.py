@@ -89,13 +89,40 @@ class PlannedDig:
         )
 
 
+class TransitionKind(IntEnum):
+    """The part of a dig cycle a transition belongs to (JSON: the lower-case name)."""
+
+    LIFT_OUT = 0
+    DUMP = 1
+    APPROACH = 2
+    ENTER = 3
+
+    @property
+    def label(self) -> str:
+        """The JSON spelling: ``lift_out``, ``dump``, ``approach``, ``enter``."""
+        return self.name.lower()
+
+    @classmethod
+    def parse(cls, text: str) -> TransitionKind:
+        """The kind spelt ``text``.
+
+        Raises:
+            ValueError: Not a kind (names the allowed ones).
+        """
+        try:
+            return cls[str(text).upper()]
+        except KeyError:
+            allowed = ", ".join(k.label for k in cls)
+            raise ValueError(f"transition kind {text!r}; allowed: {allowed}") from None
+
+
 @dataclass(frozen=True, slots=True)
 class Transition:
     """A state-to-state joint motion between digs (ruckig, rest to rest, no waypoints).
 
     Attributes:
-        kind: ``lift_out``, ``dump``, ``approach`` or ``enter``: the phase of the cycle it is
-            part of (a phase may take several moves: a lift in pieces).
+        kind: :class:`TransitionKind` (lift-out, dump, approach or enter): the phase of the
+            cycle it is part of (a phase may take several moves: a lift in pieces).
         q_from_rad, q_to_rad: End poses (arm frame).
         duration_s: Time-optimal duration within the joint velocity/acceleration/jerk limits.
         machine_x_m: The machine's travel from its first position.
@@ -105,7 +132,7 @@ class Transition:
             0 if clear, at most :data:`TRANSITION_PENETRATION_M` in a plan.
     """
 
-    kind: str
+    kind: TransitionKind
     q_from_rad: tuple[float, float, float]
     q_to_rad: tuple[float, float, float]
     duration_s: float

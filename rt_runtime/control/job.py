@@ -256,6 +256,58 @@ class _Planning:
         self.sync_ranges: dict[int, tuple[int, int]] = {}
         self.digs_started = 0
 
+    def take(self, reply: Any, motions: deque[SampledMotion], stopping: bool) -> DigRecord | None:
+        """Book a reply: a plan's motions onto ``motions`` (none while ``stopping`` or ending),
+        a record as the :class:`DigRecord` returned, an error as the job's final status."""
+        if isinstance(reply, PlannerError):
+            self.plan_out = False
+            self.record_out = False
+            if self.final is None:
+                self.final = (ExecStatus.PLANNING_ERROR, reply.message)
+            return None
+        if isinstance(reply, Recorded):
+            self.record_out = False
+            self.last_state = reply.state
+            plan = self.plans.get(reply.index)
+            dig = plan.dig if plan is not None else None
+            first, last = self.sync_ranges.get(reply.index, (-1, -1))
+            return DigRecord(
+                index=reply.index,
+                dig_type=dig.dig_type.name.lower() if dig is not None else "",
+                T_s=dig.T_s if dig is not None else math.nan,
+                plan_us=plan.plan_us if plan is not None else math.nan,
+                planned_volume_m3=dig.volume_m3 if dig is not None else math.nan,
+                measured_volume_m3=reply.measured_volume_m3,
+                tip_path_m=reply.tip_path_m,
+                session_state=reply.state,
+                sync_first=first,
+                sync_last=last,
+                planned_energy_j=dig.energy_j if dig is not None else math.nan,
+            )
+        self.plan_out = False
+        self.plan_us += reply.plan_us
+        if isinstance(reply, PathPlan):
+            if not (stopping or self.final is not None):
+                motions.extend(reply.sampled)
+            self.task_done = True
+            return None
+        assert isinstance(reply, DigPlan)
+        if stopping or self.final is not None:
+            return None
+        if reply.travel:
+            self.final = (
+                ExecStatus.PLANNING_ERROR,
+                f"the task needs crawler travel ({reply.travel[0].distance_m:+.3f} m); the "
+                "executor does not drive the VCU yet",
+            )
+            return None
+        motions.extend(reply.sampled)
+        if reply.dig is None:
+            self.task_done = True
+        else:
+            self.plans[reply.dig.index] = reply
+        return None
+
 
 class _Monitors:
     """Following error, stale feedback, drive faults and bus errors (see the module
@@ -522,8 +574,14 @@ class JobController:
 
     def _poll(self) -> None:
         reply = self.planning.link.poll()
-        if reply is not None:
-            self._handle_reply(reply)
+        if reply is None:
+            return
+        stream = self.stream
+        assert stream is not None
+        record = self.planning.take(reply, stream.motions, self.state is JobState.STOPPING)
+        if record is not None:
+            self.digs.append(record)
+            self._on_record(record)
 
     def _next_command(self) -> None:
         """The next sample, a hold, or the stop, into :attr:`command`."""
@@ -698,63 +756,3 @@ class JobController:
             self.status, self.fault = final if final is not None else (ExecStatus.DONE, "")
             return self._go(JobState.ENDED)
         return False
-
-    # -- the planner ----------------------------------------------------------------------------
-
-    def _handle_reply(self, reply: Any) -> None:
-        plan = self.planning
-        stream = self.stream
-        assert stream is not None
-        if isinstance(reply, PlannerError):
-            plan.plan_out = False
-            plan.record_out = False
-            if plan.final is None:
-                plan.final = (ExecStatus.PLANNING_ERROR, reply.message)
-            return
-        if isinstance(reply, Recorded):
-            plan.record_out = False
-            plan.last_state = reply.state
-            dig_plan = plan.plans.get(reply.index)
-            dig = dig_plan.dig if dig_plan is not None else None
-            first, last = plan.sync_ranges.get(reply.index, (-1, -1))
-            record = DigRecord(
-                index=reply.index,
-                dig_type=dig.dig_type.name.lower() if dig is not None else "",
-                T_s=dig.T_s if dig is not None else math.nan,
-                plan_us=dig_plan.plan_us if dig_plan is not None else math.nan,
-                planned_volume_m3=dig.volume_m3 if dig is not None else math.nan,
-                measured_volume_m3=reply.measured_volume_m3,
-                tip_path_m=reply.tip_path_m,
-                session_state=reply.state,
-                sync_first=first,
-                sync_last=last,
-                planned_energy_j=dig.energy_j if dig is not None else math.nan,
-            )
-            self.digs.append(record)
-            self._on_record(record)
-            return
-        stopping = self.state is JobState.STOPPING
-        if isinstance(reply, PathPlan):
-            plan.plan_out = False
-            plan.plan_us += reply.plan_us
-            if not (stopping or plan.final is not None):
-                stream.motions.extend(reply.sampled)
-            plan.task_done = True
-            return
-        assert isinstance(reply, DigPlan)
-        plan.plan_out = False
-        plan.plan_us += reply.plan_us
-        if stopping or plan.final is not None:
-            return
-        if reply.travel:
-            plan.final = (
-                ExecStatus.PLANNING_ERROR,
-                f"the task needs crawler travel ({reply.travel[0].distance_m:+.3f} m); the "
-                "executor does not drive the VCU yet",
-            )
-            return
-        stream.motions.extend(reply.sampled)
-        if reply.dig is None:
-            plan.task_done = True
-            return
-        plan.plans[reply.dig.index] = reply

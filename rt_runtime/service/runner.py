@@ -92,14 +92,113 @@ class _PreparedJob:
 
 
 @dataclass(frozen=True, slots=True)
-class _Outcome:
-    """What a job's run did (for the store and the report)."""
+class _Parts:
+    """What the runner builds once for its life."""
 
-    status: ExecStatus
-    fault: str
-    digs: int
-    overruns: int
-    max_lateness_s: float
+    drives: DriveInterface
+    guard: GuardFilter
+    hold: HoldController
+    manager: ControllerManager
+    hold_telemetry: Telemetry
+
+
+class _Preparation:
+    """Builds each job off the loop's thread (see the module docstring) and takes its dig
+    records off the loop's thread into the store.
+
+    Args:
+        runner: The runner (rig, configuration, store).
+        planner: The configured trench planner (more are built by name when a job asks).
+    """
+
+    def __init__(self, runner: RigRunner, planner: TrenchPlanner) -> None:
+        self.runner = runner
+        self.planners: dict[str, TrenchPlanner] = {runner.config.planner: planner}
+        #: Feed-forward and stale-cycle limit for the next job (SIGHUP reload).
+        self.options = (runner.config.feedforward, runner.config.stale_cycles)
+        self.prepared: _PreparedJob | None = None
+        self.thread: threading.Thread | None = None
+        self.records: queue.SimpleQueue[tuple[int, DigRecord]] = queue.SimpleQueue()
+        threading.Thread(target=self._record_loop, name="dig-records", daemon=True).start()
+
+    def busy(self) -> bool:
+        """A preparation thread runs."""
+        return self.thread is not None and self.thread.is_alive()
+
+    def start(self, job: Job, held_m: Any, parts: _Parts) -> None:
+        """Prepare ``job`` on a thread, its controller starting at the held stroke."""
+        self.thread = threading.Thread(
+            target=self._prepare, args=(job, held_m, parts), name="prepare", daemon=True
+        )
+        self.thread.start()
+
+    def _planner(self, name: str) -> TrenchPlanner:
+        if name not in self.planners:
+            r = self.runner
+            self.planners[name] = TrenchPlanner(r.rig, name, model_dir=r.config.models_dir)
+        return self.planners[name]
+
+    def _prepare(self, job: Job, held_m: Any, parts: _Parts) -> None:
+        """The job's session (new, or restored at the next undone dig), its planner process
+        and its controller started at the held stroke."""
+        r = self.runner
+        rig, period = r.rig, r.period_s
+        done = len(job.digs)
+        if job.max_digs is not None and done >= job.max_digs:
+            r.store.set_status(job.id, "done")
+            r.job_prepared(None)
+            return
+        try:
+            planner = self._planner(job.planner)
+            task = _task_of(job, rig)
+            if job.session_state is None:
+                session = planner.start(task)
+            else:
+                session = TrenchSession.restore(planner, task, job.session_state)
+            options = ExecutorConfig(
+                feedforward=self.options[0],
+                stale_cycles=self.options[1],
+                max_digs=None if job.max_digs is None else job.max_digs - done,
+            )
+            t_max = rig.planning.t_max_s if rig.planning is not None else 10.0
+            records = self.records
+            controller = JobController(
+                ProcessPlanner(session, period_s=period),
+                parts.guard,
+                options.limits(rig),
+                rig,
+                parts.drives.axes,
+                parts.drives.describe,
+                lambda rec: records.put((job.id, rec)),
+                int(2.0 * t_max / period) + 16,
+            )
+            first = controller.start(held_m)
+            telemetry = executor_telemetry(JOB_TELEMETRY_ROWS)
+        except (ExcavatorRtError, KeyError, TypeError, ValueError) as exc:
+            log.error("job %d cannot start: %s", job.id, exc)
+            r.store.set_status(job.id, "failed", f"cannot start: {exc}")
+            r.job_prepared(None)
+            return
+        # Everything alive now moves out of the collector's reach: O(1) here, and the job runs
+        # with the collector off (see the module docstring).
+        gc.freeze()
+        self.prepared = _PreparedJob(job, controller, first, telemetry)
+
+    def _record_loop(self) -> None:
+        """Each dig's record: its summary and the session state into the store (its writer
+        thread persists), the log line."""
+        store = self.runner.store
+        while True:
+            job_id, rec = self.records.get()
+            store.record_dig(job_id, {k: getattr(rec, k) for k in DIG_KEYS}, rec.session_state)
+            log.info(
+                "job %d: dig %d done (%s, planned %.2f L, measured %.2f L)",
+                job_id,
+                rec.index,
+                rec.dig_type,
+                rec.planned_volume_m3 * 1e3,
+                rec.measured_volume_m3 * 1e3,
+            )
 
 
 class RigRunner:
@@ -133,8 +232,7 @@ class RigRunner:
         self.store = store
         self.clock: Clock = clock if clock is not None else MonotonicClock()
         self.period_s = config.loop.period_s
-        self._planners: dict[str, TrenchPlanner] = {config.planner: planner}
-        self._options = (config.feedforward, config.stale_cycles)
+        self._prep = _Preparation(self, planner)
         self.error = ""
         self.enable_syncs = 0
         self._lock = threading.Lock()
@@ -143,19 +241,11 @@ class RigRunner:
         self._start_error: BaseException | None = None
         self._stop = False
         self._job: _PreparedJob | None = None  # running
-        self._prepared: _PreparedJob | None = None  # ready to switch to
-        self._prep_thread: threading.Thread | None = None
         self._job_id: int | None = None
         self._beat_s = -math.inf
         self._fault = ""
         self._state = "starting"
-        self._parts: tuple[DriveInterface, GuardFilter, HoldController, ControllerManager] | None
-        self._parts = None
-        self._hold_telemetry: Telemetry | None = None
-        # Dig records leave the loop's thread here: the store's copy of a session state is
-        # no work for a cycle.
-        self._records: queue.SimpleQueue[tuple[int, DigRecord]] = queue.SimpleQueue()
-        threading.Thread(target=self._record_loop, name="dig-records", daemon=True).start()
+        self._parts: _Parts | None = None
 
     # -- the service's side -------------------------------------------------------------------
 
@@ -232,7 +322,7 @@ class RigRunner:
 
     def configure(self, feedforward: bool, stale_cycles: int) -> None:
         """See :meth:`Runner.configure` (from the next job on)."""
-        self._options = (feedforward, stale_cycles)
+        self._prep.options = (feedforward, stale_cycles)
 
     # -- the thread ---------------------------------------------------------------------------
 
@@ -304,21 +394,20 @@ class RigRunner:
             ),
             executor_telemetry(1024),
         )
-        drives = DriveInterface(master, self.clock, 0.5 * self.period_s, self._options[0])
+        drives = DriveInterface(master, self.clock, 0.5 * self.period_s, self._prep.options[0])
         drives.react_to_faults(False)
         guard = GuardFilter(LimitGuard(StrokeLimits.from_rig(self.rig), self.period_s))
         hold = HoldController(np.zeros(3), np.zeros(3), SETTLED_M)
         manager = ControllerManager(
             drives, guard, loop, on_cycle=self._on_cycle, on_ended=self._job_ended
         )
-        self._parts = (drives, guard, hold, manager)
-        self._hold_telemetry = manager.loop.telemetry
+        self._parts = _Parts(drives, guard, hold, manager, manager.loop.telemetry)
         return manager, hold
 
     def _hold_at(self, stroke_m: Any) -> None:
         """Hold ``stroke_m`` from the next cycle (the guard leaves any stop there)."""
         assert self._parts is not None
-        _, guard, hold, _ = self._parts
+        guard, hold = self._parts.guard, self._parts.hold
         s = np.asarray(stroke_m, dtype=np.float64)
         guard.guard.reset(s)
         q = actuation.stroke_to_joint(self.rig, s, check_limits=False)
@@ -333,7 +422,7 @@ class RigRunner:
         stop, the next job's preparation and the switch to it."""
         self._beat_s = now_s
         assert self._parts is not None
-        _, _, hold, manager = self._parts
+        hold, manager = self._parts.hold, self._parts.manager
         if manager.controller is not hold:
             return
         if hold.fault and not self._fault:
@@ -341,7 +430,7 @@ class RigRunner:
         if self._stop:
             manager.stop()
             return
-        prepared = self._prepared
+        prepared = self._prep.prepared
         if prepared is not None:
             if math.isnan(prepared.started_s):
                 prepared.started_s = now_s
@@ -353,17 +442,16 @@ class RigRunner:
                     )
                 self._switch_to(prepared)
             return
-        prep = self._prep_thread
         changed = self.store.changed
-        if changed.is_set() and not self._fault and (prep is None or not prep.is_alive()):
+        if changed.is_set() and not self._fault and not self._prep.busy():
             changed.clear()
             self._start_preparation()
 
     def _switch_to(self, prepared: _PreparedJob) -> None:
         """Hand the drives to a prepared job at this cycle's boundary (loop thread)."""
         assert self._parts is not None
-        drives, _, _, manager = self._parts
-        self._prepared = None
+        drives, manager = self._parts.drives, self._parts.manager
+        self._prep.prepared = None
         job = prepared.job
         if self.store.get(job.id).status not in ACTIVE or self._fault:
             threading.Thread(target=prepared.controller.close, daemon=True).start()
@@ -376,7 +464,7 @@ class RigRunner:
                 prepared.controller.request_stop(StopRequest.SHUTDOWN)
             if self.store.mark_running(job.id).status == "paused":
                 prepared.controller.pause()  # paused while prepared: it holds at the start
-        drives.feedforward = self._options[0]
+        drives.feedforward = self._prep.options[0]
         manager.use_telemetry(prepared.telemetry)
         gc.disable()
         manager.switch(prepared.controller, prepared.first)
@@ -388,13 +476,13 @@ class RigRunner:
     def _job_ended(self, controller: Any) -> tuple[Any, Command] | None:
         """The running job ended (loop thread): its outcome into the store, back to the hold."""
         assert self._parts is not None
-        _, guard, hold, manager = self._parts
+        parts = self._parts
+        guard, hold, manager = parts.guard, parts.hold, parts.manager
         running = self._job
         if running is None or controller is not running.controller:
             return None
         gc.enable()
-        assert self._hold_telemetry is not None
-        manager.use_telemetry(self._hold_telemetry)
+        manager.use_telemetry(parts.hold_telemetry)
         self._hold_at(guard.position_m)
         job_ctl = running.controller
         status = job_ctl.status if job_ctl.status is not None else ExecStatus.DONE
@@ -420,80 +508,13 @@ class RigRunner:
         self._job_id = job.id
         self._state = f"preparing job {job.id}"
         assert self._parts is not None
-        held = self._parts[2].command.stroke_m.copy()
-        self._prep_thread = threading.Thread(
-            target=self._prepare, args=(job, held), name="prepare", daemon=True
-        )
-        self._prep_thread.start()
+        self._prep.start(job, self._parts.hold.command.stroke_m.copy(), self._parts)
 
-    def _planner(self, name: str) -> TrenchPlanner:
-        if name not in self._planners:
-            self._planners[name] = TrenchPlanner(self.rig, name, model_dir=self.config.models_dir)
-        return self._planners[name]
-
-    def _prepare(self, job: Job, held_m: Any) -> None:
-        """Off the loop's thread: the job's session (new, or restored at the next undone dig),
-        its planner process and its controller started at the held stroke."""
-        done = len(job.digs)
-        if job.max_digs is not None and done >= job.max_digs:
-            self.store.set_status(job.id, "done")
+    def job_prepared(self, prepared: _PreparedJob | None) -> None:
+        """A preparation ended without a job to run (done already, or it cannot start)."""
+        if prepared is None:
             self._job_id = None
             self.store.changed.set()
-            return
-        assert self._parts is not None
-        drives, guard, _, _ = self._parts
-        try:
-            planner = self._planner(job.planner)
-            task = _task_of(job, self.rig)
-            if job.session_state is None:
-                session = planner.start(task)
-            else:
-                session = TrenchSession.restore(planner, task, job.session_state)
-            options = ExecutorConfig(
-                feedforward=self._options[0],
-                stale_cycles=self._options[1],
-                max_digs=None if job.max_digs is None else job.max_digs - done,
-            )
-            t_max = self.rig.planning.t_max_s if self.rig.planning is not None else 10.0
-            records = self._records
-            controller = JobController(
-                ProcessPlanner(session, period_s=self.period_s),
-                guard,
-                options.limits(self.rig),
-                self.rig,
-                drives.axes,
-                drives.describe,
-                lambda rec: records.put((job.id, rec)),
-                int(2.0 * t_max / self.period_s) + 16,
-            )
-            first = controller.start(held_m)
-            telemetry = executor_telemetry(JOB_TELEMETRY_ROWS)
-        except (ExcavatorRtError, KeyError, TypeError, ValueError) as exc:
-            log.error("job %d cannot start: %s", job.id, exc)
-            self.store.set_status(job.id, "failed", f"cannot start: {exc}")
-            self._job_id = None
-            return
-        # Everything alive now moves out of the collector's reach: O(1) here, and the job runs
-        # with the collector off (see the module docstring).
-        gc.freeze()
-        self._prepared = _PreparedJob(job, controller, first, telemetry)
-
-    def _record_loop(self) -> None:
-        """Each dig's record: its summary and the session state into the store (its writer
-        thread persists), the log line."""
-        while True:
-            job_id, rec = self._records.get()
-            self.store.record_dig(
-                job_id, {k: getattr(rec, k) for k in DIG_KEYS}, rec.session_state
-            )
-            log.info(
-                "job %d: dig %d done (%s, planned %.2f L, measured %.2f L)",
-                job_id,
-                rec.index,
-                rec.dig_type,
-                rec.planned_volume_m3 * 1e3,
-                rec.measured_volume_m3 * 1e3,
-            )
 
     def _record_outcome(self, job: Job, st: ExecStatus, fault: str) -> None:
         """The job's status from the run's (the store in memory; its writer thread persists)."""

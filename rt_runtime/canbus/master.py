@@ -88,6 +88,10 @@ _AXES = ("boom", "stick", "bucket")
 _TPDO1, _TPDO2, _EMCY, _HEARTBEAT = 1, 2, 3, 4
 
 
+_ENABLED = int(DriveState.OPERATION_ENABLED)
+_FAULTED = (int(DriveState.FAULT), int(DriveState.FAULT_REACTION_ACTIVE))
+
+
 class CycleStatus(IntEnum):
     """Outcome of one :meth:`CanMaster.read_feedback`, most severe condition found.
 
@@ -862,22 +866,27 @@ class CanMaster:
                 self._dispatch(msg, now_s)
         except can.CanError:
             bus_error = True
-        self._consumer.check(now_s, fb.heartbeat_events)
-        k = fb.sync_count
-        np.not_equal(fb.tpdo1_sync, k, out=fb.stale)
+        consumer = self._consumer
+        consumer.check(now_s, fb.heartbeat_events)
+        np.not_equal(fb.tpdo1_sync, fb.sync_count, out=fb.stale)
+        # Per-axis checks in plain Python: a handful of axes, cheaper than numpy's per call.
+        lost_any = False
         for axis, node in enumerate(self.config.node_ids):
-            fb.heartbeat_lost[axis] = self._consumer.is_lost(node)
+            lost = consumer.is_lost(node)
+            fb.heartbeat_lost[axis] = lost
+            lost_any = lost_any or lost
         rebooted = any(e.kind is HeartbeatEventKind.BOOT_UP for e in fb.heartbeat_events)
+        states = fb.state.tolist()
         status = CycleStatus.OK
         if fb.stale.any():
             status = CycleStatus.STALE
         if any(not e.is_reset for e in fb.emcys):
             status = CycleStatus.EMCY
-        if self._expect_enabled and (fb.state != DriveState.OPERATION_ENABLED).any():
+        if self._expect_enabled and any(x != _ENABLED for x in states):
             status = CycleStatus.NOT_ENABLED
-        if fb.heartbeat_lost.any() or rebooted:
+        if lost_any or rebooted:
             status = CycleStatus.HEARTBEAT_LOST
-        if ((fb.state == DriveState.FAULT) | (fb.state == DriveState.FAULT_REACTION_ACTIVE)).any():
+        if any(x in _FAULTED for x in states):
             status = CycleStatus.DRIVE_FAULT
         if (
             self.react_to_faults

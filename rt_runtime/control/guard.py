@@ -204,9 +204,8 @@ class LimitGuard:
         self.position_m = np.zeros(3)
         self.velocity_m_s = np.zeros(3)
         self.acceleration_m_s2 = np.zeros(3)
-        self._target_v = np.zeros(3)
-        self._target_a = np.zeros(3)
-        self._zero = np.zeros(3)
+        self._v_list: list[float] = self._v_max.tolist()
+        self._a_list: list[float] = self._a_max.tolist()
         self.stopping = False
         self.state = GuardState.AT_REST
         self._track_mode()
@@ -291,18 +290,18 @@ class LimitGuard:
 
     def _aim(
         self,
-        position_m: FloatArray,
-        velocity_m_s: FloatArray,
-        acceleration_m_s2: FloatArray,
+        position_m: list[float],
+        velocity_m_s: list[float],
+        acceleration_m_s2: list[float],
         horizon_s: float | None,
     ) -> bool:
         """One ruckig update towards a target state; True when it is reached after exactly
         ``horizon_s`` (None: time-optimal, True when ruckig accepted the input)."""
         inp = self._inp
         inp.minimum_duration = horizon_s
-        inp.target_position = position_m.tolist()
-        inp.target_velocity = velocity_m_s.tolist()
-        inp.target_acceleration = acceleration_m_s2.tolist()
+        inp.target_position = position_m
+        inp.target_velocity = velocity_m_s
+        inp.target_acceleration = acceleration_m_s2
         result = self._otg.update(inp, self._out)
         if result not in _OK:
             return False
@@ -336,17 +335,24 @@ class LimitGuard:
         if self.stopping:
             return self.step_stop()
         T = self.period_s
-        v = self._target_v
-        a = self._target_a
-        np.clip(velocity_m_s, -self._v_max, self._v_max, out=v)
-        np.clip(acceleration_m_s2, -self._a_max, self._a_max, out=a)
-        clamped = not (np.array_equal(v, velocity_m_s) and np.array_equal(a, acceleration_m_s2))
-        if self._aim(position_m, v, a, T) and not clamped:
+        # The target's rate and acceleration within the limits (plain floats: three axes).
+        p = position_m.tolist()
+        v = velocity_m_s.tolist()
+        a = acceleration_m_s2.tolist()
+        clamped = False
+        for i, (v_max, a_max) in enumerate(zip(self._v_list, self._a_list, strict=True)):
+            vi, ai = v[i], a[i]
+            if not -v_max <= vi <= v_max:
+                v[i] = max(-v_max, min(v_max, vi))
+                clamped = True
+            if not -a_max <= ai <= a_max:
+                a[i] = max(-a_max, min(a_max, ai))
+                clamped = True
+        if self._aim(p, v, a, T) and not clamped:
             self._take_output()
             self.state = GuardState.PASSTHROUGH
             return self.state
-        zero = self._zero
-        if self._aim(position_m, v, a, None) or self._aim(position_m, v, zero, None):
+        if self._aim(p, v, a, None) or self._aim(p, v, [0.0, 0.0, 0.0], None):
             self._take_output()
             self.state = GuardState.LIMITED
             return self.state

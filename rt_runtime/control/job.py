@@ -311,7 +311,8 @@ class _Planning:
 
 class _Monitors:
     """Following error, stale feedback, drive faults and bus errors (see the module
-    docstring): the causes to stop for, in the order found."""
+    docstring): the causes to stop for, in the order found. Per-axis counts in plain Python
+    (three axes: cheaper than numpy's per-call cost)."""
 
     __slots__ = ("axes", "causes", "describe", "fe_count", "limits", "prev_status", "stale_count")
 
@@ -321,8 +322,8 @@ class _Monitors:
         self.limits = limits
         self.axes = axes
         self.describe = describe
-        self.fe_count = np.zeros(3, np.int64)
-        self.stale_count = np.zeros(3, np.int64)
+        self.fe_count = [0] * len(axes)
+        self.stale_count = [0] * len(axes)
         self.prev_status = CycleStatus.OK
         self.causes: list[tuple[ExecStatus, str]] = []
 
@@ -344,33 +345,40 @@ class _Monitors:
             stopping = True
         self.prev_status = status
         limits = self.limits
-        stale = fb.stale
+        stale = fb.stale.tolist()
         count = self.stale_count
-        count += 1
-        count[~stale] = 0
-        if (count >= limits.stale_cycles).any() and not stopping:
-            axis = int(np.argmax(count))
+        worst = 0
+        for i, gone in enumerate(stale):
+            count[i] = count[i] + 1 if gone else 0
+            if count[i] > count[worst]:
+                worst = i
+        if count[worst] >= limits.stale_cycles and not stopping:
             causes.append(
                 (
                     ExecStatus.FAULT,
-                    f"stale feedback: no TPDO1 from the {self.axes[axis]} drive for "
-                    f"{int(count[axis])} cycles",
+                    f"stale feedback: no TPDO1 from the {self.axes[worst]} drive for "
+                    f"{count[worst]} cycles",
                 )
             )
             stopping = True
-        err = np.abs(fb.stroke_m - s_ref)
-        over = (err > limits.following_error_m) & ~stale
-        over &= fb.state == DriveState.OPERATION_ENABLED
+        pos = fb.stroke_m.tolist()
+        ref = s_ref.tolist()
+        enabled = (fb.state == DriveState.OPERATION_ENABLED).tolist()
+        window = limits.following_error_m
         fe = self.fe_count
-        fe += 1
-        fe[~over] = 0
-        if (fe >= limits.following_error_cycles).any() and not stopping:
-            axis = int(np.argmax(fe))
+        worst = 0
+        for i, gone in enumerate(stale):
+            over = abs(pos[i] - ref[i]) > window and not gone and enabled[i]
+            fe[i] = fe[i] + 1 if over else 0
+            if fe[i] > fe[worst]:
+                worst = i
+        if fe[worst] >= limits.following_error_cycles and not stopping:
+            err = abs(pos[worst] - ref[worst])
             causes.append(
                 (
                     ExecStatus.FAULT,
-                    f"following error on the {self.axes[axis]} axis: {err[axis] * 1e3:.2f} mm > "
-                    f"{limits.following_error_m * 1e3:.2f} mm for {int(fe[axis])} cycles",
+                    f"following error on the {self.axes[worst]} axis: {err * 1e3:.2f} mm > "
+                    f"{window * 1e3:.2f} mm for {fe[worst]} cycles",
                 )
             )
         return causes

@@ -358,7 +358,7 @@ def test_service_jobs_through_the_socket(tmp_path: Path) -> None:
         rs.ask(cmd="pause")
         assert rs.ask(cmd="status", id=1)["job"]["status"] == "paused"
         assert rs.ask(cmd="resume", id=1)["job"]["status"] == "running"
-        _wait(lambda: rs.store.get(1).status == "done")
+        _wait(lambda: rs.store.get(1).status.label == "done")
         assert len(rs.ask(cmd="status", id=1)["job"]["digs"]) == 3
 
         two = rs.ask(cmd="submit", task={"name": "small", "length_m": 0.3, "depth_m": 0.05,
@@ -366,7 +366,7 @@ def test_service_jobs_through_the_socket(tmp_path: Path) -> None:
         _wait(lambda: rs.runner.current_job() == two["id"])
         reply = rs.ask(cmd="cancel", id=two["id"])
         assert reply["cancelling"]
-        _wait(lambda: rs.store.get(two["id"]).status == "cancelled")
+        _wait(lambda: rs.store.get(two["id"]).status.label == "cancelled")
         r = rs.ask(cmd="resume", id=two["id"])
         assert not r["ok"] and "only a paused job resumes" in r["error"]
         r = rs.ask(cmd="pause", id="one")
@@ -403,7 +403,7 @@ def test_sigterm_stops_safely_and_leaves_the_job_resumable(tmp_path: Path) -> No
             raise errors[0]
         assert code == EXIT_OK
         assert rs.runner.shutdown_called
-        assert rs.store.get(1).status == "queued"  # left for the next start
+        assert rs.store.get(1).status.label == "queued"  # left for the next start
         messages = []
         manager.settimeout(0.2)
         while True:

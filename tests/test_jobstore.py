@@ -175,7 +175,7 @@ def test_transitions_and_persistence(tmp_path: Path) -> None:
     store.start()
     a = store.submit(TASK, "pinn")
     b = store.submit({**TASK, "name": "B"}, "pso")
-    assert (a.id, b.id) == (1, 2) and a.status == "queued"
+    assert (a.id, b.id) == (1, 2) and a.status.label == "queued"
     assert store.next_runnable() == a
 
     store.set_status(1, "running")
@@ -221,7 +221,7 @@ def test_runner_priority_and_retry_of_a_failed_job(tmp_path: Path) -> None:
     job = store.next_runnable()
     assert job is not None and job.id == 1
     retried = store.resume(3, running=False)
-    assert retried.status == "queued" and retried.fault == ""
+    assert retried.status.label == "queued" and retried.fault == ""
     store.pause(1)
     store.pause(2)
     job = store.next_runnable()
@@ -232,12 +232,12 @@ def test_mark_running_keeps_a_pause_and_max_digs_persists(tmp_path: Path) -> Non
     store = JobStore(tmp_path)
     store.start()
     store.submit(TASK, "pinn", max_digs=3)
-    assert store.mark_running(1).status == "running"
+    assert store.mark_running(1).status.label == "running"
     store.pause(1)
-    assert store.mark_running(1).status == "paused"  # paused while it was being prepared
+    assert store.mark_running(1).status.label == "paused"  # paused while it was being prepared
     store.close()
     job = JobStore(tmp_path).get(1)
-    assert job.max_digs == 3 and job.status == "paused"
+    assert job.max_digs == 3 and job.status.label == "paused"
     doc = json.loads((tmp_path / "jobs.json").read_text())
     doc["jobs"][0]["max_digs"] = 0
     (tmp_path / "jobs.json").write_text(json.dumps(doc))

@@ -36,6 +36,7 @@ import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from enum import IntEnum
 from pathlib import Path
 from typing import Any
 
@@ -49,17 +50,57 @@ __all__ = [
     "STORE_FORMAT",
     "Job",
     "JobError",
+    "JobStatus",
     "JobStore",
     "atomic_write_json",
     "read_store",
 ]
 
 STORE_FORMAT = "excavator-rtd-jobs/1"
-STATUSES = ("queued", "running", "paused", "done", "cancelled", "failed")
+
+
+class JobStatus(IntEnum):
+    """Where a job is (JSON, the store and the control socket: the lower-case name)."""
+
+    QUEUED = 0
+    RUNNING = 1
+    PAUSED = 2
+    DONE = 3
+    CANCELLED = 4
+    FAILED = 5
+
+    @property
+    def label(self) -> str:
+        """The JSON spelling: ``queued``, ``running``, ``paused``, ``done``, ``cancelled``,
+        ``failed``."""
+        return self.name.lower()
+
+    @classmethod
+    def parse(cls, text: Any) -> JobStatus:
+        """The status spelt ``text`` (or a JobStatus itself).
+
+        Raises:
+            ValueError: Not a status (names the allowed ones).
+        """
+        if isinstance(text, JobStatus):
+            return text
+        if isinstance(text, str) and text.upper() in cls.__members__ and text == text.lower():
+            return cls[text.upper()]
+        raise ValueError(f"status {text!r} is not one of {', '.join(STATUSES)}")
+
+    def __str__(self) -> str:
+        return self.label
+
+    def __format__(self, spec: str) -> str:
+        return format(self.label, spec)
+
+
+#: Every status's JSON spelling.
+STATUSES = tuple(s.label for s in JobStatus)
 #: Statuses a job never leaves (``failed`` may be resumed by the operator).
-FINAL = ("done", "cancelled")
+FINAL = (JobStatus.DONE, JobStatus.CANCELLED)
 #: Statuses the runner picks up, in this priority (a job found ``running`` after a crash first).
-ACTIVE = ("running", "queued")
+ACTIVE = (JobStatus.RUNNING, JobStatus.QUEUED)
 STORE_NAME = "jobs.json"
 _TASK_KEYS = ("name", "length_m", "depth_m", "beta1_deg", "beta2_deg", "start_x_m")
 #: Keys of a dig summary in a job record (the daemon builds them from the executor's record).
@@ -76,7 +117,7 @@ class Job:
 
     Attributes:
         id: Job id (1, 2, ... in submission order).
-        status: One of :data:`STATUSES`.
+        status: Its :class:`JobStatus`.
         task: The resolved task (:data:`_TASK_KEYS`: name, m and deg).
         planner: One-shot planner (``pinn``, ``pso``).
         submitted_unix_s: Submission time (Unix s).
@@ -88,7 +129,7 @@ class Job:
     """
 
     id: int
-    status: str
+    status: JobStatus
     task: dict[str, Any]
     planner: str
     submitted_unix_s: float
@@ -102,7 +143,7 @@ class Job:
         """JSON-able form (the store's; ``with_state=False`` leaves out the session state)."""
         out: dict[str, Any] = {
             "id": self.id,
-            "status": self.status,
+            "status": self.status.label,
             "planner": self.planner,
             "task": dict(self.task),
             "submitted_unix_s": self.submitted_unix_s,
@@ -125,9 +166,7 @@ class Job:
         if not isinstance(raw, dict):
             raise ValueError(f"a job must be an object, got {type(raw).__name__}")
         try:
-            status = raw["status"]
-            if status not in STATUSES:
-                raise ValueError(f"status {status!r} is not one of {', '.join(STATUSES)}")
+            status = JobStatus.parse(raw["status"])
             task = raw["task"]
             if not isinstance(task, dict) or set(task) != set(_TASK_KEYS):
                 raise ValueError(f"task must have keys {', '.join(_TASK_KEYS)}")
@@ -362,7 +401,7 @@ class JobStore:
         with self._lock:
             for status in ACTIVE:
                 for job in sorted(self._jobs.values(), key=lambda j: j.id):
-                    if job.status == status:
+                    if job.status is status:
                         return job
         return None
 
@@ -387,19 +426,24 @@ class JobStore:
         """Queue a new job (the task already validated)."""
         with self._lock:
             now = time.time()
-            job = Job(self._next_id, "queued", dict(task), planner, now, now, max_digs=max_digs)
+            job = Job(
+                self._next_id, JobStatus.QUEUED, dict(task), planner, now, now, max_digs=max_digs
+            )
             self._next_id += 1
             return self._put(job)
 
-    def set_status(self, job_id: int, status: str, fault: str = "") -> Job:
-        """Set a job's status (the runner's transitions: running, done, failed, ...).
+    def set_status(self, job_id: int, status: JobStatus | str, fault: str = "") -> Job:
+        """Set a job's status (the runner's transitions: running, done, failed, ...); a status
+        or its JSON spelling.
 
         Raises:
             JobError: Unknown job or status.
         """
-        if status not in STATUSES:
-            raise JobError(f"status {status!r} is not one of {', '.join(STATUSES)}")
-        return self._change(job_id, status=status, fault=fault)
+        try:
+            new = JobStatus.parse(status)
+        except ValueError as exc:
+            raise JobError(str(exc)) from None
+        return self._change(job_id, status=new, fault=fault)
 
     def mark_running(self, job_id: int) -> Job:
         """The runner starts the job: ``running`` unless it was paused meanwhile (atomic).
@@ -409,9 +453,9 @@ class JobStore:
         """
         with self._lock:
             job = self.get(job_id)
-            if job.status == "paused":
+            if job.status is JobStatus.PAUSED:
                 return job
-            return self._change(job_id, status="running", fault="")
+            return self._change(job_id, status=JobStatus.RUNNING, fault="")
 
     def record_dig(self, job_id: int, dig: dict[str, Any], session_state: dict[str, Any]) -> Job:
         """Append a dig's summary and the session state after it (cheap: no I/O here)."""
@@ -427,9 +471,9 @@ class JobStore:
         """
         with self._lock:
             job = self.get(job_id)
-            if job.status not in ("queued", "running"):
+            if job.status not in (JobStatus.QUEUED, JobStatus.RUNNING):
                 raise JobError(f"job {job_id} is {job.status}; only a queued or running job pauses")
-            return self._change(job_id, status="paused")
+            return self._change(job_id, status=JobStatus.PAUSED)
 
     def resume(self, job_id: int, running: bool) -> Job:
         """Resume a paused job (``running``: it is the one the runner holds) or retry a failed
@@ -440,12 +484,13 @@ class JobStore:
         """
         with self._lock:
             job = self.get(job_id)
-            if job.status not in ("paused", "failed"):
+            if job.status not in (JobStatus.PAUSED, JobStatus.FAILED):
                 raise JobError(
                     f"job {job_id} is {job.status}; only a paused job resumes (or a failed one "
                     "retries from its last dig)"
                 )
-            return self._change(job_id, status="running" if running else "queued", fault="")
+            status = JobStatus.RUNNING if running else JobStatus.QUEUED
+            return self._change(job_id, status=status, fault="")
 
     def cancel(self, job_id: int, reason: str = "cancelled by request") -> Job:
         """Cancel a job that is not running (the runner cancels the running one).
@@ -457,4 +502,4 @@ class JobStore:
             job = self.get(job_id)
             if job.status in FINAL:
                 raise JobError(f"job {job_id} is already {job.status}")
-            return self._change(job_id, status="cancelled", fault=reason)
+            return self._change(job_id, status=JobStatus.CANCELLED, fault=reason)

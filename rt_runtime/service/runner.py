@@ -51,7 +51,7 @@ from rt_runtime.control.telemetry import Telemetry
 from rt_runtime.errors import CommunicationError, ExcavatorRtError
 from rt_runtime.planning.trench import TrenchPlanner, TrenchSession, make_task
 from rt_runtime.service.config import DaemonConfig
-from rt_runtime.service.jobstore import ACTIVE, DIG_KEYS, Job, JobError, JobStore
+from rt_runtime.service.jobstore import ACTIVE, DIG_KEYS, Job, JobError, JobStatus, JobStore
 
 if TYPE_CHECKING:
     from rt_runtime.planning.trench import TrenchTask
@@ -145,7 +145,7 @@ class _Preparation:
         rig, period = r.rig, r.period_s
         done = len(job.digs)
         if job.max_digs is not None and done >= job.max_digs:
-            r.store.set_status(job.id, "done")
+            r.store.set_status(job.id, JobStatus.DONE)
             r.job_prepared(None)
             return
         try:
@@ -176,7 +176,7 @@ class _Preparation:
             telemetry = executor_telemetry(JOB_TELEMETRY_ROWS)
         except (ExcavatorRtError, KeyError, TypeError, ValueError) as exc:
             log.error("job %d cannot start: %s", job.id, exc)
-            r.store.set_status(job.id, "failed", f"cannot start: {exc}")
+            r.store.set_status(job.id, JobStatus.FAILED, f"cannot start: {exc}")
             r.job_prepared(None)
             return
         # Everything alive now moves out of the collector's reach: O(1) here, and the job runs
@@ -462,7 +462,7 @@ class RigRunner:
             self._job = prepared
             if self._stop:
                 prepared.controller.request_stop(StopRequest.SHUTDOWN)
-            if self.store.mark_running(job.id).status == "paused":
+            if self.store.mark_running(job.id).status is JobStatus.PAUSED:
                 prepared.controller.pause()  # paused while prepared: it holds at the start
         drives.feedforward = self._prep.options[0]
         manager.use_telemetry(prepared.telemetry)
@@ -519,16 +519,16 @@ class RigRunner:
     def _record_outcome(self, job: Job, st: ExecStatus, fault: str) -> None:
         """The job's status from the run's (the store in memory; its writer thread persists)."""
         if st is ExecStatus.DONE:
-            self.store.set_status(job.id, "done")
+            self.store.set_status(job.id, JobStatus.DONE)
         elif st is ExecStatus.CANCELLED:
-            self.store.set_status(job.id, "cancelled", "cancelled by request")
+            self.store.set_status(job.id, JobStatus.CANCELLED, "cancelled by request")
         elif st is ExecStatus.STOPPED:
             # Shut down mid-job: resumable at the next undone dig after the restart.
-            paused = self.store.get(job.id).status == "paused"
-            self.store.set_status(job.id, "paused" if paused else "queued")
+            paused = self.store.get(job.id).status is JobStatus.PAUSED
+            self.store.set_status(job.id, JobStatus.PAUSED if paused else JobStatus.QUEUED)
         else:
             text = f"{st.name.lower()}: {fault or 'no detail'}"
-            self.store.set_status(job.id, "failed", text)
+            self.store.set_status(job.id, JobStatus.FAILED, text)
             if st is not ExecStatus.PLANNING_ERROR:
                 self._fault = f"job {job.id}: {text}"
 

@@ -5,8 +5,15 @@ points."""
 from __future__ import annotations
 
 import ast
+import json
+import os
+import subprocess
+import sys
+import tomllib
 from importlib.metadata import entry_points
 from pathlib import Path
+
+import pytest
 
 import rt_runtime
 from rt_runtime.bench import HIL_GROUP, realtime_hil_process
@@ -55,3 +62,57 @@ def test_hil_commands_and_process_come_through_entry_points() -> None:
     assert {"hil", "demo"} <= set(sub.choices)
     assert any(ep.name == "realtime" for ep in entry_points(group=HIL_GROUP))
     assert callable(realtime_hil_process().start)
+
+
+# -- the import contracts (import-linter, pyproject.toml) ------------------------------------------
+
+LINT_IMPORTS = Path(sys.executable).with_name("lint-imports")
+FORBIDDEN = [
+    c
+    for c in tomllib.loads((ROOT.parent / "pyproject.toml").read_text(encoding="utf-8"))["tool"][
+        "importlinter"
+    ]["contracts"]
+    if c["type"] == "forbidden"
+]
+
+
+def _tree(tmp_path: Path, imports: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    """A tree of the three packages, each ``__init__`` with the given source, checked by
+    import-linter against the project's forbidden-import contracts."""
+    for package in ("rt_runtime", "hil_sim", "firmware_models"):
+        (tmp_path / package).mkdir(parents=True)
+        (tmp_path / package / "__init__.py").write_text(imports.get(package, ""))
+    roots = ["rt_runtime", "hil_sim", "firmware_models"]
+    lines = ["[tool.importlinter]", f"root_packages = {json.dumps(roots)}"]
+    for contract in FORBIDDEN:
+        lines += ["[[tool.importlinter.contracts]]"]
+        lines += [f"{k} = {json.dumps(v)}" for k, v in contract.items()]
+    (tmp_path / "pyproject.toml").write_text("\n".join(lines) + "\n")
+    return subprocess.run(
+        [str(LINT_IMPORTS), "--no-cache", "pyproject.toml"],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(tmp_path)},
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+
+
+@pytest.mark.skipif(not LINT_IMPORTS.exists(), reason="import-linter is not installed")
+@pytest.mark.parametrize(
+    ("package", "source", "broken"),
+    [
+        ("rt_runtime", "import hil_sim\n", "rt_runtime never imports hil_sim"),
+        ("firmware_models", "from rt_runtime import x\n", "firmware_models depends on nothing"),
+    ],
+)
+def test_a_forbidden_import_breaks_its_contract(
+    tmp_path: Path, package: str, source: str, broken: str
+) -> None:
+    assert len(FORBIDDEN) >= 2
+    clean = _tree(tmp_path / "clean", {})
+    assert clean.returncode == 0, clean.stdout + clean.stderr
+    bad = _tree(tmp_path / "bad", {package: source})
+    assert bad.returncode != 0, bad.stdout
+    assert broken in bad.stdout and "BROKEN" in bad.stdout, bad.stdout

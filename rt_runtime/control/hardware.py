@@ -107,9 +107,7 @@ class DriveInterface:
         self.n = master.n
         self.axes: tuple[str, ...] = tuple(master.config.axes)
         self.feedback = DriveFeedback(self.n)
-        self._um = np.zeros(self.n)
-        self._target_um = np.zeros(self.n, np.int32)
-        self._vel_um = np.zeros(self.n, np.int32)
+        self._zero_um = [0] * self.n
         self._sent_s = 0.0
         self._write_s = 0.0
 
@@ -133,15 +131,18 @@ class DriveInterface:
         SYNC; rounds to micrometres. Loop safe."""
         clock = self.clock
         t0 = clock.now()
-        um = self._um
-        np.multiply(stroke_m, 1e6, out=um)
-        np.rint(um, out=um)
-        self._target_um[:] = um
-        if self.feedforward:
-            np.multiply(velocity_m_s, 1e6, out=um)
-            np.rint(um, out=um)
-            self._vel_um[:] = um
-        status = self.master.write_setpoints(self._target_um, self._vel_um)
+        # round() is round-half-to-even, as np.rint; plain ints skip numpy's per-call cost.
+        try:
+            target = [round(x * 1e6) for x in stroke_m.tolist()]
+            velocity = (
+                [round(x * 1e6) for x in velocity_m_s.tolist()]
+                if self.feedforward
+                else self._zero_um
+            )
+        except (ValueError, OverflowError):  # NaN or infinite: nothing is sent
+            status = WriteStatus.OUT_OF_RANGE
+        else:
+            status = self.master.write_setpoints(target, velocity)
         self.feedback.write_status = status
         self._sent_s = clock.now()
         self._write_s = self._sent_s - t0
@@ -161,11 +162,9 @@ class DriveInterface:
         self.master.heartbeat(clock.now())
         out.sync_count = raw.sync_count
         pos = out.stroke_m
-        pos[:] = raw.position_um
-        pos *= 1e-6
+        np.multiply(raw.position_um, 1e-6, out=pos)
         vel = out.last_velocity_m_s
-        vel[:] = raw.velocity_um_s
-        vel *= 1e-6
+        np.multiply(raw.velocity_um_s, 1e-6, out=vel)
         out.velocity_m_s[:] = vel
         out.stale[:] = raw.stale
         if not fresh:

@@ -35,6 +35,15 @@ def rig() -> Rig:
     return load_rig("scale_model")
 
 
+def _enabled(hil: LockstepHil, rig: Rig) -> tuple[CanMaster, FixedRateLoop]:
+    """The HIL's drives booted and enabled by a master (its own fault reaction off), and a
+    loop on the HIL's clock."""
+    master = CanMaster(hil.master_bus, rig, period_s=PERIOD_S, react_to_faults=False)
+    master.boot(hil.clock.now, 1.0)
+    master.enable(hil.clock.now, 1.0)
+    return master, FixedRateLoop(hil.clock, LoopConfig(rt=NO_RT), executor_telemetry(20_000))
+
+
 def _record_syncs(hil: LockstepHil) -> list[float]:
     """The simulated times at which the HIL's drives receive each SYNC."""
     times: list[float] = []
@@ -55,10 +64,7 @@ def test_a_switch_hold_to_job_to_hold_keeps_the_sync_stream(rig: Rig, pending: A
     hil = LockstepHil(rig, q0, None)
     syncs = _record_syncs(hil)
     try:
-        master = CanMaster(hil.master_bus, rig, period_s=PERIOD_S, react_to_faults=False)
-        master.boot(hil.clock.now, 1.0)
-        master.enable(hil.clock.now, 1.0)
-        loop = FixedRateLoop(hil.clock, LoopConfig(rt=NO_RT), executor_telemetry(20_000))
+        master, loop = _enabled(hil, rig)
         drives = DriveInterface(master, hil.clock, 0.5 * PERIOD_S)
         guard = GuardFilter(LimitGuard(StrokeLimits.from_rig(rig), PERIOD_S))
         s0 = drives.measured_stroke_m()
@@ -146,10 +152,7 @@ def test_no_cycle_calls_a_planner(rig: Rig, pending: Any, monkeypatch: pytest.Mo
     monkeypatch.setattr(ControllerManager, "_cycle", cycle)
     hil = LockstepHil(rig, q0, None)
     try:
-        master = CanMaster(hil.master_bus, rig, period_s=PERIOD_S)
-        master.boot(hil.clock.now, 1.0)
-        master.enable(hil.clock.now, 1.0)
-        loop = FixedRateLoop(hil.clock, LoopConfig(rt=NO_RT), executor_telemetry(20_000))
+        master, loop = _enabled(hil, rig)
         # Two digs: the second is planned while the first's exit moves stream.
         result = Executor(master, rig, loop, session, ExecutorConfig(max_digs=2)).run()
     finally:
@@ -166,10 +169,7 @@ def test_a_controller_that_raises_ends_in_the_guards_stop(rig: Rig, pending: Any
     session, q0 = restore_pending(planner, task, json.loads(json.dumps(state)))
     hil = LockstepHil(rig, q0, None)
     try:
-        master = CanMaster(hil.master_bus, rig, period_s=PERIOD_S)
-        master.boot(hil.clock.now, 1.0)
-        master.enable(hil.clock.now, 1.0)
-        loop = FixedRateLoop(hil.clock, LoopConfig(rt=NO_RT), executor_telemetry(20_000))
+        master, loop = _enabled(hil, rig)
         ex = Executor(master, rig, loop, session, ExecutorConfig(max_digs=1))
         original = ex.job.update
         count = [0]

@@ -1050,6 +1050,7 @@ def _bench_rate(
     jitter = stats.period_jitter_s()
     status = snap["cycle_status"]
     wait = snap["wait_s"]
+    send = snap["send_s"]
     entry: dict[str, Any] = {
         "period_us": period * 1e6,
         "cycles": stats.cycles,
@@ -1061,10 +1062,13 @@ def _bench_rate(
             "max": float(np.max(jitter) * 1e6) if jitter.size else None,
         },
         "exec_us": _group_us(stats.exec_s),
-        # The step's parts: waiting for the drives' answers (bus, bridge, the HIL's response)
-        # and the runtime's own work (write, read's decoding, the controller, the guard).
+        # The step's parts: the transport's (sending the frames; waiting for the drives'
+        # answers: bus, bridge, the HIL's response) and the runtime's own work (packing and
+        # decoding, the controller, the guard, the telemetry).
+        "send_us": _group_us(send),
         "wait_us": _group_us(wait),
-        "own_us": _group_us(stats.exec_s - wait),
+        "transport_us": _group_us(send + wait),
+        "own_us": _group_us(stats.exec_s - wait - send),
         "overruns": stats.overruns,
         "skipped": stats.skipped,
         "max_consecutive_overruns": stats.max_consecutive_overruns,

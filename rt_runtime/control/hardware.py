@@ -12,9 +12,10 @@ Units: strokes m, stroke rates m/s, times s. A drive whose TPDO1 for this SYNC d
 *stale*: its ``stroke_m`` and ``velocity_m_s`` are NaN this cycle, ``last_velocity_m_s`` keeps its
 last report.
 
-Timing: :attr:`DriveFeedback.wait_s` is the time :meth:`~DriveInterface.read` spent until every
-answer was in (the transport's and the drives' share of a cycle: bus, bridge, the drives'
-response), :attr:`DriveFeedback.io_s` the time of the write and read calls together.
+Timing: :attr:`DriveFeedback.send_s` is the time the write spent handing its frames to the bus
+(RPDO1s and SYNC), :attr:`DriveFeedback.wait_s` the time :meth:`~DriveInterface.read` spent
+until every answer was in (the transport's and the drives' share of a cycle: bus, bridge, the
+drives' response), :attr:`DriveFeedback.io_s` the write and read calls together.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ class DriveFeedback:
         write_status: What the cycle's write returned.
         emcys: Emergencies received this cycle.
         rtt_s: SYNC sent -> every TPDO1 in (s), NaN when one was missing.
+        send_s: Time the write spent sending its frames (s).
         wait_s: Time the read waited for the answers (s).
         io_s: Time of the cycle's write and read (s).
     """
@@ -60,6 +62,7 @@ class DriveFeedback:
         "io_s",
         "last_velocity_m_s",
         "rtt_s",
+        "send_s",
         "stale",
         "state",
         "status",
@@ -83,6 +86,7 @@ class DriveFeedback:
         self.write_status = WriteStatus.OK
         self.emcys: list[Emcy] = []
         self.rtt_s = math.nan
+        self.send_s = 0.0
         self.wait_s = 0.0
         self.io_s = 0.0
 
@@ -142,7 +146,9 @@ class DriveInterface:
         except (ValueError, OverflowError):  # NaN or infinite: nothing is sent
             status = WriteStatus.OUT_OF_RANGE
         else:
+            t_send = clock.now()
             status = self.master.write_setpoints(target, velocity)
+            self.feedback.send_s = clock.now() - t_send
         self.feedback.write_status = status
         self._sent_s = clock.now()
         self._write_s = self._sent_s - t0

@@ -63,6 +63,7 @@ EXECUTOR_COLUMNS: tuple[Column, ...] = (
     Column("cycle_status", np.int8, (), -1),
     Column("rtt_s", np.float64),  # SYNC sent -> every TPDO1 in (clock), NaN if one was missing
     Column("wait_s", np.float64),  # time the read waited for the answers (transport + drives)
+    Column("send_s", np.float64),  # time the write spent sending its frames (transport)
 )
 
 
@@ -216,6 +217,7 @@ class ControllerManager:
             c_status,
             c_rtt,
             c_wait,
+            c_send,
         ) = self._cols
         slot = self._tel.slot
         c_sync[slot] = fb.sync_count
@@ -234,6 +236,7 @@ class ControllerManager:
         c_status[slot] = fb.status
         c_rtt[slot] = fb.rtt_s
         c_wait[slot] = fb.wait_s
+        c_send[slot] = fb.send_s
         self._s_ref[:] = guard.position_m
         self._q_ref[:] = cmd.q_rad
         controller = self.controller

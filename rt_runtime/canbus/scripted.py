@@ -70,8 +70,9 @@ class ScriptedBus(SimulatedTimeBus):
         self.sent: list[tuple[int, bytes]] = []
         self.channel_info = "scripted"
         super().__init__(channel="scripted")
-        # Nothing to release: mark it shut down so python-can does not warn at collection.
-        self._is_shutdown = True
+        # Nothing to release: python-can's shutdown bookkeeping is done now, so collecting an
+        # unclosed script does not warn (the script itself keeps working).
+        super().shutdown()
 
     def now_s(self) -> float:
         """The script's clock (0.0 without one: then one empty poll is the whole timeout)."""

@@ -74,6 +74,8 @@ _LEN16 = struct.Struct(">H")
 _LEN64 = struct.Struct(">Q")
 _BINARY, _TEXT, _CLOSE, _PING, _PONG = 0x2, 0x1, 0x8, 0x9, 0xA
 _READ_SIZE = 1 << 16
+#: Longest wait of :meth:`BridgeBus.shutdown` for the server's websocket close.
+CLOSE_WAIT_S = 0.5
 
 
 class BridgeError(can.CanOperationError):
@@ -108,10 +110,11 @@ def _xor(payload: bytes | bytearray, key: bytes) -> bytes:
     return (int.from_bytes(payload, "big") ^ int.from_bytes(pad, "big")).to_bytes(n, "big")
 
 
-def _frame_payload(
-    timestamp_s: float, arbitration_id: int, data: bytes | bytearray, flags: int
-) -> bytes:
-    return _FRAME.pack(1, timestamp_s, arbitration_id, len(data), flags) + bytes(data)
+def _frame_payload(msg: can.Message) -> bytes:
+    """A message as python-can-remote's binary frame (the DLC is the message's: a remote frame
+    has one and no data)."""
+    flags = _message_flags(msg)
+    return _FRAME.pack(1, msg.timestamp, msg.arbitration_id, msg.dlc, flags) + bytes(msg.data)
 
 
 def _message_flags(msg: can.Message) -> int:
@@ -462,7 +465,7 @@ class BridgeBus(can.BusABC):
         """
         if self._closed or self._shut:
             raise BridgeError(f"{self.channel_info}: send on a closed bus")
-        payload = _frame_payload(msg.timestamp, msg.arbitration_id, msg.data, _message_flags(msg))
+        payload = _frame_payload(msg)
         try:
             self._sock.sendall(_ws_frame(_BINARY, payload, mask=True))
         except OSError as exc:
@@ -494,10 +497,10 @@ class BridgeBus(can.BusABC):
         rx = self._rx
         for opcode, payload in self._reader.messages():
             if opcode == _BINARY:
-                frame = _decode(payload)
-                if frame is None:
+                if len(payload) < _FRAME.size or payload[0] != 1:
                     continue
-                stamp, arbitration_id, data, flags = frame
+                _, stamp, arbitration_id, dlc, flags = _FRAME.unpack_from(payload)
+                data = payload[_FRAME.size : _FRAME.size + dlc]
                 rx.append(
                     can.Message(
                         timestamp=stamp,
@@ -508,7 +511,7 @@ class BridgeBus(can.BusABC):
                         is_fd=bool(flags & FLAG_FD),
                         bitrate_switch=bool(flags & FLAG_BRS),
                         error_state_indicator=bool(flags & FLAG_ESI),
-                        dlc=len(data),
+                        dlc=dlc,
                         data=data,
                         channel=self.channel_info,
                         is_rx=True,
@@ -526,11 +529,26 @@ class BridgeBus(can.BusABC):
                     raise BridgeError(f"{self.channel_info}: the server says {said}")
 
     def shutdown(self) -> None:
-        """Close the connection (websocket close, then the socket); idempotent."""
+        """Close the connection (websocket close, the server's close awaited for at most
+        :data:`CLOSE_WAIT_S`, then the socket); idempotent."""
         self._shut = True
         if not self._closed:
             self._closed = True
             with contextlib.suppress(OSError):
                 self._sock.sendall(_ws_frame(_CLOSE, _LEN16.pack(1000), mask=True))
+                self._await_close()
         self._sock.close()
         super().shutdown()
+
+    def _await_close(self) -> None:
+        """Read until the server's close (or end of stream), so it closes first (RFC 6455 7)."""
+        deadline = time.monotonic() + CLOSE_WAIT_S
+        while (left := deadline - time.monotonic()) > 0.0:
+            if not select.select([self._sock], [], [], left)[0]:
+                return
+            chunk = self._sock.recv(_READ_SIZE)
+            if not chunk:
+                return
+            self._reader.buf += chunk
+            if any(opcode == _CLOSE for opcode, _ in self._reader.messages()):
+                return

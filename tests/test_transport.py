@@ -104,8 +104,8 @@ def _bridge() -> Pair:
 def pair(request: pytest.FixtureRequest) -> Iterator[Pair]:
     p = _lockstep() if request.param == "lockstep" else _bridge()
     yield p
-    p.bus.shutdown()
     p.far.shutdown()
+    p.bus.shutdown()
 
 
 def _frame(arbitration_id: int, data: bytes, timestamp: float = 0.0) -> can.Message:
@@ -233,3 +233,48 @@ class TestTransport:
         # What was sent before the shutdown still arrives; nothing after it.
         _same(pair.far.recv(1.0), _frame(0x201, b"\x01"))
         assert pair.far.recv(0.05) is None
+
+
+def test_the_bridge_speaks_python_can_remote_protocol() -> None:
+    """The runtime's end against python-can-remote's own server (python-can's ``virtual`` bus
+    behind it): every frame kind both ways, the DLC of a remote frame included."""
+    from can_remote import RemoteServer
+
+    channel = f"contract-{time.monotonic_ns()}"
+    server = RemoteServer(
+        "127.0.0.1", 0, interface="virtual", channel=channel, preserve_timestamps=True
+    )
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    far = can.Bus(interface="virtual", channel=channel)
+    bus = BridgeBus(server.server_port)
+    try:
+        frames = [
+            _frame(0x201, bytes(range(8)), timestamp=123.5),
+            can.Message(arbitration_id=0x1ABCDEF, data=b"\x09", is_extended_id=True),
+            can.Message(arbitration_id=0x200, is_remote_frame=True, dlc=4, is_extended_id=False),
+            can.Message(arbitration_id=0x20000080, is_error_frame=True, data=bytes(8)),
+        ]
+        for msg in frames:
+            bus.send(msg)
+            got = far.recv(2.0)
+            assert got is not None and got.dlc == msg.dlc and got.is_remote_frame == (
+                msg.is_remote_frame
+            )
+            _same_kind = got.is_extended_id == msg.is_extended_id
+            assert _same_kind and got.is_error_frame == msg.is_error_frame
+            assert got.arbitration_id == msg.arbitration_id and got.data == msg.data
+        assert far.recv(0.05) is None
+        for msg in frames:
+            far.send(msg)
+            got = bus.recv(2.0)
+            assert got is not None and got.dlc == msg.dlc
+            assert got.is_remote_frame == msg.is_remote_frame
+            assert got.is_extended_id == msg.is_extended_id
+            assert got.is_error_frame == msg.is_error_frame
+            assert got.arbitration_id == msg.arbitration_id and got.data == msg.data
+        assert frames[0].timestamp == 123.5  # the sender's message is not touched
+    finally:
+        bus.shutdown()
+        far.shutdown()
+        server.shutdown()
+        server.server_close()

@@ -13,7 +13,8 @@ change of machine load hits both:
   end :class:`hil_sim.bridge.BridgeBus`.
 
 It prints, per bridge, the round trip's p50 / p99 in microseconds and the frames per second
-(both directions) over all cycles, and the ratio remote / bridge.
+(both directions) over all cycles, and the ratios (round trip remote / bridge, throughput
+bridge / remote). A far end idle for ``IDLE_LIMIT`` seconds exits by itself.
 
 Usage::
 
@@ -32,6 +33,8 @@ import numpy as np
 
 ANSWERS = (0x181, 0x182, 0x183, 0x281, 0x282, 0x283, 0x1F0)
 REQUESTS = (0x201, 0x202, 0x203)
+#: A far end with nothing to do for this many seconds exits (its parent died).
+IDLE_LIMIT = 10
 
 
 def _far_remote() -> None:
@@ -47,10 +50,13 @@ def _far_remote() -> None:
     bus = can.Bus(interface="virtual", channel="bench")
     print(f"READY {server.server_port}", flush=True)
     payload = bytes(8)
-    while True:
+    idle = 0
+    while idle < IDLE_LIMIT:
         msg = bus.recv(1.0)
         if msg is None:
+            idle += 1
             continue
+        idle = 0
         if msg.arbitration_id == 0x080:
             for cob in ANSWERS:
                 bus.send(can.Message(arbitration_id=cob, data=payload, is_extended_id=False))
@@ -67,8 +73,11 @@ def _far_bridge() -> None:
     print(f"READY {server.port}", flush=True)
     answers = [(cob, bytes(8)) for cob in ANSWERS]
     running = True
-    while running:
-        for _stamp, cob, _data, _flags in server.poll(1.0):
+    idle = 0
+    while running and idle < IDLE_LIMIT:
+        frames = server.poll(1.0)
+        idle = 0 if frames else idle + 1
+        for _stamp, cob, _data, _flags in frames:
             if cob == 0x080:
                 server.send(answers)
             elif cob == 0x000:
@@ -155,8 +164,8 @@ def main() -> None:
         )
     r, b = summary["remote"], summary["bridge"]
     print(
-        f"ratio remote/bridge: p50 {r[0] / b[0]:.2f}x, p99 {r[1] / b[1]:.2f}x, "
-        f"frames/s {b[2] / r[2]:.2f}x"
+        f"round trip remote/bridge: p50 {r[0] / b[0]:.2f}x, p99 {r[1] / b[1]:.2f}x; "
+        f"frames/s bridge/remote {b[2] / r[2]:.2f}x"
     )
 
 

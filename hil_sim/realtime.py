@@ -1,11 +1,11 @@
 """The HIL in real time: its own process, wall clock, the bus bridged over 127.0.0.1 only.
 
 Role: the second transport of DESIGN.md "Loop, HIL and time" (daemon tests, timing). The HIL
-process runs :class:`~hil_sim.sim.HilCore` on python-can's ``virtual`` interface and serves that
-bus with python-can-remote's :class:`can_remote.RemoteServer` bound to ``127.0.0.1`` (never any
-other address; port 0 takes a free one). The runtime connects with python-can's ``remote``
-interface (``can_remote.RemoteBus("ws://127.0.0.1:<port>/")``), a websocket bridge, and drives
-it with :class:`rt_runtime.control.MonotonicClock`.
+process runs :class:`~hil_sim.sim.HilCore` behind a :class:`~hil_sim.bridge.BridgeServer`
+bound to ``127.0.0.1`` (never any other address; port 0 takes a free one), which its loop polls
+itself; the bridge speaks python-can-remote's websocket protocol. The runtime connects with
+:class:`~hil_sim.bridge.BridgeBus` (python-can-remote's ``RemoteBus`` connects as well) and
+drives it with :class:`rt_runtime.control.MonotonicClock`.
 
 Time: the HIL's clock is ``time.monotonic()`` since start. Its loop waits for a frame at most
 ``poll_s`` (0.5 ms), advances drives and plant to the current time in whole servo sub-steps,
@@ -22,8 +22,8 @@ terrain's material as WKB, its loop statistics) and exits, so a test can never l
 
 Scheduling: the process stands in for drive firmware, which a loaded rig PC never stalls, so it
 asks for SCHED_FIFO (``--rt-priority``, default :data:`HIL_RT_PRIORITY` from
-:meth:`RealtimeHilProcess.start`) before it starts any thread, and every thread (bridge, stdin)
-inherits it. It sits below the control loop's priority, waits in ``recv`` between frames
+:meth:`RealtimeHilProcess.start`) before it starts its stdin thread, which inherits it. It
+sits below the control loop's priority, waits in the bridge's poll between frames
 (~10 % of a core at 500 Hz), and where SCHED_FIFO is refused it says so on stderr and runs on.
 
 Run by hand: ``python -m hil_sim.realtime --rig scale_model --q0 0.5 -1.5 -1.0 --port 54701``.
@@ -48,8 +48,8 @@ from typing import Any
 
 import can
 import numpy as np
-from can.interfaces.virtual import VirtualBus
 
+from hil_sim.bridge import FLAG_ERROR, HOST, BridgeBus, BridgeServer
 from hil_sim.sim import COB_SYNC, FaultKind, HilCore, Truth, open_trace
 from hil_sim.terrain import Terrain
 from rt_runtime.control import MonotonicClock
@@ -59,16 +59,12 @@ from rt_runtime.rig import load_rig
 
 __all__ = ["HOST", "RealtimeHilProcess", "main", "serve"]
 
-#: The only address the bridge binds.
-HOST = "127.0.0.1"
 #: SCHED_FIFO priority of the HIL process by default (below the loop's: 80, the daemon's default).
 HIL_RT_PRIORITY = 30
 
 
 def serve(args: argparse.Namespace) -> int:
     """The HIL process: bridge, core, loop (see the module docstring)."""
-    from can_remote import RemoteServer
-
     if args.rt_priority is not None:
         only_fifo = RtSettings(
             sched_fifo_priority=args.rt_priority,
@@ -80,9 +76,6 @@ def serve(args: argparse.Namespace) -> int:
         for item in apply_rt(only_fifo).refused:
             print(f"HIL: SCHED_FIFO {item.requested} refused ({item.reason}); running without",
                   file=sys.stderr)  # fmt: skip
-    # The bridge's threads forward frames; a short switch interval keeps them from waiting
-    # 5 ms (the default) for the loop to give up the interpreter.
-    sys.setswitchinterval(2e-4)
     rig = load_rig(args.rig)
     if args.sync_timeout_ms is not None:
         drives = dataclasses.replace(rig.drives, sync_timeout_s=args.sync_timeout_ms * 1e-3)
@@ -100,16 +93,10 @@ def serve(args: argparse.Namespace) -> int:
     )
     if args.trace:
         core.trace = open_trace(args.trace)
-    channel = f"excavator-hil-rt-{os.getpid()}"
-    bus = VirtualBus(channel=channel)
-    # The bridge keeps each frame's own timestamp (the master stamps its send time) instead of
-    # restamping it when the bridge thread gets to run: on a loaded host that thread runs in
-    # bursts, and restamped SYNCs would reach the drives bunched, as if the master had sent
-    # several periods of motion within a fraction of one (a following error made by the harness).
-    server = RemoteServer(
-        HOST, args.port, interface="virtual", channel=channel, preserve_timestamps=True
-    )
-    threading.Thread(target=server.serve_forever, name="bridge", daemon=True).start()
+    # Frames keep the sender's timestamp (the master stamps its send time): a SYNC is handled
+    # at the moment it was sent, not when this process got to read it, so a stall here does
+    # not reach the drives as SYNCs bunched together (a following error made by the harness).
+    server = BridgeServer(args.port, channel_info=f"excavator-rt HIL {os.getpid()}")
     commands: queue.Queue[str] = queue.Queue()
 
     def read_stdin() -> None:
@@ -118,7 +105,7 @@ def serve(args: argparse.Namespace) -> int:
         commands.put("stop")
 
     threading.Thread(target=read_stdin, name="stdin", daemon=True).start()
-    print(f"READY {server.server_port}", flush=True)
+    print(f"READY {server.port}", flush=True)
 
     t0 = time.monotonic()
     servo = rig.drives.servo_period_s
@@ -128,10 +115,12 @@ def serve(args: argparse.Namespace) -> int:
 
     def send(frames: list[tuple[int, bytes]], now: float) -> None:
         nonlocal sent
+        if not frames:
+            return
         for arbitration_id, data in frames:
             core.log(arbitration_id, data, now, is_rx=False)
-            bus.send(can.Message(arbitration_id=arbitration_id, is_extended_id=False, data=data))
-            sent += 1
+        server.send(frames)
+        sent += len(frames)
 
     send(core.pending_frames(0.0), 0.0)
     # Frames carry the master's send time (time.time(), kept by the bridge); the HIL handles
@@ -142,28 +131,29 @@ def serve(args: argparse.Namespace) -> int:
     gc.freeze()
     running = True
     while running:
-        msg = bus.recv(timeout=args.poll)
-        while msg is not None:
-            now = time.monotonic() - t0
-            # An unstamped frame (a client that does not stamp) arrives now.
-            arrival = min(msg.timestamp - epoch_offset, now) if msg.timestamp > 0.0 else now
-            arrival = max(arrival, t_core)
-            steps = math.floor((arrival - t_core) / servo + 1e-9)
-            if steps > 0:
-                core.advance(steps * servo)
-                t_core += steps * servo
-            if not msg.is_error_frame:
-                data = bytes(msg.data)
-                core.log(msg.arbitration_id, data, arrival, is_rx=True)
-                send(core.on_frame(msg.arbitration_id, data, arrival), arrival)
-                if msg.arbitration_id == COB_SYNC:
+        frames = server.poll(args.poll)
+        while frames:
+            for stamp, arbitration_id, data, flags in frames:
+                now = time.monotonic() - t0
+                # An unstamped frame (a client that does not stamp) arrives now.
+                arrival = min(stamp - epoch_offset, now) if stamp > 0.0 else now
+                arrival = max(arrival, t_core)
+                steps = math.floor((arrival - t_core) / servo + 1e-9)
+                if steps > 0:
+                    core.advance(steps * servo)
+                    t_core += steps * servo
+                if flags & FLAG_ERROR:
+                    continue
+                core.log(arbitration_id, data, arrival, is_rx=True)
+                send(core.on_frame(arbitration_id, data, arrival), arrival)
+                if arbitration_id == COB_SYNC:
                     lateness.append(time.monotonic() - t0 - arrival)
                     # Time supervision at every SYNC, on the bus's clock: a process that has
                     # fallen behind drains a backlog here without ever leaving this loop, and
                     # its nodes must keep producing heartbeats (and judging their watchdogs)
                     # while it catches up, not only once the backlog is gone.
                     send(core.pending_frames(arrival), arrival)
-            msg = bus.recv(timeout=0.0)
+            frames = server.poll(0.0)
         now = time.monotonic() - t0
         steps = math.floor((now - t_core) / servo + 1e-9)
         if steps > 0:
@@ -183,8 +173,7 @@ def serve(args: argparse.Namespace) -> int:
                 running = False
         if now > args.max_wall_s:
             running = False
-    server.shutdown()
-    server.server_close()
+    server.close()
     if core.trace is not None:
         core.trace.stop()
     truth = core.truth()
@@ -199,7 +188,6 @@ def serve(args: argparse.Namespace) -> int:
     if args.out:
         arrays: dict[str, Any] = {**truth.to_npz_dict(), **extra}
         np.savez(args.out, **arrays)
-    bus.shutdown()
     return 0
 
 
@@ -244,19 +232,18 @@ def main(argv: list[str] | None = None) -> int:
 class RealtimeHilProcess:
     """The real-time HIL as a subprocess, and the runtime's bus end connected to it.
 
-    Use :meth:`start`. Attributes ``master_bus`` (a python-can ``remote`` bus on 127.0.0.1) and
-    ``clock`` (:class:`~rt_runtime.control.MonotonicClock`) go to the master and the streamer.
+    Use :meth:`start`. Attributes ``master_bus`` (a :class:`~hil_sim.bridge.BridgeBus` on
+    127.0.0.1) and ``clock`` (:class:`~rt_runtime.control.MonotonicClock`) go to the master and
+    the streamer.
     """
 
     def __init__(self, proc: subprocess.Popen[str], port: int, out: Path, tmp: Any) -> None:
-        from can_remote import RemoteBus
-
         self.proc = proc
         self.port = port
         self._out = out
         self._tmp = tmp
         self.clock = MonotonicClock()
-        self.master_bus: can.BusABC = RemoteBus(f"ws://{HOST}:{port}/")
+        self.master_bus: can.BusABC = BridgeBus(port)
         self._finished: tuple[Truth, Any, list[tuple[int, bytes]], dict[str, Any]] | None = None
 
     @classmethod

@@ -6,8 +6,9 @@ drive nodes (:mod:`hil_sim.drives`) and the VCU model, advances the plant in ser
 records the truth (true strokes, joint angles, tip, machine travel) at every SYNC. Two transports
 drive it:
 
-* :class:`LockstepHil` (here): one process, python-can's ``virtual`` interface. The HIL has its own
-  bus end; the master gets :attr:`LockstepHil.master_bus`, a virtual bus on the same channel that
+* :class:`LockstepHil` (here): one process, an in-process channel
+  (:mod:`rt_runtime.canbus.inprocess`). The HIL has its own bus end; the master gets
+  :attr:`LockstepHil.master_bus`, an end on the same channel that
   hands control to the HIL after every frame it sends (:meth:`LockstepHil.pump`) and whose
   ``recv(timeout)`` with nothing queued advances the simulated clock by ``timeout`` instead of
   waiting. SDO, NMT and heartbeats are answered at once; on each SYNC the HIL answers with the
@@ -30,7 +31,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import queue
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
@@ -39,8 +39,6 @@ from typing import Any
 
 import can
 import numpy as np
-from can.interfaces import virtual
-from can.interfaces.virtual import VirtualBus
 from numpy.typing import NDArray
 
 from firmware_models.drive import DriveFirmware, Frame
@@ -49,6 +47,8 @@ from hil_sim.drives import DriveNode
 from hil_sim.plant import ArmPlant, TipLoad
 from hil_sim.terrain import Terrain
 from rt_runtime import kinematics
+from rt_runtime.canbus.inprocess import ChannelBus, InProcessChannel
+from rt_runtime.canbus.simtime import SimulatedTimeBus
 from rt_runtime.errors import ConfigurationError
 from rt_runtime.rig import Rig
 
@@ -392,93 +392,65 @@ class LockstepClock:
             self._on_advance(t_s)
 
 
-class _CopyingVirtualBus(VirtualBus):
-    """python-can's ``virtual`` bus with a cheap per-receiver copy of each sent frame.
+class LockstepBus(SimulatedTimeBus, ChannelBus):
+    """The master's end of the lockstep bus: an in-process channel end on the simulated clock.
 
-    ``VirtualBus.send`` gives every receiver a ``copy.deepcopy`` of the message (the sender may
-    reuse and repack it: the master does, every cycle). A deep copy of a ``can.Message`` costs
-    ~35 us here, about 15 % of a lockstep HIL run; copying the fields a CAN frame has is the same
-    isolation for a fraction of it. Its receive queue is a C ``queue.SimpleQueue`` instead of
-    the base class's lock-and-condition ``queue.Queue`` (same ``put``/``get`` contract for an
-    unbounded queue, a third of the cost per frame); channels and ``recv`` are the base class's.
+    ``send`` stamps the copy with the simulated time and lets the far end answer at once
+    (``pump``: :meth:`LockstepHil.pump`). ``_recv_internal(timeout)`` never blocks on the wall
+    clock: with nothing queued it advances the simulated clock by ``timeout`` (the HIL's
+    heartbeats and supervision run meanwhile) and returns what arrived, or None; with
+    ``timeout=None`` it advances one period at a time, up to 10 s. python-can's filters apply,
+    measured on the simulated clock (:class:`~rt_runtime.canbus.simtime.SimulatedTimeBus`).
+
+    Args:
+        channel: The in-process channel (the HIL's end is on it).
+        clock: The simulated clock.
+        pump: Called after every send and before every receive: the far end handles what is
+            queued for it.
+        period_s: The step of a ``recv(None)`` wait.
     """
 
-    def __init__(self, channel: str, **kwargs: Any) -> None:
-        super().__init__(channel=channel, **kwargs)
-        fast: queue.SimpleQueue[can.Message] = queue.SimpleQueue()
-        with virtual.channels_lock:
-            self.channel[self.channel.index(self.queue)] = fast  # type: ignore[call-overload]
-            self.queue = fast  # type: ignore[assignment]
+    def __init__(
+        self,
+        channel: InProcessChannel,
+        clock: LockstepClock,
+        pump: Callable[[], None],
+        period_s: float,
+    ) -> None:
+        super().__init__(channel, clock=clock.now)
+        self.sim_clock = clock
+        self._pump = pump
+        self._period_s = period_s
+
+    def now_s(self) -> float:
+        """The simulated clock (s)."""
+        return self.sim_clock.now()
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        self._check_if_open()
-        timestamp = msg.timestamp if self.preserve_timestamps else 0.0
-        for bus_queue in self.channel:
-            if bus_queue is self.queue and not self.receive_own_messages:
-                continue
-            bus_queue.put(
-                can.Message(
-                    timestamp=timestamp,
-                    arbitration_id=msg.arbitration_id,
-                    is_extended_id=msg.is_extended_id,
-                    is_remote_frame=msg.is_remote_frame,
-                    is_error_frame=msg.is_error_frame,
-                    channel=self.channel_id,
-                    dlc=msg.dlc,
-                    data=bytes(msg.data),
-                    is_fd=msg.is_fd,
-                    is_rx=bus_queue is not self.queue,
-                    check=False,
-                ),
-                block=True,
-                timeout=timeout,
-            )
-
-
-class LockstepBus(_CopyingVirtualBus):
-    """The master's end of the lockstep bus: a virtual bus that lets the HIL run after each send.
-
-    ``recv(timeout)`` never blocks on the wall clock: with nothing queued it advances the
-    simulated clock by ``timeout`` (the HIL's heartbeats and supervision run meanwhile) and
-    returns what arrived, or None. ``recv(None)`` advances one period at a time, up to 10 s.
-    """
-
-    def __init__(self, channel: str, hil: LockstepHil) -> None:
-        super().__init__(channel=channel, preserve_timestamps=True)
-        self._hil = hil
-
-    def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        msg.timestamp = self._hil.clock.now()
         super().send(msg, timeout)
-        self._hil.pump()
+        self._pump()
 
-    def _take(self) -> can.Message | None:
-        try:
-            return self.queue.get_nowait()
-        except Exception:  # queue.Empty
-            return None
-
-    def recv(self, timeout: float | None = None) -> can.Message | None:
-        self._hil.pump()
-        msg = self._take()
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        self._pump()
+        msg = self.take()
         if msg is not None:
-            return msg
-        clock = self._hil.clock
+            return msg, False
+        clock = self.sim_clock
         if timeout is None:
-            for _ in range(round(10.0 / self._hil.core.period_s)):
-                clock.sleep_until(clock.now() + self._hil.core.period_s)
-                msg = self._take()
+            period_s = self._period_s
+            for _ in range(round(10.0 / period_s)):
+                clock.sleep_until(clock.now() + period_s)
+                msg = self.take()
                 if msg is not None:
-                    return msg
-            return None
-        if timeout > 0.0:
+                    break
+        elif timeout > 0.0:
             clock.sleep_until(clock.now() + timeout)
-            return self._take()
-        return None
+            msg = self.take()
+        return msg, False
 
 
 class LockstepHil:
-    """The HIL in lockstep over python-can's ``virtual`` interface (one process, deterministic).
+    """The HIL in lockstep over an in-process channel (one process, deterministic).
 
     Args:
         rig, q0_rad, terrain, period_s, vcu, keep_frames: As :class:`HilCore`.
@@ -487,6 +459,7 @@ class LockstepHil:
     Attributes:
         core: The HIL.
         clock: The simulated clock; give ``clock.now`` to the master and the clock to the loop.
+        channel: The in-process channel (open another end on it to watch the bus).
         master_bus: The bus end for the master.
     """
 
@@ -507,9 +480,9 @@ class LockstepHil:
         if trace_path is not None:
             self.core.trace = open_trace(trace_path)
         self.clock = LockstepClock(self._on_time)
-        channel = f"excavator-hil-lockstep-{next(_channel_numbers)}"
-        self._bus = _CopyingVirtualBus(channel=channel, preserve_timestamps=True)
-        self.master_bus = LockstepBus(channel, self)
+        self.channel = InProcessChannel(f"excavator-hil-lockstep-{next(_channel_numbers)}")
+        self._bus = ChannelBus(self.channel, clock=self.clock.now)
+        self.master_bus = LockstepBus(self.channel, self.clock, self.pump, period_s)
         self._pumping = False
         self._send(self.core.pending_frames(0.0))  # power-on boot-up messages
 
@@ -517,11 +490,7 @@ class LockstepHil:
         now = self.clock.now()
         for arbitration_id, data in frames:
             self.core.log(arbitration_id, data, now, is_rx=False)
-            self._bus.send(
-                can.Message(
-                    timestamp=now, arbitration_id=arbitration_id, is_extended_id=False, data=data
-                )
-            )
+            self._bus.send_data(arbitration_id, data)
 
     def pump(self) -> None:
         """Handle every frame queued at the HIL's end, at the current simulated time."""
@@ -531,9 +500,8 @@ class LockstepHil:
         try:
             core = self.core
             while True:
-                try:
-                    msg = self._bus.queue.get_nowait()
-                except Exception:  # queue.Empty
+                msg = self._bus.take()
+                if msg is None:
                     break
                 now = self.clock.now()
                 data = bytes(msg.data)

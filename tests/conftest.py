@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
+import can
 import numpy as np
 import pytest
 
+from rt_runtime.canbus import CanMaster
 from rt_runtime.control.guard import (
     StrokeLimits,
     TraceCheck,
@@ -18,7 +23,8 @@ from rt_runtime.planning.trench import TrenchPlanner, TrenchSession, load_task
 from rt_runtime.rig import Rig
 
 if TYPE_CHECKING:
-    from hil_sim.sim import FaultKind
+    from hil_sim.sim import FaultKind, Truth
+    from rt_runtime.control.executor import ExecutorResult
     from rt_runtime.planning.pinn import PinnPlanner
 
 
@@ -63,6 +69,144 @@ def fault_on_cycle(
             injected.append(now_s)
 
     return on_cycle, injected
+
+
+@dataclass
+class FaultRun:
+    """One executor run on a transport (see :func:`run_on_lockstep`, :func:`run_on_bridge`).
+
+    Attributes:
+        result: The executor's result.
+        master: The master after the run.
+        injected: Simulated or monotonic time of the injection (empty: not injected).
+        frames: Every frame of the bus ``(id, data)`` in bus order, as the HIL saw it.
+        rest_rate_m_s: The plant's true stroke rates at the end ``(3,)``.
+        truth: The HIL's truth (the plant at every SYNC).
+        extra: The transport's own report keys (the bridge's HIL process statistics).
+    """
+
+    result: ExecutorResult
+    master: CanMaster
+    injected: list[float]
+    frames: list[tuple[int, bytes]]
+    rest_rate_m_s: np.ndarray
+    truth: Truth
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+#: The bridge's HIL process stops by itself after this long even if a test dies.
+BRIDGE_MAX_WALL_S = 60.0
+#: The bridge runs on a shared test machine with a HIL process that is not real time: the
+#: drives' SYNC/RPDO watchdog and the heartbeat timeouts (both ways) widened to 0.5 s, the
+#: executor's stale-feedback limit to 100 cycles and the overrun policy to 50 in a row (the
+#: rig's values are for a rig PC with SCHED_FIFO). The contract under test is the protocol and
+#: the executor's reactions, not this machine's scheduling.
+BRIDGE_PATIENCE_S = 0.5
+
+
+def run_on_lockstep(
+    rig: Rig,
+    pending: tuple[TrenchPlanner, Any, dict[str, Any]],
+    fault: tuple[FaultKind, int, float] | None = None,
+    trace: Path | None = None,
+) -> FaultRun:
+    """The pending dig from its entry on the lockstep HIL, ``fault`` injected at a time after
+    the first cycle; the rig's own timeouts."""
+    from hil_sim.scenario import NO_RT
+    from hil_sim.sim import LockstepHil
+    from rt_runtime.control import FixedRateLoop, LoopConfig
+    from rt_runtime.control.executor import Executor, ExecutorConfig, executor_telemetry
+
+    session, q0 = restore_pending(*pending)
+    with LockstepHil(rig, q0, keep_frames=True, trace_path=trace) as hil:
+        master = CanMaster(hil.master_bus, rig, period_s=0.002, react_to_faults=False)
+        master.boot(hil.clock.now, 1.0)
+        master.enable(hil.clock.now, 1.0)
+        on_cycle, injected = fault_on_cycle(hil, fault)
+        loop = FixedRateLoop(hil.clock, LoopConfig(rt=NO_RT), executor_telemetry(20_000))
+        config = ExecutorConfig(max_digs=1)
+        result = Executor(master, rig, loop, session, config, on_cycle=on_cycle).run()
+        return FaultRun(
+            result,
+            master,
+            injected,
+            list(hil.core.frames),
+            np.array(hil.core.plant.stroke_rate_m_s, dtype=np.float64),
+            hil.core.truth(),
+        )
+
+
+def patient(rig: Rig) -> Rig:
+    """The rig with the bridge's heartbeat timeout both ways (:data:`BRIDGE_PATIENCE_S`)."""
+    drives = dataclasses.replace(rig.drives, heartbeat_timeout_s=BRIDGE_PATIENCE_S)
+    return dataclasses.replace(rig, drives=drives)
+
+
+def run_on_bridge(
+    rig: Rig,
+    pending: tuple[TrenchPlanner, Any, dict[str, Any]],
+    fault: tuple[FaultKind, int, float] | None = None,
+    trace: Path | None = None,
+    *,
+    rig_name: str = "scale_model",
+) -> FaultRun:
+    """The pending dig from its entry on the real-time HIL in its own process over the
+    127.0.0.1 bridge, on the wall clock, with the bridge's patience (:data:`BRIDGE_PATIENCE_S`);
+    plans in the executor's planner process when there is no fault. ``trace`` (``.blf``) is
+    written by the HIL process and always kept for :attr:`FaultRun.frames`."""
+    import tempfile
+
+    from hil_sim.realtime import RealtimeHilProcess
+    from hil_sim.scenario import NO_RT
+    from rt_runtime.control import (
+        FixedRateLoop,
+        LoopConfig,
+        OverrunPolicy,
+        RtSettings,
+        apply_rt,
+        restore_rt,
+    )
+    from rt_runtime.control.executor import Executor, ExecutorConfig, executor_telemetry
+
+    session, q0 = restore_pending(*pending)
+    with tempfile.TemporaryDirectory(prefix="excavator-bridge-") as tmp:
+        trace_path = trace if trace is not None else Path(tmp) / "bus.blf"
+        hil = RealtimeHilProcess.start(
+            rig_name=rig_name,
+            q0_rad=q0,
+            max_wall_s=BRIDGE_MAX_WALL_S,
+            sync_timeout_s=BRIDGE_PATIENCE_S,
+            trace_path=trace_path,
+        )
+        try:
+            master = CanMaster(hil.master_bus, patient(rig), period_s=0.002, react_to_faults=False)
+            on_cycle, injected = fault_on_cycle(hil, fault)
+            config = ExecutorConfig(max_digs=1, plan_in_worker=fault is None, stale_cycles=100)
+            loop = FixedRateLoop(
+                hil.clock,
+                LoopConfig(rt=NO_RT, overrun=OverrunPolicy(max_consecutive=50)),
+                executor_telemetry(30_000),
+            )
+            # As the product does: executor (planner process) first, RT settings before boot
+            # (not between enable and the first cycle), then boot, enable, run.
+            executor = Executor(master, rig, loop, session, config, on_cycle=on_cycle)
+            report = apply_rt(RtSettings())
+            try:
+                master.boot(hil.clock.now, 2.0)
+                master.enable(hil.clock.now, 2.0)
+                result = executor.run()
+            finally:
+                executor.close()
+                restore_rt(report)
+            truth, _, _, extra = hil.finish()
+        finally:
+            hil.close()
+        extra = {**extra, "rt": report.as_dict()}
+        frames = [(m.arbitration_id, bytes(m.data)) for m in can.BLFReader(str(trace_path))]
+    # The true rates at the end: the last two SYNCs' true strokes (the process's truth).
+    dt = np.diff(truth.t_s[-2:])
+    rate = np.diff(truth.stroke_m[-2:], axis=0)[0] / dt[0] if dt.size and dt[0] > 0 else np.zeros(3)
+    return FaultRun(result, master, injected, frames, rate, truth, extra)
 
 
 def rpdo1_limit_check(rig: Rig, frames: Iterable[tuple[int, bytes]]) -> TraceCheck:

@@ -36,6 +36,7 @@ from rt_runtime.canbus.master import (
 )
 from rt_runtime.canbus.scripted import RX, TX, ScriptClock, ScriptedBus, Step
 from rt_runtime.canbus.sdo import SdoAbortedError
+from rt_runtime.canbus.simtime import SimulatedTimeBus
 from rt_runtime.errors import CommunicationError, ConfigurationError, DriveFault
 from rt_runtime.rig import Rig, load_rig
 
@@ -500,7 +501,7 @@ def test_boot_against_canopen_slaves_on_a_virtual_bus(rig: Rig) -> None:
         bus.shutdown()
 
 
-class _FirmwareBus(can.BusABC):
+class _FirmwareBus(SimulatedTimeBus):
     """Helper B's drive firmware models on an in-process bus, with a stand-in plant.
 
     Lockstep: a SYNC advances simulated time by one period in servo sub-steps; an empty
@@ -523,7 +524,6 @@ class _FirmwareBus(can.BusABC):
         self.sent: list[tuple[int, bytes]] = []
         self.channel_info = "firmware"
         super().__init__(channel="firmware")
-        self._is_shutdown = True
 
     def _advance(self, dt_s: float) -> None:
         for _ in range(max(1, round(dt_s / self.sub_s))):
@@ -543,24 +543,25 @@ class _FirmwareBus(can.BusABC):
         for fw in self.fw:
             self.queue += fw.on_frame(msg.arbitration_id, bytes(msg.data), self.clock())
 
-    def recv(self, timeout: float | None = None) -> can.Message | None:
+    def now_s(self) -> float:
+        return self.clock()
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if not self.queue and timeout:
             self._advance(timeout)
         if not self.queue:
-            return None
+            return None, False
         can_id, data = self.queue.pop(0)
-        return can.Message(arbitration_id=can_id, data=data, is_extended_id=False)
-
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        return self.recv(timeout), True
+        return can.Message(arbitration_id=can_id, data=data, is_extended_id=False), False
 
 
-def test_against_the_drive_firmware_model(rig: Rig) -> None:
+def test_against_the_drive_firmware_model(rig: Rig, request: pytest.FixtureRequest) -> None:
     """Boot, enable, a ramp, then a following-error fault on the stick stops every axis."""
     clock = ScriptClock()
     _, hi_m = stroke_limits(rig)
     start_m = [float(x) / 2 for x in hi_m]
     bus = _FirmwareBus(rig, clock, start_m)
+    request.addfinalizer(bus.shutdown)
     master = CanMaster(bus, rig)
     master.boot(clock, timeout_s=1.0)
     master.enable(clock, timeout_s=1.0)

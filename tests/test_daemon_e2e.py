@@ -1,8 +1,8 @@
 """End to end: ``excavator-rtd`` in its own process against the real-time HIL in another.
 
-The HIL process serves its bus on 127.0.0.1 (python-can-remote); the daemon is started as a
-subprocess with a fake ``NOTIFY_SOCKET`` (a unix datagram socket bound here) and a configuration
-whose bus is ``remote`` to that port. The test
+The HIL process serves its bus on 127.0.0.1 (python-can-remote's protocol); the daemon is started
+as a subprocess with a fake ``NOTIFY_SOCKET`` (a unix datagram socket bound here) and a
+configuration whose bus is python-can's ``remote`` interface to that port. The test
 
 1. waits for READY=1, submits a job (Yao's task A, stopped after ``MAX_DIGS`` digs so the run stays
    short) through the control socket; the job runs;
@@ -51,13 +51,14 @@ import pytest
 from hil_sim.realtime import RealtimeHilProcess
 from rt_runtime.canbus.cia402 import DriveState, decode_state
 from rt_runtime.canbus.pdo import RPDO1, RPDO2, TPDO2
+from rt_runtime.canbus.traced import TracedBus
 from rt_runtime.control.guard import StrokeLimits
 from rt_runtime.errors import CommunicationError
 from rt_runtime.planning.trench import TrenchPlanner
 from rt_runtime.rig import Rig, load_rig
 from rt_runtime.rig.loader import PROFILE_DIR
 from rt_runtime.service.control import request
-from rt_runtime.service.daemon import TracedBus, TraceRecorder
+from rt_runtime.service.daemon import TraceRecorder
 from rt_runtime.service.jobstore import read_store
 
 RIG = "scale_model"

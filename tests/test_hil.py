@@ -1,12 +1,11 @@
-"""Lockstep HIL on the executor: tracking on a real dig, determinism, faults, decodable traces.
+"""Lockstep HIL on the executor: tracking on a real dig, determinism, decodable traces.
 
-Everything runs over python-can's ``virtual`` interface in one process on simulated time, the
-executor (fixed-rate loop, limit guard, monitors) driving the drives through the master. The
-trace check decodes every frame independently of the product's codecs: PDOs and SDOs from the
-EDS through canopen's object dictionary, VCU frames from the DBC through cantools. Fault runs
-start at the entry of a planned dig (a session restored with the dig pending) and inject the
-fault while it runs: the executor stops every other axis with the guard's jerk-limited stop,
-checked on the RPDO1 frames of the trace.
+Everything runs over the lockstep HIL's in-process channel in one process on simulated time,
+the executor (fixed-rate loop, limit guard, monitors) driving the drives through the master.
+The trace check decodes every frame independently of the product's codecs: PDOs and SDOs from
+the EDS through canopen's object dictionary, VCU frames from the DBC through cantools, also for
+the trace of a fault run (the fault runs' own checks are in ``test_faults.py``, on both
+transports).
 """
 
 from __future__ import annotations
@@ -21,22 +20,12 @@ import cantools
 import numpy as np
 import pytest
 from canopen.objectdictionary import ODVariable, import_od
-from conftest import fault_on_cycle, restore_pending, rpdo1_limit_check
+from conftest import rpdo1_limit_check, run_on_lockstep
 
 from firmware_models import CIA402_DRIVE_EDS, VCU_DBC, VCU_DBC_NODE_ID
-from hil_sim.scenario import NO_RT, Scenario, run_scenario
-from hil_sim.sim import FaultKind, LockstepHil
-from rt_runtime.canbus import CanMaster, CycleStatus, DriveState
-from rt_runtime.control import FixedRateLoop, LoopConfig
-from rt_runtime.control.executor import (
-    ExecStatus,
-    Executor,
-    ExecutorConfig,
-    ExecutorResult,
-    executor_telemetry,
-)
-from rt_runtime.control.guard import StrokeLimits
-from rt_runtime.planning.trench import TrenchPlanner
+from hil_sim.scenario import Scenario, run_scenario
+from hil_sim.sim import FaultKind
+from rt_runtime.control.executor import ExecStatus
 from rt_runtime.rig import Rig, load_rig
 
 AXES = ("boom", "stick", "bucket")
@@ -90,93 +79,6 @@ def test_the_whole_run_commands_within_the_limits(one_dig: dict[str, Any], rig: 
     check = rpdo1_limit_check(rig, one_dig["_frames"])
     assert check.frames > 5000
     assert check.ok, check
-
-
-# -- faults ------------------------------------------------------------------------------------
-
-
-def _short_run(
-    rig: Rig,
-    pending: tuple[TrenchPlanner, Any, dict[str, Any]],
-    fault: tuple[FaultKind, int, float] | None = None,
-    trace: Path | None = None,
-) -> tuple[LockstepHil, CanMaster, ExecutorResult, list[float]]:
-    """The pending dig from its entry, a fault injected at a time after the first cycle."""
-    session, q0 = restore_pending(*pending)
-    hil = LockstepHil(rig, q0, keep_frames=True, trace_path=trace)
-    master = CanMaster(hil.master_bus, rig, period_s=0.002, react_to_faults=False)
-    master.boot(hil.clock.now, 1.0)
-    master.enable(hil.clock.now, 1.0)
-    on_cycle, injected = fault_on_cycle(hil, fault)
-    loop = FixedRateLoop(hil.clock, LoopConfig(rt=NO_RT), executor_telemetry(20_000))
-    executor = Executor(master, rig, loop, session, ExecutorConfig(max_digs=1), on_cycle=on_cycle)
-    result = executor.run()
-    return hil, master, result, injected
-
-
-def _assert_others_stopped(hil: LockstepHil, rig: Rig, res: ExecutorResult, faulty: int) -> None:
-    assert res.status is ExecStatus.FAULT, res.fault
-    tel = res.telemetry
-    assert not tel["tracking"][-1]
-    rates = hil.core.plant.stroke_rate_m_s
-    check = rpdo1_limit_check(rig, hil.core.frames)
-    for axis in range(3):
-        # Every frame, for every axis (the faulted drive ignores them), within the limits.
-        assert check.velocity[axis] <= 1.0 and check.acceleration[axis] <= 1.0, check
-        assert check.jerk[axis] <= 1.0, check
-        if axis == faulty:
-            continue
-        # The guard's stop ran to its end: still enabled, at rest (< 1 mm/s).
-        assert tel["drive_state"][-1, axis] == DriveState.OPERATION_ENABLED, tel["drive_state"][-1]
-        assert abs(rates[axis]) < 1e-3, (axis, rates)
-    # A jerk-limited stop from the streamed speed: no longer than the guard's stop time.
-    v_max, a_max, j_max = StrokeLimits.from_rig(rig).as_arrays()
-    stop_cycles = int(np.count_nonzero(tel["phase"] == 8))
-    assert stop_cycles * 0.002 <= float(np.max(v_max / a_max + 2 * a_max / j_max)) + 0.3
-
-
-def test_following_error_reaches_the_master_and_the_others_stop(rig: Rig, pending: Any) -> None:
-    stick = 1
-    hil, master, res, injected = _short_run(rig, pending, (FaultKind.FOLLOWING_ERROR, stick, 0.6))
-    assert injected
-    # The executor's own following-error monitor trips first, the drive's check (0x8611)
-    # follows while the guard's stop still moves the demand.
-    assert "following error on the stick axis" in res.fault
-    tel = res.telemetry
-    codes = {(e.node_id, int(e.code)) for e in res.emcys}
-    assert (2, 0x8611) in codes
-    assert (tel["drive_state"][:, stick] == DriveState.FAULT).any()
-    assert CycleStatus.DRIVE_FAULT in tel["cycle_status"].tolist()
-    assert master.feedback.error_code[stick] == 0x8611
-    _assert_others_stopped(hil, rig, res, stick)
-    hil.close()
-
-
-def test_master_heartbeat_loss_faults_the_drive_and_the_others_stop(rig: Rig, pending: Any) -> None:
-    bucket = 2
-    hil, _master, res, injected = _short_run(rig, pending, (FaultKind.HEARTBEAT_LOSS, bucket, 0.5))
-    assert injected
-    codes = {(e.node_id, int(e.code)) for e in res.emcys}
-    assert (3, 0x8130) in codes
-    tel = res.telemetry
-    assert (tel["drive_state"][:, bucket] == DriveState.FAULT).any()
-    # Detected within the consumer timeout (150 ms) and a heartbeat period.
-    first_fault = int(np.argmax(tel["cycle_status"] >= CycleStatus.EMCY))
-    assert first_fault * 0.002 - 0.5 <= rig.drives.heartbeat_timeout_s + 0.01
-    _assert_others_stopped(hil, rig, res, bucket)
-    hil.close()
-
-
-def test_a_silent_drive_is_lost_by_the_master_and_the_others_stop(rig: Rig, pending: Any) -> None:
-    boom = 0
-    hil, master, res, injected = _short_run(rig, pending, (FaultKind.NODE_SILENT, boom, 0.5))
-    assert injected
-    tel = res.telemetry
-    assert CycleStatus.HEARTBEAT_LOST in tel["cycle_status"].tolist()
-    assert master.feedback.heartbeat_lost[boom]
-    assert np.isnan(tel["stroke_fb_m"][-1, boom])
-    _assert_others_stopped(hil, rig, res, boom)
-    hil.close()
 
 
 # -- traces ------------------------------------------------------------------------------------
@@ -294,9 +196,8 @@ def test_blf_trace_of_a_fault_reads_back_and_decodes(
     rig: Rig, pending: Any, tmp_path: Path
 ) -> None:
     path = tmp_path / "fault.blf"
-    hil, _, res, _ = _short_run(rig, pending, (FaultKind.FOLLOWING_ERROR, 1, 0.6), trace=path)
-    frames = list(hil.core.frames)
-    hil.close()
+    run = run_on_lockstep(rig, pending, (FaultKind.FOLLOWING_ERROR, 1, 0.6), trace=path)
+    frames, res = run.frames, run.result
     messages = _read_trace(path)
     assert [(m.arbitration_id, bytes(m.data)) for m in messages] == frames
     times = [m.timestamp for m in messages]

@@ -15,10 +15,18 @@ One module per protocol service (DESIGN.md "CAN protocol", STYLE.md after canope
 ``scripted``   test equipment: ``ScriptedBus`` plays (TX, id, bytes) / (RX, id, bytes) exchanges
 =============  ==================================================================================
 
-Nothing here reads a clock: boot and enable take ``now_fn`` (monotonic or simulated seconds),
-the cycle takes ``now_s``. Nothing here starts a thread: the master is the bus's only reader,
-and hands every frame that is not its drives' to ``CanMaster(..., on_other_frame=callback)``
-(the VCU client's status decoding, for one).
+Buses (python-can backends: ``send`` and ``_recv_internal``, nothing private of python-can):
+
+=============  ==================================================================================
+``simtime``    ``SimulatedTimeBus``: python-can's receive policy on a bus's own (simulated) clock
+``inprocess``  ``InProcessChannel`` / ``ChannelBus``: one bus in one process, copy on send
+``traced``     ``TracedBus``: any bus, every frame sent and received handed to a trace writer
+=============  ==================================================================================
+
+The protocol modules read no clock: boot and enable take ``now_fn`` (monotonic or simulated
+seconds), the cycle takes ``now_s``. Nothing here starts a thread: the master is the bus's only
+reader, and hands every frame that is not its drives' to
+``CanMaster(..., on_other_frame=callback)`` (the VCU client's status decoding, for one).
 
 API for the executor and the HIL streamer
 -----------------------------------------

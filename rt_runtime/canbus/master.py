@@ -566,8 +566,8 @@ class CanMaster:
     def _tx(self, msg: can.Message) -> None:
         """Send one frame stamped with its send time (``time.time()``, the epoch clock python-can
         stamps received frames with). A bus that transmits at once ignores the stamp; a
-        bridged bus (python-can-remote into the HIL) carries it, so the far end can take the
-        moment the frame entered the bus instead of when its bridge thread got to run.
+        bridged bus (the 127.0.0.1 bridge into the HIL) carries it, so the far end can take the
+        moment the frame entered the bus instead of when it got to read it.
         """
         msg.timestamp = time.time()
         self.bus.send(msg)

@@ -8,7 +8,9 @@ the attached :class:`ScriptClock` by ``timeout``, so timeouts happen in simulate
 deterministically and without waiting. Any mismatch raises :class:`ScriptMismatch` (an
 ``AssertionError``) from ``send``, naming the step.
 
-It is a real ``can.BusABC`` subclass, so it exercises the same code paths as any backend.
+It is a real ``can.BusABC`` backend (``send`` and ``_recv_internal``; python-can's receive
+policy on the script's clock, :class:`~rt_runtime.canbus.simtime.SimulatedTimeBus`), so it
+exercises the same code paths as any backend.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ from collections.abc import Iterable
 from typing import Literal
 
 import can
+
+from rt_runtime.canbus.simtime import SimulatedTimeBus
 
 __all__ = ["RX", "TX", "ScriptClock", "ScriptMismatch", "ScriptedBus", "Step"]
 
@@ -51,7 +55,7 @@ def _fmt(step: Step) -> str:
     return f"{step[0]} 0x{step[1]:03X} [{step[2].hex(' ')}]"
 
 
-class ScriptedBus(can.BusABC):
+class ScriptedBus(SimulatedTimeBus):
     """Plays ``script``; see the module docstring.
 
     Args:
@@ -66,8 +70,13 @@ class ScriptedBus(can.BusABC):
         self.sent: list[tuple[int, bytes]] = []
         self.channel_info = "scripted"
         super().__init__(channel="scripted")
-        # Nothing to release: mark it shut down so python-can does not warn at collection.
-        self._is_shutdown = True
+        # Nothing to release: python-can's shutdown bookkeeping is done now, so collecting an
+        # unclosed script does not warn (the script itself keeps working).
+        super().shutdown()
+
+    def now_s(self) -> float:
+        """The script's clock (0.0 without one: then one empty poll is the whole timeout)."""
+        return self.clock.now_s if self.clock is not None else 0.0
 
     def extend(self, steps: Iterable[Step]) -> None:
         """Append steps to the script."""
@@ -112,8 +121,3 @@ class ScriptedBus(can.BusABC):
             self.clock.advance(timeout)
         return None, False
 
-    def recv(self, timeout: float | None = None) -> can.Message | None:
-        # BusABC.recv retries until wall-clock time has passed the timeout; here time is the
-        # script's, so one empty poll is the whole timeout.
-        msg, _ = self._recv_internal(timeout)
-        return msg

@@ -62,6 +62,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import can
 
+from rt_runtime.canbus.traced import TracedBus
 from rt_runtime.errors import (
     CommunicationError,
     ConfigurationError,
@@ -290,45 +291,6 @@ class TraceRecorder:
         self.queue.put(None)
         self._thread.join(timeout_s)
         self.active = False
-
-
-class TracedBus(can.BusABC):
-    """A python-can bus that hands every frame sent and received to a :class:`TraceRecorder`.
-
-    The master reuses its message objects, so a sent frame is copied as ``(time, id, bytes)``
-    at send time; received messages are fresh objects and are queued as they are.
-
-    Args:
-        bus: The real bus (closed by :meth:`shutdown`).
-        recorder: Where frames go (only while ``recorder.active``).
-    """
-
-    def __init__(self, bus: can.BusABC, recorder: TraceRecorder) -> None:
-        self._bus = bus
-        self._recorder = recorder
-        self.channel_info = f"traced {getattr(bus, 'channel_info', '')}"
-        super().__init__(channel=str(getattr(bus, "channel", "") or "traced"))
-
-    def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        """Send through the real bus, then record (a refused frame is not recorded)."""
-        self._bus.send(msg, timeout)
-        if self._recorder.active:
-            self._recorder.queue.put((time.time(), msg.arbitration_id, bytes(msg.data), False))
-
-    def recv(self, timeout: float | None = None) -> can.Message | None:
-        """Receive from the real bus and record."""
-        msg = self._bus.recv(timeout)
-        if msg is not None and self._recorder.active:
-            self._recorder.queue.put(msg)
-        return msg
-
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        return self._bus.recv(timeout), True
-
-    def shutdown(self) -> None:
-        """Shut the real bus down."""
-        self._bus.shutdown()
-        super().shutdown()
 
 
 # -- the runner ---------------------------------------------------------------------------------

@@ -204,7 +204,7 @@ def _open_hil(
     sc: Scenario | PathScenario, rig: Rig, q0: FloatArray, terrain: Terrain | None
 ) -> _Hil:
     if sc.realtime:
-        from hil_sim.realtime import RealtimeHilProcess
+        from hil_sim.harness.realtime import RealtimeHilProcess
 
         return RealtimeHilProcess.start(
             rig_name=sc.rig,

@@ -15,8 +15,8 @@ drive it:
   sub-steps. Time-triggered frames (heartbeats, emergencies) go out whenever the simulated clock
   moves (:class:`LockstepClock`). Single-threaded and free of wall-clock reads, so two runs give
   identical traces.
-* :mod:`hil_sim.realtime`: the same core in its own process at wall-clock speed, bridged over
-  127.0.0.1.
+* :mod:`hil_sim.harness.realtime`: the same core in its own process at wall-clock speed,
+  bridged over 127.0.0.1.
 
 Frames of the whole bus can be written as a BLF or ASC trace with python-can's loggers
 (``trace_path``); timestamps are the HIL's clock (simulated seconds in lockstep).

@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 from conftest import fault_on_cycle, restore_pending
 
-from hil_sim.realtime import RealtimeHilProcess
+from hil_sim.harness.realtime import RealtimeHilProcess
 from hil_sim.scenario import NO_RT
 from hil_sim.sim import FaultKind
 from rt_runtime.canbus import CanMaster, CycleStatus, DriveState

@@ -187,8 +187,9 @@ def summary_text(report: dict[str, Any], run_dir: Path) -> str:
             "(plant truth)"
         )
     lines.append(
-        f"  worst tracking      max {_worst(report, 'max_mm'):.3f} mm (goal 1.0){mark('tracking_max_mm')}"
-        f", RMS {_worst(report, 'rms_mm'):.4f} mm (goal 0.3){mark('tracking_rms_mm')}"
+        f"  worst tracking      max {_worst(report, 'max_mm'):.3f} mm (goal 1.0)"
+        f"{mark('tracking_max_mm')}, RMS {_worst(report, 'rms_mm'):.4f} mm (goal 0.3)"
+        f"{mark('tracking_rms_mm')}"
     )
     if "coverage_error" in report:
         lines.append(
@@ -202,7 +203,9 @@ def summary_text(report: dict[str, Any], run_dir: Path) -> str:
     lines.append(f"  energy              {report.get('energy_Wh', math.nan):.3f} Wh")
     load = report.get("can", {}).get("bus_load")
     if load:
-        lines.append(f"  CAN bus load        {load['nominal']:.1%} nominal, {load['worst_case']:.1%} worst")
+        lines.append(
+            f"  CAN bus load        {load['nominal']:.1%} nominal, {load['worst_case']:.1%} worst"
+        )
     lines.append(f"  overruns            {report.get('overruns', 0)}")
     lines.append(
         f"  wall time           {demo.get('run_s', math.nan):.1f} s run (goal 60 s)"

@@ -19,7 +19,7 @@ repeat. Numbers depend on the machine and its load; compare runs on the same mac
 
 Usage::
 
-    .venv/bin/python benchmarks/hil_step.py [--digs N] [--repeats R] [--cpu]
+    .venv/bin/python -m hil_sim.harness.bench [--digs N] [--repeats R] [--cpu]
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ PERIOD_S = 2e-3
 #: The demo's rig; the held-out digs replayed are planned for it.
 RIG = "scale_model"
 COB_NMT = 0x000
-HELDOUT = Path(__file__).resolve().parent.parent / "onnx" / "pinn_downward_heldout.npz"
+HELDOUT = Path(__file__).resolve().parents[2] / "onnx" / "pinn_downward_heldout.npz"
 
 
 def _reference(rig: Rig, dig: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:

@@ -26,7 +26,8 @@ asks for SCHED_FIFO (``--rt-priority``, default :data:`HIL_RT_PRIORITY` from
 inherits it. It sits below the control loop's priority, waits in ``recv`` between frames
 (~10 % of a core at 500 Hz), and where SCHED_FIFO is refused it says so on stderr and runs on.
 
-Run by hand: ``python -m hil_sim.realtime --rig scale_model --q0 0.5 -1.5 -1.0 --port 54701``.
+Run by hand:
+``python -m hil_sim.harness.realtime --rig scale_model --q0 0.5 -1.5 -1.0 --port 54701``.
 """
 
 from __future__ import annotations
@@ -204,7 +205,9 @@ def serve(args: argparse.Namespace) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser("python -m hil_sim.realtime", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        "python -m hil_sim.harness.realtime", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--rig", default="scale_model")
     p.add_argument("--q0", type=float, nargs=3, required=True, help="initial joint angles (rad)")
     p.add_argument("--period", type=float, default=0.002, help="SYNC period (s)")
@@ -296,7 +299,7 @@ class RealtimeHilProcess:
         tmp = tempfile.TemporaryDirectory(prefix="excavator-hil-")
         out = Path(tmp.name) / "truth.npz"
         cmd = [
-            sys.executable, "-m", "hil_sim.realtime",
+            sys.executable, "-m", "hil_sim.harness.realtime",
             "--rig", rig_name,
             "--q0", *(repr(float(v)) for v in q0_rad),
             "--period", repr(period_s),

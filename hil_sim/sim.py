@@ -44,6 +44,7 @@ from can.interfaces.virtual import VirtualBus
 from numpy.typing import NDArray
 
 from firmware_models.drive import DriveFirmware, Frame
+from firmware_models.errors import FirmwareConfigurationError
 from firmware_models.vcu import VcuModel
 from hil_sim.drives import DriveNode
 from hil_sim.plant import ArmPlant, TipLoad
@@ -183,7 +184,8 @@ class HilCore:
             ``keep_frames`` was set (the determinism test compares these).
 
     Raises:
-        ConfigurationError: Bad pose, rig or period.
+        ConfigurationError: Bad pose, rig or period (a drive or VCU parameter the firmware
+            models refuse, too).
     """
 
     def __init__(
@@ -205,14 +207,19 @@ class HilCore:
         self.plant = ArmPlant(rig, np.asarray(q0_rad, dtype=np.float64), soil=self._load)
         ids = dict(rig.can.node_ids)
         stroke0 = self.plant.stroke_m
-        self.nodes = tuple(
-            DriveNode(
-                DriveFirmware(ids[name], rig, name, initial_position_m=float(stroke0[axis])),
-                axis,
+        try:
+            self.nodes = tuple(
+                DriveNode(
+                    DriveFirmware(ids[name], rig, name, initial_position_m=float(stroke0[axis])),
+                    axis,
+                )
+                for axis, name in enumerate(_AXES)
             )
-            for axis, name in enumerate(_AXES)
-        )
-        self.vcu = VcuModel.from_rig(rig) if vcu else None
+            self.vcu = VcuModel.from_rig(rig) if vcu else None
+        except FirmwareConfigurationError as exc:
+            raise ConfigurationError(
+                f"rig {rig.name}: the drive or VCU model refuses it: {exc}"
+            ) from exc
         self.sync_count = 0
         self.keep_frames = keep_frames
         self.frames: list[tuple[int, bytes]] = []

@@ -1,16 +1,26 @@
 """The package boundary of DESIGN.md: rt_runtime never imports hil_sim (not even through
 importlib); the HIL's commands and its real-time process reach the runtime through entry
-points."""
+points; firmware_models imports nothing of the runtime, and the HIL reports the models' own
+error as the runtime's."""
 
 from __future__ import annotations
 
 import ast
+import dataclasses
 from importlib.metadata import entry_points
 from pathlib import Path
 
+import pytest
+
+import firmware_models
 import rt_runtime
+from firmware_models.drive import DriveFirmware
+from firmware_models.errors import FirmwareConfigurationError
+from hil_sim.sim import HilCore
 from rt_runtime.bench import HIL_GROUP, realtime_hil_process
 from rt_runtime.cli import COMMANDS_GROUP, build_parser
+from rt_runtime.errors import ConfigurationError
+from rt_runtime.rig import load_rig
 
 ROOT = Path(rt_runtime.__file__).parent
 
@@ -55,3 +65,31 @@ def test_hil_commands_and_process_come_through_entry_points() -> None:
     assert {"hil", "demo"} <= set(sub.choices)
     assert any(ep.name == "realtime" for ep in entry_points(group=HIL_GROUP))
     assert callable(realtime_hil_process().start)
+
+
+def _runtime_imports(path: Path) -> list[str]:
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            names = [node.module or ""]
+        else:
+            continue
+        found += [f"{path}:{node.lineno}: {n}" for n in names if n.split(".")[0] == "rt_runtime"]
+    return found
+
+
+def test_firmware_models_import_nothing_of_the_runtime() -> None:
+    package = Path(firmware_models.__file__).parent
+    assert [r for p in sorted(package.rglob("*.py")) for r in _runtime_imports(p)] == []
+
+
+def test_the_hil_reports_a_firmware_refusal_as_a_configuration_error() -> None:
+    rig = load_rig("scale_model")
+    bad = dataclasses.replace(rig, drives=dataclasses.replace(rig.drives, position_gain_1_s=0.0))
+    with pytest.raises(FirmwareConfigurationError, match="position_gain_1_s"):
+        DriveFirmware(1, bad, "boom")
+    with pytest.raises(ConfigurationError, match="position_gain_1_s") as caught:
+        HilCore(bad, (0.5, -1.5, -1.0))
+    assert isinstance(caught.value.__cause__, FirmwareConfigurationError)

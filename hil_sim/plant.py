@@ -52,7 +52,7 @@ shipped rig, where an explicit step would need ~20 us in soil (2 m / gain at a ~
 
 Speed: everything per sub-step is plain-float arithmetic: about 8 us a sub-step (electric) to
 14 us (hydraulic), in soil, on the build machine, against about 120 us through the batched
-numpy functions of rt_runtime (``python -m hil_sim.harness.bench`` times the HIL's composition). The
+numpy functions of rt_runtime (``excavator-rt bench hil`` times the HIL's composition). The
 closed forms are those of :mod:`rt_runtime.dynamics` and :mod:`rt_runtime.kinematics` written
 out for one state, and the stroke maps are cubic Hermite tables built from
 :mod:`rt_runtime.actuation` (2049 nodes over each travel, < 0.1 deg apart: stroke error

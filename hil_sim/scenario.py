@@ -194,7 +194,7 @@ class _LockstepAdapter:
     def finish(self) -> tuple[Truth, Any, list[tuple[int, bytes]], dict[str, Any]]:
         core = self.hil.core
         material = core.terrain.material if core.terrain is not None else None
-        return core.truth(), material, list(core.frames), {}
+        return core.truth(), material, list(core.frames), {"hil_lockstep": self.hil.cost.summary()}
 
     def close(self) -> None:
         self.hil.close()

@@ -28,6 +28,7 @@ position); the machine's travel (the VCU's travel position) shifts the arm frame
 
 from __future__ import annotations
 
+import array
 import itertools
 import math
 import queue
@@ -35,6 +36,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
 from pathlib import Path
+from time import perf_counter_ns
 from typing import Any
 
 import can
@@ -56,6 +58,7 @@ from rt_runtime.rig import Rig
 __all__ = [
     "FaultKind",
     "HilCore",
+    "HilCost",
     "LockstepBus",
     "LockstepClock",
     "LockstepHil",
@@ -484,6 +487,75 @@ class LockstepBus(_CopyingVirtualBus):
         return None
 
 
+class HilCost:
+    """The lockstep HIL's own wall time, per SYNC period (what the master's loop does not own).
+
+    A period runs from one SYNC's arrival at the HIL to the next's. Per period it holds the
+    nanoseconds spent inside the HIL (frame handling, the nodes' answers and supervision, the
+    servo sub-steps, its bus end) and the wall clock at the SYNC, so the whole period's wall time
+    and the rest of it (the runtime: loop, controllers, master, its bus end) follow. Storage is
+    two ``array('q')`` (no Python object kept per period).
+
+    Attributes:
+        hil_ns: HIL time per completed period (ns).
+        sync_wall_ns: ``time.perf_counter_ns()`` at each SYNC.
+    """
+
+    __slots__ = ("_acc", "hil_ns", "sync_wall_ns")
+
+    def __init__(self) -> None:
+        self.hil_ns = array.array("q")
+        self.sync_wall_ns = array.array("q")
+        self._acc = 0
+
+    def add(self, started_ns: int) -> None:
+        """Count the HIL's time from ``started_ns`` to now in the current period."""
+        self._acc += perf_counter_ns() - started_ns
+
+    def sync(self, started_ns: int) -> int:
+        """A SYNC arrived: close the period (counting from ``started_ns``); returns now (ns)."""
+        now = perf_counter_ns()
+        if self.sync_wall_ns:
+            self.hil_ns.append(self._acc + now - started_ns)
+        self.sync_wall_ns.append(now)
+        self._acc = 0
+        return now
+
+    def periods(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Per completed period: ``(wall_ns, hil_ns)``; the runtime's share is their
+        difference."""
+        wall: NDArray[np.int64] = np.diff(np.frombuffer(self.sync_wall_ns, dtype=np.int64)).astype(
+            np.int64
+        )
+        hil = np.frombuffer(self.hil_ns, dtype=np.int64)[: wall.size]
+        return wall, hil
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready: ``periods``; ``hil_us`` and ``runtime_us`` per period (p50, p99, max);
+        ``hil_s``, ``runtime_s`` and ``wall_s`` summed over the periods."""
+        wall, hil = self.periods()
+        rest = wall - hil
+
+        def spread(ns: NDArray[np.int64]) -> dict[str, float]:
+            if not ns.size:
+                return {"p50": math.nan, "p99": math.nan, "max": math.nan}
+            us = ns * 1e-3
+            return {
+                "p50": float(np.percentile(us, 50)),
+                "p99": float(np.percentile(us, 99)),
+                "max": float(np.max(us)),
+            }
+
+        return {
+            "periods": int(wall.size),
+            "hil_us": spread(hil),
+            "runtime_us": spread(rest),
+            "hil_s": float(np.sum(hil)) * 1e-9,
+            "runtime_s": float(np.sum(rest)) * 1e-9,
+            "wall_s": float(np.sum(wall)) * 1e-9,
+        }
+
+
 class LockstepHil:
     """The HIL in lockstep over python-can's ``virtual`` interface (one process, deterministic).
 
@@ -495,6 +567,8 @@ class LockstepHil:
         core: The HIL.
         clock: The simulated clock; give ``clock.now`` to the master and the clock to the loop.
         master_bus: The bus end for the master.
+        cost: The HIL's own wall time per SYNC period (:class:`HilCost`); it reads the wall
+            clock only to measure, never to decide, so runs stay deterministic.
     """
 
     def __init__(
@@ -518,6 +592,7 @@ class LockstepHil:
         self._bus = _CopyingVirtualBus(channel=channel, preserve_timestamps=True)
         self.master_bus = LockstepBus(channel, self)
         self._pumping = False
+        self.cost = HilCost()
         self._send(self.core.pending_frames(0.0))  # power-on boot-up messages
 
     def _send(self, frames: list[Frame]) -> None:
@@ -535,6 +610,8 @@ class LockstepHil:
         if self._pumping:
             return
         self._pumping = True
+        cost = self.cost
+        started = perf_counter_ns()
         try:
             core = self.core
             while True:
@@ -544,16 +621,21 @@ class LockstepHil:
                     break
                 now = self.clock.now()
                 data = bytes(msg.data)
+                if msg.arbitration_id == COB_SYNC:
+                    started = cost.sync(started)
                 core.log(msg.arbitration_id, data, now, is_rx=True)
                 self._send(core.on_frame(msg.arbitration_id, data, now))
                 if msg.arbitration_id == COB_SYNC:
                     core.advance(core.period_s)
         finally:
             self._pumping = False
+            cost.add(started)
 
     def _on_time(self, t_s: float) -> None:
         self.pump()
+        started = perf_counter_ns()
         self._send(self.core.pending_frames(t_s))
+        self.cost.add(started)
 
     def inject(self, kind: FaultKind, axis: int) -> None:
         """Inject a fault now (see :meth:`HilCore.inject`)."""

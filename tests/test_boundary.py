@@ -18,7 +18,7 @@ from firmware_models.drive import DriveFirmware
 from firmware_models.errors import FirmwareConfigurationError
 from hil_sim.sim import HilCore
 from rt_runtime.bench import HIL_GROUP, realtime_hil_process
-from rt_runtime.cli import COMMANDS_GROUP, build_parser
+from rt_runtime.cli import BENCH_GROUP, COMMANDS_GROUP, build_parser
 from rt_runtime.errors import ConfigurationError
 from rt_runtime.rig import load_rig
 
@@ -65,6 +65,10 @@ def test_hil_commands_and_process_come_through_entry_points() -> None:
     assert {"hil", "demo"} <= set(sub.choices)
     assert any(ep.name == "realtime" for ep in entry_points(group=HIL_GROUP))
     assert callable(realtime_hil_process().start)
+    assert "hil" in {ep.name for ep in entry_points(group=BENCH_GROUP)}
+    bench = sub.choices["bench"]
+    bench_sub = next(a for a in bench._actions if a.dest == "bench_command")
+    assert "hil" in bench_sub.choices
 
 
 def _runtime_imports(path: Path) -> list[str]:

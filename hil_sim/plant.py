@@ -435,6 +435,19 @@ class ArmPlant:
         for _ in range(n):
             self._substep_once(h, u, fx, fy)
 
+    def servo_substep(self, h: float, u: list[float]) -> None:
+        """One sub-step of ``h`` (<= ``substep_s``) with efforts a drive produced: the HIL's hot
+        path, :meth:`step` without its argument checks.
+
+        Args:
+            h: Sub-step, > 0 and at most ``substep_s`` (not checked).
+            u: Efforts per axis, finite and within [-1, 1] (a drive's output; not checked). The
+                list is kept until the next sub-step: pass a new one each time.
+        """
+        if self._brakes:
+            self._locked = [u[0] == 0.0, u[1] == 0.0, u[2] == 0.0]
+        self._substep_once(h, u, 0.0, 0.0)
+
     def _substep_once(self, h: float, u: list[float], fx_ext: float, fy_ext: float) -> None:
         # The HIL calls this once per servo sub-step (~600k times in a demo run), so it reads
         # each attribute once into a local, takes the stroke geometry cached at the end of the

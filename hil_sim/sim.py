@@ -289,22 +289,32 @@ class HilCore:
     def advance(self, dt_s: float) -> None:
         """Advance drives and plant by ``dt_s`` in servo sub-steps (the last one shorter if
         ``dt_s`` is not a multiple of the servo period)."""
+        # The servo loop of every sub-step, flattened: the drive nodes' servo_step (firmware
+        # cascade, then a jam applied at the axis) and the plant's servo_substep (the firmware's
+        # efforts are finite and within [-1, 1], so step()'s checks and clipping change nothing).
         remaining = dt_s
         plant = self.plant
-        nodes = self.nodes
+        n0, n1, n2 = self.nodes
+        fw0, fw1, fw2 = n0.firmware, n1.firmware, n2.firmware
+        f0, f1, f2 = n0.faults, n1.faults, n2.faults
+        load = self._load
+        vcu = self.vcu
+        servo = self._servo_dt_s
+        full = servo * (1.0 + 1e-9)
         while remaining > 1e-12:
-            h = self._servo_dt_s if remaining > self._servo_dt_s * (1.0 + 1e-9) else remaining
-            s, sd = plant.stroke_state()
-            efforts = [
-                nodes[0].servo_step(h, s[0], sd[0]),
-                nodes[1].servo_step(h, s[1], sd[1]),
-                nodes[2].servo_step(h, s[2], sd[2]),
-            ]
-            if self._load is not None:
-                self._load.offset_m = self.machine_x_m
-            plant.step(h, efforts)
-            if self.vcu is not None:
-                self.vcu.step(h)
+            h = servo if remaining > full else remaining
+            (s0, s1, s2), (v0, v1, v2) = plant.stroke_state()
+            e0 = n0.effort = fw0.servo_step(h, s0, v0)
+            e1 = n1.effort = fw1.servo_step(h, s1, v1)
+            e2 = n2.effort = fw2.servo_step(h, s2, v2)
+            if load is not None:
+                load.offset_m = vcu.travel_position_m if vcu is not None else 0.0
+            plant.servo_substep(
+                h,
+                [0.0 if f0.jammed else e0, 0.0 if f1.jammed else e1, 0.0 if f2.jammed else e2],
+            )
+            if vcu is not None:
+                vcu.step(h)
             remaining -= h
         self._dt_since_sync += dt_s
 

@@ -97,9 +97,10 @@ class Bridge:
         self.dropped = 0
         self._channel_info = channel_info
         self._clients: dict[int, _Client] = {}
-        self._poll = select.poll()
-        self._poll.register(self._listen.fileno(), select.POLLIN)
-        self._events: list[tuple[int, int]] = []
+        # select() rather than poll()/epoll(): their timeouts are whole milliseconds (rounded
+        # up), too coarse to wake for a 250 us servo tick; a handful of sockets is all there is.
+        self._fds: list[int] = [self._listen.fileno()]
+        self._ready: list[int] = []
         # One reusable buffer per data length (0..8): a HIL frame is packed once into it.
         self._packed = [bytearray(_WS_CAN_SIZE + n) for n in range(9)]
 
@@ -107,15 +108,15 @@ class Bridge:
 
     def wait(self, timeout_s: float) -> bool:
         """Wait up to ``timeout_s`` for a connection or bytes from a client; True if any came."""
-        self._events = self._poll.poll(max(0.0, timeout_s) * 1e3)
-        return bool(self._events)
+        self._ready = select.select(self._fds, (), (), max(0.0, timeout_s))[0]
+        return bool(self._ready)
 
     def receive(self, on_frame: Callable[[RxFrame], None]) -> None:
         """Read what :meth:`wait` found ready and hand every whole CAN frame to ``on_frame``, in
         arrival order; each is forwarded to the other clients first (bus semantics)."""
-        events, self._events = self._events, []
+        ready, self._ready = self._ready, []
         listen_fd = self._listen.fileno()
-        for fd, _ in events:
+        for fd in ready:
             if fd == listen_fd:
                 self._accept()
                 continue
@@ -145,7 +146,7 @@ class Bridge:
         sock.setblocking(False)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._clients[sock.fileno()] = _Client(sock)
-        self._poll.register(sock.fileno(), select.POLLIN)
+        self._fds.append(sock.fileno())
 
     def _handshake(self, client: _Client) -> None:
         end = client.inbuf.find(_HTTP_END)
@@ -365,7 +366,8 @@ class Bridge:
         fd = client.sock.fileno()
         if fd >= 0:
             self._clients.pop(fd, None)
-            self._poll.unregister(fd)
+            if fd in self._fds:
+                self._fds.remove(fd)
         client.sock.close()
 
     def close(self) -> None:
@@ -376,7 +378,7 @@ class Bridge:
                 self._flush_client(client)
             if not client.closing:
                 self._drop(client)
-        self._poll.unregister(self._listen.fileno())
+        self._fds.clear()
         self._listen.close()
 
 

@@ -26,7 +26,7 @@ terrain's material as WKB, its loop statistics) and exits, so a test can never l
 Scheduling: the process stands in for drive firmware, which a loaded rig PC never stalls, so it
 asks for SCHED_FIFO (``--rt-priority``, default :data:`HIL_RT_PRIORITY` from
 :meth:`RealtimeHilProcess.start`) before it starts its stdin thread, which inherits it. It sits
-below the control loop's priority, waits in ``poll`` between servo ticks, and where SCHED_FIFO
+below the control loop's priority, waits in ``select`` between servo ticks, and where SCHED_FIFO
 is refused it says so on stderr and runs on.
 
 Run by hand:

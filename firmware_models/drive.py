@@ -72,7 +72,7 @@ start at the EDS defaults. An NMT reset restores the stored values.
 
 Everything here is cheap per call and never raises inside the cycle: a frame the drive cannot
 use is ignored or answered with an SDO abort, as a drive would. Constructors raise
-:class:`~rt_runtime.errors.ConfigurationError` for bad parameters.
+:class:`~firmware_models.errors.FirmwareConfigurationError` for bad parameters.
 """
 
 from __future__ import annotations
@@ -90,7 +90,7 @@ from typing import Protocol
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, import_od
 
 from firmware_models import CIA402_DRIVE_EDS
-from rt_runtime.errors import ConfigurationError
+from firmware_models.errors import FirmwareConfigurationError
 
 __all__ = [
     "MASTER_NODE_ID",
@@ -365,7 +365,7 @@ class OdEntry:
 def _entry(var: ODVariable, index: int, subindex: int) -> OdEntry:
     data_type = int(var.data_type) if var.data_type is not None else -1
     if data_type not in _CODECS and data_type != _VISIBLE_STRING:
-        raise ConfigurationError(
+        raise FirmwareConfigurationError(
             f"EDS object 0x{index:04X} sub {subindex} has data type 0x{data_type:X}; the drive "
             "model supports INTEGER8/16/32, UNSIGNED8/16/32 and VISIBLE_STRING"
         )
@@ -375,7 +375,7 @@ def _entry(var: ODVariable, index: int, subindex: int) -> OdEntry:
         default = str(var.default) if var.default is not None else ""
     else:
         if var.default is not None and not isinstance(var.default, int):
-            raise ConfigurationError(
+            raise FirmwareConfigurationError(
                 f"EDS object 0x{index:04X} sub {subindex}: DefaultValue {var.default!r} is not "
                 "an integer (is $NODEID used without a node id?)"
             )
@@ -424,14 +424,14 @@ def load_object_dictionary(
         The entries; a VAR object is at sub-index 0.
 
     Raises:
-        ConfigurationError: The node id is out of range, the file is missing, or an object
+        FirmwareConfigurationError: The node id is out of range, the file is missing, or an object
             uses a data type the model does not support.
     """
     if not 1 <= node_id <= 127:
-        raise ConfigurationError(f"drive node id {node_id} is outside 1..127 (CiA 301)")
+        raise FirmwareConfigurationError(f"drive node id {node_id} is outside 1..127 (CiA 301)")
     path = Path(eds)
     if not path.is_file():
-        raise ConfigurationError(f"EDS file {path} does not exist")
+        raise FirmwareConfigurationError(f"EDS file {path} does not exist")
     return _load_table(str(path.resolve()), node_id)
 
 
@@ -539,21 +539,21 @@ class DriveParameters:
         for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
-                raise ConfigurationError(f"drive parameter {name} = {value!r} must be > 0")
+                raise FirmwareConfigurationError(f"drive parameter {name} = {value!r} must be > 0")
         non_negative = ("velocity_gain_s_m", "velocity_integral_gain_1_s", "velocity_filter_s")
         for name in non_negative:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
-                raise ConfigurationError(f"drive parameter {name} = {value!r} must be >= 0")
+                raise FirmwareConfigurationError(f"drive parameter {name} = {value!r} must be >= 0")
         if self.kind is DriveKind.ELECTRIC and self.velocity_gain_s_m <= 0.0:
-            raise ConfigurationError(
+            raise FirmwareConfigurationError(
                 f"drive parameter velocity_gain_s_m = {self.velocity_gain_s_m!r} must be > 0 "
                 "for an electric drive"
             )
         if self.kind is DriveKind.HYDRAULIC and not (
             self.valve_gain_extend_m_s > 0.0 and self.valve_gain_retract_m_s > 0.0
         ):
-            raise ConfigurationError(
+            raise FirmwareConfigurationError(
                 "hydraulic drive: valve velocity gains must be > 0, got "
                 f"{self.valve_gain_extend_m_s!r} / {self.valve_gain_retract_m_s!r} m/s"
             )
@@ -577,7 +577,7 @@ class DriveParameters:
             The validated parameters.
 
         Raises:
-            ConfigurationError: Unknown kind, hydraulic without valve data, or a bad value.
+            FirmwareConfigurationError: Unknown kind, hydraulic without valve data, or a bad value.
         """
         drives, actuators = rig.drives, rig.actuators
         hydraulic = actuators.hydraulic
@@ -588,13 +588,13 @@ class DriveParameters:
                 resolved = DriveKind(kind)
             except ValueError:
                 allowed = ", ".join(k.value for k in DriveKind)
-                raise ConfigurationError(
+                raise FirmwareConfigurationError(
                     f"drive kind {kind!r} is unknown; allowed: {allowed}"
                 ) from None
         extend_m_s = retract_m_s = 0.0
         if resolved is DriveKind.HYDRAULIC:
             if hydraulic is None:
-                raise ConfigurationError(
+                raise FirmwareConfigurationError(
                     "a hydraulic drive needs rig.actuators.hydraulic ([actuators.hydraulic])"
                 )
             extend_m_s, retract_m_s = valve_velocity_gains_m_s(hydraulic)
@@ -629,17 +629,18 @@ def valve_velocity_gains_m_s(hydraulic: HydraulicLike) -> tuple[float, float]:
     (the extending value is the rig's ``actuators.velocity_max_m_s`` for a hydraulic rig).
 
     Raises:
-        ConfigurationError: A non-positive area, supply or flow, or a rod as large as the piston.
+        FirmwareConfigurationError: A non-positive area, supply or flow, or a rod as large as
+            the piston.
     """
     piston, rod = hydraulic.piston_area_m2, hydraulic.rod_area_m2
     if not (piston > 0.0 and 0.0 <= rod < piston):
-        raise ConfigurationError(
+        raise FirmwareConfigurationError(
             f"hydraulic cylinder: piston area {piston!r} m^2 must be > 0 and the rod's "
             f"cross-section {rod!r} m^2 in [0, piston)"
         )
     supply, flow = hydraulic.supply_pressure_pa, hydraulic.valve_flow_m3_s
     if not (supply > 0.0 and flow > 0.0):
-        raise ConfigurationError(
+        raise FirmwareConfigurationError(
             "hydraulic cylinder: supply_pressure_pa and valve_flow_m3_s must be > 0, got "
             f"{supply!r}, {flow!r}"
         )
@@ -714,7 +715,7 @@ class DriveFirmware:
         effort: Output of the last :meth:`servo_step`.
 
     Raises:
-        ConfigurationError: Bad node id, EDS, kind or parameters.
+        FirmwareConfigurationError: Bad node id, EDS, kind or parameters.
 
     Calls are not thread-safe; one owner (the HIL's drive emulator) drives all of them.
     """
@@ -758,7 +759,7 @@ class DriveFirmware:
             key: entry.default for key, entry in self.od.items()
         }
         if not 1 <= master_node_id <= 127:
-            raise ConfigurationError(f"master node id {master_node_id} is outside 1..127")
+            raise FirmwareConfigurationError(f"master node id {master_node_id} is outside 1..127")
         commissioned = {
             (0x1016, 1): (master_node_id << 16) | _ms(drives.heartbeat_timeout_s, 0xFFFF),
             (0x1017, 0): _ms(drives.heartbeat_period_s, 0xFFFF),

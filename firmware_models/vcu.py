@@ -40,7 +40,7 @@ import cantools
 from cantools.database.can import Database, Message
 
 from firmware_models import VCU_DBC, VCU_DBC_NODE_ID
-from rt_runtime.errors import ConfigurationError
+from firmware_models.errors import FirmwareConfigurationError
 
 __all__ = [
     "TravelMode",
@@ -85,18 +85,19 @@ def load_vcu_database(dbc: Path | str = VCU_DBC) -> Database:
     """Read the VCU message set with cantools.
 
     Raises:
-        ConfigurationError: The file is missing, is not a CAN DBC, or lacks the VCU messages.
+        FirmwareConfigurationError: The file is missing, is not a CAN DBC, or lacks the VCU
+            messages.
     """
     path = Path(dbc)
     if not path.is_file():
-        raise ConfigurationError(f"VCU DBC file {path} does not exist")
+        raise FirmwareConfigurationError(f"VCU DBC file {path} does not exist")
     db = cantools.database.load_file(str(path))
     if not isinstance(db, Database):
-        raise ConfigurationError(f"{path} is not a CAN database")
+        raise FirmwareConfigurationError(f"{path} is not a CAN database")
     names = {m.name for m in db.messages}
     missing = {"VCU_Command", "VCU_Status"} - names
     if missing:
-        raise ConfigurationError(f"{path} lacks the messages {sorted(missing)}")
+        raise FirmwareConfigurationError(f"{path} lacks the messages {sorted(missing)}")
     return db
 
 
@@ -165,9 +166,9 @@ class VcuLimits:
         ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
-                raise ConfigurationError(f"VCU limit {name} = {value!r} must be > 0")
+                raise FirmwareConfigurationError(f"VCU limit {name} = {value!r} must be > 0")
         if not -math.pi <= self.swing_min_rad < self.swing_max_rad <= math.pi:
-            raise ConfigurationError(
+            raise FirmwareConfigurationError(
                 f"VCU swing range [{self.swing_min_rad!r}, {self.swing_max_rad!r}] rad must be "
                 "increasing and inside [-pi, pi] (the SwingAngle signal's range)"
             )
@@ -260,7 +261,7 @@ class VcuModel:
         swing_angle_rad: Initial swing angle.
 
     Raises:
-        ConfigurationError: Bad node id, DBC or limits.
+        FirmwareConfigurationError: Bad node id, DBC or limits.
     """
 
     def __init__(
@@ -273,7 +274,7 @@ class VcuModel:
         swing_angle_rad: float = 0.0,
     ) -> None:
         if not 1 <= node_id <= 127:
-            raise ConfigurationError(f"VCU node id {node_id} is outside 1..127")
+            raise FirmwareConfigurationError(f"VCU node id {node_id} is outside 1..127")
         self.node_id = node_id
         self.limits = limits if limits is not None else VcuLimits()
         db = load_vcu_database(dbc)

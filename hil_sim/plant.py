@@ -51,7 +51,7 @@ likewise take their orifice slope implicitly. That keeps the scheme stable at 25
 shipped rig, where an explicit step would need ~20 us in soil (2 m / gain at a ~20 kg tip mass).
 
 Speed: everything per sub-step is plain-float arithmetic, an order of magnitude cheaper than the
-batched numpy functions of rt_runtime for one state (``benchmarks/hil_step.py`` times the HIL's
+batched numpy functions of rt_runtime for one state (``excavator-rt bench hil`` times the HIL's
 composition; design notes, H2). The closed forms are those of :mod:`rt_runtime.dynamics` and
 :mod:`rt_runtime.kinematics` written out for one state, and the stroke maps are cubic Hermite
 tables built from :mod:`rt_runtime.actuation` (2049 nodes over each travel, < 0.1 deg apart: stroke
@@ -433,6 +433,19 @@ class ArmPlant:
         h = dt_s / n
         for _ in range(n):
             self._substep_once(h, u, fx, fy)
+
+    def servo_substep(self, h: float, u: list[float]) -> None:
+        """One sub-step of ``h`` (<= ``substep_s``) with efforts a drive produced: the HIL's hot
+        path, :meth:`step` without its argument checks.
+
+        Args:
+            h: Sub-step, > 0 and at most ``substep_s`` (not checked).
+            u: Efforts per axis, finite and within [-1, 1] (a drive's output; not checked). The
+                list is kept until the next sub-step: pass a new one each time.
+        """
+        if self._brakes:
+            self._locked = [u[0] == 0.0, u[1] == 0.0, u[2] == 0.0]
+        self._substep_once(h, u, 0.0, 0.0)
 
     def _substep_once(self, h: float, u: list[float], fx_ext: float, fy_ext: float) -> None:
         # The HIL calls this once per servo sub-step (~600k times in a demo run), so it reads

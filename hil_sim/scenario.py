@@ -194,7 +194,7 @@ class _LockstepAdapter:
     def finish(self) -> tuple[Truth, Any, list[tuple[int, bytes]], dict[str, Any]]:
         core = self.hil.core
         material = core.terrain.material if core.terrain is not None else None
-        return core.truth(), material, list(core.frames), {}
+        return core.truth(), material, list(core.frames), {"hil_lockstep": self.hil.cost.summary()}
 
     def close(self) -> None:
         self.hil.close()
@@ -204,7 +204,7 @@ def _open_hil(
     sc: Scenario | PathScenario, rig: Rig, q0: FloatArray, terrain: Terrain | None
 ) -> _Hil:
     if sc.realtime:
-        from hil_sim.realtime import RealtimeHilProcess
+        from hil_sim.harness.realtime import RealtimeHilProcess
 
         return RealtimeHilProcess.start(
             rig_name=sc.rig,

@@ -16,8 +16,8 @@ drive it:
   sub-steps. Time-triggered frames (heartbeats, emergencies) go out whenever the simulated clock
   moves (:class:`LockstepClock`). Single-threaded and free of wall-clock reads, so two runs give
   identical traces.
-* :mod:`hil_sim.realtime`: the same core in its own process at wall-clock speed, bridged over
-  127.0.0.1.
+* :mod:`hil_sim.harness.realtime`: the same core in its own process at wall-clock speed,
+  bridged over 127.0.0.1.
 
 Frames of the whole bus can be written as a BLF or ASC trace with python-can's loggers
 (``trace_path``); timestamps are the HIL's clock (simulated seconds in lockstep).
@@ -29,12 +29,14 @@ position); the machine's travel (the VCU's travel position) shifts the arm frame
 
 from __future__ import annotations
 
+import array
 import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
 from pathlib import Path
+from time import perf_counter_ns
 from typing import Any
 
 import can
@@ -42,6 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from firmware_models.drive import DriveFirmware, Frame
+from firmware_models.errors import FirmwareConfigurationError
 from firmware_models.vcu import VcuModel
 from hil_sim.drives import DriveNode
 from hil_sim.plant import ArmPlant, TipLoad
@@ -55,6 +58,7 @@ from rt_runtime.rig import Rig
 __all__ = [
     "FaultKind",
     "HilCore",
+    "HilCost",
     "LockstepBus",
     "LockstepClock",
     "LockstepHil",
@@ -183,7 +187,8 @@ class HilCore:
             ``keep_frames`` was set (the determinism test compares these).
 
     Raises:
-        ConfigurationError: Bad pose, rig or period.
+        ConfigurationError: Bad pose, rig or period (a drive or VCU parameter the firmware
+            models refuse, too).
     """
 
     def __init__(
@@ -205,14 +210,19 @@ class HilCore:
         self.plant = ArmPlant(rig, np.asarray(q0_rad, dtype=np.float64), soil=self._load)
         ids = dict(rig.can.node_ids)
         stroke0 = self.plant.stroke_m
-        self.nodes = tuple(
-            DriveNode(
-                DriveFirmware(ids[name], rig, name, initial_position_m=float(stroke0[axis])),
-                axis,
+        try:
+            self.nodes = tuple(
+                DriveNode(
+                    DriveFirmware(ids[name], rig, name, initial_position_m=float(stroke0[axis])),
+                    axis,
+                )
+                for axis, name in enumerate(_AXES)
             )
-            for axis, name in enumerate(_AXES)
-        )
-        self.vcu = VcuModel.from_rig(rig) if vcu else None
+            self.vcu = VcuModel.from_rig(rig) if vcu else None
+        except FirmwareConfigurationError as exc:
+            raise ConfigurationError(
+                f"rig {rig.name}: the drive or VCU model refuses it: {exc}"
+            ) from exc
         self.sync_count = 0
         self.keep_frames = keep_frames
         self.frames: list[tuple[int, bytes]] = []
@@ -279,22 +289,32 @@ class HilCore:
     def advance(self, dt_s: float) -> None:
         """Advance drives and plant by ``dt_s`` in servo sub-steps (the last one shorter if
         ``dt_s`` is not a multiple of the servo period)."""
+        # The servo loop of every sub-step, flattened: the drive nodes' servo_step (firmware
+        # cascade, then a jam applied at the axis) and the plant's servo_substep (the firmware's
+        # efforts are finite and within [-1, 1], so step()'s checks and clipping change nothing).
         remaining = dt_s
         plant = self.plant
-        nodes = self.nodes
+        n0, n1, n2 = self.nodes
+        fw0, fw1, fw2 = n0.firmware, n1.firmware, n2.firmware
+        f0, f1, f2 = n0.faults, n1.faults, n2.faults
+        load = self._load
+        vcu = self.vcu
+        servo = self._servo_dt_s
+        full = servo * (1.0 + 1e-9)
         while remaining > 1e-12:
-            h = self._servo_dt_s if remaining > self._servo_dt_s * (1.0 + 1e-9) else remaining
-            s, sd = plant.stroke_state()
-            efforts = [
-                nodes[0].servo_step(h, s[0], sd[0]),
-                nodes[1].servo_step(h, s[1], sd[1]),
-                nodes[2].servo_step(h, s[2], sd[2]),
-            ]
-            if self._load is not None:
-                self._load.offset_m = self.machine_x_m
-            plant.step(h, efforts)
-            if self.vcu is not None:
-                self.vcu.step(h)
+            h = servo if remaining > full else remaining
+            (s0, s1, s2), (v0, v1, v2) = plant.stroke_state()
+            e0 = n0.effort = fw0.servo_step(h, s0, v0)
+            e1 = n1.effort = fw1.servo_step(h, s1, v1)
+            e2 = n2.effort = fw2.servo_step(h, s2, v2)
+            if load is not None:
+                load.offset_m = vcu.travel_position_m if vcu is not None else 0.0
+            plant.servo_substep(
+                h,
+                [0.0 if f0.jammed else e0, 0.0 if f1.jammed else e1, 0.0 if f2.jammed else e2],
+            )
+            if vcu is not None:
+                vcu.step(h)
             remaining -= h
         self._dt_since_sync += dt_s
 
@@ -449,6 +469,75 @@ class LockstepBus(SimulatedTimeBus, ChannelBus):
         return msg, False
 
 
+class HilCost:
+    """The lockstep HIL's own wall time, per SYNC period (what the master's loop does not own).
+
+    A period runs from one SYNC's arrival at the HIL to the next's. Per period it holds the
+    nanoseconds spent inside the HIL (frame handling, the nodes' answers and supervision, the
+    servo sub-steps, its bus end) and the wall clock at the SYNC, so the whole period's wall time
+    and the rest of it (the runtime: loop, controllers, master, its bus end) follow. Storage is
+    two ``array('q')`` (no Python object kept per period).
+
+    Attributes:
+        hil_ns: HIL time per completed period (ns).
+        sync_wall_ns: ``time.perf_counter_ns()`` at each SYNC.
+    """
+
+    __slots__ = ("_acc", "hil_ns", "sync_wall_ns")
+
+    def __init__(self) -> None:
+        self.hil_ns = array.array("q")
+        self.sync_wall_ns = array.array("q")
+        self._acc = 0
+
+    def add(self, started_ns: int) -> None:
+        """Count the HIL's time from ``started_ns`` to now in the current period."""
+        self._acc += perf_counter_ns() - started_ns
+
+    def sync(self, started_ns: int) -> int:
+        """A SYNC arrived: close the period (counting from ``started_ns``); returns now (ns)."""
+        now = perf_counter_ns()
+        if self.sync_wall_ns:
+            self.hil_ns.append(self._acc + now - started_ns)
+        self.sync_wall_ns.append(now)
+        self._acc = 0
+        return now
+
+    def periods(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Per completed period: ``(wall_ns, hil_ns)``; the runtime's share is their
+        difference."""
+        wall: NDArray[np.int64] = np.diff(np.frombuffer(self.sync_wall_ns, dtype=np.int64)).astype(
+            np.int64
+        )
+        hil = np.frombuffer(self.hil_ns, dtype=np.int64)[: wall.size]
+        return wall, hil
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready: ``periods``; ``hil_us`` and ``runtime_us`` per period (p50, p99, max);
+        ``hil_s``, ``runtime_s`` and ``wall_s`` summed over the periods."""
+        wall, hil = self.periods()
+        rest = wall - hil
+
+        def spread(ns: NDArray[np.int64]) -> dict[str, float]:
+            if not ns.size:
+                return {"p50": math.nan, "p99": math.nan, "max": math.nan}
+            us = ns * 1e-3
+            return {
+                "p50": float(np.percentile(us, 50)),
+                "p99": float(np.percentile(us, 99)),
+                "max": float(np.max(us)),
+            }
+
+        return {
+            "periods": int(wall.size),
+            "hil_us": spread(hil),
+            "runtime_us": spread(rest),
+            "hil_s": float(np.sum(hil)) * 1e-9,
+            "runtime_s": float(np.sum(rest)) * 1e-9,
+            "wall_s": float(np.sum(wall)) * 1e-9,
+        }
+
+
 class LockstepHil:
     """The HIL in lockstep over an in-process channel (one process, deterministic).
 
@@ -461,6 +550,8 @@ class LockstepHil:
         clock: The simulated clock; give ``clock.now`` to the master and the clock to the loop.
         channel: The in-process channel (open another end on it to watch the bus).
         master_bus: The bus end for the master.
+        cost: The HIL's own wall time per SYNC period (:class:`HilCost`); it reads the wall
+            clock only to measure, never to decide, so runs stay deterministic.
     """
 
     def __init__(
@@ -484,6 +575,7 @@ class LockstepHil:
         self._bus = ChannelBus(self.channel, clock=self.clock.now)
         self.master_bus = LockstepBus(self.channel, self.clock, self.pump, period_s)
         self._pumping = False
+        self.cost = HilCost()
         self._send(self.core.pending_frames(0.0))  # power-on boot-up messages
 
     def _send(self, frames: list[Frame]) -> None:
@@ -497,6 +589,8 @@ class LockstepHil:
         if self._pumping:
             return
         self._pumping = True
+        cost = self.cost
+        started = perf_counter_ns()
         try:
             core = self.core
             while True:
@@ -505,16 +599,21 @@ class LockstepHil:
                     break
                 now = self.clock.now()
                 data = bytes(msg.data)
+                if msg.arbitration_id == COB_SYNC:
+                    started = cost.sync(started)
                 core.log(msg.arbitration_id, data, now, is_rx=True)
                 self._send(core.on_frame(msg.arbitration_id, data, now))
                 if msg.arbitration_id == COB_SYNC:
                     core.advance(core.period_s)
         finally:
             self._pumping = False
+            cost.add(started)
 
     def _on_time(self, t_s: float) -> None:
         self.pump()
+        started = perf_counter_ns()
         self._send(self.core.pending_frames(t_s))
+        self.cost.add(started)
 
     def inject(self, kind: FaultKind, axis: int) -> None:
         """Inject a fault now (see :meth:`HilCore.inject`)."""

@@ -24,6 +24,9 @@ from rt_runtime.rig import DEFAULT_RIG, Rig, load_rig, profile_names
 #: Entry-point group of the commands other packages add to ``excavator-rt`` (a callable taking
 #: the sub-parsers): the HIL's ``hil`` and ``demo``.
 COMMANDS_GROUP = "excavator_rt.commands"
+#: Entry-point group of ``bench`` subcommands from outside the runtime; each entry point is
+#: called with the ``bench`` subparsers.
+BENCH_GROUP = "excavator_rt.bench"
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -980,6 +983,9 @@ def build_parser() -> argparse.ArgumentParser:
     # through entry points: rt_runtime never imports hil_sim.
     for ep in sorted(entry_points(group=COMMANDS_GROUP), key=lambda e: e.name):
         ep.load()(sub)
+    # Benchmarks from outside the runtime (the HIL's ``bench hil``) likewise, as bench subcommands.
+    for ep in sorted(entry_points(group=BENCH_GROUP), key=lambda e: e.name):
+        ep.load()(bench_sub)
 
     from rt_runtime.service import client as job_client
 

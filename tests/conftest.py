@@ -156,7 +156,7 @@ def run_on_bridge(
     written by the HIL process and always kept for :attr:`FaultRun.frames`."""
     import tempfile
 
-    from hil_sim.realtime import RealtimeHilProcess
+    from hil_sim.harness.realtime import RealtimeHilProcess
     from hil_sim.scenario import NO_RT
     from rt_runtime.control import (
         FixedRateLoop,

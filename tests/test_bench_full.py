@@ -109,7 +109,7 @@ def test_bad_rates_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
 def test_runtime_never_imports_hil_sim() -> None:
     code = (
         "import sys, rt_runtime.bench, rt_runtime.control, rt_runtime.cli; "
-        "assert 'hil_sim.realtime' not in sys.modules, sorted(m for m in sys.modules "
+        "assert 'hil_sim.harness.realtime' not in sys.modules, sorted(m for m in sys.modules "
         "if m.startswith('hil_sim'))"
     )
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -1,10 +1,12 @@
 """The package boundary of DESIGN.md: rt_runtime never imports hil_sim (not even through
 importlib); the HIL's commands and its real-time process reach the runtime through entry
-points."""
+points; firmware_models imports nothing of the runtime, and the HIL reports the models' own
+error as the runtime's."""
 
 from __future__ import annotations
 
 import ast
+import dataclasses
 import json
 import os
 import subprocess
@@ -15,15 +17,21 @@ from pathlib import Path
 
 import pytest
 
+import firmware_models
 import rt_runtime
+from firmware_models.drive import DriveFirmware
+from firmware_models.errors import FirmwareConfigurationError
+from hil_sim.sim import HilCore
 from rt_runtime.bench import HIL_GROUP, realtime_hil_process
-from rt_runtime.cli import COMMANDS_GROUP, build_parser
+from rt_runtime.cli import BENCH_GROUP, COMMANDS_GROUP, build_parser
+from rt_runtime.errors import ConfigurationError
+from rt_runtime.rig import load_rig
 
 ROOT = Path(rt_runtime.__file__).parent
 
 
-def _hil_references(path: Path) -> list[str]:
-    """Where a module imports hil_sim or names it as a string a call takes (importlib)."""
+def _references(path: Path, package: str = "hil_sim") -> list[str]:
+    """Where a module imports ``package`` or names it as a string a call takes (importlib)."""
     found = []
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
         if isinstance(node, ast.Import):
@@ -38,21 +46,21 @@ def _hil_references(path: Path) -> list[str]:
             ]
         else:
             continue
-        found += [f"{path}:{node.lineno}: {n}" for n in names if n.split(".")[0] == "hil_sim"]
+        found += [f"{path}:{node.lineno}: {n}" for n in names if n.split(".")[0] == package]
     return found
 
 
 def test_runtime_never_imports_hil_sim() -> None:
-    found = [r for p in sorted(ROOT.rglob("*.py")) for r in _hil_references(p)]
+    found = [r for p in sorted(ROOT.rglob("*.py")) for r in _references(p)]
     assert found == []
 
 
 def test_the_check_sees_an_import_through_importlib(tmp_path: Path) -> None:
     bad = tmp_path / "bad.py"
     bad.write_text('import importlib\nm = importlib.import_module("hil_sim.realtime")\n')
-    assert len(_hil_references(bad)) == 1
+    assert len(_references(bad)) == 1
     bad.write_text("from hil_sim import cli\n")
-    assert len(_hil_references(bad)) == 1
+    assert len(_references(bad)) == 1
 
 
 def test_hil_commands_and_process_come_through_entry_points() -> None:
@@ -62,6 +70,10 @@ def test_hil_commands_and_process_come_through_entry_points() -> None:
     assert {"hil", "demo"} <= set(sub.choices)
     assert any(ep.name == "realtime" for ep in entry_points(group=HIL_GROUP))
     assert callable(realtime_hil_process().start)
+    assert "hil" in {ep.name for ep in entry_points(group=BENCH_GROUP)}
+    bench = sub.choices["bench"]
+    bench_sub = next(a for a in bench._actions if a.dest == "bench_command")
+    assert "hil" in bench_sub.choices
 
 
 # -- the import contracts (import-linter, pyproject.toml) ------------------------------------------
@@ -116,3 +128,18 @@ def test_a_forbidden_import_breaks_its_contract(
     bad = _tree(tmp_path / "bad", {package: source})
     assert bad.returncode != 0, bad.stdout
     assert broken in bad.stdout and "BROKEN" in bad.stdout, bad.stdout
+
+
+def test_firmware_models_import_nothing_of_the_runtime() -> None:
+    package = Path(firmware_models.__file__).parent
+    assert [r for p in sorted(package.rglob("*.py")) for r in _references(p, "rt_runtime")] == []
+
+
+def test_the_hil_reports_a_firmware_refusal_as_a_configuration_error() -> None:
+    rig = load_rig("scale_model")
+    bad = dataclasses.replace(rig, drives=dataclasses.replace(rig.drives, position_gain_1_s=0.0))
+    with pytest.raises(FirmwareConfigurationError, match="position_gain_1_s"):
+        DriveFirmware(1, bad, "boom")
+    with pytest.raises(ConfigurationError, match="position_gain_1_s") as caught:
+        HilCore(bad, (0.5, -1.5, -1.0))
+    assert isinstance(caught.value.__cause__, FirmwareConfigurationError)

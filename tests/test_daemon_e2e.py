@@ -48,7 +48,7 @@ import can
 import numpy as np
 import pytest
 
-from hil_sim.realtime import RealtimeHilProcess
+from hil_sim.harness.realtime import RealtimeHilProcess
 from rt_runtime.canbus.cia402 import DriveState, decode_state
 from rt_runtime.canbus.pdo import RPDO1, RPDO2, TPDO2
 from rt_runtime.canbus.traced import TracedBus

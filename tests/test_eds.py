@@ -10,7 +10,7 @@ from canopen.objectdictionary import ODArray, ODRecord, ODVariable, import_od
 
 from firmware_models import CIA402_DRIVE_EDS
 from firmware_models.drive import load_object_dictionary
-from rt_runtime.errors import ConfigurationError
+from firmware_models.errors import FirmwareConfigurationError
 
 I8, I16, I32, U8, U16, U32, VS = 0x2, 0x3, 0x4, 0x5, 0x6, 0x7, 0x9
 
@@ -185,7 +185,7 @@ def test_flat_table_and_its_errors() -> None:
     assert table[(0x1008, 0)].codec is None
     assert table[(0x6064, 0)].codec is not None and table[(0x6064, 0)].codec.format == "<i"
     assert load_object_dictionary(2) is table  # cached
-    with pytest.raises(ConfigurationError, match=r"outside 1\.\.127"):
+    with pytest.raises(FirmwareConfigurationError, match=r"outside 1\.\.127"):
         load_object_dictionary(0)
-    with pytest.raises(ConfigurationError, match="does not exist"):
+    with pytest.raises(FirmwareConfigurationError, match="does not exist"):
         load_object_dictionary(1, "/nonexistent/drive.eds")

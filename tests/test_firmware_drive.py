@@ -31,7 +31,7 @@ from firmware_models.drive import (
     SdoAbort,
     valve_velocity_gains_m_s,
 )
-from rt_runtime.errors import ConfigurationError
+from firmware_models.errors import FirmwareConfigurationError
 
 NODE = 3
 SDO_RX, SDO_TX = 0x600 + NODE, 0x580 + NODE
@@ -877,13 +877,13 @@ def test_parameters_from_the_shipped_rigs_and_their_errors() -> None:
     assert fw.read_object(0x1016, 1) == (0x7E << 16) | round(scale.drives.heartbeat_timeout_s * 1e3)
     bench = load_rig("test_bench")
     assert DriveFirmware(1, bench, "boom").params.kind is DriveKind.HYDRAULIC
-    with pytest.raises(ConfigurationError, match="hydraulic"):
+    with pytest.raises(FirmwareConfigurationError, match="hydraulic"):
         DriveFirmware(1, scale, "boom", kind="hydraulic")
-    with pytest.raises(ConfigurationError, match="allowed: electric, hydraulic"):
+    with pytest.raises(FirmwareConfigurationError, match="allowed: electric, hydraulic"):
         DriveParameters.from_rig(scale, kind="pneumatic")
-    with pytest.raises(ConfigurationError, match="position_gain_1_s"):
+    with pytest.raises(FirmwareConfigurationError, match="position_gain_1_s"):
         DriveParameters.from_rig(Rig(drives=Drives(position_gain_1_s=0.0)))
-    with pytest.raises(ConfigurationError, match="node id 0"):
+    with pytest.raises(FirmwareConfigurationError, match="node id 0"):
         DriveFirmware(0, scale, "boom")
 
 

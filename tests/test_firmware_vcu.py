@@ -14,6 +14,7 @@ import pytest
 import firmware_models.vcu as model_vcu
 import rt_runtime.canbus.vcu as client_vcu
 from firmware_models import VCU_DBC
+from firmware_models.errors import FirmwareConfigurationError
 from firmware_models.vcu import VcuLimits, VcuModel
 from rt_runtime.canbus.vcu import TravelMode, VcuClient, VcuCommand, VcuFault, VcuState
 from rt_runtime.errors import ConfigurationError
@@ -158,7 +159,7 @@ def test_from_rig_uses_the_vcu_node_id_and_swing_limits() -> None:
     assert VcuModel.from_rig(no_swing).limits == VcuLimits()
     with pytest.raises(ConfigurationError, match="outside"):
         VcuClient(0)
-    with pytest.raises(ConfigurationError, match="must be > 0"):
+    with pytest.raises(FirmwareConfigurationError, match="must be > 0"):
         VcuLimits(travel_speed_max_m_s=0.0)
 
 

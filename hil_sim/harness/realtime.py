@@ -1,18 +1,21 @@
 """The HIL in real time: its own process, wall clock, the bus bridged over 127.0.0.1 only.
 
 Role: the second transport of DESIGN.md "Loop, HIL and time" (daemon tests, timing). The HIL
-process runs :class:`~hil_sim.sim.HilCore` behind a :class:`~hil_sim.bridge.BridgeServer`
-bound to ``127.0.0.1`` (never any other address; port 0 takes a free one), which its loop polls
-itself; the bridge speaks python-can-remote's websocket protocol. The runtime connects with
-:class:`~hil_sim.bridge.BridgeBus` (python-can-remote's ``RemoteBus`` connects as well) and
-drives it with :class:`rt_runtime.control.MonotonicClock`.
+process runs :class:`~hil_sim.sim.HilCore` behind the websocket bridge of
+:mod:`hil_sim.harness.bridge` (python-can-remote's protocol), bound to ``127.0.0.1`` (never any
+other address; port 0 takes a free one), in one thread: no bus object between the socket and
+the models. The runtime's end is a :class:`~hil_sim.bridge.BridgeBus` (python-can-remote's
+``RemoteBus("ws://127.0.0.1:<port>/")``, the daemon's ``remote`` interface, connects as well),
+driven with :class:`rt_runtime.control.MonotonicClock`.
 
-Time: the HIL's clock is ``time.monotonic()`` since start. Its loop waits for a frame at most
-``poll_s`` (0.5 ms), advances drives and plant to the current time in whole servo sub-steps,
-answers the frame at its arrival time (SYNC: truth sampled, TPDOs sent), then runs the nodes'
-time supervision. When the process falls behind (a terrain cut, a scheduler stall) it catches up
-in a batch of sub-steps; the drives then answer late, which the master sees as it would on a
-rig.
+Time: the HIL's clock is ``time.monotonic()`` since start. Its loop waits for bus bytes at most
+until the next servo tick (and at most ``poll_s``, 0.5 ms), advances drives and plant to the
+current time in whole servo sub-steps, answers each frame at its arrival time (SYNC: truth
+sampled, TPDOs and the nodes' time supervision sent at once), then runs the nodes' time
+supervision. When the process falls behind (a terrain cut, a scheduler stall) it catches up in
+a batch of sub-steps; the drives then answer late, which the master sees as it would on a rig.
+Per SYNC it records the time from the SYNC's stamp to its answers leaving (``sync_handling``)
+and its own work on it; a SYNC answered more than one period after its stamp is a missed one.
 
 Control of the process (:class:`RealtimeHilProcess`): one line commands on stdin
 (``inject <kind> <axis>``, ``cut <sync_from> <sync_to>``, ``stop``), answers on stdout
@@ -22,20 +25,21 @@ terrain's material as WKB, its loop statistics) and exits, so a test can never l
 
 Scheduling: the process stands in for drive firmware, which a loaded rig PC never stalls, so it
 asks for SCHED_FIFO (``--rt-priority``, default :data:`HIL_RT_PRIORITY` from
-:meth:`RealtimeHilProcess.start`) before it starts its stdin thread, which inherits it. It
-sits below the control loop's priority, waits in the bridge's poll between frames
-(~10 % of a core at 500 Hz), and where SCHED_FIFO is refused it says so on stderr and runs on.
+:meth:`RealtimeHilProcess.start`) before it starts its stdin thread, which inherits it. It sits
+below the control loop's priority, waits in ``select`` between servo ticks, and where SCHED_FIFO
+is refused it says so on stderr and runs on.
 
-Run by hand: ``python -m hil_sim.realtime --rig scale_model --q0 0.5 -1.5 -1.0 --port 54701``.
+Run by hand:
+``python -m hil_sim.harness.realtime --rig scale_model --q0 0.5 -1.5 -1.0 --port 54701``.
 """
 
 from __future__ import annotations
 
 import argparse
+import array
 import dataclasses
 import gc
 import math
-import os
 import queue
 import select
 import subprocess
@@ -49,7 +53,7 @@ from typing import Any
 import can
 import numpy as np
 
-from hil_sim.bridge import FLAG_ERROR, HOST, BridgeBus, BridgeServer
+from hil_sim.harness.bridge import Bridge, RxFrame
 from hil_sim.sim import COB_SYNC, FaultKind, HilCore, Truth, open_trace
 from hil_sim.terrain import Terrain
 from rt_runtime.control import MonotonicClock
@@ -59,6 +63,8 @@ from rt_runtime.rig import load_rig
 
 __all__ = ["HOST", "RealtimeHilProcess", "main", "serve"]
 
+#: The only address the bridge binds.
+HOST = Bridge.HOST
 #: SCHED_FIFO priority of the HIL process by default (below the loop's: 80, the daemon's default).
 HIL_RT_PRIORITY = 30
 
@@ -93,11 +99,8 @@ def serve(args: argparse.Namespace) -> int:
     )
     if args.trace:
         core.trace = open_trace(args.trace)
-    # Frames keep the sender's timestamp (the master stamps its send time): a SYNC is handled
-    # at the moment it was sent, not when this process got to read it, so a stall here does
-    # not reach the drives as SYNCs bunched together (a following error made by the harness).
-    server = BridgeServer(args.port, channel_info=f"excavator-rt HIL {os.getpid()}")
-    commands: queue.Queue[str] = queue.Queue()
+    bridge = Bridge(args.port, channel_info=f"excavator-rt HIL ({rig.name})")
+    commands: queue.SimpleQueue[str] = queue.SimpleQueue()
 
     def read_stdin() -> None:
         for line in sys.stdin:
@@ -105,61 +108,14 @@ def serve(args: argparse.Namespace) -> int:
         commands.put("stop")
 
     threading.Thread(target=read_stdin, name="stdin", daemon=True).start()
-    print(f"READY {server.port}", flush=True)
+    print(f"READY {bridge.port}", flush=True)
 
-    t0 = time.monotonic()
-    servo = rig.drives.servo_period_s
-    t_core = 0.0
-    lateness: list[float] = []
-    sent = 0
-
-    def send(frames: list[tuple[int, bytes]], now: float) -> None:
-        nonlocal sent
-        if not frames:
-            return
-        for arbitration_id, data in frames:
-            core.log(arbitration_id, data, now, is_rx=False)
-        server.send(frames)
-        sent += len(frames)
-
-    send(core.pending_frames(0.0), 0.0)
-    # Frames carry the master's send time (time.time(), kept by the bridge); the HIL handles
-    # each at that moment on its own clock, so a stall of this process (or of its bridge
-    # thread) delays the answers but does not make the drives see gaps or bunches in the
-    # master's SYNCs that were not on the bus.
-    epoch_offset = time.time() - time.monotonic() + t0
+    loop = _HilLoop(core, bridge, rig.drives.servo_period_s, args.period)
     gc.freeze()
     running = True
+    poll_s = args.poll
     while running:
-        frames = server.poll(args.poll)
-        while frames:
-            for stamp, arbitration_id, data, flags in frames:
-                now = time.monotonic() - t0
-                # An unstamped frame (a client that does not stamp) arrives now.
-                arrival = min(stamp - epoch_offset, now) if stamp > 0.0 else now
-                arrival = max(arrival, t_core)
-                steps = math.floor((arrival - t_core) / servo + 1e-9)
-                if steps > 0:
-                    core.advance(steps * servo)
-                    t_core += steps * servo
-                if flags & FLAG_ERROR:
-                    continue
-                core.log(arbitration_id, data, arrival, is_rx=True)
-                send(core.on_frame(arbitration_id, data, arrival), arrival)
-                if arbitration_id == COB_SYNC:
-                    lateness.append(time.monotonic() - t0 - arrival)
-                    # Time supervision at every SYNC, on the bus's clock: a process that has
-                    # fallen behind drains a backlog here without ever leaving this loop, and
-                    # its nodes must keep producing heartbeats (and judging their watchdogs)
-                    # while it catches up, not only once the backlog is gone.
-                    send(core.pending_frames(arrival), arrival)
-            frames = server.poll(0.0)
-        now = time.monotonic() - t0
-        steps = math.floor((now - t_core) / servo + 1e-9)
-        if steps > 0:
-            core.advance(steps * servo)
-            t_core += steps * servo
-        send(core.pending_frames(now), now)
+        loop.run_once(poll_s)
         while not commands.empty():
             words = commands.get().split()
             if not words:
@@ -171,19 +127,22 @@ def serve(args: argparse.Namespace) -> int:
                 print(f"CUT {volume!r}", flush=True)
             elif words[0] == "stop":
                 running = False
-        if now > args.max_wall_s:
+        if loop.now() > args.max_wall_s:
             running = False
-    server.close()
+    bridge.close()
     if core.trace is not None:
         core.trace.stop()
     truth = core.truth()
+    handling = np.frombuffer(loop.sync_handling_s, dtype=np.float64)
     extra = {
         "material_wkb": np.frombuffer(
             core.terrain.material.wkb if core.terrain is not None else b"", dtype=np.uint8
         ),
-        "frames_sent": np.array(sent),
-        "sync_handling_s": np.array(lateness),
-        "wall_s": np.array(time.monotonic() - t0),
+        "frames_sent": np.array(loop.frames_sent),
+        "frames_dropped": np.array(bridge.dropped),
+        "sync_handling_s": handling,
+        "sync_work_s": np.frombuffer(loop.sync_work_s, dtype=np.float64),
+        "wall_s": np.array(loop.now()),
     }
     if args.out:
         arrays: dict[str, Any] = {**truth.to_npz_dict(), **extra}
@@ -191,8 +150,98 @@ def serve(args: argparse.Namespace) -> int:
     return 0
 
 
+class _HilLoop:
+    """One iteration of the HIL process's loop at a time (:meth:`run_once`).
+
+    The drives' servo ticks run on the wall clock: the loop waits for bus bytes at most until the
+    next servo tick and advances the drives and plant at each tick, so a frame finds the model
+    at most one sub-step behind its arrival. Each frame is handled at its arrival time (the
+    sender's stamp mapped onto the HIL's clock, never before the model's time): the model is
+    advanced to it in whole sub-steps, then the frame is answered; after a SYNC, the nodes' time
+    supervision runs and the answers leave at once (:meth:`Bridge.flush`).
+
+    Attributes:
+        sync_handling_s: Per SYNC, from its stamp to its answers leaving (s), ``array('d')``.
+        sync_work_s: Per SYNC, the HIL's own work on it: advance, answers, supervision (s).
+        frames_sent: Frames the HIL put on the bus.
+    """
+
+    def __init__(self, core: HilCore, bridge: Bridge, servo_s: float, period_s: float) -> None:
+        self.core = core
+        self.bridge = bridge
+        self.servo_s = servo_s
+        self.period_s = period_s
+        self.t0 = time.monotonic()
+        # Frames carry the master's send time (time.time()); the HIL handles each at that
+        # moment on its own clock, so a stall of this process delays the answers but does not
+        # make the drives see gaps or bunches in the master's SYNCs that were not on the bus.
+        self.epoch_offset = time.time() - time.monotonic() + self.t0
+        self.t_core = 0.0
+        self.frames_sent = 0
+        self.sync_handling_s = array.array("d")
+        self.sync_work_s = array.array("d")
+        self._send(core.pending_frames(0.0), 0.0)
+        bridge.flush()
+
+    def now(self) -> float:
+        """Seconds on the HIL's clock."""
+        return time.monotonic() - self.t0
+
+    def _send(self, frames: list[tuple[int, bytes]], now_s: float) -> None:
+        core = self.core
+        bridge = self.bridge
+        for arbitration_id, data in frames:
+            core.log(arbitration_id, data, now_s, is_rx=False)
+            bridge.send(arbitration_id, data)
+        self.frames_sent += len(frames)
+
+    def _advance_to(self, t_s: float) -> None:
+        servo = self.servo_s
+        steps = math.floor((t_s - self.t_core) / servo + 1e-9)
+        if steps > 0:
+            self.core.advance(steps * servo)
+            self.t_core += steps * servo
+
+    def on_frame(self, frame: RxFrame) -> None:
+        """One frame from the bus, handled at its arrival time."""
+        stamp, arbitration_id, data, is_error = frame
+        started = time.monotonic()
+        now = started - self.t0
+        # An unstamped frame (a client that does not stamp) arrives now.
+        arrival = min(stamp - self.epoch_offset, now) if stamp > 0.0 else now
+        arrival = max(arrival, self.t_core)
+        self._advance_to(arrival)
+        if is_error:
+            return
+        core = self.core
+        core.log(arbitration_id, data, arrival, is_rx=True)
+        self._send(core.on_frame(arbitration_id, data, arrival), arrival)
+        if arbitration_id == COB_SYNC:
+            # Time supervision at every SYNC, on the bus's clock: a process that has fallen
+            # behind drains a backlog without leaving the receive path, and its nodes must keep
+            # producing heartbeats (and judging their watchdogs) while it catches up.
+            self._send(core.pending_frames(arrival), arrival)
+            self.bridge.flush()
+            done = time.monotonic()
+            self.sync_handling_s.append(done - self.t0 - arrival)
+            self.sync_work_s.append(done - started)
+
+    def run_once(self, poll_s: float) -> None:
+        """Wait for the bus until the next servo tick (at most ``poll_s``), handle what came,
+        advance to now, run the nodes' time supervision."""
+        wait = self.t_core + self.servo_s - self.now()
+        if self.bridge.wait(min(wait, poll_s)):
+            self.bridge.receive(self.on_frame)
+        now = self.now()
+        self._advance_to(now)
+        self._send(self.core.pending_frames(now), now)
+        self.bridge.flush()
+
+
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser("python -m hil_sim.realtime", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        "python -m hil_sim.harness.realtime", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--rig", default="scale_model")
     p.add_argument("--q0", type=float, nargs=3, required=True, help="initial joint angles (rad)")
     p.add_argument("--period", type=float, default=0.002, help="SYNC period (s)")
@@ -233,16 +282,22 @@ class RealtimeHilProcess:
     """The real-time HIL as a subprocess, and the runtime's bus end connected to it.
 
     Use :meth:`start`. Attributes ``master_bus`` (a :class:`~hil_sim.bridge.BridgeBus` on
-    127.0.0.1) and ``clock`` (:class:`~rt_runtime.control.MonotonicClock`) go to the master and
-    the streamer.
+    127.0.0.1) and
+    ``clock`` (:class:`~rt_runtime.control.MonotonicClock`) go to the master and the streamer.
     """
 
-    def __init__(self, proc: subprocess.Popen[str], port: int, out: Path, tmp: Any) -> None:
+    def __init__(
+        self, proc: subprocess.Popen[str], port: int, out: Path, tmp: Any, period_s: float
+    ) -> None:
+        from hil_sim.bridge import BridgeBus
+
         self.proc = proc
+        self.period_s = period_s
         self.port = port
         self._out = out
         self._tmp = tmp
         self.clock = MonotonicClock()
+        # python-can-remote's own RemoteBus connects as well; this end sends without a thread.
         self.master_bus: can.BusABC = BridgeBus(port)
         self._finished: tuple[Truth, Any, list[tuple[int, bytes]], dict[str, Any]] | None = None
 
@@ -283,7 +338,7 @@ class RealtimeHilProcess:
         tmp = tempfile.TemporaryDirectory(prefix="excavator-hil-")
         out = Path(tmp.name) / "truth.npz"
         cmd = [
-            sys.executable, "-m", "hil_sim.realtime",
+            sys.executable, "-m", "hil_sim.harness.realtime",
             "--rig", rig_name,
             "--q0", *(repr(float(v)) for v in q0_rad),
             "--period", repr(period_s),
@@ -320,7 +375,7 @@ class RealtimeHilProcess:
             raise CommunicationError(
                 f"the real-time HIL did not start within {ready_timeout_s} s (said {line!r})"
             )
-        return cls(proc, int(line.split()[1]), out, tmp)
+        return cls(proc, int(line.split()[1]), out, tmp, period_s)
 
     def _command(self, line: str) -> None:
         assert self.proc.stdin is not None
@@ -357,15 +412,16 @@ class RealtimeHilProcess:
         wkb = bytes(data["material_wkb"])
         material = shapely.from_wkb(wkb) if wkb else None
         handling = np.asarray(data["sync_handling_s"]) * 1e6
+        work = np.asarray(data["sync_work_s"]) * 1e6
         extra: dict[str, Any] = {
             "hil_process": {
                 "wall_s": float(data["wall_s"]),
                 "frames_sent": int(data["frames_sent"]),
-                "sync_handling_us": {
-                    "p50": float(np.percentile(handling, 50)) if handling.size else math.nan,
-                    "p99": float(np.percentile(handling, 99)) if handling.size else math.nan,
-                    "max": float(np.max(handling)) if handling.size else math.nan,
-                },
+                "frames_dropped": int(data["frames_dropped"]),
+                "syncs": int(handling.size),
+                "missed_syncs": int(np.sum(handling > self.period_s * 1e6)),
+                "sync_handling_us": _spread(handling),
+                "sync_work_us": _spread(work),
             }
         }
         self._finished = (truth, material, [], extra)
@@ -384,6 +440,17 @@ class RealtimeHilProcess:
             if stream is not None:
                 stream.close()
         self._tmp.cleanup()
+
+
+def _spread(values_us: np.ndarray) -> dict[str, float]:
+    """p50, p99 and max of a sample (NaN when empty)."""
+    if not values_us.size:
+        return {"p50": math.nan, "p99": math.nan, "max": math.nan}
+    return {
+        "p50": float(np.percentile(values_us, 50)),
+        "p99": float(np.percentile(values_us, 99)),
+        "max": float(np.max(values_us)),
+    }
 
 
 if __name__ == "__main__":

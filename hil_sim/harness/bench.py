@@ -1,0 +1,254 @@
+"""``excavator-rt bench hil``: how fast the lockstep HIL runs, and whose time a period is.
+
+Registered as a ``bench`` subcommand through the ``excavator_rt.bench`` entry point ``hil``::
+
+    excavator-rt bench hil [--task A] [--rig scale_model] [--max-digs N] [--seconds S]
+                           [--cpu] [--json]
+
+Two measurements, each wall clock (``time.perf_counter_ns``) unless ``--cpu``:
+
+* ``task``: the task's digs executed by the runtime (loop, executor, master) against the
+  lockstep HIL (:func:`hil_sim.scenario.run_scenario`), as ``excavator-rt hil`` runs them.
+  Reported: machine time (simulated seconds of SYNCs) over wall time, and per SYNC period the
+  HIL's own time (frame handling, the nodes' answers, the servo sub-steps, its bus end;
+  :class:`hil_sim.sim.HilCost`) apart from the rest of the period, the runtime's share (its
+  loop, controllers, master and bus end, and planning between digs).
+* ``step``: the HIL's models alone, without a bus: :class:`hil_sim.sim.HilCore` fed by direct
+  calls with what the master sends each period (three RPDO1s, ``VCU_Command``, SYNC), replaying
+  held-out verified digs of the scale model (``onnx/pinn_downward_heldout.npz``) through the
+  soil of a terrain for ``--seconds`` of machine time. Per period: ``frames`` (the frames
+  delivered to every node, their TPDOs and the VCU's status, and the nodes' time supervision)
+  and ``advance`` (the servo sub-steps: three drive cascades, the plant, the VCU).
+
+Numbers depend on the machine and its load: compare runs on the same machine, in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import struct
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hil_sim.sim import COB_SYNC, HilCore
+from hil_sim.terrain import Terrain
+from rt_runtime import actuation
+from rt_runtime.actuation import AXES
+from rt_runtime.canbus.vcu import VcuClient, VcuCommand
+from rt_runtime.rig import Rig, load_rig
+from rt_runtime.trajectory import sextic
+
+__all__ = ["add_parser", "bench_hil", "bench_step", "format_report", "run"]
+
+#: SYNC period of both measurements (the demo's).
+PERIOD_S = 2e-3
+#: The held-out digs replayed by the step measurement (planned for the scale model).
+HELDOUT = Path(__file__).resolve().parents[2] / "onnx" / "pinn_downward_heldout.npz"
+_STEP_RIG = "scale_model"
+_COB_NMT = 0x000
+_RPDO1 = struct.Struct("<ii")
+_CONTROLWORD_MODE = struct.Struct("<Hb")
+
+
+def add_parser(bench_sub: Any) -> argparse.ArgumentParser:
+    """Add ``hil`` to the ``bench`` subparsers (the ``excavator_rt.bench`` entry point)."""
+    p: argparse.ArgumentParser = bench_sub.add_parser(
+        "hil",
+        help="lockstep HIL speed: machine time / wall time, HIL and runtime time per period",
+        description=__doc__.split("\n")[0] if __doc__ else None,
+    )
+    p.add_argument("--task", default="A", help="task A..D or a task TOML file (default A)")
+    p.add_argument("--rig", default="scale_model", help="rig profile for the task run")
+    p.add_argument("--max-digs", type=int, default=None, help="stop the task run after N digs")
+    p.add_argument(
+        "--seconds",
+        type=float,
+        default=10.0,
+        help="machine time of the model-only step measurement [s] (0: skip it)",
+    )
+    p.add_argument(
+        "--cpu", action="store_true", help="step measurement in thread CPU time (loaded hosts)"
+    )
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Handler of ``excavator-rt bench hil``; 0 when the task run finished, 1 otherwise."""
+    if not (math.isfinite(args.seconds) and args.seconds >= 0.0):
+        print(f"excavator-rt bench hil: --seconds {args.seconds} must be >= 0")
+        return 2
+    report = bench_hil(
+        task=args.task,
+        rig=args.rig,
+        max_digs=args.max_digs,
+        step_seconds=args.seconds,
+        cpu=args.cpu,
+    )
+    print(json.dumps(report) if args.json else format_report(report))
+    return 0 if report["task"]["status"] == "done" else 1
+
+
+def bench_hil(
+    *,
+    task: str = "A",
+    rig: str = "scale_model",
+    max_digs: int | None = None,
+    step_seconds: float = 10.0,
+    cpu: bool = False,
+) -> dict[str, Any]:
+    """Both measurements (see the module docstring) as one JSON-ready report.
+
+    Raises:
+        ConfigurationError: Bad task or rig.
+        CommunicationError, DriveFault: The drives did not boot or enable.
+    """
+    from hil_sim.scenario import Scenario, run_scenario
+
+    t0 = time.perf_counter()
+    report = run_scenario(Scenario(task=task, rig=rig, max_digs=max_digs))
+    run_s = time.perf_counter() - t0
+    cost = report["hil_lockstep"]
+    sim_s = float(report["sim_s"])
+    out: dict[str, Any] = {
+        "task": {
+            "task": report["task"],
+            "rig": report["rig"],
+            "status": report["status"],
+            "digs": len(report["digs"]),
+            "sim_s": sim_s,
+            "wall_s": run_s,
+            "speed": sim_s / run_s if run_s > 0.0 else math.nan,
+            "period_s": report["period_s"],
+            "hil_us": cost["hil_us"],
+            "runtime_us": cost["runtime_us"],
+            "hil_s": cost["hil_s"],
+            "runtime_s": cost["runtime_s"],
+            "hil_share": cost["hil_s"] / cost["wall_s"] if cost["wall_s"] > 0 else math.nan,
+        }
+    }
+    if step_seconds > 0.0:
+        out["step"] = bench_step(load_rig(_STEP_RIG), step_seconds, cpu=cpu)
+    return out
+
+
+def _reference(rig: Rig, dig: int) -> tuple[NDArray[np.float64], NDArray[np.float64],
+                                             NDArray[np.float64], float]:  # fmt: skip
+    """Per-period joint start, stroke targets and stroke rates of one held-out dig, and its
+    ground height."""
+    data = np.load(HELDOUT)
+    x, y = data["X"][dig], data["Y"][dig]
+    coeffs = sextic.sextic_coefficients(x[:3], x[3:6], y[:3], y[3])
+    t = np.arange(0.0, float(y[3]) + 0.2, PERIOD_S)
+    _, q, qd, _, _ = sextic.evaluate(coeffs, y[3], s_grid=np.clip(t / y[3], 0.0, 1.0))
+    s_ref = actuation.joint_to_stroke(rig, q, check_limits=False)
+    v_ref = actuation.stroke_jacobian(rig, q, check_limits=False) * qd
+    return q[0], s_ref, v_ref, float(x[6])
+
+
+def bench_step(rig: Rig, seconds: float, *, cpu: bool = False) -> dict[str, Any]:
+    """The models alone, replaying held-out digs for ``seconds`` of machine time.
+
+    Returns:
+        ``periods``, ``digs``, ``clock`` (``wall`` or ``cpu``) and per period ``frames_us``,
+        ``advance_us``, ``total_us`` (each p50, p99, max).
+
+    Raises:
+        RuntimeError: A drive left OPERATION ENABLED (the replay is then not a valid run).
+    """
+    ids = [dict(rig.can.node_ids)[name] for name in AXES]
+    vcu_frame = VcuClient(rig.can.vcu_node_id).command_frame(VcuCommand(enable=True))
+    clock = time.thread_time_ns if cpu else time.perf_counter_ns
+    n_periods = max(1, round(seconds / PERIOD_S))
+    frames_ns = np.zeros(n_periods, dtype=np.int64)
+    advance_ns = np.zeros(n_periods, dtype=np.int64)
+    k = 0
+    dig = 0
+    n_digs = len(np.load(HELDOUT)["X"])
+    while k < n_periods:
+        q0, s_ref, v_ref, ground_y_m = _reference(rig, dig % n_digs)
+        terrain = Terrain(ground_y_m, (-0.5, 1.5), rig.bucket.width_m)
+        m = HilCore(rig, q0, terrain, period_s=PERIOD_S)
+        now = 0.0
+        m.pending_frames(now)  # boot-up
+        m.on_frame(_COB_NMT, bytes([0x01, 0x00]), now)  # start all nodes
+        for word in (0x06, 0x07, 0x0F):
+            for node_id in ids:
+                m.on_frame(0x300 + node_id, _CONTROLWORD_MODE.pack(word, 8), now)
+        m.on_frame(*vcu_frame, now)
+        m.advance(PERIOD_S)
+        now += PERIOD_S
+        rpdo = [
+            [_RPDO1.pack(*pair) for pair in zip(s_axis, v_axis, strict=True)]
+            for s_axis, v_axis in zip(
+                np.round(s_ref * 1e6).astype(np.int64).T.tolist(),
+                np.round(v_ref * 1e6).astype(np.int64).T.tolist(),
+                strict=True,
+            )
+        ]
+        for i in range(min(len(s_ref), n_periods - k)):
+            t0 = clock()
+            for axis, node_id in enumerate(ids):
+                m.on_frame(0x200 + node_id, rpdo[axis][i], now)
+            m.on_frame(*vcu_frame, now)
+            m.on_frame(COB_SYNC, b"", now)
+            m.pending_frames(now)
+            t1 = clock()
+            m.advance(PERIOD_S)
+            t2 = clock()
+            frames_ns[k] = t1 - t0
+            advance_ns[k] = t2 - t1
+            k += 1
+            now += PERIOD_S
+        if not all(n.firmware.state.name == "OPERATION_ENABLED" for n in m.nodes):
+            raise RuntimeError(f"dig {dig}: a drive left OPERATION ENABLED; the run is not valid")
+        dig += 1
+    return {
+        "periods": n_periods,
+        "digs": dig,
+        "clock": "cpu" if cpu else "wall",
+        "frames_us": _spread_us(frames_ns),
+        "advance_us": _spread_us(advance_ns),
+        "total_us": _spread_us(frames_ns + advance_ns),
+    }
+
+
+def _spread_us(ns: NDArray[np.int64]) -> dict[str, float]:
+    us = ns * 1e-3
+    return {
+        "p50": float(np.percentile(us, 50)),
+        "p99": float(np.percentile(us, 99)),
+        "max": float(np.max(us)),
+    }
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """The report as text."""
+    t = report["task"]
+    lines = [
+        f"excavator-rt bench hil: task {t['task']} on {t['rig']}, lockstep, {t['status']}",
+        f"  {t['digs']} digs, {t['sim_s']:.1f} s machine time in {t['wall_s']:.1f} s wall: "
+        f"{t['speed']:.2f}x real time",
+        f"  per {t['period_s'] * 1e3:g} ms period (p50 / p99 us): HIL {t['hil_us']['p50']:.0f} / "
+        f"{t['hil_us']['p99']:.0f}, runtime {t['runtime_us']['p50']:.0f} / "
+        f"{t['runtime_us']['p99']:.0f}",
+        f"  HIL {t['hil_s']:.1f} s, runtime {t['runtime_s']:.1f} s "
+        f"(HIL share {t['hil_share']:.0%})",
+    ]
+    step = report.get("step")
+    if step is not None:
+        lines.append(
+            f"  models alone ({step['clock']} clock, {step['periods']} periods of "
+            f"{PERIOD_S * 1e3:g} ms, p50 / p99 us): advance {step['advance_us']['p50']:.0f} / "
+            f"{step['advance_us']['p99']:.0f}, frames {step['frames_us']['p50']:.0f} / "
+            f"{step['frames_us']['p99']:.0f}, total {step['total_us']['p50']:.0f} / "
+            f"{step['total_us']['p99']:.0f}"
+        )
+    return "\n".join(lines)

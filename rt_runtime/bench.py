@@ -1027,11 +1027,9 @@ def _bench_rate(
         master.boot(clock.now, 5.0)
         master.enable(clock.now, 5.0)
         hold_um = master.feedback.position_um.copy()
-        # The daemon's cycle between jobs: the hold controller, the guard, the drives in SI.
-        # read_feedback waits up to its timeout per missing frame: 15 % of the period each keeps
-        # the step under the period even when all three TPDO1 trickle in late; a later one is
-        # taken (stale) in the next cycle, so a slow HIL does not hold the loop.
-        drives = DriveInterface(master, clock, 0.15 * period)
+        # The daemon's cycle between jobs: the hold controller, the guard, the drives in SI; the
+        # answers to a SYNC are read a period later (nothing waits; a later one is stale).
+        drives = DriveInterface(master, clock, 0.0)
         s0 = drives.measured_stroke_m()
         guard = GuardFilter(LimitGuard(StrokeLimits.from_rig(rig), period))
         guard.guard.reset(s0)

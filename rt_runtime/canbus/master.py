@@ -584,6 +584,11 @@ class CanMaster:
         if self._producer.due(now_s):
             self._send(self._producer.message)
 
+    @property
+    def sync_stamp_s(self) -> float:
+        """The send stamp of the latest SYNC (the bus's clock, as the frames' timestamps)."""
+        return float(self._sync.timestamp)
+
     def _send_sync(self) -> None:
         self._tx(self._sync)
         self.feedback.sync_count += 1

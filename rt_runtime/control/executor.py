@@ -101,7 +101,8 @@ class ExecutorConfig:
             following-error window (the executor stops the job before the drive faults).
         following_error_cycles: Consecutive cycles beyond it that count as a fault (>= 1).
         stale_cycles: Consecutive cycles without a drive's TPDO1 that count as a fault (>= 1).
-        read_timeout_s: Longest wait for the TPDOs after SYNC; None: half the period.
+        read_timeout_s: Longest wait for a missing TPDO when the cycle reads the answers to the
+            last SYNC (a period after it); None: 0, take what arrived.
         stop_timeout_s: Longest stop (command and drives to rest) before giving up (s).
         rest_velocity_m_s: A drive reporting less counts as at rest.
         settle_s: Least hold at the end of a job before DONE (s).
@@ -265,7 +266,7 @@ class Executor:
             session.check(rig)
             self.plan_in_worker = False
         self.guard = LimitGuard(StrokeLimits.from_rig(rig, margin=cfg.guard_margin), period)
-        read_timeout_s = 0.5 * period if cfg.read_timeout_s is None else cfg.read_timeout_s
+        read_timeout_s = 0.0 if cfg.read_timeout_s is None else cfg.read_timeout_s
         self.drives = DriveInterface(master, loop.clock, read_timeout_s, cfg.feedforward)
         self.drives.react_to_faults(False)
         # Started here, before the caller enables the drives and applies RT settings: spawning

@@ -14,8 +14,10 @@ last report.
 
 Timing: :attr:`DriveFeedback.send_s` is the time the write spent handing its frames to the bus
 (RPDO1s and SYNC), :attr:`DriveFeedback.wait_s` the time :meth:`~DriveInterface.read` spent
-until every answer was in (the transport's and the drives' share of a cycle: bus, bridge, the
-drives' response), :attr:`DriveFeedback.io_s` the write and read calls together.
+until every answer was in or its wait ran out (0 for a read that only takes what arrived, as
+the controller manager's does a period after the SYNC), :attr:`DriveFeedback.io_s` the write
+and read calls together. The round trip :attr:`DriveFeedback.rtt_s` is measured on the bus's
+own stamps: the latest answer's receive stamp minus the SYNC's send stamp.
 """
 
 from __future__ import annotations
@@ -97,7 +99,7 @@ class DriveInterface:
     Args:
         master: The CAN master (booted and enabled by its owner).
         clock: The loop's clock (times of SYNC, answers, heartbeat).
-        read_timeout_s: Longest wait for one missing answer after SYNC (s).
+        read_timeout_s: Longest wait for one missing answer (s); 0: take what arrived.
         feedforward: Send the stroke rate as velocity offset 0x60B1 (else 0).
     """
 
@@ -114,6 +116,11 @@ class DriveInterface:
         self._zero_um = [0] * self.n
         self._sent_s = 0.0
         self._write_s = 0.0
+
+    @property
+    def sync_count(self) -> int:
+        """SYNCs sent so far."""
+        return int(self.master.feedback.sync_count)
 
     def measured_stroke_m(self) -> FloatArray:
         """The strokes the drives reported last (m), a new array (outside the loop)."""
@@ -155,16 +162,18 @@ class DriveInterface:
         return status
 
     def read(self) -> DriveFeedback:
-        """The answers to the last SYNC (waits at most ``read_timeout_s`` per missing one),
+        """The answers to the last SYNC (waiting at most ``read_timeout_s`` per missing one),
         then the master's heartbeat when due. Loop safe."""
         clock = self.clock
         t0 = clock.now()
-        raw = self.master.read_feedback(self._sent_s, self.read_timeout_s)
+        master = self.master
+        raw = master.read_feedback(t0, self.read_timeout_s)
         t1 = clock.now()
         out = self.feedback
         fresh = not raw.stale.any()
         out.fresh = fresh
-        out.rtt_s = t1 - self._sent_s if fresh else math.nan
+        rtt = float(raw.rx_timestamp_s.max()) - master.sync_stamp_s if fresh else math.nan
+        out.rtt_s = rtt if rtt >= 0.0 else math.nan
         self.master.heartbeat(clock.now())
         out.sync_count = raw.sync_count
         pos = out.stroke_m

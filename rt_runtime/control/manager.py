@@ -116,7 +116,9 @@ class ControllerManager:
         self._lock = threading.Lock()
         self._s_ref = np.zeros(3)
         self._q_ref = np.zeros(3)
+        self._sent_slot = -1  # the telemetry row of the last SYNC sent (-1: none yet)
         self._install_telemetry()
+        self._sent_cols: tuple[Any, ...] = ()
         tel = self.loop.telemetry
         self._tel = tel
         self._cols = tuple(tel.column(c.name) for c in EXECUTOR_COLUMNS)
@@ -147,6 +149,7 @@ class ControllerManager:
         self._tel = telemetry
         self._cols = tuple(telemetry.column(c.name) for c in EXECUTOR_COLUMNS)
 
+
     @property
     def switch_pending(self) -> bool:
         """A :meth:`switch` waits for the next boundary."""
@@ -175,6 +178,7 @@ class ControllerManager:
         self._s_ref[:] = s_ref_m
         self._q_ref[:] = q_ref_rad
         self._stop = False
+        self._sent_slot = -1
         # Another thread of this process holding the interpreter lock delays the loop by up to
         # the switch interval (5 ms by default): on a real-time clock it is cut to a tenth of
         # the period while the loop runs.
@@ -192,14 +196,51 @@ class ControllerManager:
             controller.service()
 
     def _cycle(self, info: CycleInfo) -> LoopAction:
+        """read -> update -> write: the answers to the last cycle's SYNC (they had the period to
+        arrive; nothing waits), the controller's next command, the guard, RPDO1s and SYNC."""
         drives = self.drives
+        if self._sent_slot >= 0:
+            fb = drives.read()
+            # The answers go with the row of the SYNC they answer (in the buffer it was in).
+            row = self._sent_slot
+            a_pos, a_vel, a_state, a_status, a_rtt, a_wait = self._sent_cols
+            a_pos[row] = fb.stroke_m
+            a_vel[row] = fb.velocity_m_s
+            a_state[row] = fb.state
+            a_status[row] = fb.status
+            a_rtt[row] = fb.rtt_s
+            a_wait[row] = fb.wait_s
+            controller = self.controller
+            now = self.loop.clock.now()
+            if info.safe_stop:
+                overrun = getattr(controller, "overrun", None)
+                if overrun is not None:
+                    overrun(info.consecutive_overruns, info.lateness_s)
+            try:
+                nxt, status = controller.update(now, self.period_s, fb)
+            except Exception as exc:  # a bug must still end in the guard's stop, never a dead loop
+                log.exception("controller update failed")
+                nxt, status = controller.fail(f"controller error: {exc!r}")
+            if self.on_cycle is not None:
+                self.on_cycle(int(fb.sync_count), now)
+            if self._pending is not None:
+                with self._lock:
+                    pending, self._pending = self._pending, None
+                if pending is not None:
+                    self.controller, nxt = pending
+                    status = ControllerStatus.RUNNING
+            if status is ControllerStatus.ENDED:
+                after = self.on_ended(controller) if self.on_ended is not None else None
+                if after is None:
+                    self._end()
+                    return LoopAction.STOP
+                self.controller, nxt = after
+            self._cmd = nxt
+            if self._stop:
+                self._end()
+                return LoopAction.STOP
         guard = self.guard
         cmd = self._cmd
-        if cmd.quick_stop:
-            drives.quick_stop()
-        gstate = guard.apply(cmd)
-        drives.write(guard.position_m, guard.velocity_m_s)
-        fb = drives.read()
         (
             c_sync,
             c_phase,
@@ -219,8 +260,13 @@ class ControllerManager:
             c_wait,
             c_send,
         ) = self._cols
-        slot = self._tel.slot
-        c_sync[slot] = fb.sync_count
+        if cmd.quick_stop:
+            drives.quick_stop()
+        gstate = guard.apply(cmd)
+        drives.write(guard.position_m, guard.velocity_m_s)
+        tel = self._tel
+        slot = tel.slot
+        c_sync[slot] = drives.sync_count
         c_phase[slot] = cmd.phase
         c_segment[slot] = cmd.segment
         c_dig[slot] = cmd.dig
@@ -230,40 +276,14 @@ class ControllerManager:
         c_s_cmd[slot] = guard.position_m
         c_v_cmd[slot] = guard.velocity_m_s
         c_guard[slot] = gstate
-        c_s_fb[slot] = fb.stroke_m
-        c_v_fb[slot] = fb.velocity_m_s
-        c_state[slot] = fb.state
-        c_status[slot] = fb.status
-        c_rtt[slot] = fb.rtt_s
-        c_wait[slot] = fb.wait_s
-        c_send[slot] = fb.send_s
+        c_send[slot] = drives.feedback.send_s
         self._s_ref[:] = guard.position_m
         self._q_ref[:] = cmd.q_rad
-        controller = self.controller
-        now = self.loop.clock.now()
-        if info.safe_stop:
-            overrun = getattr(controller, "overrun", None)
-            if overrun is not None:
-                overrun(info.consecutive_overruns, info.lateness_s)
-        try:
-            nxt, status = controller.update(now, self.period_s, fb)
-        except Exception as exc:  # a bug must still end in the guard's stop, never a dead loop
-            log.exception("controller update failed")
-            nxt, status = controller.fail(f"controller error: {exc!r}")
-        if self.on_cycle is not None:
-            self.on_cycle(int(fb.sync_count), now)
-        if self._pending is not None:
-            with self._lock:
-                pending, self._pending = self._pending, None
-            if pending is not None:
-                self.controller, nxt = pending
-                status = ControllerStatus.RUNNING
-        if status is ControllerStatus.ENDED:
-            after = self.on_ended(controller) if self.on_ended is not None else None
-            if after is None:
-                return LoopAction.STOP
-            self.controller, nxt = after
-        self._cmd = nxt
-        if self._stop:
-            return LoopAction.STOP
+        self._sent_slot = slot
+        self._sent_cols = (c_s_fb, c_v_fb, c_state, c_status, c_rtt, c_wait)
         return LoopAction.CONTINUE
+
+    def _end(self) -> None:
+        """The loop ends in this cycle before its write: its row holds nothing."""
+        self._tel.discard()
+        self._sent_slot = -1

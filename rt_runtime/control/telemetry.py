@@ -149,6 +149,12 @@ class Telemetry:
         self.count += 1
         return slot
 
+    def discard(self) -> None:
+        """Drop the current record (a cycle that turned out to send nothing). Safe inside the
+        loop; a later :meth:`end` of the same cycle writes into no kept row."""
+        if self.count > 0:
+            self.count -= 1
+
     def end(self, exec_s: float) -> None:
         """Finish the current record with the step's execution time (s). Safe inside the loop."""
         self._exec[self.slot] = exec_s

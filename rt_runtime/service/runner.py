@@ -394,7 +394,7 @@ class RigRunner:
             ),
             executor_telemetry(1024),
         )
-        drives = DriveInterface(master, self.clock, 0.5 * self.period_s, self._prep.options[0])
+        drives = DriveInterface(master, self.clock, 0.0, self._prep.options[0])
         drives.react_to_faults(False)
         guard = GuardFilter(LimitGuard(StrokeLimits.from_rig(self.rig), self.period_s))
         hold = HoldController(np.zeros(3), np.zeros(3), SETTLED_M)

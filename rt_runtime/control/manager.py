@@ -1,15 +1,21 @@
 """The controller manager: one fixed-rate loop, the drives, the guard, and the controller that
 runs this cycle (ros2_control's controller manager).
 
-Each cycle (:meth:`ControllerManager._cycle`):
+Each cycle (:meth:`ControllerManager._cycle`), read -> update -> write as ros2_control's:
 
-1. the command the active controller returned last cycle passes the limit guard
-   (:class:`~rt_runtime.control.controllers.GuardFilter`) and is written: RPDO1 for
-   ``t_k + T`` with SYNC ``k`` (:meth:`~rt_runtime.control.hardware.DriveInterface.write`);
-2. the drives' answers to SYNC ``k`` are read (:meth:`~.hardware.DriveInterface.read`);
-3. the telemetry row ``k`` is written: the demand at ``t_k`` (``stroke_ref_m``, the previous
-   command), the feedback answering SYNC ``k``, the command for ``t_k + T`` and what it streams;
-4. the active controller's :meth:`~.controllers.Controller.update` returns the next command.
+1. read: the drives' answers to the last cycle's SYNC ``k - 1``, which had the whole period to
+   arrive (:meth:`~rt_runtime.control.hardware.DriveInterface.read`; a missing one is stale,
+   nothing waits), written into telemetry row ``k - 1``, the row of the SYNC they answer;
+2. update: the active controller's :meth:`~.controllers.Controller.update` returns the next
+   command (then a pending switch or the end of the controller takes effect);
+3. write: the command passes the limit guard
+   (:class:`~rt_runtime.control.controllers.GuardFilter`) and goes out as RPDO1 for
+   ``t_k + T`` with SYNC ``k`` (:meth:`~.hardware.DriveInterface.write`); telemetry row ``k``
+   takes the demand at ``t_k`` (``stroke_ref_m``, the previous command), the command for
+   ``t_k + T`` and what it streams.
+
+The first cycle only writes; a cycle that ends the loop only reads and updates (its row is
+dropped), so row ``k`` is always the cycle that sent SYNC ``k``.
 
 A :meth:`switch` (any thread) hands the drives to another controller at the next cycle
 boundary: the new controller's first command, prepared by whoever switches, goes with the next

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from rt_runtime.control.controllers import Command, Controller, ControllerStatus, GuardFilter
-from rt_runtime.control.hardware import DriveInterface
+from rt_runtime.control.hardware import DriveFeedback, DriveInterface
 from rt_runtime.control.loop import CycleInfo, FixedRateLoop, LoopAction, LoopStats
 from rt_runtime.control.telemetry import LOOP_COLUMNS, Column, Telemetry
 
@@ -192,7 +192,13 @@ class ControllerManager:
         if self.realtime:
             sys.setswitchinterval(min(old_switch, 0.1 * self.period_s))
         try:
-            return self.loop.run(self._cycle, max_cycles=max_cycles, idle=self._idle)
+            stats = self.loop.run(self._cycle, max_cycles=max_cycles, idle=self._idle)
+            if self._sent_slot >= 0:
+                # Ended by max_cycles after a write: its answers, a period on, complete the row.
+                clock = self.loop.clock
+                clock.sleep_until(self.loop.info.deadline_s + self.period_s)
+                self._take_answers()
+            return stats
         finally:
             sys.setswitchinterval(old_switch)
 
@@ -206,16 +212,7 @@ class ControllerManager:
         arrive; nothing waits), the controller's next command, the guard, RPDO1s and SYNC."""
         drives = self.drives
         if self._sent_slot >= 0:
-            fb = drives.read()
-            # The answers go with the row of the SYNC they answer (in the buffer it was in).
-            row = self._sent_slot
-            a_pos, a_vel, a_state, a_status, a_rtt, a_wait = self._sent_cols
-            a_pos[row] = fb.stroke_m
-            a_vel[row] = fb.velocity_m_s
-            a_state[row] = fb.state
-            a_status[row] = fb.status
-            a_rtt[row] = fb.rtt_s
-            a_wait[row] = fb.wait_s
+            fb = self._take_answers()
             controller = self.controller
             now = self.loop.clock.now()
             if info.safe_stop:
@@ -288,6 +285,20 @@ class ControllerManager:
         self._sent_slot = slot
         self._sent_cols = (c_s_fb, c_v_fb, c_state, c_status, c_rtt, c_wait)
         return LoopAction.CONTINUE
+
+    def _take_answers(self) -> DriveFeedback:
+        """Read the answers to the last SYNC into the row of that SYNC (in the buffer it was
+        in)."""
+        fb = self.drives.read()
+        row = self._sent_slot
+        a_pos, a_vel, a_state, a_status, a_rtt, a_wait = self._sent_cols
+        a_pos[row] = fb.stroke_m
+        a_vel[row] = fb.velocity_m_s
+        a_state[row] = fb.state
+        a_status[row] = fb.status
+        a_rtt[row] = fb.rtt_s
+        a_wait[row] = fb.wait_s
+        return fb
 
     def _end(self) -> None:
         """The loop ends in this cycle before its write: its row holds nothing."""

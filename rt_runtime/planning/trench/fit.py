@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -312,6 +313,9 @@ class FitMixin(MovesMixin):
         tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
         jac0 = kinematics.jacobian(self.rig, q1)[:, :2]  # (P, 2, 3): d(x, y)/dq at q1
         d_ent = np.einsum("pij,pj->pi", jac0, 10.0 * (q2 - q1))
+        geo = self.planner.geo_module
+        if geo is not None:
+            return self._fit_bulges_c(geo, base, jac0, d_ent, edges, (m, offset, tp_lo, tp_hi))
         mu = np.full(P, 1e-7)
         K = np.zeros((P, 3))
         step = np.zeros((P, 3))
@@ -374,6 +378,48 @@ class FitMixin(MovesMixin):
             )[..., 0]
             step = np.where(go[:, None], sol, step)
             K = np.where(go[:, None], K + sol, K)
+        return best_K, cost
+
+    def _fit_bulges_c(
+        self,
+        geo: Any,
+        base: FloatArray,
+        jac0: FloatArray,
+        d_ent: FloatArray,
+        edges: FloatArray,
+        par: tuple[float, float, float, float],
+    ) -> tuple[FloatArray, FloatArray]:
+        """:meth:`_fit_bulges` with each iteration's residuals, normal equations and step
+        control in C (``fit_iterate``: numpy's operations in numpy's order) and the damped
+        3 x 3 systems solved by ``np.linalg.solve`` as in the numpy loop; the same K and costs
+        bit for bit."""
+        P = base.shape[0]
+        base = np.ascontiguousarray(base, dtype=np.float64)
+        pf = np.ascontiguousarray(self.planner.fit_pf, dtype=np.float64)
+        lengths = np.ascontiguousarray(self.planner.arm.lengths, dtype=np.float64)
+        edges = np.ascontiguousarray(edges, dtype=np.float64)
+        jac0 = np.ascontiguousarray(jac0, dtype=np.float64)
+        d_ent = np.ascontiguousarray(d_ent, dtype=np.float64)
+        K = np.zeros((P, 3))
+        step = np.zeros((P, 3))
+        mu = np.full(P, 1e-7)
+        cost = np.full(P, np.inf)
+        best_K = np.zeros((P, 3))
+        active = np.ones(P)
+        go = np.zeros(P)
+        system = np.empty((P, 3, 4))
+        for it in range(9):
+            par_it = np.array([*par, float(it)])
+            n_active = geo.fit_iterate(
+                base, pf, lengths, edges, jac0, d_ent, par_it, K, step, mu, cost, best_K,
+                active, go, system,
+            )
+            if n_active == 0:
+                break
+            sol = np.linalg.solve(system[..., :3], system[..., 3:])[..., 0]
+            take = go != 0.0
+            step[take] = sol[take]
+            K[take] = K[take] + sol[take]
         return best_K, cost
 
     def _pass_candidate(

@@ -380,6 +380,20 @@ class MovesMixin(MaterialMixin):
         self, q: FloatArray, surface: FloatArray, cap_m: ArrayLike = _DEPTH_CAP_M
     ) -> FloatArray:
         """How deep each point of the bucket outline is in the material, poses ``(n, 3)`` ->
-        ``(n, m)`` (m, up to ``cap_m``, :func:`_depth_below`)."""
+        ``(n, m)`` (m, up to ``cap_m``, :func:`_depth_below`; in C with the C geometry, the
+        same formulas)."""
         x, y = self.planner.mover.bucket_xy(q)
-        return _depth_below(self.grid, surface, x + self.machine_x, y, cap_m)
+        x = x + self.machine_x
+        geo = self.planner.geo_module
+        if geo is None:
+            return _depth_below(self.grid, surface, x, y, cap_m)
+        out = np.empty(x.shape)
+        geo.depth_below(
+            self.grid,
+            np.ascontiguousarray(surface, dtype=np.float64),
+            np.ascontiguousarray(x, dtype=np.float64).ravel(),
+            np.ascontiguousarray(y, dtype=np.float64).ravel(),
+            np.ascontiguousarray(np.broadcast_to(cap_m, x.shape), dtype=np.float64).ravel(),
+            out.reshape(-1),
+        )
+        return out

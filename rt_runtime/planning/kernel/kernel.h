@@ -412,6 +412,10 @@ void vk_screen_row(const double *p, const double *x7, const double *K, const dou
                    double *out, ptrdiff_t stride);
 void vk_depth_below(const double *grid, const double *surface, ptrdiff_t M, const double *x,
                     const double *y, const double *cap, ptrdiff_t N, double *out);
+void vk_move_poses(const double *tables, const double *times, ptrdiff_t n, double *out);
+int vk_bucket_depth(const double *q, ptrdiff_t n, const double *lengths, const double *outline,
+                    ptrdiff_t m, double machine_x, const double *grid, const double *surface,
+                    ptrdiff_t M, const double *cap, double *out);
 #define VK_FIT_MAX_SAMPLES 1024 /* samples of a profile fit's path */
 int vk_fit_iterate(const double *base, const double *pf, ptrdiff_t n, const double *lengths,
                    const double *edges, ptrdiff_t E, const double *jac0, const double *d_ent,

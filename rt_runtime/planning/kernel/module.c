@@ -2,8 +2,8 @@
  * The extension module (rt_runtime.planning._verify, or _verify_avx2: module.h) and its Kernel
  * type: the packed rig constants, the time grid and the scratch of one verifier, and the
  * per-call entry points run (vk_evaluate), retime (vk_retime), plan (vk_plan), screen
- * (vk_screen_row) and front (front.c); the module functions overdig, envelope, depth_below and
- * fit_iterate (trench.c).
+ * (vk_screen_row) and front (front.c); the module functions overdig, envelope, depth_below,
+ * fit_iterate, move_poses and bucket_depth (trench.c).
  *
  * The entry points are METH_FASTCALL and take numpy arrays by the buffer protocol: it measured
  * 0.1 us per call against 0.4 us for ctypes with cached pointers and 2.6 us for ctypes taking
@@ -494,6 +494,68 @@ static PyObject *vk_py_fit_iterate(PyObject *module, PyObject *const *args, Py_s
     return PyLong_FromLong(n_active);
 }
 
+static PyObject *vk_py_move_poses(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    if (nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "move_poses(tables, times, out) takes 3 arguments");
+        return NULL;
+    }
+    vk_arg a[3] = {
+        {args[0], "tables", 0, 3, {3, 5, 7}},
+        {args[1], "times", 0, 1, {-1}},
+        {args[2], "out", 1, 2, {-1, 3}},
+    };
+    if (get_args(a, 3) != 0) return NULL;
+    const Py_ssize_t n = a[1].view.shape[0];
+    if (a[2].view.shape[0] != n) {
+        release_rows(a, 3);
+        PyErr_SetString(PyExc_ValueError, "out must have one pose per time (n, 3)");
+        return NULL;
+    }
+    vk_move_poses((const double *)a[0].view.buf, (const double *)a[1].view.buf, n,
+                  (double *)a[2].view.buf);
+    release_rows(a, 3);
+    Py_RETURN_NONE;
+}
+
+static PyObject *vk_py_bucket_depth(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    if (nargs != 8) {
+        PyErr_SetString(PyExc_TypeError,
+                        "bucket_depth(q, lengths, outline, machine_x, grid, surface, cap, out) "
+                        "takes 8 arguments");
+        return NULL;
+    }
+    double machine_x;
+    if (get_double(args[3], &machine_x, "machine_x") != 0) return NULL;
+    vk_arg a[7] = {
+        {args[0], "q", 0, 2, {-1, 3}},      {args[1], "lengths", 0, 1, {3}},
+        {args[2], "outline", 0, 2, {-1, 2}}, {args[4], "grid", 0, 1, {-1}},
+        {args[5], "surface", 0, 1, {-1}},   {args[6], "cap", 0, 1, {-1}},
+        {args[7], "out", 1, 2, {-1, -1}},
+    };
+    if (get_args(a, 7) != 0) return NULL;
+    const Py_ssize_t n = a[0].view.shape[0], m = a[2].view.shape[0], M = a[3].view.shape[0];
+    const char *bad = NULL;
+    if (M < 2 || a[4].view.shape[0] != M) bad = "grid must hold 2 or more points and surface one per point";
+    else if (a[5].view.shape[0] != m) bad = "cap must have one value per outline point (m,)";
+    else if (a[6].view.shape[0] != n || a[6].view.shape[1] != m) bad = "out must be (n, m)";
+    if (bad != NULL) {
+        release_rows(a, 7);
+        PyErr_SetString(PyExc_ValueError, bad);
+        return NULL;
+    }
+    const int rc = vk_bucket_depth((const double *)a[0].view.buf, n, (const double *)a[1].view.buf,
+                                   (const double *)a[2].view.buf, m, machine_x,
+                                   (const double *)a[3].view.buf, (const double *)a[4].view.buf,
+                                   M, (const double *)a[5].view.buf, (double *)a[6].view.buf);
+    release_rows(a, 7);
+    if (rc != 0) return PyErr_NoMemory();
+    Py_RETURN_NONE;
+}
+
 static PyObject *Kernel_screen(KernelObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     if (nargs != 9) {
@@ -587,6 +649,12 @@ static PyMethodDef verify_functions[] = {
      "envelope(path (n, 2), grid (M,) uniform, out (M,)) -> None"},
     {"depth_below", (PyCFunction)(void (*)(void))vk_py_depth_below, METH_FASTCALL,
      "depth_below(grid (M,) uniform, surface (M,), x (N,), y (N,), cap (N,), out (N,)) -> None"},
+    {"move_poses", (PyCFunction)(void (*)(void))vk_py_move_poses, METH_FASTCALL,
+     "move_poses(tables (3, 5, 7): per joint the pieces' durations, jerk, acceleration, "
+     "velocity, position; times (n,), out (n, 3)) -> None"},
+    {"bucket_depth", (PyCFunction)(void (*)(void))vk_py_bucket_depth, METH_FASTCALL,
+     "bucket_depth(q (n, 3), lengths (3,), outline (m, 2), machine_x, grid (M,) uniform, "
+     "surface (M,), cap (m,), out (n, m)) -> None"},
     {"fit_iterate", (PyCFunction)(void (*)(void))vk_py_fit_iterate, METH_FASTCALL,
      "fit_iterate(base (P, n, 3), pf (n,), lengths (3,), edges (E, 3), jac0 (P, 2, 3), "
      "d_ent (P, 2), par (5,): machine x, offset, theta_p lo, hi, iteration; state K (P, 3), "

@@ -278,3 +278,61 @@ int vk_fit_iterate(const double *base, const double *pf, ptrdiff_t n, const doub
     }
     return still;
 }
+
+/* trench.motion._Mover.poses of a rest-to-rest ruckig move: joint poses (n, 3) at n times from
+ * each joint's seven constant-jerk pieces (tables (3, 5, 7): durations, jerk, and the
+ * acceleration, velocity and position where each piece starts); the same formulas. */
+void vk_move_poses(const double *tables, const double *times, ptrdiff_t n, double *out)
+{
+    for (int k = 0; k < 3; k++) {
+        const double *t = tables + 35 * k, *jerk = t + 7, *acc = t + 14, *vel = t + 21,
+                     *pos = t + 28;
+        double starts[8];
+        starts[0] = 0.0;
+        double c = t[0];
+        starts[1] = c;
+        for (int i = 1; i < 7; i++) {
+            c = c + t[i];
+            starts[i + 1] = c;
+        }
+        for (ptrdiff_t s = 0; s < n; s++) {
+            const double ts = times[s];
+            int i = -1;
+            for (int j = 0; j < 8; j++) i += starts[j] <= ts; /* searchsorted, side right */
+            i = i < 0 ? 0 : (i > 6 ? 6 : i);
+            const double dt = ts - starts[i];
+            out[3 * s + k] = pos[i] + dt * (vel[i] + dt * (0.5 * acc[i] + dt * jerk[i] / 6.0));
+        }
+    }
+}
+
+/* trench.moves.MovesMixin._bucket_depth of n joint poses q (n, 3): each outline point
+ * (outline (m, 2): along and normal in the bucket frame at the tip) placed as
+ * trench.motion._Mover.bucket_xy places it, shifted by the machine's x, and its depth below
+ * the height field (vk_depth_below, cap (m,) per outline point) into out (n, m); the same
+ * formulas. Returns -1 where the scratch cannot be allocated, else 0. */
+int vk_bucket_depth(const double *q, ptrdiff_t n, const double *lengths, const double *outline,
+                    ptrdiff_t m, double machine_x, const double *grid, const double *surface,
+                    ptrdiff_t M, const double *cap, double *out)
+{
+    double *buf = (double *)malloc(sizeof(double) * 3 * (size_t)(m > 0 ? m : 1));
+    if (buf == NULL) return -1;
+    double *xs = buf, *ys = buf + m, *caps = buf + 2 * m;
+    for (ptrdiff_t j = 0; j < m; j++) caps[j] = cap[j];
+    for (ptrdiff_t s = 0; s < n; s++) {
+        const double *qs = q + 3 * s;
+        const double p0 = qs[0], p1 = p0 + qs[1], p2 = p1 + qs[2];
+        const double x = (lengths[0] * cos(p0) + lengths[1] * cos(p1)) + lengths[2] * cos(p2);
+        const double y = (lengths[0] * sin(p0) + lengths[1] * sin(p1)) + lengths[2] * sin(p2);
+        const double z = (qs[0] + qs[1]) + qs[2];
+        const double c = cos(z), sn = sin(z);
+        for (ptrdiff_t j = 0; j < m; j++) {
+            const double a = outline[2 * j], b = outline[2 * j + 1];
+            xs[j] = ((x + c * a) - sn * b) + machine_x;
+            ys[j] = (y + sn * a) + c * b;
+        }
+        vk_depth_below(grid, surface, M, xs, ys, caps, m, out + m * s);
+    }
+    free(buf);
+    return 0;
+}

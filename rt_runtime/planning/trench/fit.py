@@ -408,8 +408,9 @@ class FitMixin(MovesMixin):
         active = np.ones(P)
         go = np.zeros(P)
         system = np.empty((P, 3, 4))
+        par_it = np.array([*par, 0.0])
         for it in range(9):
-            par_it = np.array([*par, float(it)])
+            par_it[4] = it
             n_active = geo.fit_iterate(
                 base, pf, lengths, edges, jac0, d_ent, par_it, K, step, mu, cost, best_K,
                 active, go, system,
@@ -417,15 +418,22 @@ class FitMixin(MovesMixin):
             if n_active == 0:
                 break
             sol = np.linalg.solve(system[..., :3], system[..., 3:])[..., 0]
-            take = go != 0.0
-            step[take] = sol[take]
-            K[take] = K[take] + sol[take]
+            take = (go != 0.0)[:, None]
+            np.copyto(step, sol, where=take)
+            np.add(K, sol, out=K, where=take)
         return best_K, cost
 
     def _pass_candidate(
         self, kind: DigType, qs: FloatArray, qe: FloatArray, K: FloatArray, tip: FloatArray
     ) -> Candidate | None:
         """A fitted profile pass retimed and checked, as a ranked candidate (None: refused)."""
+        # The real cut first: it refuses most fits, and needs no retiming.
+        total, useful = self._cut_areas(self._envelope(tip, self.grid))
+        if (
+            total > self.v_max_m3 / self.width_m
+            or useful < 0.1 * MIN_USEFUL_FRACTION * self.design_area
+        ):
+            return None
         # The verifier's soil model takes depth below a flat H; here the material over the
         # path is a layer along it, so H is set for the thickest chip the path cuts: the
         # material's thickness across the path's direction (its depth above the path times
@@ -444,12 +452,6 @@ class FitMixin(MovesMixin):
         retimed = np.zeros((1, 4))
         self.planner.verifier.retime_into(row, out, retimed)
         if not np.isfinite(retimed[0, 3]) or _total_without_volume(out[0]) > 0.0:
-            return None
-        total, useful = self._cut_areas(self._envelope(tip, self.grid))
-        if (
-            total > self.v_max_m3 / self.width_m
-            or useful < 0.1 * MIN_USEFUL_FRACTION * self.design_area
-        ):
             return None
         x7 = np.concatenate([qs, qe, [H]])
         r = retimed[0]

@@ -479,6 +479,9 @@ static PyObject *vk_py_fit_iterate(PyObject *module, PyObject *const *args, Py_s
     double *go = (double *)a[13].view.buf, *sys = (double *)a[14].view.buf;
     long n_active = 0;
     for (Py_ssize_t p = 0; p < P; p++) {
+        /* An inactive pair's K and mu no longer change (every pair is active at the first
+         * iteration): its system stays as last written, the same as written again. */
+        if (active[p] == 0.0) continue;
         double A[9], rhs[3];
         n_active += vk_fit_iterate(base + 3 * n * p, (const double *)a[1].view.buf, n,
                                    (const double *)a[2].view.buf, (const double *)a[3].view.buf,

@@ -412,8 +412,21 @@ class FitMixin(MovesMixin):
         for it in range(9):
             par_it[4] = it
             n_active = geo.fit_iterate(
-                base, pf, lengths, edges, jac0, d_ent, par_it, K, step, mu, cost, best_K,
-                active, go, system,
+                base,
+                pf,
+                lengths,
+                edges,
+                jac0,
+                d_ent,
+                par_it,
+                K,
+                step,
+                mu,
+                cost,
+                best_K,
+                active,
+                go,
+                system,
             )
             if n_active == 0:
                 break

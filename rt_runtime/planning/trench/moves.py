@@ -386,8 +386,10 @@ class MovesMixin(MaterialMixin):
         if self.planner.geo_module is None:
             return None
         profiles = traj.profiles[0]
-        if len(traj.profiles) != 1 or len(profiles) != 3 or any(
-            p.brake.duration > 0.0 or p.accel.duration > 0.0 for p in profiles
+        if (
+            len(traj.profiles) != 1
+            or len(profiles) != 3
+            or any(p.brake.duration > 0.0 or p.accel.duration > 0.0 for p in profiles)
         ):
             return None
         return np.array([[p.t, p.j, p.a[:7], p.v[:7], p.p[:7]] for p in profiles])
@@ -422,9 +424,7 @@ class MovesMixin(MaterialMixin):
             float(self.machine_x),
             self.grid,
             np.ascontiguousarray(surface, dtype=np.float64),
-            np.ascontiguousarray(
-                np.broadcast_to(cap_m, mover.outline.shape[:1]), dtype=np.float64
-            ),
+            np.ascontiguousarray(np.broadcast_to(cap_m, mover.outline.shape[:1]), dtype=np.float64),
             out,
         )
         return out

@@ -134,10 +134,20 @@ class FitMixin(MovesMixin):
             return -edges[k, 0:2]
 
         n_a, n_b = inward(a), inward(b)
+        # Fits and candidates by their inputs: the fixed shifts start with the adaptive
+        # search's unshifted fit, and nothing they depend on changes within this call.
+        fits_seen: dict[bytes, list[tuple[float, FloatArray] | None]] = {}
+        candidates_seen: dict[bytes, Candidate | None] = {}
 
         def candidate(
             q1: FloatArray, q2: FloatArray, K: FloatArray, cost: float
         ) -> Candidate | None:
+            key = b"".join((q1.tobytes(), q2.tobytes(), K.tobytes(), np.float64(cost).tobytes()))
+            if key not in candidates_seen:
+                candidates_seen[key] = checked(q1, q2, K, cost)
+            return candidates_seen[key]
+
+        def checked(q1: FloatArray, q2: FloatArray, K: FloatArray, cost: float) -> Candidate | None:
             qp = q1 + qf_full[:, None] * (q2 - q1) + pf_full[:, None] * K
             px, py = arm.tip_xy(qp)
             tip = np.stack([px + m, py], axis=1)
@@ -156,6 +166,14 @@ class FitMixin(MovesMixin):
             if not q1s:
                 return []
             q1, q2 = np.asarray(q1s), np.asarray(q2s)
+            key = b"".join((np.float64(offset).tobytes(), q1.tobytes(), q2.tobytes()))
+            if key not in fits_seen:
+                fits_seen[key] = fit_pairs(q1, q2, offset)
+            return fits_seen[key]
+
+        def fit_pairs(
+            q1: FloatArray, q2: FloatArray, offset: float
+        ) -> list[tuple[float, FloatArray] | None]:
             base = q1[:, None, :] + qf[None, :, None] * (q2 - q1)[:, None, :]
             K, cost = self._fit_bulges(base, q1, q2, edges, offset, kind)
             q = base + pf[None, :, None] * K[:, None, :]

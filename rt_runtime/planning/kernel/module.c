@@ -2,8 +2,8 @@
  * The extension module (rt_runtime.planning._verify, or _verify_avx2: module.h) and its Kernel
  * type: the packed rig constants, the time grid and the scratch of one verifier, and the
  * per-call entry points run (vk_evaluate), retime (vk_retime), plan (vk_plan), screen
- * (vk_screen_row) and front (front.c); the module functions overdig, envelope, depth_below,
- * fit_iterate, move_poses and bucket_depth (trench.c).
+ * (vk_screen_row) and front (front.c); the module functions overdig, envelope, fit_iterate,
+ * move_poses and bucket_depth (trench.c).
  *
  * The entry points are METH_FASTCALL and take numpy arrays by the buffer protocol: it measured
  * 0.1 us per call against 0.4 us for ctypes with cached pointers and 2.6 us for ctypes taking
@@ -407,37 +407,6 @@ static PyObject *vk_py_envelope(PyObject *module, PyObject *const *args, Py_ssiz
     Py_RETURN_NONE;
 }
 
-static PyObject *vk_py_depth_below(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
-{
-    (void)module;
-    if (nargs != 6) {
-        PyErr_SetString(PyExc_TypeError,
-                        "depth_below(grid, surface, x, y, cap, out) takes 6 arguments");
-        return NULL;
-    }
-    vk_arg a[6] = {
-        {args[0], "grid", 0, 1, {-1}},   {args[1], "surface", 0, 1, {-1}},
-        {args[2], "x", 0, 1, {-1}},      {args[3], "y", 0, 1, {-1}},
-        {args[4], "cap", 0, 1, {-1}},    {args[5], "out", 1, 1, {-1}},
-    };
-    if (get_args(a, 6) != 0) return NULL;
-    const Py_ssize_t M = a[0].view.shape[0], N = a[2].view.shape[0];
-    const char *bad = NULL;
-    if (M < 2 || a[1].view.shape[0] != M) bad = "grid must hold 2 or more points and surface one per point";
-    else if (a[3].view.shape[0] != N || a[4].view.shape[0] != N || a[5].view.shape[0] != N)
-        bad = "x, y, cap and out must have one value per point (N,)";
-    if (bad != NULL) {
-        release_rows(a, 6);
-        PyErr_SetString(PyExc_ValueError, bad);
-        return NULL;
-    }
-    vk_depth_below((const double *)a[0].view.buf, (const double *)a[1].view.buf, M,
-                   (const double *)a[2].view.buf, (const double *)a[3].view.buf,
-                   (const double *)a[4].view.buf, N, (double *)a[5].view.buf);
-    release_rows(a, 6);
-    Py_RETURN_NONE;
-}
-
 static PyObject *vk_py_fit_iterate(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)module;
@@ -650,8 +619,6 @@ static PyMethodDef verify_functions[] = {
      "-> None"},
     {"envelope", (PyCFunction)(void (*)(void))vk_py_envelope, METH_FASTCALL,
      "envelope(path (n, 2), grid (M,) uniform, out (M,)) -> None"},
-    {"depth_below", (PyCFunction)(void (*)(void))vk_py_depth_below, METH_FASTCALL,
-     "depth_below(grid (M,) uniform, surface (M,), x (N,), y (N,), cap (N,), out (N,)) -> None"},
     {"move_poses", (PyCFunction)(void (*)(void))vk_py_move_poses, METH_FASTCALL,
      "move_poses(tables (3, 5, 7): per joint the pieces' durations, jerk, acceleration, "
      "velocity, position; times (n,), out (n, 3)) -> None"},

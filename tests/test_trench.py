@@ -371,6 +371,79 @@ def test_c_screening_geometry_matches_the_numpy_reference(monkeypatch) -> None:
     assert rough and len(calls) >= len(rough) and sum(calls) > 300
 
 
+def test_c_profile_fits_equal_the_numpy_reference_bit_for_bit(monkeypatch) -> None:
+    # Every profile fit of a whole plan (D: walls, bottom, layers; a random task's steep
+    # walls): the C iterations (fit_iterate, then np.linalg.solve as the numpy loop calls it)
+    # against the numpy loop on the same inputs, bit for bit.
+    planner = TrenchPlanner(RIG, geometry="c")
+    c_fit = TrenchSession._fit_bulges
+    calls: list[int] = []
+
+    def compare(
+        self: TrenchSession,
+        base: np.ndarray,
+        q1: np.ndarray,
+        q2: np.ndarray,
+        edges: np.ndarray,
+        offset: float,
+        kind: oneshot.DigType,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        got = c_fit(self, base, q1, q2, edges, offset, kind)
+        geo = self.planner.geo_module
+        self.planner.geo_module = None
+        try:
+            want = c_fit(self, base, q1, q2, edges, offset, kind)
+        finally:
+            self.planner.geo_module = geo
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+        calls.append(base.shape[0])
+        return got
+
+    monkeypatch.setattr(TrenchSession, "_fit_bulges", compare)
+    planner.plan(load_task("D", RIG))
+    planner.plan(make_task(RIG, 0.45, 0.2, 80.0, 75.0, 1.0, name="steep"))
+    # Batched fits (the attitude table's pairs) and single refits both ran.
+    assert len(calls) > 10 and max(calls) > 1 and min(calls) == 1
+
+
+def test_c_moves_checks_equal_the_numpy_reference_bit_for_bit() -> None:
+    # The moves' poses from ruckig's pieces and the bucket outline's depth in the material,
+    # C against the numpy reference, on a dug surface, with a scalar, an infinite and a
+    # per-point cap.
+    session = TrenchPlanner(RIG, geometry="c").start(load_task("B", RIG))
+    ref = TrenchPlanner(RIG, geometry="numpy").start(load_task("B", RIG))
+    rng = np.random.default_rng(5)
+    surface = np.minimum(session.surface, session.ground_y - 0.04 + 0.03 * rng.uniform(size=1))
+    surface[::11] -= 0.02
+    mover = session.planner.mover
+    q_dig = np.asarray(session.planner.dump_pose_rad)
+    deep = 0
+    for _ in range(20):
+        qa = q_dig + rng.normal(0.0, 0.3, size=3)
+        _, _, z = mover.arm.tip(qa)
+        qb = mover.arm.ik(
+            float(rng.uniform(session.x_lo, session.x_hi)) - session.machine_x,
+            float(rng.uniform(session.bottom_y, session.ground_y)),
+            z,
+        )
+        if qb is None:
+            continue
+        traj = mover.move(qa, np.asarray(qb))
+        times = np.linspace(0.0, float(traj.duration), 97)
+        tables = session._piece_tables(traj)
+        assert tables is not None and ref._piece_tables(traj) is None
+        poses = session._move_poses(traj, tables, times)
+        np.testing.assert_array_equal(poses, mover.poses(traj, times))
+        allow = rng.uniform(0.0, 0.01, size=mover.outline.shape[0])
+        for cap in (0.05, np.inf, allow):
+            got = session._bucket_depth(poses, surface, cap)
+            want = ref._bucket_depth(poses, surface, cap)
+            np.testing.assert_array_equal(got, want)
+            deep += int(np.count_nonzero(want > 0.0))
+    assert deep > 100
+
+
 def test_numpy_geometry_plans_the_same_digs(plans: dict) -> None:
     ref = TrenchPlanner(RIG, geometry="numpy")
     assert ref.geo_kernel is None and ref.geo_module is None

@@ -9,7 +9,8 @@
  *   plan.c      vk_plan: the bulge scaled to the largest volume the path-only limits allow
  *               (fill), retimed, backing off towards a smaller bulge where that cannot be timed;
  *   trench.c    the screening geometry of rt_runtime.planning.trench (over-dig, envelope,
- *               screen rows);
+ *               screen rows, the bucket's depth in the material) and the iterations of its
+ *               profile fits (numpy's operations in numpy's order);
  *   module.c    the extension module and its Kernel type; front.c its Front type (the single-dig
  *               path of PinnPlanner.plan in one call).
  *
@@ -409,5 +410,16 @@ void vk_lower_envelope(const double *path, ptrdiff_t n, const double *grid, ptrd
 void vk_screen_row(const double *p, const double *x7, const double *K, const double *qf,
                    const double *pf, int S, const double *G, int nG, const vk_field *f,
                    double *out, ptrdiff_t stride);
+void vk_depth_below(const double *grid, const double *surface, ptrdiff_t M, const double *x,
+                    const double *y, const double *cap, ptrdiff_t N, double *out);
+void vk_move_poses(const double *tables, const double *times, ptrdiff_t n, double *out);
+int vk_bucket_depth(const double *q, ptrdiff_t n, const double *lengths, const double *outline,
+                    ptrdiff_t m, double machine_x, const double *grid, const double *surface,
+                    ptrdiff_t M, const double *cap, double *out);
+#define VK_FIT_MAX_SAMPLES 1024 /* samples of a profile fit's path */
+int vk_fit_iterate(const double *base, const double *pf, ptrdiff_t n, const double *lengths,
+                   const double *edges, ptrdiff_t E, const double *jac0, const double *d_ent,
+                   const double *par, double *K, double *step, double *mu, double *cost,
+                   double *best, double *active, double *go, double *A, double *rhs);
 
 #endif

@@ -124,3 +124,215 @@ void vk_screen_row(const double *p, const double *x7, const double *K, const dou
     }
 }
 
+
+/* trench.geometry._depth_below of N points (x, y; cap per point): how far each is inside the
+ * material under the height field `surface` on the uniform grid (M points), up to its cap; the
+ * same formulas, and the same window of columns (16 columns a class of reach) per point. */
+void vk_depth_below(const double *grid, const double *surface, ptrdiff_t M, const double *x,
+                    const double *y, const double *cap, ptrdiff_t N, double *out)
+{
+    const double x0 = grid[0], h = grid[1] - grid[0];
+    const double top = (double)M - 1.000001;
+    for (ptrdiff_t p = 0; p < N; p++) {
+        double u = (x[p] - x0) / h;
+        u = u > 0.0 ? (u < top ? u : top) : 0.0; /* NaN: 0, never an index out of the grid */
+        const ptrdiff_t i = (ptrdiff_t)u;
+        const double w = u - (double)i;
+        const double vertical = surface[i] * (1.0 - w) + surface[i + 1] * w - y[p];
+        if (!(vertical > 0.0)) {
+            out[p] = 0.0;
+            continue;
+        }
+        const double reach = vk_min(vertical, cap[p]);
+        const double px = x[p], py = y[p];
+        const double c = rint((px - x0) / h);
+        const double cls = ceil(reach / (16.0 * h));
+        if (!(cls >= 0.0 && cls < 1e6 && fabs(c) < 1e15)) {
+            out[p] = reach; /* a NaN or an unbounded reach: no window to search */
+            continue;
+        }
+        const ptrdiff_t col = (ptrdiff_t)c, k = 16 * (ptrdiff_t)cls;
+        double best = INFINITY;
+        for (ptrdiff_t j = col - k; j <= col + k; j++) {
+            const ptrdiff_t cj = j < 0 ? 0 : (j > M - 1 ? M - 1 : j);
+            const double dx = grid[cj] - px;
+            const double dy = vk_max(surface[cj] - py, 0.0);
+            best = vk_min(best, dx * dx + dy * dy);
+        }
+        out[p] = vk_min(sqrt(best), reach);
+    }
+}
+
+/* numpy's einsum of a dot product of n contiguous doubles (sum_of_products_contig_contig_
+ * outstride0_two on the X86_V2 baseline: two lanes, blocks of 8 taken last vector first, the
+ * rest a vector at a time padded with zeros, the lanes added, the sum added to a zero output):
+ * the same sum in the same order, so the result is numpy's bit for bit. */
+static inline double vk_np_dot(const double *a, const double *b, ptrdiff_t n)
+{
+    double acc0 = 0.0, acc1 = 0.0;
+    ptrdiff_t i = 0;
+    for (; n - i >= 8; i += 8)
+        for (int v = 3; v >= 0; v--) {
+            acc0 = a[i + 2 * v] * b[i + 2 * v] + acc0;
+            acc1 = a[i + 2 * v + 1] * b[i + 2 * v + 1] + acc1;
+        }
+    for (; i < n; i += 2) {
+        acc0 = a[i] * b[i] + acc0;
+        acc1 = (i + 1 < n ? a[i + 1] * b[i + 1] : 0.0 * 0.0) + acc1;
+    }
+    return 0.0 + (acc0 + acc1);
+}
+
+/* One iteration of trench.fit.FitMixin._fit_bulges's damped Gauss-Newton on one pair of end
+ * poses, the numpy reference's operations in its order (libm's sin and cos are numpy's; theta_p
+ * is libm's atan2, which decides only whether the angle is past a bound): base (n, 3) the joint
+ * blend, pf (n,) the bulge's shape function, lengths (3,), edges (E, 3) the outline's
+ * half-planes, jac0 (2, 3) and d_ent (2,) the entry direction's Jacobian at q1 and its part
+ * 10 (q2 - q1); par: machine x, offset, theta_p's range lo and hi, the iteration. The state
+ * (K, step, mu, cost, best, active) is updated; go is 1 where a step is to be solved, with its
+ * system in A (3, 3) and rhs (3,) (A x = rhs, damped). Returns whether the pair is active. */
+int vk_fit_iterate(const double *base, const double *pf, ptrdiff_t n, const double *lengths,
+                   const double *edges, ptrdiff_t E, const double *jac0, const double *d_ent,
+                   const double *par, double *K, double *step, double *mu, double *cost,
+                   double *best, double *active, double *go, double *A, double *rhs)
+{
+    const double m = par[0], offset = par[1], tp_lo = par[2], tp_hi = par[3];
+    const int it = (int)par[4];
+    double AtA[9] = {0.0}, Atb[3] = {0.0, 0.0, 0.0};
+    double rbuf[VK_FIT_MAX_SAMPLES];
+    for (ptrdiff_t s = 0; s < n; s++) {
+        const double *b = base + 3 * s;
+        const double q0 = b[0] + pf[s] * K[0], q1 = b[1] + pf[s] * K[1], q2 = b[2] + pf[s] * K[2];
+        const double phi[3] = {q0, q0 + q1, (q0 + q1) + q2};
+        double sn[3], cs[3];
+        for (int j = 0; j < 3; j++) {
+            cs[j] = cos(phi[j]) * lengths[j];
+            sn[j] = sin(phi[j]) * lengths[j];
+        }
+        const double x = ((cs[0] + cs[1]) + cs[2]) + m, y = (sn[0] + sn[1]) + sn[2];
+        ptrdiff_t k = 0;
+        double d = 0.0;
+        for (ptrdiff_t e = 0; e < E; e++) {
+            const double v = (edges[3 * e + 2] - edges[3 * e] * x) - edges[3 * e + 1] * y;
+            if (e == 0 || v < d) {
+                d = v;
+                k = e;
+            }
+        }
+        const double w = d < -0.003 ? 21.0 : 1.0;
+        const double r = w * (d - offset);
+        rbuf[s] = r;
+        const double cx1 = sn[2] + sn[1], cy1 = cs[2] + cs[1];
+        const double jx[3] = {-(cx1 + sn[0]), -cx1, -sn[2]};
+        const double jy[3] = {cy1 + cs[0], cy1, cs[2]};
+        const double pw = pf[s] * w;
+        double J[3];
+        for (int j = 0; j < 3; j++) J[j] = -(edges[3 * k] * jx[j] + edges[3 * k + 1] * jy[j]) * pw;
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 3; j++) AtA[3 * i + j] += J[i] * J[j];
+            Atb[i] += J[i] * r;
+        }
+    }
+    for (int i = 0; i < 3; i++) Atb[i] = -Atb[i];
+    double d0[2];
+    for (int i = 0; i < 2; i++) d0[i] = d_ent[i] + vk_np_dot(jac0 + 3 * i, K, 3);
+    const double ang = atan2(-d0[1], fabs(d0[0]));
+    const double sx = d0[0] >= 0.0 ? 1.0 : -1.0;
+    double pen = 0.0;
+    for (int up = 0; up < 2; up++) {
+        const double bound = up ? tp_hi - 0.02 : tp_lo + 0.02;
+        const int hit = up ? ang > bound : ang < bound;
+        const double cb = cos(bound), sb = sin(bound);
+        double row[3];
+        for (int j = 0; j < 3; j++) row[j] = hit ? 0.5 * (-jac0[3 + j] * cb - sx * jac0[j] * sb) : 0.0;
+        const double g = -d0[1] * cb - fabs(d0[0]) * sb;
+        const double rh = hit ? -0.5 * g : 0.0;
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 3; j++) AtA[3 * i + j] += row[i] * row[j];
+            Atb[i] += row[i] * rh;
+        }
+        pen += hit ? (0.5 * g) * (0.5 * g) : 0.0;
+    }
+    const double new_cost = vk_np_dot(rbuf, rbuf, n) + pen;
+    const int was_active = *active != 0.0;
+    const int worse = was_active && new_cost > *cost;
+    if (worse) { /* the step made it worse: back off, damp harder */
+        for (int j = 0; j < 3; j++) {
+            K[j] = K[j] - 0.5 * step[j];
+            step[j] = 0.5 * step[j];
+        }
+        *mu = *mu * 10.0;
+    }
+    const int better = was_active && !worse;
+    if (better) {
+        *cost = new_cost;
+        for (int j = 0; j < 3; j++) best[j] = K[j];
+    }
+    int still = was_active;
+    if (better && vk_np_dot(step, step, 3) < 1e-6 && it > 0) still = 0;
+    *active = still ? 1.0 : 0.0;
+    *go = (better && still) ? 1.0 : 0.0;
+    for (int i = 0; i < 3; i++) {
+        for (int j = 0; j < 3; j++) A[3 * i + j] = AtA[3 * i + j] + *mu * (i == j ? 1.0 : 0.0);
+        rhs[i] = Atb[i] - *mu * K[i];
+    }
+    return still;
+}
+
+/* trench.motion._Mover.poses of a rest-to-rest ruckig move: joint poses (n, 3) at n times from
+ * each joint's seven constant-jerk pieces (tables (3, 5, 7): durations, jerk, and the
+ * acceleration, velocity and position where each piece starts); the same formulas. */
+void vk_move_poses(const double *tables, const double *times, ptrdiff_t n, double *out)
+{
+    for (int k = 0; k < 3; k++) {
+        const double *t = tables + 35 * k, *jerk = t + 7, *acc = t + 14, *vel = t + 21,
+                     *pos = t + 28;
+        double starts[8];
+        starts[0] = 0.0;
+        double c = t[0];
+        starts[1] = c;
+        for (int i = 1; i < 7; i++) {
+            c = c + t[i];
+            starts[i + 1] = c;
+        }
+        for (ptrdiff_t s = 0; s < n; s++) {
+            const double ts = times[s];
+            int i = -1;
+            for (int j = 0; j < 8; j++) i += starts[j] <= ts; /* searchsorted, side right */
+            i = i < 0 ? 0 : (i > 6 ? 6 : i);
+            const double dt = ts - starts[i];
+            out[3 * s + k] = pos[i] + dt * (vel[i] + dt * (0.5 * acc[i] + dt * jerk[i] / 6.0));
+        }
+    }
+}
+
+/* trench.moves.MovesMixin._bucket_depth of n joint poses q (n, 3): each outline point
+ * (outline (m, 2): along and normal in the bucket frame at the tip) placed as
+ * trench.motion._Mover.bucket_xy places it, shifted by the machine's x, and its depth below
+ * the height field (vk_depth_below, cap (m,) per outline point) into out (n, m); the same
+ * formulas. Returns -1 where the scratch cannot be allocated, else 0. */
+int vk_bucket_depth(const double *q, ptrdiff_t n, const double *lengths, const double *outline,
+                    ptrdiff_t m, double machine_x, const double *grid, const double *surface,
+                    ptrdiff_t M, const double *cap, double *out)
+{
+    double *buf = (double *)malloc(sizeof(double) * 3 * (size_t)(m > 0 ? m : 1));
+    if (buf == NULL) return -1;
+    double *xs = buf, *ys = buf + m, *caps = buf + 2 * m;
+    for (ptrdiff_t j = 0; j < m; j++) caps[j] = cap[j];
+    for (ptrdiff_t s = 0; s < n; s++) {
+        const double *qs = q + 3 * s;
+        const double p0 = qs[0], p1 = p0 + qs[1], p2 = p1 + qs[2];
+        const double x = (lengths[0] * cos(p0) + lengths[1] * cos(p1)) + lengths[2] * cos(p2);
+        const double y = (lengths[0] * sin(p0) + lengths[1] * sin(p1)) + lengths[2] * sin(p2);
+        const double z = (qs[0] + qs[1]) + qs[2];
+        const double c = cos(z), sn = sin(z);
+        for (ptrdiff_t j = 0; j < m; j++) {
+            const double a = outline[2 * j], b = outline[2 * j + 1];
+            xs[j] = ((x + c * a) - sn * b) + machine_x;
+            ys[j] = (y + sn * a) + c * b;
+        }
+        vk_depth_below(grid, surface, M, xs, ys, caps, m, out + m * s);
+    }
+    free(buf);
+    return 0;
+}

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -133,10 +134,20 @@ class FitMixin(MovesMixin):
             return -edges[k, 0:2]
 
         n_a, n_b = inward(a), inward(b)
+        # Fits and candidates by their inputs: the fixed shifts start with the adaptive
+        # search's unshifted fit, and nothing they depend on changes within this call.
+        fits_seen: dict[bytes, list[tuple[float, FloatArray] | None]] = {}
+        candidates_seen: dict[bytes, Candidate | None] = {}
 
         def candidate(
             q1: FloatArray, q2: FloatArray, K: FloatArray, cost: float
         ) -> Candidate | None:
+            key = b"".join((q1.tobytes(), q2.tobytes(), K.tobytes(), np.float64(cost).tobytes()))
+            if key not in candidates_seen:
+                candidates_seen[key] = checked(q1, q2, K, cost)
+            return candidates_seen[key]
+
+        def checked(q1: FloatArray, q2: FloatArray, K: FloatArray, cost: float) -> Candidate | None:
             qp = q1 + qf_full[:, None] * (q2 - q1) + pf_full[:, None] * K
             px, py = arm.tip_xy(qp)
             tip = np.stack([px + m, py], axis=1)
@@ -155,6 +166,14 @@ class FitMixin(MovesMixin):
             if not q1s:
                 return []
             q1, q2 = np.asarray(q1s), np.asarray(q2s)
+            key = b"".join((np.float64(offset).tobytes(), q1.tobytes(), q2.tobytes()))
+            if key not in fits_seen:
+                fits_seen[key] = fit_pairs(q1, q2, offset)
+            return fits_seen[key]
+
+        def fit_pairs(
+            q1: FloatArray, q2: FloatArray, offset: float
+        ) -> list[tuple[float, FloatArray] | None]:
             base = q1[:, None, :] + qf[None, :, None] * (q2 - q1)[:, None, :]
             K, cost = self._fit_bulges(base, q1, q2, edges, offset, kind)
             q = base + pf[None, :, None] * K[:, None, :]
@@ -312,6 +331,9 @@ class FitMixin(MovesMixin):
         tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
         jac0 = kinematics.jacobian(self.rig, q1)[:, :2]  # (P, 2, 3): d(x, y)/dq at q1
         d_ent = np.einsum("pij,pj->pi", jac0, 10.0 * (q2 - q1))
+        geo = self.planner.geo_module
+        if geo is not None:
+            return self._fit_bulges_c(geo, base, jac0, d_ent, edges, (m, offset, tp_lo, tp_hi))
         mu = np.full(P, 1e-7)
         K = np.zeros((P, 3))
         step = np.zeros((P, 3))
@@ -376,10 +398,73 @@ class FitMixin(MovesMixin):
             K = np.where(go[:, None], K + sol, K)
         return best_K, cost
 
+    def _fit_bulges_c(
+        self,
+        geo: Any,
+        base: FloatArray,
+        jac0: FloatArray,
+        d_ent: FloatArray,
+        edges: FloatArray,
+        par: tuple[float, float, float, float],
+    ) -> tuple[FloatArray, FloatArray]:
+        """:meth:`_fit_bulges` with each iteration's residuals, normal equations and step
+        control in C (``fit_iterate``: numpy's operations in numpy's order) and the damped
+        3 x 3 systems solved by ``np.linalg.solve`` as in the numpy loop; the same K and costs
+        bit for bit."""
+        P = base.shape[0]
+        base = np.ascontiguousarray(base, dtype=np.float64)
+        pf = np.ascontiguousarray(self.planner.fit_pf, dtype=np.float64)
+        lengths = np.ascontiguousarray(self.planner.arm.lengths, dtype=np.float64)
+        edges = np.ascontiguousarray(edges, dtype=np.float64)
+        jac0 = np.ascontiguousarray(jac0, dtype=np.float64)
+        d_ent = np.ascontiguousarray(d_ent, dtype=np.float64)
+        K = np.zeros((P, 3))
+        step = np.zeros((P, 3))
+        mu = np.full(P, 1e-7)
+        cost = np.full(P, np.inf)
+        best_K = np.zeros((P, 3))
+        active = np.ones(P)
+        go = np.zeros(P)
+        system = np.empty((P, 3, 4))
+        par_it = np.array([*par, 0.0])
+        for it in range(9):
+            par_it[4] = it
+            n_active = geo.fit_iterate(
+                base,
+                pf,
+                lengths,
+                edges,
+                jac0,
+                d_ent,
+                par_it,
+                K,
+                step,
+                mu,
+                cost,
+                best_K,
+                active,
+                go,
+                system,
+            )
+            if n_active == 0:
+                break
+            sol = np.linalg.solve(system[..., :3], system[..., 3:])[..., 0]
+            take = (go != 0.0)[:, None]
+            np.copyto(step, sol, where=take)
+            np.add(K, sol, out=K, where=take)
+        return best_K, cost
+
     def _pass_candidate(
         self, kind: DigType, qs: FloatArray, qe: FloatArray, K: FloatArray, tip: FloatArray
     ) -> Candidate | None:
         """A fitted profile pass retimed and checked, as a ranked candidate (None: refused)."""
+        # The real cut first: it refuses most fits, and needs no retiming.
+        total, useful = self._cut_areas(self._envelope(tip, self.grid))
+        if (
+            total > self.v_max_m3 / self.width_m
+            or useful < 0.1 * MIN_USEFUL_FRACTION * self.design_area
+        ):
+            return None
         # The verifier's soil model takes depth below a flat H; here the material over the
         # path is a layer along it, so H is set for the thickest chip the path cuts: the
         # material's thickness across the path's direction (its depth above the path times
@@ -398,12 +483,6 @@ class FitMixin(MovesMixin):
         retimed = np.zeros((1, 4))
         self.planner.verifier.retime_into(row, out, retimed)
         if not np.isfinite(retimed[0, 3]) or _total_without_volume(out[0]) > 0.0:
-            return None
-        total, useful = self._cut_areas(self._envelope(tip, self.grid))
-        if (
-            total > self.v_max_m3 / self.width_m
-            or useful < 0.1 * MIN_USEFUL_FRACTION * self.design_area
-        ):
             return None
         x7 = np.concatenate([qs, qe, [H]])
         r = retimed[0]

@@ -197,15 +197,18 @@ def _max_table(values: FloatArray) -> FloatArray:
     """A sparse table of ``values`` ``(n,)``: row j holds the maxima of the runs of 2^j
     starting at each index (the last 2^j - 1 entries of a row, where no full run starts, are
     not meaningful and :func:`_range_max` does not read them)."""
-    rows = [values]
-    j = 1
-    while 2 * j <= values.shape[0]:
-        prev = rows[-1]
-        row = prev.copy()
-        row[:-j] = np.maximum(prev[:-j], prev[j:])
-        rows.append(row)
-        j *= 2
-    return np.stack(rows)
+    n = values.shape[0]
+    levels = 1
+    while 1 << levels <= n:
+        levels += 1
+    table = np.empty((levels, n))
+    table[0] = values
+    for k in range(1, levels):
+        j = 1 << (k - 1)
+        prev, row = table[k - 1], table[k]
+        row[-j:] = prev[-j:]
+        np.maximum(prev[:-j], prev[j:], out=row[:-j])
+    return table
 
 
 def _range_max(table: FloatArray, i0: NDArray[np.int64], i1: NDArray[np.int64]) -> FloatArray:

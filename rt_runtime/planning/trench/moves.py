@@ -355,7 +355,8 @@ class MovesMixin(MaterialMixin):
         last = self.grid.shape[0] - 1
         reach = _COARSE_STEP_M
         times = np.linspace(0.0, float(traj.duration), mover.n_samples(qa, qb, reach))
-        x, y = mover.bucket_xy(mover.poses(traj, times), corners=True)
+        tables = self._piece_tables(traj)
+        x, y = mover.bucket_xy(self._move_poses(traj, tables, times), corners=True)
         x = x + self.machine_x
         i0 = np.clip(np.floor((np.min(x, axis=1) - reach - self.grid[0]) / h), 0, last)
         i1 = np.clip(np.ceil((np.max(x, axis=1) + reach - self.grid[0]) / h), 0, last)
@@ -369,17 +370,61 @@ class MovesMixin(MaterialMixin):
         k = math.ceil(reach / _MOVE_STEP_M)
         frac = np.arange(k + 1) / k
         fine = np.unique(times[near, None] + (times[near + 1] - times[near])[:, None] * frac)
+        poses = self._move_poses(traj, tables, fine)
         if allow is None:
-            depth = self._bucket_depth(mover.poses(traj, fine), surface)
+            depth = self._bucket_depth(poses, surface)
         else:
-            depth = self._bucket_depth(mover.poses(traj, fine), surface, allow + _DEPTH_CAP_M)
+            depth = self._bucket_depth(poses, surface, allow + _DEPTH_CAP_M)
             depth -= allow
         return max(0.0, float(np.max(depth)))
+
+    def _piece_tables(self, traj: Any) -> FloatArray | None:
+        """A rest-to-rest move's constant-jerk pieces as the C geometry's ``move_poses`` takes
+        them (``(3, 5, 7)``: per joint the durations, jerk, and the acceleration, velocity and
+        position where each piece starts); None without the C geometry or for a profile
+        :meth:`_Mover.poses` evaluates through ruckig's ``at_time``."""
+        if self.planner.geo_module is None:
+            return None
+        profiles = traj.profiles[0]
+        if (
+            len(traj.profiles) != 1
+            or len(profiles) != 3
+            or any(p.brake.duration > 0.0 or p.accel.duration > 0.0 for p in profiles)
+        ):
+            return None
+        return np.array([[p.t, p.j, p.a[:7], p.v[:7], p.p[:7]] for p in profiles])
+
+    def _move_poses(self, traj: Any, tables: FloatArray | None, times: FloatArray) -> FloatArray:
+        """:meth:`_Mover.poses` of ``traj`` at ``times``; in C from its ``tables``
+        (:meth:`_piece_tables`) where given, the same formulas."""
+        if tables is None:
+            return self.planner.mover.poses(traj, times)
+        out = np.empty((times.shape[0], 3))
+        self.planner.geo_module.move_poses(
+            tables, np.ascontiguousarray(times, dtype=np.float64), out
+        )
+        return out
 
     def _bucket_depth(
         self, q: FloatArray, surface: FloatArray, cap_m: ArrayLike = _DEPTH_CAP_M
     ) -> FloatArray:
         """How deep each point of the bucket outline is in the material, poses ``(n, 3)`` ->
-        ``(n, m)`` (m, up to ``cap_m``, :func:`_depth_below`)."""
-        x, y = self.planner.mover.bucket_xy(q)
-        return _depth_below(self.grid, surface, x + self.machine_x, y, cap_m)
+        ``(n, m)`` (m, up to ``cap_m``, :func:`_depth_below`; in C with the C geometry, the
+        same formulas)."""
+        mover = self.planner.mover
+        geo = self.planner.geo_module
+        if geo is None:
+            x, y = mover.bucket_xy(q)
+            return _depth_below(self.grid, surface, x + self.machine_x, y, cap_m)
+        out = np.empty((q.shape[0], mover.outline.shape[0]))
+        geo.bucket_depth(
+            np.ascontiguousarray(q, dtype=np.float64),
+            mover.arm.lengths,
+            mover.outline,
+            float(self.machine_x),
+            self.grid,
+            np.ascontiguousarray(surface, dtype=np.float64),
+            np.ascontiguousarray(np.broadcast_to(cap_m, mover.outline.shape[:1]), dtype=np.float64),
+            out,
+        )
+        return out

@@ -130,3 +130,27 @@ def test_recording_a_cycle_does_not_allocate() -> None:
     finally:
         tracemalloc.stop()
     assert after - before < 4096, f"{after - before} bytes kept over 10k cycles"
+
+
+def test_a_dropped_row_after_the_wrap_takes_the_oldest_with_it() -> None:
+    tel = Telemetry(4, [Column("x", np.int64, (), -1)])
+    x = tel.column("x")
+    for k in range(6):
+        tel.begin(k, float(k), 0.0, False)
+        x[tel.slot] = k
+    tel.begin(6, 6.0, 0.0, False)  # overwrites row 2's slot, then turns out to send nothing
+    tel.discard()
+    snap = tel.snapshot()
+    assert snap["x"].tolist() == [3, 4, 5]
+    assert snap["cycle"].tolist() == [3, 4, 5]
+    tel.begin(6, 6.0, 0.0, False)  # the next record fills the gap
+    x[tel.slot] = 6
+    assert tel.snapshot()["x"].tolist() == [3, 4, 5, 6]
+    # Before the wrap a dropped row takes nothing else.
+    tel.clear()
+    for k in range(2):
+        tel.begin(k, float(k), 0.0, False)
+        x[tel.slot] = k
+    tel.begin(2, 2.0, 0.0, False)
+    tel.discard()
+    assert tel.snapshot()["x"].tolist() == [0, 1]

@@ -107,6 +107,7 @@ class Telemetry:
         self._overrun = self._views["overrun"]
         self.slot = 0
         self.count = 0
+        self._hole = False
 
     def column(self, name: str) -> NDArray[Any]:
         """The writable view of one column, ``(capacity, *shape)``; fetch once, outside the loop.
@@ -147,13 +148,16 @@ class Telemetry:
         self._overrun[slot] = overrun
         self.slot = slot
         self.count += 1
+        self._hole = False
         return slot
 
     def discard(self) -> None:
         """Drop the current record (a cycle that turned out to send nothing). Safe inside the
-        loop; a later :meth:`end` of the same cycle writes into no kept row."""
+        loop; a later :meth:`end` of the same cycle writes into no kept row. Once the buffer
+        has wrapped, the dropped row had overwritten the oldest one: that one is gone too."""
         if self.count > 0:
             self.count -= 1
+            self._hole = self.count >= self.capacity
 
     def end(self, exec_s: float) -> None:
         """Finish the current record with the step's execution time (s). Safe inside the loop."""
@@ -179,6 +183,7 @@ class Telemetry:
         """
         self.slot = 0
         self.count = 0
+        self._hole = False
 
     def snapshot(self) -> dict[str, NDArray[Any]]:
         """Copies of every column in cycle order, oldest first (outside the loop).
@@ -192,6 +197,8 @@ class Telemetry:
         else:
             start = self.count % self.capacity
             order = (np.arange(n) + start) % self.capacity
+        if self._hole:
+            order = order[1:]  # the oldest row was overwritten by a dropped one
         return {c.name: np.array(self._views[c.name][order]) for c in self.columns}
 
     def write_npz(self, path: str | Path) -> Path:

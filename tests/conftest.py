@@ -112,8 +112,8 @@ def run_on_lockstep(
 ) -> FaultRun:
     """The pending dig from its entry on the lockstep HIL, ``fault`` injected at a time after
     the first cycle; the rig's own timeouts."""
-    from hil_sim.scenario import NO_RT
-    from hil_sim.sim import LockstepHil
+    from hil_sim.harness.lockstep import LockstepHil
+    from hil_sim.harness.scenario import NO_RT
     from rt_runtime.control import FixedRateLoop, LoopConfig
     from rt_runtime.control.executor import Executor, ExecutorConfig, executor_telemetry
 
@@ -157,7 +157,7 @@ def run_on_bridge(
     import tempfile
 
     from hil_sim.harness.realtime import RealtimeHilProcess
-    from hil_sim.scenario import NO_RT
+    from hil_sim.harness.scenario import NO_RT
     from rt_runtime.control import (
         FixedRateLoop,
         LoopConfig,

@@ -84,7 +84,7 @@ FORBIDDEN = [
     for c in tomllib.loads((ROOT.parent / "pyproject.toml").read_text(encoding="utf-8"))["tool"][
         "importlinter"
     ]["contracts"]
-    if c["type"] == "forbidden"
+    if c["type"] == "forbidden" and all("." not in m for m in c["source_modules"])
 ]
 
 
@@ -143,3 +143,18 @@ def test_the_hil_reports_a_firmware_refusal_as_a_configuration_error() -> None:
     with pytest.raises(ConfigurationError, match="position_gain_1_s") as caught:
         HilCore(bad, (0.5, -1.5, -1.0))
     assert isinstance(caught.value.__cause__, FirmwareConfigurationError)
+
+
+def test_every_hil_module_outside_the_harness_is_under_the_physics_contract() -> None:
+    """DESIGN.md: hil_sim outside harness/ imports only the runtime's physics; the contract
+    names its modules one by one, so a new module must join it."""
+    contracts = tomllib.loads((ROOT.parent / "pyproject.toml").read_text(encoding="utf-8"))
+    physics = next(
+        c
+        for c in contracts["tool"]["importlinter"]["contracts"]
+        if c["name"].startswith("hil_sim outside its harness")
+    )
+    hil = ROOT.parent / "hil_sim"
+    modules = {f"hil_sim.{p.stem}" for p in hil.glob("*.py") if p.stem != "__init__"}
+    assert modules == set(physics["source_modules"])
+    assert "hil_sim.harness" in physics["forbidden_modules"]

@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 from conftest import restore_pending, rpdo1_limit_check
 
-from hil_sim.scenario import NO_RT
-from hil_sim.sim import FaultKind, LockstepHil
+from hil_sim.harness.lockstep import LockstepHil
+from hil_sim.harness.scenario import NO_RT
+from hil_sim.sim import FaultKind
 from hil_sim.terrain import Terrain
 from rt_runtime.canbus import CanMaster
 from rt_runtime.control import FixedRateLoop, LoopConfig, OverrunPolicy

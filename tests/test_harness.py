@@ -16,7 +16,7 @@ from can_remote import RemoteBus
 
 from hil_sim.harness.bench import bench_step, format_report
 from hil_sim.harness.bridge import Bridge, RxFrame
-from hil_sim.sim import LockstepHil
+from hil_sim.harness.lockstep import LockstepHil
 from rt_runtime.canbus import CanMaster
 from rt_runtime.cli import build_parser, main
 from rt_runtime.rig import load_rig

@@ -23,7 +23,7 @@ from canopen.objectdictionary import ODVariable, import_od
 from conftest import rpdo1_limit_check, run_on_lockstep
 
 from firmware_models import CIA402_DRIVE_EDS, VCU_DBC, VCU_DBC_NODE_ID
-from hil_sim.scenario import Scenario, run_scenario
+from hil_sim.harness.scenario import Scenario, run_scenario
 from hil_sim.sim import FaultKind
 from rt_runtime.control.executor import ExecStatus
 from rt_runtime.rig import Rig, load_rig

@@ -16,15 +16,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-import hil_sim.scenario as scenario_mod
-from hil_sim.scenario import (
+import hil_sim.harness.scenario as scenario_mod
+from hil_sim.harness.lockstep import LockstepHil
+from hil_sim.harness.scenario import (
     GAO_TABLE2_JOINTS_DEG,
     NO_RT,
     PathScenario,
     key_point_path,
     run_path_scenario,
 )
-from hil_sim.sim import LockstepHil
 from rt_runtime import actuation
 from rt_runtime.actuation import AXES
 from rt_runtime.canbus import CanMaster

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 from conftest import restore_pending
 
-from hil_sim.scenario import NO_RT
-from hil_sim.sim import COB_SYNC, LockstepHil
+from hil_sim.harness.lockstep import LockstepHil
+from hil_sim.harness.scenario import NO_RT
+from hil_sim.sim import COB_SYNC
 from rt_runtime import actuation
 from rt_runtime.canbus import CanMaster
 from rt_runtime.control import FixedRateLoop, LoopConfig

@@ -3,8 +3,8 @@
 After python-can's ``test/back2back_test.py``: two ends of one bus, the runtime's end under test
 (the master's bus) and the far end (where the drives are). Transports:
 
-* ``lockstep``: :class:`hil_sim.sim.LockstepBus` on an in-process channel, simulated clock; the
-  far end is another end of the channel (the lockstep HIL's own end is one).
+* ``lockstep``: :class:`hil_sim.harness.lockstep.LockstepBus` on an in-process channel, simulated
+  clock; the far end is another end of the channel (the lockstep HIL's own end is one).
 * ``bridge``: :class:`hil_sim.bridge.BridgeBus` over 127.0.0.1 to a
   :class:`hil_sim.bridge.BridgeServer`, wall clock; the far end is the server as the real-time
   HIL's loop uses it (``poll`` and ``send``), adapted to a python-can bus here.
@@ -27,7 +27,7 @@ import can
 import pytest
 
 from hil_sim.bridge import FLAG_ERROR, FLAG_EXTENDED, BridgeBus, BridgeServer
-from hil_sim.sim import LockstepBus, LockstepClock
+from hil_sim.harness.lockstep import LockstepBus, LockstepClock
 from rt_runtime.canbus.inprocess import InProcessChannel
 
 #: Longest wall time a receive may take beyond its timeout (a shared, loaded test machine).

@@ -8,11 +8,11 @@ Registered as a ``bench`` subcommand through the ``excavator_rt.bench`` entry po
 Two measurements, each wall clock (``time.perf_counter_ns``) unless ``--cpu``:
 
 * ``task``: the task's digs executed by the runtime (loop, executor, master) against the
-  lockstep HIL (:func:`hil_sim.scenario.run_scenario`), as ``excavator-rt hil`` runs them.
+  lockstep HIL (:func:`hil_sim.harness.scenario.run_scenario`), as ``excavator-rt hil`` runs them.
   Reported: machine time (simulated seconds of SYNCs) over wall time, and per SYNC period the
   HIL's own time (frame handling, the nodes' answers, the servo sub-steps, its bus end;
-  :class:`hil_sim.sim.HilCost`) apart from the rest of the period, the runtime's share (its
-  loop, controllers, master and bus end, and planning between digs).
+  :class:`hil_sim.harness.lockstep.HilCost`) apart from the rest of the period, the runtime's
+  share (its loop, controllers, master and bus end, and planning between digs).
 * ``step``: the HIL's models alone, without a bus: :class:`hil_sim.sim.HilCore` fed by direct
   calls with what the master sends each period (three RPDO1s, ``VCU_Command``, SYNC), replaying
   held-out verified digs of the scale model (``onnx/pinn_downward_heldout.npz``) through the
@@ -110,7 +110,7 @@ def bench_hil(
         ConfigurationError: Bad task or rig.
         CommunicationError, DriveFault: The drives did not boot or enable.
     """
-    from hil_sim.scenario import Scenario, run_scenario
+    from hil_sim.harness.scenario import Scenario, run_scenario
 
     t0 = time.perf_counter()
     report = run_scenario(Scenario(task=task, rig=rig, max_digs=max_digs))

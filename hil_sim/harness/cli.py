@@ -1,7 +1,7 @@
 """``excavator-rt hil``: plan a trench task, execute it through the master against the HIL, report.
 
-Role: the command-line edge of :mod:`hil_sim.scenario` (mm, Wh and percent appear only here and
-in the report). ``rt_runtime.cli`` wires it in with :func:`add_parser` and :func:`run`::
+Role: the command-line edge of :mod:`hil_sim.harness.scenario` (mm, Wh and percent appear only
+here and in the report). ``rt_runtime.cli`` wires it in with :func:`add_parser` and :func:`run`::
 
     excavator-rt hil --task A [--rig scale_model] [--realtime] [--trace FILE.blf|.asc]
                      [--no-feedforward] [--max-digs N] [--json] [--plot DIR]
@@ -10,7 +10,7 @@ in the report). ``rt_runtime.cli`` wires it in with :func:`add_parser` and :func
                      [--orders auto|3-4-5-4-3|...] [--durations 3,3,3,3,3] [--start-deg B,S,K]
                      [--realtime] [--no-feedforward] [--trace FILE] [--json] [--plot DIR]
 
-``--path`` runs a prescribed joint path instead of a task (:func:`hil_sim.scenario.
+``--path`` runs a prescribed joint path instead of a task (:func:`hil_sim.harness.scenario.
 run_path_scenario`): ``gao`` is Gao Table 2 with 3 s segments and the smoothest order pattern,
 ``FILE.json`` holds ``{"joints_deg": [[b, s, k], ...], "durations_s": [...]}``, and repeated
 ``--joints-deg`` key points imply ``--path joints``. ``--rig`` defaults to ``test_bench`` with a
@@ -28,7 +28,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from hil_sim.scenario import (
+from hil_sim.harness.scenario import (
     FaultSpec,
     PathScenario,
     Scenario,

@@ -107,7 +107,7 @@ def run_demo(
         CommunicationError, DriveFault: The drives did not boot or enable.
     """
     t0 = time.perf_counter()
-    from hil_sim.scenario import Scenario, run_scenario  # imports the planner stack
+    from hil_sim.harness.scenario import Scenario, run_scenario  # imports the planner stack
 
     run_dir = _run_dir(out_dir)
     setup_s = time.perf_counter() - t0

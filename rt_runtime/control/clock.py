@@ -1,8 +1,9 @@
 """Where the control code's time comes from: the :class:`Clock` protocol and the wall clock.
 
 Two clocks satisfy :class:`Clock`: :class:`MonotonicClock` (``time.monotonic`` with an
-absolute-deadline sleep, for the rig and the real-time HIL) and ``hil_sim.sim.LockstepClock``
-(simulated seconds that move only when the loop sleeps, for the lockstep HIL). The fixed-rate loop
+absolute-deadline sleep, for the rig and the real-time HIL) and
+``hil_sim.harness.lockstep.LockstepClock`` (simulated seconds that move only when the loop
+sleeps, for the lockstep HIL). The fixed-rate loop
 (:mod:`rt_runtime.control.loop`) and the CAN master only ever read time through one of these.
 """
 

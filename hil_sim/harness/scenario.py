@@ -53,6 +53,7 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
+from hil_sim.harness.lockstep import LockstepHil
 from hil_sim.report import (
     AXES,
     Segment,
@@ -61,7 +62,7 @@ from hil_sim.report import (
     tip_reference,
     tracking_figures,
 )
-from hil_sim.sim import FaultKind, LockstepHil, Truth
+from hil_sim.sim import FaultKind, Truth
 from hil_sim.terrain import Terrain
 from rt_runtime import actuation
 from rt_runtime.canbus import BusLoad, CanMaster

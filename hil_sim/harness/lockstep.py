@@ -1,0 +1,285 @@
+"""The lockstep transport: the HIL core and the runtime's master in one process on one
+simulated clock (DESIGN.md "Loop, HIL and time").
+
+:class:`LockstepHil` runs :class:`~hil_sim.sim.HilCore` on an in-process channel
+(:mod:`rt_runtime.canbus.inprocess`). The HIL has its own bus end; the master gets
+:attr:`LockstepHil.master_bus`, an end on the same channel that hands control to the HIL after
+every frame it sends (:meth:`LockstepHil.pump`) and whose ``recv(timeout)`` with nothing queued
+advances the simulated clock by ``timeout`` instead of waiting. SDO, NMT and heartbeats are
+answered at once; on each SYNC the HIL answers with the TPDOs (sampled at the SYNC) and then
+advances the plant by exactly one period in servo sub-steps. Time-triggered frames (heartbeats,
+emergencies) go out whenever the simulated clock moves (:class:`LockstepClock`).
+Single-threaded and free of wall-clock reads, so two runs give identical traces.
+:class:`HilCost` splits each period's wall time into the HIL's own and the runtime's.
+
+It joins runtime and HIL (it is the runtime's bus), so it lives in the harness.
+"""
+
+from __future__ import annotations
+
+import array
+import itertools
+import math
+from collections.abc import Callable
+from pathlib import Path
+from time import perf_counter_ns
+from typing import Any
+
+import can
+import numpy as np
+from numpy.typing import NDArray
+
+from firmware_models.drive import Frame
+from hil_sim.sim import COB_SYNC, FaultKind, FloatArray, HilCore, open_trace
+from hil_sim.terrain import Terrain
+from rt_runtime.canbus.inprocess import ChannelBus, InProcessChannel
+from rt_runtime.canbus.simtime import SimulatedTimeBus
+from rt_runtime.rig import Rig
+
+_channel_numbers = itertools.count()
+
+
+class LockstepClock:
+    """Simulated seconds, advanced only by sleeping (``sleep_until``) or an empty ``recv``.
+
+    Args:
+        on_advance: Called with the new time whenever the clock moves (the HIL's supervision).
+    """
+
+    realtime = False
+
+    def __init__(self, on_advance: Callable[[float], None]) -> None:
+        self._now = 0.0
+        self._on_advance = on_advance
+
+    def now(self) -> float:
+        """Current simulated time (s)."""
+        return self._now
+
+    def sleep_until(self, t_s: float) -> None:
+        """Move the clock to ``t_s`` (no-op if it is already there or later)."""
+        if t_s > self._now:
+            self._now = t_s
+            self._on_advance(t_s)
+
+
+class LockstepBus(SimulatedTimeBus, ChannelBus):
+    """The master's end of the lockstep bus: an in-process channel end on the simulated clock.
+
+    ``send`` stamps the copy with the simulated time and lets the far end answer at once
+    (``pump``: :meth:`LockstepHil.pump`). ``_recv_internal(timeout)`` never blocks on the wall
+    clock: with nothing queued it advances the simulated clock by ``timeout`` (the HIL's
+    heartbeats and supervision run meanwhile) and returns what arrived, or None; with
+    ``timeout=None`` it advances one period at a time, up to 10 s. python-can's filters apply,
+    measured on the simulated clock (:class:`~rt_runtime.canbus.simtime.SimulatedTimeBus`).
+
+    Args:
+        channel: The in-process channel (the HIL's end is on it).
+        clock: The simulated clock.
+        pump: Called after every send and before every receive: the far end handles what is
+            queued for it.
+        period_s: The step of a ``recv(None)`` wait.
+    """
+
+    def __init__(
+        self,
+        channel: InProcessChannel,
+        clock: LockstepClock,
+        pump: Callable[[], None],
+        period_s: float,
+    ) -> None:
+        super().__init__(channel, clock=clock.now)
+        self.sim_clock = clock
+        self._pump = pump
+        self._period_s = period_s
+
+    def now_s(self) -> float:
+        """The simulated clock (s)."""
+        return self.sim_clock.now()
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        super().send(msg, timeout)
+        self._pump()
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        self._pump()
+        msg = self.take()
+        if msg is not None:
+            return msg, False
+        clock = self.sim_clock
+        if timeout is None:
+            period_s = self._period_s
+            for _ in range(round(10.0 / period_s)):
+                clock.sleep_until(clock.now() + period_s)
+                msg = self.take()
+                if msg is not None:
+                    break
+        elif timeout > 0.0:
+            clock.sleep_until(clock.now() + timeout)
+            msg = self.take()
+        return msg, False
+
+
+class HilCost:
+    """The lockstep HIL's own wall time, per SYNC period (what the master's loop does not own).
+
+    A period runs from one SYNC's arrival at the HIL to the next's. Per period it holds the
+    nanoseconds spent inside the HIL (frame handling, the nodes' answers and supervision, the
+    servo sub-steps, its bus end) and the wall clock at the SYNC, so the whole period's wall time
+    and the rest of it (the runtime: loop, controllers, master, its bus end) follow. Storage is
+    two ``array('q')`` (no Python object kept per period).
+
+    Attributes:
+        hil_ns: HIL time per completed period (ns).
+        sync_wall_ns: ``time.perf_counter_ns()`` at each SYNC.
+    """
+
+    __slots__ = ("_acc", "hil_ns", "sync_wall_ns")
+
+    def __init__(self) -> None:
+        self.hil_ns = array.array("q")
+        self.sync_wall_ns = array.array("q")
+        self._acc = 0
+
+    def add(self, started_ns: int) -> None:
+        """Count the HIL's time from ``started_ns`` to now in the current period."""
+        self._acc += perf_counter_ns() - started_ns
+
+    def sync(self, started_ns: int) -> int:
+        """A SYNC arrived: close the period (counting from ``started_ns``); returns now (ns)."""
+        now = perf_counter_ns()
+        if self.sync_wall_ns:
+            self.hil_ns.append(self._acc + now - started_ns)
+        self.sync_wall_ns.append(now)
+        self._acc = 0
+        return now
+
+    def periods(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Per completed period: ``(wall_ns, hil_ns)``; the runtime's share is their
+        difference."""
+        wall: NDArray[np.int64] = np.diff(np.frombuffer(self.sync_wall_ns, dtype=np.int64)).astype(
+            np.int64
+        )
+        hil = np.frombuffer(self.hil_ns, dtype=np.int64)[: wall.size]
+        return wall, hil
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready: ``periods``; ``hil_us`` and ``runtime_us`` per period (p50, p99, max);
+        ``hil_s``, ``runtime_s`` and ``wall_s`` summed over the periods."""
+        wall, hil = self.periods()
+        rest = wall - hil
+
+        def spread(ns: NDArray[np.int64]) -> dict[str, float]:
+            if not ns.size:
+                return {"p50": math.nan, "p99": math.nan, "max": math.nan}
+            us = ns * 1e-3
+            return {
+                "p50": float(np.percentile(us, 50)),
+                "p99": float(np.percentile(us, 99)),
+                "max": float(np.max(us)),
+            }
+
+        return {
+            "periods": int(wall.size),
+            "hil_us": spread(hil),
+            "runtime_us": spread(rest),
+            "hil_s": float(np.sum(hil)) * 1e-9,
+            "runtime_s": float(np.sum(rest)) * 1e-9,
+            "wall_s": float(np.sum(wall)) * 1e-9,
+        }
+
+
+class LockstepHil:
+    """The HIL in lockstep over an in-process channel (one process, deterministic).
+
+    Args:
+        rig, q0_rad, terrain, period_s, vcu, keep_frames: As :class:`HilCore`.
+        trace_path: Write the bus trace here (``.blf`` or ``.asc``), or None.
+
+    Attributes:
+        core: The HIL.
+        clock: The simulated clock; give ``clock.now`` to the master and the clock to the loop.
+        channel: The in-process channel (open another end on it to watch the bus).
+        master_bus: The bus end for the master.
+        cost: The HIL's own wall time per SYNC period (:class:`HilCost`); it reads the wall
+            clock only to measure, never to decide, so runs stay deterministic.
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        q0_rad: FloatArray | tuple[float, float, float],
+        terrain: Terrain | None = None,
+        *,
+        period_s: float = 0.002,
+        vcu: bool = True,
+        keep_frames: bool = False,
+        trace_path: str | Path | None = None,
+    ) -> None:
+        self.core = HilCore(
+            rig, q0_rad, terrain, period_s=period_s, vcu=vcu, keep_frames=keep_frames
+        )
+        if trace_path is not None:
+            self.core.trace = open_trace(trace_path)
+        self.clock = LockstepClock(self._on_time)
+        self.channel = InProcessChannel(f"excavator-hil-lockstep-{next(_channel_numbers)}")
+        self._bus = ChannelBus(self.channel, clock=self.clock.now)
+        self.master_bus = LockstepBus(self.channel, self.clock, self.pump, period_s)
+        self._pumping = False
+        self.cost = HilCost()
+        self._send(self.core.pending_frames(0.0))  # power-on boot-up messages
+
+    def _send(self, frames: list[Frame]) -> None:
+        now = self.clock.now()
+        for arbitration_id, data in frames:
+            self.core.log(arbitration_id, data, now, is_rx=False)
+            self._bus.send_data(arbitration_id, data)
+
+    def pump(self) -> None:
+        """Handle every frame queued at the HIL's end, at the current simulated time."""
+        if self._pumping:
+            return
+        self._pumping = True
+        cost = self.cost
+        started = perf_counter_ns()
+        try:
+            core = self.core
+            while True:
+                msg = self._bus.take()
+                if msg is None:
+                    break
+                now = self.clock.now()
+                data = bytes(msg.data)
+                if msg.arbitration_id == COB_SYNC:
+                    started = cost.sync(started)
+                core.log(msg.arbitration_id, data, now, is_rx=True)
+                self._send(core.on_frame(msg.arbitration_id, data, now))
+                if msg.arbitration_id == COB_SYNC:
+                    core.advance(core.period_s)
+        finally:
+            self._pumping = False
+            cost.add(started)
+
+    def _on_time(self, t_s: float) -> None:
+        self.pump()
+        started = perf_counter_ns()
+        self._send(self.core.pending_frames(t_s))
+        self.cost.add(started)
+
+    def inject(self, kind: FaultKind, axis: int) -> None:
+        """Inject a fault now (see :meth:`HilCore.inject`)."""
+        self.core.inject(kind, axis)
+
+    def close(self) -> None:
+        """Close the trace and both bus ends."""
+        if self.core.trace is not None:
+            self.core.trace.stop()
+            self.core.trace = None
+        self.master_bus.shutdown()
+        self._bus.shutdown()
+
+    def __enter__(self) -> LockstepHil:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

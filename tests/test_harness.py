@@ -232,13 +232,25 @@ def test_a_json_protocol_client_is_served_too(served: _Served) -> None:
         served.pump()
         head = sock.recv(4096)
         assert head.startswith(b"HTTP/1.1 101") and b"can.json.v1" in head
-        frame_json = {"arbitration_id": 0x202, "data": [1, 2], "timestamp": 0.0}
-        event = json.dumps({"type": "message", "payload": frame_json})
-        body = event.encode()
         mask = b"\x01\x02\x03\x04"
-        sock.sendall(bytes([0x81, 0x80 | len(body)]) + mask
-                     + bytes(c ^ mask[i % 4] for i, c in enumerate(body)))  # fmt: skip
-        served.pump()
+
+        def send_event(event: dict[str, Any]) -> None:
+            body = json.dumps(event).encode()
+            sock.sendall(bytes([0x81, 0x80 | len(body)]) + mask
+                         + bytes(c ^ mask[i % 4] for i, c in enumerate(body)))  # fmt: skip
+            served.pump()
+
+        # No frame reaches a client before its bus is open: python-can-remote's client takes
+        # the first event after its bus_request for the response.
+        served.bridge.send(0x701, b"\x05")
+        served.bridge.flush()
+        send_event({"type": "bus_request", "payload": {"config": {}}})
+        sock.settimeout(1.0)
+        frame = sock.recv(4096)
+        n = frame[1] & 0x7F
+        assert json.loads(frame[2 : 2 + n].decode())["type"] == "bus_response"
+        frame_json = {"arbitration_id": 0x202, "data": [1, 2], "timestamp": 0.0}
+        send_event({"type": "message", "payload": frame_json})
         assert [(f[1], f[2]) for f in served.received] == [(0x202, b"\x01\x02")]
         served.bridge.send(0x182, b"\x07")
         served.bridge.flush()

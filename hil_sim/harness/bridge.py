@@ -69,6 +69,9 @@ class _Client:
     inbuf: bytearray = field(default_factory=bytearray)
     out: bytearray = field(default_factory=bytearray)
     upgraded: bool = False
+    #: The client's bus is open (its ``bus_request`` answered): only then does it get frames;
+    #: python-can-remote's client takes the first event after its request for the response.
+    bus_open: bool = False
     binary: bool = True
     closing: bool = False
 
@@ -250,6 +253,7 @@ class Bridge:
             return
         if kind == "bus_request":
             self._send_event(client, "bus_response", {"channel_info": self._channel_info})
+            client.bus_open = True
         elif kind == "message":
             msg = event.get("payload", {})
             try:
@@ -272,7 +276,7 @@ class Bridge:
         if len(self._clients) < 2:
             return
         for other in self._clients.values():
-            if other is sender or not other.upgraded:
+            if other is sender or not other.bus_open:
                 continue
             if other.binary == binary:
                 self._queue_ws(other, _BINARY if binary else _TEXT, payload)
@@ -313,7 +317,7 @@ class Bridge:
         )  # fmt: skip
         buf[_WS_CAN_SIZE:] = data
         for client in self._clients.values():
-            if not client.upgraded:
+            if not client.bus_open:
                 continue
             if len(client.out) > MAX_PENDING_BYTES:
                 self.dropped += 1

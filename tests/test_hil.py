@@ -10,6 +10,7 @@ transports).
 
 from __future__ import annotations
 
+import json
 import math
 import struct
 from pathlib import Path
@@ -23,7 +24,7 @@ from canopen.objectdictionary import ODVariable, import_od
 from conftest import rpdo1_limit_check, run_on_lockstep
 
 from firmware_models import CIA402_DRIVE_EDS, VCU_DBC, VCU_DBC_NODE_ID
-from hil_sim.harness.scenario import Scenario, run_scenario
+from hil_sim.harness.scenario import HilRun, Scenario, run_scenario
 from hil_sim.sim import FaultKind
 from rt_runtime.control.executor import ExecStatus
 from rt_runtime.rig import Rig, load_rig
@@ -37,11 +38,17 @@ def rig() -> Rig:
 
 
 @pytest.fixture(scope="module")
-def one_dig(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+def one_dig_run(tmp_path_factory: pytest.TempPathFactory) -> HilRun:
     trace = tmp_path_factory.mktemp("trace") / "dig.asc"
     return run_scenario(
         Scenario(task="A", max_digs=1, start_at_entry=True, keep_frames=True, trace_path=str(trace))
     )
+
+
+@pytest.fixture(scope="module")
+def one_dig(one_dig_run: HilRun) -> dict[str, Any]:
+    """The run's report."""
+    return one_dig_run.report
 
 
 # -- tracking ----------------------------------------------------------------------------------
@@ -67,16 +74,19 @@ def test_one_dig_tracks_within_the_goal(one_dig: dict[str, Any]) -> None:
     assert report["energy_Wh"] > 0.0
 
 
-def test_lockstep_runs_are_deterministic(one_dig: dict[str, Any], tmp_path: Path) -> None:
+def test_lockstep_runs_are_deterministic(one_dig_run: HilRun, tmp_path: Path) -> None:
     again = run_scenario(Scenario(task="A", max_digs=1, start_at_entry=True, keep_frames=True))
-    first, second = one_dig["_frames"], again["_frames"]
-    assert len(first) > 10_000
+    first, second = one_dig_run.frames, again.frames
+    assert first is not None and len(first) > 10_000
     assert first == second
-    assert again["tracking"] == one_dig["tracking"]
+    assert again.report["tracking"] == one_dig_run.report["tracking"]
+    # The report is JSON as it is: nothing to drop before it is written.
+    assert json.loads(json.dumps(one_dig_run.to_json())) == one_dig_run.report
 
 
-def test_the_whole_run_commands_within_the_limits(one_dig: dict[str, Any], rig: Rig) -> None:
-    check = rpdo1_limit_check(rig, one_dig["_frames"])
+def test_the_whole_run_commands_within_the_limits(one_dig_run: HilRun, rig: Rig) -> None:
+    assert one_dig_run.frames is not None
+    check = rpdo1_limit_check(rig, one_dig_run.frames)
     assert check.frames > 5000
     assert check.ok, check
 
@@ -176,10 +186,10 @@ def _read_trace(path: Path) -> list[can.Message]:
     return list(reader)
 
 
-def test_asc_trace_reads_back_and_every_frame_decodes(one_dig: dict[str, Any], rig: Rig) -> None:
-    path = Path(one_dig["trace"])
+def test_asc_trace_reads_back_and_every_frame_decodes(one_dig_run: HilRun, rig: Rig) -> None:
+    path = Path(one_dig_run.report["trace"])
     messages = _read_trace(path)
-    frames = one_dig["_frames"]
+    frames = one_dig_run.frames
     assert [(m.arbitration_id, bytes(m.data)) for m in messages] == frames
     decoder = IndependentDecoder(tuple(n for _, n in rig.can.node_ids), rig.can.vcu_node_id)
     decoded = [decoder.decode(m.arbitration_id, bytes(m.data)) for m in messages]

@@ -47,12 +47,12 @@ def bench() -> Rig:
 
 @pytest.fixture(scope="module")
 def gao_ff_on() -> dict[str, Any]:
-    return run_path_scenario(PathScenario(path="gao", rig="test_bench", start_deg=START_DEG))
+    return run_path_scenario(PathScenario(path="gao", rig="test_bench", start_deg=START_DEG)).report
 
 
 @pytest.fixture(scope="module")
 def gao_ff_off() -> dict[str, Any]:
-    return run_path_scenario(PathScenario(path="gao", rig="test_bench", feedforward=False))
+    return run_path_scenario(PathScenario(path="gao", rig="test_bench", feedforward=False)).report
 
 
 def test_gao_path_completes_and_passes_every_key_point(

@@ -113,7 +113,7 @@ def bench_hil(
     from hil_sim.harness.scenario import Scenario, run_scenario
 
     t0 = time.perf_counter()
-    report = run_scenario(Scenario(task=task, rig=rig, max_digs=max_digs))
+    report = run_scenario(Scenario(task=task, rig=rig, max_digs=max_digs)).report
     run_s = time.perf_counter() - t0
     cost = report["hil_lockstep"]
     sim_s = float(report["sim_s"])

@@ -30,6 +30,7 @@ from typing import Any
 
 from hil_sim.harness.scenario import (
     FaultSpec,
+    HilRun,
     PathScenario,
     Scenario,
     run_path_scenario,
@@ -255,19 +256,17 @@ def run(args: argparse.Namespace) -> int:
     return _print_run(args, lambda: run_scenario(scenario))
 
 
-def _print_run(args: argparse.Namespace, run: Callable[[], dict[str, Any]]) -> int:
+def _print_run(args: argparse.Namespace, run: Callable[[], HilRun]) -> int:
     """Run a scenario and print its report (``--json`` or text); the command's exit status:
     0 done, 1 stopped otherwise, 2 refused before anything moved (bad input, planning)."""
     try:
-        report = run()
+        report = run().to_json()
     except (ExcavatorRtError, ValueError) as exc:
         if args.json:
             print(json.dumps({"status": "error", "error": str(exc)}))
         else:
             print(f"excavator-rt hil: {exc}")
         return 2
-    report.pop("_frames", None)
-    report.pop("_loop_stats", None)
     print(json.dumps(report) if args.json else format_report(report))
     if report["status"] == "planning_error":
         return 2

@@ -120,10 +120,9 @@ def run_demo(
         plot_dir=str(run_dir) if plots else None,
     )
     t1 = time.perf_counter()
-    report = run_scenario(scenario)
+    run = run_scenario(scenario)
     run_s = time.perf_counter() - t1
-    report.pop("_frames", None)
-    loop_stats = report.pop("_loop_stats", None)
+    report, loop_stats = run.report, run.loop_stats
     report["demo"] = {"setup_s": setup_s, "run_s": run_s, "run_dir": str(run_dir)}
     report["goals"] = goal_check(report)
     if plots:

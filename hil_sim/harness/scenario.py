@@ -66,7 +66,7 @@ from hil_sim.sim import FaultKind, Truth
 from hil_sim.terrain import Terrain
 from rt_runtime import actuation
 from rt_runtime.canbus import BusLoad, CanMaster
-from rt_runtime.control import Clock, FixedRateLoop, LoopConfig, RtSettings
+from rt_runtime.control import Clock, FixedRateLoop, LoopConfig, LoopStats, RtSettings
 from rt_runtime.control.executor import (
     DigRecord,
     Executor,
@@ -84,6 +84,7 @@ __all__ = [
     "GAO_TABLE2_JOINTS_DEG",
     "NO_RT",
     "FaultSpec",
+    "HilRun",
     "KeyPointPath",
     "PathScenario",
     "Scenario",
@@ -146,7 +147,8 @@ class Scenario:
         period_s: SYNC period.
         planner: One-shot planner (``pinn`` or ``pso``).
         plot_dir: Write the figures here, or None.
-        keep_frames: Keep every bus frame in the report object (lockstep; determinism tests).
+        keep_frames: Keep every bus frame in the run (:attr:`HilRun.frames`; lockstep;
+            determinism tests).
         vcu: Put the VCU model on the bus.
     """
 
@@ -346,12 +348,32 @@ def _run_fields(
     return out
 
 
-def run_scenario(sc: Scenario) -> dict[str, Any]:
+@dataclass(frozen=True, slots=True)
+class HilRun:
+    """One HIL run: its report and what a report does not carry.
+
+    Attributes:
+        report: The report, JSON-able as it is (DESIGN.md "Reports" keys of ``excavator-rt hil
+            --json`` plus extras).
+        frames: Every bus frame ``(arbitration_id, data)`` when the scenario kept them, else None.
+        loop_stats: The loop's statistics (per-cycle timing arrays), None when nothing ran.
+    """
+
+    report: dict[str, Any]
+    frames: list[tuple[int, bytes]] | None = None
+    loop_stats: LoopStats | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """The report (``json.dumps`` takes it as it is)."""
+        return self.report
+
+
+def run_scenario(sc: Scenario) -> HilRun:
     """Plan and execute ``sc`` with the executor against the HIL; return the report.
 
     Returns:
-        The report (DESIGN.md "Reports" keys for ``excavator-rt hil --json`` plus extras; the
-        bus frames under ``_frames`` when ``keep_frames``, to be dropped before JSON output).
+        The run: its report (DESIGN.md "Reports" keys for ``excavator-rt hil --json`` plus
+        extras), the bus frames when ``keep_frames`` and the loop's statistics.
 
     Raises:
         ConfigurationError: Bad rig, task, or fault.
@@ -459,12 +481,11 @@ def run_scenario(sc: Scenario) -> dict[str, Any]:
         report["plots"] = [str(p) for p in files]
     if sc.trace_path is not None:
         report["trace"] = str(Path(sc.trace_path))
-    if result is not None:
-        # Per-cycle loop timing (arrays; dropped before JSON output): the demo's histogram.
-        report["_loop_stats"] = result.loop
-    if sc.keep_frames:
-        report["_frames"] = frames
-    return report
+    return HilRun(
+        report,
+        frames if sc.keep_frames else None,
+        result.loop if result is not None else None,
+    )
 
 
 def _segments(rig: Rig, result: ExecutorResult, truth: Truth) -> list[Segment]:
@@ -566,7 +587,7 @@ class PathScenario:
         trace_path: Write the CAN trace (``.blf`` / ``.asc``), or None.
         period_s: SYNC period.
         plot_dir: Write the figures here, or None.
-        keep_frames: Keep every bus frame in the report object (lockstep).
+        keep_frames: Keep every bus frame in the run (:attr:`HilRun.frames`; lockstep).
         vcu: Put the VCU model on the bus (off: a bench arm has no travel or swing).
         faults: Faults to inject (as :class:`Scenario`).
     """
@@ -750,16 +771,16 @@ def _scenario_path(sc: PathScenario, rig: Rig) -> KeyPointPath:
     return kp
 
 
-def run_path_scenario(sc: PathScenario) -> dict[str, Any]:
+def run_path_scenario(sc: PathScenario) -> HilRun:
     """Execute a prescribed joint path with the executor against the HIL; return the report.
 
     The path is interpolated and checked before the HIL starts: a path the rig cannot follow
     raises here and no frame is ever sent.
 
     Returns:
-        The report: the task report's tracking keys (``tracking``, ``tip_error_max_mm``,
-        ``cycles``), ``tracking_path`` (path only), ``path``, ``status``, ``fault``, ``loop``,
-        ``can``, ``energy_Wh``, ``goal``..., ``_frames`` when ``keep_frames``.
+        The run; its report holds the task report's tracking keys (``tracking``,
+        ``tip_error_max_mm``, ``cycles``), ``tracking_path`` (path only), ``path``, ``status``,
+        ``fault``, ``loop``, ``can``, ``energy_Wh``, ``goal``...
 
     Raises:
         ConfigurationError: Bad rig, key points, durations or fault.
@@ -810,9 +831,7 @@ def run_path_scenario(sc: PathScenario) -> dict[str, Any]:
         report["plots"] = [str(p) for p in files]
     if sc.trace_path is not None:
         report["trace"] = str(Path(sc.trace_path))
-    if sc.keep_frames:
-        report["_frames"] = frames
-    return report
+    return HilRun(report, frames if sc.keep_frames else None, result.loop)
 
 
 def _path_block(

@@ -598,13 +598,13 @@ def bench_plan_long(
     per_m: list[float] = []
     for length, depth in trenches:
         task = make_task(rig, length * scale, depth * scale, 60.0, 60.0, name=f"long-{length:g}m")
-        session = planner.start(task)
+        trench = planner.start(task)
         t0 = time.perf_counter()
         plan = planner.plan(task)
         wall = time.perf_counter() - t0
         travels = [s.distance_m for s in plan.steps if isinstance(s, TravelMove)]
         sections = []
-        for k, (x0, x1) in enumerate(session.sections):
+        for k, (x0, x1) in enumerate(trench.sections):
             box = shapely.box(x0, -1e3, x1, 1e3)
             design = plan.design.intersection(box)
             dug = plan.dug.intersection(box)
@@ -622,7 +622,7 @@ def bench_plan_long(
         out[f"{length:g}m"] = {
             "length_m": task.length_m,
             "depth_m": task.depth_m,
-            "sections": len(session.sections),
+            "sections": len(trench.sections),
             "travel_moves": len(travels),
             "travel_one_way": all(t < 0.0 for t in travels),
             "coverage_error": plan.coverage_error,

@@ -11,7 +11,7 @@ After python-can's ``test/back2back_test.py``: two ends of one bus, the runtime'
 
 What the runtime relies on: frames both ways with their fields, in order; a copy made at send
 (the master repacks one message every cycle); ``recv(timeout)`` returning None once the
-transport's clock passed the timeout, in bounded wall time; python-can's filters; timestamps on
+transport's clock passed the timeout; python-can's filters; timestamps on
 the transport's clock; error frames flagged as such (the master ignores them); shutdown.
 """
 
@@ -29,9 +29,6 @@ import pytest
 from hil_sim.bridge import FLAG_ERROR, FLAG_EXTENDED, BridgeBus, BridgeServer
 from hil_sim.harness.lockstep import LockstepBus, LockstepClock
 from rt_runtime.canbus.inprocess import InProcessChannel
-
-#: Longest wall time a receive may take beyond its timeout (a shared, loaded test machine).
-WALL_SLACK_S = 0.5
 
 
 class _ServerEnd(can.BusABC):
@@ -171,14 +168,12 @@ class TestTransport:
         self, pair: Pair
     ) -> None:
         for timeout_s in (0.0, 0.001, 0.05):
-            t0, wall0 = pair.clock(), time.monotonic()
+            t0 = pair.clock()
             assert pair.bus.recv(timeout_s) is None
-            waited_s, wall_s = pair.clock() - t0, time.monotonic() - wall0
+            waited_s = pair.clock() - t0
             assert waited_s >= timeout_s - 1e-6, (timeout_s, waited_s)
-            assert wall_s <= timeout_s + WALL_SLACK_S, (timeout_s, wall_s)
             if pair.simulated:
-                # Simulated time: the clock moves by exactly the timeout, and no wall time
-                # is spent waiting.
+                # Simulated time: the clock moves by exactly the timeout.
                 assert waited_s == pytest.approx(timeout_s, abs=1e-12)
 
     def test_a_frame_already_queued_returns_at_once(self, pair: Pair) -> None:

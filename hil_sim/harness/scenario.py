@@ -387,17 +387,17 @@ def run_scenario(sc: Scenario) -> HilRun:
     task = load_task(sc.task, rig)
     plan_t0 = time.perf_counter()
     planner = TrenchPlanner(rig, sc.planner)
-    session = planner.start(task)
+    trench = planner.start(task)
     q_dump = np.asarray(planner.dump_pose_rad, dtype=np.float64)
     q0 = q_dump
     if sc.start_at_entry:
-        # The session keeps the dig pending: the executor digs it first, from its entry.
-        first_dig = session.next_dig()
+        # The trench keeps the dig pending: the executor digs it first, from its entry.
+        first_dig = trench.next_dig()
         if first_dig is not None:
             q0 = np.asarray(first_dig.problem.q_start_rad, dtype=np.float64)
     plan_us = (time.perf_counter() - plan_t0) * 1e6
     terrain = Terrain(
-        rig.ground_y_m, (float(session.x_lo), float(session.x_hi)), rig.bucket.width_m
+        rig.ground_y_m, (float(trench.x_lo), float(trench.x_hi)), rig.bucket.width_m
     )
     initial_material = terrain.material
     faults = [(f, f.axis_index()) for f in sc.faults]
@@ -417,7 +417,7 @@ def run_scenario(sc: Scenario) -> HilRun:
                 master,
                 rig,
                 loop,
-                session,
+                trench,
                 ExecutorConfig(feedforward=sc.feedforward, max_digs=sc.max_digs),
                 on_dig_done=on_dig_done,
                 on_cycle=on_cycle,
@@ -441,7 +441,7 @@ def run_scenario(sc: Scenario) -> HilRun:
         "tip_error_max_mm": digs_fig["tip_error_max_mm"],
     }
     if material is not None:
-        report.update(profile_errors(initial_material, material, session.design))
+        report.update(profile_errors(initial_material, material, trench.design))
     records = result.digs if result is not None else ()
     report["digs"] = [
         {
@@ -461,7 +461,7 @@ def run_scenario(sc: Scenario) -> HilRun:
     report["plan_total_us"] = plan_us
     report.update(extra)
     try:
-        plan = session.finish(plan_us)
+        plan = trench.finish(plan_us)
         report["plan"] = {
             "coverage_error": plan.coverage_error,
             "overdig_max_mm": plan.overdig_max_m * 1e3,
@@ -469,11 +469,11 @@ def run_scenario(sc: Scenario) -> HilRun:
         }
         design = plan.design
     except PlanningError:
-        design = session.design
+        design = trench.design
     if sc.plot_dir is not None:
         surface = None
         if material is not None:
-            xs = np.linspace(float(session.x_lo), float(session.x_hi), 600)
+            xs = np.linspace(float(trench.x_lo), float(trench.x_hi), 600)
             surface = np.stack([xs, _surface_of(material, xs)], axis=1)
         files = plot_report(
             segments, sc.plot_dir, design=design, surface_m=surface, title=f"task {task.name}:"

@@ -131,6 +131,10 @@ class Controller(Protocol):
         """Its update raised (a bug): the command that stops the drives safely from here."""
         ...
 
+    def overrun(self, consecutive: int, lateness_s: float) -> None:
+        """The loop's overrun policy asks for a safe stop."""
+        ...
+
 
 class GuardFilter:
     """The limit guard as the filter every command passes (see the module docstring).
@@ -165,11 +169,6 @@ class GuardFilter:
             return guard.step_stop()
         return guard.track(command.stroke_m, command.rate_m_s, command.accel_m_s2)
 
-    def hold_here(self) -> None:
-        """Leave stop mode holding the commanded stroke at rest (after a stop came to rest)."""
-        guard = self.guard
-        guard.reset(guard.position_m.copy())
-
 
 class HoldController:
     """Holds a stroke between jobs; quick-stops every drive once on a fault (see the module
@@ -190,7 +189,6 @@ class HoldController:
         self.settled_m = float(settled_m)
         self.fault = ""
         self.settled = False
-        self.cycles = 0
 
     def update(
         self, t_s: float, period_s: float, feedback: DriveFeedback
@@ -198,7 +196,6 @@ class HoldController:
         """Hold; on the first fault status, quick-stop every drive with the next command."""
         cmd = self.command
         cmd.quick_stop = False
-        self.cycles += 1
         if not self.fault and feedback.status >= CycleStatus.EMCY:
             self.fault = f"while holding: {feedback.status.name}"
             cmd.quick_stop = True
@@ -209,6 +206,9 @@ class HoldController:
 
     def service(self) -> None:
         """Nothing to prepare."""
+
+    def overrun(self, consecutive: int, lateness_s: float) -> None:
+        """Nothing to stop: a hold is at rest."""
 
     def fail(self, text: str) -> tuple[Command, ControllerStatus]:
         """Keep holding (a hold is already at rest)."""

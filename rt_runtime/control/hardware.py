@@ -14,16 +14,14 @@ last report.
 
 Timing: :attr:`DriveFeedback.send_s` is the time the write spent handing its frames to the bus
 (RPDO1s and SYNC), :attr:`DriveFeedback.wait_s` the time :meth:`~DriveInterface.read` spent
-until every answer was in or its wait ran out (0 for a read that only takes what arrived, as
-the controller manager's does a period after the SYNC), :attr:`DriveFeedback.io_s` the write
-and read calls together. The round trip :attr:`DriveFeedback.rtt_s` is measured on the bus's
-own stamps: the latest answer's receive stamp minus the SYNC's send stamp.
+taking the answers off the bus (receiving and decoding, and waiting where ``read_timeout_s``
+lets it). The round trip :attr:`DriveFeedback.rtt_s` is measured on the bus's own stamps: the
+latest answer's receive stamp minus the SYNC's send stamp.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,14 +52,12 @@ class DriveFeedback:
         rtt_s: SYNC sent -> every TPDO1 in (s), NaN when one was missing.
         send_s: Time the write spent sending its frames (s).
         wait_s: Time the read waited for the answers (s).
-        io_s: Time of the cycle's write and read (s).
     """
 
     __slots__ = (
         "emcys",
         "fresh",
         "heartbeat_lost",
-        "io_s",
         "last_velocity_m_s",
         "rtt_s",
         "send_s",
@@ -90,7 +86,6 @@ class DriveFeedback:
         self.rtt_s = math.nan
         self.send_s = 0.0
         self.wait_s = 0.0
-        self.io_s = 0.0
 
 
 class DriveInterface:
@@ -114,8 +109,6 @@ class DriveInterface:
         self.axes: tuple[str, ...] = tuple(master.config.axes)
         self.feedback = DriveFeedback(self.n)
         self._zero_um = [0] * self.n
-        self._sent_s = 0.0
-        self._write_s = 0.0
 
     @property
     def sync_count(self) -> int:
@@ -141,7 +134,6 @@ class DriveInterface:
         """RPDO1 (target stroke, velocity offset when feed-forward is on) to every drive, then
         SYNC; rounds to micrometres. Loop safe."""
         clock = self.clock
-        t0 = clock.now()
         # round() is round-half-to-even, as np.rint; plain ints skip numpy's per-call cost.
         try:
             target = [round(x * 1e6) for x in stroke_m.tolist()]
@@ -157,8 +149,6 @@ class DriveInterface:
             status = self.master.write_setpoints(target, velocity)
             self.feedback.send_s = clock.now() - t_send
         self.feedback.write_status = status
-        self._sent_s = clock.now()
-        self._write_s = self._sent_s - t0
         return status
 
     def read(self) -> DriveFeedback:
@@ -190,7 +180,6 @@ class DriveInterface:
         out.status = raw.status
         out.emcys = raw.emcys
         out.wait_s = t1 - t0
-        out.io_s = self._write_s + out.wait_s
         return out
 
     def describe(self, status: CycleStatus) -> str:
@@ -220,7 +209,3 @@ class DriveInterface:
     def react_to_faults(self, on: bool) -> None:
         """Let the master quick-stop every drive on a fault (off: the controllers react)."""
         self.master.react_to_faults = on
-
-    def raw(self) -> Any:
-        """The master's own feedback (CiA 402 words; for reports and tests)."""
-        return self.master.feedback

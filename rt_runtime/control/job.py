@@ -637,8 +637,7 @@ class JobController:
                 self.publish()
             return True
         motion = stream.motions[0]
-        s_start = actuation.joint_to_stroke(self.rig, motion.q_start_rad, check_limits=False)
-        if float(np.max(np.abs(s_start - stream.hold_s))) > CONNECT_TOLERANCE_M:
+        if float(np.max(np.abs(motion.stroke_start_m - stream.hold_s))) > CONNECT_TOLERANCE_M:
             # The planner side chains every motion: a gap is a bug, never planned here.
             self._begin_stop(
                 ExecStatus.FAULT,

@@ -156,11 +156,6 @@ class ControllerManager:
         self._cols = tuple(telemetry.column(c.name) for c in EXECUTOR_COLUMNS)
 
 
-    @property
-    def switch_pending(self) -> bool:
-        """A :meth:`switch` waits for the next boundary."""
-        return self._pending is not None
-
     def stop(self) -> None:
         """End the loop at the next cycle boundary (any thread)."""
         self._stop = True
@@ -216,9 +211,7 @@ class ControllerManager:
             controller = self.controller
             now = self.loop.clock.now()
             if info.safe_stop:
-                overrun = getattr(controller, "overrun", None)
-                if overrun is not None:
-                    overrun(info.consecutive_overruns, info.lateness_s)
+                controller.overrun(info.consecutive_overruns, info.lateness_s)
             try:
                 nxt, status = controller.update(now, self.period_s, fb)
             except Exception as exc:  # a bug must still end in the guard's stop, never a dead loop

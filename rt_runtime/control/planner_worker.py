@@ -478,9 +478,7 @@ class SessionDriver:
         return tuple(out)
 
     def _at(self, q_a: FloatArray, q_b: FloatArray) -> bool:
-        s_a = actuation.joint_to_stroke(self.rig, q_a, check_limits=False)
-        s_b = actuation.joint_to_stroke(self.rig, q_b, check_limits=False)
-        return bool(np.max(np.abs(s_a - s_b)) <= AT_ENTRY_TOLERANCE_M)
+        return stroke_gap_m(self.rig, q_a, q_b) <= AT_ENTRY_TOLERANCE_M
 
     def _lead_in(self, q0: FloatArray) -> tuple[Transition, ...]:
         """Measured pose -> dump pose: the session's exit moves from there (a lift first where
@@ -765,7 +763,6 @@ class ProcessPlanner:
         self._conn, child = ctx.Pipe(duplex=True)
         self._outbox: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
         self._inbox: queue.SimpleQueue[Reply] = queue.SimpleQueue()
-        self._dead = False
         self._closing = False
         # The state goes first through the sender thread (see _worker_main), so start()
         # returns once the child is spawned, whatever the size of the job.
@@ -827,15 +824,10 @@ class ProcessPlanner:
     def poll(self) -> Reply | None:
         """One reply if the receiver has one (never waits); a PlannerError once the process
         is gone."""
-        if self._dead:
-            return None
         try:
-            reply = self._inbox.get_nowait()
+            return self._inbox.get_nowait()
         except queue.Empty:
             return None
-        if isinstance(reply, PlannerError) and reply.message.startswith("the planner process"):
-            self._dead = True
-        return reply
 
     def service(self) -> None:
         """Nothing: the process works on its own."""

@@ -85,7 +85,7 @@ class SampledMotion:
 
     Attributes:
         phase: The phase it streams in.
-        q_start_rad: Its start pose (rad), ``(3,)``.
+        q_start_rad: Its start pose (rad), ``(3,)``, and ``stroke_start_m`` its strokes (m).
         q_rad: Joint reference of sample ``j`` (at ``(j + 1) T``), ``(n, 3)``.
         stroke_m, rate_m_s, accel_m_s2: Stroke, rate and acceleration of sample ``j``, ``(n, 3)``.
         dig_index: The dig's index (phase DIG), else -1.
@@ -94,6 +94,7 @@ class SampledMotion:
 
     phase: Phase
     q_start_rad: FloatArray
+    stroke_start_m: FloatArray
     q_rad: FloatArray
     stroke_m: FloatArray
     rate_m_s: FloatArray
@@ -157,6 +158,7 @@ def sample_motion(
         qd[j] = b
         qdd[j] = c
     q0 = np.asarray(sample(0.0)[0], dtype=np.float64).copy()
+    s0 = actuation.joint_to_stroke(rig, q0, check_limits=False)
     q3 = np.repeat(q[:, None, :], 3, axis=1)
     q3[:, 0] -= H_RAD
     q3[:, 2] += H_RAD
@@ -166,7 +168,7 @@ def sample_motion(
     stroke = np.ascontiguousarray(s3[:, 1])
     rate = jac * qd
     accel = jac * qdd + dj * qd * qd
-    return SampledMotion(phase, q0, q, stroke, rate, accel, int(dig_index), duration)
+    return SampledMotion(phase, q0, s0, q, stroke, rate, accel, int(dig_index), duration)
 
 
 def connect_motion(

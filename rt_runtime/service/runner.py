@@ -412,7 +412,6 @@ class RigRunner:
         guard.guard.reset(s)
         q = actuation.stroke_to_joint(self.rig, s, check_limits=False)
         hold.command.hold(s, q, Phase.WAIT)
-        hold.cycles = 0
 
     def _store_changed(self) -> None:
         self.store.changed.set()  # look for work once on entry

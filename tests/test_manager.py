@@ -228,3 +228,10 @@ def test_the_demo_reaches_its_first_cyclic_rpdo1_in_few_calls(
     described = [f"{Path(f.filename).name}:{f.name}" for f in chain]
     assert len(chain) <= 12, described
     assert len({f.filename for f in chain}) <= 8, described
+
+
+def test_every_telemetry_column_is_written_by_the_write_or_the_read() -> None:
+    from rt_runtime.control import manager
+
+    written = manager._COMMAND_COLUMNS + manager._ANSWER_COLUMNS
+    assert sorted(written) == sorted(c.name for c in manager.EXECUTOR_COLUMNS)

@@ -73,6 +73,15 @@ EXECUTOR_COLUMNS: tuple[Column, ...] = (
 )
 
 
+#: Columns written with the command (the write), in the order the cycle unpacks them.
+_COMMAND_COLUMNS = (
+    "sync", "phase", "segment", "dig", "tracking", "q_ref_rad", "stroke_ref_m", "stroke_cmd_m",
+    "vel_cmd_m_s", "guard", "send_s",
+)  # fmt: skip
+#: Columns written with the answers to that SYNC (the next cycle's read).
+_ANSWER_COLUMNS = ("stroke_fb_m", "vel_fb_m_s", "drive_state", "cycle_status", "rtt_s", "wait_s")
+
+
 def executor_telemetry(capacity: int) -> Telemetry:
     """A telemetry ring buffer with the manager's columns (give it to the loop).
 
@@ -126,8 +135,7 @@ class ControllerManager:
         self._install_telemetry()
         self._sent_cols: tuple[Any, ...] = ()
         tel = self.loop.telemetry
-        self._tel = tel
-        self._cols = tuple(tel.column(c.name) for c in EXECUTOR_COLUMNS)
+        self._bind(tel)
 
     def _install_telemetry(self) -> None:
         tel = self.loop.telemetry
@@ -152,8 +160,13 @@ class ControllerManager:
         :func:`executor_telemetry`; the loop's columns included). On the loop's thread, after
         the cycle's row: from ``on_cycle`` or ``on_ended``."""
         self.loop.telemetry = telemetry
+        self._bind(telemetry)
+
+    def _bind(self, telemetry: Telemetry) -> None:
+        """The columns a cycle writes: the command's at the write, the answers' at the read."""
         self._tel = telemetry
-        self._cols = tuple(telemetry.column(c.name) for c in EXECUTOR_COLUMNS)
+        self._cmd_cols = tuple(telemetry.column(name) for name in _COMMAND_COLUMNS)
+        self._answer_cols = tuple(telemetry.column(name) for name in _ANSWER_COLUMNS)
 
 
     def stop(self) -> None:
@@ -248,14 +261,8 @@ class ControllerManager:
             c_s_cmd,
             c_v_cmd,
             c_guard,
-            c_s_fb,
-            c_v_fb,
-            c_state,
-            c_status,
-            c_rtt,
-            c_wait,
             c_send,
-        ) = self._cols
+        ) = self._cmd_cols
         if cmd.quick_stop:
             drives.quick_stop()
         gstate = guard.apply(cmd)
@@ -276,7 +283,7 @@ class ControllerManager:
         self._s_ref[:] = guard.position_m
         self._q_ref[:] = cmd.q_rad
         self._sent_slot = slot
-        self._sent_cols = (c_s_fb, c_v_fb, c_state, c_status, c_rtt, c_wait)
+        self._sent_cols = self._answer_cols  # the buffer this SYNC's row is in
         return LoopAction.CONTINUE
 
     def _take_answers(self) -> DriveFeedback:

@@ -98,27 +98,24 @@ class ChannelBus(can.BusABC):
             raise can.CanOperationError(f"{self.channel_info}: send on a closed bus end")
         stamp = msg.timestamp if self.preserve_timestamps else self.clock()
         data = bytes(msg.data)
-        for end in self.bus_channel.ends:
-            own = end is self
-            if own and not self.receive_own_messages:
-                continue
-            end.queue.put(
-                can.Message(
-                    timestamp=stamp,
-                    arbitration_id=msg.arbitration_id,
-                    is_extended_id=msg.is_extended_id,
-                    is_remote_frame=msg.is_remote_frame,
-                    is_error_frame=msg.is_error_frame,
-                    channel=self.bus_channel.name,
-                    dlc=msg.dlc,
-                    data=data,
-                    is_fd=msg.is_fd,
-                    bitrate_switch=msg.bitrate_switch,
-                    error_state_indicator=msg.error_state_indicator,
-                    is_rx=not own,
-                    check=False,
-                )
+        name = self.bus_channel.name
+        self._fan_out(
+            lambda own: can.Message(
+                timestamp=stamp,
+                arbitration_id=msg.arbitration_id,
+                is_extended_id=msg.is_extended_id,
+                is_remote_frame=msg.is_remote_frame,
+                is_error_frame=msg.is_error_frame,
+                channel=name,
+                dlc=msg.dlc,
+                data=data,
+                is_fd=msg.is_fd,
+                bitrate_switch=msg.bitrate_switch,
+                error_state_indicator=msg.error_state_indicator,
+                is_rx=not own,
+                check=False,
             )
+        )
 
     def send_data(self, arbitration_id: int, data: bytes) -> None:
         """Send a standard-id data frame given by its id and payload (no message to copy: the
@@ -131,22 +128,27 @@ class ChannelBus(can.BusABC):
             raise can.CanOperationError(f"{self.channel_info}: send on a closed bus end")
         stamp = self.clock()
         name = self.bus_channel.name
+        self._fan_out(
+            lambda own: can.Message(
+                timestamp=stamp,
+                arbitration_id=arbitration_id,
+                is_extended_id=False,
+                channel=name,
+                dlc=len(data),
+                data=data,
+                is_rx=not own,
+                check=False,
+            )
+        )
+
+    def _fan_out(self, copy: Callable[[bool], can.Message]) -> None:
+        """Queue a copy of one frame at every end that receives it (``copy(own)``: the copy
+        for this end itself, or another's)."""
         for end in self.bus_channel.ends:
             own = end is self
             if own and not self.receive_own_messages:
                 continue
-            end.queue.put(
-                can.Message(
-                    timestamp=stamp,
-                    arbitration_id=arbitration_id,
-                    is_extended_id=False,
-                    channel=name,
-                    dlc=len(data),
-                    data=data,
-                    is_rx=not own,
-                    check=False,
-                )
-            )
+            end.queue.put(copy(own))
 
     def take(self) -> can.Message | None:
         """The next queued frame without waiting and without filtering, or None.

@@ -235,3 +235,33 @@ def test_every_telemetry_column_is_written_by_the_write_or_the_read() -> None:
 
     written = manager._COMMAND_COLUMNS + manager._ANSWER_COLUMNS
     assert sorted(written) == sorted(c.name for c in manager.EXECUTOR_COLUMNS)
+
+
+def test_a_hold_powers_down_inside_the_loop(rig: Rig) -> None:
+    hil = LockstepHil(rig, (0.5, -1.5, -1.0), None)
+    syncs = _record_syncs(hil)
+    try:
+        master, loop = _enabled(hil, rig)
+        drives = DriveInterface(master, hil.clock, 0.0)
+        guard = GuardFilter(LimitGuard(StrokeLimits.from_rig(rig), PERIOD_S))
+        s0 = drives.measured_stroke_m()
+        guard.guard.reset(s0)
+        hold = HoldController(s0, actuation.stroke_to_joint(rig, s0, check_limits=False))
+
+        cycles = [0]
+
+        def on_cycle(_sync: int, _now: float) -> None:
+            cycles[0] += 1
+            if cycles[0] == 50:
+                hold.power_down(0.5)
+
+        manager = ControllerManager(drives, guard, loop, on_cycle=on_cycle)
+        stats = manager.run(hold, hold.command, s0, hold.command.q_rad)
+        tel = loop.telemetry.snapshot()
+    finally:
+        hil.close()
+    assert stats.stopped_by_step and stats.cycles < 50 + 0.5 / PERIOD_S
+    # Disabled with one command; SYNC went on at the period until no drive was enabled.
+    assert (tel["drive_state"][-1] != 4).all(), tel["drive_state"][-1]
+    assert (tel["drive_state"][:50] == 4).all()
+    np.testing.assert_allclose(np.diff(syncs[-len(tel["sync"]) :]), PERIOD_S, atol=1e-9)

@@ -16,7 +16,8 @@ else is limited, and STOP is the guard's jerk-limited stop from the commanded st
 
 :class:`HoldController` holds the last commanded stroke between jobs and, on a drive fault,
 EMCY or lost heartbeat, quick-stops every drive once (the master's own reaction is off while
-the controllers run).
+the controllers run). Asked to power down (:meth:`HoldController.power_down`), it disables every
+drive and ends once none reports OPERATION_ENABLED, or after a timeout, SYNC going on meanwhile.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from rt_runtime.canbus import CycleStatus
+from rt_runtime.canbus import CycleStatus, DriveState
 from rt_runtime.control.guard import GuardState, LimitGuard
 from rt_runtime.control.hardware import DriveFeedback
 from rt_runtime.control.setpoints import Phase
@@ -74,11 +75,13 @@ class Command:
         dig: Dig index during a dig, else -1.
         tracking: The target streams a plan's motion.
         quick_stop: Quick-stop every drive with this command (once).
+        disable: Disable every drive's power stage with this command (once; axes at rest).
     """
 
     __slots__ = (
         "accel_m_s2",
         "dig",
+        "disable",
         "mode",
         "phase",
         "q_rad",
@@ -100,6 +103,7 @@ class Command:
         self.dig = -1
         self.tracking = False
         self.quick_stop = False
+        self.disable = False
 
     def hold(self, stroke_m: FloatArray, q_rad: FloatArray, phase: Phase) -> None:
         """Hold ``stroke_m`` at rest."""
@@ -189,6 +193,13 @@ class HoldController:
         self.settled_m = float(settled_m)
         self.fault = ""
         self.settled = False
+        self._power_down_timeout_s: float | None = None  # asked to power down (any thread)
+        self._power_down_until_s: float | None = None  # the power-down's end at the latest
+
+    def power_down(self, timeout_s: float) -> None:
+        """Disable every drive with the next command and end once none is enabled (or after
+        ``timeout_s``). Any thread."""
+        self._power_down_timeout_s = float(timeout_s)
 
     def update(
         self, t_s: float, period_s: float, feedback: DriveFeedback
@@ -196,6 +207,17 @@ class HoldController:
         """Hold; on the first fault status, quick-stop every drive with the next command."""
         cmd = self.command
         cmd.quick_stop = False
+        cmd.disable = False
+        until = self._power_down_until_s
+        if until is None and self._power_down_timeout_s is not None:
+            # Asked since the last update: disable with the next command, end by the timeout.
+            self._power_down_until_s = t_s + self._power_down_timeout_s
+            cmd.disable = True
+            return cmd, ControllerStatus.RUNNING
+        if until is not None:
+            enabled = bool((feedback.state == DriveState.OPERATION_ENABLED).any())
+            ended = not enabled or t_s >= until
+            return cmd, ControllerStatus.ENDED if ended else ControllerStatus.RUNNING
         if not self.fault and feedback.status >= CycleStatus.EMCY:
             self.fault = f"while holding: {feedback.status.name}"
             cmd.quick_stop = True

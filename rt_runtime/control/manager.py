@@ -265,6 +265,8 @@ class ControllerManager:
         ) = self._cmd_cols
         if cmd.quick_stop:
             drives.quick_stop()
+        if cmd.disable:
+            drives.disable()
         gstate = guard.apply(cmd)
         drives.write(guard.position_m, guard.velocity_m_s)
         tel = self._tel

@@ -35,7 +35,7 @@ import can
 import numpy as np
 
 from rt_runtime import actuation
-from rt_runtime.canbus import CanMaster, DriveState
+from rt_runtime.canbus import CanMaster
 from rt_runtime.control.clock import Clock, MonotonicClock
 from rt_runtime.control.controllers import Command, GuardFilter, HoldController
 from rt_runtime.control.executor import ExecutorConfig
@@ -67,6 +67,8 @@ STALE_LOOP_S = 0.5
 SETTLED_M = 1e-6
 #: ... or this long must have passed (s).
 SETTLE_TIMEOUT_S = 2.0
+#: Longest wait for the drives to leave OPERATION_ENABLED when the runner stops (s).
+POWER_DOWN_TIMEOUT_S = 0.5
 #: Telemetry rows of a job's run (the last 32 s at 500 Hz go to the state directory).
 JOB_TELEMETRY_ROWS = 16_384
 
@@ -368,9 +370,6 @@ class RigRunner:
             self._hold_at(s0)
             self._store_changed()
             manager.run(hold, hold.command, s0, hold.command.q_rad)
-            self._state = "stopping: disabling the drives"
-            master.disable()
-            self._settle(master)
             self._state = "stopped"
         except Exception as exc:
             self.error = f"runner failed: {type(exc).__name__}: {exc}"
@@ -427,7 +426,9 @@ class RigRunner:
         if hold.fault and not self._fault:
             self._fault = hold.fault
         if self._stop:
-            manager.stop()
+            if self._state != "stopping: disabling the drives":
+                self._state = "stopping: disabling the drives"
+                hold.power_down(POWER_DOWN_TIMEOUT_S)
             return
         prepared = self._prep.prepared
         if prepared is not None:
@@ -479,7 +480,7 @@ class RigRunner:
         guard, hold, manager = parts.guard, parts.hold, parts.manager
         running = self._job
         if running is None or controller is not running.controller:
-            return None
+            return None  # the hold powered down: the loop ends
         gc.enable()
         manager.use_telemetry(parts.hold_telemetry)
         self._hold_at(guard.position_m)
@@ -556,21 +557,6 @@ class RigRunner:
             savez(path, **tel)
         except OSError as exc:
             log.warning("telemetry %s not written: %s", path, exc)
-
-    def _settle(self, master: CanMaster, timeout_s: float = 0.5) -> None:
-        """Keep cycling (hold, SYNC) until no drive reports OPERATION_ENABLED or time is up."""
-        hold_um = master.last_target_um()
-        zero = np.zeros_like(hold_um)
-        end = self.clock.now() + timeout_s
-        next_s = self.clock.now()
-        while self.clock.now() < end:
-            self.clock.sleep_until(next_s)
-            next_s += self.period_s
-            master.write_setpoints(hold_um, zero)
-            fb = master.read_feedback(self.clock.now(), 0.5 * self.period_s)
-            master.heartbeat(self.clock.now())
-            if not (fb.state == int(DriveState.OPERATION_ENABLED)).any():
-                break
 
 
 def _reset_rt_on_fork() -> None:

@@ -241,7 +241,7 @@ class MovesMixin(MaterialMixin):
         arm = self.planner.mover.arm
         x0, y0, z0 = arm.tip(q0)
         first: tuple[Transition, ...] | None = None
-        for pieces in (1, 2, 3):
+        for pieces in (1, 2, 3, 5, 8):
             poses = [q0]
             for y in np.linspace(y0, y_lift, pieces + 1)[1:].tolist():
                 q = arm.ik(x0, y, z0)

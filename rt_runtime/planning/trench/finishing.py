@@ -82,7 +82,7 @@ class FinishingMixin(LayersMixin):
         g = self.ground_y
         s = self.planner.scale
         xf, xn = t.start_x_m, t.start_x_m - t.length_m
-        lo, hi = self.section_lo, self.section_hi
+        lo, hi = self.section_lo, self._reach_hi()
         far_foot = xf - t.depth_m / math.tan(t.beta1_rad)
         near_foot = xn + t.depth_m / math.tan(t.beta2_rad)
         x = self.grid

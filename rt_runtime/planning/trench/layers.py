@@ -61,6 +61,11 @@ _PARTIAL_MAX_M = 0.25
 #: Fraction of V_max a column aims at.
 _FILL_AIM = 0.93
 
+#: How far beyond a later section's far edge its columns may take what the section before
+#: left at its near face (scale model, m): a rest under the bucket's capacity that the
+#: section before could not lift out of beside the next section's standing material.
+_CARRY_M = 0.10
+
 #: End attitudes of a layer's columns (deg; the table's first and last of each end).
 _LAYER_ATTITUDES_DEG = {
     DigType.DOWNWARD: ((-60.0, -120.0), (-110.0, -190.0)),
@@ -157,8 +162,8 @@ class LayersMixin(RoughMixin):
 
     def _next_wall(self, far: bool, remaining: Any, t0: float) -> PlannedDig | None:
         """The next piece of the far (``far``) or near wall's profile dig: the wall's line from
-        its top edge to the bottom, in pieces no longer than :data:`_COLUMN_MAX_M` (scaled),
-        top first; a full dig where it fills the bucket, else a finishing pass. None when the
+        its top edge to the bottom, in pieces no longer along it than :data:`_COLUMN_MAX_M`
+        (scaled), top first; a full dig where it fills the bucket, else a finishing pass. None when the
         wall is done or nothing is left on it."""
         t = self.task
         g = self.ground_y
@@ -176,28 +181,33 @@ class LayersMixin(RoughMixin):
             top = np.array([xn, g])
             foot = np.array([xn + t.depth_m / math.tan(t.beta2_rad), self.bottom_y])
             beta = t.beta2_rad
-        n = max(1, math.ceil(abs(top[0] - foot[0]) / (_COLUMN_MAX_M * self.planner.scale)))
+        # Pieces no longer along the wall than the longest profile dig; each may be taken in
+        # its two halves where it does not plan whole (a long fit along a shallow wall).
+        # ``_wall_piece`` counts the halves done.
+        span = foot - top
+        n = max(1, math.ceil(float(np.hypot(*span)) / (_COLUMN_MAX_M * self.planner.scale)))
         lo_d, hi_d = oneshot.theta_p_range(self.planning, int(DigType.DOWNWARD))
         kind = DigType.DOWNWARD if float(lo_d) + 0.02 <= beta <= float(hi_d) else DigType.BACKWARD
         atts = _WALL_ATTITUDES_DEG[kind]
         # The last piece stops short of the corner: a path that reaches into it cuts past the
         # bottom before the bottom's columns have opened it (and the columns start there).
-        span = foot - top
         short = foot - span * (_CORNER_GAP_M * self.planner.scale / float(np.hypot(*span)))
-        while self._wall_piece < n:
+        halves = 2 * n
+        while self._wall_piece < halves:
             k = self._wall_piece
-            self._wall_piece += 1
-            a = top + (short - top) * k / n
-            b = top + (short - top) * (k + 1) / n
-            # Nothing on this piece: skip it.
-            if self._material_above(np.array([a, b])) < _COLUMN_EDGE_M * self.planner.scale:
-                continue
-            found = self._fit_pass(kind, np.array([a, b]), atts)
-            if found is None:
-                continue
-            dig = self._plan_profile(found, remaining, t0)
-            if dig is not None:
-                return dig
+            for stop in (k + 2, k + 1) if k % 2 == 0 else (k + 1,):
+                self._wall_piece = stop
+                a = top + (short - top) * k / halves
+                b = top + (short - top) * stop / halves
+                # Nothing on this piece: skip it.
+                if self._material_above(np.array([a, b])) < _COLUMN_EDGE_M * self.planner.scale:
+                    break
+                found = self._fit_pass(kind, np.array([a, b]), atts)
+                if found is None:
+                    continue
+                dig = self._plan_profile(found, remaining, t0)
+                if dig is not None:
+                    return dig
         return None
 
     def _plan_profile(self, found: Candidate, remaining: Any, t0: float) -> PlannedDig | None:
@@ -212,9 +222,32 @@ class LayersMixin(RoughMixin):
                 self.finishing_used += 1
         return dig
 
+    def _reach_hi(self) -> float:
+        """The far end (work-site x) of what the current section's columns take: the
+        section's far edge; in a later section just beyond it (a column enters the near face
+        of the section before from the dug ground beyond it, :data:`_FACE_GAP_M`), and where
+        the section before left material thicker than :data:`_COLUMN_EDGE_M` within
+        :data:`_CARRY_M` (scaled) of that face, beyond the first such run (at most that far
+        beyond the edge)."""
+        hi = self.section_hi
+        if self.section == 0:
+            return hi
+        s = self.planner.scale
+        x = self.grid
+        gap = _FACE_GAP_M * s + 3.0 * GRID_STEP_M
+        i0 = int(np.searchsorted(x, hi - 1e-9))
+        i_cap = int(np.searchsorted(x, hi + _CARRY_M * s + 1e-9))
+        thick = self.surface[i0:i_cap] - self.design_floor[i0:i_cap] > _COLUMN_EDGE_M * s
+        if not thick.any():
+            return hi + gap
+        first = int(np.argmax(thick))
+        rest = thick[first:]
+        n = first + (rest.size if rest.all() else int(np.argmin(rest)))
+        return min(max(float(x[i0 + n - 1]) + gap, hi + gap), hi + _CARRY_M * s)
+
     def _bottom_span(self) -> tuple[float, float]:
-        """Where the bottom's columns run within the section (x range, work-site frame): the
-        design's flat bottom, and into each corner as far as the wall's dig stops short of it
+        """Where the bottom's columns run within the section (x range, work-site frame; a
+        later section's reaching :meth:`_reach_hi`): the design's flat bottom, and into each corner as far as the wall's dig stops short of it
         (:data:`_CORNER_GAP_M` along the wall), so that no sliver stands between the two
         (a 2.5 mm wide, 9 cm tall one beside each corner of D otherwise)."""
         t = self.task
@@ -222,7 +255,7 @@ class LayersMixin(RoughMixin):
         xf = t.start_x_m
         bx = xf - t.depth_m / math.tan(t.beta1_rad) + gap * math.cos(t.beta1_rad)
         cx = xf - t.length_m + t.depth_m / math.tan(t.beta2_rad) - gap * math.cos(t.beta2_rad)
-        return max(cx, self.section_lo), min(bx, self.section_hi)
+        return max(cx, self.section_lo), min(bx, self._reach_hi())
 
     def _column_ends(
         self, floor: FloatArray, x_lo: float, x_hi: float, partial: bool = False
@@ -311,7 +344,7 @@ class LayersMixin(RoughMixin):
         steep = float(lo_d) + 0.02 <= self.task.beta1_rad <= float(hi_d)
         rise = 0.005 * self.planner.scale
         for partial in (False, True):
-            ends = self._column_ends(floor, self.section_lo, self.section_hi, partial)
+            ends = self._column_ends(floor, self.section_lo, self._reach_hi(), partial)
             if not ends:
                 continue
             if partial and not self._layer_must_be_taken():
@@ -376,9 +409,48 @@ class LayersMixin(RoughMixin):
                 dig = self._plan_column(found, partial, remaining, t0)
                 if dig is not None:
                     return dig
+        # The boom's torque refuses a column through the bottom layer's whole thickness
+        # (deep and near the machine it needs more than along the rest of the bottom): the
+        # material above the layer's mid-height first, as a column along that height.
+        dig = self._next_mid_column(x_lo, x_hi, remaining, t0)
+        if dig is not None:
+            return dig
         # No straight column enters (a steep far wall whose dig could not open the face, or
         # a column whose moves would plough): one down the wall and along the bottom.
         return self._next_layer_column(remaining, t0)
+
+    def _next_mid_column(
+        self, x_lo: float, x_hi: float, remaining: Any, t0: float
+    ) -> PlannedDig | None:
+        """A straight column along the bottom layer's mid-height (:meth:`_column_ends` on
+        the design floor raised to it), a full bucket or else under-filled; None where the
+        material on the bottom is too thin to halve (twice :data:`_COLUMN_EDGE_M`, scaled)
+        or no such column plans."""
+        s = self.planner.scale
+        t = self.task
+        x = self.grid
+        inside = (x >= x_lo - 1e-9) & (x <= x_hi + 1e-9)
+        thick = np.where(inside, self.surface - self.design_floor, 0.0)
+        top = float(np.max(thick)) if thick.size else 0.0
+        if top < 2.0 * _COLUMN_EDGE_M * s:
+            return None
+        y_mid = self.bottom_y + 0.5 * top
+        g = self.ground_y
+        far = min(t.start_x_m - (g - y_mid) / math.tan(t.beta1_rad), self._reach_hi())
+        near = max(t.start_x_m - t.length_m + (g - y_mid) / math.tan(t.beta2_rad), self.section_lo)
+        floor = np.maximum(self.design_floor, y_mid)
+        atts = _COLUMN_ATTITUDES_DEG[DigType.BACKWARD]
+        for partial in (False, True):
+            ends = self._column_ends(floor, near, far, partial)
+            if not ends:
+                continue
+            a = (ends[0], y_mid + 0.002)  # enters descending (theta_p >= 0)
+            for x_end in ends[1:]:
+                found = self._fit_pass(DigType.BACKWARD, np.array([a, (x_end, y_mid)]), atts)
+                dig = self._plan_column(found, partial, remaining, t0)
+                if dig is not None:
+                    return dig
+        return None
 
     def _plan_column(
         self, found: Candidate | None, partial: bool, remaining: Any, t0: float

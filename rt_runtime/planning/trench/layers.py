@@ -163,8 +163,8 @@ class LayersMixin(RoughMixin):
     def _next_wall(self, far: bool, remaining: Any, t0: float) -> PlannedDig | None:
         """The next piece of the far (``far``) or near wall's profile dig: the wall's line from
         its top edge to the bottom, in pieces no longer along it than :data:`_COLUMN_MAX_M`
-        (scaled), top first; a full dig where it fills the bucket, else a finishing pass. None when the
-        wall is done or nothing is left on it."""
+        (scaled), top first; a full dig where it fills the bucket, else a finishing pass.
+        None when the wall is done or nothing is left on it."""
         t = self.task
         g = self.ground_y
         xf = t.start_x_m
@@ -203,12 +203,42 @@ class LayersMixin(RoughMixin):
                 if self._material_above(np.array([a, b])) < _COLUMN_EDGE_M * self.planner.scale:
                     break
                 found = self._fit_pass(kind, np.array([a, b]), atts)
-                if found is None:
-                    continue
-                dig = self._plan_profile(found, remaining, t0)
+                dig = None if found is None else self._plan_profile(found, remaining, t0)
+                if dig is None and stop == k + 2:
+                    # Too thick across for the boom's torque, say: the outer half first,
+                    # along the piece's line moved in by half the thickness; the piece again
+                    # after it.
+                    dig = self._wall_inner_pass(kind, a, b, atts, remaining, t0)
+                    if dig is not None:
+                        self._wall_piece = k
                 if dig is not None:
                     return dig
         return None
+
+    def _wall_inner_pass(
+        self,
+        kind: DigType,
+        a: FloatArray,
+        b: FloatArray,
+        atts: tuple[tuple[float, ...], tuple[float, ...]],
+        remaining: Any,
+        t0: float,
+    ) -> PlannedDig | None:
+        """A pass parallel to the wall piece ``a``-``b``, moved towards the design's inside
+        by half the material's thickness across it; None where that thickness is under twice
+        :data:`_COLUMN_EDGE_M` (scaled) or no such pass plans."""
+        seg = b - a
+        length = float(np.hypot(*seg))
+        across = self._material_above(np.array([a, b])) * abs(float(seg[0])) / length
+        if across < 2.0 * _COLUMN_EDGE_M * self.planner.scale:
+            return None
+        normal = np.array([-seg[1], seg[0]]) / length
+        c = self.design.centroid
+        if (c.x - a[0]) * normal[0] + (c.y - a[1]) * normal[1] < 0.0:
+            normal = -normal
+        shift = 0.5 * across * normal
+        found = self._fit_pass(kind, np.array([a + shift, b + shift]), atts)
+        return None if found is None else self._plan_profile(found, remaining, t0)
 
     def _plan_profile(self, found: Candidate, remaining: Any, t0: float) -> PlannedDig | None:
         """A fitted profile dig planned as a full dig, or else (when the section's finishing
@@ -247,9 +277,10 @@ class LayersMixin(RoughMixin):
 
     def _bottom_span(self) -> tuple[float, float]:
         """Where the bottom's columns run within the section (x range, work-site frame; a
-        later section's reaching :meth:`_reach_hi`): the design's flat bottom, and into each corner as far as the wall's dig stops short of it
-        (:data:`_CORNER_GAP_M` along the wall), so that no sliver stands between the two
-        (a 2.5 mm wide, 9 cm tall one beside each corner of D otherwise)."""
+        later section's reaching to :meth:`_reach_hi`): the design's flat bottom, and into
+        each corner as far as the wall's dig stops short of it (:data:`_CORNER_GAP_M` along
+        the wall), so that no sliver stands between the two (a 2.5 mm wide, 9 cm tall one
+        beside each corner of D otherwise)."""
         t = self.task
         gap = _CORNER_GAP_M * self.planner.scale
         xf = t.start_x_m

@@ -785,6 +785,71 @@ def test_seeded_random_tasks_keep_the_rules(planner: TrenchPlanner) -> None:
     assert done >= 4
 
 
+@pytest.mark.parametrize(
+    ("values", "why"),
+    [
+        # The far wall's lift out of a deep corner beside a steep wall (in pieces).
+        (
+            (
+                0.359336784853927,
+                0.20572638797747753,
+                63.01912253002051,
+                72.47132497482991,
+                0.6676073702797292,
+            ),
+            "deep corner lift",
+        ),
+        # A bottom column deep and near the machine beyond the boom's torque (mid-height
+        # column first).
+        (
+            (
+                0.6097690222255059,
+                0.2939243184479807,
+                81.75532970582893,
+                48.737739672108,
+                0.7898008269757821,
+            ),
+            "bottom too thick for the torque",
+        ),
+        # A V-shaped trench: 0.5 m walls whose lower piece is too thick across (halves, the
+        # outer half first).
+        (
+            (
+                0.7638033483210644,
+                0.29379958448570204,
+                33.17504963160706,
+                43.943239065325756,
+                0.943483432409381,
+            ),
+            "long thick wall",
+        ),
+        # Two sections: the rest the first leaves at its near face, taken by the second.
+        (
+            (
+                1.1327196967888367,
+                0.19960830184590453,
+                37.07543233746999,
+                36.253942757223115,
+                0.9093400367340232,
+            ),
+            "rest at a section face",
+        ),
+    ],
+)
+def test_deep_steep_and_v_shaped_trenches_are_dug(
+    planner: TrenchPlanner, values: tuple[float, ...], why: str
+) -> None:
+    # Tasks of the random suites (`bench plan --random 200`, seeds 7, 11, 23) that ended
+    # 4-13 % short before design notes R8j.
+    L, D, b1, b2, x0 = values
+    plan = planner.plan(make_task(RIG, L, D, b1, b2, start_x_m=x0, name="hard"))
+    assert plan.planning_error is None, why
+    _check_fill_and_sections(plan)
+    assert plan.overdig_max_m <= OVERDIG_LIMIT_M, why
+    assert plan.coverage_error <= COVERAGE_GOAL, (why, plan.coverage_error)
+    assert plan.status is PlanStatus.DONE, why
+
+
 def _section_coverage(plan, lo: float, hi: float) -> float:
     box = shapely.box(lo, -10.0, hi, 10.0)
     design = plan.design.intersection(box)

@@ -18,6 +18,8 @@ import os
 import signal
 import socket
 import stat
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -171,6 +173,23 @@ def test_bind_refuses_shared_directories_and_live_sockets(tmp_path: Path) -> Non
 def test_client_without_daemon(tmp_path: Path) -> None:
     with pytest.raises(CommunicationError, match="is excavator-rtd running"):
         request(tmp_path / "none.sock", {"cmd": "status"})
+
+
+def test_job_client_imports_no_numerics_and_no_bus(tmp_path: Path) -> None:
+    # `excavator-rt job ...` starts in a fraction of the whole CLI's time: the console script
+    # takes the client alone, without numpy, python-can or the HIL's entry points.
+    code = (
+        "import sys\n"
+        "from rt_runtime.entry import main\n"
+        f"rc = main(['job', 'status', '--socket', {str(tmp_path / 'none.sock')!r}])\n"
+        "heavy = sorted(m for m in ('numpy', 'can', 'scipy', 'hil_sim') if m in sys.modules)\n"
+        "print(rc, heavy)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert out.stdout.strip() == "2 []", out.stdout + out.stderr
+    assert "is excavator-rtd running" in out.stderr
 
 
 # -- the service with a fake runner --------------------------------------------------------------

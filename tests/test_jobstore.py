@@ -254,6 +254,27 @@ def test_old_finished_jobs_are_dropped(tmp_path: Path) -> None:
     assert [j.id for j in store.jobs()] == [3, 4, 5]
 
 
+def test_finished_jobs_keep_their_summary_not_the_planner_state(tmp_path: Path) -> None:
+    store = JobStore(tmp_path)
+    store.start()
+    state = {"material_wkt": "x" * 50_000}
+    jobs = [store.submit(TASK, "pinn") for _ in range(3)]
+    dig = {"index": 0, "dig_type": "downward", "T_s": 5.0, "plan_us": 3000.0,
+           "planned_volume_m3": 0.004, "measured_volume_m3": 0.0039}  # fmt: skip
+    for job in jobs:
+        store.record_dig(job.id, dig, state)
+    store.set_status(jobs[0].id, "done")
+    store.cancel(jobs[1].id)
+    store.set_status(jobs[2].id, "failed", "bus lost")
+    assert store.close()
+    again = JobStore(tmp_path)
+    done, cancelled, failed = (again.get(j.id) for j in jobs)
+    assert done.session_state is None and done.digs == (dig,)
+    assert cancelled.session_state is None and cancelled.digs == (dig,)
+    assert failed.session_state == state  # a failed job retries from its last dig
+    assert (tmp_path / "jobs.json").stat().st_size < 60_000
+
+
 def test_changes_are_written_off_the_callers_thread(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

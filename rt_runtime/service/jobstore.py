@@ -1,8 +1,9 @@
 """The daemon's jobs and their store on disk, written atomically so a restart resumes them.
 
 A job is a trench task to dig: its task (the resolved numbers), the one-shot planner, a status
-(:data:`STATUSES`), a summary of every dig done and the planner session's state after the last
-one (``TrenchSession.state()``), from which a restarted daemon resumes at the next undone dig.
+(:data:`STATUSES`), a summary of every dig done and, until the job is done or cancelled, the
+planner session's state after the last dig (``TrenchSession.state()``), from which a restarted
+daemon resumes at the next undone dig.
 
 Store format (``<state_dir>/jobs.json``, UTF-8 JSON)::
 
@@ -408,6 +409,10 @@ class JobStore:
     # -- changes --------------------------------------------------------------------------------
 
     def _put(self, job: Job) -> Job:
+        if job.status in FINAL and job.session_state is not None:
+            # A finished job keeps its summary (task, status, digs), not the planner's state
+            # (tens of kB a job): nothing resumes it.
+            job = dataclasses.replace(job, session_state=None)
         with self._lock:
             self._jobs[job.id] = job
             finished = [j for j in self._jobs.values() if j.status in FINAL]

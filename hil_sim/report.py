@@ -1,22 +1,22 @@
 """HIL tracking report: the stable JSON keys of DESIGN.md "Reports" and plots after Yao Fig. 17-21.
 
 Role: turn one HIL run (the executor's per-SYNC telemetry, the HIL's truth at every SYNC, the
-terrain the bucket really cut) into the report of ``excavator-rt hil --json``:
+terrain the bucket really cut) into the figures of ``excavator-rt hil --json``:
 
 * ``tracking``: per axis (boom, stick, bucket) ``max_mm`` and ``rms_mm`` of the true stroke
   (plant) minus the reference stroke at each SYNC, and ``reported`` the same on the drives'
   TPDO1 feedback (what the controller sees). Only cycles that streamed a motion count; holding
-  and the stop after a fault do not.
+  and the stop after a fault do not (:class:`TrackingFigures`, with ``tip_error_max_mm`` and
+  ``cycles``).
 * ``tip_error_max_mm``: largest distance between the true tip and the reference tip (forward
   kinematics of the reference joint angles), same cycles.
 * ``coverage_error``: area of the symmetric difference of what the bucket really removed from the
   terrain and the design, over the design's area (as the planner's own figure); ``overdig_max_mm``:
-  the deepest point of the removed region outside the design, measured to the design.
-* ``digs``, ``energy_Wh`` (the plant's drive energy, Yao's W_E reading), ``wall_s``, ``overruns``.
+  the deepest point of the removed region outside the design, measured to the design
+  (:class:`ProfileErrors`).
 
-Extra keys (free to add): ``status``, ``fault``, ``feedforward``, ``rig``, ``task``, ``period_s``,
-``cycles``, ``sim_s``, ``tracking_digs`` (the same figures over the digs only), ``goal``,
-``plan`` (the planner's closed-loop figures), ``can`` (bus load, SYNC round trip), ``emcys``.
+The whole report (these figures with the run's outcome, digs, energy, loop and CAN) is
+:class:`hil_sim.harness.reports.HilReport`.
 
 Plots (:func:`plot_report`, matplotlib when installed): joint angles reference vs truth (Fig. 17),
 cylinder tracking error per axis (Fig. 18), joint rates from the drives (Fig. 19), drive power and
@@ -26,6 +26,7 @@ energy (Fig. 20), and the tip paths over the design and the surface that was cut
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,7 +40,11 @@ from rt_runtime.rig import Rig
 
 __all__ = [
     "AXES",
+    "AxisError",
+    "AxisTracking",
+    "ProfileErrors",
     "Segment",
+    "TrackingFigures",
     "axis_errors",
     "plot_report",
     "profile_errors",
@@ -86,24 +91,98 @@ class Segment:
     power_w: FloatArray = field(default_factory=lambda: np.zeros(0))
 
 
-def axis_errors(error_m: FloatArray) -> dict[str, dict[str, float]]:
-    """Per-axis ``max_mm`` / ``rms_mm`` of an error array ``(n, 3)`` (NaN rows ignored)."""
-    out: dict[str, dict[str, float]] = {}
+@dataclass(frozen=True, slots=True)
+class AxisError:
+    """Stroke error of one axis (mm; NaN when no cycle counted).
+
+    Attributes:
+        max_mm: Largest absolute error.
+        rms_mm: Root mean square error.
+    """
+
+    max_mm: float
+    rms_mm: float
+
+    def to_json(self) -> dict[str, float]:
+        """``{"max_mm", "rms_mm"}``."""
+        return {"max_mm": self.max_mm, "rms_mm": self.rms_mm}
+
+
+@dataclass(frozen=True, slots=True)
+class AxisTracking:
+    """Tracking of one axis: on the plant's truth, and on the drives' feedback.
+
+    Attributes:
+        max_mm: Largest absolute error of the true stroke.
+        rms_mm: Root mean square error of the true stroke.
+        reported: The same on the stroke the drive reports.
+    """
+
+    max_mm: float
+    rms_mm: float
+    reported: AxisError
+
+    def to_json(self) -> dict[str, Any]:
+        """``{"max_mm", "rms_mm", "reported": {"max_mm", "rms_mm"}}``."""
+        return {"max_mm": self.max_mm, "rms_mm": self.rms_mm, "reported": self.reported.to_json()}
+
+
+@dataclass(frozen=True, slots=True)
+class TrackingFigures:
+    """Tracking over a set of segments.
+
+    Attributes:
+        tracking: Per axis name (:data:`AXES` order).
+        tip_error_max_mm: Largest distance of the true tip from the reference tip (mm; NaN when
+            no cycle counted).
+        cycles: Cycles that counted (those that streamed a motion).
+    """
+
+    tracking: Mapping[str, AxisTracking]
+    tip_error_max_mm: float
+    cycles: int
+
+    def to_json(self) -> dict[str, Any]:
+        """``{"tracking": {axis: ...}, "tip_error_max_mm", "cycles"}``."""
+        return {
+            "tracking": {name: fig.to_json() for name, fig in self.tracking.items()},
+            "tip_error_max_mm": self.tip_error_max_mm,
+            "cycles": self.cycles,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class ProfileErrors:
+    """How the removed material compares with the design.
+
+    Attributes:
+        coverage_error: Symmetric difference of removed and design over the design's area.
+        overdig_max_mm: Deepest point of the removed region outside the design (mm).
+        removed_area_m2: Area of the removed region (m^2).
+    """
+
+    coverage_error: float
+    overdig_max_mm: float
+    removed_area_m2: float
+
+
+def axis_errors(error_m: FloatArray) -> dict[str, AxisError]:
+    """Per-axis error figures of an error array ``(n, 3)`` in m (NaN rows ignored)."""
+    out: dict[str, AxisError] = {}
     for axis, name in enumerate(AXES):
         e = error_m[:, axis]
         e = e[np.isfinite(e)]
         if e.size == 0:
-            out[name] = {"max_mm": math.nan, "rms_mm": math.nan}
+            out[name] = AxisError(math.nan, math.nan)
         else:
-            out[name] = {
-                "max_mm": float(np.max(np.abs(e)) * 1e3),
-                "rms_mm": float(np.sqrt(np.mean(e * e)) * 1e3),
-            }
+            out[name] = AxisError(
+                float(np.max(np.abs(e)) * 1e3), float(np.sqrt(np.mean(e * e)) * 1e3)
+            )
     return out
 
 
-def tracking_figures(segments: list[Segment], digs_only: bool = False) -> dict[str, Any]:
-    """``tracking`` (truth, with ``reported`` nested per axis) and ``tip_error_max_mm``."""
+def tracking_figures(segments: list[Segment], digs_only: bool = False) -> TrackingFigures:
+    """Tracking on truth (with the drives' ``reported`` figures per axis) and the tip error."""
     use = [s for s in segments if (s.kind == "dig") or not digs_only]
     if use:
         mask = np.concatenate([s.tracking for s in use])
@@ -115,20 +194,21 @@ def tracking_figures(segments: list[Segment], digs_only: bool = False) -> dict[s
     else:
         ref = true = rep = np.zeros((0, 3))
         tip_ref = tip_true = np.zeros((0, 2))
-    tracking = axis_errors(true - ref)
+    truth = axis_errors(true - ref)
     reported = axis_errors(rep - ref)
-    for name in AXES:
-        tracking[name]["reported"] = reported[name]  # type: ignore[assignment]
     tip = np.linalg.norm(tip_true - tip_ref, axis=1)
-    return {
-        "tracking": tracking,
-        "tip_error_max_mm": float(np.max(tip) * 1e3) if tip.size else math.nan,
-        "cycles": int(ref.shape[0]),
-    }
+    return TrackingFigures(
+        tracking={
+            name: AxisTracking(truth[name].max_mm, truth[name].rms_mm, reported[name])
+            for name in AXES
+        },
+        tip_error_max_mm=float(np.max(tip) * 1e3) if tip.size else math.nan,
+        cycles=int(ref.shape[0]),
+    )
 
 
-def profile_errors(initial: Any, final: Any, design: Any) -> dict[str, float]:
-    """``coverage_error`` and ``overdig_max_mm`` of the material really removed.
+def profile_errors(initial: Any, final: Any, design: Any) -> ProfileErrors:
+    """Coverage error and over-dig of the material really removed.
 
     Args:
         initial: Terrain material polygon before the run (work-site frame).
@@ -144,11 +224,7 @@ def profile_errors(initial: Any, final: Any, design: Any) -> dict[str, float]:
         coords = shapely.get_coordinates(over)
         if len(coords):
             over_max = float(np.max(shapely.distance(shapely.points(coords), design)))
-    return {
-        "coverage_error": coverage,
-        "overdig_max_mm": over_max * 1e3,
-        "removed_area_m2": float(dug.area),
-    }
+    return ProfileErrors(coverage, over_max * 1e3, float(dug.area))
 
 
 def tip_reference(rig: Rig, q_ref_rad: FloatArray, machine_x_m: FloatArray) -> FloatArray:

@@ -8,18 +8,22 @@ only here, at the edge; the library is SI.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from importlib.metadata import entry_points
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from rt_runtime import __version__
 from rt_runtime.errors import ConfigurationError, ExcavatorRtError
 from rt_runtime.rig import DEFAULT_RIG, Rig, load_rig, profile_names
+
+if TYPE_CHECKING:
+    from rt_runtime.bench import LongTrenches, RandomSuite, TaskPlanBench, TrenchBench
 
 #: Entry-point group of the commands other packages add to ``excavator-rt`` (a callable taking
 #: the sub-parsers): the HIL's ``hil`` and ``demo``.
@@ -282,9 +286,14 @@ def cmd_oneshot(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     """``excavator-rt bench``: the full suite (planning latency, loop timing, CAN) in one run."""
-    import dataclasses
-
-    from rt_runtime.bench import BenchSizes, bench_full, plot_bench
+    from rt_runtime.bench import (
+        LOOP_LATENESS_P99_GOAL_US,
+        YAO_PINN_PLAN_MS,
+        YAO_PSO_SOLVE_S,
+        BenchSizes,
+        bench_full,
+        plot_bench,
+    )
     from rt_runtime.control import RtSettings
 
     rig = load_rig(args.rig)
@@ -310,102 +319,105 @@ def cmd_bench(args: argparse.Namespace) -> int:
         rig, sizes=sizes, rates_hz=rates, rt=rt, model_dir=args.models, hil_rig=args.rig
     )
     if args.plot:
-        r["plot"] = str(plot_bench(raw, args.plot))
+        r = dataclasses.replace(r, plot=str(plot_bench(raw, args.plot)))
     if args.json:
-        _print_json(r)
+        _print_json(r.to_json())
         return 0
-    pinn, pso, paper = r["pinn"], r["pso"], r["paper"]
-    print(f"excavator-rt bench on {rig.name} ({'quick' if args.quick else 'full'} sizes, {r['wall_s']:.0f} s)")
-    print(f"  PINN per dig: inference p50 {pinn['infer_us']['p50']:.1f} us, p99 {pinn['infer_us']['p99']:.1f} us; "
-          f"plan (inference + verification) p50 {pinn['plan_us']['p50']:.1f} us, p99 {pinn['plan_us']['p99']:.1f} us, "
-          f"max {pinn['plan_us']['max']:.0f} us  (Yao {paper['yao_pinn_plan_ms'][0]}-{paper['yao_pinn_plan_ms'][1]} ms)")
-    print(f"  PSO per dig (same problems): p50 {pso['solve_s']['p50']:.3f} s  (Yao {paper['yao_pso_solve_s'][0]:.0f}-"
-          f"{paper['yao_pso_solve_s'][1]:.0f} s); PSO / PINN plan = {r['ratios']['pso_over_pinn_plan']:.0f}x "
-          f"(Yao's own ratio {r['ratios']['yao_pso_over_yao_pinn']:.0f}x)")
-    print(f"  trench task A, whole plan ({r['trench']['digs']} digs): p50 {r['trench']['plan_us']['p50'] / 1e3:.2f} ms")
-    for rate, e in r.get("loop", {}).items():
-        lat, jit, rtt = e["lateness_us"], e["jitter_us"], e["sync_rtt_us"]
-        refused = [k for k, v in e["rt"].items() if not v["applied"]]
-        print(f"  loop {rate} Hz, {e['cycles']} cycles: lateness p50 {lat['p50']:.1f} / p99 {lat['p99']:.1f} / "
-              f"p99.9 {lat['p999']:.1f} / max {lat['max']:.0f} us; |period jitter| p99 {jit['p99']:.1f} us; "
-              f"overruns {e['overruns']} (skipped {e['skipped']})")
+    pinn, pso, ratios = r.pinn, r.pso, r.ratios
+    print(f"excavator-rt bench on {rig.name} ({'quick' if args.quick else 'full'} sizes, {r.wall_s:.0f} s)")
+    print(f"  PINN per dig: inference p50 {pinn.infer_us.p50:.1f} us, p99 {pinn.infer_us.p99:.1f} us; "
+          f"plan (inference + verification) p50 {pinn.plan_us.p50:.1f} us, p99 {pinn.plan_us.p99:.1f} us, "
+          f"max {pinn.plan_us.max:.0f} us  (Yao {YAO_PINN_PLAN_MS[0]}-{YAO_PINN_PLAN_MS[1]} ms)")
+    print(f"  PSO per dig (same problems): p50 {pso.solve_s.p50:.3f} s  (Yao {YAO_PSO_SOLVE_S[0]:.0f}-"
+          f"{YAO_PSO_SOLVE_S[1]:.0f} s); PSO / PINN plan = {ratios['pso_over_pinn_plan']:.0f}x "
+          f"(Yao's own ratio {ratios['yao_pso_over_yao_pinn']:.0f}x)")
+    print(f"  trench task A, whole plan ({r.trench.digs} digs): p50 {r.trench.plan_us.p50 / 1e3:.2f} ms")
+    for rate, e in (r.loop or {}).items():
+        lat, jit, rtt = e.lateness_us, e.jitter_us, e.sync_rtt_us
+        refused = [i.item for i in e.rt.refused]
+        if lat is not None and jit is not None:
+            print(f"  loop {rate} Hz, {e.cycles} cycles: lateness p50 {lat.p50:.1f} / p99 {lat.p99:.1f} / "
+                  f"p99.9 {lat.p999:.1f} / max {lat.max:.0f} us; |period jitter| p99 {jit.p99:.1f} us; "
+                  f"overruns {e.overruns} (skipped {e.skipped})")
         if rtt is not None:
-            print(f"      SYNC -> TPDO1 p50 {rtt['p50']:.0f} / p99 {rtt['p99']:.0f} / max {rtt['max']:.0f} us, "
-                  f"stale {e['stale_cycles']}; bus load {e['bus_load']['realistic']:.1%} "
-                  f"(nominal {e['bus_load']['nominal']:.1%}, worst {e['bus_load']['worst']:.1%})"
+            print(f"      SYNC -> TPDO1 p50 {rtt.p50:.0f} / p99 {rtt.p99:.0f} / max {rtt.max:.0f} us, "
+                  f"stale {e.stale_cycles}; bus load {e.bus_load.realistic:.1%} "
+                  f"(nominal {e.bus_load.nominal:.1%}, worst {e.bus_load.worst:.1%})"
                   + (f"; RT refused: {', '.join(refused)}" if refused else ""))
-    met = r["goals"].get("met", {}).get("loop_500_lateness_p99")
+    met = r.lateness_goal_met
     if met is not None:
-        print(f"  goal 500 Hz lateness p99 <= {r['goals']['loop_500_lateness_p99_us_max']:.0f} us: {'met' if met else 'NOT met'}")
-    if args.plot:
-        print(f"  histograms: {r['plot']}")
+        print(f"  goal 500 Hz lateness p99 <= {LOOP_LATENESS_P99_GOAL_US:.0f} us: {'met' if met else 'NOT met'}")
+    if r.plot is not None:
+        print(f"  histograms: {r.plot}")
     return 0
 
 
 def cmd_bench_oneshot(args: argparse.Namespace) -> int:
     """``excavator-rt bench oneshot``: PSO solve time and quality against DE."""
-    from rt_runtime.bench import bench_oneshot
+    from rt_runtime.bench import YAO_MEAN_OBJECTIVE, bench_oneshot
 
     rig = load_rig(args.rig)
     r = bench_oneshot(
         rig, n_problems=args.problems, seed=args.seed, de=not args.no_de, workers=args.workers
     )
     if args.json:
-        _print_json(r)
+        _print_json(r.to_json())
         return 0
     print(
-        f"one-shot PSO on {rig.name}: {r['problems']} seeded problems (half downward, half backward)"
+        f"one-shot PSO on {rig.name}: {r.problems} seeded problems (half downward, half backward)"
     )
     print(
-        f"  solve time single: p50 {r['solve_s']['p50']:.3f} s, p99 {r['solve_s']['p99']:.3f} s "
-        f"(goal p50 <= 0.3 s; Yao's PSO 69-71 s: {r['paper']['speedup_vs_yao_pso']:.0f}x faster)"
+        f"  solve time single: p50 {r.solve_s.p50:.3f} s, p99 {r.solve_s.p99:.3f} s "
+        f"(goal p50 <= 0.3 s; Yao's PSO 69-71 s: {r.speedup_vs_yao_pso:.0f}x faster)"
     )
-    print(f"  batched: {r['batch_problems_per_s']:.1f} problems/s over {r['batch_workers']} processes (goal >= 20)")
-    print(f"  feasible: {r['feasible']:.0%} single, {r['batch_feasible']:.0%} batched")
-    if "de_solve_s" in r:
+    print(f"  batched: {r.batch_problems_per_s:.1f} problems/s over {r.batch_workers} processes (goal >= 20)")
+    print(f"  feasible: {r.feasible:.0%} single, {r.batch_feasible:.0%} batched")
+    if r.de is not None:
         print(
-            f"  DE reference: p50 {r['de_solve_s']['p50']:.2f} s per problem; PSO within 1 % of DE "
-            f"on {r['within_1pct_of_de']:.0%} (goal >= 95 %); gap p50 {r['gap_to_de']['p50']:+.2%}, "
-            f"max {r['gap_to_de']['max']:+.2%}"
+            f"  DE reference: p50 {r.de.de_solve_s.p50:.2f} s per problem; PSO within 1 % of DE "
+            f"on {r.de.within_1pct_of_de:.0%} (goal >= 95 %); gap p50 {r.de.gap_to_de.p50:+.2%}, "
+            f"max {r.de.gap_to_de.max:+.2%}"
         )
-    for kind, v in r["results"].items():
+    for kind, v in r.results.items():
         print(
-            f"  {kind:<8} T {v['T_s'][0]:.2f}..{v['T_s'][1]:.2f} s, V_p {v['volume_L'][0]:.2f}..{v['volume_L'][1]:.2f} L, "
-            f"W_E {v['energy_Wh'][0]:.4f}..{v['energy_Wh'][1]:.4f} Wh, mean objective {v['objective_mean']:.3f} "
-            f"(Yao {r['paper']['yao_mean_objective'][kind]:.3f})"
+            f"  {kind:<8} T {v.T_s[0]:.2f}..{v.T_s[1]:.2f} s, V_p {v.volume_L[0]:.2f}..{v.volume_L[1]:.2f} L, "
+            f"W_E {v.energy_Wh[0]:.4f}..{v.energy_Wh[1]:.4f} Wh, mean objective {v.objective_mean:.3f} "
+            f"(Yao {YAO_MEAN_OBJECTIVE[kind]:.3f})"
         )
     return 0
 
 
 def cmd_bench_pinn(args: argparse.Namespace) -> int:
     """``excavator-rt bench pinn``: the shipped PINN on its held-out sets against the teacher."""
-    from rt_runtime.bench import bench_pinn
+    from rt_runtime.bench import PINN_GOALS, YAO_TABLE4_MEAN, bench_pinn
 
     rig = load_rig(args.rig)
     r = bench_pinn(
         rig, args.models, limit=args.limit, passes=args.passes, pso_problems=args.pso_problems
     )
     if args.json:
-        _print_json(r)
+        _print_json(r.to_json())
         return 0
-    g = r["goals"]
-    print(f"PINN planner on {rig.name}: {r['samples']} held-out problems (verifier: {r['verifier']})")
-    print(f"  objective gap to PSO: mean {r['gap_mean']:+.2%}, max {r['gap_max']:+.2%} (goal mean <= {g['gap_mean_max']:.0%}; Yao about 5 %)")
-    print(f"  raw network answers: gap mean {r['raw_gap_mean']:+.2%}, feasible {r['raw_feasible']:.1%} (goal >= {g['raw_feasible_min']:.0%})")
-    print(f"  plans returned (verified) {r['verified_feasible']:.1%}, refused {r['refused']:.1%}; returned plans feasible by the numpy reference: {r['executed_feasible']:.1%}")
-    if r.get("paths"):
-        print("  paths: " + ", ".join(f"{k} {v}" for k, v in r["paths"].items()))
-    print(f"  inference: p50 {r['infer_us']['p50']:.1f} us, p99 {r['infer_us']['p99']:.1f} us")
-    print(f"  plan (inference + fill + retime + verification): p50 {r['plan_us']['p50']:.1f} us, p99 {r['plan_us']['p99']:.1f} us (goals {g['plan_us_p50_max']:.0f} / {g['plan_us_p99_max']:.0f} us; Yao 4.2-4.5 ms)")
-    if r.get("verify_only_plan_us"):
-        v = r["verify_only_plan_us"]
-        print(f"  plan without fill and retime (inference + verification of the raw answer): p50 {v['p50']:.1f} us, p99 {v['p99']:.1f} us")
-    print(f"  PSO teacher in the same run: p50 {r['pso_solve_s']['p50']:.3f} s per dig ({r['speedup_vs_pso']:.0f}x slower than the PINN plan)")
+    g = PINN_GOALS
+    print(f"PINN planner on {rig.name}: {r.samples} held-out problems (verifier: {r.verifier})")
+    print(f"  objective gap to PSO: mean {r.gap_mean:+.2%}, max {r.gap_max:+.2%} (goal mean <= {g['gap_mean_max']:.0%}; Yao about 5 %)")
+    print(f"  raw network answers: gap mean {r.raw_gap_mean:+.2%}, feasible {r.raw_feasible:.1%} (goal >= {g['raw_feasible_min']:.0%})")
+    print(f"  plans returned (verified) {r.verified_feasible:.1%}, refused {r.refused:.1%}; returned plans feasible by the numpy reference: {r.executed_feasible:.1%}")
+    if r.paths:
+        print("  paths: " + ", ".join(f"{k} {v}" for k, v in r.paths.items()))
+    print(f"  inference: p50 {r.infer_us.p50:.1f} us, p99 {r.infer_us.p99:.1f} us")
+    print(f"  plan (inference + fill + retime + verification): p50 {r.plan_us.p50:.1f} us, p99 {r.plan_us.p99:.1f} us (goals {g['plan_us_p50_max']:.0f} / {g['plan_us_p99_max']:.0f} us; Yao 4.2-4.5 ms)")
+    if r.verify_only_plan_us is not None:
+        v = r.verify_only_plan_us
+        print(f"  plan without fill and retime (inference + verification of the raw answer): p50 {v.p50:.1f} us, p99 {v.p99:.1f} us")
+    print(f"  PSO teacher in the same run: p50 {r.pso_solve_s.p50:.3f} s per dig ({r.speedup_vs_pso:.0f}x slower than the PINN plan)")
     print("  Table 4 form (means):          T [s]   V_p [L]  W_E [Wh]  planning")
-    for kind, t in r["table4"].items():
-        print(f"    {kind:<8} PSO               {t['pso']['T_s']:6.2f}  {t['pso']['volume_L']:7.2f}  {t['pso']['energy_Wh']:8.4f}  {t['pso']['plan_s']:.3f} s")
-        print(f"    {kind:<8} PINN              {t['pinn']['T_s']:6.2f}  {t['pinn']['volume_L']:7.2f}  {t['pinn']['energy_Wh']:8.4f}  {t['pinn']['plan_ms'] * 1e3:.1f} us")
-    y = r["paper"]["yao_table4_mean"]
+    for kind, t in r.table4.items():
+        pso_s = t.pso.plan_s if t.pso.plan_s is not None else float("nan")
+        pinn_ms = t.pinn.plan_ms if t.pinn.plan_ms is not None else float("nan")
+        print(f"    {kind:<8} PSO               {t.pso.T_s:6.2f}  {t.pso.volume_L:7.2f}  {t.pso.energy_Wh:8.4f}  {pso_s:.3f} s")
+        print(f"    {kind:<8} PINN              {t.pinn.T_s:6.2f}  {t.pinn.volume_L:7.2f}  {t.pinn.energy_Wh:8.4f}  {pinn_ms * 1e3:.1f} us")
+    y = YAO_TABLE4_MEAN
     print(f"    Yao (A-D)  PSO               {y['pso']['T_s']:6.2f}  {y['pso']['volume_L']:7.2f}  {y['pso']['energy_Wh']:8.4f}  69-71 s")
     print(f"    Yao (A-D)  PINN              {y['pinn']['T_s']:6.2f}  {y['pinn']['volume_L']:7.2f}  {y['pinn']['energy_Wh']:8.4f}  4.2-4.5 ms")
     return 0
@@ -723,7 +735,7 @@ def plot_trench(plan: Any, path: str) -> None:
 def cmd_bench_plan(args: argparse.Namespace) -> int:
     """``excavator-rt bench plan``: tasks A-D planned with the PINN (timed) and the PSO; with
     ``--random N`` the random suite over the task domain (and the named tasks only if given)."""
-    from rt_runtime.bench import bench_plan, bench_plan_long, bench_plan_random
+    from rt_runtime.bench import PlanBenchReport, bench_plan, bench_plan_long, bench_plan_random
 
     rig = load_rig(args.rig)
     if args.random is not None and args.random < 1:
@@ -731,92 +743,101 @@ def cmd_bench_plan(args: argparse.Namespace) -> int:
     alone = args.random or args.long
     spec = args.tasks if args.tasks is not None else ("" if alone else "A,B,C,D")
     tasks = tuple(t.strip() for t in spec.split(",") if t.strip())
-    r: dict[str, Any] = {"rig": rig.name}
+    r = PlanBenchReport(rig.name)
     if tasks:
         r = bench_plan(rig, tasks, passes=args.passes, pso=not args.no_pso, model_dir=args.models)
     if args.random:
-        r["random"] = bench_plan_random(rig, args.random, args.seed, model_dir=args.models)
+        r = dataclasses.replace(r, random=bench_plan_random(rig, args.random, args.seed, model_dir=args.models))
     if args.long:
-        r["long"] = bench_plan_long(rig, model_dir=args.models)
+        r = dataclasses.replace(r, long=bench_plan_long(rig, model_dir=args.models))
     if args.json:
-        _print_json(r)
+        _print_json(r.to_json())
         return 0
-    if tasks:
-        _print_bench_plan(r, rig.name, args.passes)
-    if args.random:
-        _print_bench_random(r["random"])
-    if args.long:
-        _print_bench_long(r["long"])
+    if r.tasks is not None and r.trench is not None:
+        _print_bench_plan(r.tasks, r.trench, rig_name=rig.name, passes=args.passes)
+    if r.random is not None:
+        _print_bench_random(r.random)
+    if r.long is not None:
+        _print_bench_long(r.long)
     return 0
 
 
-def _print_bench_long(q: dict[str, Any]) -> None:
+def _print_bench_long(q: LongTrenches) -> None:
     """The long trenches' summary as text."""
     print("Long trenches, section by section (walls 60/60 deg):")
     print("  trench  sections  travels  one-way  coverage  worst section  over-dig  digs  finishing/section  plan      per metre")
-    for name, t in q["trenches"].items():
-        print(f"  {name:<6}  {t['sections']:8d}  {t['travel_moves']:7d}  {t['travel_one_way']!s:>7}  {t['coverage_error']:7.2%}  {t['section_coverage_max']:12.2%}  {t['overdig_max_mm']:5.2f} mm  {t['digs']:4d}  {t['finishing_per_section_max']:17d}  {t['plan_s']:6.2f} s  {t['plan_s_per_m']:.3f} s/m")
+    for name, t in q.trenches.items():
+        print(f"  {name:<6}  {t.sections:8d}  {t.travel_moves:7d}  {t.travel_one_way!s:>7}  {t.coverage_error:7.2%}  {t.section_coverage_max:12.2%}  {t.overdig_max_mm:5.2f} mm  {t.digs:4d}  {t.finishing_per_section_max:17d}  {t.plan_s:6.2f} s  {t.plan_s_per_m:.3f} s/m")
 
 
-def _print_bench_random(q: dict[str, Any]) -> None:
+def _print_bench_random(q: RandomSuite) -> None:
     """The random suite's summary as text."""
-    print(f"Random suite on {q['rig']}: {q['tasks']} tasks, seed {q['seed']} (PINN planner)")
-    if q["errors"]:
-        print(f"  errors: {q['errors']} (first: {q['error_tasks'][0]['name']}: {q['error_tasks'][0]['error']})")
-    if q["coverage_error"] is None:
+    print(f"Random suite on {q.rig}: {q.tasks} tasks, seed {q.seed} (PINN planner)")
+    if q.errors:
+        first_error = q.error_tasks[0]
+        print(f"  errors: {q.errors} (first: {first_error.name}: {first_error.error})")
+    c, o, d, tp = q.coverage_error, q.overdig_max_mm, q.digs, q.transition_penetration_max_mm
+    if c is None or o is None or d is None or tp is None or q.plan_ms is None:
         return
-    c, o, d = q["coverage_error"], q["overdig_max_mm"], q["digs"]
-    print(f"  done {q['status_done']:.0%}; coverage error within 2 % {q['within_2pct']:.0%}, within 4 % {q['within_4pct']:.0%}; p50 {c['p50']:.2%}, p99 {c['p99']:.2%}, max {c['max']:.2%}")
-    print(f"  over-dig p50 {o['p50']:.2f} mm, max {o['max']:.2f} mm; digs p50 {d['p50']:.0f}, max {d['max']:.0f}; finishing passes per section max {q['finishing_per_section_max']}")
-    f = q["fill"]
-    if f["n"]:
-        print(f"  roughing fill {f['min']:.2f} / {f['p50']:.2f} / {f['max']:.2f} L (min / p50 / max), {f['within_band']:.0%} of {f['n']} digs within {f['band_L'][0]:.2f}-{f['band_L'][1]:.2f} L")
-    tp = q["transition_penetration_max_mm"]
-    print(f"  transitions into the material p50 {tp['p50']:.1f} mm, max {tp['max']:.1f} mm")
-    ref = q["reference"]
-    ref_text = f"; PINN plan of one dig p50 {ref['pinn_plan_ms']['p50']:.2f} ms, plan per dig / PINN plan {q['plan_per_dig_over_pinn_plan']:.1f}x" if ref and q["plan_per_dig_over_pinn_plan"] is not None else ""
-    print(f"  plan per task p50 {q['plan_ms']['p50']:.1f} ms, p99 {q['plan_ms']['p99']:.1f} ms; per dig p50 {q['plan_per_dig_ms']['p50']:.2f} ms{ref_text}")
+    print(f"  done {q.status_done:.0%}; coverage error within 2 % {q.within_2pct:.0%}, within 4 % {q.within_4pct:.0%}; p50 {c.p50:.2%}, p99 {c.p99:.2%}, max {c.max:.2%}")
+    print(f"  over-dig p50 {o.p50:.2f} mm, max {o.max:.2f} mm; digs p50 {d.p50:.0f}, max {d.max:.0f}; finishing passes per section max {q.finishing_per_section_max}")
+    f = q.fill
+    if f.n:
+        print(f"  roughing fill {f.min:.2f} / {f.p50:.2f} / {f.max:.2f} L (min / p50 / max), {f.within_band:.0%} of {f.n} digs within {f.band_L[0]:.2f}-{f.band_L[1]:.2f} L")
+    print(f"  transitions into the material p50 {tp.p50:.1f} mm, max {tp.max:.1f} mm")
+    ref = q.reference
+    ref_text = f"; PINN plan of one dig p50 {ref.pinn_plan_ms.p50:.2f} ms, plan per dig / PINN plan {q.plan_per_dig_over_pinn_plan:.1f}x" if ref is not None and q.plan_per_dig_over_pinn_plan is not None else ""
+    per_dig = f"{q.plan_per_dig_ms.p50:.2f} ms" if q.plan_per_dig_ms is not None else "-"
+    print(f"  plan per task p50 {q.plan_ms.p50:.1f} ms, p99 {q.plan_ms.p99:.1f} ms; per dig p50 {per_dig}{ref_text}")
     print("  worst:  task              L [m]  D [m]  beta1  beta2  x [m]  coverage  over [mm]  digs  status")
-    for w in q["worst"]:
-        print(f"          {w['name']:<16} {w['length_m']:6.3f} {w['depth_m']:6.3f} {w['beta1_deg']:6.1f} {w['beta2_deg']:6.1f} {w['start_x_m']:6.3f}  {w['coverage_error']:7.2%}  {w['overdig_max_mm']:9.2f}  {w['digs']:4d}  {w['status']}")
+    for w in q.worst:
+        if w.planned is not None:
+            wp = w.planned
+            print(f"          {w.name:<16} {w.length_m:6.3f} {w.depth_m:6.3f} {w.beta1_deg:6.1f} {w.beta2_deg:6.1f} {w.start_x_m:6.3f}  {wp.coverage_error:7.2%}  {wp.overdig_max_mm:9.2f}  {wp.digs:4d}  {wp.status}")
 
 
-def _print_bench_plan(r: dict[str, Any], rig_name: str, passes: int) -> None:
+def _print_bench_plan(
+    tasks: Mapping[str, TaskPlanBench], tr: TrenchBench, *, rig_name: str, passes: int
+) -> None:
     """The report of ``bench plan`` on named tasks as text."""
+    from rt_runtime.bench import PLAN_PER_DIG_GOAL_MS
+
     print(f"Trench planning on {rig_name} (Yao Table 3 tasks); PINN plan times over {passes} passes")
     print("  task  digs  coverage  Yao     over-dig  plan p50     plan p99     PSO plan   totals T / V / W_E vs PSO")
-    for name, e in r["tasks"].items():
-        p = e["pinn"]
-        yao = e["yao"] or {}
-        vs = e.get("pinn_vs_pso")
-        cmp = " / ".join(f"{vs[k]:+.1%}" for k in ("T_s", "volume_L", "energy_Wh")) if vs else "-"
-        pso_s = f"{e['pso_plan_s']:.0f} s" if "pso_plan_s" in e else "-"
-        print(f"  {name:<4}  {p['n_digs']:4d}  {p['coverage_error']:7.2%}  {yao.get('coverage_error', float('nan')):5.1%}  {p['overdig_max_mm']:6.1f} mm  {e['plan_us']['p50'] / 1e3:8.1f} ms  {e['plan_us']['p99'] / 1e3:8.1f} ms  {pso_s:>8}   {cmp}")
-    if any("same_problems" in e for e in r["tasks"].values()):
+    for name, e in tasks.items():
+        p = e.pinn
+        yao = e.yao or {}
+        vs = e.pinn_vs_pso
+        cmp = " / ".join(_signed_pct(vs[k]) for k in ("T_s", "volume_L", "energy_Wh")) if vs else "-"
+        pso_s = f"{e.pso.pso_plan_s:.0f} s" if e.pso is not None else "-"
+        print(f"  {name:<4}  {len(p.digs):4d}  {p.coverage_error:7.2%}  {yao.get('coverage_error', float('nan')):5.1%}  {p.overdig_max_m * 1e3:6.1f} mm  {e.plan_us.p50 / 1e3:8.1f} ms  {e.plan_us.p99 / 1e3:8.1f} ms  {pso_s:>8}   {cmp}")
+    if any(e.pso is not None for e in tasks.values()):
         print("  PINN vs PSO on the same dig problems (the PINN plan's roughing digs), totals T / V_p / W_E:")
-        for name, e in r["tasks"].items():
-            sp = e.get("same_problems")
-            if sp:
-                vs = sp["pinn_vs_pso"]
-                cmp = " / ".join(f"{vs[k]:+.1%}" for k in ("T_s", "volume_L", "energy_Wh"))
-                print(f"    {name:<4} {sp['pinn']['digs']:3.0f} digs  PINN {sp['pinn']['T_s']:.1f} s / {sp['pinn']['volume_L']:.2f} L / {sp['pinn']['energy_Wh']:.3f} Wh  PSO {sp['pso']['T_s']:.1f} s / {sp['pso']['volume_L']:.2f} L / {sp['pso']['energy_Wh']:.3f} Wh  ({cmp})")
-    print("  where the whole plan's time goes (ms, medians): " + ", ".join(r["tasks"][next(iter(r["tasks"]))]["stage_us"]))
-    for name, e in r["tasks"].items():
-        st = e["stage_us"]
-        ref = e["numpy_geometry_plan_us"]["p50"] / 1e3
-        print(f"    {name:<4} " + "  ".join(f"{v / 1e3:5.1f}" for v in st.values()) + f"   (numpy geometry: {ref:.1f} ms, {e['speedup_vs_numpy_geometry']:.1f}x)")
-    g = r["goals"]
-    tr = r["trench"]
-    print(f"  whole plan, all tasks ({tr['geometry']} geometry): p50 {tr['plan_us']['p50'] / 1e3:.1f} ms, p99 {tr['plan_us']['p99'] / 1e3:.1f} ms; numpy geometry p50 {tr['numpy_geometry_plan_us']['p50'] / 1e3:.1f} ms")
-    ref = tr["reference"]
-    ratio = f"; one PINN plan call p50 {ref['pinn_plan_ms']['p50']:.3f} ms, ratio {tr['plan_per_dig_over_pinn_plan']:.0f}x" if ref and tr["plan_per_dig_over_pinn_plan"] else ""
-    pd = tr["plan_per_dig_ms"]
-    print(f"  planning per dig p50 {pd['p50']:.1f} ms, p99 {pd['p99']:.1f} ms (goal {g['plan_per_dig_ms']['p50']:.0f} / {g['plan_per_dig_ms']['p99']:.0f} ms){ratio}")
+        for name, e in tasks.items():
+            if e.pso is not None:
+                sp = e.pso.same_problems
+                vs = sp.pinn_vs_pso
+                cmp = " / ".join(_signed_pct(vs[k]) for k in ("T_s", "volume_L", "energy_Wh"))
+                print(f"    {name:<4} {sp.pinn.digs:3.0f} digs  PINN {sp.pinn.T_s:.1f} s / {sp.pinn.volume_L:.2f} L / {sp.pinn.energy_Wh:.3f} Wh  PSO {sp.pso.T_s:.1f} s / {sp.pso.volume_L:.2f} L / {sp.pso.energy_Wh:.3f} Wh  ({cmp})")
+    print("  where the whole plan's time goes (ms, medians): " + ", ".join(tasks[next(iter(tasks))].stage_us))
+    for name, e in tasks.items():
+        ref_ms = e.numpy_geometry_plan_us.p50 / 1e3
+        print(f"    {name:<4} " + "  ".join(f"{v / 1e3:5.1f}" for v in e.stage_us.values()) + f"   (numpy geometry: {ref_ms:.1f} ms, {e.speedup_vs_numpy_geometry:.1f}x)")
+    print(f"  whole plan, all tasks ({tr.geometry} geometry): p50 {tr.plan_us.p50 / 1e3:.1f} ms, p99 {tr.plan_us.p99 / 1e3:.1f} ms; numpy geometry p50 {tr.numpy_geometry_plan_us.p50 / 1e3:.1f} ms")
+    ref = tr.reference
+    ratio = f"; one PINN plan call p50 {ref.pinn_plan_ms.p50:.3f} ms, ratio {tr.plan_per_dig_over_pinn_plan:.0f}x" if ref is not None and tr.plan_per_dig_over_pinn_plan else ""
+    pd = tr.plan_per_dig_ms
+    if pd is not None:
+        print(f"  planning per dig p50 {pd.p50:.1f} ms, p99 {pd.p99:.1f} ms (goal {PLAN_PER_DIG_GOAL_MS.p50:.0f} / {PLAN_PER_DIG_GOAL_MS.p99:.0f} ms){ratio}")
     print("  task  fill of each dig [L] (* finishing)                      finishing  travels  digs+moves  vs first design (goal <= 60 %)")
-    for name, e in r["tasks"].items():
-        fills = " ".join(f"{d['volume_L']:.2f}{'*' if d['finishing'] else ''}" for d in e["pinn"]["digs"])
-        vs = e["task_time_vs_first_design"]
-        print(f"  {name:<4}  {fills:<55} {e['finishing']:9d}  {e['travel_moves']:7d}  {e['task_time_s']:8.1f} s  {'-' if vs is None else f'{vs:.0%}'}")
+    for name, e in tasks.items():
+        fills = " ".join(f"{v:.2f}{'*' if d.finishing else ''}" for v, d in zip(e.fill_L, e.pinn.digs, strict=True))
+        vs_first = e.task_time_vs_first_design
+        print(f"  {name:<4}  {fills:<55} {e.finishing:9d}  {e.travel_moves:7d}  {e.task_time_s:8.1f} s  {'-' if vs_first is None else f'{vs_first:.0%}'}")
+
+
+def _signed_pct(value: float | None) -> str:
+    return "-" if value is None else f"{value:+.1%}"
 
 
 def build_parser() -> argparse.ArgumentParser:

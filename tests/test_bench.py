@@ -9,12 +9,14 @@ import pytest
 
 from rt_runtime import bench
 from rt_runtime.cli import main
+from rt_runtime.reports import Distribution
 from rt_runtime.rig import load_rig
 
 
 def test_percentiles() -> None:
-    p = bench.percentiles(np.arange(1001.0), tails=True)
+    p = Distribution.of(np.arange(1001.0), tails=True).to_json()
     assert p == pytest.approx({"p50": 500.0, "p99": 990.0, "p999": 999.0, "max": 1000.0})
+    assert set(Distribution.of(np.arange(3.0)).to_json()) == {"p50", "p99"}
 
 
 def test_bench_oneshot_keys_on_two_problems(capsys) -> None:  # type: ignore[no-untyped-def]
@@ -32,7 +34,7 @@ def test_bench_oneshot_keys_on_two_problems(capsys) -> None:  # type: ignore[no-
 
 def test_bench_oneshot_without_reference() -> None:
     r = bench.bench_oneshot(load_rig("scale_model"), n_problems=2, de=False)
-    assert "de_solve_s" not in r and r["feasible"] == 1.0
+    assert "de_solve_s" not in r.to_json() and r.feasible == 1.0
 
 
 def test_bench_plan_compares_pinn_and_pso_on_the_same_dig_problems() -> None:
@@ -43,25 +45,29 @@ def test_bench_plan_compares_pinn_and_pso_on_the_same_dig_problems() -> None:
     quick = {"n_particles": 12, "n_iterations": 8, "polish_starts": 1}
     # D: the network digs its upper layer (A-C are dug along the outline alone).
     r = bench_plan(rig, ("D",), passes=1, pso_options=quick)
-    e = r["tasks"]["D"]
-    sp = e["same_problems"]
-    roughing = [d for d in e["pinn"]["digs"] if d["status"] == "filled"]
-    assert sp["pinn"]["digs"] == sp["pso"]["digs"] == len(roughing) > 0
+    assert r.tasks is not None and r.trench is not None
+    e = r.tasks["D"]
+    assert e.pso is not None
+    sp = e.pso.same_problems
+    roughing = [d for d in e.pinn.digs if d.status == "filled"]
+    assert sp.pinn.digs == sp.pso.digs == len(roughing) > 0
     for key in ("T_s", "volume_L", "energy_Wh"):
-        assert sp["pso"][key] > 0.0
-        assert sp["pinn_vs_pso"][key] == pytest.approx(sp["pinn"][key] / sp["pso"][key] - 1.0)
+        pinn, pso = getattr(sp.pinn, key), getattr(sp.pso, key)
+        assert pso > 0.0
+        assert sp.pinn_vs_pso[key] == pytest.approx(pinn / pso - 1.0)
     # The PINN side is the one-shot plan of the same problems: its times are the digs' own
     # plans' order of magnitude (one-shot T within the planning thresholds).
     planning = rig.planning
     assert planning is not None
-    assert planning.t_min_s * len(roughing) <= sp["pinn"]["T_s"] <= planning.t_max_s * len(roughing)
-    assert "pso_totals" in e and "pinn_vs_pso" in e
+    assert planning.t_min_s * len(roughing) <= sp.pinn.T_s <= planning.t_max_s * len(roughing)
+    j = e.to_json()
+    assert "pso_totals" in j and "pinn_vs_pso" in j
     # The reference in the same run: the numpy geometry plans the same digs; the stages split
     # the whole plan's time.
-    assert e["numpy_geometry_same_plan"] is True
-    assert e["numpy_geometry_plan_us"]["p50"] > 0.0 and e["speedup_vs_numpy_geometry"] > 0.0
-    assert sum(e["stage_us"].values()) == pytest.approx(e["plan_us"]["p50"], rel=1e-9)
-    assert r["trench"]["geometry"] == "c"
+    assert e.numpy_geometry_same_plan is True
+    assert e.numpy_geometry_plan_us.p50 > 0.0 and e.speedup_vs_numpy_geometry > 0.0
+    assert sum(e.stage_us.values()) == pytest.approx(e.plan_us.p50, rel=1e-9)
+    assert r.trench.geometry == "c"
 
 
 def test_random_suite_is_seeded_and_has_every_key() -> None:
@@ -75,7 +81,8 @@ def test_random_suite_is_seeded_and_has_every_key() -> None:
     for t in tasks:
         assert limits["depth_m"][0] <= t.depth_m <= limits["depth_m"][1]
         assert 0.3 <= t.length_m <= 1.5 and t.bottom_length_m >= 0.0
-    r = bench.bench_plan_random(rig, 3, seed=5)
+    suite = bench.bench_plan_random(rig, 3, seed=5)
+    r = suite.to_json()
     keys = {
         "tasks", "seed", "within_2pct", "within_4pct", "coverage_error", "overdig_max_mm",
         "digs", "fill", "finishing_per_section_max", "transition_penetration_max_mm",
@@ -103,9 +110,10 @@ def test_random_suite_is_seeded_and_has_every_key() -> None:
     # a task of the suite replays: the same values plan to the same coverage
     from rt_runtime.planning.trench import TrenchPlanner, make_task
 
-    t = make_task(rig, *(worst[k] for k in ("length_m", "depth_m", "beta1_deg", "beta2_deg",
-                                            "start_x_m")))  # fmt: skip
-    assert TrenchPlanner(rig).plan(t).coverage_error == pytest.approx(worst["coverage_error"])
+    w = suite.worst[0]
+    t = make_task(rig, w.length_m, w.depth_m, w.beta1_deg, w.beta2_deg, w.start_x_m)
+    assert w.planned is not None
+    assert TrenchPlanner(rig).plan(t).coverage_error == pytest.approx(w.planned.coverage_error)
 
 
 def test_random_suite_counts_a_failing_task_and_goes_on(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -122,10 +130,10 @@ def test_random_suite_counts_a_failing_task_and_goes_on(monkeypatch: pytest.Monk
 
     monkeypatch.setattr(trench.TrenchPlanner, "plan", fails_once)
     r = bench.bench_plan_random(rig, 2, seed=5, planner=planner)
-    assert r["errors"] == 1 and len(r["per_task"]) == 2
-    assert r["error_tasks"][0]["error"] == "ValueError: boom (test)"
-    assert r["error_tasks"][0]["name"] == "random-5-0"
-    assert r["coverage_error"] is not None and len(r["worst"]) == 1
+    assert r.errors == 1 and len(r.per_task) == 2
+    assert r.error_tasks[0].error == "ValueError: boom (test)"
+    assert r.error_tasks[0].name == "random-5-0"
+    assert r.coverage_error is not None and len(r.worst) == 1
 
 
 def test_bench_plan_random_cli(capsys) -> None:  # type: ignore[no-untyped-def]

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from can_remote import RemoteBus
 
-from hil_sim.harness.bench import bench_step, format_report
+from hil_sim.harness.bench import bench_hil, bench_step, format_report
 from hil_sim.harness.bridge import Bridge, RxFrame
 from hil_sim.harness.lockstep import LockstepHil
 from rt_runtime.canbus import CanMaster
@@ -48,16 +48,21 @@ def test_bench_hil_runs_a_dig_and_says_whose_time_it_was(
     for part in ("hil_us", "runtime_us"):
         assert 0.0 < task[part]["p50"] <= task[part]["p99"] <= task[part]["max"], task[part]
     assert r["step"]["periods"] == 100
+
+
+def test_bench_hil_text_says_whose_time_it_was() -> None:
+    r = bench_hil(max_digs=1, step_seconds=0.2)
     text = format_report(r)
     assert "x real time" in text and "HIL share" in text and "models alone" in text
 
 
 def test_the_step_measurement_replays_digs_for_the_machine_time_asked() -> None:
     r = bench_step(load_rig("scale_model"), 0.5)
-    assert r["periods"] == 250 and r["digs"] == 1 and r["clock"] == "wall"
-    for part in ("frames_us", "advance_us", "total_us"):
-        assert 0.0 < r[part]["p50"] <= r[part]["p99"] <= r[part]["max"], (part, r[part])
-    assert r["total_us"]["p50"] >= r["advance_us"]["p50"]
+    assert r.periods == 250 and r.digs == 1 and r.clock == "wall"
+    for part in (r.frames_us, r.advance_us, r.total_us):
+        assert part.max is not None
+        assert 0.0 < part.p50 <= part.p99 <= part.max, part
+    assert r.total_us.p50 >= r.advance_us.p50
 
 
 def test_the_lockstep_hil_splits_each_period_into_its_own_time_and_the_rest() -> None:
@@ -75,10 +80,10 @@ def test_the_lockstep_hil_splits_each_period_into_its_own_time_and_the_rest() ->
             hil.clock.sleep_until((k + 1) * 0.002 + 1.0)
         summary = hil.cost.summary()
     assert len(hil.cost.sync_wall_ns) - before == 200
-    assert summary["periods"] == len(hil.cost.sync_wall_ns) - 1
-    assert 0.0 < summary["hil_us"]["p50"] <= summary["hil_us"]["max"]
-    assert summary["runtime_us"]["p50"] > 0.0
-    assert summary["hil_s"] + summary["runtime_s"] == pytest.approx(summary["wall_s"], rel=1e-9)
+    assert summary.periods == len(hil.cost.sync_wall_ns) - 1
+    assert summary.hil_us.max is not None and 0.0 < summary.hil_us.p50 <= summary.hil_us.max
+    assert summary.runtime_us.p50 > 0.0
+    assert summary.hil_s + summary.runtime_s == pytest.approx(summary.wall_s, rel=1e-9)
     wall, hil_ns = hil.cost.periods()
     assert wall.shape == hil_ns.shape and bool(np.all(hil_ns <= wall))
 

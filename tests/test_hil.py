@@ -24,6 +24,7 @@ from canopen.objectdictionary import ODVariable, import_od
 from conftest import rpdo1_limit_check, run_on_lockstep
 
 from firmware_models import CIA402_DRIVE_EDS, VCU_DBC, VCU_DBC_NODE_ID
+from hil_sim.harness.reports import HilReport
 from hil_sim.harness.scenario import HilRun, Scenario, run_scenario
 from hil_sim.sim import FaultKind
 from rt_runtime.control.executor import ExecStatus
@@ -46,7 +47,7 @@ def one_dig_run(tmp_path_factory: pytest.TempPathFactory) -> HilRun:
 
 
 @pytest.fixture(scope="module")
-def one_dig(one_dig_run: HilRun) -> dict[str, Any]:
+def one_dig(one_dig_run: HilRun) -> HilReport:
     """The run's report."""
     return one_dig_run.report
 
@@ -54,24 +55,24 @@ def one_dig(one_dig_run: HilRun) -> dict[str, Any]:
 # -- tracking ----------------------------------------------------------------------------------
 
 
-def test_one_dig_tracks_within_the_goal(one_dig: dict[str, Any]) -> None:
+def test_one_dig_tracks_within_the_goal(one_dig: HilReport) -> None:
     report = one_dig
-    assert report["status"] == "done", report["fault"]
-    assert len(report["digs"]) == 1
-    assert report["overruns"] == 0
+    assert report.status == "done", report.fault
+    assert len(report.digs) == 1
+    assert report.overruns == 0
     for axis in AXES:
-        fig = report["tracking"][axis]
-        assert 0.0 < fig["max_mm"] <= 1.0, (axis, fig)
-        assert 0.0 < fig["rms_mm"] <= 0.3, (axis, fig)
-        assert fig["reported"]["max_mm"] <= 1.0, (axis, fig)
-    assert report["tip_error_max_mm"] <= 3.0
+        fig = report.tracking[axis]
+        assert 0.0 < fig.max_mm <= 1.0, (axis, fig)
+        assert 0.0 < fig.rms_mm <= 0.3, (axis, fig)
+        assert fig.reported.max_mm <= 1.0, (axis, fig)
+    assert report.tip_error_max_mm <= 3.0
     # The bucket really removed material; the planner's measured-path volume agrees with the
     # volume the HIL's terrain lost to the true path (reported vs true strokes, micrometres).
-    dig = report["digs"][0]
-    assert dig["cut_volume_L"] > 1.0
-    assert dig["measured_volume_L"] == pytest.approx(dig["cut_volume_L"], rel=0.02)
-    assert 0.0 < report["coverage_error"] < 1.0
-    assert report["energy_Wh"] > 0.0
+    dig = report.digs[0]
+    assert dig.cut_volume_L > 1.0
+    assert dig.measured_volume_L == pytest.approx(dig.cut_volume_L, rel=0.02)
+    assert report.coverage_error is not None and 0.0 < report.coverage_error < 1.0
+    assert report.energy_Wh > 0.0
 
 
 def test_lockstep_runs_are_deterministic(one_dig_run: HilRun, tmp_path: Path) -> None:
@@ -79,9 +80,9 @@ def test_lockstep_runs_are_deterministic(one_dig_run: HilRun, tmp_path: Path) ->
     first, second = one_dig_run.frames, again.frames
     assert first is not None and len(first) > 10_000
     assert first == second
-    assert again.report["tracking"] == one_dig_run.report["tracking"]
-    # The report is JSON as it is: nothing to drop before it is written.
-    assert json.loads(json.dumps(one_dig_run.to_json())) == one_dig_run.report
+    assert again.report.tracking == one_dig_run.report.tracking
+    # The report's JSON is JSON as it is: nothing to drop before it is written.
+    assert json.loads(json.dumps(one_dig_run.to_json())) == one_dig_run.report.to_json()
 
 
 def test_the_whole_run_commands_within_the_limits(one_dig_run: HilRun, rig: Rig) -> None:
@@ -187,7 +188,8 @@ def _read_trace(path: Path) -> list[can.Message]:
 
 
 def test_asc_trace_reads_back_and_every_frame_decodes(one_dig_run: HilRun, rig: Rig) -> None:
-    path = Path(one_dig_run.report["trace"])
+    assert one_dig_run.report.trace is not None
+    path = Path(one_dig_run.report.trace)
     messages = _read_trace(path)
     frames = one_dig_run.frames
     assert [(m.arbitration_id, bytes(m.data)) for m in messages] == frames

@@ -18,6 +18,7 @@ import pytest
 
 import hil_sim.harness.scenario as scenario_mod
 from hil_sim.harness.lockstep import LockstepHil
+from hil_sim.harness.reports import HilReport
 from hil_sim.harness.scenario import (
     GAO_TABLE2_JOINTS_DEG,
     NO_RT,
@@ -46,60 +47,59 @@ def bench() -> Rig:
 
 
 @pytest.fixture(scope="module")
-def gao_ff_on() -> dict[str, Any]:
+def gao_ff_on() -> HilReport:
     return run_path_scenario(PathScenario(path="gao", rig="test_bench", start_deg=START_DEG)).report
 
 
 @pytest.fixture(scope="module")
-def gao_ff_off() -> dict[str, Any]:
+def gao_ff_off() -> HilReport:
     return run_path_scenario(PathScenario(path="gao", rig="test_bench", feedforward=False)).report
 
 
-def test_gao_path_completes_and_passes_every_key_point(
-    gao_ff_on: dict[str, Any], bench: Rig
-) -> None:
+def test_gao_path_completes_and_passes_every_key_point(gao_ff_on: HilReport, bench: Rig) -> None:
     r = gao_ff_on
-    assert r["status"] == "done", r["fault"]
-    assert r["overruns"] == 0
-    assert r["emcys"] == []
-    path = r["path"]
-    assert path["name"] == "gao"
-    assert path["orders"] == "3-4-5-4-3"  # the smoothest by interp's rule on Table 2
-    assert path["scaled_from"] == ""
-    np.testing.assert_allclose(path["knots_s"], np.arange(6) * 3.0)
-    np.testing.assert_allclose(path["key_points_deg"], GAO_TABLE2_JOINTS_DEG, atol=1e-9)
+    assert r.status == "done", r.fault
+    assert r.overruns == 0
+    assert r.emcys == ()
+    path = r.path
+    assert path is not None
+    assert path.name == "gao"
+    assert path.orders == "3-4-5-4-3"  # the smoothest by interp's rule on Table 2
+    assert path.scaled_from == ""
+    np.testing.assert_allclose(path.knots_s, np.arange(6) * 3.0)
+    np.testing.assert_allclose(path.key_points_deg, GAO_TABLE2_JOINTS_DEG, atol=1e-9)
     key_strokes = actuation.joint_to_stroke(bench, np.radians(GAO_TABLE2_JOINTS_DEG))
-    np.testing.assert_allclose(np.array(path["key_strokes_mm"]) * 1e-3, key_strokes, atol=1e-12)
+    np.testing.assert_allclose(np.array(path.key_strokes_mm) * 1e-3, key_strokes, atol=1e-12)
     # Commanded stroke at each key time = the key point's stroke (guard passthrough, ~1e-16 m).
-    errors = path["cmd_at_key_error_um"]
-    assert len(errors) == 6
+    errors = path.cmd_at_key_error_um
+    assert errors is not None and len(errors) == 6
     assert max(errors) < 1e-3, errors  # < 1 nm
     # The path streamed whole (15 s at 2 ms), after a connect move from the start pose.
-    assert r["tracking_path"]["cycles"] == 7500
-    assert r["cycles"] > 7500 + 100
+    assert r.tracking_path is not None and r.tracking_path.cycles == 7500
+    assert r.cycles > 7500 + 100
 
 
-def test_gao_path_tracks_within_3_mm_on_truth(gao_ff_on: dict[str, Any]) -> None:
-    goal = gao_ff_on["goal"]["max_mm"]
+def test_gao_path_tracks_within_3_mm_on_truth(gao_ff_on: HilReport) -> None:
+    goal = gao_ff_on.goal.max_mm
     assert goal == 3.0
-    for block in (gao_ff_on["tracking"], gao_ff_on["tracking_path"]["tracking"]):
+    assert gao_ff_on.tracking_path is not None
+    for block in (gao_ff_on.tracking, gao_ff_on.tracking_path.tracking):
         for axis in AXES:
             fig = block[axis]
-            assert 0.0 < fig["max_mm"] <= goal, (axis, fig)
-            assert fig["reported"]["max_mm"] <= goal, (axis, fig)
+            assert 0.0 < fig.max_mm <= goal, (axis, fig)
+            assert fig.reported.max_mm <= goal, (axis, fig)
     # The tip follows within a few mm as well (1.9 m of arm).
-    assert gao_ff_on["tracking_path"]["tip_error_max_mm"] < 10.0
+    assert gao_ff_on.tracking_path.tip_error_max_mm < 10.0
 
 
-def test_feedforward_off_tracks_worse(
-    gao_ff_on: dict[str, Any], gao_ff_off: dict[str, Any]
-) -> None:
-    assert gao_ff_off["status"] == "done", gao_ff_off["fault"]
-    on = gao_ff_on["tracking_path"]["tracking"]
-    off = gao_ff_off["tracking_path"]["tracking"]
+def test_feedforward_off_tracks_worse(gao_ff_on: HilReport, gao_ff_off: HilReport) -> None:
+    assert gao_ff_off.status == "done", gao_ff_off.fault
+    assert gao_ff_on.tracking_path is not None and gao_ff_off.tracking_path is not None
+    on = gao_ff_on.tracking_path.tracking
+    off = gao_ff_off.tracking_path.tracking
     for axis in AXES:
-        assert off[axis]["max_mm"] > 2.0 * on[axis]["max_mm"], (axis, on[axis], off[axis])
-        assert off[axis]["rms_mm"] > 2.0 * on[axis]["rms_mm"], (axis, on[axis], off[axis])
+        assert off[axis].max_mm > 2.0 * on[axis].max_mm, (axis, on[axis], off[axis])
+        assert off[axis].rms_mm > 2.0 * on[axis].rms_mm, (axis, on[axis], off[axis])
 
 
 def test_unreachable_path_is_refused_before_the_hil_starts(

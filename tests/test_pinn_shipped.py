@@ -93,7 +93,8 @@ def test_verifier_is_compiled() -> None:
 
 
 def test_bench_pinn_small() -> None:
-    r = bench_pinn(RIG, limit=6, passes=1, pso_problems=1)
+    report = bench_pinn(RIG, limit=6, passes=1, pso_problems=1)
+    r = report.to_json()
     for key in (
         "samples",
         "gap_mean",
@@ -107,11 +108,11 @@ def test_bench_pinn_small() -> None:
         "table4",
     ):
         assert key in r
-    assert r["samples"] == 12
-    assert r["executed_feasible"] == 1.0
-    assert r["verified_feasible"] + r["refused"] == pytest.approx(1.0)
+    assert report.samples == 12
+    assert report.executed_feasible == 1.0
+    assert report.verified_feasible + report.refused == pytest.approx(1.0)
     assert set(r["plan_us"]) >= {"p50", "p99"}
-    assert set(r["table4"]) == {"downward", "backward"}
+    assert set(report.table4) == {"downward", "backward"}
 
 
 @pytest.mark.parametrize("kind", list(DigType))

@@ -30,6 +30,7 @@ import json
 import math
 import struct
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -41,10 +42,20 @@ from hil_sim.terrain import Terrain
 from rt_runtime import actuation
 from rt_runtime.actuation import AXES
 from rt_runtime.canbus.vcu import VcuClient, VcuCommand
+from rt_runtime.reports import Distribution
 from rt_runtime.rig import Rig, load_rig
 from rt_runtime.trajectory import sextic
 
-__all__ = ["add_parser", "bench_hil", "bench_step", "format_report", "run"]
+__all__ = [
+    "BenchHilReport",
+    "StepCost",
+    "TaskSpeed",
+    "add_parser",
+    "bench_hil",
+    "bench_step",
+    "format_report",
+    "run",
+]
 
 #: SYNC period of both measurements (the demo's).
 PERIOD_S = 2e-3
@@ -92,8 +103,121 @@ def run(args: argparse.Namespace) -> int:
         step_seconds=args.seconds,
         cpu=args.cpu,
     )
-    print(json.dumps(report) if args.json else format_report(report))
-    return 0 if report["task"]["status"] == "done" else 1
+    print(json.dumps(report.to_json()) if args.json else format_report(report))
+    return 0 if report.task.status == "done" else 1
+
+
+@dataclass(frozen=True, slots=True)
+class TaskSpeed:
+    """The task run on the lockstep HIL (``task`` of the report).
+
+    Attributes:
+        task: Task name.
+        rig: Rig profile name.
+        status: How the run ended (the HIL report's ``status``).
+        digs: Digs run.
+        sim_s: Machine time (s).
+        wall_s: Wall time of the run (s).
+        period_s: SYNC period (s).
+        hil_us: The HIL's own time per period (us; p50, p99, max).
+        runtime_us: The runtime's time per period (us; p50, p99, max).
+        hil_s: The HIL's time summed over the periods (s).
+        runtime_s: The runtime's time summed (s).
+        periods_wall_s: The periods' wall time summed (s; the denominator of ``hil_share``).
+    """
+
+    task: str
+    rig: str
+    status: str
+    digs: int
+    sim_s: float
+    wall_s: float
+    period_s: float
+    hil_us: Distribution
+    runtime_us: Distribution
+    hil_s: float
+    runtime_s: float
+    periods_wall_s: float
+
+    @property
+    def speed(self) -> float:
+        """Machine time over wall time (NaN for no wall time)."""
+        return self.sim_s / self.wall_s if self.wall_s > 0.0 else math.nan
+
+    @property
+    def hil_share(self) -> float:
+        """The HIL's share of the periods' wall time (NaN for no period)."""
+        return self.hil_s / self.periods_wall_s if self.periods_wall_s > 0 else math.nan
+
+    def to_json(self) -> dict[str, Any]:
+        """The keys of README ``bench hil --json`` ``task``."""
+        return {
+            "task": self.task,
+            "rig": self.rig,
+            "status": self.status,
+            "digs": self.digs,
+            "sim_s": self.sim_s,
+            "wall_s": self.wall_s,
+            "speed": self.speed,
+            "period_s": self.period_s,
+            "hil_us": self.hil_us.to_json(),
+            "runtime_us": self.runtime_us.to_json(),
+            "hil_s": self.hil_s,
+            "runtime_s": self.runtime_s,
+            "hil_share": self.hil_share,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class StepCost:
+    """The HIL's models alone, per period (``step`` of the report).
+
+    Attributes:
+        periods: Periods replayed.
+        digs: Held-out digs replayed (the last one possibly in part).
+        clock: ``wall`` or ``cpu`` (thread CPU time).
+        frames_us: Frame handling per period (us; p50, p99, max).
+        advance_us: Servo sub-steps per period (us).
+        total_us: Both (us).
+    """
+
+    periods: int
+    digs: int
+    clock: str
+    frames_us: Distribution
+    advance_us: Distribution
+    total_us: Distribution
+
+    def to_json(self) -> dict[str, Any]:
+        """The keys of README ``bench hil --json`` ``step``."""
+        return {
+            "periods": self.periods,
+            "digs": self.digs,
+            "clock": self.clock,
+            "frames_us": self.frames_us.to_json(),
+            "advance_us": self.advance_us.to_json(),
+            "total_us": self.total_us.to_json(),
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class BenchHilReport:
+    """The report of ``excavator-rt bench hil``.
+
+    Attributes:
+        task: The task run on the lockstep HIL.
+        step: The models alone, None when skipped (``--seconds 0``).
+    """
+
+    task: TaskSpeed
+    step: StepCost | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """``{"task", "step"}`` (``step`` where measured)."""
+        out: dict[str, Any] = {"task": self.task.to_json()}
+        if self.step is not None:
+            out["step"] = self.step.to_json()
+        return out
 
 
 def bench_hil(
@@ -103,40 +227,38 @@ def bench_hil(
     max_digs: int | None = None,
     step_seconds: float = 10.0,
     cpu: bool = False,
-) -> dict[str, Any]:
-    """Both measurements (see the module docstring) as one JSON-ready report.
+) -> BenchHilReport:
+    """Both measurements (see the module docstring).
 
     Raises:
         ConfigurationError: Bad task or rig.
         CommunicationError, DriveFault: The drives did not boot or enable.
+        RuntimeError: The task ran on a HIL that is not the lockstep one.
     """
     from hil_sim.harness.scenario import Scenario, run_scenario
 
     t0 = time.perf_counter()
     report = run_scenario(Scenario(task=task, rig=rig, max_digs=max_digs)).report
     run_s = time.perf_counter() - t0
-    cost = report["hil_lockstep"]
-    sim_s = float(report["sim_s"])
-    out: dict[str, Any] = {
-        "task": {
-            "task": report["task"],
-            "rig": report["rig"],
-            "status": report["status"],
-            "digs": len(report["digs"]),
-            "sim_s": sim_s,
-            "wall_s": run_s,
-            "speed": sim_s / run_s if run_s > 0.0 else math.nan,
-            "period_s": report["period_s"],
-            "hil_us": cost["hil_us"],
-            "runtime_us": cost["runtime_us"],
-            "hil_s": cost["hil_s"],
-            "runtime_s": cost["runtime_s"],
-            "hil_share": cost["hil_s"] / cost["wall_s"] if cost["wall_s"] > 0 else math.nan,
-        }
-    }
-    if step_seconds > 0.0:
-        out["step"] = bench_step(load_rig(_STEP_RIG), step_seconds, cpu=cpu)
-    return out
+    cost = report.hil_lockstep
+    if cost is None:
+        raise RuntimeError("the task run carries no lockstep cost: it did not run in lockstep")
+    speed = TaskSpeed(
+        task=report.task,
+        rig=report.rig,
+        status=report.status,
+        digs=len(report.digs),
+        sim_s=report.sim_s,
+        wall_s=run_s,
+        period_s=report.period_s,
+        hil_us=cost.hil_us,
+        runtime_us=cost.runtime_us,
+        hil_s=cost.hil_s,
+        runtime_s=cost.runtime_s,
+        periods_wall_s=cost.wall_s,
+    )
+    step = bench_step(load_rig(_STEP_RIG), step_seconds, cpu=cpu) if step_seconds > 0.0 else None
+    return BenchHilReport(speed, step)
 
 
 def _reference(rig: Rig, dig: int) -> tuple[NDArray[np.float64], NDArray[np.float64],
@@ -153,12 +275,8 @@ def _reference(rig: Rig, dig: int) -> tuple[NDArray[np.float64], NDArray[np.floa
     return q[0], s_ref, v_ref, float(x[6])
 
 
-def bench_step(rig: Rig, seconds: float, *, cpu: bool = False) -> dict[str, Any]:
+def bench_step(rig: Rig, seconds: float, *, cpu: bool = False) -> StepCost:
     """The models alone, replaying held-out digs for ``seconds`` of machine time.
-
-    Returns:
-        ``periods``, ``digs``, ``clock`` (``wall`` or ``cpu``) and per period ``frames_us``,
-        ``advance_us``, ``total_us`` (each p50, p99, max).
 
     Raises:
         RuntimeError: A drive left OPERATION ENABLED (the replay is then not a valid run).
@@ -210,45 +328,33 @@ def bench_step(rig: Rig, seconds: float, *, cpu: bool = False) -> dict[str, Any]
         if not all(n.firmware.state.name == "OPERATION_ENABLED" for n in m.nodes):
             raise RuntimeError(f"dig {dig}: a drive left OPERATION ENABLED; the run is not valid")
         dig += 1
-    return {
-        "periods": n_periods,
-        "digs": dig,
-        "clock": "cpu" if cpu else "wall",
-        "frames_us": _spread_us(frames_ns),
-        "advance_us": _spread_us(advance_ns),
-        "total_us": _spread_us(frames_ns + advance_ns),
-    }
+    return StepCost(
+        periods=n_periods,
+        digs=dig,
+        clock="cpu" if cpu else "wall",
+        frames_us=Distribution.spread(frames_ns * 1e-3),
+        advance_us=Distribution.spread(advance_ns * 1e-3),
+        total_us=Distribution.spread((frames_ns + advance_ns) * 1e-3),
+    )
 
 
-def _spread_us(ns: NDArray[np.int64]) -> dict[str, float]:
-    us = ns * 1e-3
-    return {
-        "p50": float(np.percentile(us, 50)),
-        "p99": float(np.percentile(us, 99)),
-        "max": float(np.max(us)),
-    }
-
-
-def format_report(report: dict[str, Any]) -> str:
+def format_report(report: BenchHilReport) -> str:
     """The report as text."""
-    t = report["task"]
+    t = report.task
     lines = [
-        f"excavator-rt bench hil: task {t['task']} on {t['rig']}, lockstep, {t['status']}",
-        f"  {t['digs']} digs, {t['sim_s']:.1f} s machine time in {t['wall_s']:.1f} s wall: "
-        f"{t['speed']:.2f}x real time",
-        f"  per {t['period_s'] * 1e3:g} ms period (p50 / p99 us): HIL {t['hil_us']['p50']:.0f} / "
-        f"{t['hil_us']['p99']:.0f}, runtime {t['runtime_us']['p50']:.0f} / "
-        f"{t['runtime_us']['p99']:.0f}",
-        f"  HIL {t['hil_s']:.1f} s, runtime {t['runtime_s']:.1f} s "
-        f"(HIL share {t['hil_share']:.0%})",
+        f"excavator-rt bench hil: task {t.task} on {t.rig}, lockstep, {t.status}",
+        f"  {t.digs} digs, {t.sim_s:.1f} s machine time in {t.wall_s:.1f} s wall: "
+        f"{t.speed:.2f}x real time",
+        f"  per {t.period_s * 1e3:g} ms period (p50 / p99 us): HIL {t.hil_us.p50:.0f} / "
+        f"{t.hil_us.p99:.0f}, runtime {t.runtime_us.p50:.0f} / {t.runtime_us.p99:.0f}",
+        f"  HIL {t.hil_s:.1f} s, runtime {t.runtime_s:.1f} s (HIL share {t.hil_share:.0%})",
     ]
-    step = report.get("step")
+    step = report.step
     if step is not None:
         lines.append(
-            f"  models alone ({step['clock']} clock, {step['periods']} periods of "
-            f"{PERIOD_S * 1e3:g} ms, p50 / p99 us): advance {step['advance_us']['p50']:.0f} / "
-            f"{step['advance_us']['p99']:.0f}, frames {step['frames_us']['p50']:.0f} / "
-            f"{step['frames_us']['p99']:.0f}, total {step['total_us']['p50']:.0f} / "
-            f"{step['total_us']['p99']:.0f}"
+            f"  models alone ({step.clock} clock, {step.periods} periods of "
+            f"{PERIOD_S * 1e3:g} ms, p50 / p99 us): advance {step.advance_us.p50:.0f} / "
+            f"{step.advance_us.p99:.0f}, frames {step.frames_us.p50:.0f} / "
+            f"{step.frames_us.p99:.0f}, total {step.total_us.p50:.0f} / {step.total_us.p99:.0f}"
         )
     return "\n".join(lines)

@@ -28,6 +28,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+from hil_sim.harness.reports import HilReport
 from hil_sim.harness.scenario import (
     FaultSpec,
     HilRun,
@@ -178,60 +179,57 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
-def format_report(report: dict[str, Any]) -> str:
+def format_report(report: HilReport) -> str:
     """Human-readable summary of a report (a task's or a path's)."""
-    path = report.get("path")
+    path = report.path
     head: list[str] = []
     if path is not None:
-        key_err = path.get("cmd_at_key_error_um", [])
+        key_err = path.cmd_at_key_error_um or ()
         head = [
-            f"  path {path['name']}: {len(path['key_points_deg'])} key points, orders "
-            f"{path['orders']}, knots {path['knots_s']} s"
-            + (f", key points scaled from {path['scaled_from']}" if path["scaled_from"] else ""),
+            f"  path {path.name}: {len(path.key_points_deg)} key points, orders "
+            f"{path.orders}, knots {list(path.knots_s)} s"
+            + (f", key points scaled from {path.scaled_from}" if path.scaled_from else ""),
             "  commanded stroke at the key times: max |cmd - key point| "
             + (f"{max(key_err):.3g} um" if key_err else "n/a"),
         ]
-        path_fig = report["tracking_path"]["tracking"]
-        head.append(
-            "  path only (truth): "
-            + ", ".join(
-                f"{axis} max {fig['max_mm']:.3f} rms {fig['rms_mm']:.3f} mm"
-                for axis, fig in path_fig.items()
+        if report.tracking_path is not None:
+            head.append(
+                "  path only (truth): "
+                + ", ".join(
+                    f"{axis} max {fig.max_mm:.3f} rms {fig.rms_mm:.3f} mm"
+                    for axis, fig in report.tracking_path.tracking.items()
+                )
             )
-        )
     lines = [
-        f"HIL {report['transport']}: task {report['task']} on {report['rig']}, feed-forward "
-        f"{'on' if report['feedforward'] else 'off'}: {report['status']}"
-        + (f" ({report['fault']})" if report.get("fault") else ""),
-        f"  digs {len(report['digs'])}, simulated {report['sim_s']:.1f} s, wall "
-        f"{report['wall_s']:.1f} s, overruns {report['overruns']}",
+        f"HIL {report.transport}: task {report.task} on {report.rig}, feed-forward "
+        f"{'on' if report.feedforward else 'off'}: {report.status}"
+        + (f" ({report.fault})" if report.fault else ""),
+        f"  digs {len(report.digs)}, simulated {report.sim_s:.1f} s, wall "
+        f"{report.wall_s:.1f} s, overruns {report.overruns}",
         *head,
         "  cylinder tracking (truth / reported):",
     ]
-    for axis, fig in report["tracking"].items():
-        rep = fig["reported"]
+    for axis, fig in report.tracking.items():
+        rep = fig.reported
         lines.append(
-            f"    {axis:6s} max {fig['max_mm']:.3f} / {rep['max_mm']:.3f} mm, "
-            f"rms {fig['rms_mm']:.3f} / {rep['rms_mm']:.3f} mm"
+            f"    {axis:6s} max {fig.max_mm:.3f} / {rep.max_mm:.3f} mm, "
+            f"rms {fig.rms_mm:.3f} / {rep.rms_mm:.3f} mm"
         )
-    lines.append(f"  tip error max {report['tip_error_max_mm']:.2f} mm")
-    if "coverage_error" in report:
+    lines.append(f"  tip error max {report.tip_error_max_mm:.2f} mm")
+    if report.coverage_error is not None and report.overdig_max_mm is not None:
         lines.append(
-            f"  profile: coverage error {report['coverage_error']:.3f}, over-dig max "
-            f"{report['overdig_max_mm']:.2f} mm"
+            f"  profile: coverage error {report.coverage_error:.3f}, over-dig max "
+            f"{report.overdig_max_mm:.2f} mm"
         )
-    lines.append(f"  energy {report['energy_Wh']:.3f} Wh")
-    can = report.get("can", {})
-    if "bus_load" in can:
-        load = can["bus_load"]
-        lines.append(
-            f"  bus load {load['nominal']:.1%} nominal, {load['worst_case']:.1%} worst case"
-        )
-    if "sync_rtt_us" in can:
-        rtt = can["sync_rtt_us"]
-        lines.append(f"  SYNC -> TPDO round trip p50 {rtt['p50']:.0f} us, p99 {rtt['p99']:.0f} us")
-    if report.get("trace"):
-        lines.append(f"  trace {report['trace']}")
+    lines.append(f"  energy {report.energy_Wh:.3f} Wh")
+    load = report.can.bus_load
+    if load is not None:
+        lines.append(f"  bus load {load.nominal:.1%} nominal, {load.worst:.1%} worst case")
+    rtt = report.can.sync_rtt_us
+    if rtt is not None:
+        lines.append(f"  SYNC -> TPDO round trip p50 {rtt.p50:.0f} us, p99 {rtt.p99:.0f} us")
+    if report.trace:
+        lines.append(f"  trace {report.trace}")
     return "\n".join(lines)
 
 
@@ -260,17 +258,17 @@ def _print_run(args: argparse.Namespace, run: Callable[[], HilRun]) -> int:
     """Run a scenario and print its report (``--json`` or text); the command's exit status:
     0 done, 1 stopped otherwise, 2 refused before anything moved (bad input, planning)."""
     try:
-        report = run().to_json()
+        report = run().report
     except (ExcavatorRtError, ValueError) as exc:
         if args.json:
             print(json.dumps({"status": "error", "error": str(exc)}))
         else:
             print(f"excavator-rt hil: {exc}")
         return 2
-    print(json.dumps(report) if args.json else format_report(report))
-    if report["status"] == "planning_error":
+    print(json.dumps(report.to_json()) if args.json else format_report(report))
+    if report.status == "planning_error":
         return 2
-    return 0 if report["status"] == "done" else 1
+    return 0 if report.status == "done" else 1
 
 
 def _run_path(

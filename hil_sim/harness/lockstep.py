@@ -10,7 +10,8 @@ answered at once; on each SYNC the HIL answers with the TPDOs (sampled at the SY
 advances the plant by exactly one period in servo sub-steps. Time-triggered frames (heartbeats,
 emergencies) go out whenever the simulated clock moves (:class:`LockstepClock`).
 Single-threaded and free of wall-clock reads, so two runs give identical traces.
-:class:`HilCost` splits each period's wall time into the HIL's own and the runtime's.
+:class:`HilCost` splits each period's wall time into the HIL's own and the runtime's
+(:class:`LockstepCost`).
 
 It joins runtime and HIL (it is the runtime's bus), so it lives in the harness.
 """
@@ -19,8 +20,8 @@ from __future__ import annotations
 
 import array
 import itertools
-import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from time import perf_counter_ns
 from typing import Any
@@ -34,6 +35,7 @@ from hil_sim.sim import COB_SYNC, FaultKind, FloatArray, HilCore, open_trace
 from hil_sim.terrain import Terrain
 from rt_runtime.canbus.inprocess import ChannelBus, InProcessChannel
 from rt_runtime.canbus.simtime import SimulatedTimeBus
+from rt_runtime.reports import Distribution
 from rt_runtime.rig import Rig
 
 _channel_numbers = itertools.count()
@@ -163,29 +165,49 @@ class HilCost:
         hil = np.frombuffer(self.hil_ns, dtype=np.int64)[: wall.size]
         return wall, hil
 
-    def summary(self) -> dict[str, Any]:
-        """JSON-ready: ``periods``; ``hil_us`` and ``runtime_us`` per period (p50, p99, max);
-        ``hil_s``, ``runtime_s`` and ``wall_s`` summed over the periods."""
+    def summary(self) -> LockstepCost:
+        """The periods' split: HIL time and the runtime's, per period and summed."""
         wall, hil = self.periods()
         rest = wall - hil
+        return LockstepCost(
+            periods=int(wall.size),
+            hil_us=Distribution.spread(hil * 1e-3),
+            runtime_us=Distribution.spread(rest * 1e-3),
+            hil_s=float(np.sum(hil)) * 1e-9,
+            runtime_s=float(np.sum(rest)) * 1e-9,
+            wall_s=float(np.sum(wall)) * 1e-9,
+        )
 
-        def spread(ns: NDArray[np.int64]) -> dict[str, float]:
-            if not ns.size:
-                return {"p50": math.nan, "p99": math.nan, "max": math.nan}
-            us = ns * 1e-3
-            return {
-                "p50": float(np.percentile(us, 50)),
-                "p99": float(np.percentile(us, 99)),
-                "max": float(np.max(us)),
-            }
 
+@dataclass(frozen=True, slots=True)
+class LockstepCost:
+    """Whose wall time the periods of a lockstep run were (``hil_lockstep`` of the HIL report).
+
+    Attributes:
+        periods: Completed SYNC periods.
+        hil_us: The HIL's own time per period (us; p50, p99, max; NaN without a period).
+        runtime_us: The rest of each period, the runtime's (us; p50, p99, max).
+        hil_s: The HIL's time summed over the periods (s).
+        runtime_s: The runtime's time summed (s).
+        wall_s: The periods' wall time summed (s): ``hil_s + runtime_s``.
+    """
+
+    periods: int
+    hil_us: Distribution
+    runtime_us: Distribution
+    hil_s: float
+    runtime_s: float
+    wall_s: float
+
+    def to_json(self) -> dict[str, Any]:
+        """``{"periods", "hil_us", "runtime_us", "hil_s", "runtime_s", "wall_s"}``."""
         return {
-            "periods": int(wall.size),
-            "hil_us": spread(hil),
-            "runtime_us": spread(rest),
-            "hil_s": float(np.sum(hil)) * 1e-9,
-            "runtime_s": float(np.sum(rest)) * 1e-9,
-            "wall_s": float(np.sum(wall)) * 1e-9,
+            "periods": self.periods,
+            "hil_us": self.hil_us.to_json(),
+            "runtime_us": self.runtime_us.to_json(),
+            "hil_s": self.hil_s,
+            "runtime_s": self.runtime_s,
+            "wall_s": self.wall_s,
         }
 
 

@@ -2,7 +2,8 @@
 
 Role: what ``excavator-rt hil`` and the HIL tests run. A :class:`Scenario` names the task, the
 rig, the transport (lockstep or real time), the feed-forward, faults to inject and where to write
-the trace; :func:`run_scenario` returns the report (:mod:`hil_sim.report` keys).
+the trace; :func:`run_scenario` returns the run with its report
+(:class:`~hil_sim.harness.reports.HilReport`).
 
 Flow (closed loop, Yao Fig. 5): the :class:`~rt_runtime.control.executor.Executor` runs the
 trench session in the fixed-rate loop: it plans one dig at a time from the material the session
@@ -44,16 +45,27 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import can
 import numpy as np
 from numpy.typing import NDArray
 
-from hil_sim.harness.lockstep import LockstepHil
+from hil_sim.harness.lockstep import LockstepCost, LockstepHil
+from hil_sim.harness.reports import (
+    CanFigures,
+    DigResult,
+    EmcyRecord,
+    HilProcessFigures,
+    HilReport,
+    PathFigures,
+    PlanFigures,
+    StrategyPeaks,
+    TrackingGoal,
+)
 from hil_sim.report import (
     AXES,
     Segment,
@@ -66,7 +78,7 @@ from hil_sim.sim import FaultKind, Truth
 from hil_sim.terrain import Terrain
 from rt_runtime import actuation
 from rt_runtime.canbus import BusLoad, CanMaster
-from rt_runtime.control import Clock, FixedRateLoop, LoopConfig, LoopStats, RtSettings
+from rt_runtime.control import Clock, FixedRateLoop, LoopConfig, RtSettings
 from rt_runtime.control.executor import (
     DigRecord,
     Executor,
@@ -77,8 +89,12 @@ from rt_runtime.control.executor import (
 )
 from rt_runtime.control.planner_worker import PathJob, PolynomialMotion
 from rt_runtime.errors import ConfigurationError, PlanningError
+from rt_runtime.reports import BusLoadFigures, Distribution
 from rt_runtime.rig import Rig, load_rig
 from rt_runtime.trajectory.mixed_order import GAO_TABLE2_JOINTS_DEG
+
+if TYPE_CHECKING:
+    from hil_sim.harness.realtime import RealtimeHilProcess
 
 __all__ = [
     "GAO_TABLE2_JOINTS_DEG",
@@ -102,8 +118,11 @@ NO_RT = RtSettings(
     sched_fifo_priority=None, lock_memory=False, cpu=None, timer_slack_ns=None, freeze_gc=False
 )
 
-#: Tracking goals (mm), for the report's ``goal`` block.
-GOALS_MM = {"electric": {"max_mm": 1.0, "rms_mm": 0.3}, "hydraulic": {"max_mm": 3.0}}
+#: Tracking goals per cylinder kind (the report's ``goal``).
+GOALS_MM = {
+    "electric": TrackingGoal(max_mm=1.0, rms_mm=0.3),
+    "hydraulic": TrackingGoal(max_mm=3.0),
+}
 
 
 @dataclass(frozen=True, slots=True)
@@ -167,6 +186,17 @@ class Scenario:
     vcu: bool = True
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class _HilEnd:
+    """What a HIL hands back when it stops: the truth, the terrain, frames and its own cost."""
+
+    truth: Truth
+    material: Any
+    frames: list[tuple[int, bytes]]
+    hil_lockstep: LockstepCost | None = None
+    hil_process: HilProcessFigures | None = None
+
+
 class _Hil(Protocol):
     clock: Any
     master_bus: can.BusABC
@@ -175,7 +205,7 @@ class _Hil(Protocol):
 
     def cut(self, sync_from: int, sync_to: int) -> float: ...
 
-    def finish(self) -> tuple[Truth, Any, list[tuple[int, bytes]], dict[str, Any]]: ...
+    def finish(self) -> _HilEnd: ...
 
     def close(self) -> None: ...
 
@@ -194,10 +224,40 @@ class _LockstepAdapter:
     def cut(self, sync_from: int, sync_to: int) -> float:
         return self.hil.core.cut(sync_from, sync_to)
 
-    def finish(self) -> tuple[Truth, Any, list[tuple[int, bytes]], dict[str, Any]]:
+    def finish(self) -> _HilEnd:
         core = self.hil.core
         material = core.terrain.material if core.terrain is not None else None
-        return core.truth(), material, list(core.frames), {"hil_lockstep": self.hil.cost.summary()}
+        return _HilEnd(
+            core.truth(), material, list(core.frames), hil_lockstep=self.hil.cost.summary()
+        )
+
+    def close(self) -> None:
+        self.hil.close()
+
+
+class _RealtimeAdapter:
+    """The real-time HIL process behind the scenario's small interface."""
+
+    def __init__(self, hil: RealtimeHilProcess) -> None:
+        self.hil = hil
+        self.clock = hil.clock
+        self.master_bus: can.BusABC = hil.master_bus
+
+    def inject(self, kind: FaultKind, axis: int) -> None:
+        self.hil.inject(kind, axis)
+
+    def cut(self, sync_from: int, sync_to: int) -> float:
+        return self.hil.cut(sync_from, sync_to)
+
+    def finish(self) -> _HilEnd:
+        truth, material, frames, extra = self.hil.finish()
+        process = extra.get("hil_process")
+        return _HilEnd(
+            truth,
+            material,
+            frames,
+            hil_process=HilProcessFigures.from_json(process) if process is not None else None,
+        )
 
     def close(self) -> None:
         self.hil.close()
@@ -209,13 +269,15 @@ def _open_hil(
     if sc.realtime:
         from hil_sim.harness.realtime import RealtimeHilProcess
 
-        return RealtimeHilProcess.start(
-            rig_name=sc.rig,
-            q0_rad=q0,
-            terrain=terrain,
-            period_s=sc.period_s,
-            vcu=sc.vcu,
-            trace_path=sc.trace_path,
+        return _RealtimeAdapter(
+            RealtimeHilProcess.start(
+                rig_name=sc.rig,
+                q0_rad=q0,
+                terrain=terrain,
+                period_s=sc.period_s,
+                vcu=sc.vcu,
+                trace_path=sc.trace_path,
+            )
         )
     hil = LockstepHil(
         rig,
@@ -299,81 +361,59 @@ def _execute(
     return result, master.bus_load()
 
 
-def _run_fields(
-    sc: Scenario | PathScenario,
-    rig: Rig,
-    result: ExecutorResult | None,
-    truth: Truth,
-    wall_s: float,
-    bus_load: BusLoad | None,
-    error: str = "",
-) -> dict[str, Any]:
-    """The report keys every run has: outcome, loop, EMCYs, run set-up, energy, CAN."""
-    out: dict[str, Any] = {
-        "energy_Wh": truth.energy_j / 3600.0,
-        "wall_s": wall_s,
-        "overruns": result.overruns if result is not None else 0,
-    }
-    if result is not None:
-        out["status"] = result.status.name.lower()
-        out["fault"] = result.fault
-        out["loop"] = result.loop.summary()  # its ``rt``: what the OS granted and refused
-    else:
-        out["status"] = "planning_error"
-        out["fault"] = error
-    out["emcys"] = [
-        {"node_id": e.node_id, "code": f"0x{int(e.code):04X}", "description": e.description}
-        for e in (result.emcys if result is not None else ())
-    ]
-    out["rig"] = rig.name
-    out["feedforward"] = sc.feedforward
-    out["transport"] = "realtime" if sc.realtime else "lockstep"
-    out["period_s"] = sc.period_s
-    out["sim_s"] = float(truth.t_s[-1] - truth.t_s[0]) if len(truth.t_s) > 1 else 0.0
-    out["goal"] = GOALS_MM.get(rig.cylinders.kind, {})
-    can_block: dict[str, Any] = {}
-    if bus_load is not None:
-        can_block["bus_load"] = {"nominal": bus_load.nominal, "worst_case": bus_load.worst_case}
-    if result is not None and sc.realtime:
-        rtt = result.telemetry["rtt_s"]
-        rtt = rtt[np.isfinite(rtt)] * 1e6
-        if rtt.size:
-            can_block["sync_rtt_us"] = {
-                "p50": float(np.percentile(rtt, 50)),
-                "p99": float(np.percentile(rtt, 99)),
-                "p999": float(np.percentile(rtt, 99.9)),
-                "max": float(np.max(rtt)),
-            }
-    out["can"] = can_block
-    return out
-
-
 @dataclass(frozen=True, slots=True)
 class HilRun:
     """One HIL run: its report and what a report does not carry.
 
     Attributes:
-        report: The report, JSON-able as it is (DESIGN.md "Reports" keys of ``excavator-rt hil
-            --json`` plus extras).
+        report: The report (DESIGN.md "Reports" keys of ``excavator-rt hil --json`` plus
+            extras).
         frames: Every bus frame ``(arbitration_id, data)`` when the scenario kept them, else None.
-        loop_stats: The loop's statistics (per-cycle timing arrays), None when nothing ran.
     """
 
-    report: dict[str, Any]
+    report: HilReport
     frames: list[tuple[int, bytes]] | None = None
-    loop_stats: LoopStats | None = None
 
     def to_json(self) -> dict[str, Any]:
-        """The report (``json.dumps`` takes it as it is)."""
-        return self.report
+        """The report as one JSON object."""
+        return self.report.to_json()
+
+
+def _emcys(result: ExecutorResult | None) -> tuple[EmcyRecord, ...]:
+    return tuple(
+        EmcyRecord(e.node_id, int(e.code), e.description)
+        for e in (result.emcys if result is not None else ())
+    )
+
+
+def _can_figures(
+    sc: Scenario | PathScenario, result: ExecutorResult | None, bus_load: BusLoad | None
+) -> CanFigures:
+    """Bus load as the master counted it; on a real-time run the SYNC round trip as well."""
+    rtt_us: Distribution | None = None
+    if result is not None and sc.realtime:
+        rtt = result.telemetry["rtt_s"]
+        rtt = rtt[np.isfinite(rtt)] * 1e6
+        if rtt.size:
+            rtt_us = Distribution.of(rtt, tails=True)
+    load = (
+        BusLoadFigures(nominal=bus_load.nominal, worst=bus_load.worst_case)
+        if bus_load is not None
+        else None
+    )
+    return CanFigures(bus_load=load, sync_rtt_us=rtt_us)
+
+
+def _sim_s(truth: Truth) -> float:
+    return float(truth.t_s[-1] - truth.t_s[0]) if len(truth.t_s) > 1 else 0.0
 
 
 def run_scenario(sc: Scenario) -> HilRun:
     """Plan and execute ``sc`` with the executor against the HIL; return the report.
 
     Returns:
-        The run: its report (DESIGN.md "Reports" keys for ``excavator-rt hil --json`` plus
-        extras), the bus frames when ``keep_frames`` and the loop's statistics.
+        The run: its report (a task's: ``tracking_digs``, the profile figures where the HIL
+        has a terrain, ``plan_total_us``, ``plan``) and the bus frames when ``keep_frames``.
 
     Raises:
         ConfigurationError: Bad rig, task, or fault.
@@ -396,9 +436,7 @@ def run_scenario(sc: Scenario) -> HilRun:
         if first_dig is not None:
             q0 = np.asarray(first_dig.problem.q_start_rad, dtype=np.float64)
     plan_us = (time.perf_counter() - plan_t0) * 1e6
-    terrain = Terrain(
-        rig.ground_y_m, (float(trench.x_lo), float(trench.x_hi)), rig.bucket.width_m
-    )
+    terrain = Terrain(rig.ground_y_m, (float(trench.x_lo), float(trench.x_hi)), rig.bucket.width_m)
     initial_material = terrain.material
     faults = [(f, f.axis_index()) for f in sc.faults]
     hil = _open_hil(sc, rig, q0, terrain)
@@ -428,48 +466,24 @@ def run_scenario(sc: Scenario) -> HilRun:
     except PlanningError as exc:
         error = str(exc)
     finally:
-        truth, material, frames, extra = hil.finish()
+        end = hil.finish()
         hil.close()
     wall_s = time.perf_counter() - wall0
+    truth, material = end.truth, end.material
 
     segments = _segments(rig, result, truth) if result is not None else []
-    report: dict[str, Any] = {}
-    report.update(tracking_figures(segments))
-    digs_fig = tracking_figures(segments, digs_only=True)
-    report["tracking_digs"] = {
-        "tracking": digs_fig["tracking"],
-        "tip_error_max_mm": digs_fig["tip_error_max_mm"],
-    }
-    if material is not None:
-        report.update(profile_errors(initial_material, material, trench.design))
-    records = result.digs if result is not None else ()
-    report["digs"] = [
-        {
-            "index": r.index,
-            "type": r.dig_type,
-            "T_s": r.T_s,
-            "planned_volume_L": r.planned_volume_m3 * 1e3,
-            "measured_volume_L": r.measured_volume_m3 * 1e3,
-            "cut_volume_L": cut_m3.get(r.index, math.nan) * 1e3,
-            "planned_energy_Wh": r.planned_energy_j / 3600.0,
-            "plan_us": r.plan_us,
-        }
-        for r in records
-    ]
-    report.update(_run_fields(sc, rig, result, truth, wall_s, bus_load, error))
-    report["task"] = task.name
-    report["plan_total_us"] = plan_us
-    report.update(extra)
+    figures = tracking_figures(segments)
+    profile = (
+        profile_errors(initial_material, material, trench.design) if material is not None else None
+    )
+    plan_figures: PlanFigures | None = None
     try:
         plan = trench.finish(plan_us)
-        report["plan"] = {
-            "coverage_error": plan.coverage_error,
-            "overdig_max_mm": plan.overdig_max_m * 1e3,
-            "digs": len(plan.digs),
-        }
+        plan_figures = PlanFigures(plan.coverage_error, plan.overdig_max_m * 1e3, len(plan.digs))
         design = plan.design
     except PlanningError:
         design = trench.design
+    plots: tuple[str, ...] | None = None
     if sc.plot_dir is not None:
         surface = None
         if material is not None:
@@ -478,14 +492,55 @@ def run_scenario(sc: Scenario) -> HilRun:
         files = plot_report(
             segments, sc.plot_dir, design=design, surface_m=surface, title=f"task {task.name}:"
         )
-        report["plots"] = [str(p) for p in files]
-    if sc.trace_path is not None:
-        report["trace"] = str(Path(sc.trace_path))
-    return HilRun(
-        report,
-        frames if sc.keep_frames else None,
-        result.loop if result is not None else None,
+        plots = tuple(str(p) for p in files)
+    report = HilReport(
+        task=task.name,
+        rig=rig.name,
+        transport=_transport(sc),
+        feedforward=sc.feedforward,
+        period_s=sc.period_s,
+        status=result.status.name.lower() if result is not None else "planning_error",
+        fault=result.fault if result is not None else error,
+        tracking=figures.tracking,
+        tip_error_max_mm=figures.tip_error_max_mm,
+        cycles=figures.cycles,
+        digs=tuple(
+            DigResult(
+                index=r.index,
+                type=r.dig_type,
+                T_s=r.T_s,
+                planned_volume_L=r.planned_volume_m3 * 1e3,
+                measured_volume_L=r.measured_volume_m3 * 1e3,
+                cut_volume_L=cut_m3.get(r.index, math.nan) * 1e3,
+                planned_energy_Wh=r.planned_energy_j / 3600.0,
+                plan_us=r.plan_us,
+            )
+            for r in (result.digs if result is not None else ())
+        ),
+        energy_Wh=truth.energy_j / 3600.0,
+        sim_s=_sim_s(truth),
+        wall_s=wall_s,
+        overruns=result.overruns if result is not None else 0,
+        emcys=_emcys(result),
+        goal=GOALS_MM.get(rig.cylinders.kind, TrackingGoal()),
+        can=_can_figures(sc, result, bus_load),
+        loop=result.loop if result is not None else None,
+        tracking_digs=tracking_figures(segments, digs_only=True),
+        coverage_error=profile.coverage_error if profile is not None else None,
+        overdig_max_mm=profile.overdig_max_mm if profile is not None else None,
+        removed_area_m2=profile.removed_area_m2 if profile is not None else None,
+        plan_total_us=plan_us,
+        plan=plan_figures,
+        hil_lockstep=end.hil_lockstep,
+        hil_process=end.hil_process,
+        plots=plots,
+        trace=str(Path(sc.trace_path)) if sc.trace_path is not None else None,
     )
+    return HilRun(report, end.frames if sc.keep_frames else None)
+
+
+def _transport(sc: Scenario | PathScenario) -> str:
+    return "realtime" if sc.realtime else "lockstep"
 
 
 def _segments(rig: Rig, result: ExecutorResult, truth: Truth) -> list[Segment]:
@@ -617,7 +672,7 @@ class KeyPointPath:
         knots_s: Key times from the path's start ``(n,)``.
         q_key_rad: Key points ``(n, 3)``.
         orders: The order pattern used, e.g. ``3-4-5-4-3``.
-        strategies: Peak |velocity|/|acceleration|/|jerk| per compared pattern (deg units).
+        strategies: Peak |velocity|/|acceleration|/|jerk| per compared pattern.
         scaled_from: The rig whose ranges the key points were mapped from, or "".
     """
 
@@ -625,7 +680,7 @@ class KeyPointPath:
     knots_s: FloatArray
     q_key_rad: FloatArray
     orders: str
-    strategies: dict[str, Any]
+    strategies: Mapping[str, StrategyPeaks]
     scaled_from: str = ""
 
 
@@ -735,11 +790,11 @@ def key_point_path(
     job.check(rig)
     deg = 180.0 / math.pi
     table = {
-        r.name: {
-            "peak_velocity_deg_s": (r.peak_velocity * deg).tolist(),
-            "peak_acceleration_deg_s2": (r.peak_acceleration * deg).tolist(),
-            "peak_jerk_deg_s3": (r.peak_jerk * deg).tolist(),
-        }
+        r.name: StrategyPeaks(
+            peak_velocity_deg_s=tuple((r.peak_velocity * deg).tolist()),
+            peak_acceleration_deg_s2=tuple((r.peak_acceleration * deg).tolist()),
+            peak_jerk_deg_s3=tuple((r.peak_jerk * deg).tolist()),
+        )
         for r in cmp.results
     }
     return KeyPointPath(job, knots, q_key, "-".join(str(p) for p in best.orders), table)
@@ -778,9 +833,8 @@ def run_path_scenario(sc: PathScenario) -> HilRun:
     raises here and no frame is ever sent.
 
     Returns:
-        The run; its report holds the task report's tracking keys (``tracking``,
-        ``tip_error_max_mm``, ``cycles``), ``tracking_path`` (path only), ``path``, ``status``,
-        ``fault``, ``loop``, ``can``, ``energy_Wh``, ``goal``...
+        The run; its report holds the tracking figures of a task's (``tracking``,
+        ``tip_error_max_mm``, ``cycles``), ``tracking_path`` (path only), ``path``, and no digs.
 
     Raises:
         ConfigurationError: Bad rig, key points, durations or fault.
@@ -811,32 +865,51 @@ def run_path_scenario(sc: PathScenario) -> HilRun:
         run_s = kp.job.motions[0].duration_s + 60.0
         result, bus_load = _execute(sc, rig, hil, faults, run_s, make_executor)
     finally:
-        truth, _material, frames, extra = hil.finish()
+        end = hil.finish()
         hil.close()
     wall_s = time.perf_counter() - wall0
+    truth = end.truth
 
     segments = _segments(rig, result, truth)
-    report: dict[str, Any] = {}
-    report.update(tracking_figures(segments))
-    path_fig = tracking_figures([s for s in segments if s.kind == "path"])
-    report["tracking_path"] = path_fig
-    report["path"] = _path_block(rig, kp, result, sc.period_s)
-    report.update(_run_fields(sc, rig, result, truth, wall_s, bus_load))
-    report["digs"] = []
-    report["task"] = f"path {kp.job.name}"
-    report.update(extra)
+    figures = tracking_figures(segments)
+    plots: tuple[str, ...] | None = None
     if sc.plot_dir is not None:
         files = plot_report(segments, sc.plot_dir, title=f"path {kp.job.name} ({kp.orders}):")
         files += _plot_path(rig, segments, kp, sc.plot_dir)
-        report["plots"] = [str(p) for p in files]
-    if sc.trace_path is not None:
-        report["trace"] = str(Path(sc.trace_path))
-    return HilRun(report, frames if sc.keep_frames else None, result.loop)
+        plots = tuple(str(p) for p in files)
+    report = HilReport(
+        task=f"path {kp.job.name}",
+        rig=rig.name,
+        transport=_transport(sc),
+        feedforward=sc.feedforward,
+        period_s=sc.period_s,
+        status=result.status.name.lower(),
+        fault=result.fault,
+        tracking=figures.tracking,
+        tip_error_max_mm=figures.tip_error_max_mm,
+        cycles=figures.cycles,
+        digs=(),
+        energy_Wh=truth.energy_j / 3600.0,
+        sim_s=_sim_s(truth),
+        wall_s=wall_s,
+        overruns=result.overruns,
+        emcys=_emcys(result),
+        goal=GOALS_MM.get(rig.cylinders.kind, TrackingGoal()),
+        can=_can_figures(sc, result, bus_load),
+        loop=result.loop,
+        tracking_path=tracking_figures([s for s in segments if s.kind == "path"]),
+        path=_path_figures(rig, kp, result, sc.period_s),
+        hil_lockstep=end.hil_lockstep,
+        hil_process=end.hil_process,
+        plots=plots,
+        trace=str(Path(sc.trace_path)) if sc.trace_path is not None else None,
+    )
+    return HilRun(report, end.frames if sc.keep_frames else None)
 
 
-def _path_block(
+def _path_figures(
     rig: Rig, kp: KeyPointPath, result: ExecutorResult, period_s: float
-) -> dict[str, Any]:
+) -> PathFigures:
     """``path``: orders, knots, key points and their strokes, commanded strokes at key times.
 
     Row ``k`` of the PATH phase commands (``stroke_cmd_m``) the motion at ``(k + 1) T``; the row
@@ -846,19 +919,24 @@ def _path_block(
     s_key = actuation.joint_to_stroke(rig, kp.q_key_rad, check_limits=False)
     tel = result.telemetry
     rows = np.flatnonzero(tel["phase"] == int(Phase.PATH))
-    block: dict[str, Any] = {
-        "name": kp.job.name,
-        "orders": kp.orders,
-        "knots_s": kp.knots_s.tolist(),
-        "key_points_deg": (kp.q_key_rad * deg).round(6).tolist(),
-        "key_strokes_mm": (s_key * 1e3).tolist(),
-        "strategies": kp.strategies,
-        "scaled_from": kp.scaled_from,
-    }
+    key_errors: tuple[float, ...] | None = None
     if rows.size and rows[0] > 0:
         cmd = tel["stroke_cmd_m"][np.concatenate([[rows[0] - 1], rows])]
-        block["cmd_at_key_error_um"] = _key_errors(cmd, kp.knots_s, s_key, period_s)
-    return block
+        key_errors = tuple(_key_errors(cmd, kp.knots_s, s_key, period_s))
+    return PathFigures(
+        name=kp.job.name,
+        orders=kp.orders,
+        knots_s=tuple(kp.knots_s.tolist()),
+        key_points_deg=_rows((kp.q_key_rad * deg).round(6)),
+        key_strokes_mm=_rows(s_key * 1e3),
+        strategies=kp.strategies,
+        scaled_from=kp.scaled_from,
+        cmd_at_key_error_um=key_errors,
+    )
+
+
+def _rows(a: FloatArray) -> tuple[tuple[float, ...], ...]:
+    return tuple(tuple(row) for row in a.tolist())
 
 
 def _key_errors(

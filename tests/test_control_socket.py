@@ -32,7 +32,7 @@ from rt_runtime.errors import CommunicationError, ConfigurationError
 from rt_runtime.rig import load_rig
 from rt_runtime.service import client
 from rt_runtime.service.config import ConfigKeyError, DaemonConfig, load_config
-from rt_runtime.service.control import MAX_REQUEST_BYTES, ControlServer, request
+from rt_runtime.service.control import MAX_CLIENTS, MAX_REQUEST_BYTES, ControlServer, request
 from rt_runtime.service.daemon import EXIT_OK, Service
 from rt_runtime.service.jobstore import JobStore
 from rt_runtime.service.notify import Notifier
@@ -43,8 +43,10 @@ from rt_runtime.service.notify import Notifier
 class Serving:
     """A ControlServer polled by a thread until closed."""
 
-    def __init__(self, path: Path, commands: dict[str, Callable[[dict[str, Any]], Any]]) -> None:
-        self.server = ControlServer(path, commands)
+    def __init__(
+        self, path: Path, commands: dict[str, Callable[[dict[str, Any]], Any]], **kwargs: Any
+    ) -> None:
+        self.server = ControlServer(path, commands, **kwargs)
         self.server.bind()
         self._stop = False
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -167,6 +169,45 @@ def test_bind_refuses_shared_directories_and_live_sockets(tmp_path: Path) -> Non
     try:
         assert request(tmp_path / "own" / "c.sock", {"cmd": "echo"})["ok"]
     finally:
+        s.close()
+
+
+def _read_reply(sock: socket.socket) -> dict[str, Any]:
+    sock.settimeout(5.0)
+    data = b""
+    while not data.endswith(b"\n"):
+        chunk = sock.recv(4096)
+        if not chunk:
+            break
+        data += chunk
+    return dict(json.loads(data))
+
+
+def test_idle_connections_time_out_and_never_lock_clients_out(tmp_path: Path) -> None:
+    path = tmp_path / "own" / "c.sock"
+    s = Serving(path, {"echo": lambda req: {}}, idle_timeout_s=1.5)
+    idle: list[socket.socket] = []
+    try:
+        for _ in range(MAX_CLIENTS):
+            c = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            c.connect(str(path))
+            idle.append(c)
+        # Every slot taken by silent clients: a new one is served once they have been idle
+        # a moment (the idlest gives up its slot), not refused until a restart.
+        deadline = time.monotonic() + 10.0
+        while True:
+            reply = request(path, {"cmd": "echo"}, timeout_s=5.0)
+            if reply["ok"] or time.monotonic() > deadline:
+                break
+            assert reply["code"] == "busy"
+            time.sleep(0.2)
+        assert reply["ok"], reply
+        # The one that gave up its slot was told why; the others time out after 1.5 s.
+        replies = [_read_reply(c) for c in idle]
+        assert all(r["code"] == "idle" for r in replies), replies
+    finally:
+        for c in idle:
+            c.close()
         s.close()
 
 

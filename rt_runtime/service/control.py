@@ -12,6 +12,10 @@ is allowed>"}``. Error codes:
 ``too_large``       the line exceeds :data:`MAX_REQUEST_BYTES` (the connection is closed)
 ``refused``         the command was understood and refused (unknown job, bad task, ...)
 ``internal``        the command failed unexpectedly (logged; the daemon keeps running)
+``denied``          the peer is neither the daemon's user nor root
+``busy``            every client slot is taken by clients active within :data:`EVICT_IDLE_S`
+``idle``            the connection had no request for ``idle_timeout_s``
+                    (:data:`IDLE_TIMEOUT_S`), or gave its slot to a new client while idle
 =================== =====================================================================
 
 A bad request never stops the daemon. Access: the socket is created owner-only (0600, bound
@@ -33,6 +37,7 @@ import selectors
 import socket
 import stat
 import struct
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,6 +54,11 @@ log = logging.getLogger("excavator-rtd.control")
 MAX_REQUEST_BYTES = 64 * 1024
 #: Most connections served at once; more are answered with an error and closed.
 MAX_CLIENTS = 16
+#: A connection with no request for this long is closed (s).
+IDLE_TIMEOUT_S = 30.0
+#: With every client slot taken, a new client takes the slot of the connection idle longest,
+#: when that one has been idle for at least this long (s).
+EVICT_IDLE_S = 1.0
 
 Handler = Callable[[dict[str, Any]], dict[str, Any]]
 
@@ -64,6 +74,8 @@ def _error(code: str, text: str) -> dict[str, Any]:
 @dataclass
 class _Conn:
     sock: socket.socket
+    #: ``time.monotonic()`` of its connection or its latest bytes received.
+    active_s: float = 0.0
     inbuf: bytearray = field(default_factory=bytearray)
     outbuf: bytearray = field(default_factory=bytearray)
     closing: bool = False
@@ -78,6 +90,9 @@ class ControlServer:
             reply's fields (``ok: true`` is added); it raises
             :class:`~rt_runtime.errors.ExcavatorRtError` to refuse (``refused`` reply).
         max_request_bytes: Longest request line.
+        idle_timeout_s: A connection with no request for this long is closed; with every
+            one of :data:`MAX_CLIENTS` slots taken, a new client takes the slot of the one
+            idle longest (idle at least :data:`EVICT_IDLE_S`).
 
     Attributes:
         requests: Requests handled (any outcome).
@@ -88,10 +103,12 @@ class ControlServer:
         path: Path,
         commands: Mapping[str, Handler],
         max_request_bytes: int = MAX_REQUEST_BYTES,
+        idle_timeout_s: float = IDLE_TIMEOUT_S,
     ) -> None:
         self.path = Path(path)
         self.commands = dict(commands)
         self.max_request_bytes = max_request_bytes
+        self.idle_timeout_s = float(idle_timeout_s)
         self.requests = 0
         self._sel = selectors.DefaultSelector()
         self._listener: socket.socket | None = None
@@ -177,12 +194,23 @@ class ControlServer:
     # -- serving --------------------------------------------------------------------------------
 
     def poll(self, timeout_s: float | None) -> None:
-        """Serve what is ready within ``timeout_s`` (None: block until something is)."""
+        """Serve what is ready within ``timeout_s`` (None: block until something is), then
+        close the connections idle longer than ``idle_timeout_s``."""
+        if self._conns and (timeout_s is None or timeout_s > self.idle_timeout_s):
+            timeout_s = self.idle_timeout_s  # wake up to time the idle ones out
         for key, events in self._sel.select(timeout_s):
             if isinstance(key.data, _Conn):
                 self._service(key.data, events)
             else:
                 key.data(key)
+        now = time.monotonic()
+        for conn in list(self._conns.values()):
+            if now - conn.active_s > self.idle_timeout_s and not conn.outbuf:
+                self._reply_now(conn, _error("idle", self._idle_text()))
+                self._drop(conn)
+
+    def _idle_text(self) -> str:
+        return f"no request for {self.idle_timeout_s:g} s: connection closed"
 
     def _accept(self, _key: selectors.SelectorKey) -> None:
         assert self._listener is not None
@@ -191,11 +219,16 @@ class ControlServer:
         except (BlockingIOError, InterruptedError):
             return
         sock.setblocking(False)
-        conn = _Conn(sock)
+        now = time.monotonic()
+        conn = _Conn(sock, active_s=now)
         if len(self._conns) >= MAX_CLIENTS:
-            self._reply_now(conn, _error("busy", f"more than {MAX_CLIENTS} clients connected"))
-            sock.close()
-            return
+            idlest = min(self._conns.values(), key=lambda c: c.active_s)
+            if now - idlest.active_s < EVICT_IDLE_S or idlest.outbuf:
+                self._reply_now(conn, _error("busy", f"{MAX_CLIENTS} clients are being served"))
+                sock.close()
+                return
+            self._reply_now(idlest, _error("idle", "connection closed to serve another client"))
+            self._drop(idlest)
         if not self._peer_allowed(sock):
             self._reply_now(conn, _error("denied", "only the daemon's user and root may connect"))
             sock.close()
@@ -236,6 +269,7 @@ class ControlServer:
             if data == b"":
                 conn.closing = True
             elif data:
+                conn.active_s = time.monotonic()
                 conn.inbuf += data
                 self._handle_lines(conn)
         if conn.outbuf:

@@ -263,6 +263,30 @@ def test_trace_records_what_was_sent_and_received(tmp_path: Path) -> None:
     assert [m.arbitration_id for m in can.ASCReader(str(tmp_path / "t" / "second.asc"))] == [0x080]
 
 
+def test_trace_rotates_and_keeps_a_bounded_number_of_files(tmp_path: Path) -> None:
+    """The trace rotates at its size and keeps the newest ``keep`` old files: its disk use is
+    bounded however long the daemon runs and however often it restarts."""
+    path = tmp_path / "t" / "can.asc"
+    path.parent.mkdir()
+    for n in (1, 2, 3):  # earlier starts' traces
+        path.with_name(f"can.{n}.asc").write_text(f"start {n}")
+    path.write_text("last start")
+    recorder = TraceRecorder(path, max_mb=0.02, keep=3)
+    try:
+        for k in range(3000):  # ~130 kB of ASC: several rotations
+            recorder.queue.put((1e9 + k * 1e-3, 0x181, b"\x01\x02\x03\x04\x05\x06\x07\x08", True))
+    finally:
+        recorder.close()
+    old = sorted(p.name for p in path.parent.glob("can.*.asc"))
+    assert len(old) == 3, old
+    # The oldest went first: the earlier starts' files and the last start's are gone.
+    assert all(p.read_text().startswith("date") for p in path.parent.glob("can.*.asc")), old
+    sizes = [p.stat().st_size for p in path.parent.glob("can*.asc")]
+    assert max(sizes) < 0.02e6 + 200, sizes
+    frames = sum(1 for p in path.parent.glob("can*.asc") for _ in can.ASCReader(str(p)))
+    assert 0 < frames < 3000
+
+
 @pytest.fixture
 def rig_file(tmp_path: Path) -> Path:
     """``scale_model`` with the drives' watchdogs widened for a shared machine."""

@@ -69,8 +69,13 @@ RELOADABLE_KEYS = (
     "executor.planner",
     "executor.stale_cycles",
     "paths.trace",
+    "paths.trace_max_mb",
+    "paths.trace_keep",
 )
 _TRACE_SUFFIXES = (".blf", ".asc")
+#: Defaults of ``paths.trace_max_mb`` and ``paths.trace_keep``.
+_TRACE_MAX_MB = 64.0
+_TRACE_KEEP = 8
 
 # section -> key -> (kind, required); kind drives the type check.
 _SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
@@ -94,7 +99,13 @@ _SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
         "planner": ("str", False),
         "stale_cycles": ("int", False),
     },
-    "paths": {"state_dir": ("str", False), "socket": ("str", False), "trace": ("str", False)},
+    "paths": {
+        "state_dir": ("str", False),
+        "socket": ("str", False),
+        "trace": ("str", False),
+        "trace_max_mb": ("float", False),
+        "trace_keep": ("int", False),
+    },
     "log": {"level": ("str", False)},
 }
 _REQUIRED_SECTIONS = ("bus", "rig")
@@ -162,12 +173,18 @@ class PathSettings:
         socket: The control socket; its directory is created 0700 when missing and must not
             be accessible to others when it exists.
         trace: A ``.blf``/``.asc`` trace of every frame the daemon sends and reads; None: no
-            trace. An existing file is kept as ``<stem>.<n><suffix>``.
+            trace. An existing file (a previous start's) and a file that reached
+            ``trace_max_mb`` are kept as ``<stem>.<n><suffix>``, the newest ``trace_keep`` of
+            them; older ones are deleted.
+        trace_max_mb: Size (MB, 10^6 bytes) at which the trace file is rotated.
+        trace_keep: Rotated trace files kept besides the one being written.
     """
 
     state_dir: Path = DEFAULT_STATE_DIR
     socket: Path = DEFAULT_SOCKET
     trace: Path | None = None
+    trace_max_mb: float = _TRACE_MAX_MB
+    trace_keep: int = _TRACE_KEEP
 
 
 @dataclass(frozen=True, slots=True)
@@ -388,10 +405,20 @@ def parse_config(raw: Mapping[str, Any], source: str | Path = "") -> DaemonConfi
             f"{socket_path} is longer than the 107 bytes a unix socket path may have",
             src,
         )
+    trace_max_mb = pa.get("trace_max_mb", _TRACE_MAX_MB)
+    if not 0.1 <= trace_max_mb <= 100_000.0:
+        raise ConfigKeyError(
+            "paths.trace_max_mb", f"must be in [0.1, 100000] MB, got {trace_max_mb}", src
+        )
+    trace_keep = pa.get("trace_keep", _TRACE_KEEP)
+    if not 0 <= trace_keep <= 10_000:
+        raise ConfigKeyError("paths.trace_keep", f"must be in [0, 10000], got {trace_keep}", src)
     paths = PathSettings(
         state_dir=_path(base, pa.get("state_dir", str(DEFAULT_STATE_DIR))),
         socket=socket_path,
         trace=trace,
+        trace_max_mb=float(trace_max_mb),
+        trace_keep=int(trace_keep),
     )
 
     level = s["log"].get("level", "info").lower()

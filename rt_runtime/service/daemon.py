@@ -49,6 +49,7 @@ import argparse
 import contextlib
 import dataclasses
 import gc
+import glob
 import logging
 import os
 import queue
@@ -194,18 +195,24 @@ class TraceRecorder:
 
     The loop's thread only puts ``(unix_s, id, data, is_rx)`` tuples on a queue; the writer
     thread builds messages and writes them (the BLF writer compresses in blocks, which must
-    never happen on the loop's thread).
+    never happen on the loop's thread). The file rotates (python-can's
+    ``SizedRotatingLogger``) when it reaches ``max_mb``: it is kept as ``<stem>.<n><suffix>``
+    (``n`` counting up), as is a file a previous start left; of those the newest ``keep`` stay
+    and older ones are deleted, so the traces' disk use is bounded by ``(keep + 1) * max_mb``.
 
     Args:
-        path: The file (``.blf`` or ``.asc``); an existing one is kept as ``<stem>.<n><suffix>``;
-            None: record nothing until :meth:`reopen`.
+        path: The file (``.blf`` or ``.asc``); None: record nothing until :meth:`reopen`.
+        max_mb: Size at which the file rotates (MB, 10^6 bytes).
+        keep: Rotated files kept.
     """
 
     _REOPEN = object()
 
-    def __init__(self, path: Path | None) -> None:
+    def __init__(self, path: Path | None, max_mb: float = 64.0, keep: int = 8) -> None:
         self.queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self.path: Path | None = None
+        self.max_mb = float(max_mb)
+        self.keep = int(keep)
         self.active = False
         self.frames = 0
         self._logger: can.Listener | None = None
@@ -215,31 +222,62 @@ class TraceRecorder:
         self.reopen(path)
 
     @staticmethod
-    def _keep_old(path: Path) -> None:
-        if not path.exists():
-            return
-        n = 1
-        while (old := path.with_name(f"{path.stem}.{n}{path.suffix}")).exists():
-            n += 1
-        path.rename(old)
+    def _rotated(path: Path) -> list[tuple[int, Path]]:
+        """The rotated files of ``path`` (``<stem>.<n><suffix>``), oldest first."""
+        found = []
+        for p in path.parent.glob(f"{glob.escape(path.stem)}.*{glob.escape(path.suffix)}"):
+            n = p.name[len(path.stem) + 1 : len(p.name) - len(path.suffix)]
+            if n.isdigit():
+                found.append((int(n), p))
+        return sorted(found)
 
-    def reopen(self, path: Path | None) -> None:
-        """Close the current file and start ``path`` (None: stop recording)."""
+    def _next_name(self, path: Path) -> Path:
+        rotated = self._rotated(path)
+        n = rotated[-1][0] + 1 if rotated else 1
+        return path.with_name(f"{path.stem}.{n}{path.suffix}")
+
+    def _rotate(self, source: str | os.PathLike[str], dest: str | os.PathLike[str]) -> None:
+        """python-can's rotator: keep the full file under its number, delete the oldest."""
+        if os.path.exists(source):
+            os.replace(source, dest)
+        self._prune(Path(source))
+
+    def _prune(self, path: Path) -> None:
+        rotated = self._rotated(path)
+        for _n, old in rotated[: max(0, len(rotated) - self.keep)]:
+            with contextlib.suppress(OSError):
+                old.unlink()
+
+    def reopen(
+        self, path: Path | None, max_mb: float | None = None, keep: int | None = None
+    ) -> None:
+        """Close the current file and start ``path`` (None: stop recording), with new
+        rotation settings where given."""
         self._opened.clear()
-        self.queue.put((self._REOPEN, path))
+        self.queue.put((self._REOPEN, path, max_mb, keep))
         self._opened.wait(10.0)
 
-    def _open(self, path: Path | None) -> None:
+    def _open(self, path: Path | None, max_mb: float | None, keep: int | None) -> None:
         if self._logger is not None:
             self._logger.stop()
             self._logger = None
+        if max_mb is not None:
+            self.max_mb = float(max_mb)
+        if keep is not None:
+            self.keep = int(keep)
         self.active = False
         self.path = path
         if path is not None:
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
-                self._keep_old(path)
-                self._logger = can.Logger(str(path))
+                if path.exists():
+                    self._rotate(str(path), str(self._next_name(path)))
+                else:
+                    self._prune(path)
+                logger = can.SizedRotatingLogger(str(path), max_bytes=round(self.max_mb * 1e6))
+                logger.namer = lambda _default: str(self._next_name(path))
+                logger.rotator = self._rotate
+                self._logger = logger
                 self.active = True
             except (OSError, ValueError) as exc:
                 log.error("trace %s cannot be written: %s; recording nothing", path, exc)
@@ -270,7 +308,7 @@ class TraceRecorder:
                     check=False,
                 )
             elif item[0] is self._REOPEN:
-                self._open(item[1])
+                self._open(item[1], item[2], item[3])
                 continue
             else:
                 t, arbitration_id, data, is_rx = item
@@ -529,15 +567,19 @@ class Service:
         reloadable, restart = self.config.changes(new)
         _set_log_level(new.log_level)
         self.runner.configure(new.feedforward, new.stale_cycles)
-        if self.recorder is not None and new.paths.trace != self.config.paths.trace:
-            self.recorder.reopen(new.paths.trace)
+        old, got = self.config.paths, new.paths
+        trace = (got.trace, got.trace_max_mb, got.trace_keep)
+        if self.recorder is not None and trace != (old.trace, old.trace_max_mb, old.trace_keep):
+            self.recorder.reopen(*trace)
         self.config = dataclasses.replace(
             self.config,
             feedforward=new.feedforward,
             planner=new.planner,
             stale_cycles=new.stale_cycles,
             log_level=new.log_level,
-            paths=dataclasses.replace(self.config.paths, trace=new.paths.trace),
+            paths=dataclasses.replace(
+                old, trace=got.trace, trace_max_mb=got.trace_max_mb, trace_keep=got.trace_keep
+            ),
         )
         log.info("reloaded: %s", ", ".join(reloadable) or "nothing changed that reloads")
         if restart:
@@ -699,7 +741,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         server.close()
         print(f"excavator-rtd: error: {exc}", file=sys.stderr)
         return EXIT_BUS
-    recorder = TraceRecorder(config.paths.trace)
+    recorder = TraceRecorder(
+        config.paths.trace, config.paths.trace_max_mb, config.paths.trace_keep
+    )
     bus = TracedBus(raw_bus, recorder)
     try:
         runner = RigRunner(config, rig, planner, bus, store)

@@ -25,7 +25,7 @@ from typing import Any
 from rt_runtime.service.config import DEFAULT_SOCKET, PLANNERS
 from rt_runtime.service.control import request
 
-__all__ = ["add_parser", "format_job", "run"]
+__all__ = ["add_parser", "format_job", "format_progress", "run"]
 
 
 def _default_socket() -> str:
@@ -95,6 +95,40 @@ def format_job(job: dict[str, Any]) -> str:
     return text
 
 
+#: What each motion phase of a running job means, for people.
+_PHASES = {
+    "wait": "waiting for the next motion",
+    "connect": "moving to the next motion's start",
+    "dig": "digging",
+    "lift_out": "lifting out",
+    "dump": "moving to dump",
+    "approach": "approaching the next dig",
+    "enter": "entering the next dig",
+    "path": "following the path",
+    "settle": "at the end, waiting for the drives to rest",
+    "stop": "stopping (jerk-limited)",
+    "idle": "starting",
+}
+
+
+def format_progress(progress: dict[str, Any]) -> str:
+    """The running job's progress (a ``status`` reply's ``progress``) in words."""
+    phase = str(progress.get("phase", ""))
+    text = _PHASES.get(phase, phase.replace("_", " ") or "starting")
+    if phase == "dig" and int(progress.get("dig", -1)) >= 0:
+        text += f" dig {int(progress['dig']) + 1}"
+    text += f"; {progress.get('digs_done', 0)} dig(s) done"
+    if progress.get("paused"):
+        text += "; paused: holds at the end of this motion until resumed"
+    if progress.get("stopping"):
+        text += "; stopping"
+    if progress.get("planning"):
+        text += "; planning the next dig"
+    if progress.get("status"):
+        text += f"; {progress['status']}"
+    return text
+
+
 def _print_human(command: str, reply: dict[str, Any]) -> None:
     if command == "list":
         jobs = reply.get("jobs", [])
@@ -120,7 +154,7 @@ def _print_human(command: str, reply: dict[str, Any]) -> None:
             )
         progress = reply.get("progress")
         if progress:
-            print("  progress: " + ", ".join(f"{k} {v}" for k, v in progress.items()))
+            print("  now: " + format_progress(progress))
     elif command == "status":
         print("no job")
 

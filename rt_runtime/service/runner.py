@@ -287,8 +287,13 @@ class RigRunner:
         return True, ""
 
     def state(self) -> str:
-        """See :meth:`Runner.state`."""
-        return f"fault: {self._fault}" if self._fault else self._state
+        """See :meth:`Runner.state` (a running job that is paused says so)."""
+        if self._fault:
+            return f"fault: {self._fault}"
+        running = self._job
+        if running is not None and running.controller.paused:
+            return f"job {self._job_id} paused, holding position"
+        return self._state
 
     def current_job(self) -> int | None:
         """See :meth:`Runner.current_job`."""

@@ -1,7 +1,7 @@
 # Two commands set everything up: `make demo` and `make test`. Each creates .venv when missing
 # and installs the project into it (compiling the C verifier kernel with the machine's cc, and
-# the train extra: CI runs the training pipeline on a reduced size); nothing needs installing by
-# hand.
+# the train extra: CI runs the training pipeline on a reduced size; the reference extra: the
+# benchmark's independent solvers); nothing needs installing by hand.
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
@@ -12,7 +12,7 @@ STAMP  := $(VENV)/.installed-stamp
 $(STAMP): pyproject.toml setup.py $(wildcard rt_runtime/planning/kernel/*.c rt_runtime/planning/kernel/*.h)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test,plot,train]'
+	$(BIN)/python -m pip install --quiet -e '.[test,plot,train,reference]'
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -659,6 +659,217 @@ def _plot_interp(path: str, rig: str, name: str, t, q, qd, qdd, stroke, names) -
     plt.close(fig)
 
 
+def _timejerk_waypoints(rig: Rig, items: Sequence[str]) -> np.ndarray:
+    """``--waypoints-deg`` of ``timejerk`` as ``(n, rig.dof)`` radians, checked against the rig.
+
+    Raises:
+        ConfigurationError: Fewer than two waypoints, a wrong number of values, a value that is
+            not a finite number, a waypoint outside a joint's range or out of the cylinders'
+            reach; the message names the waypoint (1-based), the joint and what is allowed.
+    """
+    from rt_runtime import actuation
+    from rt_runtime.errors import KinematicsError
+
+    joints = ((rig.swing.joint,) if rig.swing is not None else ()) + rig.joints
+    names = [j.name for j in joints]
+    form = ",".join({"swing": "SW", "boom": "B", "stick": "S", "bucket": "K"}[n] for n in names)
+    if len(items) < 2:
+        raise ConfigurationError(f"--waypoints-deg: at least two waypoints are needed; got {len(items)}")
+    rows: list[np.ndarray] = []
+    for k, item in enumerate(items, 1):
+        parts = item.split(",")
+        if len(parts) != len(joints):
+            raise ConfigurationError(
+                f"--waypoints-deg: waypoint {k} ({item!r}) has {len(parts)} values; rig {rig.name} has "
+                f"{len(joints)} joints ({', '.join(names)}): give {form} in degrees"
+            )
+        try:
+            vals = [float(x) for x in parts]
+        except ValueError:
+            raise ConfigurationError(f"--waypoints-deg: waypoint {k} ({item!r}) must be {len(joints)} numbers in degrees") from None
+        for name, v in zip(names, vals, strict=True):
+            if not math.isfinite(v):
+                raise ConfigurationError(f"--waypoints-deg: waypoint {k}: {name} is {v}; angles must be finite numbers in degrees")
+        for j, v in zip(joints, vals, strict=True):
+            lo, hi = math.degrees(j.min_rad), math.degrees(j.max_rad)
+            if not lo <= v <= hi:
+                raise ConfigurationError(
+                    f"--waypoints-deg: waypoint {k}: {j.name} at {v:g} deg is outside its range; allowed [{lo:g}, {hi:g}] deg on {rig.name}"
+                )
+        if rows and np.array_equal(np.radians(vals), rows[-1]):
+            raise ConfigurationError(f"--waypoints-deg: waypoints {k - 1} and {k} are the same pose; consecutive waypoints must differ (remove one)")
+        rows.append(np.radians(vals))
+    q = np.array(rows)
+    arm = q[:, -3:]
+    try:
+        actuation.joint_to_stroke(rig, arm)
+    except KinematicsError as e:
+        raise ConfigurationError(f"--waypoints-deg: a waypoint is out of the cylinders' reach: {e}") from None
+    return q
+
+
+def _weight(value: float, flag: str, *, positive: bool) -> float:
+    if not math.isfinite(value) or value < 0.0 or (positive and value == 0.0):
+        allowed = "a finite number > 0" if positive else "a finite number >= 0"
+        why = " (with no weight on time the jerk integral falls without bound as T grows)" if positive and value == 0.0 else ""
+        raise ConfigurationError(f"{flag} {value:g}: allowed {allowed}{why}")
+    return value
+
+
+def cmd_timejerk(args: argparse.Namespace) -> int:
+    """``excavator-rt timejerk``: a minimum time-jerk trajectory through waypoints (Zhao eq 3)."""
+    from rt_runtime.trajectory.timejerk import TimeJerkProblem, plan
+
+    rig = load_rig(args.rig)
+    q = _timejerk_waypoints(rig, args.waypoints_deg)
+    w_jerk = _weight(args.w_jerk, "--w-jerk", positive=False)
+    w_time = _weight(args.w_time, "--w-time", positive=True)
+    problem = TimeJerkProblem.for_rig(rig, q, w_jerk=w_jerk, w_time=w_time)
+    traj = plan(problem)
+    exact = traj.limit_check()
+    sampled = traj.sampled_limit_check(1000.0)
+    names = list(rig.joint_names)
+    waypoint_knots = problem.waypoint_knots
+    deg = 180.0 / math.pi
+
+    def knot(k: int) -> str:
+        return f"waypoint {waypoint_knots.index(k) + 1}" if k in waypoint_knots else "free knot"
+
+    out: dict[str, Any] = {
+        "rig": rig.name,
+        "joints": names,
+        "waypoints_deg": (q * deg).round(9).tolist(),
+        "w_jerk": w_jerk,
+        "w_time": w_time,
+        "T_s": traj.duration_s,
+        "jerk_integral_rad2_s5": traj.jerk_integral,
+        "objective": traj.objective,
+        "iterations": traj.iterations,
+        "waypoint_times_s": traj.waypoint_times_s.tolist(),
+        "segments": [
+            {
+                "from": knot(i),
+                "to": knot(i + 1),
+                "start_s": float(traj.knots_s[i]),
+                "duration_s": float(traj.piece_durations_s[i]),
+                "coefficients": traj.coefficients[i].tolist(),
+            }
+            for i in range(traj.n_pieces)
+        ],
+        "peaks": {
+            name: {
+                "velocity_ratio": float(exact.velocity_ratio[j]),
+                "acceleration_ratio": float(exact.acceleration_ratio[j]),
+                "velocity_deg_s": float(exact.velocity_peak_rad_s[j] * deg),
+                "acceleration_deg_s2": float(exact.acceleration_peak_rad_s2[j] * deg),
+                "range_deg": [float(exact.position_low_rad[j] * deg), float(exact.position_high_rad[j] * deg)],
+            }
+            for j, name in enumerate(names)
+        },
+        "within_limits": {"exact": exact.within_limits, "resample_1khz": sampled.within_limits},
+        "coefficients_rule": "per segment one list per joint: rad, highest power first, time in s from the segment's start",
+    }
+    if args.plot:
+        _plot_timejerk(args.plot, traj, names, rig.name)
+        out["plot"] = args.plot
+    if args.json:
+        _print_json(out)
+        return 0
+    print(f"minimum time-jerk trajectory on {rig.name} (Zhao eq 3): {len(q)} waypoints, joints {', '.join(names)}; w_jerk {w_jerk:g}, w_time {w_time:g}")
+    print("  segment  from -> to                    duration [s]")
+    for i, seg in enumerate(out["segments"], 1):
+        print(f"  {i:7d}  {seg['from']:<12} -> {seg['to']:<12}  {seg['duration_s']:12.4f}")
+    print(f"  T = {traj.duration_s:.4f} s; jerk integral {traj.jerk_integral:.6g} rad^2/s^5; objective {traj.objective:.6g}; {traj.iterations} iterations")
+    print("  joint     peak |v| / V   peak |a| / A   range reached [deg]")
+    for name, pk in out["peaks"].items():
+        lo, hi = pk["range_deg"]
+        print(f"  {name:<8} {pk['velocity_ratio']:13.6f}  {pk['acceleration_ratio']:13.6f}   [{lo:.3f}, {hi:.3f}]")
+    print(f"  within every limit: exact check {'yes' if exact.within_limits else 'NO'}, 1 kHz resample {'yes' if sampled.within_limits else 'NO'}")
+    if args.plot:
+        print(f"  plot: {args.plot}")
+    return 0
+
+
+def _plot_timejerk(path: str, traj: Any, names: list[str], rig: str) -> None:
+    """Angles, velocity over V and acceleration over A against time, waypoints marked."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as e:
+        raise ConfigurationError("--plot needs matplotlib: pip install 'excavator-rt[plot]'") from e
+    p = traj.problem
+    t = np.linspace(0.0, traj.duration_s, 2001)
+    rows = (
+        (np.degrees(traj.sample(t, 0)), "angle [deg]"),
+        (traj.sample(t, 1) / p.velocity_max_rad_s, "velocity / V"),
+        (traj.sample(t, 2) / p.acceleration_max_rad_s2, "acceleration / A"),
+    )
+    fig, axes = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
+    for (data, label), ax in zip(rows, axes, strict=True):
+        for j, n in enumerate(names):
+            ax.plot(t, data[:, j], label=n)
+        for tw in traj.waypoint_times_s:
+            ax.axvline(tw, color="k", lw=0.5, alpha=0.4)
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    for ax in axes[1:]:
+        ax.axhline(1.0, color="r", lw=0.8, ls="--")
+        ax.axhline(-1.0, color="r", lw=0.8, ls="--")
+    axes[0].legend()
+    axes[0].set_title(f"minimum time-jerk trajectory on {rig}: T {traj.duration_s:.3f} s (waypoints: vertical lines)")
+    axes[-1].set_xlabel("time [s]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def cmd_bench_timejerk(args: argparse.Namespace) -> int:
+    """``excavator-rt bench timejerk``: the generator against CasADi/IPOPT and toppra."""
+    from rt_runtime.bench_timejerk import bench_timejerk
+
+    n = args.problems if args.problems is not None else (8 if args.quick else 200)
+    n_way = args.waypoints if args.waypoints is not None else (5 if args.quick else 10)
+    if n < 1 or n_way < 2:
+        raise ConfigurationError(f"--problems {n} --waypoints {n_way}: allowed >= 1 problem and >= 2 waypoints")
+    reference = not args.no_reference
+    if reference:
+        try:
+            import casadi  # noqa: F401
+            import toppra  # noqa: F401
+        except ImportError:
+            raise ConfigurationError(
+                "bench timejerk's references need casadi and toppra: pip install 'excavator-rt[reference]' (or pass --no-reference)"
+            ) from None
+    r = bench_timejerk(n, args.seed, n_way, reference=reference)
+    r["sizes"] = "quick" if args.quick else "full"
+    if args.json:
+        _print_json(r)
+        return 0
+    sm = r["solve_ms"]
+    print(f"minimum time-jerk generator (Zhao eq 3): {r['problems']} seeded problems, {r['waypoints']} waypoints, every rig (seed {r['seed']})")
+    if sm:
+        print(f"  solve p50 {sm['p50']:.1f} ms, p99 {sm['p99']:.1f} ms, max {sm['max']:.1f} ms (goals {r['goals']['solve_ms_p50_max']:.0f} / {r['goals']['solve_ms_p99_max']:.0f} ms)")
+        for j, v in r["solve_ms_by_joints"].items():
+            print(f"    {j} joints: p50 {v['p50']:.1f} ms, p99 {v['p99']:.1f} ms")
+        cpu = r["solve_cpu_ms"]
+        print(f"    process CPU time p50 {cpu['p50']:.1f} ms, p99 {cpu['p99']:.1f} ms (load average {r['load_average'][0]:.2f})")
+    print(f"  feasible {r['feasible']:.1%} (exact check and 1 kHz resample; goal >= 99 %); largest ratio exact {r['exact_ratio_max']:.12f}, resampled {r['sampled_ratio_max']:.12f}")
+    for f in r["failures"]:
+        print(f"    problem {f['problem']} ({f['rig']}): {f['error']}")
+    g = r["gap_to_reference"]
+    if g is not None:
+        ref = r["reference"]
+        print(f"  objective gap to CasADi/IPOPT (full NLP): p50 {g['p50']:+.2e}, max {g['max']:+.2e}, min {g['min']:+.2e} (goal <= 1e-3) on {ref['solved']} problems; {len(ref['failed'])} reference failures")
+        if ref["solve_ms"]:
+            print(f"  IPOPT in the same run: p50 {ref['solve_ms']['p50']:.1f} ms ({ref['reference_over_ours_solve_p50']:.1f}x ours)")
+    t = r["t_over_toppra"]
+    if t is not None:
+        print(f"  T over toppra's feasible time-optimal T of the same path: p50 {t['p50']:.3f}, max {t['max']:.3f}, min {t['min']:.3f}; toppra slow-down to feasibility p50 {r['toppra']['slowdown']['p50']:.4f}")
+    return 0
+
+
 def cmd_plan(args: argparse.Namespace) -> int:
     """``excavator-rt plan``: a trench task planned dig by dig.
 
@@ -978,6 +1189,25 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--plot", metavar="FILE.png")
     ip.add_argument("--json", action="store_true")
     ip.set_defaults(handler=cmd_interp)
+
+    tj = sub.add_parser("timejerk", help="minimum time-jerk trajectory through waypoints (Zhao eq 3)")
+    tj.add_argument("--rig", default=DEFAULT_RIG)
+    tj.add_argument("--waypoints-deg", nargs="+", required=True, metavar="B,S,K",
+                    help="joint angles of each waypoint in degrees (swing first on a rig with swing: SW,B,S,K)")
+    tj.add_argument("--w-jerk", type=float, default=0.0, metavar="W1", help="weight of the jerk integral (default 0: minimum time, as Zhao's experiment)")
+    tj.add_argument("--w-time", type=float, default=1.0, metavar="W2", help="weight of the total time (> 0)")
+    tj.add_argument("--plot", metavar="FILE.png", help="angles, velocity / V, acceleration / A (needs the plot extra)")
+    tj.add_argument("--json", action="store_true")
+    tj.set_defaults(handler=cmd_timejerk)
+
+    b4 = bench_sub.add_parser("timejerk", help="minimum time-jerk generator: solve time, feasibility, gap to CasADi/IPOPT, T over toppra")
+    b4.add_argument("--problems", type=int, help="seeded random problems (default 200; 8 with --quick)")
+    b4.add_argument("--waypoints", type=int, help="waypoints per problem (default 10; 5 with --quick)")
+    b4.add_argument("--seed", type=int, default=0)
+    b4.add_argument("--quick", action="store_true", help="small sizes (a first look, the tests)")
+    b4.add_argument("--no-reference", action="store_true", help="skip CasADi/IPOPT and toppra (they need the reference extra)")
+    b4.add_argument("--json", action="store_true")
+    b4.set_defaults(handler=cmd_bench_timejerk)
 
     pl = sub.add_parser("plan", help="plan a trench task dig by dig (Yao Fig. 5, Table 3); exit 1 when the plan is incomplete")
     pl.add_argument("--task", required=True, help="A, B, C, D (Yao Table 3) or a TOML file")

@@ -1,1 +1,2 @@
-"""Joint-space trajectories: sextic (Yao), mixed-order interpolation (Gao), sampling."""
+"""Joint-space trajectories: sextic (Yao), mixed-order interpolation (Gao), minimum time-jerk
+through waypoints (Zhao)."""

@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from rt_runtime.bench import percentiles
 from rt_runtime.errors import ConfigurationError, PlanningError
+from rt_runtime.reports import Distribution
 from rt_runtime.rig import load_rig, profile_names
 from rt_runtime.trajectory import timejerk
 
@@ -393,7 +393,7 @@ def bench_timejerk(
     def ms(values: list[float]) -> dict[str, float] | None:
         if not values:
             return None
-        return {**percentiles(np.array(values) * 1e3), "max": float(np.max(values) * 1e3)}
+        return Distribution.spread(np.array(values) * 1e3).to_json()
 
     out: dict[str, Any] = {
         "problems": len(problems),
@@ -403,7 +403,7 @@ def bench_timejerk(
         "solve_ms_by_joints": {k: ms(v) for k, v in sorted(by_joints.items())},
         "solve_cpu_ms": ms(cpu_s),
         "load_average": list(os.getloadavg()),
-        "iterations": {**percentiles(iterations), "max": float(max(iterations))}
+        "iterations": Distribution.spread(iterations).to_json()
         if iterations
         else None,
         "feasible": feasible / len(problems),
@@ -486,7 +486,7 @@ def _references(
             "solver": "casadi ipopt, full NLP (coefficients and durations)",
             "solved": len(gaps),
             "failed": ref_failed,
-            "solve_ms": {**percentiles(np.array(ref_s) * 1e3), "max": float(np.max(ref_s) * 1e3)}
+            "solve_ms": Distribution.spread(np.array(ref_s) * 1e3).to_json()
             if ref_s
             else None,
             "reference_over_ours_solve_p50": ref_p50 / ours_p50,

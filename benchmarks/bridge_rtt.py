@@ -9,8 +9,9 @@ change of machine load hits both:
 
 * ``remote``: python-can-remote's ``RemoteServer`` serving python-can's ``virtual`` bus, the far
   end a ``virtual`` bus on it; the runtime's end ``can_remote.RemoteBus``.
-* ``bridge``: :class:`hil_sim.bridge.BridgeServer` polled by the far end's loop; the runtime's
-  end :class:`hil_sim.bridge.BridgeBus`.
+* ``bridge``: the real-time HIL's server, :class:`hil_sim.harness.bridge.Bridge`, driven as the
+  HIL's loop drives it (``wait``, ``receive``, the answers to a SYNC flushed at once); the
+  runtime's end :class:`hil_sim.bridge.BridgeBus`.
 
 It prints, per bridge, the round trip's p50 / p99 in microseconds and the frames per second
 (both directions) over all cycles, and the ratios (round trip remote / bridge, throughput
@@ -67,22 +68,33 @@ def _far_remote() -> None:
 
 
 def _far_bridge() -> None:
-    from hil_sim.bridge import BridgeServer
+    from hil_sim.bridge import RxFrame
+    from hil_sim.harness.bridge import Bridge
 
-    server = BridgeServer(0)
-    print(f"READY {server.port}", flush=True)
-    answers = [(cob, bytes(8)) for cob in ANSWERS]
+    bridge = Bridge(0)
+    print(f"READY {bridge.port}", flush=True)
+    payload = bytes(8)
     running = True
+
+    def on_frame(frame: RxFrame) -> None:
+        nonlocal running
+        cob = frame[1]
+        if cob == 0x080:
+            for answer in ANSWERS:
+                bridge.send(answer, payload)
+            bridge.flush()
+        elif cob == 0x000:
+            running = False
+
     idle = 0
     while running and idle < IDLE_LIMIT:
-        frames = server.poll(1.0)
-        idle = 0 if frames else idle + 1
-        for _stamp, cob, _data, _flags in frames:
-            if cob == 0x080:
-                server.send(answers)
-            elif cob == 0x000:
-                running = False
-    server.close()
+        if bridge.wait(1.0):
+            idle = 0
+            bridge.receive(on_frame)
+            bridge.flush()
+        else:
+            idle += 1
+    bridge.close()
 
 
 def _connect(kind: str) -> tuple[subprocess.Popen[str], can.BusABC]:

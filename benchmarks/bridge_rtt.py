@@ -2,10 +2,11 @@
 
 Role: the measurement behind the bridge's design (:mod:`hil_sim.bridge`). A far-end process
 answers every SYNC with seven frames (three TPDO1, three TPDO2, the VCU status), as the HIL's
-drives do; the runtime's end sends one cycle as the master does (three RPDO1, one SYNC) and waits
-for the seven answers. Each cycle times SYNC sent -> last answer received
-(``time.perf_counter_ns``). Two bridges run in the same invocation, alternating in blocks so a
-change of machine load hits both:
+drives do; the runtime's end sends one cycle as the master does (three RPDO1, one SYNC; in one
+``send_many`` where the bus has it) and waits for the seven answers. Each cycle times SYNC sent
+(the batch's send with ``send_many``) -> last answer received (``time.perf_counter_ns``). Two
+bridges run in the same invocation, alternating in blocks so a change of machine load hits
+both:
 
 * ``remote``: python-can-remote's ``RemoteServer`` serving python-can's ``virtual`` bus, the far
   end a ``virtual`` bus on it; the runtime's end ``can_remote.RemoteBus``.
@@ -118,13 +119,22 @@ def _cycles(bus: can.BusABC, n: int) -> tuple[list[float], float, int]:
     rtt: list[float] = []
     frames = 0
     t0 = time.perf_counter()
+    cycle = [*rpdo, sync]
+    send_many = getattr(bus, "send_many", None)
     for _ in range(n):
-        for msg in rpdo:
-            msg.timestamp = time.time()
-            bus.send(msg)
-        sync.timestamp = time.time()
-        start = time.perf_counter_ns()
-        bus.send(sync)
+        if send_many is not None:
+            stamp = time.time()
+            for msg in cycle:
+                msg.timestamp = stamp
+            start = time.perf_counter_ns()
+            send_many(cycle)
+        else:
+            for msg in rpdo:
+                msg.timestamp = time.time()
+                bus.send(msg)
+            sync.timestamp = time.time()
+            start = time.perf_counter_ns()
+            bus.send(sync)
         got = 0
         while got < len(ANSWERS):
             if bus.recv(1.0) is None:

@@ -16,7 +16,19 @@ not. Its server forwards each frame through python-can's ``virtual`` bus (a ``co
 the message per receiver) and two threads that take the interpreter from the HIL's loop; its
 client masks byte by byte in Python, waits in ``select`` before every frame and overrides
 ``recv`` (so python-can's filters never apply). :class:`BridgeBus` has no thread: one ``recv``
-takes every frame the socket holds, ``send`` is one ``sendall``.
+takes every frame the socket holds (without a ``select`` when they are already there),
+``send`` is one ``sendall`` and ``send_many`` one ``sendall`` for all its frames (the master's
+RPDO1s and SYNC of a cycle).
+
+Masking: RFC 6455 has a client mask every frame with a fresh, unpredictable 32-bit key. The
+key protects intermediaries (caching proxies) from bytes that an untrusted script in a browser
+chose (RFC 6455 10.3). None of that exists here: the bridge connects to 127.0.0.1 only
+(:data:`HOST`), no proxy is between the ends, and the runtime builds every byte. So the
+runtime's end masks with the constant key :data:`CLIENT_MASK_KEY` (four zero bytes): each
+frame has the mask bit and a key, so any websocket server (python-can-remote's included) takes
+and unmasks it, and XOR with it is the identity, so the client skips it and
+:func:`ws_messages` skips it too (design notes H4 has what a fresh key cost). Frames masked
+with any other key (python-can-remote's ``RemoteBus``) are unmasked as RFC 6455 says.
 """
 
 from __future__ import annotations
@@ -30,12 +42,14 @@ import select
 import socket
 import struct
 import time
+from collections.abc import Sequence
 
 import can
 from can_remote.websocket import get_accept_key
 
 __all__ = [
     "BINARY_MESSAGE_TYPE",
+    "CLIENT_MASK_KEY",
     "FLAG_BRS",
     "FLAG_ERROR",
     "FLAG_ESI",
@@ -86,6 +100,13 @@ BINARY_MESSAGE_TYPE = 1
 #: Websocket opcodes (RFC 6455 5.2).
 OP_TEXT, OP_BINARY, OP_CLOSE, OP_PING, OP_PONG = 0x1, 0x2, 0x8, 0x9, 0xA
 
+#: The masking key of every frame the runtime's end sends (see the module docstring): XOR with
+#: it is the identity, so neither end spends work on it.
+CLIENT_MASK_KEY = bytes(4)
+
+#: A client's whole binary frame of a CAN frame: websocket opcode byte, mask bit and length
+#: (<= 125), masking key, then :data:`FRAME`; the data follows.
+_WS_CLIENT_FRAME = struct.Struct(">BB4s" + FRAME.format.lstrip(">"))
 _LEN16 = struct.Struct(">H")
 _LEN64 = struct.Struct(">Q")
 _READ_SIZE = 1 << 16
@@ -101,7 +122,8 @@ class BridgeError(can.CanOperationError):
 
 
 def ws_frame(opcode: int, payload: bytes | bytearray, *, mask: bool) -> bytes:
-    """One unfragmented websocket frame (RFC 6455 5.2); a client masks, a server does not."""
+    """One unfragmented websocket frame (RFC 6455 5.2); a client masks (with
+    :data:`CLIENT_MASK_KEY`, see the module docstring), a server does not."""
     n = len(payload)
     bit = 0x80 if mask else 0
     if n <= 125:
@@ -110,10 +132,22 @@ def ws_frame(opcode: int, payload: bytes | bytearray, *, mask: bool) -> bytes:
         head = bytes((0x80 | opcode, bit | 126)) + _LEN16.pack(n)
     else:
         head = bytes((0x80 | opcode, bit | 127)) + _LEN64.pack(n)
-    if not mask:
-        return head + payload
-    key = os.urandom(4)
-    return head + key + _xor(payload, key)
+    return head + CLIENT_MASK_KEY + payload if mask else head + payload
+
+
+def _client_frame(msg: can.Message) -> bytes:
+    """A message as the client's masked binary websocket frame: one struct pack when it fits
+    the one-byte websocket length (a CAN frame's does: 15 + at most 64 bytes)."""
+    data = bytes(msg.data)
+    n = FRAME.size + len(data)
+    flags = message_flags(msg)
+    if n > 125:
+        head = FRAME.pack(BINARY_MESSAGE_TYPE, msg.timestamp, msg.arbitration_id, msg.dlc, flags)
+        return ws_frame(OP_BINARY, head + data, mask=True)
+    return _WS_CLIENT_FRAME.pack(
+        0x80 | OP_BINARY, 0x80 | n, CLIENT_MASK_KEY, BINARY_MESSAGE_TYPE,
+        msg.timestamp, msg.arbitration_id, msg.dlc, flags,
+    ) + data  # fmt: skip
 
 
 def _xor(payload: bytes | bytearray, key: bytes | bytearray) -> bytes:
@@ -153,7 +187,7 @@ def ws_messages(buf: bytearray) -> list[tuple[int, bytes]]:
         if end - start < n:
             break
         payload = bytes(buf[start : start + n])
-        if masked:
+        if masked and buf[head : head + 4] != CLIENT_MASK_KEY:
             payload = _xor(payload, buf[head : head + 4])
         out.append((b0 & 0x0F, payload))
         pos = start + n
@@ -189,8 +223,9 @@ class BridgeBus(can.BusABC):
 
     Received frames carry the sender's timestamp (s since the epoch); sent frames carry the
     message's own (the master stamps ``time.time()`` at send). ``send`` never waits for the
-    far end. Safe inside the loop: one ``sendall`` per frame sent, one ``recv`` per batch of
-    frames received, one ``can.Message`` per frame received.
+    far end. Safe inside the loop: one ``sendall`` per :meth:`send` or :meth:`send_many`, one
+    ``recv`` per batch of frames received (a ``select`` only when none is there and the
+    timeout allows a wait), one ``can.Message`` per frame received.
 
     Args:
         port: The server's TCP port on 127.0.0.1.
@@ -275,33 +310,51 @@ class BridgeBus(can.BusABC):
         Raises:
             BridgeError: The bus is shut down or the connection broke.
         """
+        self._write(_client_frame(msg))
+
+    def send_many(self, msgs: Sequence[can.Message]) -> None:
+        """Send frames in order in one write (one ``sendall``): the master's cycle (RPDO1s and
+        SYNC) costs one system call instead of one a frame. Loop safe.
+
+        Raises:
+            BridgeError: The bus is shut down or the connection broke (then none, some or all
+                of the frames went out).
+        """
+        self._write(b"".join([_client_frame(msg) for msg in msgs]))
+
+    def _write(self, data: bytes) -> None:
         if self._closed or self._shut:
             raise BridgeError(f"{self.channel_info}: send on a closed bus")
-        payload = FRAME.pack(
-            BINARY_MESSAGE_TYPE, msg.timestamp, msg.arbitration_id, msg.dlc, message_flags(msg)
-        ) + bytes(msg.data)
         try:
-            self._sock.sendall(ws_frame(OP_BINARY, payload, mask=True))
+            self._sock.sendall(data)
         except OSError as exc:
             raise BridgeError(f"{self.channel_info}: {exc}") from exc
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if self._shut:
             raise BridgeError(f"{self.channel_info}: receive on a shut down bus")
+        if not self._rx:
+            # Take what the socket holds first: no select when the answers are already there.
+            self._fill(socket.MSG_DONTWAIT)
         if self._rx:
             return self._rx.popleft(), False
-        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
+        if timeout is not None and timeout <= 0.0:
+            return None, False
+        deadline = None if timeout is None else time.monotonic() + timeout
         while not self._rx:
             wait = None if deadline is None else max(deadline - time.monotonic(), 0.0)
             ready, _, _ = select.select([self._sock], [], [], wait)
             if not ready:
                 return None, False
-            self._fill()
+            self._fill(0)
         return self._rx.popleft(), False
 
-    def _fill(self) -> None:
+    def _fill(self, flags: int) -> None:
+        """Read what the socket holds (``flags``: ``MSG_DONTWAIT`` or 0) and queue its frames."""
         try:
-            chunk = self._sock.recv(_READ_SIZE)
+            chunk = self._sock.recv(_READ_SIZE, flags)
+        except BlockingIOError:
+            return
         except OSError as exc:
             raise BridgeError(f"{self.channel_info}: {exc}") from exc
         if not chunk:
@@ -309,14 +362,26 @@ class BridgeBus(can.BusABC):
             raise BridgeError(f"{self.channel_info}: the server closed the connection")
         self._inbuf += chunk
         rx = self._rx
+        channel = self.channel_info
         for opcode, payload in ws_messages(self._inbuf):
             if opcode == OP_BINARY:
                 if len(payload) < FRAME.size or payload[0] != BINARY_MESSAGE_TYPE:
                     continue
                 _, stamp, arbitration_id, dlc, flags = FRAME.unpack_from(payload)
                 data = payload[FRAME.size : FRAME.size + dlc]
-                rx.append(
-                    can.Message(
+                if not flags & ~FLAG_EXTENDED:
+                    # A data frame, the drives' every frame: python-can's defaults for the rest
+                    # (fewer keywords, the cheaper constructor call).
+                    msg = can.Message(
+                        timestamp=stamp,
+                        arbitration_id=arbitration_id,
+                        is_extended_id=bool(flags),
+                        data=data,
+                        channel=channel,
+                        check=False,
+                    )
+                else:
+                    msg = can.Message(
                         timestamp=stamp,
                         arbitration_id=arbitration_id,
                         is_extended_id=bool(flags & FLAG_EXTENDED),
@@ -327,13 +392,12 @@ class BridgeBus(can.BusABC):
                         error_state_indicator=bool(flags & FLAG_ESI),
                         dlc=dlc,
                         data=data,
-                        channel=self.channel_info,
-                        is_rx=True,
+                        channel=channel,
                         check=False,
                     )
-                )
+                rx.append(msg)
             elif opcode == OP_PING:
-                self._sock.sendall(ws_frame(OP_PONG, payload, mask=True))
+                self._write(ws_frame(OP_PONG, payload, mask=True))
             elif opcode == OP_CLOSE:
                 self._closed = True
             elif opcode == OP_TEXT:

@@ -175,6 +175,19 @@ class TestTransport:
         for msg in frames:
             _same(pair.bus.recv(1.0), msg)
 
+    def test_a_cycle_sent_at_once_arrives_in_order(self, pair: Pair) -> None:
+        # The master's cycle through the optional send_many where the bus has it.
+        frames = [_frame(0x201 + i, bytes([i]) * 8) for i in range(3)] + [_frame(0x080, b"")]
+        send_many = getattr(pair.bus, "send_many", None)
+        for _ in range(2):
+            if send_many is not None:
+                send_many(frames)
+            else:
+                for msg in frames:
+                    pair.bus.send(msg)
+        for msg in frames + frames:
+            _same(pair.far.recv(1.0), msg)
+
     def test_the_sender_may_reuse_its_message(self, pair: Pair) -> None:
         msg = _frame(0x201, bytes(8))
         pair.bus.send(msg)

@@ -23,6 +23,10 @@ Buses (python-can backends: ``send`` and ``_recv_internal``, nothing private of 
 ``traced``     ``TracedBus``: any bus, every frame sent and received handed to a trace writer
 =============  ==================================================================================
 
+A bus may have ``send_many(msgs)`` (the messages in order, in one write): the master then sends
+each cycle's RPDO1s and SYNC in one call (the 127.0.0.1 bridge's end has it); on any other bus
+one ``send`` a frame.
+
 The protocol modules read no clock: boot and enable take ``now_fn`` (monotonic or simulated
 seconds), the cycle takes ``now_s``. Nothing here starts a thread: the master is the bus's only
 reader, and hands every frame that is not its drives' to

@@ -402,7 +402,11 @@ class CanMaster:
 
     Args:
         bus: Any python-can bus (socketcan, kvaser, ``virtual``, a remote bridge). The master
-            becomes its only reader; it does not own or shut it down.
+            becomes its only reader; it does not own or shut it down. Optional capability: a
+            bus with ``send_many(msgs)`` (send the messages in order, in one write; raise
+            ``can.CanError`` as ``send`` does) gets each cycle's RPDO1s and SYNC in one call
+            (the 127.0.0.1 bridge: one system call instead of four); any other bus gets one
+            ``send`` a frame, which is what a socketcan socket takes anyway.
         rig: The rig (node ids, drive settings, cylinder travel, bitrate).
         eds_path: The drives' EDS; its PDO layout must match the codecs.
         master_node_id: Node id of the master's heartbeat (COB-ID 0x700 + id).
@@ -448,6 +452,10 @@ class CanMaster:
         self._rpdo1 = [pdo_message(RPDO1, node) for node in self.config.node_ids]
         self._rpdo2 = [pdo_message(RPDO2, node) for node in self.config.node_ids]
         self._sync = sync_message()
+        self._cycle_frames = (*self._rpdo1, self._sync)
+        self._send_many: Callable[[Sequence[can.Message]], None] | None = getattr(
+            bus, "send_many", None
+        )
         self._producer = HeartbeatProducer(
             master_node_id, self.config.heartbeat_period_s, NmtState.OPERATIONAL
         )
@@ -591,6 +599,10 @@ class CanMaster:
 
     def _send_sync(self) -> None:
         self._tx(self._sync)
+        self._synced()
+
+    def _synced(self) -> None:
+        """A SYNC went out: the drives' TPDO1s that follow answer it."""
         self.feedback.sync_count += 1
         self._pending = self.n
 
@@ -801,8 +813,12 @@ class CanMaster:
     ) -> WriteStatus:
         """Send RPDO1 (target stroke, velocity offset) to every drive, then SYNC.
 
+        The frames are stamped with their send time (``time.time()``). On a bus with
+        ``send_many`` (see :class:`CanMaster`) they go in one call, one stamp for all four;
+        on any other bus one ``send`` each.
+
         Safe inside the loop: packs into the master's preallocated messages (no allocation but
-        what python-can's ``send`` does) and never raises for bus errors.
+        what the bus's send does) and never raises for bus errors.
 
         Args:
             stroke_um: Target stroke per axis, integer micrometres, shape ``(n,)``.
@@ -810,7 +826,8 @@ class CanMaster:
 
         Returns:
             ``OK``; ``OUT_OF_RANGE`` (nothing sent) when a value does not fit an i32 or an array
-            is shorter than ``n``; ``BUS_ERROR`` when the bus refused a frame.
+            is shorter than ``n``; ``BUS_ERROR`` when the bus refused a frame (the SYNC is then
+            not counted as sent).
         """
         try:
             for axis in range(self.n):
@@ -820,9 +837,16 @@ class CanMaster:
         except (struct.error, IndexError, OverflowError, ValueError):
             return WriteStatus.OUT_OF_RANGE
         try:
-            for msg in self._rpdo1:
-                self._tx(msg)
-            self._send_sync()
+            if self._send_many is not None:
+                stamp = time.time()
+                for msg in self._cycle_frames:
+                    msg.timestamp = stamp
+                self._send_many(self._cycle_frames)
+                self._synced()
+            else:
+                for msg in self._rpdo1:
+                    self._tx(msg)
+                self._send_sync()
         except can.CanError:
             return WriteStatus.BUS_ERROR
         return WriteStatus.OK

@@ -23,17 +23,16 @@ from numpy.typing import NDArray
 
 from rt_runtime.actuation import stroke_limits
 from rt_runtime.canbus.cia402 import DriveState
-from rt_runtime.canbus.emcy import EmcyCode
-from rt_runtime.canbus.heartbeat import HeartbeatEventKind
-from rt_runtime.canbus.master import (
+from rt_runtime.canbus.config import (
     DEFAULT_EDS,
-    CanMaster,
-    CycleStatus,
     MasterConfig,
-    WriteStatus,
     configuration_writes,
     interpolation_period,
 )
+from rt_runtime.canbus.emcy import EmcyCode
+from rt_runtime.canbus.feedback import CycleStatus, WriteStatus
+from rt_runtime.canbus.heartbeat import HeartbeatEventKind
+from rt_runtime.canbus.master import CanMaster
 from rt_runtime.canbus.scripted import RX, TX, ScriptClock, ScriptedBus, Step
 from rt_runtime.canbus.sdo import SdoAbortedError
 from rt_runtime.canbus.simtime import SimulatedTimeBus

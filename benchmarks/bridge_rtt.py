@@ -2,15 +2,17 @@
 
 Role: the measurement behind the bridge's design (:mod:`hil_sim.bridge`). A far-end process
 answers every SYNC with seven frames (three TPDO1, three TPDO2, the VCU status), as the HIL's
-drives do; the runtime's end sends one cycle as the master does (three RPDO1, one SYNC) and waits
-for the seven answers. Each cycle times SYNC sent -> last answer received
-(``time.perf_counter_ns``). Two bridges run in the same invocation, alternating in blocks so a
-change of machine load hits both:
+drives do; the runtime's end sends one cycle as the master does (three RPDO1, one SYNC; in one
+``send_many`` where the bus has it) and waits for the seven answers. Each cycle times SYNC sent
+(the batch's send with ``send_many``) -> last answer received (``time.perf_counter_ns``). Two
+bridges run in the same invocation, alternating in blocks so a change of machine load hits
+both:
 
 * ``remote``: python-can-remote's ``RemoteServer`` serving python-can's ``virtual`` bus, the far
   end a ``virtual`` bus on it; the runtime's end ``can_remote.RemoteBus``.
-* ``bridge``: :class:`hil_sim.bridge.BridgeServer` polled by the far end's loop; the runtime's
-  end :class:`hil_sim.bridge.BridgeBus`.
+* ``bridge``: the real-time HIL's server, :class:`hil_sim.harness.bridge.Bridge`, driven as the
+  HIL's loop drives it (``wait``, ``receive``, the answers to a SYNC flushed at once); the
+  runtime's end :class:`hil_sim.bridge.BridgeBus`.
 
 It prints, per bridge, the round trip's p50 / p99 in microseconds and the frames per second
 (both directions) over all cycles, and the ratios (round trip remote / bridge, throughput
@@ -67,22 +69,33 @@ def _far_remote() -> None:
 
 
 def _far_bridge() -> None:
-    from hil_sim.bridge import BridgeServer
+    from hil_sim.bridge import RxFrame
+    from hil_sim.harness.bridge import Bridge
 
-    server = BridgeServer(0)
-    print(f"READY {server.port}", flush=True)
-    answers = [(cob, bytes(8)) for cob in ANSWERS]
+    bridge = Bridge(0)
+    print(f"READY {bridge.port}", flush=True)
+    payload = bytes(8)
     running = True
+
+    def on_frame(frame: RxFrame) -> None:
+        nonlocal running
+        cob = frame[1]
+        if cob == 0x080:
+            for answer in ANSWERS:
+                bridge.send(answer, payload)
+            bridge.flush()
+        elif cob == 0x000:
+            running = False
+
     idle = 0
     while running and idle < IDLE_LIMIT:
-        frames = server.poll(1.0)
-        idle = 0 if frames else idle + 1
-        for _stamp, cob, _data, _flags in frames:
-            if cob == 0x080:
-                server.send(answers)
-            elif cob == 0x000:
-                running = False
-    server.close()
+        if bridge.wait(1.0):
+            idle = 0
+            bridge.receive(on_frame)
+            bridge.flush()
+        else:
+            idle += 1
+    bridge.close()
 
 
 def _connect(kind: str) -> tuple[subprocess.Popen[str], can.BusABC]:
@@ -106,13 +119,22 @@ def _cycles(bus: can.BusABC, n: int) -> tuple[list[float], float, int]:
     rtt: list[float] = []
     frames = 0
     t0 = time.perf_counter()
+    cycle = [*rpdo, sync]
+    send_many = getattr(bus, "send_many", None)
     for _ in range(n):
-        for msg in rpdo:
-            msg.timestamp = time.time()
-            bus.send(msg)
-        sync.timestamp = time.time()
-        start = time.perf_counter_ns()
-        bus.send(sync)
+        if send_many is not None:
+            stamp = time.time()
+            for msg in cycle:
+                msg.timestamp = stamp
+            start = time.perf_counter_ns()
+            send_many(cycle)
+        else:
+            for msg in rpdo:
+                msg.timestamp = time.time()
+                bus.send(msg)
+            sync.timestamp = time.time()
+            start = time.perf_counter_ns()
+            bus.send(sync)
         got = 0
         while got < len(ANSWERS):
             if bus.recv(1.0) is None:

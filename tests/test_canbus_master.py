@@ -23,17 +23,16 @@ from numpy.typing import NDArray
 
 from rt_runtime.actuation import stroke_limits
 from rt_runtime.canbus.cia402 import DriveState
-from rt_runtime.canbus.emcy import EmcyCode
-from rt_runtime.canbus.heartbeat import HeartbeatEventKind
-from rt_runtime.canbus.master import (
+from rt_runtime.canbus.config import (
     DEFAULT_EDS,
-    CanMaster,
-    CycleStatus,
     MasterConfig,
-    WriteStatus,
     configuration_writes,
     interpolation_period,
 )
+from rt_runtime.canbus.emcy import EmcyCode
+from rt_runtime.canbus.feedback import CycleStatus, WriteStatus
+from rt_runtime.canbus.heartbeat import HeartbeatEventKind
+from rt_runtime.canbus.master import CanMaster
 from rt_runtime.canbus.scripted import RX, TX, ScriptClock, ScriptedBus, Step
 from rt_runtime.canbus.sdo import SdoAbortedError
 from rt_runtime.canbus.simtime import SimulatedTimeBus
@@ -328,6 +327,36 @@ def test_cycle_byte_exact(enabled: Enabled) -> None:
     snapshot = fb.copy()
     assert snapshot.position_um is not fb.position_um
     assert list(snapshot.position_um) == list(fb.position_um)
+
+
+def test_a_bus_with_send_many_gets_the_cycle_in_one_call(enabled: Enabled) -> None:
+    """The optional capability: RPDO1s and SYNC in one ``send_many``, the same bytes in the same
+    order as one ``send`` each, one send stamp for all; a refused batch is a status."""
+    enabled_master, bus, _ = enabled
+    batches: list[list[can.Message]] = []
+    refuse = False
+
+    def send_many(msgs: Sequence[can.Message]) -> None:
+        if refuse:
+            raise can.CanOperationError("transmit buffer full")
+        batches.append(list(msgs))
+        for msg in msgs:
+            bus.send(msg)
+
+    bus.send_many = send_many  # type: ignore[attr-defined]
+    master = CanMaster(bus, enabled_master.rig)  # the capability is looked up at construction
+    stroke, velocity = [100_010, 199_990, 50_000], [5_000, -5_000, 0]
+    bus.extend(setpoint_frames(stroke, velocity))
+    before = time.time()
+    assert master.write_setpoints(stroke, velocity) is WriteStatus.OK
+    bus.assert_done()
+    assert [len(b) for b in batches] == [4]
+    assert [m.arbitration_id for m in batches[0]] == [*(0x200 + n for n in NODES), 0x080]
+    assert len({m.timestamp for m in batches[0]}) == 1 and batches[0][0].timestamp >= before
+    assert master.feedback.sync_count == 1
+    refuse = True
+    assert master.write_setpoints(stroke, velocity) is WriteStatus.BUS_ERROR
+    assert master.feedback.sync_count == 1
 
 
 def test_tpdo2_is_not_awaited_and_a_change_is_taken_when_it_comes(enabled: Enabled) -> None:

@@ -24,6 +24,7 @@ from rt_runtime.canbus.busload import (
     frame_bits_nominal,
     frame_bits_worst,
 )
+from rt_runtime.canbus.config import DEFAULT_EDS
 from rt_runtime.canbus.emcy import EmcyCode, emcy_message, parse_emcy
 from rt_runtime.canbus.heartbeat import (
     HeartbeatConsumer,
@@ -33,7 +34,6 @@ from rt_runtime.canbus.heartbeat import (
     heartbeat_message,
     parse_heartbeat,
 )
-from rt_runtime.canbus.master import DEFAULT_EDS
 from rt_runtime.canbus.nmt import NmtCommand, NmtState, nmt_message, parse_nmt
 from rt_runtime.canbus.pdo import (
     RPDO1,

@@ -152,8 +152,8 @@ def test_a_remote_client_reaches_the_hil_and_hears_it(served: _Served) -> None:
         bus.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
         served.pump()
         assert [(f[1], f[2], f[3]) for f in served.received] == [
-            (0x201, b"\x01\x02\x03\x04\x05\x06\x07\x08", False),
-            (0x080, b"", False),
+            (0x201, b"\x01\x02\x03\x04\x05\x06\x07\x08", 0),
+            (0x080, b"", 0),
         ]
         assert served.received[0][0] == sent_at
         served.bridge.send(0x181, b"\x10\x20\x30")

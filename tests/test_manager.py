@@ -202,10 +202,10 @@ def test_the_demo_reaches_its_first_cyclic_rpdo1_in_few_calls(
     project's code across at most 8 modules (the data flow of DESIGN.md, visible)."""
     import traceback
 
-    from rt_runtime.canbus import master as master_module
+    from rt_runtime.canbus.cyclic import CyclicExchange
     from rt_runtime.cli import main
 
-    original = master_module.CanMaster._tx
+    original = CyclicExchange.tx
     chains: list[list[traceback.FrameSummary]] = []
 
     def spy(self: Any, msg: Any) -> None:
@@ -216,7 +216,7 @@ def test_the_demo_reaches_its_first_cyclic_rpdo1_in_few_calls(
                 raise _Reached
         original(self, msg)
 
-    monkeypatch.setattr(master_module.CanMaster, "_tx", spy)
+    monkeypatch.setattr(CyclicExchange, "tx", spy)
     with pytest.raises(_Reached):
         main(["demo", "--out", str(tmp_path), "--no-plots", "--max-digs", "1"])
     stack = chains[0]

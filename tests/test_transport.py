@@ -5,9 +5,9 @@ After python-can's ``test/back2back_test.py``: two ends of one bus, the runtime'
 
 * ``lockstep``: :class:`hil_sim.harness.lockstep.LockstepBus` on an in-process channel, simulated
   clock; the far end is another end of the channel (the lockstep HIL's own end is one).
-* ``bridge``: :class:`hil_sim.bridge.BridgeBus` over 127.0.0.1 to a
-  :class:`hil_sim.bridge.BridgeServer`, wall clock; the far end is the server as the real-time
-  HIL's loop uses it (``poll`` and ``send``), adapted to a python-can bus here.
+* ``bridge``: :class:`hil_sim.bridge.BridgeBus` over 127.0.0.1 to the real-time HIL's server,
+  :class:`hil_sim.harness.bridge.Bridge`, wall clock; the far end is that server as the HIL's
+  loop uses it (``wait``, ``receive``, ``send``, ``flush``), adapted to a python-can bus here.
 
 What the runtime relies on: frames both ways with their fields, in order; a copy made at send
 (the master repacks one message every cycle); ``recv(timeout)`` returning None once the
@@ -26,43 +26,61 @@ from dataclasses import dataclass
 import can
 import pytest
 
-from hil_sim.bridge import FLAG_ERROR, FLAG_EXTENDED, BridgeBus, BridgeServer
+from hil_sim.bridge import (
+    FLAG_BRS,
+    FLAG_ERROR,
+    FLAG_ESI,
+    FLAG_EXTENDED,
+    FLAG_FD,
+    FLAG_REMOTE,
+    BridgeBus,
+    RxFrame,
+    message_flags,
+)
+from hil_sim.harness.bridge import Bridge
 from hil_sim.harness.lockstep import LockstepBus, LockstepClock
 from rt_runtime.canbus.inprocess import InProcessChannel
 
 
 class _ServerEnd(can.BusABC):
-    """The bridge's far end as the real-time HIL drives it (``poll``, ``send``), as a bus."""
+    """The bridge's far end as the real-time HIL drives it (``wait``, ``receive``, ``send``,
+    ``flush``), as a bus: every flag and the sender's stamp both ways."""
 
-    def __init__(self, server: BridgeServer) -> None:
-        self.server = server
-        self.channel_info = "bridge server"
+    def __init__(self, bridge: Bridge) -> None:
+        self.bridge = bridge
+        self.channel_info = "HIL bridge"
         self._rx: deque[can.Message] = deque()
-        super().__init__(channel="bridge-server")
+        super().__init__(channel="hil-bridge")
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        flags = (FLAG_EXTENDED if msg.is_extended_id else 0) | (
-            FLAG_ERROR if msg.is_error_frame else 0
-        )
         stamp = msg.timestamp if msg.timestamp > 0.0 else None
-        self.server.send([(msg.arbitration_id, bytes(msg.data))], stamp, flags)
+        self.bridge.send(msg.arbitration_id, bytes(msg.data), message_flags(msg), stamp)
+        self.bridge.flush()
+
+    def _take(self, frame: RxFrame) -> None:
+        stamp, arbitration_id, data, flags = frame
+        self._rx.append(
+            can.Message(
+                timestamp=stamp,
+                arbitration_id=arbitration_id,
+                is_extended_id=bool(flags & FLAG_EXTENDED),
+                is_remote_frame=bool(flags & FLAG_REMOTE),
+                is_error_frame=bool(flags & FLAG_ERROR),
+                is_fd=bool(flags & FLAG_FD),
+                bitrate_switch=bool(flags & FLAG_BRS),
+                error_state_indicator=bool(flags & FLAG_ESI),
+                data=data,
+            )
+        )
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        if not self._rx:
-            for stamp, arbitration_id, data, flags in self.server.poll(timeout):
-                self._rx.append(
-                    can.Message(
-                        timestamp=stamp,
-                        arbitration_id=arbitration_id,
-                        is_extended_id=bool(flags & FLAG_EXTENDED),
-                        is_error_frame=bool(flags & FLAG_ERROR),
-                        data=data,
-                    )
-                )
+        if not self._rx and self.bridge.wait(1.0 if timeout is None else timeout):
+            self.bridge.receive(self._take)
+            self.bridge.flush()
         return (self._rx.popleft() if self._rx else None), False
 
     def shutdown(self) -> None:
-        self.server.close()
+        self.bridge.close()
         super().shutdown()
 
 
@@ -85,16 +103,18 @@ def _lockstep() -> Pair:
 
 
 def _bridge() -> Pair:
-    server = BridgeServer(0)
+    bridge = Bridge(0)
     made: list[BridgeBus] = []
-    connect = threading.Thread(target=lambda: made.append(BridgeBus(server.port)))
+    connect = threading.Thread(target=lambda: made.append(BridgeBus(bridge.port)))
     connect.start()
     deadline = time.monotonic() + 10.0
-    while server.clients == 0 and time.monotonic() < deadline:
-        server.poll(0.05)
+    while bridge.clients == 0 and time.monotonic() < deadline:
+        if bridge.wait(0.05):
+            bridge.receive(lambda _frame: None)
+        bridge.flush()
     connect.join(10.0)
     assert made, "the bridge did not connect"
-    return Pair(made[0], _ServerEnd(server), time.time, simulated=False)
+    return Pair(made[0], _ServerEnd(bridge), time.time, simulated=False)
 
 
 @pytest.fixture(params=["lockstep", "bridge"])
@@ -154,6 +174,19 @@ class TestTransport:
             pair.far.send(msg)
         for msg in frames:
             _same(pair.bus.recv(1.0), msg)
+
+    def test_a_cycle_sent_at_once_arrives_in_order(self, pair: Pair) -> None:
+        # The master's cycle through the optional send_many where the bus has it.
+        frames = [_frame(0x201 + i, bytes([i]) * 8) for i in range(3)] + [_frame(0x080, b"")]
+        send_many = getattr(pair.bus, "send_many", None)
+        for _ in range(2):
+            if send_many is not None:
+                send_many(frames)
+            else:
+                for msg in frames:
+                    pair.bus.send(msg)
+        for msg in frames + frames:
+            _same(pair.far.recv(1.0), msg)
 
     def test_the_sender_may_reuse_its_message(self, pair: Pair) -> None:
         msg = _frame(0x201, bytes(8))
@@ -217,6 +250,24 @@ class TestTransport:
         assert got is not None and got.is_error_frame
         _same(pair.bus.recv(1.0), _frame(0x181, b"\x01"))
 
+    def test_every_flag_arrives_both_ways(self, pair: Pair) -> None:
+        frames = [
+            can.Message(arbitration_id=0x123, is_fd=True, bitrate_switch=True,
+                        error_state_indicator=True, data=bytes(range(12)), is_extended_id=False),
+            can.Message(arbitration_id=0x1ABCDEF, is_fd=True, data=bytes(64)),
+            can.Message(arbitration_id=0x201, is_remote_frame=True, is_extended_id=False),
+        ]  # fmt: skip
+        for send, recv in ((pair.bus, pair.far), (pair.far, pair.bus)):
+            for msg in frames:
+                send.send(msg)
+            for msg in frames:
+                got = recv.recv(1.0)
+                assert got is not None, f"nothing received for {msg}"
+                assert (got.arbitration_id, bytes(got.data)) == (msg.arbitration_id, msg.data)
+                fields = ("is_extended_id", "is_remote_frame", "is_error_frame", "is_fd",
+                          "bitrate_switch", "error_state_indicator")  # fmt: skip
+                assert [getattr(got, f) for f in fields] == [getattr(msg, f) for f in fields]
+
     def test_shutdown_ends_the_bus(self, pair: Pair) -> None:
         pair.bus.send(_frame(0x201, b"\x01"))
         pair.bus.shutdown()
@@ -252,8 +303,10 @@ def test_the_bridge_speaks_python_can_remote_protocol() -> None:
         for msg in frames:
             bus.send(msg)
             got = far.recv(2.0)
-            assert got is not None and got.dlc == msg.dlc and got.is_remote_frame == (
-                msg.is_remote_frame
+            assert (
+                got is not None
+                and got.dlc == msg.dlc
+                and got.is_remote_frame == (msg.is_remote_frame)
             )
             _same_kind = got.is_extended_id == msg.is_extended_id
             assert _same_kind and got.is_error_frame == msg.is_error_frame

@@ -1,25 +1,29 @@
 """The real-time HIL's bus bridge: python-can-remote's websocket protocol, served in the HIL's loop.
 
-Role: the bus between the runtime and the real-time HIL process (:mod:`hil_sim.harness.realtime`).
-The runtime connects with python-can's ``remote`` interface (``can_remote.RemoteBus``, channel
-``ws://127.0.0.1:<port>/``); this module is the server end of that protocol, written for one
-single-threaded loop instead of python-can-remote's ``RemoteServer`` (a thread per client and
-per direction, each frame a ``can.Message`` deep-copied through a ``virtual`` bus).
+Role: the server end of the 127.0.0.1 bridge, the only one: the real-time HIL process
+(:mod:`hil_sim.harness.realtime`) serves its drives through it, the transport contract test and
+the bridge benchmark (``benchmarks/bridge_rtt.py``) put their far end on it. The runtime connects
+with :class:`hil_sim.bridge.BridgeBus` or python-can's ``remote`` interface
+(``can_remote.RemoteBus``, channel ``ws://127.0.0.1:<port>/``); this module serves that protocol
+in one single-threaded loop instead of python-can-remote's ``RemoteServer`` (a thread per client
+and per direction, each frame a ``can.Message`` deep-copied through a ``virtual`` bus). The
+protocol's constants and websocket framing are :mod:`hil_sim.bridge`'s.
 
 Wire protocol (python-can-remote 0.2, subprotocol ``can.binary+json.v1``, or ``can.json.v1`` for
 a client that offers only that): an HTTP upgrade, then websocket frames. A text frame is a JSON
 event ``{"type": ..., "payload": ...}``: the client's ``bus_request`` is answered with a
 ``bus_response``; ``message`` carries a frame as JSON (``can.json.v1``); other events are answered
 with an ``error`` event. A binary frame of type 1 is one CAN frame: ``>dIBB`` (timestamp,
-arbitration id, DLC, flags) and the data bytes. Client frames are masked (RFC 6455), server
-frames are not.
+arbitration id, DLC, flags: extended, remote, error, FD, BRS, ESI) and the data bytes. Client
+frames are masked (RFC 6455), server frames are not.
 
-Bus semantics: a frame a client sends reaches the HIL and every other client (as on the
-``virtual`` bus the bridge replaces: no client receives its own frames); a frame the HIL sends
-reaches every client, stamped with ``time.time()`` at sending. Nothing is copied per receiver:
-the HIL's frame is packed once, into one preallocated buffer per frame size, and appended to
-each client's output buffer; the frames a loop iteration produces leave in one ``send`` per
-client (:meth:`Bridge.flush`).
+Bus semantics: a frame a client sends reaches the HIL, flags and stamp as sent, and every other
+client (as on the ``virtual`` bus the bridge replaces: no client receives its own frames); a
+frame the HIL sends reaches every client, stamped with ``time.time()`` at sending unless the
+HIL gives a stamp. Nothing is copied per receiver: the HIL's frame is packed once, into one
+preallocated buffer per data length, and appended to each client's output buffer; the frames a
+loop iteration produces leave in one ``send`` per client (:meth:`Bridge.flush`). A remote
+frame's DLC reaches the HIL as no data (as python-can-remote's client reads it).
 
 Sockets are non-blocking and bound to 127.0.0.1 only. A client that does not read (its kernel
 buffer full) keeps up to :data:`MAX_PENDING_BYTES` queued; frames beyond that are dropped for
@@ -38,29 +42,54 @@ import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 from can_remote.websocket import get_accept_key
 
-__all__ = ["MAX_PENDING_BYTES", "Bridge", "RxFrame"]
+from hil_sim.bridge import (
+    BINARY_MESSAGE_TYPE,
+    FLAG_BRS,
+    FLAG_ERROR,
+    FLAG_ESI,
+    FLAG_EXTENDED,
+    FLAG_FD,
+    FLAG_REMOTE,
+    FRAME,
+    HOST,
+    OP_BINARY,
+    OP_CLOSE,
+    OP_PING,
+    OP_PONG,
+    OP_TEXT,
+    PROTOCOL,
+    PROTOCOL_JSON,
+    RxFrame,
+    ws_frame,
+    ws_messages,
+)
+
+__all__ = ["MAX_DATA_BYTES", "MAX_PENDING_BYTES", "Bridge", "RxFrame"]
 
 #: Output bytes queued for one client before its further frames are dropped.
 MAX_PENDING_BYTES = 1 << 20
+#: Longest data field the HIL sends (a CAN FD frame's).
+MAX_DATA_BYTES = 64
 
-_BINARY_MESSAGE_TYPE = 1
-#: Frame header of a binary CAN message: timestamp, arbitration id, DLC, flags.
-_CAN_HEADER = struct.Struct(">dIBB")
-#: A whole server websocket frame of a classic CAN frame: websocket opcode byte and length
-#: (<= 125: no mask, no extended length), message type, then ``_CAN_HEADER``; the data follows.
-_WS_CAN = struct.Struct(">BBBdIBB")
+#: A whole server websocket frame of a CAN frame: websocket opcode byte and length (<= 125: no
+#: mask, no extended length), then :data:`hil_sim.bridge.FRAME`; the data follows.
+_WS_CAN = struct.Struct(">BB" + FRAME.format.lstrip(">"))
 _WS_CAN_SIZE = _WS_CAN.size
-_TEXT, _BINARY, _CLOSE, _PING, _PONG = 0x1, 0x2, 0x8, 0x9, 0xA
-_FLAG_EXTENDED, _FLAG_REMOTE, _FLAG_ERROR = 0x1, 0x2, 0x4
 _HTTP_END = b"\r\n\r\n"
 _MAX_HTTP_BYTES = 16384
-
-#: One frame received from a client: ``(timestamp_s, arbitration_id, data, is_error_frame)``;
-#: ``timestamp_s`` is the client's stamp (``time.time()`` of its send), 0.0 when unstamped.
-RxFrame = tuple[float, int, bytes, bool]
+#: JSON message fields and the flag each sets (python-can-remote's ``can.json.v1``).
+_JSON_FLAGS = (
+    ("is_extended_id", FLAG_EXTENDED),
+    ("is_remote_frame", FLAG_REMOTE),
+    ("is_error_frame", FLAG_ERROR),
+    ("is_fd", FLAG_FD),
+    ("bitrate_switch", FLAG_BRS),
+    ("error_state_indicator", FLAG_ESI),
+)
 
 
 @dataclass(slots=True, eq=False)
@@ -79,6 +108,9 @@ class _Client:
 class Bridge:
     """The websocket bridge of the real-time HIL: listening socket and its clients.
 
+    One iteration of the owner's loop: :meth:`wait`, :meth:`receive` (frames to a callback),
+    :meth:`send` (queued), :meth:`flush` (one ``send`` per client).
+
     Args:
         port: TCP port on 127.0.0.1 (0: any free one).
         channel_info: Text the ``bus_response`` names the bus by.
@@ -86,9 +118,12 @@ class Bridge:
     Attributes:
         port: The port bound.
         dropped: Frames dropped for clients that did not read.
+
+    Raises:
+        OSError: The port cannot be bound.
     """
 
-    HOST = "127.0.0.1"
+    HOST = HOST
 
     def __init__(self, port: int = 0, channel_info: str = "excavator-rt HIL") -> None:
         self._listen = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -104,8 +139,13 @@ class Bridge:
         # up), too coarse to wake for a 250 us servo tick; a handful of sockets is all there is.
         self._fds: list[int] = [self._listen.fileno()]
         self._ready: list[int] = []
-        # One reusable buffer per data length (0..8): a HIL frame is packed once into it.
-        self._packed = [bytearray(_WS_CAN_SIZE + n) for n in range(9)]
+        # One reusable buffer per data length: a HIL frame is packed once into it.
+        self._packed = [bytearray(_WS_CAN_SIZE + n) for n in range(MAX_DATA_BYTES + 1)]
+
+    @property
+    def clients(self) -> int:
+        """Clients whose bus is open (they receive frames)."""
+        return sum(1 for c in self._clients.values() if c.bus_open)
 
     # -- receiving ----------------------------------------------------------------------------
 
@@ -139,7 +179,10 @@ class Bridge:
             if not client.upgraded:
                 self._handshake(client)
             if client.upgraded and not client.closing:
-                self._frames(client, on_frame)
+                for opcode, payload in ws_messages(client.inbuf):
+                    self._message(client, opcode, payload, on_frame)
+                    if client.closing:
+                        break
 
     def _accept(self) -> None:
         try:
@@ -169,8 +212,8 @@ class Bridge:
             self._drop(client)
             return
         offered = [p.strip() for p in headers.get("sec-websocket-protocol", "").split(",")]
-        client.binary = "can.binary+json.v1" in offered
-        protocol = "can.binary+json.v1" if client.binary else "can.json.v1"
+        client.binary = PROTOCOL in offered
+        protocol = PROTOCOL if client.binary else PROTOCOL_JSON
         reply = (
             "HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
             f"Sec-WebSocket-Accept: {get_accept_key(key)}\r\n"
@@ -180,71 +223,30 @@ class Bridge:
         client.upgraded = True
         self._flush_client(client)
 
-    def _frames(self, client: _Client, on_frame: Callable[[RxFrame], None]) -> None:
-        """Parse every whole websocket frame in the client's buffer."""
-        buf = client.inbuf
-        pos = 0
-        n = len(buf)
-        while n - pos >= 2:
-            b1, b2 = buf[pos], buf[pos + 1]
-            length = b2 & 0x7F
-            head = 2
-            if length == 126:
-                if n - pos < 4:
-                    break
-                length = (buf[pos + 2] << 8) | buf[pos + 3]
-                head = 4
-            elif length == 127:
-                if n - pos < 10:
-                    break
-                length = int.from_bytes(buf[pos + 2 : pos + 10], "big")
-                head = 10
-            masked = b2 & 0x80
-            start = pos + head + (4 if masked else 0)
-            if n - start < length:
-                break
-            payload = bytearray(buf[start : start + length])
-            if masked:
-                mask = buf[pos + head : pos + head + 4]
-                # XOR with the repeated mask as one integer operation.
-                reps = (length + 3) // 4
-                key = int.from_bytes((mask * reps)[:length], "little")
-                payload = bytearray(
-                    (int.from_bytes(payload, "little") ^ key).to_bytes(length, "little")
-                )
-            pos = start + length
-            self._message(client, b1 & 0x0F, payload, on_frame)
-            if client.closing:
-                return
-        del buf[:pos]
-
     def _message(
         self,
         client: _Client,
         opcode: int,
-        payload: bytearray,
+        payload: bytes,
         on_frame: Callable[[RxFrame], None],
     ) -> None:
-        if opcode == _BINARY:
-            if len(payload) < 1 + _CAN_HEADER.size or payload[0] != _BINARY_MESSAGE_TYPE:
+        if opcode == OP_BINARY:
+            if len(payload) < FRAME.size or payload[0] != BINARY_MESSAGE_TYPE:
                 return
-            stamp, arbitration_id, _, flags = _CAN_HEADER.unpack_from(payload, 1)
-            data = bytes(payload[1 + _CAN_HEADER.size :])
+            _, stamp, arbitration_id, _, flags = FRAME.unpack_from(payload)
             self._forward(client, payload, binary=True)
-            on_frame((stamp, arbitration_id, data, bool(flags & _FLAG_ERROR)))
-        elif opcode == _TEXT:
+            on_frame((stamp, arbitration_id, payload[FRAME.size :], flags))
+        elif opcode == OP_TEXT:
             self._event(client, payload, on_frame)
-        elif opcode == _PING:
-            self._queue_ws(client, _PONG, bytes(payload))
+        elif opcode == OP_PING:
+            self._queue_ws(client, OP_PONG, payload)
             self._flush_client(client)
-        elif opcode == _CLOSE:
-            self._queue_ws(client, _CLOSE, bytes(payload[:2]))
+        elif opcode == OP_CLOSE:
+            self._queue_ws(client, OP_CLOSE, payload[:2])
             self._flush_client(client)
             self._drop(client)
 
-    def _event(
-        self, client: _Client, payload: bytearray, on_frame: Callable[[RxFrame], None]
-    ) -> None:
+    def _event(self, client: _Client, payload: bytes, on_frame: Callable[[RxFrame], None]) -> None:
         try:
             event = json.loads(payload.decode("utf-8"))
             kind = event["type"]
@@ -261,9 +263,9 @@ class Bridge:
                     float(msg.get("timestamp", 0.0)),
                     int(msg["arbitration_id"]),
                     bytes(msg.get("data", [])),
-                    bool(msg.get("is_error_frame", False)),
+                    _json_flags(msg),
                 )
-            except (KeyError, TypeError, ValueError):
+            except (KeyError, TypeError, ValueError, AttributeError):
                 self._send_event(client, "error", "a message needs arbitration_id and data")
                 return
             self._forward(client, payload, binary=False)
@@ -271,7 +273,7 @@ class Bridge:
         else:
             self._send_event(client, "error", f"event {kind!r} is not served by the HIL bridge")
 
-    def _forward(self, sender: _Client, payload: bytearray, *, binary: bool) -> None:
+    def _forward(self, sender: _Client, payload: bytes, *, binary: bool) -> None:
         """A client's frame to every other client (re-encoded only across protocols)."""
         if len(self._clients) < 2:
             return
@@ -279,41 +281,54 @@ class Bridge:
             if other is sender or not other.bus_open:
                 continue
             if other.binary == binary:
-                self._queue_ws(other, _BINARY if binary else _TEXT, payload)
+                self._queue_ws(other, OP_BINARY if binary else OP_TEXT, payload)
             elif binary:
-                stamp, arbitration_id, dlc, flags = _CAN_HEADER.unpack_from(payload, 1)
-                data = bytes(payload[1 + _CAN_HEADER.size :])
-                frame = _json_frame(stamp, arbitration_id, dlc, flags, data)
+                _, stamp, arbitration_id, dlc, flags = FRAME.unpack_from(payload)
+                frame = _json_frame(stamp, arbitration_id, dlc, flags, payload[FRAME.size :])
                 self._send_event(other, "message", frame)
             else:
                 msg = json.loads(payload.decode("utf-8"))["payload"]
                 data = bytes(msg.get("data", []))
-                flags = _FLAG_ERROR if msg.get("is_error_frame") else 0
-                self._queue_ws(
-                    other,
-                    _BINARY,
-                    bytes([_BINARY_MESSAGE_TYPE])
-                    + _CAN_HEADER.pack(
-                        float(msg.get("timestamp", 0.0)),
-                        int(msg["arbitration_id"]),
-                        len(data),
-                        flags,
-                    )
-                    + data,
+                head = FRAME.pack(
+                    BINARY_MESSAGE_TYPE,
+                    float(msg.get("timestamp", 0.0)),
+                    int(msg["arbitration_id"]),
+                    int(msg.get("dlc", len(data))),
+                    _json_flags(msg),
                 )
+                self._queue_ws(other, OP_BINARY, head + data)
 
     # -- sending ------------------------------------------------------------------------------
 
-    def send(self, arbitration_id: int, data: bytes) -> None:
-        """Queue a HIL frame (11-bit id, <= 8 bytes) for every client; :meth:`flush` sends."""
+    def send(
+        self,
+        arbitration_id: int,
+        data: bytes,
+        flags: int = 0,
+        timestamp_s: float | None = None,
+    ) -> None:
+        """Queue a HIL frame for every client whose bus is open; :meth:`flush` sends.
+
+        Args:
+            arbitration_id: The frame's id (11 bits; 29 with ``FLAG_EXTENDED``).
+            data: At most :data:`MAX_DATA_BYTES` bytes (more than 8 only with ``FLAG_FD``).
+            flags: :data:`hil_sim.bridge.FLAG_EXTENDED` ... ``FLAG_ESI`` (0: a standard-id
+                data frame).
+            timestamp_s: The frame's stamp (s since the epoch); None: ``time.time()`` now.
+
+        Raises:
+            ValueError: ``data`` is longer than :data:`MAX_DATA_BYTES`.
+        """
         if not self._clients:
             return
         n = len(data)
+        if n > MAX_DATA_BYTES:
+            raise ValueError(f"{n} data bytes; a CAN frame carries at most {MAX_DATA_BYTES}")
         buf = self._packed[n]
-        stamp = time.time()
+        stamp = time.time() if timestamp_s is None else timestamp_s
         _WS_CAN.pack_into(
-            buf, 0, 0x80 | _BINARY, 1 + _CAN_HEADER.size + n, _BINARY_MESSAGE_TYPE,
-            stamp, arbitration_id, n, 0,
+            buf, 0, 0x80 | OP_BINARY, FRAME.size + n, BINARY_MESSAGE_TYPE,
+            stamp, arbitration_id, n, flags,
         )  # fmt: skip
         buf[_WS_CAN_SIZE:] = data
         for client in self._clients.values():
@@ -324,7 +339,8 @@ class Bridge:
             elif client.binary:
                 client.out += buf
             else:
-                self._send_event(client, "message", _json_frame(stamp, arbitration_id, n, 0, data))
+                frame = _json_frame(stamp, arbitration_id, n, flags, data)
+                self._send_event(client, "message", frame)
 
     def flush(self) -> None:
         """Send what is queued for every client (one ``send`` each)."""
@@ -342,26 +358,15 @@ class Bridge:
             return
         del client.out[:sent]
 
-    def _queue_ws(self, client: _Client, opcode: int, payload: bytes | bytearray) -> None:
+    def _queue_ws(self, client: _Client, opcode: int, payload: bytes) -> None:
         if len(client.out) > MAX_PENDING_BYTES:
             self.dropped += 1
             return
-        n = len(payload)
-        out = client.out
-        out.append(0x80 | opcode)
-        if n <= 125:
-            out.append(n)
-        elif n <= 0xFFFF:
-            out.append(126)
-            out += n.to_bytes(2, "big")
-        else:
-            out.append(127)
-            out += n.to_bytes(8, "big")
-        out += payload
+        client.out += ws_frame(opcode, payload, mask=False)
 
     def _send_event(self, client: _Client, kind: str, payload: object) -> None:
         text = json.dumps({"type": kind, "payload": payload}).encode("utf-8")
-        self._queue_ws(client, _TEXT, text)
+        self._queue_ws(client, OP_TEXT, text)
 
     # -- closing ------------------------------------------------------------------------------
 
@@ -378,7 +383,7 @@ class Bridge:
         """Close every client (a websocket close frame, best effort) and the listening socket."""
         for client in list(self._clients.values()):
             if client.upgraded:
-                self._queue_ws(client, _CLOSE, (1001).to_bytes(2, "big"))
+                self._queue_ws(client, OP_CLOSE, (1001).to_bytes(2, "big"))
                 self._flush_client(client)
             if not client.closing:
                 self._drop(client)
@@ -386,15 +391,30 @@ class Bridge:
         self._listen.close()
 
 
+def _json_flags(msg: dict[str, Any]) -> int:
+    """The flag byte of a JSON message (python-can-remote's ``can.json.v1`` fields)."""
+    flags = 0
+    for name, flag in _JSON_FLAGS:
+        if msg.get(name):
+            flags |= flag
+    return flags
+
+
 def _json_frame(
     stamp: float, arbitration_id: int, dlc: int, flags: int, data: bytes
 ) -> dict[str, object]:
-    return {
+    """A frame as python-can-remote's JSON message (the FD fields only for an FD frame)."""
+    frame: dict[str, object] = {
         "timestamp": stamp,
         "arbitration_id": arbitration_id,
-        "is_extended_id": bool(flags & _FLAG_EXTENDED),
-        "is_remote_frame": bool(flags & _FLAG_REMOTE),
-        "is_error_frame": bool(flags & _FLAG_ERROR),
+        "is_extended_id": bool(flags & FLAG_EXTENDED),
+        "is_remote_frame": bool(flags & FLAG_REMOTE),
+        "is_error_frame": bool(flags & FLAG_ERROR),
         "dlc": dlc,
         "data": list(data),
     }
+    if flags & FLAG_FD:
+        frame["is_fd"] = True
+        frame["bitrate_switch"] = bool(flags & FLAG_BRS)
+        frame["error_state_indicator"] = bool(flags & FLAG_ESI)
+    return frame

@@ -53,6 +53,7 @@ from typing import Any
 import can
 import numpy as np
 
+from hil_sim.bridge import FLAG_ERROR, FLAG_EXTENDED, FLAG_REMOTE
 from hil_sim.harness.bridge import Bridge, RxFrame
 from hil_sim.sim import COB_SYNC, FaultKind, HilCore, Truth, open_trace
 from hil_sim.terrain import Terrain
@@ -67,6 +68,7 @@ __all__ = ["HOST", "RealtimeHilProcess", "main", "serve"]
 HOST = Bridge.HOST
 #: SCHED_FIFO priority of the HIL process by default (below the loop's: 80, the daemon's default).
 HIL_RT_PRIORITY = 30
+_NOT_FOR_NODES = FLAG_EXTENDED | FLAG_REMOTE | FLAG_ERROR
 
 
 def serve(args: argparse.Namespace) -> int:
@@ -203,15 +205,16 @@ class _HilLoop:
             self.t_core += steps * servo
 
     def on_frame(self, frame: RxFrame) -> None:
-        """One frame from the bus, handled at its arrival time."""
-        stamp, arbitration_id, data, is_error = frame
+        """One frame from the bus, handled at its arrival time; the drives and the VCU take
+        standard-id data frames only (an extended, remote or error frame is not theirs)."""
+        stamp, arbitration_id, data, flags = frame
         started = time.monotonic()
         now = started - self.t0
         # An unstamped frame (a client that does not stamp) arrives now.
         arrival = min(stamp - self.epoch_offset, now) if stamp > 0.0 else now
         arrival = max(arrival, self.t_core)
         self._advance_to(arrival)
-        if is_error:
+        if flags & _NOT_FOR_NODES:
             return
         core = self.core
         core.log(arbitration_id, data, arrival, is_rx=True)

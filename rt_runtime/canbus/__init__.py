@@ -11,7 +11,14 @@ One module per protocol service (DESIGN.md "CAN protocol", STYLE.md after canope
 ``emcy``       EMCY decoding (codes as :class:`EmcyCode` where known) and frames
 ``sdo``        small SDO client (expedited download/upload, segmented upload) for configuration
 ``busload``    CAN 2.0A frame lengths (nominal, worst-case stuffed, exact) and bus load
-``master``     :class:`CanMaster`, which uses all of the above
+``config``     what the master writes at boot: ``MasterConfig`` from the rig, the SDO
+               downloads per drive, the EDS
+``feedback``   the cycle's results: ``Feedback`` workspace, ``CycleStatus``, ``WriteStatus``
+``router``     ``FrameRouter``: every frame the master reads, routed by COB-ID into ``Feedback``
+``cyclic``     ``CyclicExchange``: frames out (stamped at send), setpoints and SYNC, the
+               answers with the cycle's status and the fault reaction, heartbeat, stops
+``master``     :class:`CanMaster`: boot and enable, and the cycle of ``cyclic``; uses all of
+               the above
 ``scripted``   test equipment: ``ScriptedBus`` plays (TX, id, bytes) / (RX, id, bytes) exchanges
 =============  ==================================================================================
 
@@ -22,6 +29,10 @@ Buses (python-can backends: ``send`` and ``_recv_internal``, nothing private of 
 ``inprocess``  ``InProcessChannel`` / ``ChannelBus``: one bus in one process, copy on send
 ``traced``     ``TracedBus``: any bus, every frame sent and received handed to a trace writer
 =============  ==================================================================================
+
+A bus may have ``send_many(msgs)`` (the messages in order, in one write): the master then sends
+each cycle's RPDO1s and SYNC in one call (the 127.0.0.1 bridge's end has it); on any other bus
+one ``send`` a frame.
 
 The protocol modules read no clock: boot and enable take ``now_fn`` (monotonic or simulated
 seconds), the cycle takes ``now_s``. Nothing here starts a thread: the master is the bus's only
@@ -90,22 +101,16 @@ from rt_runtime.canbus.cia402 import (
     decode_state,
     next_controlword,
 )
+from rt_runtime.canbus.config import DEFAULT_EDS, DriveInfo, MasterConfig
 from rt_runtime.canbus.emcy import Emcy, EmcyCode, emcy_message, parse_emcy
+from rt_runtime.canbus.feedback import CycleStatus, Feedback, WriteStatus
 from rt_runtime.canbus.heartbeat import (
     HeartbeatConsumer,
     HeartbeatEvent,
     HeartbeatEventKind,
     HeartbeatProducer,
 )
-from rt_runtime.canbus.master import (
-    DEFAULT_EDS,
-    CanMaster,
-    CycleStatus,
-    DriveInfo,
-    Feedback,
-    MasterConfig,
-    WriteStatus,
-)
+from rt_runtime.canbus.master import CanMaster
 from rt_runtime.canbus.nmt import NmtCommand, NmtState
 from rt_runtime.canbus.pdo import RPDO1, RPDO2, TPDO1, TPDO2, PdoSpec, check_pdo_mapping
 from rt_runtime.canbus.sdo import SdoAbortedError, SdoClient, SdoProtocolError, SdoTimeoutError

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import shapely
 
+from rt_runtime import kinematics
 from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.trench import (
@@ -405,6 +406,74 @@ def test_c_profile_fits_equal_the_numpy_reference_bit_for_bit(monkeypatch) -> No
     planner.plan(make_task(RIG, 0.45, 0.2, 80.0, 75.0, 1.0, name="steep"))
     # Batched fits (the attitude table's pairs) and single refits both ran.
     assert len(calls) > 10 and max(calls) > 1 and min(calls) == 1
+
+
+def _fit_cost(
+    session: TrenchSession,
+    base: np.ndarray,
+    q1: np.ndarray,
+    q2: np.ndarray,
+    edges: np.ndarray,
+    offset: float,
+    kind: oneshot.DigType,
+    K: np.ndarray,
+) -> np.ndarray:
+    """The profile fit's objective at ``K`` ``(P, 3)``, as its docstring defines it: the
+    squared inward distances of the path's samples from the outline less ``offset`` (21x where
+    the path is more than 3 mm outside), plus the theta_p bound's row where the entry direction
+    is beyond it."""
+    arm = session.planner.arm
+    q = base + session.planner.fit_pf[None, :, None] * K[:, None, :]
+    phi = np.cumsum(q, axis=2)
+    x = np.sum(np.cos(phi) * arm.lengths, axis=2) + session.machine_x
+    y = np.sum(np.sin(phi) * arm.lengths, axis=2)
+    d = np.min(edges[:, 2, None, None] - edges[:, 0, None, None] * x - edges[:, 1, None, None] * y,
+               axis=0)  # fmt: skip
+    r = np.where(d < -0.003, 21.0, 1.0) * (d - offset)
+    cost = np.sum(r * r, axis=1)
+    jac0 = kinematics.jacobian(RIG, q1)[:, :2]
+    d0 = np.einsum("pij,pj->pi", jac0, 10.0 * (q2 - q1) + K)
+    ang = np.arctan2(-d0[:, 1], np.abs(d0[:, 0]))
+    lo, hi = (float(v) for v in oneshot.theta_p_range(session.planning, int(kind)))
+    for bound, up in ((lo + 0.02, False), (hi - 0.02, True)):
+        g = -d0[:, 1] * math.cos(bound) - np.abs(d0[:, 0]) * math.sin(bound)
+        hit = (ang > bound) if up else (ang < bound)
+        cost = cost + np.where(hit, (0.5 * g) ** 2, 0.0)
+    return cost
+
+
+def test_profile_fits_return_their_own_cost_and_never_worse_than_the_start(monkeypatch) -> None:
+    # The fits by their properties (not against a second implementation of the search): every
+    # fit of whole plans (D: walls, bottom, layers; a steep task) returns the objective of the K
+    # it returns, no worse than the start K = 0, and fits within 1 mm RMS of the outline are
+    # found.
+    planner = TrenchPlanner(RIG, geometry="c")
+    fit = TrenchSession._fit_bulges
+    seen = {"pairs": 0, "good": 0}
+
+    def check(
+        self: TrenchSession,
+        base: np.ndarray,
+        q1: np.ndarray,
+        q2: np.ndarray,
+        edges: np.ndarray,
+        offset: float,
+        kind: oneshot.DigType,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        K, cost = fit(self, base, q1, q2, edges, offset, kind)
+        args = (self, base, q1, q2, edges, offset, kind)
+        np.testing.assert_allclose(_fit_cost(*args, K), cost, rtol=1e-9, atol=1e-15)
+        assert np.all(cost <= _fit_cost(*args, np.zeros_like(K)) * (1.0 + 1e-12))
+        n = base.shape[1]
+        good = cost / n < 1e-6
+        seen["pairs"] += base.shape[0]
+        seen["good"] += int(np.count_nonzero(good))
+        return K, cost
+
+    monkeypatch.setattr(TrenchSession, "_fit_bulges", check)
+    planner.plan(load_task("D", RIG))
+    planner.plan(make_task(RIG, 0.45, 0.2, 80.0, 75.0, 1.0, name="steep"))
+    assert seen["pairs"] > 100 and seen["good"] > 10
 
 
 def test_c_moves_checks_equal_the_numpy_reference_bit_for_bit() -> None:

@@ -8,11 +8,11 @@ The flow, one module a step:
   open-loop plan of a task.
 - ``session``: one task dug dig by dig in the closed loop (plan, execute, record the measured
   tip path), built from the steps below (each a mixin of the session's state, ``state``):
-  ``sections`` (sections and one-way travel), ``layers`` (the layers and their columns, the
-  walls' digs), ``rough`` (the network's digs, Fig. 5), ``finishing`` (finishing passes),
-  ``fit`` (digs fitted along the design's outline), ``digs`` (planning a chosen dig for real
-  and checking it), ``moves`` (the moves between digs), ``material`` (material accounting),
-  ``persist`` (the session as data).
+  ``sections`` (sections and one-way travel), ``layers`` (the layers and their columns),
+  ``walls`` (the walls' digs), ``rough`` (the network's digs, Fig. 5), ``finishing``
+  (finishing passes), ``fit`` (digs fitted along the design's outline), ``digs`` (planning
+  a chosen dig for real and checking it), ``moves`` (the moves between digs), ``material``
+  (material accounting), ``persist`` (the session as data).
 - ``candidates``, ``plan``, ``geometry``, ``planners``: the typed candidate, the frozen plan and
   its report, the material model's geometry, the one-shot planners (PINN, PSO).
 

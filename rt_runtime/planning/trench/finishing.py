@@ -14,8 +14,9 @@ import shapely
 from rt_runtime.planning.oneshot import DigType
 from rt_runtime.planning.trench.candidates import Candidate
 from rt_runtime.planning.trench.geometry import _Pass
-from rt_runtime.planning.trench.layers import _CUT_MAX_M, LayersMixin
+from rt_runtime.planning.trench.layers import _CUT_MAX_M
 from rt_runtime.planning.trench.plan import COVERAGE_GOAL, PlannedDig
+from rt_runtime.planning.trench.walls import WallsMixin
 
 #: Finishing passes a section may take (they need not fill the bucket).
 MAX_FINISHING_PER_SECTION = 2
@@ -38,7 +39,7 @@ _NEAR_WALL_ATTS = ((-80.0, -100.0), (-100.0, -130.0))
 _LAYER_M = 0.05
 
 
-class FinishingMixin(LayersMixin):
+class FinishingMixin(WallsMixin):
     """A session's finishing passes (see the module)."""
 
     def _next_finishing(self, remaining: Any, t0: float) -> PlannedDig | None:

@@ -1,6 +1,6 @@
 """Layers and columns: the layers the design is cut in (chosen so that each splits into the
-fewest full buckets), columns along a layer's floor, far to near, the bottom's straight columns,
-and the walls' digs."""
+fewest full buckets), columns along a layer's floor, far to near, and the bottom's straight
+columns (the walls' digs are in ``walls``)."""
 
 from __future__ import annotations
 
@@ -40,11 +40,6 @@ _CORNER_GAP_M = 0.005
 #: How far beyond the face of the material a bottom column enters (scale model, m).
 _FACE_GAP_M = 0.004
 
-#: End attitudes of wall digs (deg; the table's first and last of each end).
-_WALL_ATTITUDES_DEG = {
-    DigType.DOWNWARD: ((-80.0, -100.0), (-95.0, -130.0)),
-    DigType.BACKWARD: ((-100.0, -125.0), (-120.0, -160.0)),
-}
 
 #: Material within this of the design's floor is not counted for a column (scale model, m).
 _COLUMN_SKIN_M = 0.003
@@ -159,98 +154,6 @@ class LayersMixin(RoughMixin):
         ring = np.asarray(shapely.get_exterior_ring(shapely.normalize(self.layer_design)).coords)
         edge = ring[1:] - ring[:-1]
         self._layer_edges = np.column_stack([ring[:-1], edge, np.sum(edge * edge, axis=1)])
-
-    def _next_wall(self, far: bool, remaining: Any, t0: float) -> PlannedDig | None:
-        """The next piece of the far (``far``) or near wall's profile dig: the wall's line from
-        its top edge to the bottom, in pieces no longer along it than :data:`_COLUMN_MAX_M`
-        (scaled), top first; a full dig where it fills the bucket, else a finishing pass.
-        None when the wall is done or nothing is left on it."""
-        t = self.task
-        g = self.ground_y
-        xf = t.start_x_m
-        xn = xf - t.length_m
-        if far:
-            if self.section != 0:
-                return None
-            top = np.array([xf, g])
-            foot = np.array([xf - t.depth_m / math.tan(t.beta1_rad), self.bottom_y])
-            beta = t.beta1_rad
-        else:
-            if self.section_lo > xn + 1e-9:
-                return None
-            top = np.array([xn, g])
-            foot = np.array([xn + t.depth_m / math.tan(t.beta2_rad), self.bottom_y])
-            beta = t.beta2_rad
-        # Pieces no longer along the wall than the longest profile dig; each may be taken in
-        # its two halves where it does not plan whole (a long fit along a shallow wall).
-        # ``_wall_piece`` counts the halves done.
-        span = foot - top
-        n = max(1, math.ceil(float(np.hypot(*span)) / (_COLUMN_MAX_M * self.planner.scale)))
-        lo_d, hi_d = oneshot.theta_p_range(self.planning, int(DigType.DOWNWARD))
-        kind = DigType.DOWNWARD if float(lo_d) + 0.02 <= beta <= float(hi_d) else DigType.BACKWARD
-        atts = _WALL_ATTITUDES_DEG[kind]
-        # The last piece stops short of the corner: a path that reaches into it cuts past the
-        # bottom before the bottom's columns have opened it (and the columns start there).
-        short = foot - span * (_CORNER_GAP_M * self.planner.scale / float(np.hypot(*span)))
-        halves = 2 * n
-        while self._wall_piece < halves:
-            k = self._wall_piece
-            for stop in (k + 2, k + 1) if k % 2 == 0 else (k + 1,):
-                self._wall_piece = stop
-                a = top + (short - top) * k / halves
-                b = top + (short - top) * stop / halves
-                # Nothing on this piece: skip it.
-                if self._material_above(np.array([a, b])) < _COLUMN_EDGE_M * self.planner.scale:
-                    break
-                found = self._fit_pass(kind, np.array([a, b]), atts)
-                dig = None if found is None else self._plan_profile(found, remaining, t0)
-                if dig is None and stop == k + 2:
-                    # Too thick across for the boom's torque, say: the outer half first,
-                    # along the piece's line moved in by half the thickness; the piece again
-                    # after it.
-                    dig = self._wall_inner_pass(kind, a, b, atts, remaining, t0)
-                    if dig is not None:
-                        self._wall_piece = k
-                if dig is not None:
-                    return dig
-        return None
-
-    def _wall_inner_pass(
-        self,
-        kind: DigType,
-        a: FloatArray,
-        b: FloatArray,
-        atts: tuple[tuple[float, ...], tuple[float, ...]],
-        remaining: Any,
-        t0: float,
-    ) -> PlannedDig | None:
-        """A pass parallel to the wall piece ``a``-``b``, moved towards the design's inside
-        by half the material's thickness across it; None where that thickness is under twice
-        :data:`_COLUMN_EDGE_M` (scaled) or no such pass plans."""
-        seg = b - a
-        length = float(np.hypot(*seg))
-        across = self._material_above(np.array([a, b])) * abs(float(seg[0])) / length
-        if across < 2.0 * _COLUMN_EDGE_M * self.planner.scale:
-            return None
-        normal = np.array([-seg[1], seg[0]]) / length
-        c = self.design.centroid
-        if (c.x - a[0]) * normal[0] + (c.y - a[1]) * normal[1] < 0.0:
-            normal = -normal
-        shift = 0.5 * across * normal
-        found = self._fit_pass(kind, np.array([a + shift, b + shift]), atts)
-        return None if found is None else self._plan_profile(found, remaining, t0)
-
-    def _plan_profile(self, found: Candidate, remaining: Any, t0: float) -> PlannedDig | None:
-        """A fitted profile dig planned as a full dig, or else (when the section's finishing
-        passes allow) as a finishing pass."""
-        dig = self._first_plannable([found], remaining, t0)
-        if dig is None:
-            dig = self._first_plannable(
-                [dataclasses.replace(found, may_underfill=True)], remaining, t0
-            )
-            if dig is not None and dig.finishing:
-                self.finishing_used += 1
-        return dig
 
     def _reach_hi(self) -> float:
         """The far end (work-site x) of what the current section's columns take: the

@@ -29,7 +29,7 @@ from rt_runtime.control import (
     apply_rt,
     restore_rt,
 )
-from rt_runtime.control.rt import MCL_CURRENT, MCL_FUTURE, MCL_ONFAULT
+from rt_runtime.control.rt import MCL_CURRENT, MCL_FUTURE, MCL_ONFAULT, HelperThreads
 from rt_runtime.errors import ConfigurationError
 
 PERIOD = 0.002
@@ -491,3 +491,40 @@ def test_acquired_rt_stays_across_runs_until_released() -> None:
     assert plat.policy == (os.SCHED_OTHER, 0) and gc.isenabled()
     assert ("munlockall", None) in plat.calls
     loop.release_rt()  # no-op
+
+
+def test_helper_threads_run_fifo_below_the_loop_and_their_processes_do_not() -> None:
+    """Threads started while ``HelperThreads`` is in force run SCHED_FIFO at its priority; a
+    process one of them starts runs at normal priority; after ``restore`` new threads do not."""
+    import subprocess
+    import sys
+    import threading
+
+    before = os.sched_getscheduler(0)
+    helpers = HelperThreads(10)
+    if not helpers.item.applied:
+        pytest.skip(f"SCHED_FIFO refused here: {helpers.item.reason}")
+    seen: dict[str, object] = {}
+
+    def helper() -> None:
+        seen["policy"] = os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK
+        seen["priority"] = os.sched_getparam(0).sched_priority
+        child = subprocess.run(
+            [sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
+            capture_output=True, text=True, check=True,
+        )  # fmt: skip
+        seen["child"] = int(child.stdout)
+
+    try:
+        t = threading.Thread(target=helper)
+        t.start()
+        t.join()
+    finally:
+        helpers.restore()
+    assert seen == {"policy": os.SCHED_FIFO, "priority": 10, "child": os.SCHED_OTHER}
+    assert os.sched_getscheduler(0) == before
+    after: list[int] = []
+    t = threading.Thread(target=lambda: after.append(os.sched_getscheduler(0)))
+    t.start()
+    t.join()
+    assert after == [before]

@@ -366,7 +366,8 @@ class HelperThreads:
 
     Every thread is set with ``SCHED_RESET_ON_FORK``: processes it starts (the planner's) begin
     at normal priority; a thread it starts sets itself here when it begins (a
-    :func:`threading.setprofile` hook that removes itself at the thread's first call).
+    :func:`threading.setprofile` hook that puts back the profile hook there was before at the
+    thread's first call).
 
     Args:
         priority: SCHED_FIFO priority (1..99).
@@ -378,6 +379,7 @@ class HelperThreads:
     def __init__(self, priority: int) -> None:
         self.priority = int(priority)
         self._previous: tuple[int, int] | None = None
+        self._previous_hook = threading.getprofile()
         requested = f"priority {self.priority} for the other threads"
         try:
             self._previous = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
@@ -395,7 +397,7 @@ class HelperThreads:
         )
 
     def _hook(self, _frame: FrameType, _event: str, _arg: Any) -> None:
-        sys.setprofile(None)
+        sys.setprofile(self._previous_hook)
         with contextlib.suppress(OSError, ValueError):
             self._set()
 
@@ -404,7 +406,7 @@ class HelperThreads:
         thread (the one that built this); threads already raised stay raised. Idempotent."""
         if self._previous is None:
             return
-        threading.setprofile(None)
+        threading.setprofile(self._previous_hook)
         with contextlib.suppress(OSError, ValueError):
             policy, priority = self._previous
             os.sched_setscheduler(0, policy, os.sched_param(priority))

@@ -239,7 +239,8 @@ def _reason(exc: BaseException) -> str:
 
 
 def apply_rt(settings: RtSettings, platform: RtPlatform | None = None) -> RtReport:
-    """Ask the OS for each item of ``settings`` for the calling thread; never raises on refusal.
+    """Ask the OS for each item of ``settings`` for the calling thread (mlockall first, then
+    SCHED_FIFO, the CPU, the timer slack, the collector); never raises on refusal.
 
     Not for inside the loop (it calls the OS and ``gc.collect``): call it before the first cycle.
 
@@ -259,20 +260,8 @@ def apply_rt(settings: RtSettings, platform: RtPlatform | None = None) -> RtRepo
     locked = False
     gc_was_enabled: bool | None = None
 
-    if settings.sched_fifo_priority is not None:
-        prio = settings.sched_fifo_priority
-        requested = f"priority {prio}"
-        try:
-            lo, hi = plat.fifo_priority_range()
-            if not lo <= prio <= hi:
-                raise ValueError(f"priority {prio} is outside the allowed range [{lo}, {hi}]")
-            before = plat.get_scheduler()
-            plat.set_scheduler(os.SCHED_FIFO, prio)
-            prev_scheduler = before
-            items.append(RtItem("sched_fifo", requested, True))
-        except (OSError, ValueError) as exc:
-            items.append(RtItem("sched_fifo", requested, False, _reason(exc)))
-
+    # Memory first, at the thread's old priority: faulting in the whole process takes tens of
+    # milliseconds of CPU, which at SCHED_FIFO would hold up every lower real-time task there.
     if settings.lock_memory:
         try:
             plat.mlockall(MCL_CURRENT)
@@ -286,6 +275,20 @@ def apply_rt(settings: RtSettings, platform: RtPlatform | None = None) -> RtRepo
             items.append(RtItem("mlockall", requested, True))
         except OSError as exc:
             items.append(RtItem("mlockall", "MCL_CURRENT, MCL_FUTURE", False, _reason(exc)))
+
+    if settings.sched_fifo_priority is not None:
+        prio = settings.sched_fifo_priority
+        requested = f"priority {prio}"
+        try:
+            lo, hi = plat.fifo_priority_range()
+            if not lo <= prio <= hi:
+                raise ValueError(f"priority {prio} is outside the allowed range [{lo}, {hi}]")
+            before = plat.get_scheduler()
+            plat.set_scheduler(os.SCHED_FIFO, prio)
+            prev_scheduler = before
+            items.append(RtItem("sched_fifo", requested, True))
+        except (OSError, ValueError) as exc:
+            items.append(RtItem("sched_fifo", requested, False, _reason(exc)))
 
     if settings.cpu is not None:
         requested = f"cpu {settings.cpu}"

@@ -24,7 +24,10 @@ life. The collector: the heap is frozen after boot and when a job is prepared (`
 is O(1)), and the collector is off while a job runs. The price: cyclic garbage made before a
 freeze is never collected while the daemon runs (a restart frees it). The interpreter's switch
 interval is lowered to 0.2 ms so the loop's thread gets the interpreter back quickly from the
-main and helper threads.
+main and helper threads, and those run SCHED_FIFO :data:`HELPER_PRIORITY` (below the loop's;
+:class:`~rt_runtime.control.rt.HelperThreads`), so none is preempted by other work while it
+holds the interpreter lock. Before it boots the drives, the runner's timing self-test logs what
+this host holds (:mod:`rt_runtime.service.preflight`); ``--check`` runs it too.
 
 Signals: SIGTERM / SIGINT (and the ``stop`` request) -> STOPPING=1, the executor's jerk-limited
 stop (``StopRequest.SHUTDOWN``), drives disabled (controlword 0x0000), the job left resumable

@@ -3,7 +3,9 @@
 Role: emulate the rig behind the CAN bus (DESIGN.md "Loop, HIL and time"). :class:`HilCore` is the
 transport-free part: it takes each frame the bus carries with its time, answers it through the
 drive nodes (:mod:`hil_sim.drives`) and the VCU model, advances the plant in servo sub-steps, and
-records the truth (true strokes, joint angles, tip, machine travel) at every SYNC. Two transports
+records the truth (true strokes, joint angles, tip, machine travel) at every SYNC. The truth is
+bounded: the last ``truth_rows`` SYNCs are kept (:data:`TRUTH_ROWS` by default, a ring that
+overwrites the oldest row), so a HIL that runs for hours keeps a flat memory. Two transports
 drive it:
 
 * :class:`~hil_sim.harness.lockstep.LockstepHil`: one process, one simulated clock, the
@@ -42,9 +44,11 @@ from rt_runtime.errors import ConfigurationError
 from rt_runtime.rig import Rig
 
 __all__ = [
+    "TRUTH_ROWS",
     "FaultKind",
     "HilCore",
     "Truth",
+    "TruthRing",
     "open_trace",
 ]
 
@@ -54,6 +58,11 @@ COB_SYNC = 0x080
 #: The master's heartbeat COB-ID (node 0x7E), which drives consume.
 COB_MASTER_HEARTBEAT = 0x700 + 0x7E
 _AXES = ("boom", "stick", "bucket")
+#: Truth rows a :class:`HilCore` keeps by default: the last 2**20 SYNCs (35 min at 500 Hz,
+#: 17 min at 1 kHz; 80 MB when full). Older rows are overwritten.
+TRUTH_ROWS = 1 << 20
+#: Rows a growing :class:`TruthRing` starts with.
+_TRUTH_FIRST_ROWS = 4096
 
 
 class FaultKind(IntEnum):
@@ -134,6 +143,75 @@ class Truth:
         )
 
 
+class TruthRing:
+    """The truth at every SYNC in a bounded ring: the last ``capacity`` rows.
+
+    One float64 array ``(rows, 10)``; a row is the SYNC index (exact in a float64 below 2**53),
+    the HIL clock (s), the true strokes (m, 3), the joint angles (rad, 3), the machine travel
+    (m) and the drive power in the period before the SYNC (W). The array grows by doubling up
+    to ``capacity`` rows, or is allocated whole at the start with every page written
+    (``preallocate``: the memory of a long-running process is then flat from its first SYNC);
+    once it holds ``capacity`` rows, each new row overwrites the oldest.
+
+    Row ``r`` (0-based count of the rows recorded) sits at ``r % len(array)``; with one row per
+    SYNC, SYNC ``k`` (1-based) is row ``k - 1``.
+
+    Args:
+        capacity: Rows kept, >= 2.
+        preallocate: Allocate and touch all of them now.
+
+    Raises:
+        ConfigurationError: ``capacity`` below 2.
+
+    Attributes:
+        capacity: Rows kept at most.
+        count: Rows recorded since creation (kept or overwritten).
+    """
+
+    COLUMNS = 10
+
+    def __init__(self, capacity: int, *, preallocate: bool = False) -> None:
+        if capacity < 2:
+            raise ConfigurationError(f"truth capacity {capacity} rows must be >= 2")
+        self.capacity = int(capacity)
+        rows = self.capacity if preallocate else min(self.capacity, _TRUTH_FIRST_ROWS)
+        # np.full writes every element, so the pages are resident from here on.
+        self._data: FloatArray = np.full((rows, self.COLUMNS), np.nan)
+        self.count = 0
+
+    @property
+    def kept(self) -> int:
+        """Rows held now (the newest ``kept`` of :attr:`count`)."""
+        return min(self.count, len(self._data))
+
+    @property
+    def dropped(self) -> int:
+        """Rows overwritten (the oldest ``count - kept``)."""
+        return self.count - self.kept
+
+    def append(self, row: tuple[float, ...]) -> None:
+        """Record one row (:attr:`COLUMNS` values); grows the array only before it first fills
+        to ``capacity`` rows."""
+        data = self._data
+        n = len(data)
+        if self.count == n < self.capacity:
+            grown = np.full((min(2 * n, self.capacity), self.COLUMNS), np.nan)
+            grown[:n] = data
+            self._data = data = grown
+            n = len(data)
+        data[self.count % n] = row
+        self.count += 1
+
+    def rows(self, first: int, last: int) -> FloatArray:
+        """The rows recorded ``first`` .. ``last`` (0-based, inclusive) that are still kept,
+        oldest first, as a new ``(n, 10)`` array (``n`` may be 0)."""
+        lo = max(first, self.count - self.kept)
+        hi = min(last, self.count - 1)
+        if hi < lo:
+            return np.zeros((0, self.COLUMNS))
+        return self._data[np.arange(lo, hi + 1) % len(self._data)]
+
+
 def open_trace(path: str | Path) -> can.Listener:
     """A python-can logger for ``path`` (``.blf`` or ``.asc``).
 
@@ -157,6 +235,9 @@ class HilCore:
         terrain: Material the bucket cuts (work-site frame), or None for a free arm.
         period_s: SYNC period; the lockstep transport advances the plant by it per SYNC.
         vcu: Put the VCU model (travel and swing) on the bus.
+        keep_frames: Keep every frame in :attr:`frames` (unbounded: for short lockstep runs).
+        truth_rows: The truth kept: the last this many SYNCs (see :class:`TruthRing`).
+        preallocate_truth: Allocate the whole truth ring at once (a long-running process).
 
     Attributes:
         plant: The arm.
@@ -164,6 +245,7 @@ class HilCore:
         nodes: Drive nodes in axis order.
         vcu: The VCU model or None.
         sync_count: SYNCs received.
+        truth_ring: The truth of the last ``truth_rows`` SYNCs.
         frames: Every frame on the bus as ``(arbitration id, data)`` in bus order, when
             ``keep_frames`` was set (the determinism test compares these).
 
@@ -181,6 +263,8 @@ class HilCore:
         period_s: float = 0.002,
         vcu: bool = True,
         keep_frames: bool = False,
+        truth_rows: int = TRUTH_ROWS,
+        preallocate_truth: bool = False,
     ) -> None:
         if not (math.isfinite(period_s) and period_s > 0.0):
             raise ConfigurationError(f"period_s {period_s} must be finite and > 0")
@@ -209,12 +293,7 @@ class HilCore:
         self.frames: list[tuple[int, bytes]] = []
         self.trace: can.Listener | None = None
         self._servo_dt_s = rig.drives.servo_period_s
-        self._sync_index: list[int] = []
-        self._t: list[float] = []
-        self._stroke: list[tuple[float, float, float]] = []
-        self._q: list[tuple[float, float, float]] = []
-        self._machine_x: list[float] = []
-        self._power: list[float] = []
+        self.truth_ring = TruthRing(truth_rows, preallocate=preallocate_truth)
         self._energy_at_sync = self.plant.energy_j
         self._dt_since_sync = 0.0
 
@@ -302,18 +381,16 @@ class HilCore:
     def _sample_truth(self, now_s: float) -> None:
         self.sync_count += 1
         plant = self.plant
-        s = plant.stroke_m
-        q = plant.q_rad
+        (s0, s1, s2), _ = plant.stroke_state()
+        q0, q1, q2 = plant.q_rad.tolist()
         energy = plant.energy_j
         dt = self._dt_since_sync
-        self._power.append((energy - self._energy_at_sync) / dt if dt > 0.0 else 0.0)
+        power = (energy - self._energy_at_sync) / dt if dt > 0.0 else 0.0
         self._energy_at_sync = energy
         self._dt_since_sync = 0.0
-        self._sync_index.append(self.sync_count)
-        self._t.append(now_s)
-        self._stroke.append((float(s[0]), float(s[1]), float(s[2])))
-        self._q.append((float(q[0]), float(q[1]), float(q[2])))
-        self._machine_x.append(self.machine_x_m)
+        self.truth_ring.append(
+            (self.sync_count, now_s, s0, s1, s2, q0, q1, q2, self.machine_x_m, power)
+        )
 
     # -- injection and material -----------------------------------------------------------------
 
@@ -334,36 +411,41 @@ class HilCore:
             faults.silent = True
 
     def truth(self) -> Truth:
-        """The truth recorded so far."""
-        q = np.array(self._q, dtype=np.float64).reshape(-1, 3)
-        mx = np.array(self._machine_x, dtype=np.float64)
-        tip = kinematics.forward(self.rig, q)[..., :2] if len(q) else np.zeros((0, 2))
-        tip = np.array(tip, dtype=np.float64).reshape(-1, 2)
-        tip[:, 0] += mx
+        """The truth kept (the last ``truth_rows`` SYNCs; ``energy_j`` over the whole run)."""
+        rows = self.truth_ring.rows(0, self.truth_ring.count - 1)
+        q = np.ascontiguousarray(rows[:, 5:8])
+        mx = rows[:, 8].copy()
         return Truth(
-            sync_index=np.array(self._sync_index, dtype=np.int64),
-            t_s=np.array(self._t, dtype=np.float64),
-            stroke_m=np.array(self._stroke, dtype=np.float64).reshape(-1, 3),
+            sync_index=rows[:, 0].astype(np.int64),
+            t_s=rows[:, 1].copy(),
+            stroke_m=np.ascontiguousarray(rows[:, 2:5]),
             q_rad=q,
-            tip_xy_m=tip,
+            tip_xy_m=self._tip_m(q, mx),
             machine_x_m=mx,
-            power_w=np.array(self._power, dtype=np.float64),
+            power_w=rows[:, 9].copy(),
             energy_j=self.plant.energy_j,
         )
 
+    def _tip_m(self, q_rad: FloatArray, machine_x_m: FloatArray) -> FloatArray:
+        """Tip positions ``(n, 2)`` in the work-site frame."""
+        if not len(q_rad):
+            return np.zeros((0, 2))
+        tip = np.array(kinematics.forward(self.rig, q_rad)[..., :2], dtype=np.float64)
+        tip = tip.reshape(-1, 2)
+        tip[:, 0] += machine_x_m
+        return tip
+
     def cut(self, sync_from: int, sync_to: int) -> float:
-        """Cut the terrain with the true tip path between two SYNCs (inclusive, 1-based).
+        """Cut the terrain with the true tip path between two SYNCs (inclusive, 1-based; the
+        part of it the truth still keeps).
 
         Returns:
             The volume removed (m^3); 0 without a terrain or with fewer than two samples.
         """
         if self.terrain is None:
             return 0.0
-        idx = np.asarray(self._sync_index, dtype=np.int64)
-        sel = np.flatnonzero((idx >= sync_from) & (idx <= sync_to))
-        if sel.size < 2:
+        rows = self.truth_ring.rows(sync_from - 1, sync_to - 1)
+        if len(rows) < 2:
             return 0.0
-        q = np.array(self._q, dtype=np.float64)[sel]
-        tip = np.array(kinematics.forward(self.rig, q)[..., :2], dtype=np.float64)
-        tip[:, 0] += np.array(self._machine_x)[sel]
+        tip = self._tip_m(np.ascontiguousarray(rows[:, 5:8]), rows[:, 8])
         return self.terrain.cut(tip).volume_m3

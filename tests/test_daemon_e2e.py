@@ -14,14 +14,13 @@ configuration whose bus is python-can's ``remote`` interface to that port. The t
    finishes it; the trace of the second run is checked the same way;
 4. throughout, a poller parses the job store every 20 ms: it is never half-written.
 
-The test runs the shipped ``scale_model`` profile with the drives' SYNC watchdog widened to
-0.5 s, the heartbeat timeout to 3 s and the following-error window to 20 mm (drive settings: the
-PINN's model cards do not cover them),
-the loop's overrun policy at 20 in a row, the executor's stale-feedback limit at 250 cycles
-(0.5 s) and the loop thread at SCHED_FIFO 50, as
-``test_hil_realtime.py`` widens the watchdog: a test machine shared with other jobs stalls its
-processes far longer than a rig PC with an RT kernel, and the subject here is the daemon's
-behaviour, not this machine's scheduling. The HIL has no
+The settings are the shipped ones: the ``scale_model`` profile as shipped (the drives' SYNC
+watchdog 20 ms, heartbeat timeout 150 ms, following-error window 5 mm) in the HIL and the
+daemon, and the example configuration ``rt_runtime/service/excavator-rtd.example.toml`` with
+only the bus (python-can's ``remote`` interface to the HIL's port) and the paths changed
+(:func:`stock_config` checks that every other key is the example's: SCHED_FIFO 80, mlockall,
+5 overruns in a row, 25 stale cycles). ``EXCAVATOR_E2E_RUNS=5`` runs the scenario five times
+(each with a new HIL) to measure how often the stock settings hold on a machine. The HIL has no
 terrain here: its terrain is cut only on explicit commands of a scenario runner, which the daemon
 (like a rig) does not send, so a terrain would push back on every later dig as virgin soil; the
 daemon's own material model follows the measured tip path either way. Timing figures (SYNC gaps,
@@ -56,7 +55,7 @@ from rt_runtime.control.guard import StrokeLimits
 from rt_runtime.errors import CommunicationError
 from rt_runtime.planning.trench import TrenchPlanner
 from rt_runtime.rig import Rig, load_rig
-from rt_runtime.rig.loader import PROFILE_DIR
+from rt_runtime.service.config import DaemonConfig, load_config
 from rt_runtime.service.control import request
 from rt_runtime.service.daemon import TraceRecorder
 from rt_runtime.service.jobstore import read_store
@@ -67,6 +66,14 @@ MAX_DIGS = 3
 #: The HIL process stops by itself after this long, whatever happens to the test.
 MAX_WALL_S = 300.0
 NODES = (1, 2, 3)
+#: The shipped example configuration the test runs with.
+EXAMPLE_CONFIG = (
+    Path(__file__).resolve().parents[1] / "rt_runtime/service/excavator-rtd.example.toml"
+)
+#: How many times the end-to-end scenario runs (``EXCAVATOR_E2E_RUNS``; default once).
+E2E_RUNS = int(os.environ.get("EXCAVATOR_E2E_RUNS", "1"))
+#: The keys :func:`stock_config` changes: the bus and the paths.
+CHANGED_KEYS = ("bus.interface", "bus.channel", "paths.state_dir", "paths.socket", "paths.trace")
 
 
 class Daemon:
@@ -287,30 +294,37 @@ def test_trace_rotates_and_keeps_a_bounded_number_of_files(tmp_path: Path) -> No
     assert 0 < frames < 3000
 
 
-@pytest.fixture
-def rig_file(tmp_path: Path) -> Path:
-    """``scale_model`` with the drives' watchdogs widened for a shared machine."""
-    text = (PROFILE_DIR / f"{RIG}.toml").read_text()
+def stock_config(path: Path, port: int, state: Path, sock: Path, trace: Path) -> DaemonConfig:
+    """Write the example configuration to ``path`` with the bus (``remote`` to the HIL's port
+    on 127.0.0.1) and the paths changed, and check that nothing else differs from it.
+
+    Returns:
+        The configuration as the daemon loads it.
+    """
+    text = EXAMPLE_CONFIG.read_text()
     for old, new in (
-        ("heartbeat_timeout_ms = 150", "heartbeat_timeout_ms = 3000"),
-        ("sync_timeout_ms = 20", "sync_timeout_ms = 500"),
-        ("following_error_window_mm = 5.0", "following_error_window_mm = 20.0"),
+        ('interface = "socketcan"', 'interface = "remote"'),
+        ('channel = "can0"', f'channel = "ws://127.0.0.1:{port}/"'),
+        ('state_dir = "/var/lib/excavator-rtd"', f'state_dir = "{state}"'),
+        ('socket = "/run/excavator-rtd/control.sock"', f'socket = "{sock}"'),
+        ('# trace = "/var/log/excavator-rtd/can.blf"', f'trace = "{trace}"'),
     ):
-        assert old in text
+        assert text.count(old) == 1, old
         text = text.replace(old, new)
-    path = tmp_path / "rig" / f"{RIG}.toml"
-    path.parent.mkdir()
     path.write_text(text)
-    return path
+    got, shipped = load_config(path).flat(), load_config(EXAMPLE_CONFIG).flat()
+    differ = sorted(k for k in shipped if got[k] != shipped[k])
+    assert differ == sorted(CHANGED_KEYS), differ
+    return load_config(path)
 
 
 @pytest.fixture
-def hil(rig_file: Path) -> Iterator[RealtimeHilProcess]:
-    rig = load_rig(rig_file)
+def hil() -> Iterator[RealtimeHilProcess]:
+    rig = load_rig(RIG)
     q_dump = TrenchPlanner(rig).dump_pose_rad
     try:
         proc = RealtimeHilProcess.start(
-            rig_name=str(rig_file),
+            rig_name=RIG,
             q0_rad=q_dump,
             terrain=None,
             period_s=PERIOD_S,
@@ -323,19 +337,15 @@ def hil(rig_file: Path) -> Iterator[RealtimeHilProcess]:
     proc.close()
 
 
-def test_daemon_end_to_end(hil: RealtimeHilProcess, rig_file: Path, tmp_path: Path) -> None:
-    rig = load_rig(rig_file)
+@pytest.mark.parametrize("attempt", range(E2E_RUNS))
+def test_daemon_end_to_end(hil: RealtimeHilProcess, tmp_path: Path, attempt: int) -> None:
+    rig = load_rig(RIG)
     state = tmp_path / "state"
     sock = tmp_path / "run" / "c.sock"
     trace = tmp_path / "trace" / "can.blf"
     config = tmp_path / "rtd.toml"
-    config.write_text(
-        f'[bus]\ninterface = "remote"\nchannel = "ws://127.0.0.1:{hil.port}/"\n'
-        f'boot_timeout_s = 2.0\n[rig]\nprofile = "{rig_file}"\n'
-        f"[loop]\nperiod_s = {PERIOD_S}\nsched_fifo_priority = 50\nlock_memory = false\n"
-        "max_consecutive_overruns = 20\n[executor]\nstale_cycles = 250\n"
-        f'[paths]\nstate_dir = "{state}"\nsocket = "{sock}"\ntrace = "{trace}"\n'
-    )
+    loaded = stock_config(config, hil.port, state, sock, trace)
+    assert loaded.loop.period_s == PERIOD_S
     store = state / "jobs.json"
     poller = StorePoller(store)
     t0 = time.monotonic()
@@ -391,8 +401,16 @@ def test_daemon_end_to_end(hil: RealtimeHilProcess, rig_file: Path, tmp_path: Pa
     assert poller.failures == [], poller.failures[:3]
     assert poller.reads > 100
     _truth, _material, _frames, extra = hil.finish()
+    # Each daemon's loop: its overruns over its life (the timing self-test's own run excluded).
+    runs = [
+        m.group(1)
+        for d in (first, second)
+        for m in re.finditer(r"loop: (\d+ overrun\(s\) in \d{4,} cycles.*)", d.log())
+    ]
     print(
-        f"\ndaemon e2e: READY after {t_ready:.1f} s; run 1 {figures1}; run 2 {figures2}; "
+        f"\ndaemon e2e #{attempt + 1}: READY after {t_ready:.1f} s; run 1 {figures1}; "
+        f"run 2 {figures2}; "
+        f"{'; '.join(runs)}; "
         f"store parsed {poller.reads} times; total {time.monotonic() - t0:.1f} s; "
         f"{extra['hil_process']}"
     )

@@ -29,6 +29,7 @@ from rt_runtime.control import (
     apply_rt,
     restore_rt,
 )
+from rt_runtime.control.rt import MCL_CURRENT, MCL_FUTURE, MCL_ONFAULT, HelperThreads
 from rt_runtime.errors import ConfigurationError
 
 PERIOD = 0.002
@@ -326,6 +327,28 @@ class FakePlatform:
 ALL_RT = RtSettings(sched_fifo_priority=80, lock_memory=True, cpu=1, timer_slack_ns=1)
 
 
+class NoOnFaultPlatform(FakePlatform):
+    """A kernel before Linux 4.4: mlockall refuses MCL_ONFAULT."""
+
+    def mlockall(self, flags: int) -> None:
+        self.calls.append(("mlockall", flags))
+        if flags & MCL_ONFAULT:
+            raise OSError(22, "Invalid argument")
+
+
+def test_mlockall_locks_the_future_on_fault_and_falls_back_without_it() -> None:
+    report = apply_rt(RtSettings(None, True, None, None, False), FakePlatform(refuse=set()))
+    assert report.memory_locked and report.items[0].requested.endswith("MCL_FUTURE|MCL_ONFAULT")
+    plat = NoOnFaultPlatform(refuse=set())
+    report = apply_rt(RtSettings(None, True, None, None, False), plat)
+    assert report.memory_locked and "no MCL_ONFAULT" in report.items[0].requested
+    assert [c[1] for c in plat.calls] == [
+        MCL_CURRENT,
+        MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT,
+        MCL_CURRENT | MCL_FUTURE,
+    ]
+
+
 def test_refusals_are_reported_and_only_applied_items_are_undone() -> None:
     plat = FakePlatform(refuse={"set_scheduler", "mlockall"})
     report = apply_rt(ALL_RT, plat)
@@ -458,9 +481,50 @@ def test_acquired_rt_stays_across_runs_until_released() -> None:
             stats = loop.run(lambda info: LoopAction.CONTINUE, max_cycles=3)
             assert stats.rt is report
             assert plat.policy == (os.SCHED_FIFO, 80) and not gc.isenabled()
-        assert sum(1 for c in plat.calls if c[0] == "mlockall") == 1
+        # Locked once: the current pages, then the future ones as they are touched.
+        assert [c[1] for c in plat.calls if c[0] == "mlockall"] == [
+            MCL_CURRENT,
+            MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT,
+        ]
     finally:
         loop.release_rt()
     assert plat.policy == (os.SCHED_OTHER, 0) and gc.isenabled()
     assert ("munlockall", None) in plat.calls
     loop.release_rt()  # no-op
+
+
+def test_helper_threads_run_fifo_below_the_loop_and_their_processes_do_not() -> None:
+    """Threads started while ``HelperThreads`` is in force run SCHED_FIFO at its priority; a
+    process one of them starts runs at normal priority; after ``restore`` new threads do not."""
+    import subprocess
+    import sys
+    import threading
+
+    before = os.sched_getscheduler(0)
+    helpers = HelperThreads(10)
+    if not helpers.item.applied:
+        pytest.skip(f"SCHED_FIFO refused here: {helpers.item.reason}")
+    seen: dict[str, object] = {}
+
+    def helper() -> None:
+        seen["policy"] = os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK
+        seen["priority"] = os.sched_getparam(0).sched_priority
+        child = subprocess.run(
+            [sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
+            capture_output=True, text=True, check=True,
+        )  # fmt: skip
+        seen["child"] = int(child.stdout)
+
+    try:
+        t = threading.Thread(target=helper)
+        t.start()
+        t.join()
+    finally:
+        helpers.restore()
+    assert seen == {"policy": os.SCHED_FIFO, "priority": 10, "child": os.SCHED_OTHER}
+    assert os.sched_getscheduler(0) == before
+    after: list[int] = []
+    t = threading.Thread(target=lambda: after.append(os.sched_getscheduler(0)))
+    t.start()
+    t.join()
+    assert after == [before]

@@ -17,11 +17,20 @@ a batch of sub-steps; the drives then answer late, which the master sees as it w
 Per SYNC it records the time from the SYNC's stamp to its answers leaving (``sync_handling``)
 and its own work on it; a SYNC answered more than one period after its stamp is a missed one.
 
+Memory is bounded, so the process runs for hours at a flat size (``excavator-rt bench soak``
+measures it): the truth keeps the last ``--truth-s`` seconds of SYNCs (default
+:data:`TRUTH_S`; a ring allocated whole at the start, :class:`~hil_sim.sim.TruthRing`), and the
+SYNC statistics keep counts and maxima over the whole run and the last :data:`SYNC_STATS_ROWS`
+SYNCs for percentiles (:class:`SyncStats`). Nothing else grows per frame: the bridge's output
+to a client that does not read is capped (:data:`hil_sim.harness.bridge.MAX_PENDING_BYTES`),
+and the trace (``--trace``) goes to its file.
+
 Control of the process (:class:`RealtimeHilProcess`): one line commands on stdin
 (``inject <kind> <axis>``, ``cut <sync_from> <sync_to>``, ``stop``), answers on stdout
 (``READY <port>``, ``CUT <m3>``). On ``stop``, on end of stdin (the parent died) or after
 ``--max-wall-s`` it writes its truth (``numpy.savez``: :class:`~hil_sim.sim.Truth` arrays, the
-terrain's material as WKB, its loop statistics) and exits, so a test can never leave it running.
+terrain's material as WKB, its loop statistics, its resident memory) and exits, so a test can
+never leave it running.
 
 Scheduling: the process stands in for drive firmware, which a loaded rig PC never stalls, so it
 asks for SCHED_FIFO (``--rt-priority``, default :data:`HIL_RT_PRIORITY` from
@@ -36,7 +45,6 @@ Run by hand:
 from __future__ import annotations
 
 import argparse
-import array
 import dataclasses
 import gc
 import math
@@ -62,12 +70,25 @@ from rt_runtime.control.rt import RtSettings, apply_rt
 from rt_runtime.errors import CommunicationError
 from rt_runtime.rig import load_rig
 
-__all__ = ["HOST", "RealtimeHilProcess", "main", "serve"]
+__all__ = [
+    "HOST",
+    "SYNC_STATS_ROWS",
+    "TRUTH_S",
+    "RealtimeHilProcess",
+    "SyncStats",
+    "main",
+    "process_memory_mb",
+    "serve",
+]
 
 #: The only address the bridge binds.
 HOST = Bridge.HOST
 #: SCHED_FIFO priority of the HIL process by default (below the loop's: 80, the daemon's default).
 HIL_RT_PRIORITY = 30
+#: Seconds of truth the process keeps by default (the last ones; at the SYNC period given).
+TRUTH_S = 300.0
+#: SYNCs whose timing the percentiles of :class:`SyncStats` are taken over (the last ones).
+SYNC_STATS_ROWS = 1 << 17
 _NOT_FOR_NODES = FLAG_EXTENDED | FLAG_REMOTE | FLAG_ERROR
 
 
@@ -98,6 +119,8 @@ def serve(args: argparse.Namespace) -> int:
         terrain,
         period_s=args.period,
         vcu=not args.no_vcu,
+        truth_rows=max(2, math.ceil(args.truth_s / args.period) + 1),
+        preallocate_truth=True,
     )
     if args.trace:
         core.trace = open_trace(args.trace)
@@ -135,21 +158,101 @@ def serve(args: argparse.Namespace) -> int:
     if core.trace is not None:
         core.trace.stop()
     truth = core.truth()
-    handling = np.frombuffer(loop.sync_handling_s, dtype=np.float64)
+    stats = loop.stats
+    rss_mb, rss_max_mb = process_memory_mb()
     extra = {
         "material_wkb": np.frombuffer(
             core.terrain.material.wkb if core.terrain is not None else b"", dtype=np.uint8
         ),
         "frames_sent": np.array(loop.frames_sent),
         "frames_dropped": np.array(bridge.dropped),
-        "sync_handling_s": handling,
-        "sync_work_s": np.frombuffer(loop.sync_work_s, dtype=np.float64),
+        "syncs": np.array(stats.count),
+        "missed_syncs": np.array(stats.missed),
+        "sync_handling_s": stats.handling_s(),
+        "sync_work_s": stats.work_s(),
+        "sync_handling_max_s": np.array(stats.handling_max_s),
+        "sync_work_max_s": np.array(stats.work_max_s),
+        "truth_dropped": np.array(core.truth_ring.dropped),
+        "rss_mb": np.array(rss_mb),
+        "rss_max_mb": np.array(rss_max_mb),
         "wall_s": np.array(loop.now()),
     }
     if args.out:
         arrays: dict[str, Any] = {**truth.to_npz_dict(), **extra}
         np.savez(args.out, **arrays)
     return 0
+
+
+def process_memory_mb(pid: int | str = "self") -> tuple[float, float]:
+    """Resident memory of a process on Linux: ``(now, peak)`` in MB (10^6 bytes), from
+    ``/proc/<pid>/status`` (``VmRSS``, ``VmHWM``).
+
+    Raises:
+        OSError: No such process (or no ``/proc``).
+    """
+    now_kb = peak_kb = 0
+    with open(f"/proc/{pid}/status", encoding="ascii") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                now_kb = int(line.split()[1])
+            elif line.startswith("VmHWM:"):
+                peak_kb = int(line.split()[1])
+    return now_kb * 1024e-6, peak_kb * 1024e-6
+
+
+class SyncStats:
+    """The HIL's timing per SYNC in bounded memory.
+
+    Counts and maxima cover every SYNC of the run; the values themselves are kept for the last
+    ``rows`` SYNCs (two preallocated rings), which the percentiles are taken over.
+
+    Args:
+        rows: SYNCs whose values are kept (>= 1).
+        period_s: SYNC period: a SYNC answered later than this after its stamp is missed.
+
+    Attributes:
+        count: SYNCs recorded.
+        missed: SYNCs answered more than a period after their stamp.
+        handling_max_s: Longest time from a SYNC's stamp to its answers leaving (s).
+        work_max_s: Longest own work on a SYNC (s).
+    """
+
+    def __init__(self, rows: int, period_s: float) -> None:
+        self.period_s = period_s
+        self._handling = np.full(max(1, rows), np.nan)
+        self._work = np.full(max(1, rows), np.nan)
+        self.count = 0
+        self.missed = 0
+        self.handling_max_s = 0.0
+        self.work_max_s = 0.0
+
+    def record(self, handling_s: float, work_s: float) -> None:
+        """One SYNC: from its stamp to its answers leaving, and the HIL's own work on it (s)."""
+        i = self.count % len(self._handling)
+        self._handling[i] = handling_s
+        self._work[i] = work_s
+        self.count += 1
+        if handling_s > self.period_s:
+            self.missed += 1
+        if handling_s > self.handling_max_s:
+            self.handling_max_s = handling_s
+        if work_s > self.work_max_s:
+            self.work_max_s = work_s
+
+    def _ordered(self, ring: np.ndarray) -> np.ndarray:
+        n = len(ring)
+        if self.count <= n:
+            return ring[: self.count].copy()
+        i = self.count % n
+        return np.concatenate((ring[i:], ring[:i]))
+
+    def handling_s(self) -> np.ndarray:
+        """The kept handling times, oldest first (s)."""
+        return self._ordered(self._handling)
+
+    def work_s(self) -> np.ndarray:
+        """The kept own-work times, oldest first (s)."""
+        return self._ordered(self._work)
 
 
 class _HilLoop:
@@ -163,8 +266,8 @@ class _HilLoop:
     supervision runs and the answers leave at once (:meth:`Bridge.flush`).
 
     Attributes:
-        sync_handling_s: Per SYNC, from its stamp to its answers leaving (s), ``array('d')``.
-        sync_work_s: Per SYNC, the HIL's own work on it: advance, answers, supervision (s).
+        stats: Per SYNC, from its stamp to its answers leaving, and the HIL's own work on it
+            (advance, answers, supervision): :class:`SyncStats`.
         frames_sent: Frames the HIL put on the bus.
     """
 
@@ -180,8 +283,7 @@ class _HilLoop:
         self.epoch_offset = time.time() - time.monotonic() + self.t0
         self.t_core = 0.0
         self.frames_sent = 0
-        self.sync_handling_s = array.array("d")
-        self.sync_work_s = array.array("d")
+        self.stats = SyncStats(SYNC_STATS_ROWS, period_s)
         self._send(core.pending_frames(0.0), 0.0)
         bridge.flush()
 
@@ -226,8 +328,7 @@ class _HilLoop:
             self._send(core.pending_frames(arrival), arrival)
             self.bridge.flush()
             done = time.monotonic()
-            self.sync_handling_s.append(done - self.t0 - arrival)
-            self.sync_work_s.append(done - started)
+            self.stats.record(done - self.t0 - arrival, done - started)
 
     def run_once(self, poll_s: float) -> None:
         """Wait for the bus until the next servo tick (at most ``poll_s``), handle what came,
@@ -272,6 +373,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (0: any free)")
     p.add_argument("--poll", type=float, default=5e-4, help="longest wait for a frame (s)")
     p.add_argument("--max-wall-s", type=float, default=600.0, help="stop after this long")
+    p.add_argument(
+        "--truth-s",
+        type=float,
+        default=TRUTH_S,
+        help=f"seconds of truth kept, the last ones (default {TRUTH_S:g}; memory is allocated "
+        "for them at the start)",
+    )
     p.add_argument("--out", default=None, help="write the truth here (.npz) at the end")
     return p
 
@@ -318,6 +426,7 @@ class RealtimeHilProcess:
         ready_timeout_s: float = 30.0,
         sync_timeout_s: float | None = None,
         rt_priority: int | None = HIL_RT_PRIORITY,
+        truth_s: float | None = None,
     ) -> RealtimeHilProcess:
         """Start the HIL process and connect to it.
 
@@ -334,6 +443,8 @@ class RealtimeHilProcess:
                 longer than a rig PC), or None for the rig's.
             rt_priority: SCHED_FIFO priority of the process (see the module docstring), or
                 None for the default scheduler.
+            truth_s: Seconds of truth the process keeps (the last ones), or None for
+                :data:`TRUTH_S`.
 
         Raises:
             CommunicationError: The process did not report ready in time.
@@ -365,6 +476,8 @@ class RealtimeHilProcess:
             cmd += ["--trace", str(trace_path)]
         if rt_priority is not None:
             cmd += ["--rt-priority", str(rt_priority)]
+        if truth_s is not None:
+            cmd += ["--truth-s", repr(float(truth_s))]
         proc = subprocess.Popen(
             cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1
         )
@@ -421,10 +534,13 @@ class RealtimeHilProcess:
                 "wall_s": float(data["wall_s"]),
                 "frames_sent": int(data["frames_sent"]),
                 "frames_dropped": int(data["frames_dropped"]),
-                "syncs": int(handling.size),
-                "missed_syncs": int(np.sum(handling > self.period_s * 1e6)),
-                "sync_handling_us": _spread(handling),
-                "sync_work_us": _spread(work),
+                "syncs": int(data["syncs"]),
+                "missed_syncs": int(data["missed_syncs"]),
+                "sync_handling_us": _spread(handling, float(data["sync_handling_max_s"]) * 1e6),
+                "sync_work_us": _spread(work, float(data["sync_work_max_s"]) * 1e6),
+                "truth_dropped": int(data["truth_dropped"]),
+                "rss_mb": round(float(data["rss_mb"]), 1),
+                "rss_max_mb": round(float(data["rss_max_mb"]), 1),
             }
         }
         self._finished = (truth, material, [], extra)
@@ -445,14 +561,14 @@ class RealtimeHilProcess:
         self._tmp.cleanup()
 
 
-def _spread(values_us: np.ndarray) -> dict[str, float]:
-    """p50, p99 and max of a sample (NaN when empty)."""
+def _spread(values_us: np.ndarray, max_us: float) -> dict[str, float]:
+    """p50 and p99 of the kept values, the whole run's max (NaN when nothing was kept)."""
     if not values_us.size:
         return {"p50": math.nan, "p99": math.nan, "max": math.nan}
     return {
         "p50": float(np.percentile(values_us, 50)),
         "p99": float(np.percentile(values_us, 99)),
-        "max": float(np.max(values_us)),
+        "max": max_us,
     }
 
 

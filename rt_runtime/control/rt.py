@@ -19,12 +19,16 @@ import contextlib
 import ctypes
 import gc
 import os
+import sys
+import threading
 from dataclasses import dataclass, field
-from typing import Protocol
+from types import FrameType
+from typing import Any, Protocol
 
 from rt_runtime.errors import ConfigurationError
 
 __all__ = [
+    "HelperThreads",
     "OsRtPlatform",
     "RtItem",
     "RtPlatform",
@@ -37,6 +41,7 @@ __all__ = [
 # <sys/mman.h> and <linux/prctl.h>; the same values on every Linux architecture we run on.
 MCL_CURRENT = 1
 MCL_FUTURE = 2
+MCL_ONFAULT = 4
 PR_SET_TIMERSLACK = 29
 PR_GET_TIMERSLACK = 30
 
@@ -48,7 +53,13 @@ class RtSettings:
     Attributes:
         sched_fifo_priority: SCHED_FIFO priority (1..99 on Linux) for the loop's thread; None
             leaves the scheduler alone.
-        lock_memory: ``mlockall(MCL_CURRENT | MCL_FUTURE)`` so no page fault stalls a cycle.
+        lock_memory: Lock the process's memory so no page fault stalls a cycle: every page
+            mapped now is faulted in and locked (``MCL_CURRENT``); later mappings are locked
+            as their pages are first touched (``MCL_FUTURE | MCL_ONFAULT``, Linux 4.4; plain
+            ``MCL_FUTURE`` where the kernel refuses it). Not plain ``MCL_FUTURE``: it faults in
+            every new mapping whole when it is made, a new thread's 8 MB stack inside
+            ``pthread_create`` with the interpreter lock held (17-47 ms p50 on the loaded
+            2-core build machine, against 1-2 ms on fault; design notes L2).
         cpu: Pin the loop's thread to this CPU (``os.sched_setaffinity``); None: no pinning.
         timer_slack_ns: ``prctl(PR_SET_TIMERSLACK)`` for the thread (ns, >= 1); None: leave it.
         freeze_gc: ``gc.collect(); gc.freeze(); gc.disable()`` while running, so no collection
@@ -228,7 +239,8 @@ def _reason(exc: BaseException) -> str:
 
 
 def apply_rt(settings: RtSettings, platform: RtPlatform | None = None) -> RtReport:
-    """Ask the OS for each item of ``settings`` for the calling thread; never raises on refusal.
+    """Ask the OS for each item of ``settings`` for the calling thread (mlockall first, then
+    SCHED_FIFO, the CPU, the timer slack, the collector); never raises on refusal.
 
     Not for inside the loop (it calls the OS and ``gc.collect``): call it before the first cycle.
 
@@ -248,6 +260,22 @@ def apply_rt(settings: RtSettings, platform: RtPlatform | None = None) -> RtRepo
     locked = False
     gc_was_enabled: bool | None = None
 
+    # Memory first, at the thread's old priority: faulting in the whole process takes tens of
+    # milliseconds of CPU, which at SCHED_FIFO would hold up every lower real-time task there.
+    if settings.lock_memory:
+        try:
+            plat.mlockall(MCL_CURRENT)
+            locked = True
+            try:
+                plat.mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT)
+                requested = "MCL_CURRENT, then MCL_FUTURE|MCL_ONFAULT"
+            except OSError:
+                plat.mlockall(MCL_CURRENT | MCL_FUTURE)
+                requested = "MCL_CURRENT|MCL_FUTURE (no MCL_ONFAULT)"
+            items.append(RtItem("mlockall", requested, True))
+        except OSError as exc:
+            items.append(RtItem("mlockall", "MCL_CURRENT, MCL_FUTURE", False, _reason(exc)))
+
     if settings.sched_fifo_priority is not None:
         prio = settings.sched_fifo_priority
         requested = f"priority {prio}"
@@ -261,14 +289,6 @@ def apply_rt(settings: RtSettings, platform: RtPlatform | None = None) -> RtRepo
             items.append(RtItem("sched_fifo", requested, True))
         except (OSError, ValueError) as exc:
             items.append(RtItem("sched_fifo", requested, False, _reason(exc)))
-
-    if settings.lock_memory:
-        try:
-            plat.mlockall(MCL_CURRENT | MCL_FUTURE)
-            locked = True
-            items.append(RtItem("mlockall", "MCL_CURRENT|MCL_FUTURE", True))
-        except OSError as exc:
-            items.append(RtItem("mlockall", "MCL_CURRENT|MCL_FUTURE", False, _reason(exc)))
 
     if settings.cpu is not None:
         requested = f"cpu {settings.cpu}"
@@ -334,3 +354,63 @@ def restore_rt(report: RtReport) -> None:
         gc.unfreeze()
         if report.gc_was_enabled:
             gc.enable()
+
+
+class HelperThreads:
+    """SCHED_FIFO at a low priority for a process's other threads: the calling thread and
+    every thread the :mod:`threading` module starts until :meth:`restore`.
+
+    Why: Python threads share one interpreter lock. A thread at normal priority that holds it
+    and is preempted by any other process keeps the loop's thread (SCHED_FIFO, waiting for the
+    lock) from running until it is scheduled again: tens of milliseconds on a loaded host,
+    longer than the drives' SYNC watchdog. At a real-time priority below the loop's (and below
+    a HIL process standing in for drive firmware) those threads are never preempted by normal
+    work while they hold the lock, and release it within the switch interval.
+
+    Every thread is set with ``SCHED_RESET_ON_FORK``: processes it starts (the planner's) begin
+    at normal priority; a thread it starts sets itself here when it begins (a
+    :func:`threading.setprofile` hook that puts back the profile hook there was before at the
+    thread's first call).
+
+    Args:
+        priority: SCHED_FIFO priority (1..99).
+
+    Attributes:
+        item: What the OS granted for the calling thread (refused: nothing else is done).
+    """
+
+    def __init__(self, priority: int) -> None:
+        self.priority = int(priority)
+        self._previous: tuple[int, int] | None = None
+        self._previous_hook = threading.getprofile()
+        requested = f"priority {self.priority} for the other threads"
+        try:
+            self._previous = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+            self._set()
+        except (OSError, ValueError) as exc:
+            self._previous = None
+            self.item = RtItem("helper_fifo", requested, False, _reason(exc))
+            return
+        self.item = RtItem("helper_fifo", requested, True)
+        threading.setprofile(self._hook)
+
+    def _set(self) -> None:
+        os.sched_setscheduler(
+            0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(self.priority)
+        )
+
+    def _hook(self, _frame: FrameType, _event: str, _arg: Any) -> None:
+        sys.setprofile(self._previous_hook)
+        with contextlib.suppress(OSError, ValueError):
+            self._set()
+
+    def restore(self) -> None:
+        """Threads started from now on keep the normal priority, and so does the calling
+        thread (the one that built this); threads already raised stay raised. Idempotent."""
+        if self._previous is None:
+            return
+        threading.setprofile(self._previous_hook)
+        with contextlib.suppress(OSError, ValueError):
+            policy, priority = self._previous
+            os.sched_setscheduler(0, policy, os.sched_param(priority))
+        self._previous = None

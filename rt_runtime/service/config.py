@@ -49,6 +49,7 @@ __all__ = [
     "DaemonConfig",
     "LoopSettings",
     "PathSettings",
+    "check_directory",
     "load_config",
     "load_planning",
     "parse_config",
@@ -468,6 +469,45 @@ def load_config(path: str | Path) -> DaemonConfig:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigurationError(f"config file {p}: not valid TOML: {exc}") from exc
     return parse_config(raw, p.resolve())
+
+
+def check_directory(path: Path, key: str, *, create: bool, mode: int = 0o700) -> bool:
+    """A directory the daemon writes in: it exists and this user may write in it, or it is
+    made (``create``, with ``mode``), or it could be made (not ``create``: nothing changes; its
+    nearest existing parent is a directory this user may write in).
+
+    Args:
+        path: The directory.
+        key: The configuration key that names it (for the error).
+        create: Make it when missing (a start); False only checks (``excavator-rtd --check``).
+        mode: Mode of a directory made.
+
+    Returns:
+        True when the directory existed.
+
+    Raises:
+        ConfigKeyError: It is not a directory, or it cannot be written, made or reached.
+    """
+    if path.is_dir():
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise ConfigKeyError(key, f"directory {path} is not writable by this user")
+        return True
+    if path.exists() or path.is_symlink():
+        raise ConfigKeyError(key, f"{path} exists and is not a directory")
+    if create:
+        try:
+            path.mkdir(mode=mode, parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigKeyError(key, f"cannot create {path}: {exc.strerror or exc}") from exc
+        return False
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigKeyError(
+            key, f"{path} does not exist and cannot be created: {parent} is not writable"
+        )
+    return False
 
 
 def load_planning(config: DaemonConfig, planner: str | None = None) -> tuple[Rig, TrenchPlanner]:

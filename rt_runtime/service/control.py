@@ -44,9 +44,9 @@ from pathlib import Path
 from typing import Any
 
 from rt_runtime.errors import CommunicationError, ExcavatorRtError
-from rt_runtime.service.config import ConfigKeyError
+from rt_runtime.service.config import ConfigKeyError, check_directory
 
-__all__ = ["MAX_REQUEST_BYTES", "ControlServer", "Handler", "request"]
+__all__ = ["MAX_REQUEST_BYTES", "ControlServer", "Handler", "check_socket_path", "request"]
 
 log = logging.getLogger("excavator-rtd.control")
 
@@ -79,6 +79,54 @@ class _Conn:
     inbuf: bytearray = field(default_factory=bytearray)
     outbuf: bytearray = field(default_factory=bytearray)
     closing: bool = False
+
+
+def check_socket_path(path: Path, *, create: bool) -> bool:
+    """What the control socket needs of ``paths.socket`` before it binds: an owner-only (0700)
+    directory of this user's, and the path free (or a socket a daemon that died left).
+
+    Args:
+        path: The socket's path.
+        create: Make a missing directory (0700) as a start does; False changes nothing
+            (``excavator-rtd --check``): a missing directory must be creatable.
+
+    Returns:
+        True when a socket that no daemon serves is at the path (a start removes it).
+
+    Raises:
+        ConfigKeyError (``paths.socket``): The directory is accessible to others, owned by
+            another user, or cannot be made; the path is another kind of file or a live
+            daemon serves it.
+    """
+    d = path.parent
+    key = "paths.socket"
+    if not check_directory(d, key, create=create) and not create:
+        return False  # made 0700 by the start
+    st = d.stat()
+    if st.st_uid != os.getuid():
+        raise ConfigKeyError(
+            key, f"directory {d} belongs to uid {st.st_uid}, not this user ({os.getuid()})"
+        )
+    if st.st_mode & 0o077:
+        raise ConfigKeyError(
+            key,
+            f"directory {d} is accessible to others (mode {stat.S_IMODE(st.st_mode):04o}); "
+            "the control socket needs an owner-only directory (0700) of its own, e.g. "
+            "/run/excavator-rtd",
+        )
+    if not (path.exists() or path.is_symlink()):
+        return False
+    if not stat.S_ISSOCK(path.lstat().st_mode):
+        raise ConfigKeyError(key, f"{path} exists and is not a socket")
+    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        probe.settimeout(0.5)
+        probe.connect(str(path))
+    except OSError:
+        return True
+    finally:
+        probe.close()
+    raise ConfigKeyError(key, f"another daemon serves {path}")
 
 
 class ControlServer:
@@ -125,37 +173,9 @@ class ControlServer:
                 by another user, the path is taken by another file or a live daemon, or the
                 bind failed.
         """
-        d = self.path.parent
         key = "paths.socket"
-        try:
-            d.mkdir(mode=0o700, parents=True, exist_ok=True)
-            st = d.stat()
-        except OSError as exc:
-            raise ConfigKeyError(key, f"cannot create {d}: {exc.strerror or exc}") from exc
-        if st.st_uid != os.getuid():
-            raise ConfigKeyError(
-                key, f"directory {d} belongs to uid {st.st_uid}, not this user ({os.getuid()})"
-            )
-        if st.st_mode & 0o077:
-            raise ConfigKeyError(
-                key,
-                f"directory {d} is accessible to others (mode {stat.S_IMODE(st.st_mode):04o}); "
-                "the control socket needs an owner-only directory (0700) of its own, e.g. "
-                "/run/excavator-rtd",
-            )
-        if self.path.exists() or self.path.is_symlink():
-            if not stat.S_ISSOCK(self.path.lstat().st_mode):
-                raise ConfigKeyError(key, f"{self.path} exists and is not a socket")
-            probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-            try:
-                probe.settimeout(0.5)
-                probe.connect(str(self.path))
-            except OSError:
-                self.path.unlink()  # left by a daemon that died
-            else:
-                raise ConfigKeyError(key, f"another daemon serves {self.path}")
-            finally:
-                probe.close()
+        if check_socket_path(self.path, create=True):
+            self.path.unlink()  # left by a daemon that died
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
         old = os.umask(0o177)
         try:

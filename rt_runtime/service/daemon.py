@@ -24,7 +24,10 @@ life. The collector: the heap is frozen after boot and when a job is prepared (`
 is O(1)), and the collector is off while a job runs. The price: cyclic garbage made before a
 freeze is never collected while the daemon runs (a restart frees it). The interpreter's switch
 interval is lowered to 0.2 ms so the loop's thread gets the interpreter back quickly from the
-main and helper threads.
+main and helper threads, and those run SCHED_FIFO :data:`HELPER_PRIORITY` (below the loop's;
+:class:`~rt_runtime.control.rt.HelperThreads`), so none is preempted by other work while it
+holds the interpreter lock. Before it boots the drives, the runner's timing self-test logs what
+this host holds (:mod:`rt_runtime.service.preflight`); ``--check`` runs it too.
 
 Signals: SIGTERM / SIGINT (and the ``stop`` request) -> STOPPING=1, the executor's jerk-limited
 stop (``StopRequest.SHUTDOWN``), drives disabled (controlword 0x0000), the job left resumable
@@ -64,6 +67,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import can
 
 from rt_runtime.canbus.traced import TracedBus
+from rt_runtime.control.rt import HelperThreads
 from rt_runtime.errors import (
     CommunicationError,
     ConfigurationError,
@@ -78,6 +82,7 @@ from rt_runtime.service.config import (
 from rt_runtime.service.control import ControlServer
 from rt_runtime.service.jobstore import Job, JobError, JobStore
 from rt_runtime.service.notify import Notifier, watchdog_interval_s
+from rt_runtime.service.preflight import check_start
 from rt_runtime.service.runner import STALE_LOOP_S, RigRunner
 
 if TYPE_CHECKING:
@@ -106,6 +111,9 @@ EXIT_OK = 0
 EXIT_RUNTIME = 1
 EXIT_CONFIG = 2
 EXIT_BUS = 3
+#: SCHED_FIFO priority of the daemon's threads other than the loop's: below the loop and below
+#: a HIL process standing in for drive firmware (30), above every normal process.
+HELPER_PRIORITY = 10
 #: Main-thread poll interval: status lines, runner liveness (s).
 _POLL_S = 0.1
 
@@ -697,7 +705,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--check",
         action="store_true",
-        help="validate the configuration, rig, models and job store, then exit (no bus)",
+        help="check everything a start checks that needs no bus (configuration, rig, models, "
+        "job store, socket and trace directories, RT settings, a timing self-test), change no "
+        "file, exit",
     )
     return p
 
@@ -710,16 +720,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = load_config(args.config)
         _set_log_level(config.log_level)
         rig, planner = load_planning(config)
-        store = JobStore(config.paths.state_dir)
+        if args.check:
+            checked = check_start(config, rig)
+        else:
+            store = JobStore(config.paths.state_dir)
     except ConfigurationError as exc:
         print(f"excavator-rtd: error: {exc}", file=sys.stderr)
         return EXIT_CONFIG
     if args.check:
         print(
             f"excavator-rtd: {args.config} is valid: rig {rig.name}, period "
-            f"{config.loop.period_s * 1e3:g} ms, bus {config.bus.interface} "
-            f"{config.bus.channel}, {len(store.jobs())} job(s) in {store.path}"
+            f"{config.loop.period_s * 1e3:g} ms; nothing was changed"
         )
+        for line in checked:
+            print(f"  {line}")
         return EXIT_OK
     server = ControlServer(config.paths.socket, {})
     try:
@@ -734,10 +748,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     # The runner thread must get the interpreter back within a fraction of a period when a
     # request or a job's preparation runs Python on another thread.
     sys.setswitchinterval(min(sys.getswitchinterval(), 2e-4))
+    # Every other thread that takes the interpreter lock runs above normal work and below the
+    # loop, so none is preempted while the loop waits for the lock (HelperThreads).
+    helpers = _helper_threads(config)
     recorder: TraceRecorder | None = None
     try:
         raw_bus = open_bus(config, rig)
     except CommunicationError as exc:
+        if helpers is not None:
+            helpers.restore()
         server.close()
         print(f"excavator-rtd: error: {exc}", file=sys.stderr)
         return EXIT_BUS
@@ -753,8 +772,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         recorder.close()
         with contextlib.suppress(Exception):
             bus.shutdown()
+        if helpers is not None:
+            helpers.restore()
         for h in logging.getLogger().handlers:
             h.flush()
+
+
+def _helper_threads(config: DaemonConfig) -> HelperThreads | None:
+    """SCHED_FIFO :data:`HELPER_PRIORITY` (below the loop's) for the daemon's other threads;
+    None when the loop's priority is left alone or is 1."""
+    loop_priority = config.loop.sched_fifo_priority or 0
+    if loop_priority < 2:
+        return None
+    helpers = HelperThreads(min(HELPER_PRIORITY, loop_priority - 1))
+    if not helpers.item.applied:
+        log.warning("SCHED_FIFO for the daemon's other threads refused: %s", helpers.item.reason)
+    return helpers
 
 
 if __name__ == "__main__":

@@ -43,6 +43,7 @@ from typing import Any
 
 from rt_runtime.errors import ConfigurationError
 from rt_runtime.fileio import atomic_write
+from rt_runtime.service.config import check_directory
 
 __all__ = [
     "ACTIVE",
@@ -279,6 +280,26 @@ class JobStore:
     Raises:
         ConfigurationError: The directory cannot be made, or the store there is corrupt.
     """
+
+    @staticmethod
+    def check(state_dir: Path) -> tuple[int, int]:
+        """What opening the store in ``state_dir`` checks, changing nothing
+        (``excavator-rtd --check``): the directory is writable or can be made, the store file
+        (when there is one) is valid.
+
+        Returns:
+            ``(jobs in the store, temporary files a crash left)`` (a start removes the latter).
+
+        Raises:
+            ConfigurationError: The directory cannot be written or made (``paths.state_dir``),
+                or the store is not valid (the file named).
+        """
+        path = Path(state_dir) / STORE_NAME
+        existed = check_directory(path.parent, "paths.state_dir", create=False)
+        if not existed:
+            return 0, 0
+        _next_id, jobs = read_store(path)
+        return len(jobs), sum(1 for _ in _stale_temps(path))
 
     def __init__(self, state_dir: Path, keep_finished: int = 100) -> None:
         self.path = Path(state_dir) / STORE_NAME

@@ -13,6 +13,11 @@ boundary, and when the job ends, back to the hold at the next: the SYNC stream n
 The job's outcome goes into the job store (in memory; its writer thread persists), its report
 (log lines, the telemetry file in the state directory) to a thread.
 
+Threads: the preparation and the work after a job (its report, closing a controller that never
+ran) run on two threads started with the runner (:class:`_Worker`), which the loop's thread
+hands work through a queue; the loop's thread starts no thread (``Thread.start`` waits until the
+new thread runs, and the new thread's stack is mapped with the interpreter lock held).
+
 Real time: the RT settings are applied once to the runner thread for its life. The heap is
 frozen after boot and when a job is prepared (``gc.freeze`` is O(1)), and the collector is off
 while a job runs (switched at the boundaries); cyclic garbage made before a freeze is never
@@ -52,6 +57,7 @@ from rt_runtime.errors import CommunicationError, ExcavatorRtError
 from rt_runtime.planning.trench import TrenchPlanner, TrenchSession, make_task
 from rt_runtime.service.config import DaemonConfig
 from rt_runtime.service.jobstore import ACTIVE, DIG_KEYS, Job, JobError, JobStatus, JobStore
+from rt_runtime.service.preflight import loop_rt_settings, timing_self_test
 
 if TYPE_CHECKING:
     from rt_runtime.planning.trench import TrenchTask
@@ -104,6 +110,32 @@ class _Parts:
     hold_telemetry: Telemetry
 
 
+class _Worker:
+    """A thread started once that runs the calls queued to it, in order (see the module
+    docstring); a call that raises is logged and the thread goes on.
+
+    Args:
+        name: The thread's name.
+    """
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self._queue: queue.SimpleQueue[tuple[Any, tuple[Any, ...]]] = queue.SimpleQueue()
+        threading.Thread(target=self._run, name=name, daemon=True).start()
+
+    def submit(self, fn: Any, *args: Any) -> None:
+        """Queue ``fn(*args)`` (loop safe: a queue put)."""
+        self._queue.put((fn, args))
+
+    def _run(self) -> None:
+        while True:
+            fn, args = self._queue.get()
+            try:
+                fn(*args)
+            except Exception:
+                log.exception("%s: %s failed", self.name, getattr(fn, "__name__", fn))
+
+
 class _Preparation:
     """Builds each job off the loop's thread (see the module docstring) and takes its dig
     records off the loop's thread into the store.
@@ -119,20 +151,28 @@ class _Preparation:
         #: Feed-forward and stale-cycle limit for the next job (SIGHUP reload).
         self.options = (runner.config.feedforward, runner.config.stale_cycles)
         self.prepared: _PreparedJob | None = None
-        self.thread: threading.Thread | None = None
+        self._preparing = False
+        self._worker = _Worker("prepare")
+        #: Work after a job: its report, closing a controller that never ran.
+        self.after = _Worker("job-after")
         self.records: queue.SimpleQueue[tuple[int, DigRecord]] = queue.SimpleQueue()
         threading.Thread(target=self._record_loop, name="dig-records", daemon=True).start()
 
     def busy(self) -> bool:
-        """A preparation thread runs."""
-        return self.thread is not None and self.thread.is_alive()
+        """A preparation is queued or runs."""
+        return self._preparing
 
     def start(self, job: Job, held_m: Any, parts: _Parts) -> None:
-        """Prepare ``job`` on a thread, its controller starting at the held stroke."""
-        self.thread = threading.Thread(
-            target=self._prepare, args=(job, held_m, parts), name="prepare", daemon=True
-        )
-        self.thread.start()
+        """Prepare ``job`` on the preparation thread, its controller starting at the held
+        stroke (loop safe: a queue put)."""
+        self._preparing = True
+        self._worker.submit(self._prepare_once, job, held_m, parts)
+
+    def _prepare_once(self, job: Job, held_m: Any, parts: _Parts) -> None:
+        try:
+            self._prepare(job, held_m, parts)
+        finally:
+            self._preparing = False
 
     def _planner(self, name: str) -> TrenchPlanner:
         if name not in self.planners:
@@ -334,19 +374,20 @@ class RigRunner:
     # -- the thread ---------------------------------------------------------------------------
 
     def _main(self) -> None:
-        cfg = self.config.loop
-        report = apply_rt(
-            RtSettings(
-                sched_fifo_priority=cfg.sched_fifo_priority,
-                lock_memory=cfg.lock_memory,
-                cpu=cfg.cpu,
-                timer_slack_ns=1,
-                freeze_gc=False,
-            )
-        )
-        for item in report.refused:
-            log.warning("RT setting %s refused: %s", item.item, item.reason)
+        report = apply_rt(loop_rt_settings(self.config))
         _reset_rt_on_fork()
+        # Before the bus: what this host holds, in numbers, where the drives' watchdogs and the
+        # overrun stop would trip later (preflight's module docstring).
+        timing = timing_self_test(
+            self.clock,
+            self.period_s,
+            report,
+            sync_watchdog_s=self.rig.drives.sync_timeout_s,
+            max_consecutive_overruns=self.config.loop.max_consecutive_overruns,
+        )
+        log.info("%s", timing.summary())
+        for warning in timing.warnings:
+            log.warning("host: %s", warning)
         master: CanMaster | None = None
         try:
             try:
@@ -459,7 +500,7 @@ class RigRunner:
         self._prep.prepared = None
         job = prepared.job
         if self.store.get(job.id).status not in ACTIVE or self._fault:
-            threading.Thread(target=prepared.controller.close, daemon=True).start()
+            self._prep.after.submit(prepared.controller.close)
             self._job_id = None
             self.store.changed.set()
             return
@@ -495,9 +536,7 @@ class RigRunner:
         with self._lock:
             self._job, self._job_id = None, None
         self._state = self._idle_state()
-        threading.Thread(
-            target=self._report_run, args=(running, status), name="job-report", daemon=True
-        ).start()
+        self._prep.after.submit(self._report_run, running, status)
         self.store.changed.set()
         return hold, hold.command
 

@@ -265,6 +265,8 @@ class FakeRunner:
         self._thread: threading.Thread | None = None
         self.shutdown_called = False
         self.beat = time.monotonic()
+        self.latched = ""
+        self.resets_done = 0
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -320,9 +322,23 @@ class FakeRunner:
         return self._thread is not None and self._thread.is_alive()
 
     def health(self) -> tuple[bool, str]:
-        return True, ""
+        return (False, f"fault latched: {self.latched}") if self.latched else (True, "")
+
+    def watchdog(self) -> tuple[bool, str]:
+        return self.alive(), ""
+
+    def fault(self) -> str:
+        return self.latched
+
+    def reset_fault(self) -> int:
+        # The fake's reset always works at once.
+        self.latched = ""
+        self.resets_done += 1
+        return self.resets_done
 
     def state(self) -> str:
+        if self.latched:
+            return f"fault: {self.latched}; waiting for reset-fault"
         return f"running job {self._job}" if self._job else "idle"
 
     def current_job(self) -> int | None:
@@ -553,3 +569,66 @@ def test_client_commands(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert '"name": "small"' in out  # --json: the reply as is
     assert "job 1: running, task small" in out
     assert "excavator-rt job resume: no job 7" in err
+
+
+def test_a_latched_fault_refuses_motion_until_reset_fault(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    notify_path = tmp_path / "notify.sock"
+    manager = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    manager.bind(str(notify_path))
+    rs = RunningService(tmp_path, notify=str(notify_path))
+    parser = argparse.ArgumentParser()
+    client.add_parser(parser.add_subparsers())
+    results: dict[str, Any] = {}
+
+    def job(*argv: str) -> int:
+        args = parser.parse_args(["job", *argv, "--socket", str(rs.sock)])
+        code: int = args.handler(args)
+        return code
+
+    def script(rs: RunningService) -> None:
+        refused = rs.ask(cmd="reset-fault")
+        assert not refused["ok"] and refused["code"] == "refused", refused
+        assert "no fault is latched" in refused["error"]
+        rs.runner.pause()
+        rs.ask(cmd="submit", task="A")
+        _wait(lambda: rs.runner.current_job() == 1)
+        rs.ask(cmd="pause", id=1)
+        rs.runner.latched = "job 1: bus_error: the bus refused frames"
+        st = rs.ask(cmd="status")
+        assert st["daemon"]["fault"] == rs.runner.latched
+        assert not st["daemon"]["healthy"]
+        resume = rs.ask(cmd="resume", id=1)
+        assert not resume["ok"] and resume["code"] == "faulted", resume
+        assert "job 1: bus_error" in resume["error"] and "reset-fault" in resume["error"]
+        results["resume"] = job("resume", "1")
+        queued = rs.ask(cmd="submit", task="B")
+        assert queued["ok"] and queued["fault"] == rs.runner.latched  # queued, waits
+        results["submit"] = job("submit", "--task", "B")
+        time.sleep(0.3)  # main-loop polls: the watchdog is fed while the fault is latched
+        results["reset"] = job("reset-fault", "--wait-s", "5")
+        assert rs.ask(cmd="status")["daemon"]["fault"] == ""
+        assert rs.ask(cmd="resume", id=1)["ok"]
+        rs.ask(cmd="stop")
+
+    try:
+        code, errors = rs.run_with(script)
+        if errors:
+            raise errors[0]
+        manager.settimeout(0.2)
+        messages = []
+        with contextlib.suppress(TimeoutError):
+            while True:
+                messages.append(manager.recv(4096).decode())
+    finally:
+        manager.close()
+    assert code == EXIT_OK
+    assert results == {"resume": 1, "submit": 0, "reset": 0}
+    out, err = capsys.readouterr()
+    assert "excavator-rt job resume: resume of job 1 refused: a fault is latched" in err
+    assert "a fault is latched (job 1: bus_error" in out  # the submit's note
+    assert "resetting: job 1: bus_error" in out and "fault reset: " in out
+    faulted = [i for i, m in enumerate(messages) if m.startswith("STATUS=fault: ")]
+    assert faulted, messages
+    assert "WATCHDOG=1" in messages[faulted[0] :], messages

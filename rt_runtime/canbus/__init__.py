@@ -102,7 +102,7 @@ from rt_runtime.canbus.cia402 import (
     next_controlword,
 )
 from rt_runtime.canbus.config import DEFAULT_EDS, DriveInfo, MasterConfig
-from rt_runtime.canbus.emcy import Emcy, EmcyCode, emcy_message, parse_emcy
+from rt_runtime.canbus.emcy import Emcy, EmcyCode, emcy_meaning, emcy_message, parse_emcy
 from rt_runtime.canbus.feedback import CycleStatus, Feedback, WriteStatus
 from rt_runtime.canbus.heartbeat import (
     HeartbeatConsumer,
@@ -149,6 +149,7 @@ __all__ = [
     "check_pdo_mapping",
     "cia402_cycle_frames",
     "decode_state",
+    "emcy_meaning",
     "emcy_message",
     "frame_bits_exact",
     "frame_bits_nominal",

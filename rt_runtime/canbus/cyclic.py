@@ -15,6 +15,13 @@ Optional bus capability: a bus with ``send_many(msgs)`` (the messages in order, 
 for the four (the bridge: one system call instead of four); any other bus gets one ``send`` a
 frame, which is what a socketcan socket takes anyway.
 
+Bus errors: any exception out of the bus is a bus error, whatever its type: python-can raises
+``can.CanError`` and its subclasses, but a backend may let others through (python-can-remote's
+client raises ``ConnectionResetError``, ``BrokenPipeError`` or its ``WebsocketClosed`` when the
+far end is gone). The cycle's methods return ``BUS_ERROR`` for all of them and keep the latest
+in :attr:`CyclicExchange.bus_exception`; the send helpers used outside the loop raise
+:class:`~rt_runtime.errors.CommunicationError` naming it.
+
 Loop safety: the cycle's methods pack into preallocated messages, never raise for bus
 conditions (status codes instead) and allocate only small temporaries and the EMCY and heartbeat
 event objects.
@@ -39,10 +46,16 @@ from rt_runtime.canbus.pdo import RPDO1, RPDO2, pdo_message, sync_message
 from rt_runtime.canbus.router import FrameRouter
 from rt_runtime.errors import CommunicationError
 
-__all__ = ["CyclicExchange"]
+__all__ = ["CyclicExchange", "bus_error_text"]
 
 _ENABLED = int(DriveState.OPERATION_ENABLED)
 _FAULTED = (int(DriveState.FAULT), int(DriveState.FAULT_REACTION_ACTIVE))
+
+
+def bus_error_text(exc: BaseException) -> str:
+    """One line about an exception out of the bus: its type and message."""
+    text = str(exc)
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 class CyclicExchange:
@@ -63,6 +76,8 @@ class CyclicExchange:
             quick stop and disable clear it); a drive that is not is ``NOT_ENABLED``.
         producing: The master's heartbeat is produced while boot and enable wait (from the
             drives' NMT start on).
+        bus_exception: The latest exception out of the bus (None while it has raised none):
+            the bus is broken or was refused a frame.
     """
 
     def __init__(
@@ -75,6 +90,7 @@ class CyclicExchange:
         self.react_to_faults = react_to_faults
         self.expect_enabled = False
         self.producing = False
+        self.bus_exception: BaseException | None = None
         self.n = len(config.node_ids)
         self._reacted = False
         self._rpdo1 = [pdo_message(RPDO1, node) for node in config.node_ids]
@@ -95,31 +111,36 @@ class CyclicExchange:
         """Send one frame stamped with its send time (``time.time()``).
 
         Raises:
-            can.CanError: The bus refused it.
+            Exception: Whatever the bus raised (see the module docstring); kept in
+                :attr:`bus_exception`.
         """
         msg.timestamp = time.time()
-        self.bus.send(msg)
+        try:
+            self.bus.send(msg)
+        except Exception as exc:
+            self.bus_exception = exc
+            raise
 
     def send(self, msg: can.Message) -> None:
         """Send one frame outside the loop (boot, enable).
 
         Raises:
-            CommunicationError: The bus refused it.
+            CommunicationError: The bus refused it or failed (the message names the exception).
         """
         try:
             self.tx(msg)
-        except can.CanError as exc:
+        except Exception as exc:
             raise CommunicationError(
-                f"the bus refused frame 0x{msg.arbitration_id:03X}: {exc}"
+                f"the bus refused frame 0x{msg.arbitration_id:03X}: {bus_error_text(exc)}"
             ) from exc
 
     def send_sync(self) -> None:
         """SYNC alone (enable's steps).
 
         Raises:
-            can.CanError: The bus refused it (then it does not count as sent).
+            CommunicationError: The bus refused it (then it does not count as sent).
         """
-        self.tx(self._sync)
+        self.send(self._sync)
         self.router.sync_sent()
 
     @property
@@ -211,8 +232,10 @@ class CyclicExchange:
             else:
                 for msg in self._rpdo1:
                     self.tx(msg)
-                self.send_sync()
-        except can.CanError:
+                self.tx(self._sync)
+                self.router.sync_sent()
+        except Exception as exc:  # any exception out of the bus: see the module docstring
+            self.bus_exception = exc
             return WriteStatus.BUS_ERROR
         return WriteStatus.OK
 
@@ -259,7 +282,8 @@ class CyclicExchange:
                 router.dispatch(msg, now_s)
             while (msg := bus.recv(timeout=0.0)) is not None:
                 router.dispatch(msg, now_s)
-        except can.CanError:
+        except Exception as exc:  # any exception out of the bus: see the module docstring
+            self.bus_exception = exc
             bus_error = True
         consumer = router.consumer
         consumer.check(now_s, fb.heartbeat_events)
@@ -302,7 +326,7 @@ class CyclicExchange:
         try:
             if self._producer.due(now_s):
                 self.tx(self._producer.message)
-        except can.CanError:
+        except Exception:  # kept in bus_exception by tx
             return WriteStatus.BUS_ERROR
         return WriteStatus.OK
 
@@ -325,6 +349,6 @@ class CyclicExchange:
             self._pack_rpdo2(axis, controlword)
             try:
                 self.tx(self._rpdo2[axis])
-            except can.CanError:
+            except Exception:  # kept in bus_exception by tx
                 status = WriteStatus.BUS_ERROR
         return status

@@ -19,7 +19,7 @@ import can
 
 from rt_runtime.canbus.pdo import COB_EMCY
 
-__all__ = ["Emcy", "EmcyCode", "emcy_message", "parse_emcy"]
+__all__ = ["EMCY_MEANINGS", "Emcy", "EmcyCode", "emcy_meaning", "emcy_message", "parse_emcy"]
 
 _EMCY = struct.Struct("<HB5s")
 
@@ -45,6 +45,62 @@ class EmcyCode(IntEnum):
     RPDO_TIMEOUT = 0x8250
     FOLLOWING_ERROR = 0x8611
     DEVICE_SPECIFIC = 0xFF00
+
+
+#: What each known code means, for people (fault messages, logs).
+EMCY_MEANINGS: dict[int, str] = {
+    EmcyCode.NO_ERROR: "error reset: the drive's last error has gone",
+    EmcyCode.GENERIC: "generic error",
+    EmcyCode.CONTINUOUS_OVER_CURRENT: "continuous over-current in the motor output",
+    EmcyCode.DC_LINK_OVER_VOLTAGE: "DC link over-voltage",
+    EmcyCode.DC_LINK_UNDER_VOLTAGE: "DC link under-voltage (supply lost or too low)",
+    EmcyCode.DRIVE_TEMPERATURE: "drive over-temperature",
+    EmcyCode.DEVICE_HARDWARE: "drive hardware fault",
+    EmcyCode.INTERNAL_SOFTWARE: "drive firmware error",
+    EmcyCode.SENSOR: "position sensor (encoder) fault",
+    EmcyCode.CAN_OVERRUN: "CAN receive overrun: the drive lost frames",
+    EmcyCode.CAN_ERROR_PASSIVE: "the drive's CAN controller is error passive",
+    EmcyCode.HEARTBEAT_ERROR: "heartbeat lost: no heartbeat from the master within 0x1016",
+    EmcyCode.BUS_OFF_RECOVERED: "the drive's CAN controller recovered from bus-off",
+    EmcyCode.PDO_LENGTH_ERROR: "an RPDO was too short and was dropped",
+    EmcyCode.PDO_LENGTH_EXCEEDED: "an RPDO was longer than its mapping",
+    EmcyCode.RPDO_TIMEOUT: (
+        "SYNC/RPDO watchdog: no SYNC or setpoint from the master within the drive's timeout "
+        "(the master stopped cycling or the bus is gone)"
+    ),
+    EmcyCode.FOLLOWING_ERROR: (
+        "following error: the axis stayed farther from its demand than 0x6065 for longer "
+        "than 0x6066"
+    ),
+    EmcyCode.DEVICE_SPECIFIC: "manufacturer-specific error",
+}
+
+#: CiA 301 error code classes (the high nibble, or byte for 0xF0/0xFF), for unknown codes.
+_CLASSES = {
+    0x1: "generic error",
+    0x2: "current error",
+    0x3: "voltage error",
+    0x4: "temperature error",
+    0x5: "device hardware error",
+    0x6: "device software error",
+    0x7: "additional modules error",
+    0x8: "monitoring or communication error",
+    0x9: "external error",
+}
+
+
+def emcy_meaning(code: int) -> str:
+    """What an emergency error code means (a known code's text, else its CiA 301 class)."""
+    known = EMCY_MEANINGS.get(int(code))
+    if known is not None:
+        return known
+    high = (int(code) >> 8) & 0xFF
+    if high == 0xFF:
+        return "manufacturer-specific error"
+    if high == 0xF0:
+        return "additional functions error"
+    kind = _CLASSES.get(high >> 4)
+    return f"unknown code of class: {kind}" if kind is not None else "unknown code"
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,6 +131,11 @@ class Emcy:
         """Code name, e.g. ``FOLLOWING_ERROR (0x8611)``."""
         name = self.code.name if isinstance(self.code, EmcyCode) else "UNKNOWN"
         return f"{name} (0x{int(self.code):04X})"
+
+    @property
+    def meaning(self) -> str:
+        """What the code means (:func:`emcy_meaning`)."""
+        return emcy_meaning(self.code)
 
 
 def parse_emcy(node_id: int, data: bytes | bytearray, now_s: float) -> Emcy | None:

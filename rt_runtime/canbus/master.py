@@ -20,7 +20,8 @@ No thread, no clock: waits are ``bus.recv(timeout)`` calls bounded by the caller
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import contextlib
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -37,14 +38,14 @@ from rt_runtime.canbus.config import (
     configuration_writes,
     load_od,
 )
-from rt_runtime.canbus.cyclic import CyclicExchange
+from rt_runtime.canbus.cyclic import CyclicExchange, bus_error_text
 from rt_runtime.canbus.emcy import Emcy
 from rt_runtime.canbus.feedback import Feedback, WriteStatus
 from rt_runtime.canbus.heartbeat import HeartbeatConsumer, HeartbeatEventKind
 from rt_runtime.canbus.nmt import NmtCommand, NmtState, nmt_message
 from rt_runtime.canbus.router import FrameRouter
 from rt_runtime.canbus.sdo import SdoClient
-from rt_runtime.errors import CommunicationError, DriveFault
+from rt_runtime.errors import CommunicationError, DriveFault, ExcavatorRtError
 
 if TYPE_CHECKING:
     from rt_runtime.rig.model import Rig
@@ -53,6 +54,18 @@ __all__ = ["CanMaster"]
 
 _DEVICE_PROFILE_402 = 402
 _CSP_SUPPORTED_BIT = 1 << 7
+
+
+@contextlib.contextmanager
+def _bus_errors(what: str) -> Iterator[None]:
+    """Any exception out of the bus during ``what`` as a :class:`CommunicationError` naming it
+    (the runtime's own errors pass as they are)."""
+    try:
+        yield
+    except ExcavatorRtError:
+        raise
+    except Exception as exc:
+        raise CommunicationError(f"{what}: the bus failed: {bus_error_text(exc)}") from exc
 
 
 class CanMaster:
@@ -229,7 +242,8 @@ class CanMaster:
     # ------------------------------------------------------------------ boot
 
     def boot(self, now_fn: Callable[[], float], timeout_s: float) -> tuple[DriveInfo, ...]:
-        """Reset, configure and start every drive (outside the loop).
+        """Reset, configure and start every drive (outside the loop), from whatever state they
+        are in (the NMT reset node brings each back to its power-on state).
 
         Sequence: NMT reset node per drive; wait for every boot-up message; per drive check
         0x1000 (CiA 402 device), 0x6502 (CSP supported), read 0x1008, then the SDO downloads of
@@ -245,10 +259,15 @@ class CanMaster:
             What each drive reported about itself (also kept in ``drive_info``).
 
         Raises:
-            CommunicationError: A drive did not answer in time, or the bus refused a frame.
+            CommunicationError: A drive did not answer in time, or the bus refused a frame or
+                failed (any exception out of the bus, named).
             SdoAbortedError: A drive refused a configuration value (index, sub, meaning).
             DriveFault: A drive is not a CiA 402 drive or lacks CSP.
         """
+        with _bus_errors("boot"):
+            return self._boot(now_fn, timeout_s)
+
+    def _boot(self, now_fn: Callable[[], float], timeout_s: float) -> tuple[DriveInfo, ...]:
         cfg = self.config
         cycle = self.cycle
         consumer = self.router.consumer
@@ -339,9 +358,14 @@ class CanMaster:
             timeout_s: Time allowed for the whole sequence.
 
         Raises:
-            CommunicationError: Not booted, no TPDO answer in time, or the bus refused a frame.
+            CommunicationError: Not booted, no TPDO answer in time, or the bus refused a frame
+                or failed (any exception out of the bus, named).
             DriveFault: A drive is (still) in FAULT when time runs out.
         """
+        with _bus_errors("enable"):
+            self._enable(now_fn, timeout_s)
+
+    def _enable(self, now_fn: Callable[[], float], timeout_s: float) -> None:
         if not self._booted:
             raise CommunicationError("enable() needs a successful boot() first")
         cycle = self.cycle
@@ -367,10 +391,7 @@ class CanMaster:
                         cycle.step_to(axis, Target.OPERATION_ENABLED)
             first = False
             sync_s = now_fn()
-            try:
-                cycle.send_sync()
-            except can.CanError as exc:
-                raise CommunicationError(f"the bus refused SYNC: {exc}") from exc
+            cycle.send_sync()
             fb.emcys.clear()
             fb.heartbeat_events.clear()
             try:
@@ -399,7 +420,7 @@ class CanMaster:
             state = fb.drive_state(axis)
             faulted |= state in (DriveState.FAULT, DriveState.FAULT_REACTION_ACTIVE)
             emcy = self.router.last_emcy[axis]
-            last = f", last EMCY {emcy.description}" if emcy is not None else ""
+            last = f", last EMCY {emcy.description}: {emcy.meaning}" if emcy is not None else ""
             lines.append(
                 f"{self.config.axes[axis]} (node {self.config.node_ids[axis]}): "
                 f"{state.name if state is not None else 'undecodable'} "

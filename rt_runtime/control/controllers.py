@@ -22,6 +22,7 @@ drive and ends once none reports OPERATION_ENABLED, or after a timeout, SYNC goi
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from enum import IntEnum
 from typing import Protocol
 
@@ -181,16 +182,27 @@ class HoldController:
     Args:
         stroke_m: The stroke to hold (m), ``(3,)``: the last commanded one.
         q_rad: Its joint pose (telemetry).
+        settled_m: How close to the held stroke the drives' report counts as settled (m).
+        describe: Text of the drives' state for the fault message (axes, nodes, EMCY codes;
+            :meth:`~rt_runtime.control.hardware.DriveInterface.describe`); None: the cycle
+            status's name.
 
     Attributes:
         fault: Empty, or what the drives reported when it quick-stopped them.
         settled: The drives' last fresh report was within ``settled_m`` of the held stroke.
     """
 
-    def __init__(self, stroke_m: FloatArray, q_rad: FloatArray, settled_m: float = 2e-6) -> None:
+    def __init__(
+        self,
+        stroke_m: FloatArray,
+        q_rad: FloatArray,
+        settled_m: float = 2e-6,
+        describe: Callable[[CycleStatus], str] | None = None,
+    ) -> None:
         self.command = Command()
         self.command.hold(np.asarray(stroke_m, dtype=np.float64), q_rad, Phase.WAIT)
         self.settled_m = float(settled_m)
+        self._describe = describe
         self.fault = ""
         self.settled = False
         self._power_down_timeout_s: float | None = None  # asked to power down (any thread)
@@ -219,7 +231,10 @@ class HoldController:
             ended = not enabled or t_s >= until
             return cmd, ControllerStatus.ENDED if ended else ControllerStatus.RUNNING
         if not self.fault and feedback.status >= CycleStatus.EMCY:
-            self.fault = f"while holding: {feedback.status.name}"
+            # Once, when the fault appears: the text is built here, outside the hot path.
+            status = feedback.status
+            what = self._describe(status) if self._describe is not None else status.name
+            self.fault = f"while holding: {what}"
             cmd.quick_stop = True
         self.settled = feedback.fresh and bool(
             (np.abs(feedback.stroke_m - cmd.stroke_m) <= self.settled_m).all()

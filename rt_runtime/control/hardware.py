@@ -26,7 +26,8 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from rt_runtime.canbus import CanMaster, CycleStatus, DriveState, Emcy, WriteStatus
+from rt_runtime.canbus import CanMaster, CycleStatus, DriveState, Emcy, WriteStatus, emcy_meaning
+from rt_runtime.canbus.cyclic import bus_error_text
 from rt_runtime.control.clock import Clock
 
 __all__ = ["DriveFeedback", "DriveInterface"]
@@ -186,18 +187,32 @@ class DriveInterface:
         return out
 
     def describe(self, status: CycleStatus) -> str:
-        """What the drives report, for a fault message (outside the hot path)."""
+        """What the drives report, for a fault message (outside the hot path): the cycle's
+        status, then per axis its name, node id and CiA 402 state (marked when it did not
+        answer the latest SYNC), a lost heartbeat, the
+        latest EMCY (code, name and meaning) or, where no EMCY came, a nonzero error code
+        0x603F with its meaning; for a bus error, the exception the bus raised."""
         master = self.master
         fb = master.feedback
-        parts = [f"cycle status {status.name}"]
+        cycle = master.cycle
+        head = f"cycle status {status.name}"
+        if status is CycleStatus.BUS_ERROR and cycle.bus_exception is not None:
+            head += f" ({bus_error_text(cycle.bus_exception)})"
+        parts = [head]
         for axis, name in enumerate(self.axes):
             state = fb.drive_state(axis)
-            emcy = master.last_emcy[axis]
-            text = f"{name}: {state.name if state is not None else 'undecodable'}"
+            node = master.config.node_ids[axis]
+            text = f"{name} (node {node}): {state.name if state is not None else 'undecodable'}"
+            if fb.stale[axis]:
+                text += " (its last report)"
             if fb.heartbeat_lost[axis]:
                 text += ", heartbeat lost"
-            if emcy is not None:
-                text += f", EMCY {emcy.description}"
+            emcy = master.last_emcy[axis]
+            if emcy is not None and not emcy.is_reset:
+                text += f", EMCY {emcy.description}: {emcy.meaning}"
+            elif int(fb.error_code[axis]) != 0:
+                code = int(fb.error_code[axis])
+                text += f", error code 0x{code:04X}: {emcy_meaning(code)}"
             parts.append(text)
         return "; ".join(parts)
 

@@ -832,6 +832,11 @@ class ProcessPlanner:
     def service(self) -> None:
         """Nothing: the process works on its own."""
 
+    def exit_code(self) -> int | None:
+        """The planner process's exit code once it has ended (negative: the signal that ended
+        it), None while it runs. Any thread; one ``waitpid`` (not inside the cycle's step)."""
+        return self._process.exitcode
+
     def close(self, timeout_s: float = 2.0) -> None:
         """Stop the process (outside the loop): ask, wait ``timeout_s``, then terminate."""
         self._closing = True

@@ -7,10 +7,14 @@
     excavator-rt job status [ID]
     excavator-rt job list
     excavator-rt job pause [ID] | resume ID | cancel ID
+    excavator-rt job reset-fault [--wait-s S]
 
 Every subcommand takes ``--socket PATH`` (default ``$EXCAVATOR_RTD_SOCKET`` or
 ``/run/excavator-rtd/control.sock``) and ``--json`` (print the daemon's reply object as is).
-Exit codes: 0 done, 1 the daemon refused (the reason on stderr), 2 no daemon to talk to.
+``reset-fault`` asks the daemon to reset its latched fault, then follows ``status`` until that
+reset has ended (at most ``--wait-s``, default 60 s) and says how it went.
+Exit codes: 0 done, 1 the daemon refused (the reason on stderr; a refusal because a fault is
+latched has the code ``faulted``) or the reset failed, 2 no daemon to talk to.
 """
 
 from __future__ import annotations
@@ -19,13 +23,19 @@ import argparse
 import json
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
 from rt_runtime.service.config import DEFAULT_SOCKET, PLANNERS
 from rt_runtime.service.control import request
 
-__all__ = ["add_parser", "format_job", "format_progress", "run"]
+__all__ = ["RESET_WAIT_S", "add_parser", "format_job", "format_progress", "run"]
+
+#: Longest wait of ``job reset-fault`` for the reset's outcome (s).
+RESET_WAIT_S = 60.0
+#: Interval of the ``status`` requests while a reset runs (s).
+_RESET_POLL_S = 0.2
 
 
 def _default_socket() -> str:
@@ -43,7 +53,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     """
     p: argparse.ArgumentParser = subparsers.add_parser(
         "job",
-        help="talk to the rig daemon excavator-rtd: submit, status, pause, resume, cancel, list",
+        help="talk to the rig daemon excavator-rtd: submit, status, pause, resume, cancel, list, "
+        "reset-fault",
         description="Client of excavator-rtd's control socket (docs/daemon.md).",
     )
     common = argparse.ArgumentParser(add_help=False)
@@ -67,6 +78,17 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     re.add_argument("id", type=int)
     ca = sub.add_parser("cancel", parents=[common], help="cancel a job (the running one stops)")
     ca.add_argument("id", type=int)
+    rf = sub.add_parser(
+        "reset-fault",
+        parents=[common],
+        help="reset a latched fault: re-boot bus and drives, hold, queue the failed job again",
+    )
+    rf.add_argument(
+        "--wait-s",
+        type=float,
+        default=RESET_WAIT_S,
+        help="longest wait for the reset's outcome (default %(default)s s)",
+    )
     p.set_defaults(handler=run)
     return p
 
@@ -143,7 +165,11 @@ def _print_human(command: str, reply: dict[str, Any]) -> None:
             f"daemon: {daemon.get('state')}; rig {daemon.get('rig')}, period "
             f"{daemon.get('period_s', 0.0) * 1e3:g} ms, healthy {daemon.get('healthy')}"
         )
+        if daemon.get("fault"):
+            print("  nothing moves until `excavator-rt job reset-fault`")
     job = reply.get("job")
+    if command == "submit" and reply.get("fault"):
+        print(f"a fault is latched ({reply['fault']}): the job starts after a reset-fault")
     if job is not None:
         print(format_job(job))
         for d in job.get("digs", []):
@@ -167,6 +193,8 @@ def run(args: argparse.Namespace) -> int:
         CommunicationError: No daemon at the socket (the CLI prints it, exit 2).
     """
     command = args.job_command
+    if command == "reset-fault":
+        return _reset_fault(args)
     req: dict[str, Any] = {"cmd": command}
     if command == "submit":
         req["task"] = _task_spec(args.task)
@@ -184,4 +212,40 @@ def run(args: argparse.Namespace) -> int:
         return 1
     if not args.json:
         _print_human(command, reply)
+    return 0
+
+
+def _reset_fault(args: argparse.Namespace) -> int:
+    """``job reset-fault``: the request, then ``status`` until the reset has ended."""
+    reply = request(args.socket, {"cmd": "reset-fault"})
+    if not reply.get("ok"):
+        if args.json:
+            print(json.dumps(reply, indent=2))
+        print(f"excavator-rt job reset-fault: {reply.get('error', reply)}", file=sys.stderr)
+        return 1
+    number = int(reply["reset"])
+    if not args.json:
+        print(f"resetting: {reply['fault']}")
+    end = time.monotonic() + args.wait_s
+    while True:
+        status = request(args.socket, {"cmd": "status"})
+        daemon = status.get("daemon", {})
+        if int(daemon.get("resets_done", 0)) >= number:
+            break
+        if time.monotonic() > end:
+            print(
+                f"excavator-rt job reset-fault: the reset has not ended within {args.wait_s:g} s;"
+                f" the daemon says: {daemon.get('state')}",
+                file=sys.stderr,
+            )
+            return 1
+        time.sleep(_RESET_POLL_S)
+    if args.json:
+        print(json.dumps(status, indent=2))
+    fault = daemon.get("fault", "")
+    if fault:
+        print(f"excavator-rt job reset-fault: the reset failed: {fault}", file=sys.stderr)
+        return 1
+    if not args.json:
+        print(f"fault reset: {daemon.get('state')}")
     return 0

@@ -11,6 +11,8 @@ is allowed>"}``. Error codes:
 ``unknown_command`` ``cmd`` names no command (the reply lists them)
 ``too_large``       the line exceeds :data:`MAX_REQUEST_BYTES` (the connection is closed)
 ``refused``         the command was understood and refused (unknown job, bad task, ...)
+``faulted``         the command would move the arm and a fault is latched (the reply names
+                    it); ``reset-fault`` first
 ``internal``        the command failed unexpectedly (logged; the daemon keeps running)
 ``denied``          the peer is neither the daemon's user nor root
 ``busy``            every client slot is taken by clients active within :data:`EVICT_IDLE_S`
@@ -18,10 +20,12 @@ is allowed>"}``. Error codes:
                     (:data:`IDLE_TIMEOUT_S`), or gave its slot to a new client while idle
 =================== =====================================================================
 
-A bad request never stops the daemon. Access: the socket is created owner-only (0600, bound
-under a 0177 umask so it is never briefly wider) in a directory that must be owner-only
-(0700, created so when missing); the server also checks the peer's credentials (SO_PEERCRED)
-and serves only its own user and root.
+A handler refuses with ``refused`` by raising :class:`~rt_runtime.errors.ExcavatorRtError`,
+with another code by raising :class:`RefusedError`. A bad request never stops the daemon.
+
+Access: the socket is created owner-only (0600, bound under a 0177 umask so it is never
+briefly wider) in a directory that must be owner-only (0700, created so when missing); the
+server also checks the peer's credentials (SO_PEERCRED) and serves only its own user and root.
 
 The server is a single-threaded ``selectors`` loop run by the daemon's main thread
 (:meth:`ControlServer.poll`); other file descriptors (the signal wake-up pipe) can share it.
@@ -46,7 +50,14 @@ from typing import Any
 from rt_runtime.errors import CommunicationError, ExcavatorRtError
 from rt_runtime.service.config import ConfigKeyError, check_directory
 
-__all__ = ["MAX_REQUEST_BYTES", "ControlServer", "Handler", "check_socket_path", "request"]
+__all__ = [
+    "MAX_REQUEST_BYTES",
+    "ControlServer",
+    "Handler",
+    "RefusedError",
+    "check_socket_path",
+    "request",
+]
 
 log = logging.getLogger("excavator-rtd.control")
 
@@ -61,6 +72,19 @@ IDLE_TIMEOUT_S = 30.0
 EVICT_IDLE_S = 1.0
 
 Handler = Callable[[dict[str, Any]], dict[str, Any]]
+
+
+class RefusedError(ExcavatorRtError):
+    """A command refused with its own error code (``faulted``) instead of ``refused``.
+
+    Args:
+        code: The reply's ``code``.
+        message: The reply's ``error``: what was refused and why.
+    """
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
 
 
 def _encode(obj: dict[str, Any]) -> bytes:
@@ -353,6 +377,8 @@ class ControlServer:
             )
         try:
             out = handler(req)
+        except RefusedError as exc:
+            return _error(exc.code, str(exc))
         except ExcavatorRtError as exc:
             return _error("refused", str(exc))
         except Exception as exc:  # a bug in a handler must not take the daemon down

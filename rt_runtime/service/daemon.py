@@ -36,10 +36,21 @@ RELOADING=1, re-read the file, apply :data:`~rt_runtime.service.config.RELOADABL
 level; feed-forward and planner for the next job; trace reopened), log the keys that need a
 restart, READY=1. An invalid file on SIGHUP is logged and the running configuration kept.
 
-Watchdog: WATCHDOG=1 every ``$WATCHDOG_USEC / 2`` only while the runner's loop has cycled within
-:data:`STALE_LOOP_S` and no fault is latched. A latched fault (drive fault, bus error, overrun
-stop) stops the pings, so systemd restarts the daemon (``Restart=on-failure``); the restart
-boots and enables the drives again and holds, and the failed job waits for ``resume``.
+Faults: a latched fault (drive fault, EMCY, lost heartbeat, following error, stale feedback,
+overrun stop, bus error of any kind, the planner process ending) stops the arm and the
+running job (``failed``), and the daemon stays up: it answers on the socket, reports the fault
+(``status``, STATUS=) and refuses what would move (``resume``: error code ``faulted``; a
+submitted job waits) until the ``reset-fault`` request, on which the runner reopens the bus if
+it broke, boots and enables the drives from whatever state they are in, holds at the measured
+pose and queues the failed job again (:mod:`rt_runtime.service.runner`).
+
+Watchdog: WATCHDOG=1 every ``$WATCHDOG_USEC / 2`` while the runner's loop has cycled within
+:data:`STALE_LOOP_S`, or while the runner waits for a reset with the fault latched or runs one:
+a latched fault is reported and waits for ``reset-fault``, it is no reason for systemd to
+restart the daemon; a loop that stops cycling (a hang) is. Crashes (SIGKILL, SIGABRT from
+systemd's watchdog): ``faulthandler`` writes every thread's stack to stderr on SIGABRT (and
+SIGSEGV, SIGFPE, SIGBUS, SIGILL); the restart boots the drives from whatever state they are in
+and resumes the job at its next undone dig.
 
 Exit codes: :data:`EXIT_OK` 0, :data:`EXIT_RUNTIME` 1 (the runner died), :data:`EXIT_CONFIG` 2
 (configuration, rig, models, job store, socket; nothing was sent on the bus), :data:`EXIT_BUS`
@@ -51,6 +62,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import faulthandler
 import gc
 import glob
 import logging
@@ -79,11 +91,11 @@ from rt_runtime.service.config import (
     load_config,
     load_planning,
 )
-from rt_runtime.service.control import ControlServer
+from rt_runtime.service.control import ControlServer, RefusedError
 from rt_runtime.service.jobstore import Job, JobError, JobStore
 from rt_runtime.service.notify import Notifier, watchdog_interval_s
 from rt_runtime.service.preflight import check_start
-from rt_runtime.service.runner import STALE_LOOP_S, RigRunner
+from rt_runtime.service.runner import STALE_LOOP_S, RigRunner, close_bus
 
 if TYPE_CHECKING:
     from rt_runtime.planning.trench import TrenchTask
@@ -329,8 +341,15 @@ class TraceRecorder:
                     channel=0,
                 )
             if self._logger is not None:
-                self._logger.on_message_received(msg)
-                self.frames += 1
+                try:
+                    self._logger.on_message_received(msg)
+                    self.frames += 1
+                except Exception as exc:  # a full disk: the daemon goes on, without a trace
+                    log.error("trace %s: write failed, recording stopped: %s", self.path, exc)
+                    self.active = False
+                    with contextlib.suppress(Exception):
+                        self._logger.stop()
+                    self._logger = None
 
     def close(self, timeout_s: float = 10.0) -> None:
         """Write what is queued, close the file and stop the thread."""
@@ -344,7 +363,13 @@ class TraceRecorder:
 
 class Runner(Protocol):
     """What the service needs from the thread that owns the drives (the real one is
-    :class:`RigRunner`; the tests use a fake)."""
+    :class:`RigRunner`; the tests use a fake).
+
+    Attributes:
+        resets_done: Resets of a latched fault that have ended, succeeded or not.
+    """
+
+    resets_done: int
 
     def start(self) -> None:
         """Boot and enable the drives and start holding; return once they are enabled.
@@ -365,6 +390,21 @@ class Runner(Protocol):
 
     def health(self) -> tuple[bool, str]:
         """``(healthy, why not)``: the loop cycles and no fault is latched."""
+        ...
+
+    def watchdog(self) -> tuple[bool, str]:
+        """``(ok, why not)`` for WATCHDOG=1: the runner works as designed (its loop cycles,
+        or it waits for a reset with the fault latched, or runs one)."""
+        ...
+
+    def fault(self) -> str:
+        """The latched fault (one line), empty when none is latched."""
+        ...
+
+    def reset_fault(self) -> int:
+        """Ask for a reset of the latched fault (any thread; returns at once). Returns the
+        number the reset will have: it has ended, succeeded or not, once ``resets_done``
+        reaches it."""
         ...
 
     def state(self) -> str:
@@ -444,6 +484,7 @@ class Service:
                 "pause": self.cmd_pause,
                 "resume": self.cmd_resume,
                 "cancel": self.cmd_cancel,
+                "reset-fault": self.cmd_reset_fault,
                 "stop": self.cmd_stop,
             }
         )
@@ -488,7 +529,20 @@ class Service:
         _task, numbers = resolve_task(req["task"], self.rig)
         job = self.store.submit(numbers, str(planner), max_digs)
         log.info("job %d submitted: task %s, planner %s", job.id, numbers["name"], planner)
-        return self._synced(job)
+        out = self._synced(job)
+        fault = self.runner.fault()
+        if fault:
+            out["fault"] = fault  # queued; nothing starts before a reset-fault
+        return out
+
+    def _refuse_if_faulted(self, what: str) -> None:
+        fault = self.runner.fault()
+        if fault:
+            raise RefusedError(
+                "faulted",
+                f"{what} refused: a fault is latched ({fault}); nothing moves until "
+                "`excavator-rt job reset-fault`",
+            )
 
     def daemon_status(self) -> dict[str, Any]:
         """The daemon's part of a ``status`` reply."""
@@ -497,6 +551,8 @@ class Service:
             "state": self.runner.state(),
             "healthy": healthy,
             "unhealthy_because": why,
+            "fault": self.runner.fault(),
+            "resets_done": self.runner.resets_done,
             "rig": self.rig.name,
             "period_s": self.config.loop.period_s,
             "current_job": self.runner.current_job(),
@@ -531,6 +587,7 @@ class Service:
     def cmd_resume(self, req: dict[str, Any]) -> dict[str, Any]:
         """``resume {id}``: resume a paused job or retry a failed one from its last dig."""
         job_id = self._job_id(req, False)
+        self._refuse_if_faulted(f"resume of job {job_id}")
         current = job_id == self.runner.current_job()
         job = self.store.resume(job_id, running=current)
         if current:
@@ -544,6 +601,19 @@ class Service:
             self.runner.cancel()
             return {"job": self.store.get(job_id).to_json(with_state=False), "cancelling": True}
         return self._synced(self.store.cancel(job_id))
+
+    def cmd_reset_fault(self, _req: dict[str, Any]) -> dict[str, Any]:
+        """``reset-fault``: reopen the bus if it broke, boot and enable the drives again, hold
+        at the measured pose, clear the latch and queue the failed job again (the runner does
+        it; the reply comes at once with the reset's number: ``status`` says when
+        ``daemon.resets_done`` reaches it, and ``daemon.fault`` is then empty or says why
+        the reset failed)."""
+        fault = self.runner.fault()
+        if not fault:
+            raise JobError("reset-fault: no fault is latched")
+        number = self.runner.reset_fault()
+        log.info("reset-fault requested (reset %d): %s", number, fault)
+        return {"resetting": True, "reset": number, "fault": fault}
 
     def cmd_stop(self, _req: dict[str, Any]) -> dict[str, Any]:
         """``stop``: shut the daemon down as SIGTERM does (safe stop, drives disabled)."""
@@ -657,10 +727,10 @@ class Service:
                 log.error("%s", err)
                 self._stop_reason = err
                 return EXIT_RUNTIME
-            healthy, why = self.runner.health()
             if self.watchdog_s is not None and time.monotonic() >= next_ping:
                 next_ping = time.monotonic() + self.watchdog_s
-                if healthy:
+                ok, why = self.runner.watchdog()
+                if ok:
                     self.notifier.watchdog()
                 else:
                     log.warning("no WATCHDOG=1: %s", why)
@@ -751,7 +821,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     # Every other thread that takes the interpreter lock runs above normal work and below the
     # loop, so none is preempted while the loop waits for the lock (HelperThreads).
     helpers = _helper_threads(config)
-    recorder: TraceRecorder | None = None
+    # A crash or systemd's watchdog (SIGABRT) leaves every thread's stack in the journal.
+    with contextlib.suppress(ValueError, OSError):  # a stderr without a file descriptor
+        faulthandler.enable(all_threads=True)
     try:
         raw_bus = open_bus(config, rig)
     except CommunicationError as exc:
@@ -763,15 +835,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     recorder = TraceRecorder(
         config.paths.trace, config.paths.trace_max_mb, config.paths.trace_keep
     )
-    bus = TracedBus(raw_bus, recorder)
+
+    def reopen() -> can.BusABC:
+        """The bus again, from the configuration, into the same trace (a reset-fault)."""
+        return TracedBus(open_bus(config, rig), recorder)
+
+    runner = RigRunner(
+        config, rig, planner, TracedBus(raw_bus, recorder), store, reopen=reopen
+    )
     try:
-        runner = RigRunner(config, rig, planner, bus, store)
         service = Service(config, rig, store, server, runner, recorder=recorder)
         return service.run()
     finally:
+        if not close_bus(runner.bus):
+            log.warning("the bus did not shut down within its timeout")
         recorder.close()
-        with contextlib.suppress(Exception):
-            bus.shutdown()
         if helpers is not None:
             helpers.restore()
         for h in logging.getLogger().handlers:

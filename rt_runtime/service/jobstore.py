@@ -351,8 +351,8 @@ class JobStore:
             try:
                 atomic_write_json(self.path, doc)
                 err = ""
-            except (OSError, ValueError) as exc:
-                err = f"job store {self.path}: write failed: {exc}"
+            except Exception as exc:  # reported by sync(); the thread never ends on one
+                err = f"job store {self.path}: write failed: {type(exc).__name__}: {exc}"
             with w.cond:
                 w.written = max(w.written, target)
                 w.error = err

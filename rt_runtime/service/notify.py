@@ -3,10 +3,12 @@
 A service of ``Type=notify`` tells the service manager about itself by sending datagrams of
 newline-separated ``KEY=value`` lines to the unix datagram socket named in ``$NOTIFY_SOCKET``
 (a path, or an abstract-namespace name when it starts with ``@``). The daemon sends
-``READY=1`` once the drives are enabled, ``WATCHDOG=1`` while its loop is healthy (paced by
-``$WATCHDOG_USEC``), ``STATUS=...`` on state changes, ``RELOADING=1`` / ``READY=1`` around a
-SIGHUP reload and ``STOPPING=1`` on shutdown. Outside systemd (no ``$NOTIFY_SOCKET``) every
-call does nothing, so the daemon runs the same by hand.
+``READY=1`` once the drives are enabled, ``WATCHDOG=1`` while its runner works as designed
+(paced by ``$WATCHDOG_USEC``: the loop cycles, or it waits for a reset with a fault latched),
+``STATUS=...`` on state changes, ``RELOADING=1`` / ``READY=1`` around a SIGHUP reload and
+``STOPPING=1`` on shutdown. Outside systemd (no ``$NOTIFY_SOCKET``) every
+call does nothing, so the daemon runs the same by hand. A send never waits: a manager that
+does not read its socket loses notifications, and the daemon keeps serving.
 
 Protocol reference: ``man 3 sd_notify``; the wire format is what systemd's own ``sd_notify()``
 sends, which is short enough to write here rather than depend on a binding.
@@ -54,8 +56,9 @@ class Notifier:
             lines: The lines, e.g. ``"READY=1"``, ``"STATUS=idle"``.
 
         Returns:
-            True when sent; False without a service manager or when the send failed (a
-            notification is never worth stopping the daemon for).
+            True when sent; False without a service manager or when the send failed or would
+            block (a notification is never worth stopping the daemon for: the send never waits
+            for a manager that does not read its socket).
         """
         if self.address is None:
             return False
@@ -63,7 +66,7 @@ class Notifier:
         try:
             if self._sock is None:
                 self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
-            self._sock.sendto(payload, self.address)
+            self._sock.sendto(payload, socket.MSG_DONTWAIT, self.address)
         except OSError:
             return False
         self.sent += 1

@@ -1,14 +1,28 @@
-"""The daemon's runner: the thread that owns the drives, one controller manager for its life.
+"""The daemon's runner: the thread that owns the bus and the drives for the daemon's life.
 
 :class:`RigRunner` boots and enables the drives, then runs one
-:class:`~rt_runtime.control.manager.ControllerManager` on one fixed-rate loop until the daemon
-stops. Between jobs the :class:`~rt_runtime.control.controllers.HoldController` holds every axis
-at its last commanded stroke (the drives' SYNC watchdog never starves) and quick-stops them on
-a fault. A preparation thread builds each job off the loop (its planner session, new or
-restored from the job store; its planner process; its
-:class:`~rt_runtime.control.job.JobController` started at the held stroke, and the job's
-telemetry); once the drives stand on the held target the runner switches to the job at a cycle
-boundary, and when the job ends, back to the hold at the next: the SYNC stream never pauses.
+:class:`~rt_runtime.control.manager.ControllerManager` on one fixed-rate loop. Between jobs the
+:class:`~rt_runtime.control.controllers.HoldController` holds every axis at its last commanded
+stroke (the drives' SYNC watchdog never starves) and quick-stops them on a fault. A preparation
+thread builds each job off the loop (its planner session, new or restored from the job store;
+its planner process; its :class:`~rt_runtime.control.job.JobController` started at the held
+stroke, and the job's telemetry); once the drives stand on the held target the runner switches
+to the job at a cycle boundary, and when the job ends, back to the hold at the next: the SYNC
+stream never pauses.
+
+Faults latch; the thread lives. A drive fault, EMCY or lost heartbeat, a following error, stale
+feedback, an overrun stop, a bus error (any exception out of the bus), the job's planner process
+ending, or an exception out of the loop itself latches a fault (:meth:`RigRunner.fault`, one
+line naming what happened, with each axis's node, state and EMCY code and meaning where the
+drives reported one). The running job stops with the guard's jerk-limited stop (where the bus
+is gone, the drives' own SYNC watchdogs stop them) and is marked ``failed``; the hold then
+disables the drives and the loop ends. The runner waits, the bus closed if it broke, until
+:meth:`RigRunner.reset_fault`: then it reopens the bus if it broke (the ``reopen`` factory),
+boots the drives from whatever state they are in (NMT reset node; enable steps through fault
+reset), holds at the measured pose, clears the latch and sets the failed job back to
+``queued``, so it resumes at its next undone dig. A reset that fails leaves the fault latched
+with the reason. Each boot builds the master, the drives' interface, the guard, the hold and
+the manager again; a job prepared for an earlier boot never runs.
 
 The job's outcome goes into the job store (in memory; its writer thread persists), its report
 (log lines, the telemetry file in the state directory) to a thread.
@@ -32,8 +46,11 @@ import logging
 import math
 import os
 import queue
+import signal
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
+from enum import IntEnum
 from typing import TYPE_CHECKING, Any
 
 import can
@@ -41,6 +58,7 @@ import numpy as np
 
 from rt_runtime import actuation
 from rt_runtime.canbus import CanMaster
+from rt_runtime.canbus.cyclic import bus_error_text
 from rt_runtime.control.clock import Clock, MonotonicClock
 from rt_runtime.control.controllers import Command, GuardFilter, HoldController
 from rt_runtime.control.executor import ExecutorConfig
@@ -63,7 +81,17 @@ if TYPE_CHECKING:
     from rt_runtime.planning.trench import TrenchTask
     from rt_runtime.rig import Rig
 
-__all__ = ["JOB_TELEMETRY_ROWS", "SETTLED_M", "SETTLE_TIMEOUT_S", "STALE_LOOP_S", "RigRunner"]
+__all__ = [
+    "BUS_CLOSE_TIMEOUT_S",
+    "JOB_TELEMETRY_ROWS",
+    "PLANNER_CHECK_CYCLES",
+    "SETTLED_M",
+    "SETTLE_TIMEOUT_S",
+    "STALE_LOOP_S",
+    "RigRunner",
+    "RunnerPhase",
+    "close_bus",
+]
 
 log = logging.getLogger("excavator-rtd")
 
@@ -73,10 +101,54 @@ STALE_LOOP_S = 0.5
 SETTLED_M = 1e-6
 #: ... or this long must have passed (s).
 SETTLE_TIMEOUT_S = 2.0
-#: Longest wait for the drives to leave OPERATION_ENABLED when the runner stops (s).
+#: Longest wait for the drives to leave OPERATION_ENABLED when the runner stops or a fault
+#: latches (s).
 POWER_DOWN_TIMEOUT_S = 0.5
 #: Telemetry rows of a job's run (the last 32 s at 500 Hz go to the state directory).
 JOB_TELEMETRY_ROWS = 16_384
+#: A running job's planner process is checked every this many cycles (a power of two).
+PLANNER_CHECK_CYCLES = 128
+#: Longest wait for a bus's shutdown (s): a backend may block on a peer that does not answer.
+BUS_CLOSE_TIMEOUT_S = 2.0
+#: Longest wait of a reset for the previous boot's job report and preparation threads (s).
+AFTERMATH_TIMEOUT_S = 5.0
+#: While a fault is latched, the bus is read (and what came discarded) this often (s).
+_FAULTED_POLL_S = 0.1
+
+
+class RunnerPhase(IntEnum):
+    """What the runner's thread is doing."""
+
+    #: The first boot and enable.
+    STARTING = 0
+    #: The loop cycles: holding, or running a job (with a fault latched: stopping).
+    CYCLING = 1
+    #: A fault is latched and the loop has ended: waiting for :meth:`RigRunner.reset_fault`.
+    FAULTED = 2
+    #: A reset: the bus reopened if it broke, the drives booted and enabled again.
+    RESETTING = 3
+    #: The thread has ended.
+    STOPPED = 4
+
+
+def close_bus(bus: can.BusABC, timeout_s: float = BUS_CLOSE_TIMEOUT_S) -> bool:
+    """Shut ``bus`` down on a helper thread, waiting at most ``timeout_s``.
+
+    A backend's shutdown may block on a peer that does not answer (python-can-remote waits for
+    the far end to close), and may raise when the connection is already gone: neither may stop
+    the caller. Returns True when the shutdown returned in time (raised or not).
+    """
+
+    def shut() -> None:
+        try:
+            bus.shutdown()
+        except Exception as exc:  # a broken bus may fail to close: it is dropped either way
+            log.debug("bus shutdown: %s", bus_error_text(exc))
+
+    thread = threading.Thread(target=shut, name="bus-close", daemon=True)
+    thread.start()
+    thread.join(timeout_s)
+    return not thread.is_alive()
 
 
 def _task_of(job: Job, rig: Rig) -> TrenchTask:
@@ -87,27 +159,41 @@ def _task_of(job: Job, rig: Rig) -> TrenchTask:
     )  # fmt: skip
 
 
+def _exit_text(code: int) -> str:
+    """An exit code of a process as words (a negative code is the signal that ended it)."""
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exit code {code}"
+
+
 @dataclass(slots=True)
 class _PreparedJob:
-    """A job ready to run: its controller (started at the held stroke), first command and
-    telemetry."""
+    """A job ready to run: its controller (started at the held stroke), its planner process,
+    first command and telemetry, and the boot it was prepared for."""
 
     job: Job
     controller: JobController
+    planner: ProcessPlanner
     first: Command
     telemetry: Telemetry
+    boot: int
     started_s: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)
 class _Parts:
-    """What the runner builds once for its life."""
+    """What the runner builds once for each boot of the drives."""
 
+    master: CanMaster
     drives: DriveInterface
     guard: GuardFilter
     hold: HoldController
     manager: ControllerManager
     hold_telemetry: Telemetry
+    boot: int
 
 
 class _Worker:
@@ -126,6 +212,12 @@ class _Worker:
     def submit(self, fn: Any, *args: Any) -> None:
         """Queue ``fn(*args)`` (loop safe: a queue put)."""
         self._queue.put((fn, args))
+
+    def drain(self, timeout_s: float) -> bool:
+        """Wait until every call queued so far has run (at most ``timeout_s``); True if so."""
+        done = threading.Event()
+        self.submit(done.set)
+        return done.wait(timeout_s)
 
     def _run(self) -> None:
         while True:
@@ -152,7 +244,7 @@ class _Preparation:
         self.options = (runner.config.feedforward, runner.config.stale_cycles)
         self.prepared: _PreparedJob | None = None
         self._preparing = False
-        self._worker = _Worker("prepare")
+        self.worker = _Worker("prepare")
         #: Work after a job: its report, closing a controller that never ran.
         self.after = _Worker("job-after")
         self.records: queue.SimpleQueue[tuple[int, DigRecord]] = queue.SimpleQueue()
@@ -166,13 +258,18 @@ class _Preparation:
         """Prepare ``job`` on the preparation thread, its controller starting at the held
         stroke (loop safe: a queue put)."""
         self._preparing = True
-        self._worker.submit(self._prepare_once, job, held_m, parts)
+        self.worker.submit(self._prepare_once, job, held_m, parts)
 
     def _prepare_once(self, job: Job, held_m: Any, parts: _Parts) -> None:
         try:
             self._prepare(job, held_m, parts)
         finally:
             self._preparing = False
+
+    def take(self) -> _PreparedJob | None:
+        """The prepared job, handed over once (the loop's thread)."""
+        prepared, self.prepared = self.prepared, None
+        return prepared
 
     def _planner(self, name: str) -> TrenchPlanner:
         if name not in self.planners:
@@ -182,7 +279,20 @@ class _Preparation:
 
     def _prepare(self, job: Job, held_m: Any, parts: _Parts) -> None:
         """The job's session (new, or restored at the next undone dig), its planner process
-        and its controller started at the held stroke."""
+        and its controller started at the held stroke. Never raises: a job that cannot start
+        fails in the store, a bug is logged and fails it too."""
+        r = self.runner
+        try:
+            self._prepare_job(job, held_m, parts)
+        except Exception as exc:  # a bug must not end the thread silently
+            log.exception("job %d: preparation failed", job.id)
+            with contextlib.suppress(JobError):
+                r.store.set_status(
+                    job.id, JobStatus.FAILED, f"preparation failed: {type(exc).__name__}: {exc}"
+                )
+            r.job_prepared(None)
+
+    def _prepare_job(self, job: Job, held_m: Any, parts: _Parts) -> None:
         r = self.runner
         rig, period = r.rig, r.period_s
         done = len(job.digs)
@@ -204,8 +314,9 @@ class _Preparation:
             )
             t_max = rig.planning.t_max_s if rig.planning is not None else 10.0
             records = self.records
+            link = ProcessPlanner(session, period_s=period)
             controller = JobController(
-                ProcessPlanner(session, period_s=period),
+                link,
                 parts.guard,
                 options.limits(rig),
                 rig,
@@ -224,15 +335,21 @@ class _Preparation:
         # Everything alive now moves out of the collector's reach: O(1) here, and the job runs
         # with the collector off (see the module docstring).
         gc.freeze()
-        self.prepared = _PreparedJob(job, controller, first, telemetry)
+        self.prepared = _PreparedJob(job, controller, link, first, telemetry, parts.boot)
 
     def _record_loop(self) -> None:
         """Each dig's record: its summary and the session state into the store (its writer
-        thread persists), the log line."""
+        thread persists), the log line. A failure is logged; the thread goes on."""
         store = self.runner.store
         while True:
             job_id, rec = self.records.get()
-            store.record_dig(job_id, {k: getattr(rec, k) for k in DIG_KEYS}, rec.session_state)
+            try:
+                store.record_dig(
+                    job_id, {k: getattr(rec, k) for k in DIG_KEYS}, rec.session_state
+                )
+            except Exception:  # a bug must not end the thread silently
+                log.exception("job %d: dig %d not recorded", job_id, rec.index)
+                continue
             log.info(
                 "job %d: dig %d done (%s, planned %.2f L, measured %.2f L)",
                 job_id,
@@ -247,16 +364,23 @@ class RigRunner:
     """The runner thread on a real bus (see the module docstring).
 
     Args:
-        config: The daemon's configuration (loop, executor options).
+        config: The daemon's configuration (loop, executor options, boot timeout).
         rig: The rig.
         planner: The trench planner of ``config.planner`` (models loaded and checked).
-        bus: The bus (traced or not); the runner's master becomes its only reader.
+        bus: The bus (traced or not), opened; the runner's master becomes its only reader and
+            the runner owns it from here (:attr:`bus` is the current one).
         store: The job store.
         clock: Wall clock (``MonotonicClock``).
+        reopen: Opens the bus again (from the configuration, traced as the first) when a reset
+            finds it broken; None: a broken bus cannot be reopened and a reset fails.
 
     Attributes:
+        bus: The bus in use (a reset may have replaced the one given); whoever ends the
+            daemon shuts it down (:func:`close_bus`) after :meth:`shutdown`.
         error: Why the thread ended when it ended on its own (empty otherwise).
-        enable_syncs: SYNCs the master had sent when the drives were enabled.
+        enable_syncs: SYNCs the master had sent when the drives were (last) enabled.
+        resets_done: Resets that ended, succeeded or not (:meth:`reset_fault` returns the
+            number the requested one will have).
     """
 
     def __init__(
@@ -267,6 +391,7 @@ class RigRunner:
         bus: can.BusABC,
         store: JobStore,
         clock: Clock | None = None,
+        reopen: Callable[[], can.BusABC] | None = None,
     ) -> None:
         self.config = config
         self.rig = rig
@@ -274,18 +399,29 @@ class RigRunner:
         self.store = store
         self.clock: Clock = clock if clock is not None else MonotonicClock()
         self.period_s = config.loop.period_s
+        self._reopen = reopen
         self._prep = _Preparation(self, planner)
         self.error = ""
         self.enable_syncs = 0
+        self.resets_done = 0
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._ready = threading.Event()
+        self._wake = threading.Event()
         self._start_error: BaseException | None = None
         self._stop = False
         self._job: _PreparedJob | None = None  # running
         self._job_id: int | None = None
         self._beat_s = -math.inf
         self._fault = ""
+        self._fault_job: int | None = None  # the job that failed with the fault ...
+        self._fault_job_paused = False  # ... and whether it was paused then
+        self._resets_requested = 0
+        self._reset_error = ""  # why the latest reset failed
+        self._bus_broken = False
+        self._powering_down = False
+        self._boots = 0
+        self._phase = RunnerPhase.STARTING
         self._state = "starting"
         self._parts: _Parts | None = None
 
@@ -302,10 +438,11 @@ class RigRunner:
             raise self._start_error
 
     def shutdown(self, timeout_s: float) -> bool:
-        """See :meth:`Runner.shutdown`."""
+        """See :meth:`Runner.shutdown` (a latched fault: the drives are off already)."""
         with self._lock:
             self._stop = True
             running = self._job
+        self._wake.set()
         if running is not None:
             running.controller.request_stop(StopRequest.SHUTDOWN)
         if self._thread is None:
@@ -326,10 +463,43 @@ class RigRunner:
             return False, f"the loop has not cycled for {age:.3f} s"
         return True, ""
 
+    def watchdog(self) -> tuple[bool, str]:
+        """See :meth:`Runner.watchdog`: the loop cycles, or the thread waits for a reset or
+        runs one (a latched fault is reported, not a reason to be restarted)."""
+        if not self.alive():
+            return False, "the runner thread ended"
+        if self._phase in (RunnerPhase.FAULTED, RunnerPhase.RESETTING):
+            return True, ""
+        age = self.clock.now() - self._beat_s
+        if age > STALE_LOOP_S:
+            return False, f"the loop has not cycled for {age:.3f} s"
+        return True, ""
+
+    def fault(self) -> str:
+        """See :meth:`Runner.fault` (with why the latest reset failed, when one did)."""
+        text = self._fault
+        if text and self._reset_error:
+            text += f" (the latest reset failed: {self._reset_error})"
+        return text
+
+    def reset_fault(self) -> int:
+        """See :meth:`Runner.reset_fault`."""
+        with self._lock:
+            if self._resets_requested <= self.resets_done:
+                self._resets_requested = self.resets_done + 1
+            number = self._resets_requested
+        self._wake.set()
+        return number
+
     def state(self) -> str:
         """See :meth:`Runner.state` (a running job that is paused says so)."""
+        phase = self._phase
+        if phase is RunnerPhase.RESETTING:
+            return f"resetting the fault: {self._state}"
         if self._fault:
-            return f"fault: {self._fault}"
+            if phase is RunnerPhase.FAULTED:
+                return f"fault: {self.fault()}; waiting for reset-fault"
+            return f"fault: {self._fault}; stopping"
         running = self._job
         if running is not None and running.controller.paused:
             return f"job {self._job_id} paused, holding position"
@@ -374,6 +544,8 @@ class RigRunner:
     # -- the thread ---------------------------------------------------------------------------
 
     def _main(self) -> None:
+        """Apply the RT settings, boot and run: the first time, then once for each reset of a
+        latched fault, until a stop. Nothing out of a boot or a loop ends the thread."""
         report = apply_rt(loop_rt_settings(self.config))
         _reset_rt_on_fork()
         # Before the bus: what this host holds, in numbers, where the drives' watchdogs and the
@@ -388,46 +560,127 @@ class RigRunner:
         log.info("%s", timing.summary())
         for warning in timing.warnings:
             log.warning("host: %s", warning)
-        master: CanMaster | None = None
         try:
-            try:
-                self._state = "booting the drives"
-                master = CanMaster(self.bus, self.rig, period_s=self.period_s)
-                timeout_s = self.config.bus.boot_timeout_s
-                infos = master.boot(self.clock.now, timeout_s)
-                log.info(
-                    "drives booted: %s",
-                    ", ".join(f"{i.axis} node {i.node_id} {i.device_name!r}" for i in infos),
-                )
-                # Keep what boot built out of later collections: the loop's first cycles, right
-                # after enable, must be short (the drives' SYNC watchdog runs from enable on).
-                gc.collect()
-                gc.freeze()
-                manager, hold = self._build(master)
-                master.enable(self.clock.now, timeout_s)
-                self.enable_syncs = master.feedback.sync_count
-                self._state = self._idle_state()
-            except BaseException as exc:
-                self._start_error = exc
+            if not self._run_boot(first=True):
                 return
-            finally:
-                self._ready.set()
-            s0 = master.last_target_um().astype(np.float64) * 1e-6
-            self._hold_at(s0)
-            self._store_changed()
-            manager.run(hold, hold.command, s0, hold.command.q_rad)
+            while not self._stop and self._fault:
+                self._await_reset()
+                if self._stop:
+                    break
+                self._run_boot(first=False)
             self._state = "stopped"
-        except Exception as exc:
+        except Exception as exc:  # a bug in the runner itself: reported, never silent
             self.error = f"runner failed: {type(exc).__name__}: {exc}"
             log.exception("runner failed")
-            with contextlib.suppress(Exception):
-                if master is not None:
-                    master.quick_stop()
         finally:
+            self._phase = RunnerPhase.STOPPED
+            self._ready.set()
             restore_rt(report)
 
-    def _build(self, master: CanMaster) -> tuple[ControllerManager, HoldController]:
-        """The drives, the guard, the hold and the manager, once for the runner's life."""
+    def _run_boot(self, first: bool) -> bool:
+        """One boot and its loop: the bus reopened if it broke (a reset), the drives booted and
+        enabled, held at their measured pose, the loop run until it ends (a stop, or a fault
+        latched and the drives off). True when the drives were enabled."""
+        self._boots += 1
+        self._phase = RunnerPhase.STARTING if first else RunnerPhase.RESETTING
+        self._powering_down = False
+        if not first:
+            # The failed job's report (planner shutdown, telemetry file) and a preparation of
+            # the previous boot finish first: none of it competes with the first cycles.
+            for worker in (self._prep.after, self._prep.worker):
+                worker.drain(AFTERMATH_TIMEOUT_S)
+        try:
+            parts = self._boot(retry=not first)
+        except Exception as exc:
+            if first:
+                self._start_error = exc
+                self._ready.set()
+            else:
+                self._reset_error = str(exc)
+                log.error("reset failed, the fault stays latched: %s", exc)
+                self._reset_ended()
+            return False
+        master = parts.master
+        s0 = master.last_target_um().astype(np.float64) * 1e-6
+        self._hold_at(s0)
+        self._phase = RunnerPhase.CYCLING
+        self._state = self._idle_state()
+        if first:
+            self._ready.set()
+        else:
+            self._clear_fault()
+            self._reset_ended()
+        self._store_changed()
+        try:
+            parts.manager.run(parts.hold, parts.hold.command, s0, parts.hold.command.q_rad)
+        except Exception as exc:  # a bug in a cycle: the fault is the report, with its trace
+            log.exception("the runner's loop failed")
+            self._latch(f"the runner's loop failed: {type(exc).__name__}: {exc}")
+            with contextlib.suppress(Exception):
+                master.quick_stop()
+        finally:
+            self._end_boot(parts)
+        return True
+
+    def _boot(self, retry: bool) -> _Parts:
+        """Open the bus again if it broke; boot and enable the drives; this boot's parts.
+        With ``retry``, a boot that fails on an exception out of a kept bus reopens it and
+        boots once more.
+
+        Raises:
+            CommunicationError, DriveFault: Boot or enable failed.
+        """
+        timeout_s = self.config.bus.boot_timeout_s
+        for attempt in range(2 if retry else 1):
+            if self._bus_broken:
+                self._reopen_bus()
+            self._state = "booting the drives"
+            master = CanMaster(self.bus, self.rig, period_s=self.period_s)
+            try:
+                infos = master.boot(self.clock.now, timeout_s)
+            except CommunicationError:
+                if master.cycle.bus_exception is not None:
+                    self._bus_broken = True
+                    if attempt == 0 and retry and self._reopen is not None:
+                        continue
+                raise
+            log.info(
+                "drives booted: %s",
+                ", ".join(f"{i.axis} node {i.node_id} {i.device_name!r}" for i in infos),
+            )
+            # Keep what boot built out of later collections: the loop's first cycles, right
+            # after enable, must be short (the drives' SYNC watchdog runs from enable on).
+            gc.collect()
+            gc.freeze()
+            parts = self._build(master)
+            self._state = "enabling the drives"
+            try:
+                master.enable(self.clock.now, timeout_s)
+            except CommunicationError:
+                if master.cycle.bus_exception is not None:
+                    self._bus_broken = True
+                raise
+            self.enable_syncs = master.feedback.sync_count
+            self._beat_s = self.clock.now()  # the loop starts now: liveness from here
+            return parts
+        raise AssertionError("unreachable: the last attempt returns or raises")
+
+    def _reopen_bus(self) -> None:
+        """Replace the broken bus with a new one from the configuration.
+
+        Raises:
+            CommunicationError: No way to reopen it, or it does not open.
+        """
+        if self._reopen is None:
+            raise CommunicationError("the bus broke and this runner cannot reopen it")
+        self._state = "reopening the bus"
+        close_bus(self.bus)
+        self.bus = self._reopen()
+        self._bus_broken = False
+        log.info("bus reopened")
+
+    def _build(self, master: CanMaster) -> _Parts:
+        """The drives, the guard, the hold and the manager of one boot."""
         cfg = self.config.loop
         loop = FixedRateLoop(
             self.clock,
@@ -442,12 +695,78 @@ class RigRunner:
         drives = DriveInterface(master, self.clock, 0.0, self._prep.options[0])
         drives.react_to_faults(False)
         guard = GuardFilter(LimitGuard(StrokeLimits.from_rig(self.rig), self.period_s))
-        hold = HoldController(np.zeros(3), np.zeros(3), SETTLED_M)
+        hold = HoldController(np.zeros(3), np.zeros(3), SETTLED_M, drives.describe)
         manager = ControllerManager(
             drives, guard, loop, on_cycle=self._on_cycle, on_ended=self._job_ended
         )
-        self._parts = _Parts(drives, guard, hold, manager, manager.loop.telemetry)
-        return manager, hold
+        self._parts = _Parts(
+            master, drives, guard, hold, manager, manager.loop.telemetry, self._boots
+        )
+        return self._parts
+
+    def _end_boot(self, parts: _Parts) -> None:
+        """After the loop: a job it left running failed, a job prepared for it dropped, a
+        broken bus closed."""
+        gc.enable()
+        with self._lock:
+            running, self._job = self._job, None
+        if running is not None:
+            self._latch("the loop ended during a job")
+            self._fail_job(running.job, self._fault)
+            threading.Thread(target=running.controller.close, daemon=True).start()
+        prepared = self._prep.take()
+        if prepared is not None:
+            self._prep.after.submit(prepared.controller.close)
+        self._job_id = None
+        if parts.master.cycle.bus_exception is not None:
+            self._bus_broken = True
+        if self._bus_broken and not self._stop:
+            close_bus(self.bus)  # release it now; a reset opens a new one
+
+    def _await_reset(self) -> None:
+        """With a fault latched and the loop ended: wait for a reset request or a stop; read
+        what arrives on a working bus meanwhile (and drop it) so no backlog builds."""
+        self._phase = RunnerPhase.FAULTED
+        log.error("fault latched: %s; waiting for reset-fault", self._fault)
+        while not self._stop:
+            with self._lock:
+                requested = self._resets_requested > self.resets_done
+            if requested:
+                return
+            self._wake.wait(_FAULTED_POLL_S)
+            self._wake.clear()
+            if not self._bus_broken:
+                try:
+                    while self.bus.recv(timeout=0.0) is not None:
+                        pass
+                except Exception as exc:  # the bus broke while faulted: reopened at the reset
+                    log.warning("bus error while faulted: %s", bus_error_text(exc))
+                    self._bus_broken = True
+                    close_bus(self.bus)
+
+    def _latch(self, text: str, job_id: int | None = None) -> None:
+        """Latch a fault (the first cause stays; any thread)."""
+        if not self._fault:
+            self._fault = text
+            self._fault_job = job_id
+
+    def _reset_ended(self) -> None:
+        with self._lock:
+            self.resets_done += 1
+
+    def _clear_fault(self) -> None:
+        """A reset succeeded: clear the latch, the failed job back to ``queued`` (``paused``
+        when it was paused)."""
+        text, job_id = self._fault, self._fault_job
+        self._fault, self._fault_job, self._reset_error = "", None, ""
+        requeued = ""
+        if job_id is not None:
+            with contextlib.suppress(JobError):
+                if self.store.get(job_id).status is JobStatus.FAILED:
+                    status = JobStatus.PAUSED if self._fault_job_paused else JobStatus.QUEUED
+                    self.store.set_status(job_id, status)
+                    requeued = f"; job {job_id} {status.label} again at its next undone dig"
+        log.info("fault reset (was: %s): drives enabled%s", text, requeued)
 
     def _hold_at(self, stroke_m: Any) -> None:
         """Hold ``stroke_m`` from the next cycle (the guard leaves any stop there)."""
@@ -461,23 +780,32 @@ class RigRunner:
     def _store_changed(self) -> None:
         self.store.changed.set()  # look for work once on entry
 
-    def _on_cycle(self, _sync: int, now_s: float) -> None:
-        """Every cycle, on the loop's thread: liveness; while holding, the fault latch, the
-        stop, the next job's preparation and the switch to it."""
+    def _on_cycle(self, sync: int, now_s: float) -> None:
+        """Every cycle, on the loop's thread: liveness; while a job runs, its planner process;
+        while holding, the fault latch and the power-down after it, the stop, the next job's
+        preparation and the switch to it."""
         self._beat_s = now_s
-        assert self._parts is not None
-        hold, manager = self._parts.hold, self._parts.manager
+        parts = self._parts
+        assert parts is not None
+        hold, manager = parts.hold, parts.manager
         if manager.controller is not hold:
+            running = self._job
+            if running is not None and sync & (PLANNER_CHECK_CYCLES - 1) == 0:
+                self._check_planner(running)
             return
         if hold.fault and not self._fault:
-            self._fault = hold.fault
-        if self._stop:
-            if self._state != "stopping: disabling the drives":
+            self._latch(hold.fault)
+        if self._stop or self._fault:
+            if not self._powering_down:
+                self._powering_down = True
                 self._state = "stopping: disabling the drives"
                 hold.power_down(POWER_DOWN_TIMEOUT_S)
             return
         prepared = self._prep.prepared
         if prepared is not None:
+            if prepared.boot != parts.boot:
+                self._drop_prepared()
+                return
             if math.isnan(prepared.started_s):
                 prepared.started_s = now_s
             late = now_s - prepared.started_s >= SETTLE_TIMEOUT_S
@@ -489,21 +817,40 @@ class RigRunner:
                 self._switch_to(prepared)
             return
         changed = self.store.changed
-        if changed.is_set() and not self._fault and not self._prep.busy():
+        if changed.is_set() and not self._prep.busy():
             changed.clear()
             self._start_preparation()
+
+    def _check_planner(self, running: _PreparedJob) -> None:
+        """A running job whose planner process has ended: latch the fault and stop the job
+        (the guard's stop). Loop thread, every :data:`PLANNER_CHECK_CYCLES` cycles."""
+        if self._fault or self._stop:
+            return
+        code = running.planner.exit_code()
+        if code is None:
+            return
+        job = running.job.id
+        self._latch(f"job {job}: the planner process ended ({_exit_text(code)})", job)
+        running.controller.request_stop(StopRequest.SHUTDOWN)
+
+    def _drop_prepared(self) -> None:
+        """A prepared job that must not run (a fault, an earlier boot, no longer active): its
+        planner closed off the loop's thread, the store looked at again."""
+        prepared = self._prep.take()
+        if prepared is not None:
+            self._prep.after.submit(prepared.controller.close)
+        self._job_id = None
+        self.store.changed.set()
 
     def _switch_to(self, prepared: _PreparedJob) -> None:
         """Hand the drives to a prepared job at this cycle's boundary (loop thread)."""
         assert self._parts is not None
         drives, manager = self._parts.drives, self._parts.manager
-        self._prep.prepared = None
         job = prepared.job
         if self.store.get(job.id).status not in ACTIVE or self._fault:
-            self._prep.after.submit(prepared.controller.close)
-            self._job_id = None
-            self.store.changed.set()
+            self._drop_prepared()
             return
+        self._prep.take()
         with self._lock:
             self._job = prepared
             if self._stop:
@@ -532,7 +879,7 @@ class RigRunner:
         self._hold_at(guard.position_m)
         job_ctl = running.controller
         status = job_ctl.status if job_ctl.status is not None else ExecStatus.DONE
-        self._record_outcome(running.job, status, job_ctl.fault)
+        self._record_outcome(running, status, job_ctl.fault)
         with self._lock:
             self._job, self._job_id = None, None
         self._state = self._idle_state()
@@ -560,25 +907,59 @@ class RigRunner:
             self._job_id = None
             self.store.changed.set()
 
-    def _record_outcome(self, job: Job, st: ExecStatus, fault: str) -> None:
-        """The job's status from the run's (the store in memory; its writer thread persists)."""
+    def _fail_job(self, job: Job, text: str) -> None:
+        """``job`` failed with a latched fault: a reset queues it again (paused if it was)."""
+        with contextlib.suppress(JobError):
+            if self._fault_job is None:
+                self._fault_job = job.id
+                self._fault_job_paused = self.store.get(job.id).status is JobStatus.PAUSED
+            self.store.set_status(job.id, JobStatus.FAILED, text)
+
+    def _record_outcome(self, running: _PreparedJob, st: ExecStatus, fault: str) -> None:
+        """The job's status from the run's (the store in memory; its writer thread persists);
+        a fault latched for it. A job stopped for a latched fault (its planner process ended,
+        say) failed with that fault; a planning error whose planner process has ended is one."""
+        job = running.job
         if st is ExecStatus.DONE:
             self.store.set_status(job.id, JobStatus.DONE)
-        elif st is ExecStatus.CANCELLED:
+            return
+        if st is ExecStatus.CANCELLED:
             self.store.set_status(job.id, JobStatus.CANCELLED, "cancelled by request")
-        elif st is ExecStatus.STOPPED:
+            return
+        stopping = self._stop  # a stop ends the planner process too (SIGINT to the group)
+        if st in (ExecStatus.STOPPED, ExecStatus.PLANNING_ERROR) and not (self._fault or stopping):
+            code = running.planner.exit_code()
+            if code is not None:
+                self._latch(f"job {job.id}: the planner process ended ({_exit_text(code)})", job.id)
+        if st is ExecStatus.STOPPED and not self._fault:
             # Shut down mid-job: resumable at the next undone dig after the restart.
             paused = self.store.get(job.id).status is JobStatus.PAUSED
             self.store.set_status(job.id, JobStatus.PAUSED if paused else JobStatus.QUEUED)
-        else:
-            text = f"{st.name.lower()}: {fault or 'no detail'}"
-            self.store.set_status(job.id, JobStatus.FAILED, text)
-            if st is not ExecStatus.PLANNING_ERROR:
-                self._fault = f"job {job.id}: {text}"
+            return
+        if st is ExecStatus.PLANNING_ERROR and not self._fault:
+            self.store.set_status(job.id, JobStatus.FAILED, f"planning_error: {fault}")
+            return
+        if st in (ExecStatus.STOPPED, ExecStatus.PLANNING_ERROR):
+            self._fail_job(job, self._fault)
+            return
+        text = f"{st.name.lower()}: {fault or 'no detail'}"
+        assert self._parts is not None
+        drives = self._parts.drives
+        if "cycle status" not in text:
+            # The monitor's own words name the axis; the drives' report adds nodes and codes.
+            text += f"; drives: {drives.describe(drives.feedback.status)}"
+        self._latch(f"job {job.id}: {text}", job.id)
+        self._fail_job(job, text)
 
     def _report_run(self, running: _PreparedJob, status: ExecStatus) -> None:
         """Off the loop's thread: close the planner, log the run and its digs, write its
-        telemetry to the state directory."""
+        telemetry to the state directory. A failure is logged; nothing raises."""
+        try:
+            self._write_report(running, status)
+        except Exception:  # a bug must not end the thread silently
+            log.exception("job %d: run report failed", running.job.id)
+
+    def _write_report(self, running: _PreparedJob, status: ExecStatus) -> None:
         ctl = running.controller
         ctl.close()
         job = running.job

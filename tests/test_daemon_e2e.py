@@ -65,7 +65,7 @@ RIG = "scale_model"
 PERIOD_S = 0.002
 MAX_DIGS = 3
 #: The HIL process stops by itself after this long, whatever happens to the test.
-MAX_WALL_S = 300.0
+MAX_WALL_S = 600.0
 NODES = (1, 2, 3)
 
 
@@ -307,11 +307,11 @@ def rig_file(tmp_path: Path) -> Path:
 @pytest.fixture
 def hil(rig_file: Path) -> Iterator[RealtimeHilProcess]:
     rig = load_rig(rig_file)
-    q_dump = TrenchPlanner(rig).dump_pose_rad
+    q_home = TrenchPlanner(rig).home_pose_rad
     try:
         proc = RealtimeHilProcess.start(
             rig_name=str(rig_file),
-            q0_rad=q_dump,
+            q0_rad=q_home,
             terrain=None,
             period_s=PERIOD_S,
             max_wall_s=MAX_WALL_S,

@@ -781,6 +781,54 @@ class PsoTrench:
 
 
 @dataclass(frozen=True, slots=True)
+class CycleFigures:
+    """The dig cycles (the moves between two digs) of one plan or of several
+    (:class:`~rt_runtime.planning.trench.Cycle`).
+
+    Attributes:
+        cycles: Dig cycles.
+        moves_per_cycle_s: Mean move time of a cycle (s), None without a cycle.
+        moves_vs_bound_mean: Mean of each cycle's move time over its bound (each joint stopping
+            only where it reverses through the same corners), None without a cycle.
+        moves_vs_bound_max: The largest of them, None likewise.
+        fallbacks: Cycles made of rest-to-rest moves (no blend clear of the material).
+    """
+
+    cycles: int
+    moves_per_cycle_s: float | None
+    moves_vs_bound_mean: float | None
+    moves_vs_bound_max: float | None
+    fallbacks: int
+
+    @classmethod
+    def of(cls, cycles: list[dict[str, Any]]) -> CycleFigures:
+        """The figures of the ``cycles`` entries of plans' JSON (``plan --json``)."""
+        ratios = [c["moves_s"] / c["bound_s"] for c in cycles if c["bound_s"] > 0.0]
+        return cls(
+            cycles=len(cycles),
+            moves_per_cycle_s=float(np.mean([c["moves_s"] for c in cycles])) if cycles else None,
+            moves_vs_bound_mean=float(np.mean(ratios)) if ratios else None,
+            moves_vs_bound_max=float(np.max(ratios)) if ratios else None,
+            fallbacks=sum(not c["blended"] for c in cycles),
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        """``{"cycles", "moves_per_cycle_s", "moves_vs_bound": {"mean", "max"},
+        "fallbacks"}``."""
+        return {
+            "cycles": self.cycles,
+            "moves_per_cycle_s": self.moves_per_cycle_s,
+            "moves_vs_bound": {"mean": self.moves_vs_bound_mean, "max": self.moves_vs_bound_max},
+            "fallbacks": self.fallbacks,
+        }
+
+
+#: Goals on the dig cycles (issue 26, ``goals`` of ``bench plan``): a cycle's moves over its
+#: bound, the mean over the tasks' cycles and the worst.
+CYCLE_GOALS = {"moves_vs_bound_mean_max": 1.10, "moves_vs_bound_max": 1.20}
+
+
+@dataclass(frozen=True, slots=True)
 class TaskPlanBench:
     """One named task planned (``tasks.<name>`` of ``bench plan``).
 
@@ -801,6 +849,9 @@ class TaskPlanBench:
         yao: Yao Fig. 14's figures of the task, None for a task Yao did not dig.
         pso: The PSO beside it (JSON: its keys at this level, with ``pso_totals`` and
             ``pinn_vs_pso``), None when not run.
+
+    JSON also: ``cycles`` (the plan's dig cycles, as ``plan --json``), ``moves_per_cycle_s``,
+    ``cycle_figures`` (:class:`CycleFigures`).
     """
 
     pinn: TrenchPlan
@@ -836,8 +887,12 @@ class TaskPlanBench:
 
     def to_json(self) -> dict[str, Any]:
         """The task's keys (README ``bench plan``)."""
+        plan = self.pinn.to_json()
         out: dict[str, Any] = {
-            "pinn": self.pinn.to_json(),
+            "pinn": plan,
+            "cycles": plan["cycles"],
+            "moves_per_cycle_s": plan["moves_per_cycle_s"],
+            "cycle_figures": CycleFigures.of(plan["cycles"]).to_json(),
             "plan_us": self.plan_us.to_json(),
             "plan_per_dig_ms": self.plan_per_dig_ms.to_json(),
             "fill_L": list(self.fill_L),
@@ -917,6 +972,7 @@ class TrenchBench:
         reference: One PINN plan call of the same run, None without a roughing dig.
         plan_per_dig_over_pinn_plan: Median plan time per dig over the reference's median,
             None without either.
+        cycles: The dig cycles of every task's plan.
     """
 
     geometry: str
@@ -925,10 +981,12 @@ class TrenchBench:
     plan_per_dig_ms: Distribution | None
     reference: PinnReference | None
     plan_per_dig_over_pinn_plan: float | None
+    cycles: CycleFigures | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The block's keys (README ``bench plan``)."""
         return {
+            "cycles": self.cycles.to_json() if self.cycles is not None else None,
             "geometry": self.geometry,
             "plan_us": self.plan_us.to_json(),
             "numpy_geometry_plan_us": self.numpy_geometry_plan_us.to_json(),
@@ -980,6 +1038,7 @@ class PlanBenchReport:
                 "task_time_vs_first_design_max": 0.6,
                 "plan_per_dig_ms": PLAN_PER_DIG_GOAL_MS.to_json(),
                 "pinn_vs_pso_totals_max": 0.05,
+                **CYCLE_GOALS,
             }
             out["paper"] = {"yao_fig14": YAO_FIG14, "yao_plan_ms_per_dig": [4.2, 4.5]}
         if self.random is not None:
@@ -1088,6 +1147,7 @@ def bench_plan(
                 if reference and per_dig
                 else None
             ),
+            cycles=CycleFigures.of([c for e in out.values() for c in e.pinn.to_json()["cycles"]]),
         ),
     )
 
@@ -1347,6 +1407,10 @@ class RandomTaskPlan:
         volume_left_L: Design material left (L).
         transition_penetration_max_mm: Deepest move into the material (mm).
         plan_ms: Plan time (ms).
+        task_time_s: Digs and moves (s).
+        moves_per_cycle_s: Mean move time of a dig cycle (s), None without one.
+        moves_vs_bound_max: The largest move time of a dig cycle over its bound, None likewise.
+        cycle_fallbacks: Dig cycles of rest-to-rest moves.
     """
 
     coverage_error: float
@@ -1357,6 +1421,10 @@ class RandomTaskPlan:
     volume_left_L: float
     transition_penetration_max_mm: float
     plan_ms: float
+    task_time_s: float = 0.0
+    moves_per_cycle_s: float | None = None
+    moves_vs_bound_max: float | None = None
+    cycle_fallbacks: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -1456,6 +1524,7 @@ class RandomSuite:
         reference: One PINN plan call of the same run, None without a roughing dig.
         plan_per_dig_over_pinn_plan: Median plan time per dig over the reference's median.
         per_task: Every task, in draw order.
+        cycles: The dig cycles of every planned task.
     """
 
     rig: str
@@ -1475,6 +1544,7 @@ class RandomSuite:
     reference: PinnReference | None
     plan_per_dig_over_pinn_plan: float | None
     per_task: tuple[RandomTask, ...]
+    cycles: CycleFigures | None = None
 
     @property
     def error_tasks(self) -> tuple[RandomTask, ...]:
@@ -1519,6 +1589,7 @@ class RandomSuite:
             "reference": self.reference.to_json() if self.reference is not None else None,
             "per_task": [t.to_json() for t in self.per_task],
             "plan_per_dig_over_pinn_plan": self.plan_per_dig_over_pinn_plan,
+            "cycles": self.cycles.to_json() if self.cycles is not None else None,
         }
 
 
@@ -1557,6 +1628,7 @@ def bench_plan_random(
     band_l = (planning.volume_min_m3 * 1e3, planning.volume_max_m3 * 1e3)
     tasks = random_tasks(rig, n, seed)
     records: list[RandomTask] = []
+    all_cycles: list[dict[str, Any]] = []
     fills: list[float] = []
     finishing_max = 0
     first_problem: Any = None
@@ -1586,6 +1658,8 @@ def bench_plan_random(
             first = next((d for d in plan.digs if d.status == "filled"), None)
             if first is not None:
                 first_problem = (task.name, first.index, first.problem)
+        cycles = CycleFigures.of(report["cycles"])
+        all_cycles += report["cycles"]
         planned = RandomTaskPlan(
             coverage_error=plan.coverage_error,
             overdig_max_mm=plan.overdig_max_m * 1e3,
@@ -1595,6 +1669,10 @@ def bench_plan_random(
             volume_left_L=report["volume_left_L"],
             transition_penetration_max_mm=report["transition_penetration_max_mm"],
             plan_ms=plan.plan_total_us / 1e3,
+            task_time_s=report["dig_time_s"] + report["transition_time_s"],
+            moves_per_cycle_s=cycles.moves_per_cycle_s,
+            moves_vs_bound_max=cycles.moves_vs_bound_max,
+            cycle_fallbacks=cycles.fallbacks,
         )
         records.append(RandomTask(**values, planned=planned))
     planned_tasks = [r.planned for r in records if r.planned is not None]
@@ -1641,6 +1719,7 @@ def bench_plan_random(
             else None
         ),
         per_task=tuple(records),
+        cycles=CycleFigures.of(all_cycles),
     )
 
 

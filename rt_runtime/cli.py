@@ -904,6 +904,11 @@ def cmd_plan(args: argparse.Namespace) -> int:
     yao_text = f"; Yao {yao['coverage_error']:.1%}" if yao else ""
     print(f"  coverage error {report['coverage_error']:.2%} (goal <= {COVERAGE_GOAL:.0%}{yao_text}), over-dig max {report['overdig_max_mm']:.1f} mm (goal <= {OVERDIG_GOAL_M * 1e3:g} mm)")
     print(f"  removed {report['removed_L']:.2f} L of a {report['design_L']:.2f} L design; dig time {report['dig_time_s']:.1f} s + transitions {report['transition_time_s']:.1f} s; energy {report['energy_Wh']:.3f} Wh")
+    cycles = report["cycles"]
+    if cycles:
+        blended = sum(c["blended"] for c in cycles)
+        over = max(c["moves_s"] / c["bound_s"] for c in cycles)
+        print(f"  {len(cycles)} dig cycles, {report['moves_per_cycle_s']:.2f} s of moves a cycle ({blended} blended, {len(cycles) - blended} rest-to-rest); at most {over:.2f}x the bound of each joint stopping only where it reverses")
     print(f"  whole plan in {report['plan_total_us'] / 1e3:.1f} ms")
     if args.plot:
         print(f"  plot: {args.plot}")
@@ -996,6 +1001,9 @@ def _print_bench_random(q: RandomSuite) -> None:
     if f.n:
         print(f"  roughing fill {f.min:.2f} / {f.p50:.2f} / {f.max:.2f} L (min / p50 / max), {f.within_band:.0%} of {f.n} digs within {f.band_L[0]:.2f}-{f.band_L[1]:.2f} L")
     print(f"  transitions into the material p50 {tp.p50:.1f} mm, max {tp.max:.1f} mm")
+    cy = q.cycles
+    if cy is not None and cy.cycles and cy.moves_vs_bound_mean is not None and cy.moves_vs_bound_max is not None:
+        print(f"  {cy.cycles} dig cycles, {cy.moves_per_cycle_s:.2f} s of moves a cycle; moves / bound mean {cy.moves_vs_bound_mean:.3f}, max {cy.moves_vs_bound_max:.3f}; {cy.fallbacks} rest-to-rest")
     ref = q.reference
     ref_text = f"; PINN plan of one dig p50 {ref.pinn_plan_ms.p50:.2f} ms, plan per dig / PINN plan {q.plan_per_dig_over_pinn_plan:.1f}x" if ref is not None and q.plan_per_dig_over_pinn_plan is not None else ""
     per_dig = f"{q.plan_per_dig_ms.p50:.2f} ms" if q.plan_per_dig_ms is not None else "-"
@@ -1011,7 +1019,7 @@ def _print_bench_plan(
     tasks: Mapping[str, TaskPlanBench], tr: TrenchBench, *, rig_name: str, passes: int
 ) -> None:
     """The report of ``bench plan`` on named tasks as text."""
-    from rt_runtime.bench import PLAN_PER_DIG_GOAL_MS
+    from rt_runtime.bench import PLAN_PER_DIG_GOAL_MS, CycleFigures
 
     print(f"Trench planning on {rig_name} (Yao Table 3 tasks); PINN plan times over {passes} passes")
     print("  task  digs  coverage  Yao     over-dig  plan p50     plan p99     PSO plan   totals T / V / W_E vs PSO")
@@ -1045,6 +1053,11 @@ def _print_bench_plan(
         fills = " ".join(f"{v:.2f}{'*' if d.finishing else ''}" for v, d in zip(e.fill_L, e.pinn.digs, strict=True))
         vs_first = e.task_time_vs_first_design
         print(f"  {name:<4}  {fills:<55} {e.finishing:9d}  {e.travel_moves:7d}  {e.task_time_s:8.1f} s  {'-' if vs_first is None else f'{vs_first:.0%}'}")
+    print("  task  dig cycles  moves a cycle  moves / bound mean  max    rest-to-rest (goal: mean <= 1.10, max <= 1.20)")
+    for name, e in tasks.items():
+        cf = CycleFigures.of(e.pinn.to_json()["cycles"])
+        if cf.cycles and cf.moves_per_cycle_s is not None and cf.moves_vs_bound_mean is not None and cf.moves_vs_bound_max is not None:
+            print(f"  {name:<4}  {cf.cycles:10d}  {cf.moves_per_cycle_s:11.2f} s  {cf.moves_vs_bound_mean:18.3f}  {cf.moves_vs_bound_max:5.3f}  {cf.fallbacks:12d}")
 
 
 def _signed_pct(value: float | None) -> str:

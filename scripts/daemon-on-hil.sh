@@ -16,12 +16,12 @@ cd "$WORK"
 echo "files in $WORK"
 
 # 1. The real-time HIL in its own process: the scale model's three drives and arm behind
-#    python-can-remote's protocol on 127.0.0.1:$PORT, the arm at rest in task A's dump pose
+#    python-can-remote's protocol on 127.0.0.1:$PORT, the arm at rest in the home pose (the spoil zone's point nearest the machine)
 #    (boom, stick, bucket in rad), SCHED_FIFO 30 (below the daemon's loop), stopping by itself
 #    after an hour. It also stops when its standard input closes: this shell holds it open on
 #    file descriptor 3 until step 5 (or until this script exits, however it exits).
 mkfifo hil.stdin
-python -m hil_sim.harness.realtime --rig scale_model --q0 0.8548 -2.2065 -0.0446 \
+python -m hil_sim.harness.realtime --rig scale_model --q0 0.9588 -2.7806 0.0765 \
     --port "$PORT" --rt-priority 30 --max-wall-s 3600 < hil.stdin > hil.out 2> hil.err &
 HIL=$!
 exec 3> hil.stdin

@@ -68,6 +68,15 @@ def test_bench_plan_compares_pinn_and_pso_on_the_same_dig_problems() -> None:
     assert e.numpy_geometry_plan_us.p50 > 0.0 and e.speedup_vs_numpy_geometry > 0.0
     assert sum(e.stage_us.values()) == pytest.approx(e.plan_us.p50, rel=1e-9)
     assert r.trench.geometry == "c"
+    # The dig cycles, per task as the plan reports them and over the tasks.
+    cycles = j["cycles"]
+    assert cycles == j["pinn"]["cycles"] and len(cycles) == len(e.pinn.digs) - 1
+    assert {"waypoints_deg", "moves_s", "bound_s"} <= set(cycles[0])
+    assert j["moves_per_cycle_s"] == pytest.approx(np.mean([c["moves_s"] for c in cycles]))
+    figures = j["cycle_figures"]
+    assert figures["cycles"] == len(cycles) and set(figures["moves_vs_bound"]) == {"mean", "max"}
+    assert r.to_json()["trench"]["cycles"] == figures
+    assert {"moves_vs_bound_mean_max", "moves_vs_bound_max"} <= set(r.to_json()["goals"])
 
 
 def test_random_suite_is_seeded_and_has_every_key() -> None:
@@ -87,9 +96,12 @@ def test_random_suite_is_seeded_and_has_every_key() -> None:
         "tasks", "seed", "within_2pct", "within_4pct", "coverage_error", "overdig_max_mm",
         "digs", "fill", "finishing_per_section_max", "transition_penetration_max_mm",
         "plan_ms", "plan_per_dig_ms", "status_done", "errors", "error_tasks", "worst",
-        "reference", "plan_per_dig_over_pinn_plan", "per_task",
+        "reference", "plan_per_dig_over_pinn_plan", "per_task", "cycles",
     }  # fmt: skip
     assert keys <= set(r)
+    assert set(r["cycles"]) == {"cycles", "moves_per_cycle_s", "moves_vs_bound", "fallbacks"}
+    for key in ("task_time_s", "moves_per_cycle_s", "moves_vs_bound_max", "cycle_fallbacks"):
+        assert key in r["per_task"][0]
     assert r["tasks"] == 3 and r["seed"] == 5 and r["errors"] == 0
     assert set(r["coverage_error"]) == {"p50", "p99", "max"}
     for key in ("overdig_max_mm", "digs", "transition_penetration_max_mm"):

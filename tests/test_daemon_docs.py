@@ -41,11 +41,11 @@ def test_the_document_quotes_the_script_whole() -> None:
     assert quoted.group(1) == SCRIPT.read_text()
 
 
-def test_the_script_starts_the_arm_in_task_a_dump_pose() -> None:
+def test_the_script_starts_the_arm_in_the_home_pose() -> None:
     found = re.search(r"--q0 (\S+) (\S+) (\S+)", SCRIPT.read_text())
     assert found is not None
     q0 = np.array([float(v) for v in found.groups()])
-    assert np.allclose(q0, TrenchPlanner(load_rig("scale_model")).dump_pose_rad, atol=1e-4)
+    assert np.allclose(q0, TrenchPlanner(load_rig("scale_model")).home_pose_rad, atol=1e-4)
 
 
 def _free_port() -> int:

@@ -64,7 +64,7 @@ RIG = "scale_model"
 PERIOD_S = 0.002
 MAX_DIGS = 3
 #: The HIL process stops by itself after this long, whatever happens to the test.
-MAX_WALL_S = 300.0
+MAX_WALL_S = 600.0
 NODES = (1, 2, 3)
 #: The shipped example configuration the test runs with.
 EXAMPLE_CONFIG = (
@@ -321,11 +321,11 @@ def stock_config(path: Path, port: int, state: Path, sock: Path, trace: Path) ->
 @pytest.fixture
 def hil() -> Iterator[RealtimeHilProcess]:
     rig = load_rig(RIG)
-    q_dump = TrenchPlanner(rig).dump_pose_rad
+    q_home = TrenchPlanner(rig).home_pose_rad
     try:
         proc = RealtimeHilProcess.start(
             rig_name=RIG,
-            q0_rad=q_dump,
+            q0_rad=q_home,
             terrain=None,
             period_s=PERIOD_S,
             max_wall_s=MAX_WALL_S,

@@ -165,7 +165,7 @@ def test_the_runner_latches_a_bus_error_lives_and_resets_on_a_reopened_bus(
         'lock_memory = false\n[paths]\nstate_dir = "state"\nsocket = "run/c.sock"\n'
     )
     config = load_config(cfg_path)
-    hil = LockstepHil(rig, TrenchPlanner(rig).dump_pose_rad, vcu=False)
+    hil = LockstepHil(rig, TrenchPlanner(rig).home_pose_rad, vcu=False)
     opened: list[BreakableBus] = []
 
     def reopen() -> can.BusABC:
@@ -222,10 +222,10 @@ def rig_file(tmp_path: Path) -> Path:
 
 
 def start_hil(rig_file: Path, port: int = 0) -> RealtimeHilProcess:
-    """The real-time HIL process at the dump pose on ``port`` of 127.0.0.1 (0: any free one),
+    """The real-time HIL process at the home pose on ``port`` of 127.0.0.1 (0: any free one),
     as :meth:`RealtimeHilProcess.start` starts it; its own bus end is closed (the daemon is the
     master)."""
-    q0 = TrenchPlanner(load_rig(rig_file)).dump_pose_rad
+    q0 = TrenchPlanner(load_rig(rig_file)).home_pose_rad
     tmp = tempfile.TemporaryDirectory(prefix="excavator-hil-")
     out = Path(tmp.name) / "truth.npz"
     cmd = [
@@ -562,7 +562,7 @@ def test_a_new_master_boots_the_drives_from_whatever_state_they_are_in(found: st
     from hil_sim.harness.lockstep import LockstepHil
 
     rig = load_rig(RIG)
-    with LockstepHil(rig, TrenchPlanner(rig).dump_pose_rad, vcu=False) as hil:
+    with LockstepHil(rig, TrenchPlanner(rig).home_pose_rad, vcu=False) as hil:
         old = CanMaster(hil.master_bus, rig, react_to_faults=False)
         old.boot(hil.clock.now, 1.0)
         old.enable(hil.clock.now, 1.0)

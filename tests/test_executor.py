@@ -4,8 +4,8 @@ Each run starts a session restored from a state (the first dig of task A planned
 module, pending) with the HIL at the dig's entry, so a run is one dig plus its exit moves. Limits
 are checked on the RPDO1 frames of the bus (:func:`check_setpoint_trace`: finite differences over
 spans, exact up to the micrometre rounding). The planner process is exercised once, with the
-lockstep clock marked real time (the loop holds at the dump pose while the process plans; time
-in the simulation does not wait for it).
+lockstep clock marked real time (the loop holds at the dig's exit while the process plans the
+next dig and its cycle; time in the simulation does not wait for it).
 """
 
 from __future__ import annotations
@@ -212,6 +212,8 @@ def test_resume_from_a_restored_state_digs_the_next_dig(
     assert res.status is ExecStatus.DONE, res.fault
     assert [r.index for r in res.digs] == [1]
     assert res.digs[0].session_state["digs_done"] == 2
+    # One cycle from the measured pose: lift out, dump, approach and enter; after the dig (the
+    # job's last) its exit.
     assert run.phases()[:6] == [
         Phase.LIFT_OUT,
         Phase.DUMP,
@@ -221,6 +223,79 @@ def test_resume_from_a_restored_state_digs_the_next_dig(
         Phase.LIFT_OUT,
     ]
     _assert_at_rest(run, rig)
+
+
+_CYCLE_PHASES = (Phase.LIFT_OUT, Phase.DUMP, Phase.APPROACH, Phase.ENTER)
+
+
+def _from_the_first_exit(first_run: _Run, planner: TrenchPlanner, task: TrenchTask) -> tuple[
+    TrenchSession, np.ndarray
+]:
+    """The session after the first dig and the dig's exit pose (the arm in the material)."""
+    session = _restore(planner, task, first_run.result.digs[0].session_state)
+    return session, np.asarray(session.digs[0].problem.q_end_rad)
+
+
+def test_the_cycle_from_a_measured_pose_streams_as_one_blended_motion(
+    first_run: _Run, rig: Rig, planner: TrenchPlanner, task: TrenchTask
+) -> None:
+    session, q_end = _from_the_first_exit(first_run, planner, task)
+    run = _Run(rig, session, q_end)
+    assert run.result.status is ExecStatus.DONE, run.result.fault
+    tel = run.result.telemetry
+    moving = np.isin(tel["phase"], [int(p) for p in _CYCLE_PHASES])
+    first_dig = int(np.argmax(tel["phase"] == Phase.DIG))
+    cycle = moving[:first_dig]
+    # One motion (one segment) passing through the four phases in order, through the guard
+    # unchanged.
+    assert len(np.unique(tel["segment"][:first_dig][cycle])) == 1
+    assert run.phases()[:5] == [*_CYCLE_PHASES, Phase.DIG]
+    assert (tel["guard"][:first_dig][cycle] == GuardState.PASSTHROUGH).all()
+    _assert_at_rest(run, rig)
+
+
+@pytest.mark.parametrize("stop", ["fault", "cancel"])
+def test_a_stop_during_a_blended_cycle_is_the_guard_stop_within_limits(
+    first_run: _Run, rig: Rig, planner: TrenchPlanner, task: TrenchTask, stop: str
+) -> None:
+    session, q_end = _from_the_first_exit(first_run, planner, task)
+    stick = 1
+    seen: dict[str, Phase] = {}
+
+    def act(run: _Run, _sync: int, now_s: float) -> None:
+        assert run.start_s is not None
+        if now_s - run.start_s < 4.0 or seen:
+            return
+        stream = run.executor.job.stream
+        assert stream is not None
+        seen["phase"] = stream.phase
+        if stop == "fault":
+            run.hil.inject(FaultKind.FOLLOWING_ERROR, stick)
+        else:
+            run.executor.request_stop(StopRequest.CANCEL)
+
+    config = ExecutorConfig(max_digs=1, following_error_m=1e-3)
+    run = _Run(rig, session, q_end, config=config, on_cycle=act, terrain=False)
+    res = run.result
+    # The stop came in the middle of the cycle, the arm moving.
+    assert seen["phase"] in _CYCLE_PHASES
+    if stop == "fault":
+        assert res.status is ExecStatus.FAULT
+        assert res.fault.startswith("following error on the stick axis"), res.fault
+    else:
+        assert res.status is ExecStatus.CANCELLED, res.fault
+    tel = res.telemetry
+    stopping = tel["phase"] == Phase.STOP
+    first = int(np.argmax(stopping))
+    assert stopping[-1] and Phase(int(tel["phase"][first - 1])) in _CYCLE_PHASES
+    assert np.abs(tel["vel_cmd_m_s"][first - 1]).max() > 1e-3
+    assert not (tel["phase"] == Phase.DIG).any()
+    assert res.digs == ()
+    check = run.trace_check(rig)
+    assert check.ok, check
+    rates = run.hil.core.plant.stroke_rate_m_s
+    for axis in (0, 2) if stop == "fault" else (0, 1, 2):
+        assert abs(rates[axis]) < 1e-3, rates
 
 
 def test_pause_takes_effect_at_the_next_motion_boundary(
@@ -383,8 +458,8 @@ def test_the_next_dig_is_planned_in_the_planner_process(
     assert res.overruns == 0
     # The parent's session caught up with the process's after the run.
     assert len(session.digs) == 2 and session.pending is None
-    # The second dig was planned while lift-out and dump streamed; the arm held at the dump
-    # pose (WAIT) only if the plan was not there yet (wall-clock planning vs simulated time).
+    # The second dig and its cycle were planned while the arm held at the first dig's exit
+    # (WAIT), then the cycle streamed through its four phases.
     phases = run.phases()
     dig_at = [i for i, p in enumerate(phases) if p is Phase.DIG]
     assert len(dig_at) == 2

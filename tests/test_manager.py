@@ -132,6 +132,7 @@ def test_no_cycle_calls_a_planner(rig: Rig, pending: Any, monkeypatch: pytest.Mo
         (TrenchSession, "next_dig"),
         (TrenchSession, "record"),
         (TrenchSession, "exit_transitions"),
+        (TrenchSession, "cycle"),
         (TrenchPlanner, "start"),
     ):
         original = getattr(cls, name)
@@ -154,14 +155,15 @@ def test_no_cycle_calls_a_planner(rig: Rig, pending: Any, monkeypatch: pytest.Mo
     hil = LockstepHil(rig, q0, None)
     try:
         master, loop = _enabled(hil, rig)
-        # Two digs: the second is planned while the first's exit moves stream.
+        # Two digs: the second and its cycle are planned while the arm holds at the first's
+        # exit.
         result = Executor(master, rig, loop, session, ExecutorConfig(max_digs=2)).run()
     finally:
         hil.close()
     assert result.status is ExecStatus.DONE, result.fault
     assert len(result.digs) == 2
     names = {name for name, _ in calls}
-    assert {"record", "exit_transitions"} <= names  # the planner did plan and record...
+    assert {"record", "exit_transitions", "cycle"} <= names  # the planner planned, recorded...
     assert [c for c in calls if c[1]] == []  # ...never inside a cycle
 
 

@@ -8,6 +8,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from rt_runtime.errors import ConfigurationError, RigProfileError
@@ -343,9 +344,51 @@ def test_trench_length_max_is_the_scale_model_s_20_m_scaled_by_reach(name: str) 
     # without the table the loader applies the same rule
     doc = copy.deepcopy(_raw(name))
     del doc["trench"]
-    del doc["assumed"]["trench.length_max_m"]
+    for key in [k for k in doc["assumed"] if k.startswith("trench.")]:
+        del doc["assumed"][key]
     rule = parse_rig(doc).trench.length_max_m
     assert rule == pytest.approx(20.0 * sum(rig.lengths_m) / 1.31, rel=1e-12)
+
+
+@pytest.mark.parametrize("name", profile_names())
+def test_spoil_zone_is_the_scale_model_s_scaled_by_reach_and_assumed(name: str) -> None:
+    rig = load_rig(name)
+    s = sum(rig.lengths_m) / 1.31
+    zone = rig.trench.spoil
+    for key in ("x_m", "height_m", "attitude_deg", "edge_gap_m"):
+        assert rig.is_assumed(f"trench.spoil.{key}"), key
+    assert zone.x_m == pytest.approx((0.25 * s, 0.45 * s), rel=1e-3)
+    assert zone.height_m == pytest.approx((0.25 * s, 0.40 * s), rel=1e-3)
+    assert zone.edge_gap_m == pytest.approx(0.05 * s, rel=1e-3)
+    assert np.degrees(zone.attitude_rad) == pytest.approx((-100.0, -60.0))
+    # without the table the loader applies the same rule
+    doc = copy.deepcopy(_raw(name))
+    del doc["trench"]["spoil"]
+    for key in [k for k in doc["assumed"] if k.startswith("trench.spoil.")]:
+        del doc["assumed"][key]
+    rule = parse_rig(doc).trench.spoil
+    assert rule.x_m == pytest.approx(zone.x_m, rel=1e-3)
+    assert rule.height_m == pytest.approx(zone.height_m, rel=1e-3)
+    assert rule.attitude_rad == pytest.approx(zone.attitude_rad)
+
+
+def test_spoil_zone_values_are_checked() -> None:
+    doc = copy.deepcopy(_raw("scale_model"))
+    for key, bad, message in (
+        ("x_m", [0.45, 0.25], r"trench\.spoil\.x_m: min must be < max"),
+        ("x_m", [0.25, 5.0], r"trench\.spoil\.x_m\[1\]: must be >= -1\.31 and <= 1\.31"),
+        ("height_m", [-0.1, 0.4], r"trench\.spoil\.height_m\[0\]: must be >= 0"),
+        ("attitude_deg", [-100.0, 200.0], r"trench\.spoil\.attitude_deg\[1\]: must be >= -180"),
+        ("edge_gap_m", -0.01, r"trench\.spoil\.edge_gap_m: must be >= 0"),
+    ):
+        bad_doc = copy.deepcopy(doc)
+        bad_doc["trench"]["spoil"][key] = bad
+        with pytest.raises(RigProfileError, match=message):
+            parse_rig(bad_doc)
+    bad_doc = copy.deepcopy(doc)
+    bad_doc["trench"]["spoil"]["depth_m"] = 1.0
+    with pytest.raises(RigProfileError, match=r"trench\.spoil\.depth_m: unknown key"):
+        parse_rig(bad_doc)
 
 
 def test_trench_domain_is_checked_and_stays_out_of_the_planning_fingerprint() -> None:

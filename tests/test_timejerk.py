@@ -457,3 +457,199 @@ def test_bench_quick_with_references(capsys: pytest.CaptureFixture[str]) -> None
     assert r["gap_to_reference"]["max"] <= 1e-3
     assert r["t_over_toppra"]["p50"] > 0.0
     assert r["reference"]["solve_ms"]["p50"] > 0.0
+
+
+# --- jerk limits, shape knots, the reversal bound (issue 26, part 3) -----------------------------
+
+
+def _shaped_problems() -> list[TimeJerkProblem]:
+    """Seeded problems over every rig with its jerk limits, shape knots in some intervals (the
+    dig cycles' use) and moving ends in one."""
+    out = []
+    for k, (rig_name, p) in enumerate(random_problems(8, seed=11, n_waypoints=5)):
+        rig = load_rig(rig_name)
+        joints = ((rig.swing.joint,) if rig.swing is not None else ()) + rig.joints
+        ends = (
+            {
+                "start_velocity_rad_s": p.start_velocity_rad_s,
+                "end_velocity_rad_s": p.end_velocity_rad_s,
+                "start_acceleration_rad_s2": p.start_acceleration_rad_s2,
+                "end_acceleration_rad_s2": p.end_acceleration_rad_s2,
+            }
+            if k == 3
+            else {}
+        )
+        out.append(
+            TimeJerkProblem.create(
+                p.waypoints_rad,
+                p.velocity_max_rad_s,
+                p.acceleration_max_rad_s2,
+                w_jerk=1e-3,
+                jerk_max_rad_s3=[j.jerk_max_rad_s3 for j in joints],
+                shape_knots=((0, 2, 2, 0), 1, (2, 0, 0, 1))[k % 3],
+                **ends,
+            )
+        )
+    return out
+
+
+SHAPED = _shaped_problems()
+
+
+@pytest.fixture(scope="module")
+def shaped() -> list[TimeJerkTrajectory]:
+    return [plan(p, max_iterations=150) for p in SHAPED]
+
+
+@pytest.mark.parametrize("k", range(len(SHAPED)))
+def test_shape_knots_keep_waypoints_continuity_and_every_limit(
+    k: int, shaped: list[TimeJerkTrajectory]
+) -> None:
+    traj, p = shaped[k], SHAPED[k]
+    case = _case(p) + f", shape_knots={p.shape_knots}"
+    assert traj.n_pieces == p.waypoints_rad.shape[0] + 1 + sum(p.shape_knots)
+    assert traj.shape_positions_rad.shape == (sum(p.shape_knots), p.n_joints)
+    np.testing.assert_allclose(
+        traj.sample(traj.waypoint_times_s), p.waypoints_rad, rtol=0, atol=1e-9, err_msg=case
+    )
+    for t, v, a in (
+        (0.0, p.start_velocity_rad_s, p.start_acceleration_rad_s2),
+        (traj.duration_s, p.end_velocity_rad_s, p.end_acceleration_rad_s2),
+    ):
+        np.testing.assert_allclose(traj.states(t)[1:3], [v, a], rtol=0, atol=1e-9, err_msg=case)
+    c, h = traj.coefficients, traj.piece_durations_s[:, None]
+    ends = np.stack(
+        [
+            ((c[..., 0] * h + c[..., 1]) * h + c[..., 2]) * h + c[..., 3],
+            (3 * c[..., 0] * h + 2 * c[..., 1]) * h + c[..., 2],
+            6 * c[..., 0] * h + 2 * c[..., 1],
+        ]
+    )[:, :-1]
+    starts = np.stack([c[1:, :, 3], c[1:, :, 2], 2 * c[1:, :, 1]])
+    np.testing.assert_allclose(ends, starts, rtol=0, atol=1e-9, err_msg=case)
+    # The shape knots sit where the trajectory says.
+    knots = traj.knots_s[list(p.shape_knot_indices)]
+    np.testing.assert_allclose(traj.sample(knots), traj.shape_positions_rad, atol=1e-9)
+    exact = traj.limit_check()
+    assert exact.within_limits, case
+    assert np.all(exact.jerk_ratio <= 1 + LIMIT_TOLERANCE), case
+    assert traj.sampled_limit_check(1000.0).within_limits, case
+    # Rebuilt from its durations and shape positions, the same trajectory.
+    again = interpolate(p, traj.piece_durations_s, traj.shape_positions_rad)
+    np.testing.assert_array_equal(again.coefficients, traj.coefficients)
+    # Never worse than eq 3's pieces (the search starts from their optimum).
+    base = plan(p.without_shape_knots())
+    assert traj.objective <= base.objective * (1 + 1e-9), case
+
+
+def test_the_search_with_shape_knots_starts_from_the_same_trajectory() -> None:
+    from rt_runtime.trajectory.timejerk import _with_shape_knots
+
+    p = SHAPED[0]
+    base = plan(p.without_shape_knots())
+    h, shape = _with_shape_knots(p, base)
+    start = interpolate(p, h, shape)
+    t = np.linspace(0.0, base.duration_s, 2001)
+    for d in range(3):
+        np.testing.assert_allclose(start.sample(t, d), base.sample(t, d), atol=1e-9)
+
+
+@pytest.mark.parametrize("k", [0, 2, 3])
+def test_gradients_with_jerk_limits_and_shape_knots_match_central_differences(k: int) -> None:
+    from rt_runtime.trajectory.timejerk import _Evaluator, _Layout, _with_shape_knots
+
+    base = SHAPED[k]
+    p = TimeJerkProblem.create(
+        base.waypoints_rad,
+        base.velocity_max_rad_s,
+        base.acceleration_max_rad_s2,
+        w_jerk=0.01,
+        jerk_max_rad_s3=base.jerk_max_rad_s3,
+        shape_knots=base.shape_knots,
+        start_velocity_rad_s=base.start_velocity_rad_s,
+        end_velocity_rad_s=base.end_velocity_rad_s,
+        start_acceleration_rad_s2=base.start_acceleration_rad_s2,
+        end_acceleration_rad_s2=base.end_acceleration_rad_s2,
+        position_min_rad=np.min(base.waypoints_rad, axis=0) - 0.05,
+        position_max_rad=np.max(base.waypoints_rad, axis=0) + 0.05,
+    )
+    lay = _Layout(p)
+    h, shape = _with_shape_knots(p, plan(p.without_shape_knots()))
+    rng = np.random.default_rng(k)
+    x = np.concatenate(
+        [h * rng.uniform(0.7, 1.3, h.shape), (shape + rng.normal(0.0, 0.02, shape.shape)).ravel()]
+    )
+
+    def at(x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        ev = _Evaluator(lay, 1.0, 1.0, positions=True)
+        f, df = ev.fun(x)
+        return f, df, ev.cons(x).copy(), ev.cons_jac(x).copy()
+
+    _, df, _, dc = at(x)
+    eps = 1e-7
+    for i in range(x.shape[0]):
+        up, down = x.copy(), x.copy()
+        up[i] += eps
+        down[i] -= eps
+        (fu, _, cu, _), (fd, _, cd, _) = at(up), at(down)
+        assert (fu - fd) / (2 * eps) == pytest.approx(df[i], rel=1e-5, abs=1e-7), i
+        np.testing.assert_allclose((cu - cd) / (2 * eps), dc[:, i], rtol=1e-5, atol=1e-6)
+
+
+def test_rest_to_rest_time_matches_ruckig() -> None:
+    from ruckig import InputParameter, Ruckig, Trajectory
+
+    from rt_runtime.trajectory.timejerk import rest_to_rest_time_s
+
+    otg, inp, out = Ruckig(1), InputParameter(1), Trajectory(1)
+    rng = np.random.default_rng(2)
+    d = rng.uniform(0.0, 3.0, 400) * 10.0 ** rng.uniform(-4.0, 0.0, 400)
+    v, a, j = rng.uniform(0.1, 2.0, 400), rng.uniform(0.1, 3.0, 400), rng.uniform(0.2, 10.0, 400)
+    ours = rest_to_rest_time_s(d, v, a, j)
+    for i in range(d.shape[0]):
+        inp.current_position, inp.target_position = [0.0], [float(d[i])]
+        inp.max_velocity, inp.max_acceleration = [float(v[i])], [float(a[i])]
+        inp.max_jerk = [float(j[i])]
+        otg.calculate(inp, out)
+        case = (d[i], v[i], a[i], j[i])
+        assert ours[i] == pytest.approx(out.duration, rel=1e-9, abs=1e-12), case
+    assert rest_to_rest_time_s(0.0, 1.0, 1.0, 1.0) == 0.0
+
+
+def test_the_reversal_bound_sums_the_runs_of_each_joint() -> None:
+    from rt_runtime.trajectory.timejerk import rest_to_rest_time_s, reversal_bound_s
+
+    v, a, j = np.array([1.0, 1.0]), np.array([1.0, 1.0]), np.array([10.0, 10.0])
+    w = np.array([[0.0, 0.0], [1.0, 0.5], [2.0, 0.5], [1.5, 1.0], [1.5, 0.2]])
+
+    def t(d: float) -> float:
+        return float(rest_to_rest_time_s(d, 1.0, 1.0, 10.0))
+
+    # Joint 0: up 2 (a step of zero joins), down 0.5; joint 1: up 1 (its zero step joins),
+    # down 0.8. The slower joint.
+    expect = max(t(2.0) + t(0.5), t(1.0) + t(0.8))
+    assert float(reversal_bound_s(w, v, a, j)) == pytest.approx(expect)
+    # Batched over leading axes; a joint that never moves takes no time.
+    batch = np.stack([w, w[::-1]])
+    assert reversal_bound_s(batch, v, a, j) == pytest.approx([expect, expect])
+    still = np.array([[0.0, 0.0], [0.0, 1.0]])
+    assert float(reversal_bound_s(still, v, a, j)) == pytest.approx(t(1.0))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"shape_knots": -1}, "shape_knots"),
+        ({"shape_knots": (1, 2)}, "one per waypoint interval"),
+        ({"shape_knots": 1.5}, "shape_knots"),
+        ({"jerk_max_rad_s3": [1.0, 0.0]}, "jerk_max_rad_s3 must be > 0"),
+    ],
+)
+def test_malformed_jerk_limits_and_shape_knots_are_refused(
+    kwargs: dict[str, Any], match: str
+) -> None:
+    with pytest.raises(ConfigurationError, match=match):
+        TimeJerkProblem.create([[0.0, 0.0], [1.0, 0.5]], [1.0, 1.0], [1.0, 1.0], **kwargs)
+    p = TimeJerkProblem.create([[0.0, 0.0], [1.0, 0.5]], [1.0, 1.0], [1.0, 1.0], shape_knots=1)
+    with pytest.raises(ConfigurationError, match="shape knots need"):
+        interpolate(p, np.full(p.n_pieces, 0.5))

@@ -1,15 +1,19 @@
-"""The moves between digs (issue 23): every lift, dump, approach and enter keeps the bucket out
-of the material left, checked here independently of the planner's own check.
+"""The moves between digs (issues 23 and 26): every lift, dump, approach and enter, rest to rest
+or blended into one cycle, keeps the bucket out of the material left, checked here
+independently of the planner's own check.
 
-The independent measure: the move resampled with ruckig's own ``at_time`` (200 samples), the
-bucket outline (``rig.bucket.profile_m``, every 2.5 mm) placed with :func:`kinematics.forward`,
-and each point's depth as its distance to the boundary of the session's material polygon where
-the polygon contains it (shapely), against the material as it is when the move runs. The
-planner measures on its 1 mm height field with its own sampling; the two agree to ~1 mm.
+The independent measure: the move resampled with ruckig's own ``at_time`` (200 samples), a
+blended cycle every 5 ms of its trajectory, the bucket outline (``rig.bucket.profile_m``, every
+2.5 mm) placed with :func:`kinematics.forward`, and each point's depth as its distance to the
+boundary of the session's material polygon where the polygon contains it (shapely), against
+the material as it is when the move runs. The planner measures on its 1 mm height field with
+its own sampling; the two agree to ~1.5 mm.
 
 The allowances are the planner's documented ones: the lift out of a pose (and a first move
-that leaves it without a lift) may cross the material straight above the bucket's outline at
-that pose; during ``enter`` each point of the bucket may be as deep as at the entry pose.
+that leaves it without a lift; in a blended cycle, up to its first corner) may cross the
+material straight above the bucket's outline at that pose; during ``enter`` (in a blended
+cycle, from the pose above the entry on) each point of the bucket may be as deep as at the
+entry pose.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from rt_runtime.control.planner_worker import SessionDriver
 from rt_runtime.errors import PlanningError
 from rt_runtime.planning.trench import (
     GRID_STEP_M,
+    Cycle,
     PlannedDig,
     Transition,
     TransitionKind,
@@ -127,6 +132,36 @@ def _check_moves(
     return out
 
 
+#: Sampling step of a blended cycle (s).
+CYCLE_STEP_S = 0.005
+
+
+def _check_cycle(cycle: Cycle, material: Any) -> float:
+    """A blended cycle's independent penetration (m), with its allowances: up to its first
+    corner the material carried out from its start pose, from the pose above the entry on each
+    outline point's depth at the entry."""
+    traj = cycle.trajectory(RIG)
+    t_wp = traj.waypoint_times_s
+    t1, t2, t_end = float(t_wp[1]), float(t_wp[-2]), traj.duration_s
+    q0 = np.asarray(cycle.waypoints_rad[0])
+    x = cycle.machine_x_m
+    t = np.linspace(0.0, t_end, max(int(t_end / CYCLE_STEP_S), 2) + 1)
+    pts = _bucket(traj.sample(t), x)
+    lift, enter = t <= t1, t >= t2
+    worst = 0.0
+    if lift.any():
+        worst = float(_depth(_carried(material, q0, x), pts[lift]).max())
+    middle = ~lift & ~enter
+    if middle.any():
+        worst = max(worst, float(_depth(material, pts[middle]).max()))
+    entry = _depth(material, _bucket(np.asarray(cycle.waypoints_rad[-1:]), x))[0]
+    worst = max(worst, float((_depth(material, pts[enter]) - entry).max()))
+    p = max(0.0, worst)
+    assert p <= LIMIT_M, (cycle.kinds, p)
+    assert abs(p - cycle.penetration_m) <= AGREE_M, (p, cycle.penetration_m)
+    return p
+
+
 def _assert_straight_up(moves: tuple[Transition, ...] | list[Transition]) -> None:
     for m in moves:
         if m.kind.label != "lift_out":
@@ -142,30 +177,42 @@ def test_every_move_of_a_plan_keeps_the_bucket_out_of_the_material(
     planner: TrenchPlanner, name: str
 ) -> None:
     s = planner.start(load_task(name, RIG))
-    kinds: list[str] = []
+    kinds: set[str] = set()
     worst = 0.0
+    blended = 0
     while True:
         n0 = len(s.steps)
         dig = s.next_dig()
         if dig is None:
             break
-        new = [t for t in s.steps[n0:] if isinstance(t, Transition)]
-        kinds.extend(t.kind.label for t in new)
-        exit_moves = [t for t in new if t.kind.label in ("lift_out", "dump")]
-        entry_moves = [t for t in new if t.kind.label in ("approach", "enter")]
-        assert new == exit_moves + entry_moves
-        assert [t.kind.label for t in entry_moves] == ["approach", "enter"]
+        new = s.steps[n0:]
+        assert len(new) == 1 and isinstance(new[0], Cycle)
+        cycle = new[0]
+        kinds |= {k.label for k in cycle.kinds}
+        assert cycle.waypoints_rad[-1] == dig.problem.q_start_rad
+        assert cycle.kinds[-2:] == (TransitionKind.APPROACH, TransitionKind.ENTER)
         if s.digs:  # the moves out of the previous dig, on the material it left
-            assert exit_moves and exit_moves[-1].kind.label == "dump"
-            assert exit_moves[0].q_from_rad == s.digs[-1].problem.q_end_rad
-            _assert_straight_up(exit_moves)
-            worst = max(worst, *_check_moves(exit_moves, s.material, s.q_now))
+            assert cycle.after_dig and cycle.waypoints_rad[0] == s.digs[-1].problem.q_end_rad
+            assert cycle.kinds[0] is TransitionKind.LIFT_OUT
+            assert TransitionKind.DUMP in cycle.kinds
+        else:  # from the home pose, in the spoil zone already
+            assert not cycle.after_dig
+            assert np.allclose(cycle.waypoints_rad[0], planner.home_pose_rad, atol=0.0)
+            assert TransitionKind.DUMP not in cycle.kinds
+        if cycle.blended:
+            blended += 1
+            worst = max(worst, _check_cycle(cycle, s.material))
         else:
-            assert not exit_moves
-        assert entry_moves[-1].q_to_rad == dig.problem.q_start_rad
-        worst = max(worst, *_check_moves(entry_moves, s.material))
+            exit_moves = [t for t in cycle.moves if t.kind.label in ("lift_out", "dump")]
+            entry_moves = [t for t in cycle.moves if t.kind.label in ("approach", "enter")]
+            assert list(cycle.moves) == exit_moves + entry_moves
+            if exit_moves:
+                _assert_straight_up(exit_moves)
+                worst = max(worst, *_check_moves(exit_moves, s.material, s.q_now))
+            worst = max(worst, *_check_moves(entry_moves, s.material))
         s.record(dig, dig.tip_path_m)
-    assert {"lift_out", "dump", "approach", "enter"} <= set(kinds)
+    assert {"lift_out", "dump", "approach", "enter"} <= kinds
+    assert blended >= 1
     report = s.finish(0.0).to_json()
     assert report["transition_penetration_max_mm"] <= LIMIT_M * 1e3
     assert worst <= LIMIT_M
@@ -186,7 +233,7 @@ def test_exit_from_a_pose_inside_the_material_lifts_straight_up_and_is_clear(
     s = _partly_dug(planner)
     t = s.task
     rng = np.random.default_rng(23)
-    dump = np.asarray(planner.dump_pose_rad)
+    home = np.asarray(planner.home_pose_rad)
     done = 0
     while done < 20:
         x = rng.uniform(t.start_x_m - t.length_m, t.start_x_m)
@@ -200,7 +247,7 @@ def test_exit_from_a_pose_inside_the_material_lifts_straight_up_and_is_clear(
         moves = s.exit_transitions(q)
         assert [m.kind.label for m in moves[:-1]] == ["lift_out"] * (len(moves) - 1), case
         assert moves[0].q_from_rad == pytest.approx(q, abs=0.0)
-        assert np.allclose(moves[-1].q_to_rad, dump, atol=0.0), case
+        assert np.allclose(moves[-1].q_to_rad, home, atol=0.0), case
         _assert_straight_up(moves)
         _check_moves(moves, s.material, q)
         done += 1
@@ -215,11 +262,11 @@ def test_exit_moves_planned_before_the_dig_are_clear_of_what_it_leaves(
     assert plan.dig is not None and plan.exit and plan.exit[-1].kind.label == "dump"
     s.record(plan.dig, plan.dig.tip_path_m)
     _check_moves(plan.exit, s.material, plan.dig.problem.q_end_rad)
-    # The session puts the same moves before the next dig (the open loop cut as planned).
+    # The next dig's cycle starts where they do, at the dig's exit, on the material it left.
     n0 = len(s.steps)
     s.next_dig()
-    after = [m for m in s.steps[n0:] if isinstance(m, Transition)]
-    assert tuple(m for m in after if m.kind.label in ("lift_out", "dump")) == plan.exit
+    cycle = s.steps[n0]
+    assert isinstance(cycle, Cycle) and cycle.waypoints_rad[0] == plan.exit[0].q_from_rad
 
 
 def test_lead_in_from_a_measured_pose_in_the_material_lifts_out_first(
@@ -231,23 +278,28 @@ def test_lead_in_from_a_measured_pose_in_the_material_lifts_out_first(
     q_in = planner.arm.ik(x, y - 0.03, att)  # stopped 3 cm deeper than the exit
     assert q_in is not None
     plan = SessionDriver(s).plan(np.asarray(q_in))
-    assert plan.lead_in and plan.lead_in[0].kind.label == "lift_out"
-    _check_moves(plan.lead_in, s.material, q_in)
+    cycle = plan.cycle
+    assert cycle is not None and np.allclose(cycle.waypoints_rad[0], q_in, atol=0.0)
+    assert cycle.kinds[0] is TransitionKind.LIFT_OUT and TransitionKind.DUMP in cycle.kinds
+    if cycle.blended:
+        _check_cycle(cycle, s.material)
+    else:
+        _check_moves(cycle.moves, s.material, q_in)
 
 
 def test_a_move_that_cannot_be_made_clear_is_refused(planner: TrenchPlanner) -> None:
     s = _partly_dug(planner, digs=1)
     dig = s.next_dig()
     assert isinstance(dig, PlannedDig)
-    # Material heaped over the dump pose: every way to it ends in the material. (Only the
+    # Material heaped over the home pose: every way to it ends in the material. (Only the
     # height field, which the moves are checked on, is changed.)
-    x_dump, y_dump, _ = planner.arm.tip(np.asarray(planner.dump_pose_rad))
+    x_dump, y_dump, _ = planner.arm.tip(np.asarray(planner.home_pose_rad))
     heap = np.abs(s.grid - (x_dump + s.machine_x)) < 0.1
     s.surface = np.where(heap, y_dump + 0.1, s.surface)
     with pytest.raises(PlanningError, match=r"exit moves .*: the dump move goes .*mm.* into"):
         s.exit_transitions(dig.problem.q_end_rad)
     with pytest.raises(PlanningError, match=r"entry moves .*: the approach move goes .*mm.* into"):
-        s.entry_transitions(dig, planner.dump_pose_rad)
+        s.entry_transitions(dig, planner.home_pose_rad)
 
 
 def test_numpy_sampling_of_ruckig_moves_equals_at_time(planner: TrenchPlanner) -> None:

@@ -16,10 +16,10 @@ from rt_runtime.planning.trench import (
     COVERAGE_GOAL,
     OVERDIG_GOAL_M,
     OVERDIG_LIMIT_M,
+    Cycle,
     PlannedDig,
     PlanStatus,
     Stage,
-    Transition,
     TravelMove,
     TrenchPlanner,
     TrenchSession,
@@ -486,7 +486,7 @@ def test_c_moves_checks_equal_the_numpy_reference_bit_for_bit() -> None:
     surface = np.minimum(session.surface, session.ground_y - 0.04 + 0.03 * rng.uniform(size=1))
     surface[::11] -= 0.02
     mover = session.planner.mover
-    q_dig = np.asarray(session.planner.dump_pose_rad)
+    q_dig = np.asarray(session.planner.home_pose_rad)
     deep = 0
     for _ in range(20):
         qa = q_dig + rng.normal(0.0, 0.3, size=3)
@@ -567,19 +567,24 @@ def test_every_dig_satisfies_every_hard_limit_at_every_sample(plans: dict, name:
             assert np.all(np.abs(smp.qdd_rad_s2) <= RIG.qdd_max_rad_s2 * (1 + tol))
 
 
-def test_transitions_are_within_the_joint_limits(plans: dict) -> None:
+def test_moves_are_within_the_joint_limits(plans: dict) -> None:
     plan = plans["A"]
-    moves = [s for s in plan.steps if isinstance(s, Transition)]
-    assert {m.kind.label for m in moves} == {"lift_out", "dump", "approach", "enter"}
-    for m in moves[:8]:
-        traj = m.trajectory(RIG)
-        for t in np.linspace(0.0, traj.duration, 50):
-            _, vel, acc = traj.at_time(float(t))
-            assert np.all(np.abs(vel) <= RIG.qd_max_rad_s * (1 + 1e-6))
-            assert np.all(np.abs(acc) <= RIG.qdd_max_rad_s2 * (1 + 1e-6))
-    # steps alternate: transitions lead into every dig
+    cycles = [s for s in plan.steps if isinstance(s, Cycle)]
+    assert {k.label for c in cycles for k in c.kinds} == {"lift_out", "dump", "approach", "enter"}
+    for c in cycles:
+        if c.blended:
+            assert c.trajectory(RIG).limit_check().within_limits
+            continue
+        for m in c.moves:
+            traj = m.trajectory(RIG)
+            for t in np.linspace(0.0, traj.duration, 50):
+                _, vel, acc = traj.at_time(float(t))
+                assert np.all(np.abs(vel) <= RIG.qd_max_rad_s * (1 + 1e-6))
+                assert np.all(np.abs(acc) <= RIG.qdd_max_rad_s2 * (1 + 1e-6))
+    # steps alternate: a cycle leads into every dig
     kinds = [type(s) for s in plan.steps]
-    assert kinds.count(PlannedDig) == len(plan.digs)
+    assert kinds.count(PlannedDig) == len(plan.digs) == kinds.count(Cycle)
+    assert all(kinds[i] is Cycle and kinds[i + 1] is PlannedDig for i in range(0, len(kinds), 2))
 
 
 def test_report_keys(plans: dict) -> None:

@@ -7,11 +7,12 @@ the trace; :func:`run_scenario` returns the run with its report
 
 Flow (closed loop, Yao Fig. 5): the :class:`~rt_runtime.control.executor.Executor` runs the
 trench session in the fixed-rate loop: it plans one dig at a time from the material the session
-believes is left, streams lead-in, approach, enter, the dig, lift-out and dump through the limit
-guard, and records the tip path reconstructed from the drives' reported strokes into the session
-(``session.record``). After each recorded dig (``on_dig_done``) the HIL cuts its own terrain with
-the *true* tip path of the dig's SYNCs, which is what the report's ``coverage_error`` and
-``overdig_max_mm`` measure. The arm starts at the planner's dump pose, or at the first dig's entry
+believes is left, streams the cycle into each dig (lift out, dump, approach, enter) and the dig
+through the limit guard (after the last dig its lift-out and dump), and records the tip path
+reconstructed from the drives' reported strokes into the session (``session.record``). After
+each recorded dig (``on_dig_done``) the HIL cuts its own terrain with the *true* tip path of the
+dig's SYNCs, which is what the report's ``coverage_error`` and ``overdig_max_mm`` measure. The
+arm starts at the planner's home pose (in the rig's spoil zone), or at the first dig's entry
 with ``start_at_entry`` (short tests: the first dig is planned before the HIL starts and left
 pending in the session, so the executor digs it at once).
 
@@ -428,8 +429,7 @@ def run_scenario(sc: Scenario) -> HilRun:
     plan_t0 = time.perf_counter()
     planner = TrenchPlanner(rig, sc.planner)
     trench = planner.start(task)
-    q_dump = np.asarray(planner.dump_pose_rad, dtype=np.float64)
-    q0 = q_dump
+    q0 = np.asarray(planner.home_pose_rad, dtype=np.float64)
     if sc.start_at_entry:
         # The trench keeps the dig pending: the executor digs it first, from its entry.
         first_dig = trench.next_dig()

@@ -3,13 +3,15 @@
 :class:`JobController` is a :class:`~rt_runtime.control.controllers.Controller`. From the pose
 the drives hold at its start it asks its planner link for the first dig
 (:class:`~rt_runtime.control.planner_worker.DigPlan`) and streams the plan's motions, each a
-setpoint table built outside the loop (:mod:`rt_runtime.control.setpoints`): lead-in, approach,
-enter, the dig, lift-out, dump, with CONNECT moves where two do not meet. The reported strokes
-of the dig's SYNCs go back to the session (``record``: the measured tip path updates the
-surface) and the next dig is planned while lift-out and dump stream; at the dump pose the arm
-holds until the plan is there. When the session has no dig left (or ``max_digs`` digs ran) the
-job settles at rest and ends (DONE). A dig cut short by a stop is not recorded: a restart plans
-it again from the session's state.
+setpoint table built outside the loop (:mod:`rt_runtime.control.setpoints`): the cycle into the
+dig (lift out, dump, approach, enter: one blended motion, or rest-to-rest moves), then the dig,
+with CONNECT moves where two do not meet. The reported strokes of the dig's SYNCs go back to the
+session (``record``: the measured tip path updates the surface) and the next dig is planned
+with its cycle from this dig's exit, where the arm holds (at rest) until the plan is there.
+Where no dig follows (the session has none left, ``max_digs`` digs ran, the planner failed)
+the arm streams the plan's exit moves (lift out, dump to the home pose), then the job settles
+at rest and ends. A dig cut short by a stop is not recorded: a restart plans it again from the
+session's state.
 
 Each update, on the feedback answering this cycle's SYNC:
 
@@ -36,8 +38,8 @@ never a move planned in the cycle.
 
 Threads. :meth:`request_stop`, :meth:`pause`, :meth:`resume` and :meth:`progress` are safe
 from any thread (single assignments read once per update; progress is a snapshot published
-every 64 cycles and at every phase change). A pause takes effect at the next motion boundary
-(every motion ends at rest).
+every 64 cycles and at every phase change, also within a motion that passes through several
+phases). A pause takes effect at the next motion boundary (every motion ends at rest).
 """
 
 from __future__ import annotations
@@ -95,7 +97,8 @@ class ExecStatus(IntEnum):
     OVERRUN_STOP = 4
     #: The bus refused frames.
     BUS_ERROR = 5
-    #: The planner could not plan or record (the arm finished its current moves first).
+    #: The planner could not plan or record (the arm finished its current moves first, and
+    #: after a dig lifted out and dumped).
     PLANNING_ERROR = 6
 
 
@@ -200,12 +203,23 @@ class JobProgress:
 class _Stream:
     """The queued motions and the one streaming: the next sample, the hold pose between."""
 
-    __slots__ = ("current", "hold_q", "hold_s", "j", "motions", "phase", "segment", "segments")
+    __slots__ = (
+        "current",
+        "hold_q",
+        "hold_s",
+        "j",
+        "motions",
+        "phase",
+        "run",
+        "segment",
+        "segments",
+    )
 
     def __init__(self, q0: FloatArray, s0: FloatArray) -> None:
         self.motions: deque[SampledMotion] = deque()
         self.current: SampledMotion | None = None
         self.j = 0
+        self.run = 0  # the current motion's next phase run (SampledMotion.phase_runs)
         self.hold_q = q0.copy()
         self.hold_s = s0.copy()
         self.phase = Phase.WAIT
@@ -232,6 +246,7 @@ class _Planning:
 
     __slots__ = (
         "digs_started",
+        "exit",
         "final",
         "last_state",
         "link",
@@ -255,14 +270,24 @@ class _Planning:
         self.plans: dict[int, DigPlan] = {}
         self.sync_ranges: dict[int, tuple[int, int]] = {}
         self.digs_started = 0
+        #: The last dig's exit moves, streamed where no dig follows it.
+        self.exit: tuple[SampledMotion, ...] = ()
+
+    def release_exit(self, motions: deque[SampledMotion]) -> None:
+        """No dig follows the last one: queue its exit moves onto ``motions`` (once)."""
+        motions.extend(self.exit)
+        self.exit = ()
 
     def take(self, reply: Any, motions: deque[SampledMotion], stopping: bool) -> DigRecord | None:
         """Book a reply: a plan's motions onto ``motions`` (none while ``stopping`` or ending),
-        a record as the :class:`DigRecord` returned, an error as the job's final status."""
+        a record as the :class:`DigRecord` returned, an error as the job's final status (after
+        the last dig's exit moves)."""
         if isinstance(reply, PlannerError):
             self.plan_out = False
             self.record_out = False
             if self.final is None:
+                if not stopping:
+                    self.release_exit(motions)
                 self.final = (ExecStatus.PLANNING_ERROR, reply.message)
             return None
         if isinstance(reply, Recorded):
@@ -295,6 +320,7 @@ class _Planning:
         if stopping or self.final is not None:
             return None
         if reply.travel:
+            self.release_exit(motions)
             self.final = (
                 ExecStatus.PLANNING_ERROR,
                 f"the task needs crawler travel ({reply.travel[0].distance_m:+.3f} m); the "
@@ -304,8 +330,11 @@ class _Planning:
         motions.extend(reply.sampled)
         if reply.dig is None:
             self.task_done = True
+            motions.extend(reply.exit_sampled)
+            self.exit = ()
         else:
             self.plans[reply.dig.index] = reply
+            self.exit = reply.exit_sampled
         return None
 
 
@@ -616,6 +645,11 @@ class JobController:
             cmd.hold(stream.hold_s, stream.hold_q, stream.phase)
             return
         j = stream.j
+        runs = motion.phase_runs
+        if stream.run < len(runs) and j >= runs[stream.run][0]:
+            stream.phase = runs[stream.run][1]
+            stream.run += 1
+            self.publish()
         cmd.mode = Mode.TRACK
         cmd.stroke_m[:] = motion.stroke_m[j]
         cmd.rate_m_s[:] = motion.rate_m_s[j]
@@ -648,12 +682,16 @@ class JobController:
         stream.motions.popleft()
         stream.current = motion
         stream.j = 0
+        stream.run = 1
         stream.phase = motion.phase
         stream.segment = stream.segments
         stream.segments += 1
         if motion.phase is Phase.DIG:
             col = self.collector
-            self.planning.digs_started += 1
+            plan = self.planning
+            plan.digs_started += 1
+            if self.limits.max_digs is not None and plan.digs_started >= self.limits.max_digs:
+                plan.release_exit(stream.motions)  # the job's last dig: its exit follows it
             col.active = True
             col.n = 0
             col.first = -1  # the SYNC of its first sample, taken at the next update

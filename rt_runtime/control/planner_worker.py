@@ -4,8 +4,9 @@ Role: the executor's planner side. A :class:`SessionDriver` wraps a
 :class:`~rt_runtime.planning.trench.TrenchSession` with the two requests the executor makes:
 
 * ``plan(q_from_rad)``: the next dig with every move the executor streams around it
-  (:class:`DigPlan`: lead-in from the measured pose on the first request, approach and enter,
-  the dig, lift-out and dump after it), or the end of the task;
+  (:class:`DigPlan`: the cycle into it, from the measured pose on the first request and from
+  the previous dig's exit after that, the dig, and the exit moves for when no dig follows),
+  or the end of the task;
 * ``record(strokes_m)``: the reported strokes of the executed dig -> the measured tip path in the
   work-site frame -> ``session.record`` (the surface follows what was measured) ->
   :class:`Recorded` with the session's JSON state for the job store.
@@ -66,14 +67,15 @@ from rt_runtime.control.setpoints import (
     Phase,
     SampledMotion,
     connect_motion,
+    sample_cycle,
     sample_motion,
     stroke_gap_m,
 )
 from rt_runtime.errors import ConfigurationError, ExcavatorRtError, PlanningError
 from rt_runtime.planning.trench import (
+    Cycle,
     PlannedDig,
     Transition,
-    TransitionKind,
     TravelMove,
     TrenchPlanner,
     TrenchSession,
@@ -102,39 +104,45 @@ FloatArray = NDArray[np.float64]
 
 #: Nice value of the planner process.
 PLANNER_NICE = 10
-#: A measured pose this close to a dig's entry (largest stroke difference) starts the dig
-#: directly, without the approach from the dump pose.
+#: A measured pose this close to a pose (largest stroke difference) is at it: a dig starts
+#: directly from its entry, and the arm at the home pose needs no dump.
 AT_ENTRY_TOLERANCE_M = 5e-4
 
 
 @dataclass(frozen=True, slots=True)
 class DigPlan:
-    """The next dig and the moves around it, in streaming order ``lead_in, entry, dig, exit``.
+    """The next dig and the moves around it: ``cycle`` then ``dig`` stream, ``exit`` only where
+    no dig follows.
 
     Attributes:
         dig: The dig, or None when the task is done.
-        lead_in: Moves from the measured pose to the dump pose (first request only): the
-            session's exit moves from there (:meth:`TrenchSession.exit_transitions`: lift-out
-            straight up, in pieces where needed, where the bucket is in or near the material,
-            then dump), checked against the material before the dig; empty when the arm is
-            already at the dig's entry or at the dump pose.
-        entry: Approach and enter (from the dump pose); empty when the arm is at the entry.
-        exit: Lift-out and dump after the dig, checked against the material the dig's planned
-            path leaves (they are planned before it runs).
+        cycle: The moves into the dig from where the arm is (:meth:`TrenchSession.cycle`):
+            on the first request planned from the measured pose (a lift where the bucket is in
+            or near the material, a dump unless the arm is at the home pose), later the
+            session's cycle from the previous dig's exit (lift out, dump, approach, enter,
+            blended where clear), checked against the material before the dig; None when the
+            arm is at the dig's entry (or no dig).
+        exit: Lift-out and dump to the home pose (:meth:`TrenchSession.exit_transitions`):
+            after the dig, checked against the material its planned path leaves (they are
+            planned before it runs); with no dig, from where the arm is. The executor streams
+            them only where no dig follows (the task is done, the last dig a job allows, a
+            planning error).
         travel: Crawler moves the session put before the dig (the executor cannot drive them).
         plan_us: Wall time of the request (s * 1e6).
-        sampled: Every motion of the plan in streaming order as setpoint tables on the loop's
+        sampled: The cycle and the dig in streaming order as setpoint tables on the loop's
             period grid, with CONNECT moves where two do not meet (empty when the driver has
             no period).
+        exit_sampled: The exit moves as setpoint tables, chained from where :attr:`sampled`
+            ends.
     """
 
     dig: PlannedDig | None
-    lead_in: tuple[Transition, ...]
-    entry: tuple[Transition, ...]
+    cycle: Cycle | None
     exit: tuple[Transition, ...]
     travel: tuple[TravelMove, ...]
     plan_us: float
     sampled: tuple[SampledMotion, ...] = ()
+    exit_sampled: tuple[SampledMotion, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -417,8 +425,8 @@ class SessionDriver:
         """The next dig and its moves (see :class:`DigPlan`).
 
         Args:
-            q_from_rad: The measured pose on the first request (lead-in moves and the at-entry
-                check), None afterwards (the arm is at the dump pose).
+            q_from_rad: The measured pose on the first request (the cycle from it and the
+                at-entry check), None afterwards (the arm is at the previous dig's exit).
 
         Raises:
             PlanningError: From the session (no verified dig; a move that cannot be planned).
@@ -432,62 +440,72 @@ class SessionDriver:
                 break
             tail.append(step)
         tail.reverse()
-        entering = (TransitionKind.APPROACH, TransitionKind.ENTER)
-        entry = tuple(t for t in tail if isinstance(t, Transition) and t.kind in entering)
+        cycle = next((c for c in reversed(tail) if isinstance(c, Cycle)), None)
         travel = tuple(t for t in tail if isinstance(t, TravelMove))
-        exit_moves: tuple[Transition, ...] = ()
-        if dig is not None:
-            exit_moves = s.exit_transitions(dig.problem.q_end_rad, after=dig)
-        lead_in: tuple[Transition, ...] = ()
+        home = np.asarray(s.planner.home_pose_rad, dtype=np.float64)
         if q_from_rad is not None:
             q0 = np.asarray(q_from_rad, dtype=np.float64)
-            if dig is not None and self._at(q0, np.asarray(dig.problem.q_start_rad)):
-                entry = ()
-            else:
-                lead_in = self._lead_in(q0)
             self._end_rad = q0
-        sampled = self._sample(dig, lead_in + entry, exit_moves)
+            if dig is not None and self._at(q0, np.asarray(dig.problem.q_start_rad)):
+                cycle = None
+            elif dig is not None:
+                cycle = s.cycle(q0, dig, dump=not self._at(q0, home))
+        if dig is not None:
+            exit_moves = s.exit_transitions(dig.problem.q_end_rad, after=dig)
+            end: FloatArray | None = np.asarray(dig.problem.q_end_rad, dtype=np.float64)
+        else:
+            end = self._end_rad if self._end_rad is not None else s.q_now
+            exit_moves = () if end is None or self._at(end, home) else s.exit_transitions(end)
+            end = home if exit_moves else end
+        sampled, exit_sampled, chained = self._sample(dig, cycle, exit_moves)
+        # Where the handed-out motions end (the next plan's start there): the dig's exit, or
+        # with no dig the end of the exit moves, which then stream.
+        self._end_rad = chained if chained is not None else end
         return DigPlan(
-            dig, lead_in, entry, exit_moves, travel, (time.perf_counter() - t0) * 1e6, sampled
+            dig,
+            cycle,
+            exit_moves,
+            travel,
+            (time.perf_counter() - t0) * 1e6,
+            sampled,
+            exit_sampled,
         )
 
     def _sample(
         self,
         dig: PlannedDig | None,
-        before: tuple[Transition, ...],
-        after: tuple[Transition, ...],
-    ) -> tuple[SampledMotion, ...]:
-        """The plan's motions on the period grid, chained from where the last one ended."""
+        cycle: Cycle | None,
+        exit_moves: tuple[Transition, ...],
+    ) -> tuple[tuple[SampledMotion, ...], tuple[SampledMotion, ...], FloatArray | None]:
+        """The plan's motions and its exit moves on the period grid, chained from where the
+        last motion handed out ended (the exit from where the plan's motions end), and the
+        pose where the handed-out motions end (None without a period)."""
         period = self.period_s
         if period is None:
-            return ()
+            return (), (), None
         rig = self.rig
 
         def move(t: Transition) -> SampledMotion:
             return connect_motion(rig, period, t.q_from_rad, t.q_to_rad, KIND_PHASE[t.kind])
 
-        out = [move(t) for t in before]
+        out: list[SampledMotion] = []
+        if cycle is not None:
+            if cycle.blended:
+                out.append(sample_cycle(rig, period, cycle))
+            else:
+                out.extend(move(t) for t in cycle.moves)
         if dig is not None:
             out.append(
                 sample_motion(
                     rig, period, Phase.DIG, dig.T_s, dig.trajectory().sample, dig_index=dig.index
                 )
             )
-        out.extend(move(t) for t in after)
-        out, self._end_rad = chain(rig, period, self._end_rad, out)
-        return tuple(out)
+        out, end = chain(rig, period, self._end_rad, out)
+        exits, exit_end = chain(rig, period, end, [move(t) for t in exit_moves])
+        return tuple(out), tuple(exits), end if dig is not None else exit_end
 
     def _at(self, q_a: FloatArray, q_b: FloatArray) -> bool:
         return stroke_gap_m(self.rig, q_a, q_b) <= AT_ENTRY_TOLERANCE_M
-
-    def _lead_in(self, q0: FloatArray) -> tuple[Transition, ...]:
-        """Measured pose -> dump pose: the session's exit moves from there (a lift first where
-        the bucket is in or near the material), checked against the material before the
-        pending dig; nothing at the dump pose."""
-        s = self.session
-        if self._at(q0, np.asarray(s.planner.dump_pose_rad, dtype=np.float64)):
-            return ()
-        return s.exit_transitions(q0)
 
     def record(self, strokes_m: FloatArray) -> Recorded:
         """Record the pending dig from the drives' reported strokes ``(n, 3)`` (SYNC order).

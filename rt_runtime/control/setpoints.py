@@ -8,6 +8,10 @@ limit guard tracks: ``s(q)``, ``J qd`` and ``J qdd + J' qd^2`` with ``J' = d^2 s
 central second difference of step :data:`H_RAD`. The cycle that streams sample ``j`` sends it
 with SYNC ``k`` for ``t_k + T`` (see :mod:`rt_runtime.control.manager`).
 
+A motion streams in one phase, or where it passes through several (a blended dig cycle: lift
+out, dump, approach, enter without stopping between them) in one phase a run of samples
+(:attr:`SampledMotion.phase_runs`).
+
 Every queued motion starts where the one before it ends: the planner side inserts a
 :data:`Phase.CONNECT` move (a rest-to-rest ruckig move within the rig's joint limits) where two
 motions, or the measured pose and the first motion, are further apart than
@@ -26,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rt_runtime import actuation
-from rt_runtime.planning.trench import TransitionKind, joint_move
+from rt_runtime.planning.trench import Cycle, TransitionKind, joint_move
 from rt_runtime.rig import Rig
 
 __all__ = [
@@ -36,6 +40,7 @@ __all__ = [
     "Phase",
     "SampledMotion",
     "connect_motion",
+    "sample_cycle",
     "sample_motion",
     "stroke_gap_m",
 ]
@@ -90,6 +95,9 @@ class SampledMotion:
         stroke_m, rate_m_s, accel_m_s2: Stroke, rate and acceleration of sample ``j``, ``(n, 3)``.
         dig_index: The dig's index (phase DIG), else -1.
         duration_s: The motion's length (s).
+        phase_runs: Where the motion passes through several phases: ``(j, phase)`` pairs in
+            order, sample ``j`` on streaming in ``phase`` (the first is ``(0, phase)``); empty
+            when the whole motion streams in :attr:`phase`.
     """
 
     phase: Phase
@@ -101,6 +109,7 @@ class SampledMotion:
     accel_m_s2: FloatArray
     dig_index: int
     duration_s: float
+    phase_runs: tuple[tuple[int, Phase], ...] = ()
 
     @property
     def n(self) -> int:
@@ -158,6 +167,21 @@ def sample_motion(
         qd[j] = b
         qdd[j] = c
     q0 = np.asarray(sample(0.0)[0], dtype=np.float64).copy()
+    return _tables(rig, phase, q0, q, qd, qdd, dig_index, duration)
+
+
+def _tables(
+    rig: Rig,
+    phase: Phase,
+    q0: FloatArray,
+    q: FloatArray,
+    qd: FloatArray,
+    qdd: FloatArray,
+    dig_index: int,
+    duration: float,
+    phase_runs: tuple[tuple[int, Phase], ...] = (),
+) -> SampledMotion:
+    """The joint samples ``(n, 3)`` mapped to stroke, rate and acceleration (module docstring)."""
     s0 = actuation.joint_to_stroke(rig, q0, check_limits=False)
     q3 = np.repeat(q[:, None, :], 3, axis=1)
     q3[:, 0] -= H_RAD
@@ -168,7 +192,47 @@ def sample_motion(
     stroke = np.ascontiguousarray(s3[:, 1])
     rate = jac * qd
     accel = jac * qdd + dj * qd * qd
-    return SampledMotion(phase, q0, s0, q, stroke, rate, accel, int(dig_index), duration)
+    return SampledMotion(
+        phase, q0, s0, q, stroke, rate, accel, int(dig_index), duration, phase_runs
+    )
+
+
+def sample_cycle(rig: Rig, period_s: float, cycle: Cycle) -> SampledMotion:
+    """A blended dig cycle (:class:`~rt_runtime.planning.trench.Cycle`) sampled like
+    :func:`sample_motion` (its trajectory evaluated at all sample times at once; the last
+    sample is exactly its last waypoint, at rest), each sample in the phase of the waypoint
+    interval it lies in (:attr:`SampledMotion.phase_runs`).
+
+    Raises:
+        PlanningError: The cycle is not blended (stream its moves with
+            :func:`connect_motion`).
+    """
+    traj = cycle.trajectory(rig)
+    duration = float(traj.duration_s)
+    n = _n_samples(duration, period_s)
+    t = np.minimum((np.arange(n) + 1.0) * period_s, duration)
+    states = traj.states(t)  # (n, 4, 3)
+    q = np.ascontiguousarray(states[:, 0])
+    qd = np.ascontiguousarray(states[:, 1])
+    qdd = np.ascontiguousarray(states[:, 2])
+    end = t >= duration
+    q[end] = cycle.waypoints_rad[-1]
+    qd[end] = 0.0
+    qdd[end] = 0.0
+    # Sample j (at (j + 1) T) belongs to the waypoint interval its time lies in.
+    starts = np.asarray(cycle.waypoint_times_s[1:-1])
+    first = np.searchsorted(t, starts, side="left").tolist()
+    phases = [KIND_PHASE[k] for k in cycle.kinds]
+    runs: list[tuple[int, Phase]] = [(0, phases[0])]
+    for j, ph in zip(first, phases[1:], strict=True):
+        if ph is runs[-1][1]:
+            continue
+        if j <= runs[-1][0]:
+            runs[-1] = (runs[-1][0], ph)
+        elif j < n:
+            runs.append((j, ph))
+    q0 = np.asarray(cycle.waypoints_rad[0], dtype=np.float64)
+    return _tables(rig, runs[0][1], q0, q, qd, qdd, -1, duration, tuple(runs))
 
 
 def connect_motion(

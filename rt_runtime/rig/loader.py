@@ -20,6 +20,7 @@ from rt_runtime.rig.cylinders import parse_cylinders
 from rt_runtime.rig.model import (
     ARM_JOINTS,
     SCALE_MODEL_REACH_M,
+    SCALE_MODEL_SPOIL,
     SCALE_MODEL_TRENCH_LENGTH_MAX_M,
     Actuators,
     Bucket,
@@ -32,6 +33,7 @@ from rt_runtime.rig.model import (
     Planning,
     Rig,
     Soil,
+    SpoilZone,
     Swing,
     TrenchDomain,
     YaoSoil,
@@ -253,11 +255,26 @@ def _planning(t: Table) -> Planning:
     return planning
 
 
+def _spoil_default(reach_m: float) -> SpoilZone:
+    """The spoil zone of a profile without ``[trench.spoil]``: the scale model's
+    (:data:`SCALE_MODEL_SPOIL`), lengths scaled by the rig's reach against 1.31 m."""
+    s = reach_m / SCALE_MODEL_REACH_M
+    d = SCALE_MODEL_SPOIL
+    return SpoilZone(
+        x_m=(d.x_m[0] * s, d.x_m[1] * s),
+        height_m=(d.height_m[0] * s, d.height_m[1] * s),
+        attitude_rad=d.attitude_rad,
+        edge_gap_m=d.edge_gap_m * s,
+    )
+
+
 def _trench_default(reach_m: float) -> TrenchDomain:
     """The task domain of a profile without ``[trench]``: the scale model's longest trench
-    (20 m) scaled by the rig's reach l1 + l2 + l3 against the scale model's 1.31 m."""
+    (20 m) and spoil zone scaled by the rig's reach l1 + l2 + l3 against the scale model's
+    1.31 m."""
     return TrenchDomain(
-        length_max_m=SCALE_MODEL_TRENCH_LENGTH_MAX_M * reach_m / SCALE_MODEL_REACH_M
+        length_max_m=SCALE_MODEL_TRENCH_LENGTH_MAX_M * reach_m / SCALE_MODEL_REACH_M,
+        spoil=_spoil_default(reach_m),
     )
 
 
@@ -265,13 +282,26 @@ def _trench(t: Table, reach_m: float) -> TrenchDomain:
     default = _trench_default(reach_m)
     # Bounded so that a typo (20000 for 20) is refused: a thousand times the reach is already
     # more than any crawler digs in one task.
-    trench = TrenchDomain(
-        length_max_m=t.number(
-            "length_max_m", gt=0.0, le=1000.0 * reach_m, default=default.length_max_m
-        )
+    length_max = t.number("length_max_m", gt=0.0, le=1000.0 * reach_m, default=default.length_max_m)
+    spoil_t = t.optional_table("spoil")
+    spoil = _spoil(spoil_t, reach_m) if spoil_t is not None else default.spoil
+    t.finish()
+    return TrenchDomain(length_max_m=length_max, spoil=spoil)
+
+
+def _spoil(t: Table, reach_m: float) -> SpoilZone:
+    # Within the arm's reach of the boom pin: a zone beyond it has no reachable point.
+    x0, x1 = t.range("x_m", ge=-reach_m, le=reach_m)
+    h0, h1 = t.range("height_m", ge=0.0, le=reach_m)
+    z0, z1 = t.range("attitude_deg", ge=-180.0, le=180.0)
+    spoil = SpoilZone(
+        x_m=(x0, x1),
+        height_m=(h0, h1),
+        attitude_rad=(math.radians(z0), math.radians(z1)),
+        edge_gap_m=t.number("edge_gap_m", ge=0.0, le=reach_m),
     )
     t.finish()
-    return trench
+    return spoil
 
 
 def _can(t: Table, has_swing: bool) -> Can:

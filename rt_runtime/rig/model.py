@@ -14,6 +14,7 @@ towards the tip), so centres of mass are given as (along, normal) in that frame.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -182,16 +183,53 @@ class Planning:
 
 
 @dataclass(frozen=True, slots=True)
+class SpoilZone:
+    """Where the bucket may dump between digs (profile ``[trench.spoil]``): beside the trench on
+    the machine's side, in the arm frame of the machine where it stands.
+
+    The trench planner dumps each cycle at the point of this zone, and with the attitude, that
+    makes the cycle shortest, among those nearer the machine by :attr:`edge_gap_m` than the near
+    edge of the section being dug and clear of the material.
+
+    Attributes:
+        x_m: ``(min, max)`` x of the bucket tip, arm frame, m.
+        height_m: ``(min, max)`` height of the tip above the ground, m.
+        attitude_rad: ``(min, max)`` bucket attitude zeta = theta1 + theta2 + theta3 at which
+            the bucket empties, rad.
+        edge_gap_m: Least distance (m) of the tip from the near edge of the section being dug,
+            towards the machine.
+    """
+
+    x_m: tuple[float, float]
+    height_m: tuple[float, float]
+    attitude_rad: tuple[float, float]
+    edge_gap_m: float
+
+
+#: The scale model's spoil zone (profile ``scale_model``, ``[trench.spoil]``) where a profile
+#: gives none; other rigs scale its lengths by reach (:data:`SCALE_MODEL_REACH_M`) and keep its
+#: attitudes.
+SCALE_MODEL_SPOIL = SpoilZone(
+    x_m=(0.25, 0.45),
+    height_m=(0.25, 0.40),
+    attitude_rad=(math.radians(-100.0), math.radians(-60.0)),
+    edge_gap_m=0.05,
+)
+
+
+@dataclass(frozen=True, slots=True)
 class TrenchDomain:
     """The trench tasks a rig accepts (profile ``[trench]``), beyond what the planner's own
     figures bound (depth, wall slopes and where the far edge may lie; see
-    :func:`rt_runtime.planning.trench.task_limits`).
+    :func:`rt_runtime.planning.trench.task_limits`), and where their spoil goes.
 
     Attributes:
         length_max_m: Longest top length L of a task (the machine travels back along it).
+        spoil: Where the bucket dumps between digs.
     """
 
     length_max_m: float
+    spoil: SpoilZone
 
 
 @dataclass(frozen=True, slots=True)
@@ -337,8 +375,8 @@ class Rig:
             :attr:`planning_fingerprint`.
         actuators: Cylinder actuator data (force, speed, friction, hydraulics); not part of
             :attr:`planning_fingerprint`.
-        trench: The trench task domain; not part of :attr:`planning_fingerprint` (no one-shot
-            plan depends on it).
+        trench: The trench task domain and spoil zone; not part of :attr:`planning_fingerprint`
+            (no one-shot plan depends on it).
     """
 
     name: str

@@ -11,8 +11,10 @@ The flow, one module a step:
   ``sections`` (sections and one-way travel), ``layers`` (the layers and their columns),
   ``walls`` (the walls' digs), ``rough`` (the network's digs, Fig. 5), ``finishing``
   (finishing passes), ``fit`` (digs fitted along the design's outline), ``digs`` (planning
-  a chosen dig for real and checking it), ``moves`` (the moves between digs), ``material``
-  (material accounting), ``persist`` (the session as data).
+  a chosen dig for real and checking it), ``cycles`` (the moves between digs as one
+  trajectory through their corners, dumping in the spoil zone), ``moves`` (the rest-to-rest
+  moves: the corners and the fallback), ``material`` (material accounting), ``persist`` (the
+  session as data).
 - ``candidates``, ``plan``, ``geometry``, ``planners``: the typed candidate, the frozen plan and
   its report, the material model's geometry, the one-shot planners (PINN, PSO).
 
@@ -30,6 +32,7 @@ digs the bottom one (docs/design-notes.md, decision R8).
 """
 
 from rt_runtime.planning.trench.candidates import Candidate
+from rt_runtime.planning.trench.cycles import CYCLE_W_JERK
 from rt_runtime.planning.trench.finishing import MAX_FINISHING_PER_SECTION
 from rt_runtime.planning.trench.geometry import GRID_STEP_M, OVERDIG_LIMIT_M, lower_envelope
 from rt_runtime.planning.trench.motion import joint_move
@@ -37,12 +40,15 @@ from rt_runtime.planning.trench.moves import TRANSITION_PENETRATION_M
 from rt_runtime.planning.trench.plan import (
     COVERAGE_GOAL,
     OVERDIG_GOAL_M,
+    Cycle,
     PlannedDig,
     PlanStatus,
     Transition,
     TransitionKind,
     TravelMove,
     TrenchPlan,
+    cycle_problem,
+    iter_moves,
     plan_goals,
 )
 from rt_runtime.planning.trench.planner import TrenchPlanner, plan_task
@@ -71,6 +77,7 @@ from rt_runtime.planning.trench.task import (
 __all__ = [
     "BUILTIN_TASKS",
     "COVERAGE_GOAL",
+    "CYCLE_W_JERK",
     "GRID_STEP_M",
     "MAX_FINISHING_PER_SECTION",
     "OVERDIG_GOAL_M",
@@ -80,6 +87,7 @@ __all__ = [
     "WALL_SLOPE_DEG",
     "YAO_FIG14",
     "Candidate",
+    "Cycle",
     "OneShotPlanner",
     "OneShotResult",
     "PinnOneShot",
@@ -95,7 +103,9 @@ __all__ = [
     "TrenchSession",
     "TrenchTask",
     "check_task_keys",
+    "cycle_problem",
     "design_polygon",
+    "iter_moves",
     "joint_move",
     "load_task",
     "lower_envelope",

@@ -15,6 +15,7 @@ from rt_runtime import kinematics
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import DigType
 from rt_runtime.planning.trench.candidates import Candidate
+from rt_runtime.planning.trench.cycles import CyclesMixin
 from rt_runtime.planning.trench.geometry import (
     MIN_USEFUL_FRACTION,
     OVERDIG_LIMIT_M,
@@ -22,7 +23,6 @@ from rt_runtime.planning.trench.geometry import (
     _Pass,
     _total_without_volume,
 )
-from rt_runtime.planning.trench.moves import MovesMixin
 from rt_runtime.planning.trench.state import _stage
 from rt_runtime.planning.verify import (
     N_OUT,
@@ -50,7 +50,7 @@ _FIT_SAMPLES = 41
 _PASS_LENGTH_M = 0.30
 
 
-class FitMixin(MovesMixin):
+class FitMixin(CyclesMixin):
     """A session's digs fitted along the design's outline (see the module)."""
 
     def _bottom_passes(self, far: tuple[float, float], near: tuple[float, float]) -> list[_Pass]:

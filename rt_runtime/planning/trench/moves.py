@@ -1,11 +1,13 @@
-"""The moves between digs: lift out, dump, approach, enter, as rest-to-rest ruckig moves
-(never intermediate waypoints: the PyPI build sends those to a cloud service) whose poses come
-from the material left, each checked on the whole bucket and refused where it would plough."""
+"""The moves between digs as rest-to-rest ruckig moves: lift out, dump, approach, enter (never
+intermediate waypoints: the PyPI build sends those to a cloud service), whose poses come from the
+material left, each checked on the whole bucket and refused where it would plough. They are
+the corners of a blended cycle (``cycles``) and its fallback where the blend is not clear."""
 
 from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -24,15 +26,12 @@ from rt_runtime.planning.trench.material import MaterialMixin
 from rt_runtime.planning.trench.plan import PlannedDig, Transition, TransitionKind
 from rt_runtime.planning.trench.state import _stage
 
-# Transition poses (scale model, m / deg), assumed: Yao gives none. The bucket dumps at
-# _DUMP_POSE (tip x, height above ground, attitude; bucket opened, beside the machine). The
-# poses between are chosen from the surface (TrenchSession.exit_transitions and
-# entry_transitions): the lift pose puts the whole bucket _LIFT_CLEAR_M above the material under
-# it, the approach pose backs off from the entry by the first of _APPROACH_M that puts the bucket
-# _LIFT_CLEAR_M above the material.
+# Transition poses (scale model, m), assumed: Yao gives none. The bucket dumps in the rig's
+# spoil zone (cycles.py). The poses between are chosen from the surface
+# (TrenchSession.exit_transitions and entry_transitions): the lift pose puts the whole bucket
+# _LIFT_CLEAR_M above the material under it, the approach pose backs off from the entry by the
+# first of _APPROACH_M that puts the bucket _LIFT_CLEAR_M above the material.
 _LIFT_CLEAR_M = 0.02
-
-_DUMP_POSE = (0.60, 0.25, -80.0)
 
 _APPROACH_M = (0.03, 0.05, 0.08, 0.12, 0.18, 0.25)
 
@@ -69,26 +68,20 @@ def _safe_ik(arm: kinematics.FastArm, x: float, y: float, attitude: float) -> Fl
 class MovesMixin(MaterialMixin):
     """The moves between a session's digs (see the module)."""
 
-    @_stage("transitions")
-    def _append_transitions(self, dig: PlannedDig) -> None:
-        """Dump the previous load and approach this dig's entry (ruckig, rest to rest)."""
-        if self.q_now is not None:
-            self.steps.extend(self.exit_transitions(self.q_now))
-        self.steps.extend(self.entry_transitions(dig, self.planner.dump_pose_rad))
-
     def exit_transitions(
         self, q_from_rad: ArrayLike, *, after: PlannedDig | None = None
     ) -> tuple[Transition, ...]:
-        """Lift out of the material and go to the dump pose, from any pose (arm frame).
+        """Lift out of the material and go to the home pose (:attr:`TrenchPlanner.home_pose_rad`,
+        in the spoil zone), from any pose (arm frame): the moves after the last dig.
 
         ``lift_out`` goes straight up, the tip's x and attitude kept, until the whole bucket is
         :data:`_LIFT_CLEAR_M` above the material under it, or higher where the way to the dump
         pose needs it (the lowest clear one of :meth:`_lift_heights`: on A-D the lowest is
         always clear and a higher lift only adds time); a lift whose joint-space move strays
         from the vertical into the material is made in pieces through poses on it. ``dump``
-        goes from there to the dump pose. A pose already clear of the material goes to the
-        dump pose without a lift. The executor streams these after each dig while the next one
-        is planned, and from a measured pose inside the material when a run resumes.
+        goes from there to the home pose. A pose already clear of the material goes there
+        without a lift. The executor streams these after a dig no other dig follows, and they
+        are the fallback of a cycle from a measured pose (:meth:`cycle`).
 
         Every move is checked on its samples (:meth:`_checked`) against the material as it is
         when it runs: the current material, or with ``after`` the material the pending dig
@@ -116,12 +109,12 @@ class MovesMixin(MaterialMixin):
         key = ("exit", *q0.tolist(), self.machine_x)
         moves = self._cached(key, surface)
         if moves is None:
-            moves = self._plan_exit(q0, surface)
+            moves = self._plan_exit(q0, surface, np.asarray(self.planner.home_pose_rad))
             self._remember(key, surface, moves)
         return moves
 
     def entry_transitions(self, dig: PlannedDig, q_from_rad: ArrayLike) -> tuple[Transition, ...]:
-        """Approach ``dig``'s entry from ``q_from_rad`` (the dump pose) and enter the material.
+        """Approach ``dig``'s entry from ``q_from_rad`` (a dump pose) and enter the material.
 
         ``enter`` lowers the bucket straight down into the entry pose, or where no such move is
         clear slides it in along its own axis (pin to tip), from an approach pose backed off by
@@ -153,10 +146,11 @@ class MovesMixin(MaterialMixin):
     @_stage("transitions")
     def _check_transition_poses(self, dig: PlannedDig) -> None:
         """PlanningError unless the moves around ``dig`` can be made clear: into its entry from
-        the dump pose, and out of its exit over the material it leaves (a layer pass may end
+        the home pose, and out of its exit over the material it leaves (a layer pass may end
         too near the machine to lift the bucket straight up, and that was only found when the
-        next dig was planned, as an error). The moves are kept for when they are asked for."""
-        self.entry_transitions(dig, self.planner.dump_pose_rad)
+        next dig was planned, as an error). These are the cycles' last fallback
+        (:meth:`cycle`); the moves are kept for when they are asked for."""
+        self.entry_transitions(dig, self.planner.home_pose_rad)
         self.exit_transitions(dig.problem.q_end_rad, after=dig)
 
     def _cached(self, key: tuple[Any, ...], surface: FloatArray) -> tuple[Transition, ...] | None:
@@ -184,26 +178,24 @@ class MovesMixin(MaterialMixin):
         after: FloatArray = np.minimum(self.surface, env)
         return after
 
-    def _plan_exit(self, q0: FloatArray, surface: FloatArray) -> tuple[Transition, ...]:
-        """:meth:`exit_transitions` on the height field ``surface``."""
-        mover = self.planner.mover
-        x0, y0, z0 = mover.arm.tip(q0)
-        dump = np.asarray(self.planner.dump_pose_rad, dtype=np.float64)
-        # The material straight above the bucket's outline at the start is what it carries
-        # out going straight up.
-        bx, by = mover.bucket_xy(q0)
+    def _carry(self, q0: FloatArray, surface: FloatArray) -> FloatArray:
+        """``surface`` without the material straight above the bucket's outline at ``q0``: what
+        the bucket carries out going straight up (the first move from a pose may cross it)."""
+        bx, by = self.planner.mover.bucket_xy(q0)
         start = np.stack([bx + self.machine_x, by], axis=1)
-        carry = np.minimum(surface, self._envelope(start, self.grid))
+        carry: FloatArray = np.minimum(surface, self._envelope(start, self.grid))
+        return carry
+
+    def _plan_exit(
+        self, q0: FloatArray, surface: FloatArray, dump: FloatArray
+    ) -> tuple[Transition, ...]:
+        """:meth:`exit_transitions` on the height field ``surface``, to the pose ``dump``."""
+        x0, y0, z0 = self.planner.mover.arm.tip(q0)
+        carry = self._carry(q0, surface)
         refused: list[Transition] = []
-        for y_lift in self._lift_heights(q0, surface):
-            moves: list[Transition] = []
-            q_top = q0
-            if y_lift > y0 + 1e-6:
-                lift = self._lift(q0, y_lift, carry)
-                if lift is None:
-                    continue
-                moves.extend(lift)
-                q_top = np.asarray(lift[-1].q_to_rad)
+        for lift in self._lifts(q0, surface, carry):
+            moves = list(lift)
+            q_top = np.asarray(lift[-1].q_to_rad) if lift else q0
             moves.append(
                 self._checked(TransitionKind.DUMP, q_top, dump, surface if moves else carry)
             )
@@ -215,6 +207,21 @@ class MovesMixin(MaterialMixin):
         raise PlanningError(
             self._refusal("exit", (x0 + self.machine_x, y0, z0), refused, "no lift pose")
         )
+
+    def _lifts(
+        self, q0: FloatArray, surface: FloatArray, carry: FloatArray
+    ) -> Iterator[tuple[Transition, ...]]:
+        """The ``lift_out`` moves from ``q0`` to each of :meth:`_lift_heights`, lowest first,
+        that are reachable (none where ``q0`` is the height: the pose is clear already); a lift
+        that is not clear comes too (its check refuses it where it is used)."""
+        y0 = self.planner.mover.arm.tip(q0)[1]
+        for y_lift in self._lift_heights(q0, surface):
+            if y_lift <= y0 + 1e-6:
+                yield ()
+                continue
+            lift = self._lift(q0, y_lift, carry)
+            if lift is not None:
+                yield lift
 
     def _lift_heights(self, q0: FloatArray, surface: FloatArray) -> list[float]:
         """Candidate tip heights of the lift from ``q0`` (arm frame, ascending): the whole
@@ -265,13 +272,29 @@ class MovesMixin(MaterialMixin):
         self, q_from: FloatArray, q_entry: FloatArray, surface: FloatArray
     ) -> tuple[Transition, ...]:
         """:meth:`entry_transitions` on the height field ``surface``."""
+        xe, ye, ze = self.planner.mover.arm.tip(q_entry)
+        refused: list[Transition] = []
+        for q_above, enter in self._entries(q_entry, surface, refused):
+            approach = self._checked(TransitionKind.APPROACH, q_from, q_above, surface)
+            if approach.penetration_m > TRANSITION_PENETRATION_M:
+                refused.append(approach)
+                continue
+            return (approach, enter)
+        raise PlanningError(
+            self._refusal("entry", (xe + self.machine_x, ye, ze), refused, "no approach pose")
+        )
+
+    def _entries(
+        self, q_entry: FloatArray, surface: FloatArray, refused: list[Transition]
+    ) -> Iterator[tuple[FloatArray, Transition]]:
+        """The approach poses above ``q_entry`` in the order :meth:`entry_transitions` tries
+        them, each with its clear ``enter`` move (refused enters go to ``refused``)."""
         mover = self.planner.mover
         arm = mover.arm
         s = self.planner.scale
         xe, ye, ze = arm.tip(q_entry)
         allow = self._bucket_depth(q_entry[None], surface, np.inf)[0]
         clear = _LIFT_CLEAR_M * s
-        refused: list[Transition] = []
         # The enter's direction of travel: straight down, else along the bucket's axis.
         for ux, uy in ((0.0, -1.0), (math.cos(ze), math.sin(ze))):
             for d in _APPROACH_M:
@@ -286,14 +309,7 @@ class MovesMixin(MaterialMixin):
                 if enter.penetration_m > TRANSITION_PENETRATION_M:
                     refused.append(enter)
                     continue
-                approach = self._checked(TransitionKind.APPROACH, q_from, q_above, surface)
-                if approach.penetration_m > TRANSITION_PENETRATION_M:
-                    refused.append(approach)
-                    continue
-                return (approach, enter)
-        raise PlanningError(
-            self._refusal("entry", (xe + self.machine_x, ye, ze), refused, "no approach pose")
-        )
+                yield q_above, enter
 
     def _refusal(
         self, what: str, pose: tuple[float, float, float], refused: list[Transition], none: str
@@ -340,23 +356,40 @@ class MovesMixin(MaterialMixin):
     ) -> float:
         """The deepest any point of the bucket outline goes into the material under
         ``surface`` (:func:`_depth_below`) on the move ``traj`` from ``qa`` to ``qb``, less
-        ``allow`` ``(m,)`` per outline point where given (m, >= 0).
+        ``allow`` ``(m,)`` per outline point where given (m, >= 0): :meth:`_depth_along` on
+        samples that no point of the bucket moves :data:`_COARSE_STEP_M` between."""
+        tables = self._piece_tables(traj)
+        times = np.linspace(
+            0.0, float(traj.duration), self.planner.mover.n_samples(qa, qb, _COARSE_STEP_M)
+        )
+        return self._depth_along(lambda t: self._move_poses(traj, tables, t), times, surface, allow)
 
-        Sampled where the bucket comes near the material: on samples that no point of the
-        bucket moves :data:`_COARSE_STEP_M` between, a stretch where the bucket's bounding box
-        stays that far above the highest material under it (that far to either side) cannot
-        touch it; the rest is sampled every :data:`_MOVE_STEP_M` of the bucket's travel with
-        the whole outline. Between samples and outline points a point can be deeper by at
-        most half their spacing (a point's depth changes no faster than the point moves).
-        Depths beyond :data:`_DEPTH_CAP_M` (past ``allow``) count as that.
+    def _depth_along(
+        self,
+        poses_at: Callable[[FloatArray], FloatArray],
+        times: FloatArray,
+        surface: FloatArray,
+        allow: FloatArray | None,
+    ) -> float:
+        """The deepest any point of the bucket outline goes into the material under
+        ``surface`` (:func:`_depth_below`) along a motion whose poses at times ``(n,)`` are
+        ``poses_at(times)`` ``(n, 3)``, less ``allow`` ``(m,)`` per outline point where given
+        (m, >= 0). ``times`` are coarse samples: no point of the bucket moves farther than
+        :data:`_COARSE_STEP_M` from one to the next.
+
+        Sampled where the bucket comes near the material: a stretch between coarse samples
+        where the bucket's bounding box stays :data:`_COARSE_STEP_M` above the highest material
+        under it (that far to either side) cannot touch it; the rest is sampled every
+        :data:`_MOVE_STEP_M` of the bucket's travel with the whole outline. Between samples and
+        outline points a point can be deeper by at most half their spacing (a point's depth
+        changes no faster than the point moves). Depths beyond :data:`_DEPTH_CAP_M` (past
+        ``allow``) count as that.
         """
         mover = self.planner.mover
         h = GRID_STEP_M
         last = self.grid.shape[0] - 1
         reach = _COARSE_STEP_M
-        times = np.linspace(0.0, float(traj.duration), mover.n_samples(qa, qb, reach))
-        tables = self._piece_tables(traj)
-        x, y = mover.bucket_xy(self._move_poses(traj, tables, times), corners=True)
+        x, y = mover.bucket_xy(poses_at(times), corners=True)
         x = x + self.machine_x
         i0 = np.clip(np.floor((np.min(x, axis=1) - reach - self.grid[0]) / h), 0, last)
         i1 = np.clip(np.ceil((np.max(x, axis=1) + reach - self.grid[0]) / h), 0, last)
@@ -370,7 +403,7 @@ class MovesMixin(MaterialMixin):
         k = math.ceil(reach / _MOVE_STEP_M)
         frac = np.arange(k + 1) / k
         fine = np.unique(times[near, None] + (times[near + 1] - times[near])[:, None] * frac)
-        poses = self._move_poses(traj, tables, fine)
+        poses = poses_at(fine)
         if allow is None:
             depth = self._bucket_depth(poses, surface)
         else:

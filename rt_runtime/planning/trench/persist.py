@@ -11,7 +11,13 @@ from shapely.errors import GEOSException
 
 from rt_runtime.errors import ConfigurationError
 from rt_runtime.planning.oneshot import DigType, Problem
-from rt_runtime.planning.trench.plan import PlannedDig, Transition, TransitionKind, TravelMove
+from rt_runtime.planning.trench.plan import (
+    Cycle,
+    PlannedDig,
+    Transition,
+    TransitionKind,
+    TravelMove,
+)
 from rt_runtime.planning.trench.sections import SectionsMixin
 from rt_runtime.planning.trench.state import Stage
 
@@ -19,10 +25,12 @@ if TYPE_CHECKING:
     pass
 
 
-_STATE_VERSION = 2
+#: The state's version written; the versions read (2 has no ``cycle`` steps, which 3 adds).
+_STATE_VERSION = 3
+_STATE_VERSIONS = (2, 3)
 
 
-def _step_to_json(step: PlannedDig | Transition | TravelMove) -> dict[str, Any]:
+def _step_to_json(step: PlannedDig | Cycle | Transition | TravelMove) -> dict[str, Any]:
     """One session step as JSON-able data (tagged with ``type``)."""
     if isinstance(step, PlannedDig):
         p = step.problem
@@ -53,6 +61,22 @@ def _step_to_json(step: PlannedDig | Transition | TravelMove) -> dict[str, Any]:
             "finishing": step.finishing,
             "section": step.section,
         }
+    if isinstance(step, Cycle):
+        return {
+            "type": "cycle",
+            "waypoints_rad": [list(q) for q in step.waypoints_rad],
+            "kinds": [k.label for k in step.kinds],
+            "piece_durations_s": list(step.piece_durations_s),
+            "shape_knots": list(step.shape_knots),
+            "shape_positions_rad": [list(q) for q in step.shape_positions_rad],
+            "w_jerk": step.w_jerk,
+            "moves": [_step_to_json(m) for m in step.moves],
+            "duration_s": step.duration_s,
+            "bound_s": step.bound_s,
+            "machine_x_m": step.machine_x_m,
+            "penetration_m": step.penetration_m,
+            "after_dig": step.after_dig,
+        }
     if isinstance(step, Transition):
         return {
             "type": "transition",
@@ -77,7 +101,7 @@ def _triple(values: Sequence[float]) -> tuple[float, float, float]:
     return (float(values[0]), float(values[1]), float(values[2]))
 
 
-def _step_from_json(item: dict[str, Any]) -> PlannedDig | Transition | TravelMove:
+def _step_from_json(item: dict[str, Any]) -> PlannedDig | Cycle | Transition | TravelMove:
     """The inverse of :func:`_step_to_json` (raises KeyError/ValueError on bad data)."""
     kind = item["type"]
     if kind == "dig":
@@ -118,13 +142,32 @@ def _step_from_json(item: dict[str, Any]) -> PlannedDig | Transition | TravelMov
             machine_x_m=float(item["machine_x_m"]),
             penetration_m=float(item["penetration_m"]),
         )
+    if kind == "cycle":
+        moves = tuple(_step_from_json(m) for m in item["moves"])
+        transitions = tuple(m for m in moves if isinstance(m, Transition))
+        if len(transitions) != len(moves):
+            raise ValueError("a cycle's moves must be transitions")
+        return Cycle(
+            waypoints_rad=tuple(_triple(q) for q in item["waypoints_rad"]),
+            kinds=tuple(TransitionKind.parse(k) for k in item["kinds"]),
+            piece_durations_s=tuple(float(h) for h in item["piece_durations_s"]),
+            shape_knots=tuple(int(k) for k in item["shape_knots"]),
+            shape_positions_rad=tuple(_triple(q) for q in item["shape_positions_rad"]),
+            w_jerk=float(item["w_jerk"]),
+            moves=transitions,
+            duration_s=float(item["duration_s"]),
+            bound_s=float(item["bound_s"]),
+            machine_x_m=float(item["machine_x_m"]),
+            penetration_m=float(item["penetration_m"]),
+            after_dig=bool(item["after_dig"]),
+        )
     if kind == "travel":
         return TravelMove(
             float(item["distance_m"]),
             float(item["machine_x_from_m"]),
             float(item["machine_x_to_m"]),
         )
-    raise ValueError(f"unknown step type {kind!r}; allowed: dig, transition, travel")
+    raise ValueError(f"unknown step type {kind!r}; allowed: dig, cycle, transition, travel")
 
 
 class PersistMixin(SectionsMixin):
@@ -138,7 +181,8 @@ class PersistMixin(SectionsMixin):
         grid), ``machine_x_m``, ``q_now_rad`` (the last dig's exit or None), ``phase``
         (``downward``/``backward``), ``section``, ``stage``, ``layer``, ``layer_floors_m``,
         ``wall_piece``, ``finishing_used`` (where the section's digging is), ``digs_done``,
-        ``steps`` (every recorded dig, transition and travel move, each a dict with ``type``),
+        ``steps`` (every recorded dig, cycle, transition and travel move, each a dict with
+        ``type``),
         and ``pending`` (the dig :meth:`next_dig` returned and :meth:`record` has not taken yet,
         or None; after :meth:`record` it is always None, which is the state to persist).
         """
@@ -179,10 +223,9 @@ class PersistMixin(SectionsMixin):
         """
         try:
             version = state["version"]
-            if version != _STATE_VERSION:
-                raise ConfigurationError(
-                    f"session state version {version!r}; allowed: {_STATE_VERSION}"
-                )
+            if version not in _STATE_VERSIONS:
+                allowed = ", ".join(str(v) for v in _STATE_VERSIONS)
+                raise ConfigurationError(f"session state version {version!r}; allowed: {allowed}")
             if state["rig"] != self.rig.name:
                 raise ConfigurationError(
                     f"session state key 'rig' is {state['rig']!r}; this planner's rig is "

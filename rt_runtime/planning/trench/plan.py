@@ -1,5 +1,6 @@
-"""A trench plan: its digs, moves between digs and travel moves (frozen dataclasses), its
-honest status against the goals, and its report (``excavator-rt plan --json``)."""
+"""A trench plan: its digs, the moves between digs (cycles) and travel moves (frozen
+dataclasses), its honest status against the goals, and its report (``excavator-rt plan
+--json``)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from typing import Any
 import numpy as np
 from shapely.geometry import Polygon
 
+from rt_runtime.errors import PlanningError
 from rt_runtime.planning.oneshot import DigType, Problem
 from rt_runtime.planning.trench.geometry import OVERDIG_LIMIT_M, FloatArray
 from rt_runtime.planning.trench.motion import joint_move
@@ -19,6 +21,7 @@ from rt_runtime.planning.verify import (
     VerifyResult,
 )
 from rt_runtime.rig import Rig
+from rt_runtime.trajectory.timejerk import TimeJerkProblem, TimeJerkTrajectory, interpolate
 
 
 @dataclass(frozen=True, slots=True)
@@ -145,6 +148,105 @@ class Transition:
 
 
 @dataclass(frozen=True, slots=True)
+class Cycle:
+    """The moves into a dig from where the arm is: after a dig (lift out, dump, approach,
+    enter) or from the home pose (approach, enter), through their corners.
+
+    Blended (:attr:`piece_durations_s` given): one minimum time-jerk trajectory through the
+    corners (Zhao eq 3, :mod:`rt_runtime.trajectory.timejerk`) at rest only at both ends, within
+    the rig's joint velocity, acceleration and jerk limits and ranges. Otherwise the
+    rest-to-rest ruckig moves :attr:`moves` through the same kind of corners, where no blend was
+    clear of the material (the cycle's fallback).
+
+    Attributes:
+        waypoints_rad: The corners in order, ``(n + 1)`` poses (arm frame): the start (a dig's
+            exit, the home pose or a measured pose), the lift's poses, the dump, the pose above
+            the entry, the dig's entry.
+        kinds: ``(n,)`` the phase of the move between waypoint ``i`` and ``i + 1``.
+        piece_durations_s: The blended trajectory's cubic pieces (empty when not blended).
+        shape_knots: ``(n,)`` the blended trajectory's shape knots in each waypoint interval.
+        shape_positions_rad: Their positions (arm frame), in order.
+        w_jerk: The weight of the jerk integral it was planned with (s^6/rad^2, w_time = 1).
+        moves: The rest-to-rest moves where not blended (empty when blended).
+        duration_s: The cycle's move time (s).
+        bound_s: The time if each joint stopped only where it reverses through the same
+            waypoints (:func:`rt_runtime.trajectory.timejerk.reversal_bound_s`).
+        machine_x_m: The machine's travel from its first position.
+        penetration_m: The deepest the bucket goes into the material left, beyond what its
+            moves are allowed at the start and entry poses (at most
+            :data:`TRANSITION_PENETRATION_M` in a plan).
+        after_dig: It starts at the previous dig's exit (a dig cycle).
+    """
+
+    waypoints_rad: tuple[tuple[float, float, float], ...]
+    kinds: tuple[TransitionKind, ...]
+    piece_durations_s: tuple[float, ...]
+    shape_knots: tuple[int, ...]
+    shape_positions_rad: tuple[tuple[float, float, float], ...]
+    w_jerk: float
+    moves: tuple[Transition, ...]
+    duration_s: float
+    bound_s: float
+    machine_x_m: float
+    penetration_m: float
+    after_dig: bool
+
+    @property
+    def blended(self) -> bool:
+        """One trajectory through the corners (not the rest-to-rest fallback)."""
+        return bool(self.piece_durations_s)
+
+    @property
+    def waypoint_times_s(self) -> tuple[float, ...]:
+        """When the cycle passes each waypoint (s from its start)."""
+        if self.blended:
+            knots = np.concatenate([[0.0], np.cumsum(self.piece_durations_s)])
+            kinds = TimeJerkProblem.knot_kinds_of(self.shape_knots)
+            return tuple(float(knots[i]) for i, c in enumerate(kinds) if c == "W")
+        ends = np.cumsum([m.duration_s for m in self.moves])
+        return (0.0, *(float(t) for t in ends))
+
+    def trajectory(self, rig: Rig) -> TimeJerkTrajectory:
+        """The blended trajectory (:class:`~rt_runtime.trajectory.timejerk.TimeJerkTrajectory`)
+        rebuilt from its corners and piece durations (one linear solve, the same numbers).
+
+        Raises:
+            PlanningError: The cycle is not blended.
+        """
+        if not self.blended:
+            raise PlanningError("a cycle of rest-to-rest moves has no blended trajectory")
+        problem = cycle_problem(rig, self.waypoints_rad, self.w_jerk, self.shape_knots)
+        return interpolate(problem, self.piece_durations_s, self.shape_positions_rad or None)
+
+
+def cycle_problem(
+    rig: Rig, waypoints_rad: Any, w_jerk: float, shape_knots: int | tuple[int, ...] = 0
+) -> TimeJerkProblem:
+    """The minimum time-jerk problem of a cycle through ``waypoints_rad`` ``(n + 1, 3)``: the
+    rig's joint velocity, acceleration and jerk limits and ranges, rest at both ends, the
+    given shape knots."""
+    return TimeJerkProblem.for_rig(
+        rig,
+        np.asarray(waypoints_rad, dtype=np.float64),
+        jerk_limits=True,
+        w_jerk=w_jerk,
+        shape_knots=shape_knots,
+    )
+
+
+def iter_moves(steps: Any) -> list[Transition | Cycle]:
+    """The moves of ``steps`` one by one: every :class:`Transition`, a blended :class:`Cycle`
+    as itself and a fallback cycle as its rest-to-rest moves."""
+    out: list[Transition | Cycle] = []
+    for st in steps:
+        if isinstance(st, Transition):
+            out.append(st)
+        elif isinstance(st, Cycle):
+            out.extend(st.moves if not st.blended else (st,))
+    return out
+
+
+@dataclass(frozen=True, slots=True)
 class TravelMove:
     """Crawler travel through the VCU (+x away from the trench's far end is negative)."""
 
@@ -181,7 +283,8 @@ class TrenchPlan:
         task: The task.
         rig: Rig name.
         planner: One-shot planner name.
-        steps: Digs, transitions and travel moves in execution order.
+        steps: Digs, cycles (the moves into each dig), transitions (the moves of a session
+            restored from an older state) and travel moves in execution order.
         digs: The digs alone.
         design: The designed cross-section polygon.
         dug: The region the plan removes (initial material minus final material).
@@ -207,7 +310,7 @@ class TrenchPlan:
     task: TrenchTask
     rig: str
     planner: str
-    steps: tuple[PlannedDig | Transition | TravelMove, ...]
+    steps: tuple[PlannedDig | Cycle | Transition | TravelMove, ...]
     digs: tuple[PlannedDig, ...]
     design: Polygon
     dug: Any
@@ -259,8 +362,9 @@ class TrenchPlan:
             }
             for d in self.digs
         ]
-        transitions = [s for s in self.steps if isinstance(s, Transition)]
+        moves = iter_moves(self.steps)
         travels = [s for s in self.steps if isinstance(s, TravelMove)]
+        cycles = [s for s in self.steps if isinstance(s, Cycle) and s.after_dig]
         return {
             "task": {
                 "name": self.task.name,
@@ -284,10 +388,25 @@ class TrenchPlan:
             "plan_total_us": self.plan_total_us,
             "stage_us": dict(self.stage_us),
             "dig_time_s": sum(d.T_s for d in self.digs),
-            "transition_time_s": sum(t.duration_s for t in transitions),
+            "transition_time_s": sum(t.duration_s for t in moves),
             "transition_penetration_max_mm": max(
-                (t.penetration_m * 1e3 for t in transitions), default=0.0
+                (t.penetration_m * 1e3 for t in moves), default=0.0
             ),
+            "cycles": [
+                {
+                    "waypoints_deg": [[math.degrees(v) for v in q] for q in c.waypoints_rad],
+                    "kinds": [k.label for k in c.kinds],
+                    "moves_s": c.duration_s,
+                    "bound_s": c.bound_s,
+                    "blended": c.blended,
+                    "penetration_mm": c.penetration_m * 1e3,
+                }
+                for c in cycles
+            ],
+            "moves_per_cycle_s": (
+                sum(c.duration_s for c in cycles) / len(cycles) if cycles else None
+            ),
+            "cycle_fallbacks": sum(1 for c in cycles if not c.blended),
             "travel": [t.distance_m for t in travels],
             "energy_Wh": sum(d.energy_j for d in self.digs) / 3600.0,
             "yao_fig14": YAO_FIG14.get(self.task.name),

@@ -4,7 +4,6 @@ the one-shot planner, the verifier, the candidate grids), and the open-loop plan
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from pathlib import Path
 from typing import Any
@@ -16,10 +15,10 @@ from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR, PinnPlanner
 from rt_runtime.planning.trench.candidates import _CANDIDATES, _SCREEN_C, _SCREEN_SAMPLES
+from rt_runtime.planning.trench.cycles import home_pose
 from rt_runtime.planning.trench.fit import _FIT_SAMPLES
 from rt_runtime.planning.trench.geometry import _sextic_shapes
 from rt_runtime.planning.trench.motion import _Mover
-from rt_runtime.planning.trench.moves import _DUMP_POSE
 from rt_runtime.planning.trench.plan import PlannedDig, TrenchPlan
 from rt_runtime.planning.trench.planners import OneShotPlanner, PinnOneShot, PsoOneShot
 from rt_runtime.planning.trench.session import TrenchSession
@@ -118,13 +117,9 @@ class TrenchPlanner:
             k: (np.asarray(c.domain_min), np.asarray(c.domain_max))
             for k, c in self.pinn.cards.items()
         }
-        #: Where the bucket dumps (and where the arm starts a task), joint angles.
-        self.dump_pose_rad = kinematics.inverse(
-            rig,
-            _DUMP_POSE[0] * s,
-            rig.ground_y_m + _DUMP_POSE[1] * s,
-            math.radians(_DUMP_POSE[2]),
-        )
+        #: Where the arm starts a task and where the moves after its last dig end: the spoil
+        #: zone's point nearest the machine (joint angles; :func:`cycles.home_pose`).
+        self.home_pose_rad = home_pose(rig, self.arm)
 
     def start(self, task: TrenchTask) -> TrenchSession:
         """A closed-loop session for ``task`` (plan a dig, execute it, record its path)."""

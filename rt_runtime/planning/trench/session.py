@@ -16,7 +16,7 @@ from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import DigType
 from rt_runtime.planning.trench.geometry import GRID_STEP_M, FloatArray, _swept_polygon
 from rt_runtime.planning.trench.persist import PersistMixin
-from rt_runtime.planning.trench.plan import PlannedDig, Transition, TravelMove, TrenchPlan
+from rt_runtime.planning.trench.plan import Cycle, PlannedDig, Transition, TravelMove, TrenchPlan
 from rt_runtime.planning.trench.sections import _MAX_DIGS_PER_SECTION
 from rt_runtime.planning.trench.state import _STAGES, Stage, _stage
 from rt_runtime.planning.trench.task import TrenchTask, design_polygon
@@ -31,9 +31,9 @@ class TrenchSession(PersistMixin):
     Use :meth:`next_dig` to plan the next dig from the current material (``None`` when the task
     is done), execute it, then :meth:`record` the measured tip path (work-site frame); the
     material is updated from what was measured, not what was planned. ``next_dig`` also
-    appends to :attr:`steps` the transitions that lead into the dig (from the previous dig's
-    exit, or from the dump pose), checked against the material as it is before the dig; the
-    dig itself joins :attr:`steps` when it is recorded.
+    appends to :attr:`steps` the :class:`Cycle` that leads into the dig (from the previous
+    dig's exit, or from the home pose), checked against the material as it is before the dig;
+    the dig itself joins :attr:`steps` when it is recorded.
     """
 
     def __init__(self, planner: TrenchPlanner, task: TrenchTask) -> None:
@@ -82,7 +82,7 @@ class TrenchSession(PersistMixin):
         ring = np.asarray(self.design.exterior.coords)  # closed: last == first
         edge = ring[1:] - ring[:-1]
         self._design_edges = np.column_stack([ring[:-1], edge, np.sum(edge * edge, axis=1)])
-        self.steps: list[PlannedDig | Transition | TravelMove] = []
+        self.steps: list[PlannedDig | Cycle | Transition | TravelMove] = []
         self.digs: list[PlannedDig] = []
         self.machine_x = 0.0
         self.q_now: FloatArray | None = None
@@ -107,6 +107,7 @@ class TrenchSession(PersistMixin):
         self._moves: dict[tuple[Any, ...], tuple[FloatArray, tuple[Transition, ...]]] = {}
         #: The sparse max table of the height field the last move was checked on.
         self._max_tables: tuple[FloatArray, FloatArray] = (np.empty(0), np.empty((0, 0)))
+        self._spoil: dict[float, FloatArray] = {}
 
     @classmethod
     def restore(

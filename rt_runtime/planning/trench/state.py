@@ -16,7 +16,7 @@ from rt_runtime.rig import Planning, Rig
 
 if TYPE_CHECKING:
     from rt_runtime.planning.trench.geometry import FloatArray
-    from rt_runtime.planning.trench.plan import PlannedDig, Transition, TravelMove
+    from rt_runtime.planning.trench.plan import Cycle, PlannedDig, Transition, TravelMove
     from rt_runtime.planning.trench.planner import TrenchPlanner
     from rt_runtime.planning.trench.session import TrenchSession
     from rt_runtime.planning.trench.task import TrenchTask
@@ -96,7 +96,7 @@ class SessionState:
     design_floor: FloatArray
     _walls: FloatArray
     _design_edges: FloatArray
-    steps: list[PlannedDig | Transition | TravelMove]
+    steps: list[PlannedDig | Cycle | Transition | TravelMove]
     digs: list[PlannedDig]
     machine_x: float
     q_now: FloatArray | None
@@ -121,3 +121,5 @@ class SessionState:
     _planned_region: tuple[FloatArray, FloatArray, Any] | None
     _moves: dict[tuple[Any, ...], tuple[FloatArray, tuple[Transition, ...]]]
     _max_tables: tuple[FloatArray, FloatArray]
+    #: The spoil zone's dump poses per x limit (arm frame, m): ``(k, 3)``.
+    _spoil: dict[float, FloatArray]

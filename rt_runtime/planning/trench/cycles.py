@@ -1,0 +1,493 @@
+"""Blended dig cycles: the moves into a dig as one minimum time-jerk trajectory through their
+corners (Zhao eq 3, :mod:`rt_runtime.trajectory.timejerk`), dumping in the rig's spoil zone at
+the point and attitude that make the cycle shortest.
+
+A cycle runs from where the arm is (the previous dig's exit, the home pose, a measured pose) to
+the next dig's entry through the corners the rest-to-rest moves (``moves``) stop at: the top of
+the lift straight up out of the material, a dump pose in the spoil zone, the pose above the
+entry. Blended, it is at rest only at both ends; position, velocity and acceleration are
+continuous, every joint keeps its velocity, acceleration and jerk limits and its range at every
+instant (the generator's exact check), so the limit guard passes it through unchanged. Waypoint
+intervals that take a fifth of the cycle or more (:data:`_LONG_SHARE`, on the rest-to-rest
+times) get :data:`_SHAPE_KNOTS` shape knots: one cubic a corner-to-corner stretch would be as
+slow as stopping at the corners.
+
+Rules (arm frame, m, rad, s):
+
+* Corners. The lift and the pose above the entry are the rest-to-rest moves' own
+  (:meth:`~MovesMixin.exit_transitions`, :meth:`~MovesMixin.entry_transitions`): the lowest
+  clear lift, the first clear approach pose; where the cycle through them goes into the
+  material, the next lift (a lift in pieces with its intermediate poses as corners, then the
+  next height) or the next approach pose (higher), by where it went in (:meth:`cycle`).
+* Gain. A blend no shorter than the rest-to-rest moves through its own corners is not used
+  (many close corners, a lift in pieces, can make it so).
+* Dump. Candidates on a grid over the spoil zone (:class:`~rt_runtime.rig.SpoilZone`:
+  :data:`_SPOIL_GRID` x, heights and attitudes), each nearer the machine by the zone's
+  ``edge_gap_m`` than the near edge of the section being dug, reachable, and with the whole
+  bucket :data:`_LIFT_CLEAR_M` above the material. They are ranked by the bound through the
+  cycle's corners (:func:`~rt_runtime.trajectory.timejerk.reversal_bound_s`: each joint
+  stopping only where it reverses); the best are planned (at most :data:`_N_PLANNED`, while
+  a candidate's bound is below the shortest clear cycle found; each with its shape knots, and
+  without them where that is not clear) and the shortest clear cycle is taken.
+* Check. The whole bucket outline, sampled as a move's (:meth:`MovesMixin._depth_along`),
+  stays within :data:`TRANSITION_PENETRATION_M` of the material left, with the moves'
+  allowances: up to the first corner after the start (the lift's top) the material straight
+  above the bucket at the start is what it carries out; from the pose above the entry on, each
+  point of the bucket may be as deep as at the entry. Between those, the tip stays
+  :data:`_GROUND_CLEAR_M` above the ground where it is outside the trench's top edges.
+* Fallback. Where no blended cycle is clear, the rest-to-rest moves through the best
+  candidate's corners (each checked), else through the home pose (the moves every dig's choice
+  checked: :meth:`MovesMixin._check_transition_poses`).
+
+ruckig plans the rest-to-rest moves and, in the executor, the guard and every stop; never its
+intermediate waypoints (the PyPI build sends those to a cloud service).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rt_runtime import kinematics
+from rt_runtime.errors import ConfigurationError, PlanningError
+from rt_runtime.planning.trench.geometry import FloatArray
+from rt_runtime.planning.trench.moves import (
+    _COARSE_STEP_M,
+    _LIFT_CLEAR_M,
+    TRANSITION_PENETRATION_M,
+    MovesMixin,
+)
+from rt_runtime.planning.trench.plan import (
+    Cycle,
+    PlannedDig,
+    Transition,
+    TransitionKind,
+    cycle_problem,
+)
+from rt_runtime.planning.trench.state import _stage
+from rt_runtime.rig import Rig
+from rt_runtime.trajectory.timejerk import (
+    TimeJerkTrajectory,
+    plan,
+    rest_to_rest_time_s,
+    reversal_bound_s,
+)
+
+#: Weight of the jerk integral in a cycle's objective (s^6/rad^2, with w_time = 1): small, so a
+#: cycle is within ~0.1 % of the shortest through its corners, and positive, so its ends ramp
+#: the acceleration (together with the jerk limit) rather than jump it.
+CYCLE_W_JERK = 1e-3
+
+#: Candidates of the spoil zone a cycle chooses its dump from: x, tip heights, attitudes.
+_SPOIL_GRID = (5, 4, 5)
+
+#: Dump candidates planned for real per cycle, best bound first.
+_N_PLANNED = 2
+
+#: Shape knots of a long waypoint interval, and what makes one long: its rest-to-rest time's
+#: share of the cycle's (the slowest joint's, :func:`rest_to_rest_time_s`).
+_SHAPE_KNOTS = 2
+_LONG_SHARE = 0.2
+
+#: Corner sets a cycle tries before its fallback (:meth:`CyclesMixin.cycle`): of the lowest
+#: :data:`_N_LIFTS` clear lifts and the first :data:`_N_ABOVE` clear approach poses.
+_ATTEMPTS = 5
+_N_LIFTS = 2
+_N_ABOVE = 3
+
+#: The parts of a cycle (:meth:`CyclesMixin._cycle_depth`) up to which a cycle that goes into
+#: the material tries a higher lift rather than a higher approach pose.
+_EARLY = 1
+
+#: SLSQP's tolerance on the scaled objective for a cycle with shape knots: 1e-6 of a cycle is
+#: ~10 us.
+_SHAPE_FTOL = 1e-6
+
+#: SLSQP's iteration cap for a cycle with shape knots (its last iterate, scaled to the limits,
+#: where it stops there): A-D's cycles are as with 100 (times within 0.1 %) on a fifth fewer
+#: evaluations, with 40 up to 3 % longer.
+_MAX_ITERATIONS = 60
+
+#: Height the tip keeps above the ground outside the trench between the lift and the approach
+#: (scale model, m; scaled by reach).
+_GROUND_CLEAR_M = 0.01
+
+# Two corners closer than this in every joint are one (rad): the generator refuses repeats.
+_SAME_POSE_RAD = 1e-9
+
+
+def spoil_poses(
+    rig: Rig, arm: kinematics.FastArm, x_max_m: float = math.inf
+) -> tuple[FloatArray, FloatArray]:
+    """The spoil zone's candidate dump poses: a grid of :data:`_SPOIL_GRID` tip x (up to
+    ``x_max_m``), tip heights above the ground and attitudes over ``rig.trench.spoil``, those
+    the arm reaches within its joint ranges.
+
+    Returns:
+        Joint poses ``(k, 3)`` (rad) and their tip x ``(k,)`` (m, arm frame); ``k`` may be 0.
+    """
+    zone = rig.trench.spoil
+    nx, nh, nz = _SPOIL_GRID
+    x_hi = min(zone.x_m[1], x_max_m)
+    if x_hi < zone.x_m[0]:
+        return np.empty((0, 3)), np.empty(0)
+    poses: list[tuple[float, float, float]] = []
+    xs: list[float] = []
+    for x in np.linspace(zone.x_m[0], x_hi, nx).tolist():
+        for h in np.linspace(zone.height_m[0], zone.height_m[1], nh).tolist():
+            for z in np.linspace(zone.attitude_rad[0], zone.attitude_rad[1], nz).tolist():
+                q = arm.ik(x, rig.ground_y_m + h, z)
+                if q is not None:
+                    poses.append(q)
+                    xs.append(x)
+    return np.asarray(poses, dtype=np.float64).reshape(-1, 3), np.asarray(xs, dtype=np.float64)
+
+
+def home_pose(rig: Rig, arm: kinematics.FastArm) -> FloatArray:
+    """The home pose: the spoil zone's candidate nearest the machine, the lowest there, with the
+    bucket most open; where a task starts and the moves after its last dig end.
+
+    Raises:
+        ConfigurationError: The arm reaches no point of the zone (names the profile's table).
+    """
+    q, x = spoil_poses(rig, arm)
+    if q.shape[0] == 0:
+        zone = rig.trench.spoil
+        raise ConfigurationError(
+            f"rig {rig.name}: trench.spoil: the arm reaches no point of the spoil zone (x "
+            f"{zone.x_m[0]:g}..{zone.x_m[1]:g} m, {zone.height_m[0]:g}..{zone.height_m[1]:g} m "
+            f"above the ground, attitude {math.degrees(zone.attitude_rad[0]):g}.."
+            f"{math.degrees(zone.attitude_rad[1]):g} deg) within its joint ranges"
+        )
+    tip = kinematics.forward(rig, q)
+    order = np.lexsort((-tip[:, 2], tip[:, 1], x))
+    out: FloatArray = q[order[0]]
+    return out
+
+
+class CyclesMixin(MovesMixin):
+    """The blended cycles between a session's digs (see the module)."""
+
+    @_stage("transitions")
+    def _append_transitions(self, dig: PlannedDig) -> None:
+        """The moves into ``dig``: a dig cycle from the previous dig's exit, or the approach
+        from the home pose (the start of a task or section)."""
+        if self.q_now is not None:
+            self.steps.append(self.cycle(self.q_now, dig, after_dig=True))
+        else:
+            self.steps.append(self.cycle(self.planner.home_pose_rad, dig, dump=False))
+
+    def cycle(
+        self,
+        q_from_rad: ArrayLike,
+        dig: PlannedDig,
+        *,
+        dump: bool = True,
+        after_dig: bool = False,
+    ) -> Cycle:
+        """The moves from ``q_from_rad`` (at rest) into ``dig``'s entry on the current material
+        (see the module): blended where a blend is clear, else rest-to-rest.
+
+        The corners tried, at most :data:`_ATTEMPTS` sets: the lowest clear lift and the first
+        clear approach pose first; where the best dump's cycle goes into the material in its
+        first half the next lift (its intermediate poses as corners, then the next height),
+        in its second half the next approach pose (higher above the entry).
+
+        Args:
+            q_from_rad: Start pose ``(3,)``: a dig's exit, the home pose or a measured pose.
+            dig: The dig to enter.
+            dump: Go through the spoil zone (False: the arm is there already).
+            after_dig: The start is the previous dig's exit (a dig cycle, in the report).
+
+        Raises:
+            PlanningError: Not even the fallback's moves are clear (as
+                :meth:`exit_transitions` and :meth:`entry_transitions`).
+        """
+        q0 = np.asarray(q_from_rad, dtype=np.float64)
+        qe = np.asarray(dig.problem.q_start_rad, dtype=np.float64)
+        surface = self.surface
+        carry = self._carry(q0, surface)
+        lifts = list(
+            itertools.islice((m for m in self._lifts(q0, surface, carry) if _clear(m)), _N_LIFTS)
+        )
+        aboves = list(itertools.islice(self._entries(qe, surface, []), _N_ABOVE))
+        dumps = self._dump_candidates(surface) if dump else np.empty((0, 3))
+        if lifts and aboves and (dumps.shape[0] or not dump):
+            lift_sets: list[list[FloatArray]] = []
+            for lift in lifts:
+                tops = [np.asarray(m.q_to_rad) for m in lift]
+                lift_sets.append(tops[-1:])
+                if len(tops) > 1:
+                    lift_sets.append(tops)
+            li = aj = 0
+            for attempt in range(_ATTEMPTS):
+                best, part = self._blend(
+                    q0,
+                    lift_sets[li],
+                    dumps,
+                    aboves[aj][0],
+                    qe,
+                    dump,
+                    after_dig,
+                    _N_PLANNED if attempt == 0 else 1,
+                )
+                if best is not None:
+                    return best[0]
+                if part <= _EARLY and li + 1 < len(lift_sets):
+                    li += 1
+                elif aj + 1 < len(aboves):
+                    aj += 1
+                elif li + 1 < len(lift_sets):
+                    li += 1
+                else:
+                    break
+        return self._fallback(
+            q0,
+            qe,
+            lifts[0] if lifts else None,
+            aboves[0] if aboves else None,
+            dumps,
+            dump,
+            after_dig,
+        )
+
+    def _dump_candidates(self, surface: FloatArray) -> FloatArray:
+        """The spoil zone's dump poses for the section being dug (see the module): ``(k, 3)``."""
+        zone = self.rig.trench.spoil
+        x_max = self.section_lo - self.machine_x - zone.edge_gap_m
+        key = round(x_max, 9)
+        cached = self._spoil.get(key)
+        if cached is None:
+            cached = spoil_poses(self.rig, self.planner.arm, x_max)[0]
+            self._spoil[key] = cached
+        if cached.shape[0] == 0:
+            return cached
+        bx, by = self.planner.mover.bucket_xy(cached)
+        clear = _LIFT_CLEAR_M * self.planner.scale
+        ok = np.all(by >= np.interp(bx + self.machine_x, self.grid, surface) + clear, axis=1)
+        out: FloatArray = cached[ok]
+        return out
+
+    def _blend(
+        self,
+        q0: FloatArray,
+        lift_poses: list[FloatArray],
+        dumps: FloatArray,
+        q_above: FloatArray,
+        qe: FloatArray,
+        dump: bool,
+        after_dig: bool,
+        n_planned: int,
+    ) -> tuple[tuple[Cycle, TimeJerkTrajectory] | None, int]:
+        """The shortest clear blended cycle through ``q0``, ``lift_poses``, one of ``dumps``
+        (the best ``n_planned`` by the bound), ``q_above`` and ``qe``, or None; and where the
+        best candidate went deepest into the material when none is clear (a part of
+        :meth:`_cycle_depth`)."""
+        rig = self.rig
+        limits = (rig.qd_max_rad_s, rig.qdd_max_rad_s2, rig.qddd_max_rad_s3)
+        head = [q0, *lift_poses]
+        kinds_head = [TransitionKind.LIFT_OUT] * len(lift_poses)
+        tail = [q_above, qe]
+        kinds_tail = [TransitionKind.APPROACH, TransitionKind.ENTER]
+        if dump:
+            corners = np.array([[*head, d, *tail] for d in dumps])
+            kinds = [*kinds_head, TransitionKind.DUMP, *kinds_tail]
+        else:
+            corners = np.array([[*head, *tail]])
+            kinds = [*kinds_head, *kinds_tail]
+        bounds = reversal_bound_s(corners, *limits)
+        best: tuple[Cycle, TimeJerkTrajectory] | None = None
+        first_part = -1
+        for i in np.argsort(bounds, kind="stable")[:n_planned].tolist():
+            if best is not None and bounds[i] >= best[0].duration_s:
+                break
+            waypoints, wp_kinds = _distinct(corners[i], kinds)
+            traj, depth, part = self._clear_trajectory(waypoints, q0, qe)
+            if first_part < 0:
+                first_part = part
+            if traj is None or traj.duration_s >= self._stopping_s(waypoints):
+                continue
+            if best is None or traj.duration_s < best[0].duration_s:
+                cycle = Cycle(
+                    waypoints_rad=tuple(_triple(q) for q in waypoints),
+                    kinds=tuple(wp_kinds),
+                    piece_durations_s=tuple(float(h) for h in traj.piece_durations_s),
+                    shape_knots=traj.problem.shape_knots,
+                    shape_positions_rad=tuple(_triple(q) for q in traj.shape_positions_rad),
+                    w_jerk=CYCLE_W_JERK,
+                    moves=(),
+                    duration_s=traj.duration_s,
+                    bound_s=float(reversal_bound_s(waypoints, *limits)),
+                    machine_x_m=self.machine_x,
+                    penetration_m=depth,
+                    after_dig=after_dig,
+                )
+                best = (cycle, traj)
+        return best, first_part
+
+    def _stopping_s(self, waypoints: FloatArray) -> float:
+        """The time of the rest-to-rest moves through ``waypoints`` (ruckig, stopping at every
+        corner): a blend no shorter is no gain."""
+        mover = self.planner.mover
+        return sum(float(mover.move(a, b).duration) for a, b in itertools.pairwise(waypoints))
+
+    def _clear_trajectory(
+        self, waypoints: FloatArray, q0: FloatArray, qe: FloatArray
+    ) -> tuple[TimeJerkTrajectory | None, float, int]:
+        """The blended trajectory through ``waypoints``, with shape knots in its long
+        intervals, else without, the first that is clear (None where neither is), its depth
+        and, where none is clear, the part of the first where it went deepest
+        (:meth:`_cycle_depth`)."""
+        rig = self.rig
+        step = np.abs(np.diff(waypoints, axis=0))
+        r2r = np.max(
+            rest_to_rest_time_s(step, rig.qd_max_rad_s, rig.qdd_max_rad_s2, rig.qddd_max_rad_s3),
+            axis=1,
+        )
+        long = r2r >= _LONG_SHARE * float(np.sum(r2r))
+        knots = tuple(_SHAPE_KNOTS if x else 0 for x in long.tolist())
+        first_part = -1
+        for shape in (knots, 0) if any(knots) else (0,):
+            try:
+                traj = plan(
+                    cycle_problem(rig, waypoints, CYCLE_W_JERK, shape),
+                    max_iterations=_MAX_ITERATIONS,
+                    shape_ftol=_SHAPE_FTOL,
+                )
+            except PlanningError:
+                continue
+            depth, part = self._cycle_depth(traj, q0, qe)
+            if depth <= TRANSITION_PENETRATION_M:
+                return traj, depth, part
+            if first_part < 0:
+                first_part = part
+        return None, math.inf, first_part
+
+    def _cycle_depth(
+        self, traj: TimeJerkTrajectory, q0: FloatArray, qe: FloatArray
+    ) -> tuple[float, int]:
+        """How deep the blended ``traj`` takes the bucket into the material left beyond its
+        allowances (m; see the module), ``inf`` where the tip comes nearer the ground than
+        :data:`_GROUND_CLEAR_M` outside the trench; and the part where it is deepest: 0 up to
+        the first corner, 1 the first half from there to the pose above the entry
+        (:data:`_EARLY`), 2 the second half, 3 the enter."""
+        surface = self.surface
+        mover = self.planner.mover
+        t_wp = traj.waypoint_times_s
+        t1, t2, t_end = float(t_wp[1]), float(t_wp[-2]), traj.duration_s
+        # No point of the bucket moves faster than the joints' peak speeds allow.
+        speed = float(traj.limit_check().velocity_peak_rad_s @ mover.radius_m)
+
+        def times(a: float, b: float) -> FloatArray:
+            n = min(max(math.ceil((b - a) * speed / _COARSE_STEP_M) + 1, 2), 200_000)
+            return np.linspace(a, b, n)
+
+        def poses(t: FloatArray) -> FloatArray:
+            out: FloatArray = traj.sample(t)
+            return out
+
+        allow = self._bucket_depth(qe[None], surface, np.inf)[0]
+        depths = [self._depth_along(poses, times(0.0, t1), self._carry(q0, surface), None)]
+        if t2 > t1:
+            for a, b in ((t1, 0.5 * (t1 + t2)), (0.5 * (t1 + t2), t2)):
+                middle = times(a, b)
+                depth = self._depth_along(poses, middle, surface, None)
+                depths.append(depth if self._ground_clear(poses(middle)) else math.inf)
+        else:
+            depths += [0.0, 0.0]
+        depths.append(self._depth_along(poses, times(max(t1, t2), t_end), surface, allow))
+        part = int(np.argmax(depths))
+        return float(depths[part]), part
+
+    def _ground_clear(self, q: FloatArray) -> bool:
+        """Whether the tip of every pose ``(n, 3)`` outside the trench's top edges is at least
+        :data:`_GROUND_CLEAR_M` (scaled) above the ground."""
+        x, y = self.planner.mover.arm.tip_xy(q)
+        xf = self.task.start_x_m
+        xn = xf - self.task.length_m
+        x = x + self.machine_x
+        outside = (x < xn) | (x > xf)
+        low = y < self.ground_y + _GROUND_CLEAR_M * self.planner.scale
+        return not bool(np.any(outside & low))
+
+    def _fallback(
+        self,
+        q0: FloatArray,
+        qe: FloatArray,
+        lift: tuple[Transition, ...] | None,
+        above: tuple[FloatArray, Transition] | None,
+        dumps: FloatArray,
+        dump: bool,
+        after_dig: bool,
+    ) -> Cycle:
+        """The cycle as rest-to-rest moves (see the module)."""
+        moves: list[Transition] | None = None
+        if lift is not None and above is not None and (dumps.shape[0] or not dump):
+            q_above, enter = above
+            moves = list(lift)
+            q = np.asarray(lift[-1].q_to_rad) if lift else q0
+            if dump:
+                rig = self.rig
+                head = [q0, *(np.asarray(m.q_to_rad) for m in lift)]
+                corners = np.array([[*head, d, q_above, qe] for d in dumps])
+                limits = (rig.qd_max_rad_s, rig.qdd_max_rad_s2, rig.qddd_max_rad_s3)
+                d0 = dumps[int(np.argmin(reversal_bound_s(corners, *limits)))]
+                under = self.surface if lift else self._carry(q0, self.surface)
+                moves.append(self._checked(TransitionKind.DUMP, q, d0, under))
+                q = d0
+            moves.append(self._checked(TransitionKind.APPROACH, q, q_above, self.surface))
+            moves.append(enter)
+            if not all(_clear((m,)) for m in moves):
+                moves = None
+        if moves is None:
+            home = np.asarray(self.planner.home_pose_rad, dtype=np.float64)
+            out = self._plan_exit(q0, self.surface, home) if dump else ()
+            moves = [*out, *self._plan_entry(home if dump else q0, qe, self.surface)]
+        rig = self.rig
+        waypoints = [q0, *(np.asarray(m.q_to_rad) for m in moves)]
+        return Cycle(
+            waypoints_rad=tuple(_triple(q) for q in waypoints),
+            kinds=tuple(m.kind for m in moves),
+            piece_durations_s=(),
+            shape_knots=(),
+            shape_positions_rad=(),
+            w_jerk=CYCLE_W_JERK,
+            moves=tuple(moves),
+            duration_s=sum(m.duration_s for m in moves),
+            bound_s=float(
+                reversal_bound_s(
+                    np.asarray(waypoints), rig.qd_max_rad_s, rig.qdd_max_rad_s2, rig.qddd_max_rad_s3
+                )
+            ),
+            machine_x_m=self.machine_x,
+            penetration_m=max(m.penetration_m for m in moves),
+            after_dig=after_dig,
+        )
+
+
+def _clear(moves: tuple[Transition, ...]) -> bool:
+    return all(m.penetration_m <= TRANSITION_PENETRATION_M for m in moves)
+
+
+def _triple(q: Any) -> tuple[float, float, float]:
+    return (float(q[0]), float(q[1]), float(q[2]))
+
+
+def _distinct(
+    corners: FloatArray, kinds: list[TransitionKind]
+) -> tuple[FloatArray, list[TransitionKind]]:
+    """``corners`` ``(n + 1, 3)`` without a corner equal to the one before it (the generator
+    refuses repeats), with the kind of each remaining move."""
+    keep = [0]
+    out_kinds: list[TransitionKind] = []
+    for i in range(1, corners.shape[0]):
+        if np.all(np.abs(corners[i] - corners[keep[-1]]) <= _SAME_POSE_RAD):
+            continue
+        keep.append(i)
+        out_kinds.append(kinds[i - 1])
+    out: FloatArray = corners[keep]
+    return out, out_kinds

@@ -1,0 +1,241 @@
+"""Blended dig cycles (issue 26, part 3): one minimum time-jerk trajectory through a cycle's
+corners, dumping in the rig's spoil zone, its rest-to-rest fallback, its setpoint tables and
+its keys.
+
+The bucket's clearance of the material on A-D is checked independently in
+``tests/test_transitions.py``; the executor's stops during a blended cycle in
+``tests/test_executor.py``. Here: the limits by the generator's exact check and on a 1 kHz
+resample, the corners and rest at both ends to 1e-9, the dump within the zone and beside the
+trench, the fallback when no blend is clear, the setpoint tables' phases and the guard's
+pass-through, the session state's round trip, and the report's keys.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+from collections import deque
+from typing import Any
+
+import numpy as np
+import pytest
+
+from rt_runtime.control.guard import GuardState, LimitGuard, StrokeLimits
+from rt_runtime.control.job import ExecStatus, _Planning
+from rt_runtime.control.planner_worker import PlannerError
+from rt_runtime.control.setpoints import Phase, sample_cycle
+from rt_runtime.errors import ConfigurationError, PlanningError
+from rt_runtime.planning.trench import (
+    TRANSITION_PENETRATION_M,
+    Cycle,
+    TransitionKind,
+    TrenchPlan,
+    TrenchPlanner,
+    TrenchSession,
+    load_task,
+)
+from rt_runtime.planning.trench.cycles import CyclesMixin, home_pose
+from rt_runtime.rig import load_rig, parse_rig
+from rt_runtime.rig.loader import PROFILE_DIR
+from rt_runtime.trajectory.timejerk import reversal_bound_s
+
+RIG = load_rig("scale_model")
+PERIOD_S = 0.002
+
+
+@pytest.fixture(scope="module")
+def planner() -> TrenchPlanner:
+    return TrenchPlanner(RIG)
+
+
+@pytest.fixture(scope="module")
+def plan_a(planner: TrenchPlanner) -> TrenchPlan:
+    return planner.plan(load_task("A", RIG))
+
+
+def _cycles(plan: TrenchPlan) -> list[Cycle]:
+    return [s for s in plan.steps if isinstance(s, Cycle)]
+
+
+def test_a_blended_cycle_holds_every_limit_and_passes_its_corners(plan_a: TrenchPlan) -> None:
+    cycles = [c for c in _cycles(plan_a) if c.blended]
+    assert len(cycles) >= 4
+    limits = (RIG.qd_max_rad_s, RIG.qdd_max_rad_s2, RIG.qddd_max_rad_s3)
+    for c in cycles:
+        traj = c.trajectory(RIG)
+        case = f"cycle {c.kinds}"
+        exact = traj.limit_check()
+        assert exact.exact and exact.within_limits, case
+        # The jerk the limit guard keeps too, and the joint ranges.
+        assert np.all(exact.jerk_ratio <= 1.0 + 1e-9), case
+        assert np.all(exact.position_low_rad >= RIG.q_min_rad - 1e-9), case
+        assert np.all(exact.position_high_rad <= RIG.q_max_rad + 1e-9), case
+        assert traj.sampled_limit_check(1000.0).within_limits, case
+        # Through every corner at its time, at rest at both ends only.
+        waypoints = np.asarray(c.waypoints_rad)
+        np.testing.assert_allclose(traj.sample(traj.waypoint_times_s), waypoints, atol=1e-9)
+        assert traj.waypoint_times_s == pytest.approx(c.waypoint_times_s, abs=1e-12)
+        for t in (0.0, traj.duration_s):
+            assert np.abs(traj.sample(t, 1)).max() <= 1e-9
+            assert np.abs(traj.sample(t, 2)).max() <= 1e-9
+        speed = np.abs(traj.sample(np.asarray(traj.waypoint_times_s[1:-1]), 1)).max(axis=1)
+        assert (speed > 1e-3).all(), case  # no stop at the corners
+        assert c.duration_s == pytest.approx(traj.duration_s, rel=1e-12)
+        assert c.bound_s == pytest.approx(float(reversal_bound_s(waypoints, *limits)))
+        assert 0.0 <= c.penetration_m <= TRANSITION_PENETRATION_M
+        assert len(c.kinds) == len(waypoints) - 1 and c.kinds[-1] is TransitionKind.ENTER
+
+
+def test_every_dump_lies_in_the_spoil_zone_beside_the_trench(
+    planner: TrenchPlanner, plan_a: TrenchPlan
+) -> None:
+    zone = RIG.trench.spoil
+    task = plan_a.task
+    near_edge = task.start_x_m - task.length_m
+    dumps = 0
+    for c in _cycles(plan_a):
+        for q, kind in zip(c.waypoints_rad[1:], c.kinds, strict=True):
+            if kind is not TransitionKind.DUMP:
+                continue
+            dumps += 1
+            x, y, z = planner.arm.tip(np.asarray(q))
+            assert zone.x_m[0] - 1e-9 <= x <= zone.x_m[1] + 1e-9
+            assert x + c.machine_x_m <= near_edge - zone.edge_gap_m + 1e-9
+            h = y - RIG.ground_y_m
+            assert zone.height_m[0] - 1e-9 <= h <= zone.height_m[1] + 1e-9
+            assert zone.attitude_rad[0] - 1e-9 <= z <= zone.attitude_rad[1] + 1e-9
+    assert dumps >= 4
+    # The home pose (where a task starts) is a point of the zone too.
+    x, y, z = planner.arm.tip(np.asarray(planner.home_pose_rad))
+    assert zone.x_m[0] - 1e-9 <= x <= zone.x_m[1] + 1e-9
+    assert zone.height_m[0] - 1e-9 <= y - RIG.ground_y_m <= zone.height_m[1] + 1e-9
+    assert zone.attitude_rad[0] - 1e-9 <= z <= zone.attitude_rad[1] + 1e-9
+
+
+def test_an_unreachable_spoil_zone_is_refused() -> None:
+    import tomllib
+
+    doc = tomllib.loads((PROFILE_DIR / "scale_model.toml").read_text())
+    doc = copy.deepcopy(doc)
+    doc["trench"]["spoil"]["x_m"] = [-0.20, -0.10]  # behind the boom pin
+    rig = parse_rig(doc)
+    with pytest.raises(ConfigurationError, match=r"trench\.spoil: the arm reaches no point"):
+        home_pose(rig, TrenchPlanner(RIG).arm)
+
+
+def test_a_cycle_that_cannot_be_blended_falls_back_to_checked_rest_to_rest_moves(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def refuse(self: Any, waypoints: Any, q0: Any, qe: Any) -> tuple[None, float, int]:
+        return None, math.inf, 1
+
+    monkeypatch.setattr(CyclesMixin, "_clear_trajectory", refuse)
+    s = planner.start(load_task("A", RIG))
+    dig = s.next_dig()
+    assert dig is not None
+    s.record(dig, dig.tip_path_m)
+    n0 = len(s.steps)
+    s.next_dig()
+    cycle = s.steps[n0]
+    assert isinstance(cycle, Cycle) and not cycle.blended and cycle.after_dig
+    labels = [m.kind.label for m in cycle.moves]
+    assert labels[0] == "lift_out" and labels[-2:] == ["approach", "enter"] and "dump" in labels
+    assert all(m.penetration_m <= TRANSITION_PENETRATION_M for m in cycle.moves)
+    assert cycle.penetration_m == max(m.penetration_m for m in cycle.moves)
+    assert cycle.duration_s == pytest.approx(sum(m.duration_s for m in cycle.moves))
+    # Each move starts where the one before it ends: the cycle's corners.
+    for (a, b), m in zip(
+        zip(cycle.waypoints_rad[:-1], cycle.waypoints_rad[1:], strict=True),
+        cycle.moves,
+        strict=True,
+    ):
+        assert m.q_from_rad == a and m.q_to_rad == b
+    report = s.finish(0.0).to_json()
+    assert report["cycle_fallbacks"] == 1 and report["cycles"][0]["blended"] is False
+    with pytest.raises(PlanningError, match="no blended trajectory"):
+        cycle.trajectory(RIG)
+
+
+def test_a_cycle_streams_in_its_phases_and_passes_the_guard_unchanged(
+    plan_a: TrenchPlan,
+) -> None:
+    cycle = next(c for c in _cycles(plan_a) if c.blended and c.after_dig)
+    motion = sample_cycle(RIG, PERIOD_S, cycle)
+    t = (np.arange(motion.n) + 1) * PERIOD_S
+    # One run a waypoint interval, in the cycle's order, each from the first sample at or
+    # past the interval's start.
+    runs = motion.phase_runs
+    assert [ph for _, ph in runs] == [Phase.LIFT_OUT, Phase.DUMP, Phase.APPROACH, Phase.ENTER]
+    starts = cycle.waypoint_times_s[1:-1]
+    for (j, _), t0 in zip(runs[1:], starts, strict=True):
+        assert t[j] >= t0 - 1e-12 > t[j - 1]
+    assert motion.phase is Phase.LIFT_OUT and motion.dig_index == -1
+    np.testing.assert_array_equal(motion.q_rad[-1], cycle.waypoints_rad[-1])
+    np.testing.assert_array_equal(motion.q_start_rad, cycle.waypoints_rad[0])
+    guard = LimitGuard(StrokeLimits.from_rig(RIG), PERIOD_S)
+    guard.reset(motion.stroke_start_m)
+    states = []
+    err = 0.0
+    for k in range(motion.n):
+        states.append(guard.track(motion.stroke_m[k], motion.rate_m_s[k], motion.accel_m_s2[k]))
+        err = max(err, float(np.abs(guard.position_m - motion.stroke_m[k]).max()))
+    assert err <= 1e-9
+    assert all(st == GuardState.PASSTHROUGH for st in states)
+
+
+def test_a_cycle_survives_the_session_state_and_rebuilds_the_same_trajectory(
+    planner: TrenchPlanner,
+) -> None:
+    s = planner.start(load_task("A", RIG))
+    for _ in range(2):
+        dig = s.next_dig()
+        assert dig is not None
+        s.record(dig, dig.tip_path_m)
+    state = json.loads(json.dumps(s.state()))
+    again = TrenchSession.restore(planner, s.task, state)
+    before = [c for c in s.steps if isinstance(c, Cycle)]
+    after = [c for c in again.steps if isinstance(c, Cycle)]
+    assert after == before
+    for a, b in zip(before, after, strict=True):
+        if a.blended:
+            np.testing.assert_array_equal(
+                a.trajectory(RIG).coefficients, b.trajectory(RIG).coefficients
+            )
+    # A state written before cycles existed (version 2, transitions only) still reads.
+    old = {**state, "version": 2, "steps": [st for st in state["steps"] if st["type"] == "dig"]}
+    TrenchSession.restore(planner, s.task, old)
+
+
+def test_the_plan_reports_its_dig_cycles(plan_a: TrenchPlan) -> None:
+    report = plan_a.to_json()
+    cycles = report["cycles"]
+    dig_cycles = [c for c in _cycles(plan_a) if c.after_dig]
+    assert len(cycles) == len(dig_cycles) == len(plan_a.digs) - 1
+    for entry, c in zip(cycles, dig_cycles, strict=True):
+        assert set(entry) >= {"waypoints_deg", "moves_s", "bound_s", "blended", "kinds"}
+        assert len(entry["waypoints_deg"]) == len(c.waypoints_rad)
+        assert all(len(q) == 3 for q in entry["waypoints_deg"])
+        assert entry["waypoints_deg"][0] == pytest.approx(np.degrees(c.waypoints_rad[0]))
+        assert entry["moves_s"] == c.duration_s and entry["bound_s"] == c.bound_s
+    assert report["moves_per_cycle_s"] == pytest.approx(np.mean([c["moves_s"] for c in cycles]))
+    assert report["cycle_fallbacks"] == sum(not c["blended"] for c in cycles)
+    # Every move of the plan counts in its move time, the cycles and the first approach.
+    moves = sum(c.duration_s for c in _cycles(plan_a))
+    assert report["transition_time_s"] == pytest.approx(moves)
+
+
+def test_the_last_dig_s_exit_streams_where_the_planner_fails() -> None:
+    planning = _Planning(link=None)  # type: ignore[arg-type]
+    exit_moves = (object(), object())
+    planning.exit = exit_moves  # type: ignore[assignment]
+    motions: deque[Any] = deque()
+    planning.take(PlannerError("no dig"), motions, stopping=False)
+    assert tuple(motions) == exit_moves and planning.exit == ()
+    assert planning.final == (ExecStatus.PLANNING_ERROR, "no dig")
+    # While stopping, nothing more streams.
+    planning = _Planning(link=None)  # type: ignore[arg-type]
+    planning.exit = exit_moves  # type: ignore[assignment]
+    motions.clear()
+    planning.take(PlannerError("no dig"), motions, stopping=True)
+    assert not motions

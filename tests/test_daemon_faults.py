@@ -70,6 +70,10 @@ PERIOD_S = 0.002
 MAX_WALL_S = 1800.0
 #: Kills of the restart test (SIGKILL and SIGABRT alternating).
 RESTART_RUNS = int(os.environ.get("EXCAVATOR_RT_RESTART_RUNS", "2"))
+#: How long into a dig the tests act (s; task A's digs last 5-9 s). Not earlier: the trench
+#: planner finds no lift out of the material from poses about 0.9 s into task A's first dig
+#: (docs/daemon.md, "Known limit"), which is the planner's to fix, not the daemon's.
+INTO_DIG_S = 3.0
 #: Longest wait for a dig to begin, for a job to end (s): bounds, not expectations.
 DIG_WAIT_S = 300.0
 JOB_WAIT_S = 300.0
@@ -331,8 +335,8 @@ def until(pred: Callable[[], bool], timeout_s: float, what: str, daemon: Daemon)
 
 
 def in_dig(bench: Bench, daemon: Daemon, index: int | None = None) -> int:
-    """Wait until the job digs (dig ``index``, or any), then 1.5 s more (a dig lasts ~5 s);
-    the dig's index."""
+    """Wait until the job digs (dig ``index``, or any), then :data:`INTO_DIG_S` more; the
+    dig's index."""
     found: list[int] = []
 
     def digging() -> bool:
@@ -348,7 +352,7 @@ def in_dig(bench: Bench, daemon: Daemon, index: int | None = None) -> int:
         return False
 
     until(digging, DIG_WAIT_S, f"dig {index}", daemon)
-    daemon.drain(1.5)
+    daemon.drain(INTO_DIG_S)
     return found[0]
 
 

@@ -106,6 +106,8 @@ SETTLE_TIMEOUT_S = 2.0
 POWER_DOWN_TIMEOUT_S = 0.5
 #: Telemetry rows of a job's run (the last 32 s at 500 Hz go to the state directory).
 JOB_TELEMETRY_ROWS = 16_384
+#: A running job that stops with one of these latches the fault at once.
+_LATCHING = (ExecStatus.FAULT, ExecStatus.OVERRUN_STOP, ExecStatus.BUS_ERROR)
 #: A running job's planner process is checked every this many cycles (a power of two).
 PLANNER_CHECK_CYCLES = 128
 #: Longest wait for a bus's shutdown (s): a backend may block on a peer that does not answer.
@@ -745,10 +747,13 @@ class RigRunner:
                     close_bus(self.bus)
 
     def _latch(self, text: str, job_id: int | None = None) -> None:
-        """Latch a fault (the first cause stays; any thread)."""
+        """Latch a fault (the first cause stays), for job ``job_id`` when one failed with it."""
         if not self._fault:
             self._fault = text
-            self._fault_job = job_id
+            if job_id is not None and self._fault_job is None:
+                self._fault_job = job_id
+                with contextlib.suppress(JobError):
+                    self._fault_job_paused = self.store.get(job_id).status is JobStatus.PAUSED
 
     def _reset_ended(self) -> None:
         with self._lock:
@@ -790,7 +795,15 @@ class RigRunner:
         hold, manager = parts.hold, parts.manager
         if manager.controller is not hold:
             running = self._job
-            if running is not None and sync & (PLANNER_CHECK_CYCLES - 1) == 0:
+            if running is None:
+                return
+            ctl = running.controller
+            if ctl.status is not None and ctl.status in _LATCHING and not self._fault:
+                # Latched when the job begins its stop, not when the stop ends (a stop on a
+                # gone bus waits for the drives' lost heartbeats).
+                job = running.job.id
+                self._latch(f"job {job}: {self._job_fault_text(ctl.status, ctl.fault)}", job)
+            if sync & (PLANNER_CHECK_CYCLES - 1) == 0:
                 self._check_planner(running)
             return
         if hold.fault and not self._fault:
@@ -942,14 +955,19 @@ class RigRunner:
         if st in (ExecStatus.STOPPED, ExecStatus.PLANNING_ERROR):
             self._fail_job(job, self._fault)
             return
+        text = self._job_fault_text(st, fault)
+        self._latch(f"job {job.id}: {text}", job.id)
+        self._fail_job(job, text)
+
+    def _job_fault_text(self, st: ExecStatus, fault: str) -> str:
+        """A job's fault as the store and the latch say it (outside the hot path: once)."""
         text = f"{st.name.lower()}: {fault or 'no detail'}"
         assert self._parts is not None
         drives = self._parts.drives
         if "cycle status" not in text:
             # The monitor's own words name the axis; the drives' report adds nodes and codes.
             text += f"; drives: {drives.describe(drives.feedback.status)}"
-        self._latch(f"job {job.id}: {text}", job.id)
-        self._fail_job(job, text)
+        return text
 
     def _report_run(self, running: _PreparedJob, status: ExecStatus) -> None:
         """Off the loop's thread: close the planner, log the run and its digs, write its

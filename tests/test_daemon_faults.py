@@ -70,10 +70,13 @@ PERIOD_S = 0.002
 MAX_WALL_S = 1800.0
 #: Kills of the restart test (SIGKILL and SIGABRT alternating).
 RESTART_RUNS = int(os.environ.get("EXCAVATOR_RT_RESTART_RUNS", "2"))
-#: How long into a dig the tests act (s; task A's digs last 5-9 s). Not earlier: the trench
-#: planner finds no lift out of the material from poses about 0.9 s into task A's first dig
-#: (docs/daemon.md, "Known limit"), which is the planner's to fix, not the daemon's.
+#: How long after the job reports a dig the restart test kills the daemon (s; task A's digs
+#: last 5-9 s, the drives move on for their SYNC watchdog's time after a kill).
 INTO_DIG_S = 3.0
+#: How long after the job reports its first dig (8.9 s long) the fault tests act (s). Not
+#: earlier: from poses in the first ~1.7 s of that dig the trench planner often finds no lift
+#: out of the material (docs/daemon.md, "Known limit"), the planner's to fix, not the daemon's.
+INTO_FIRST_DIG_S = 5.0
 #: Longest wait for a dig to begin, for a job to end (s): bounds, not expectations.
 DIG_WAIT_S = 300.0
 JOB_WAIT_S = 300.0
@@ -334,9 +337,11 @@ def until(pred: Callable[[], bool], timeout_s: float, what: str, daemon: Daemon)
         daemon.drain(0.1)
 
 
-def in_dig(bench: Bench, daemon: Daemon, index: int | None = None) -> int:
-    """Wait until the job digs (dig ``index``, or any), then :data:`INTO_DIG_S` more; the
-    dig's index."""
+def in_dig(
+    bench: Bench, daemon: Daemon, index: int | None = None, into_s: float = INTO_DIG_S
+) -> int:
+    """Wait until the job digs (dig ``index``, or any), then ``into_s`` more; the dig's
+    index."""
     found: list[int] = []
 
     def digging() -> bool:
@@ -352,7 +357,7 @@ def in_dig(bench: Bench, daemon: Daemon, index: int | None = None) -> int:
         return False
 
     until(digging, DIG_WAIT_S, f"dig {index}", daemon)
-    daemon.drain(INTO_DIG_S)
+    daemon.drain(into_s)
     return found[0]
 
 
@@ -418,7 +423,7 @@ def reset_and_finish(bench: Bench, daemon: Daemon, digs: int) -> None:
 def test_bus_loss_latches_a_fault_and_reset_fault_resumes_the_job(bench: Bench) -> None:
     daemon = bench.daemon()
     assert bench.ask(cmd="submit", task="A", max_digs=1)["ok"]
-    in_dig(bench, daemon, 0)
+    in_dig(bench, daemon, 0, INTO_FIRST_DIG_S)
     t_event = time.monotonic()
     bench.hil.proc.kill()  # the bus is gone: its connection resets under the daemon
     bench.hil.proc.wait()
@@ -443,7 +448,7 @@ def test_bus_loss_latches_a_fault_and_reset_fault_resumes_the_job(bench: Bench) 
 def test_frozen_bus_latches_a_fault_and_reset_fault_resumes_the_job(bench: Bench) -> None:
     daemon = bench.daemon()
     assert bench.ask(cmd="submit", task="A", max_digs=1)["ok"]
-    in_dig(bench, daemon, 0)
+    in_dig(bench, daemon, 0, INTO_FIRST_DIG_S)
     t_event = time.monotonic()
     os.kill(bench.hil.proc.pid, signal.SIGSTOP)
     try:
@@ -474,7 +479,7 @@ def _planner_pid(daemon_pid: int) -> int:
 def test_killed_planner_latches_a_fault_and_reset_fault_resumes_the_job(bench: Bench) -> None:
     daemon = bench.daemon()
     assert bench.ask(cmd="submit", task="A", max_digs=1)["ok"]
-    in_dig(bench, daemon, 0)
+    in_dig(bench, daemon, 0, INTO_FIRST_DIG_S)
     t_event = time.monotonic()
     os.kill(_planner_pid(daemon.proc.pid), signal.SIGKILL)
     fault = assert_latched(
@@ -535,9 +540,14 @@ def test_restart_after_sigkill_or_sigabrt_mid_dig_resumes_the_job(bench: Bench) 
         dig = in_dig(bench, daemon, len(bench.job(job_id)["digs"]))
         sig = signal.SIGKILL if k % 2 == 0 else signal.SIGABRT
         daemon.proc.send_signal(sig)
-        assert daemon.proc.wait(30) == -sig
-        if sig == signal.SIGABRT:  # faulthandler wrote every thread's stack
-            assert "runner.py" in daemon.log(), daemon.log()
+        code = daemon.proc.wait(30)
+        if sig == signal.SIGKILL:
+            assert code == -sig, code
+        else:
+            # faulthandler reports it and dumps the threads' stacks; walking a thread that is
+            # inside C code can end the dump in SIGSEGV (best effort), which also kills.
+            assert code in (-signal.SIGABRT, -signal.SIGSEGV), code
+            assert "Fatal Python error: Aborted" in daemon.log(), daemon.log()
         daemon.close()
         assert bench.job(job_id)["status"] == "running"  # as the kill left it
         daemon = bench.daemon()

@@ -49,8 +49,9 @@ Watchdog: WATCHDOG=1 every ``$WATCHDOG_USEC / 2`` while the runner's loop has cy
 a latched fault is reported and waits for ``reset-fault``, it is no reason for systemd to
 restart the daemon; a loop that stops cycling (a hang) is. Crashes (SIGKILL, SIGABRT from
 systemd's watchdog): ``faulthandler`` writes every thread's stack to stderr on SIGABRT (and
-SIGSEGV, SIGFPE, SIGBUS, SIGILL); the restart boots the drives from whatever state they are in
-and resumes the job at its next undone dig.
+SIGSEGV, SIGFPE, SIGBUS, SIGILL), best effort (walking a thread inside C code may end the dump
+in SIGSEGV); the restart boots the drives from whatever state they are in and resumes the job
+at its next undone dig.
 
 Exit codes: :data:`EXIT_OK` 0, :data:`EXIT_RUNTIME` 1 (the runner died), :data:`EXIT_CONFIG` 2
 (configuration, rig, models, job store, socket; nothing was sent on the bus), :data:`EXIT_BUS`

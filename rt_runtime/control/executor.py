@@ -1,4 +1,4 @@
-"""The executor: one job (a trench session or a prescribed path) run to its end on the
+"""The executor: one job (a trench task dug dig by dig, or a prescribed path) run to its end on the
 drives, the way a test, the HIL scenarios and the benchmarks run one.
 
 :class:`Executor` wires the parts of :mod:`rt_runtime.control` together for a single job: the
@@ -10,7 +10,7 @@ fixed-rate loop until the job ends. The daemon runs the same parts with one mana
 whole life (:mod:`rt_runtime.service.daemon`).
 
 Planning. ``next_dig`` screens candidates for ~0.5 s: far beyond a cycle, and a thread would
-hold the interpreter lock. On a real-time clock the session lives in a planner process
+hold the interpreter lock. On a real-time clock the trench planner lives in a planner process
 (:class:`~rt_runtime.control.planner_worker.ProcessPlanner`); the loop only queues requests and
 takes replies from a queue. On a simulated clock (``clock.realtime`` False: the lockstep HIL) it
 plans in-process between cycles (:class:`~rt_runtime.control.planner_worker.InlinePlanner`,
@@ -208,8 +208,8 @@ class Executor:
     Order of use on a real-time clock: build the executor (it starts the planner process and
     the callback thread here, ~20 ms, at normal priority), apply the RT settings, boot and enable
     the drives, :meth:`run`. Nothing between ``enable`` and :meth:`run` may take longer than the
-    drives' SYNC watchdog (``rig.drives.sync_timeout_s``). The session's state is copied to the
-    planner process here: do not change the session before :meth:`run`. An executor that will
+    drives' SYNC watchdog (``rig.drives.sync_timeout_s``). The trench state is copied to the
+    planner process here: do not change it before :meth:`run`. An executor that will
     not run is released with :meth:`close`.
 
     Args:
@@ -218,9 +218,10 @@ class Executor:
         rig: The rig.
         loop: The fixed-rate loop; its clock paces the run. Its telemetry is replaced by one
             with :data:`EXECUTOR_COLUMNS` added (same capacity) when it lacks them.
-        session: The trench session (fresh, restored from a state, or with a pending dig), or a
-            prescribed path (:class:`~rt_runtime.control.planner_worker.PathJob`: checked here,
-            never planned in a process).
+        work: The :class:`TrenchSession` to dig (fresh, restored from a state, or with a
+            pending dig), or a prescribed path
+            (:class:`~rt_runtime.control.planner_worker.PathJob`: checked here, never planned
+            in a process).
         config: Executor settings.
         on_dig_done: Called with each :class:`DigRecord` (see the module docstring for the
             thread); must not raise.
@@ -229,7 +230,7 @@ class Executor:
 
     Raises:
         ConfigurationError: A bad configuration, a loop period other than the master's, or a
-            session planner that cannot run in a planner process when one is asked for.
+            trench planner that cannot run in a planner process when one is asked for.
         JointLimitError: A path leaves a joint's range (nothing was sent).
         PlanningError: A path is faster than the rig's joint limits or does not start and end
             at rest (nothing was sent).
@@ -240,7 +241,7 @@ class Executor:
         master: CanMaster,
         rig: Rig,
         loop: FixedRateLoop,
-        session: TrenchSession | PathJob,
+        work: TrenchSession | PathJob,
         config: ExecutorConfig | None = None,
         *,
         on_dig_done: Callable[[DigRecord], None] | None = None,
@@ -249,7 +250,7 @@ class Executor:
         self.master = master
         self.rig = rig
         self.loop = loop
-        self.session = session
+        self.work = work
         self.config = cfg = config if config is not None else ExecutorConfig()
         self.on_dig_done = on_dig_done
         period = loop.config.period_s
@@ -261,9 +262,9 @@ class Executor:
         self.period_s = period
         self.realtime = bool(loop.clock.realtime)
         self.plan_in_worker = self.realtime if cfg.plan_in_worker is None else cfg.plan_in_worker
-        if isinstance(session, PathJob):
+        if isinstance(work, PathJob):
             # Checked before anything is sent; a path has nothing to plan in a process.
-            session.check(rig)
+            work.check(rig)
             self.plan_in_worker = False
         self.guard = LimitGuard(StrokeLimits.from_rig(rig, margin=cfg.guard_margin), period)
         read_timeout_s = 0.0 if cfg.read_timeout_s is None else cfg.read_timeout_s
@@ -272,12 +273,12 @@ class Executor:
         # Started here, before the caller enables the drives and applies RT settings: spawning
         # takes ~20 ms (no SYNC meanwhile) and must not inherit a real-time policy.
         link: PlannerLink
-        if isinstance(session, PathJob):
-            link = PathLink(session, rig, period)
+        if isinstance(work, PathJob):
+            link = PathLink(work, rig, period)
         elif self.plan_in_worker:
-            link = ProcessPlanner(session, period_s=period)
+            link = ProcessPlanner(work, period_s=period)
         else:
-            link = InlinePlanner(session, period)
+            link = InlinePlanner(work, period)
         self._callbacks: queue.SimpleQueue[DigRecord | None] | None = None
         self._cb_thread: threading.Thread | None = None
         if self.realtime and on_dig_done is not None:
@@ -384,9 +385,9 @@ class Executor:
         if not stats.stopped_by_step and job.status is None:
             job.status, job.fault = ExecStatus.STOPPED, "the loop ended (max_cycles)"
         last_state = job.planning.last_state
-        session = self.session
-        if self.plan_in_worker and last_state is not None and isinstance(session, TrenchSession):
-            session.apply_state(last_state)
+        work = self.work
+        if self.plan_in_worker and last_state is not None and isinstance(work, TrenchSession):
+            work.apply_state(last_state)
         status = job.status if job.status is not None else ExecStatus.DONE
         job.publish(status.name.lower(), stats.cycles)
         if status is not ExecStatus.DONE:  # logged here, outside the loop

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -372,38 +373,41 @@ def test_c_screening_geometry_matches_the_numpy_reference(monkeypatch) -> None:
     assert rough and len(calls) >= len(rough) and sum(calls) > 300
 
 
-def test_c_profile_fits_equal_the_numpy_reference_bit_for_bit(monkeypatch) -> None:
-    # Every profile fit of a whole plan (D: walls, bottom, layers; a random task's steep
-    # walls): the C iterations (fit_iterate, then np.linalg.solve as the numpy loop calls it)
-    # against the numpy loop on the same inputs, bit for bit.
-    planner = TrenchPlanner(RIG, geometry="c")
-    c_fit = TrenchSession._fit_bulges
-    calls: list[int] = []
+def _plan_with_each_fit(monkeypatch, check) -> None:
+    """Plan D and a steep task with the C geometry, handing every profile fit to
+    ``check(session, args, (K, cost))``, ``args`` as :meth:`TrenchSession._fit_bulges` took
+    them: D's walls, bottom and layers and the steep task's walls."""
+    fit = TrenchSession._fit_bulges
 
-    def compare(
-        self: TrenchSession,
-        base: np.ndarray,
-        q1: np.ndarray,
-        q2: np.ndarray,
-        edges: np.ndarray,
-        offset: float,
-        kind: oneshot.DigType,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        got = c_fit(self, base, q1, q2, edges, offset, kind)
-        geo = self.planner.geo_module
-        self.planner.geo_module = None
-        try:
-            want = c_fit(self, base, q1, q2, edges, offset, kind)
-        finally:
-            self.planner.geo_module = geo
-        np.testing.assert_array_equal(got[0], want[0])
-        np.testing.assert_array_equal(got[1], want[1])
-        calls.append(base.shape[0])
+    def wrapped(self: TrenchSession, *args: Any) -> tuple[np.ndarray, np.ndarray]:
+        got = fit(self, *args)
+        check(self, args, got)
         return got
 
-    monkeypatch.setattr(TrenchSession, "_fit_bulges", compare)
+    monkeypatch.setattr(TrenchSession, "_fit_bulges", wrapped)
+    planner = TrenchPlanner(RIG, geometry="c")
     planner.plan(load_task("D", RIG))
     planner.plan(make_task(RIG, 0.45, 0.2, 80.0, 75.0, 1.0, name="steep"))
+
+
+def test_c_profile_fits_equal_the_numpy_reference_bit_for_bit(monkeypatch) -> None:
+    # The C iterations (fit_iterate, then np.linalg.solve as the numpy loop calls it) against
+    # the numpy loop on the same inputs, bit for bit.
+    fit = TrenchSession._fit_bulges
+    calls: list[int] = []
+
+    def compare(session: TrenchSession, args: tuple, got: tuple) -> None:
+        geo = session.planner.geo_module
+        session.planner.geo_module = None
+        try:
+            want = fit(session, *args)
+        finally:
+            session.planner.geo_module = geo
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+        calls.append(args[0].shape[0])
+
+    _plan_with_each_fit(monkeypatch, compare)
     # Batched fits (the attitude table's pairs) and single refits both ran.
     assert len(calls) > 10 and max(calls) > 1 and min(calls) == 1
 
@@ -444,35 +448,18 @@ def _fit_cost(
 
 def test_profile_fits_return_their_own_cost_and_never_worse_than_the_start(monkeypatch) -> None:
     # The fits by their properties (not against a second implementation of the search): every
-    # fit of whole plans (D: walls, bottom, layers; a steep task) returns the objective of the K
-    # it returns, no worse than the start K = 0, and fits within 1 mm RMS of the outline are
-    # found.
-    planner = TrenchPlanner(RIG, geometry="c")
-    fit = TrenchSession._fit_bulges
+    # fit returns the objective of the K it returns, no worse than the start K = 0, and fits
+    # within 1 mm RMS of the outline are found.
     seen = {"pairs": 0, "good": 0}
 
-    def check(
-        self: TrenchSession,
-        base: np.ndarray,
-        q1: np.ndarray,
-        q2: np.ndarray,
-        edges: np.ndarray,
-        offset: float,
-        kind: oneshot.DigType,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        K, cost = fit(self, base, q1, q2, edges, offset, kind)
-        args = (self, base, q1, q2, edges, offset, kind)
-        np.testing.assert_allclose(_fit_cost(*args, K), cost, rtol=1e-9, atol=1e-15)
-        assert np.all(cost <= _fit_cost(*args, np.zeros_like(K)) * (1.0 + 1e-12))
-        n = base.shape[1]
-        good = cost / n < 1e-6
-        seen["pairs"] += base.shape[0]
-        seen["good"] += int(np.count_nonzero(good))
-        return K, cost
+    def check(session: TrenchSession, args: tuple, got: tuple) -> None:
+        K, cost = got
+        np.testing.assert_allclose(_fit_cost(session, *args, K), cost, rtol=1e-9, atol=1e-15)
+        assert np.all(cost <= _fit_cost(session, *args, np.zeros_like(K)) * (1.0 + 1e-12))
+        seen["pairs"] += args[0].shape[0]
+        seen["good"] += int(np.count_nonzero(cost / args[0].shape[1] < 1e-6))
 
-    monkeypatch.setattr(TrenchSession, "_fit_bulges", check)
-    planner.plan(load_task("D", RIG))
-    planner.plan(make_task(RIG, 0.45, 0.2, 80.0, 75.0, 1.0, name="steep"))
+    _plan_with_each_fit(monkeypatch, check)
     assert seen["pairs"] > 100 and seen["good"] > 10
 
 

@@ -163,6 +163,7 @@ class StorePoller:
 
 
 def _until(pred: Callable[[], bool], timeout_s: float, what: str, daemon: Daemon) -> None:
+    """Wait for ``pred`` (the daemon must stay up; its notifications are read meanwhile)."""
     end = time.monotonic() + timeout_s
     while not pred():
         if daemon.proc.poll() is not None:

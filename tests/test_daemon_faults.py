@@ -42,6 +42,7 @@ from typing import Any
 import can
 import pytest
 from test_daemon_e2e import Daemon
+from test_daemon_e2e import _until as until
 
 from hil_sim.harness.realtime import HIL_RT_PRIORITY, RealtimeHilProcess
 from rt_runtime.canbus import (
@@ -323,18 +324,6 @@ def bench(rig_file: Path, tmp_path: Path) -> Iterator[Bench]:
         yield r
     finally:
         r.close()
-
-
-def until(pred: Callable[[], bool], timeout_s: float, what: str, daemon: Daemon) -> None:
-    """Wait for ``pred`` (the daemon must stay up; its notifications are read meanwhile)."""
-    end = time.monotonic() + timeout_s
-    while not pred():
-        if daemon.proc.poll() is not None:
-            pytest.fail(f"daemon exited ({daemon.proc.returncode}) waiting for {what}:\n"
-                        f"{daemon.log()}")  # fmt: skip
-        if time.monotonic() > end:
-            pytest.fail(f"{what}: not within {timeout_s} s:\n{daemon.log()}")
-        daemon.drain(0.1)
 
 
 def in_dig(

@@ -68,6 +68,7 @@ __all__ = [
     "BridgeBus",
     "BridgeError",
     "RxFrame",
+    "flagged_message",
     "message_flags",
     "ws_frame",
     "ws_messages",
@@ -212,6 +213,32 @@ def message_flags(msg: can.Message) -> int:
     if msg.error_state_indicator:
         flags |= FLAG_ESI
     return flags
+
+
+def flagged_message(
+    stamp: float,
+    arbitration_id: int,
+    data: bytes,
+    flags: int,
+    dlc: int | None = None,
+    channel: str | None = None,
+) -> can.Message:
+    """A python-can message from a frame's fields and the protocol's flag byte (the inverse
+    of :func:`message_flags`)."""
+    return can.Message(
+        timestamp=stamp,
+        arbitration_id=arbitration_id,
+        is_extended_id=bool(flags & FLAG_EXTENDED),
+        is_remote_frame=bool(flags & FLAG_REMOTE),
+        is_error_frame=bool(flags & FLAG_ERROR),
+        is_fd=bool(flags & FLAG_FD),
+        bitrate_switch=bool(flags & FLAG_BRS),
+        error_state_indicator=bool(flags & FLAG_ESI),
+        dlc=dlc,
+        data=data,
+        channel=channel,
+        check=False,
+    )
 
 
 # -- the runtime's end ------------------------------------------------------------------------
@@ -381,20 +408,7 @@ class BridgeBus(can.BusABC):
                         check=False,
                     )
                 else:
-                    msg = can.Message(
-                        timestamp=stamp,
-                        arbitration_id=arbitration_id,
-                        is_extended_id=bool(flags & FLAG_EXTENDED),
-                        is_remote_frame=bool(flags & FLAG_REMOTE),
-                        is_error_frame=bool(flags & FLAG_ERROR),
-                        is_fd=bool(flags & FLAG_FD),
-                        bitrate_switch=bool(flags & FLAG_BRS),
-                        error_state_indicator=bool(flags & FLAG_ESI),
-                        dlc=dlc,
-                        data=data,
-                        channel=channel,
-                        check=False,
-                    )
+                    msg = flagged_message(stamp, arbitration_id, data, flags, dlc, channel)
                 rx.append(msg)
             elif opcode == OP_PING:
                 self._write(ws_frame(OP_PONG, payload, mask=True))

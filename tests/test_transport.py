@@ -27,14 +27,9 @@ import can
 import pytest
 
 from hil_sim.bridge import (
-    FLAG_BRS,
-    FLAG_ERROR,
-    FLAG_ESI,
-    FLAG_EXTENDED,
-    FLAG_FD,
-    FLAG_REMOTE,
     BridgeBus,
     RxFrame,
+    flagged_message,
     message_flags,
 )
 from hil_sim.harness.bridge import Bridge
@@ -58,20 +53,7 @@ class _ServerEnd(can.BusABC):
         self.bridge.flush()
 
     def _take(self, frame: RxFrame) -> None:
-        stamp, arbitration_id, data, flags = frame
-        self._rx.append(
-            can.Message(
-                timestamp=stamp,
-                arbitration_id=arbitration_id,
-                is_extended_id=bool(flags & FLAG_EXTENDED),
-                is_remote_frame=bool(flags & FLAG_REMOTE),
-                is_error_frame=bool(flags & FLAG_ERROR),
-                is_fd=bool(flags & FLAG_FD),
-                bitrate_switch=bool(flags & FLAG_BRS),
-                error_state_indicator=bool(flags & FLAG_ESI),
-                data=data,
-            )
-        )
+        self._rx.append(flagged_message(*frame))
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if not self._rx and self.bridge.wait(1.0 if timeout is None else timeout):

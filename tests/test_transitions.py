@@ -134,8 +134,6 @@ def _check_moves(
 
 #: Sampling step of a blended cycle (s).
 CYCLE_STEP_S = 0.005
-#: What two samplings of one blended cycle may differ by in its deepest point (m).
-SAMPLES_M = 1e-5
 
 
 def _check_cycle(cycle: Cycle, material: Any) -> float:
@@ -159,10 +157,7 @@ def _check_cycle(cycle: Cycle, material: Any) -> float:
     entry = _depth(material, _bucket(np.asarray(cycle.waypoints_rad[-1:]), x))[0]
     worst = max(worst, float((_depth(material, pts[enter]) - entry).max()))
     p = max(0.0, worst)
-    # The planner checks its own samples (at most 2 mm of bucket travel apart near the
-    # material); these are others, 5 ms apart: between the two a point of the bucket can lie a
-    # few micrometres deeper than either saw.
-    assert p <= LIMIT_M + SAMPLES_M, (cycle.kinds, p)
+    assert p <= LIMIT_M, (cycle.kinds, p)
     assert abs(p - cycle.penetration_m) <= AGREE_M, (p, cycle.penetration_m)
     return p
 

@@ -75,11 +75,7 @@ class FitMixin(CyclesMixin):
         half-plane, inwards towards the design's centroid (:meth:`_fit_profile`)."""
         a, b = np.asarray(poly[0], dtype=np.float64), np.asarray(poly[-1], dtype=np.float64)
         on_bottom = abs(b[1] - self.bottom_y) < 1e-9 and abs(a[1] - self.bottom_y) <= 0.0025
-        seg = b - a
-        normal = np.array([-seg[1], seg[0]]) / math.hypot(seg[0], seg[1])
-        c = self.design.centroid
-        if (c.x - a[0]) * normal[0] + (c.y - a[1]) * normal[1] < 0.0:
-            normal = -normal
+        normal = self._inward_normal(a, b)
         # Outward normal and offset: inside is -normal . p <= -normal . a.
         edge = np.array([[-normal[0], -normal[1], -float(normal @ a)]])
         found = self._fit_profile(kind, a, b, edge, atts, _PASS_OFFSETS_M)
@@ -92,6 +88,16 @@ class FitMixin(CyclesMixin):
             if flat is not None and (found is None or flat.useful_m2 > found.useful_m2):
                 found = flat
         return found
+
+    def _inward_normal(self, a: FloatArray, b: FloatArray) -> FloatArray:
+        """The unit normal of the segment ``a``-``b`` (work-site frame) that points towards
+        the design's centroid."""
+        seg = b - a
+        normal: FloatArray = np.array([-seg[1], seg[0]]) / math.hypot(seg[0], seg[1])
+        c = self.design.centroid
+        if (c.x - a[0]) * normal[0] + (c.y - a[1]) * normal[1] < 0.0:
+            normal = -normal
+        return normal
 
     @_stage("passes")
     def _fit_profile(

@@ -104,10 +104,7 @@ class WallsMixin(LayersMixin):
         across = self._material_above(np.array([a, b])) * abs(float(seg[0])) / length
         if across < 2.0 * _COLUMN_EDGE_M * self.planner.scale:
             return None
-        normal = np.array([-seg[1], seg[0]]) / length
-        c = self.design.centroid
-        if (c.x - a[0]) * normal[0] + (c.y - a[1]) * normal[1] < 0.0:
-            normal = -normal
+        normal = self._inward_normal(a, b)
         shift = 0.5 * across * normal
         found = self._fit_pass(kind, np.array([a + shift, b + shift]), atts)
         return None if found is None else self._plan_profile(found, remaining, t0)

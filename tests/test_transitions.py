@@ -253,6 +253,22 @@ def test_exit_from_a_pose_inside_the_material_lifts_straight_up_and_is_clear(
         done += 1
 
 
+@pytest.mark.parametrize("task", ["A", "B", "C", "D"])
+def test_exit_from_anywhere_along_a_dig_is_clear(planner: TrenchPlanner, task: str) -> None:
+    # A dig stopped anywhere (a fault, a stop request) leaves the bucket where it was: its
+    # entry tip first, steep, with the tip between two columns of the height field.
+    s = planner.start(load_task(task, RIG))
+    for _ in range(2):
+        dig = s.next_dig()
+        assert isinstance(dig, PlannedDig)
+        traj = dig.trajectory()
+        for t in np.linspace(0.0, dig.T_s, 13):
+            q = np.asarray(traj.sample(float(t))[0])
+            moves = s.exit_transitions(q)
+            _check_moves(moves, s.material, q)
+        s.record(dig, dig.tip_path_m)
+
+
 def test_exit_moves_planned_before_the_dig_are_clear_of_what_it_leaves(
     planner: TrenchPlanner,
 ) -> None:

@@ -399,7 +399,7 @@ class CyclesMixin(MovesMixin):
             return out
 
         allow = self._bucket_depth(qe[None], surface, np.inf)[0]
-        depths = [self._depth_along(poses, times(0.0, t1), self._carry(q0, surface), None)]
+        depths = [self._depth_along(poses, times(0.0, t1), *self._carry(q0, surface))]
         if t2 > t1:
             for a, b in ((t1, 0.5 * (t1 + t2)), (0.5 * (t1 + t2), t2)):
                 middle = times(a, b)
@@ -444,8 +444,8 @@ class CyclesMixin(MovesMixin):
                 corners = np.array([[*head, d, q_above, qe] for d in dumps])
                 limits = (rig.qd_max_rad_s, rig.qdd_max_rad_s2, rig.qddd_max_rad_s3)
                 d0 = dumps[int(np.argmin(reversal_bound_s(corners, *limits)))]
-                under = self.surface if lift else self._carry(q0, self.surface)
-                moves.append(self._checked(TransitionKind.DUMP, q, d0, under))
+                under = (self.surface, None) if lift else self._carry(q0, self.surface)
+                moves.append(self._checked(TransitionKind.DUMP, q, d0, *under))
                 q = d0
             moves.append(self._checked(TransitionKind.APPROACH, q, q_above, self.surface))
             moves.append(enter)

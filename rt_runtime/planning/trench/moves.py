@@ -178,13 +178,22 @@ class MovesMixin(MaterialMixin):
         after: FloatArray = np.minimum(self.surface, env)
         return after
 
-    def _carry(self, q0: FloatArray, surface: FloatArray) -> FloatArray:
+    def _carry(self, q0: FloatArray, surface: FloatArray) -> tuple[FloatArray, FloatArray]:
         """``surface`` without the material straight above the bucket's outline at ``q0``: what
-        the bucket carries out going straight up (the first move from a pose may cross it)."""
+        the bucket carries out going straight up (the first move from a pose may cross it),
+        with the allowance of each outline point ``(m,)`` (m): its depth at ``q0``.
+
+        The height field is linear between its grid columns, so the carried column's side
+        lies between the outline's last column and the next, and the outline's end beyond its
+        last column can measure deep at ``q0`` itself: a bucket entering tip first, its steep
+        edge ending between two columns, measures several mm. Each point may go that deep, as
+        the enter's allowance; it is 0 for all others. A field that lowered the next column
+        too would make the side up to a grid step wider than the bucket, and a move straying
+        sideways out of it would measure up to a grid step shallower than it is."""
         bx, by = self.planner.mover.bucket_xy(q0)
         start = np.stack([bx + self.machine_x, by], axis=1)
         carry: FloatArray = np.minimum(surface, self._envelope(start, self.grid))
-        return carry
+        return carry, self._bucket_depth(q0[None], carry, np.inf)[0]
 
     def _plan_exit(
         self, q0: FloatArray, surface: FloatArray, dump: FloatArray
@@ -197,7 +206,7 @@ class MovesMixin(MaterialMixin):
             moves = list(lift)
             q_top = np.asarray(lift[-1].q_to_rad) if lift else q0
             moves.append(
-                self._checked(TransitionKind.DUMP, q_top, dump, surface if moves else carry)
+                self._checked(TransitionKind.DUMP, q_top, dump, *((surface, None) if moves else carry))
             )
             bad = [m for m in moves if m.penetration_m > TRANSITION_PENETRATION_M]
             if bad:
@@ -209,7 +218,7 @@ class MovesMixin(MaterialMixin):
         )
 
     def _lifts(
-        self, q0: FloatArray, surface: FloatArray, carry: FloatArray
+        self, q0: FloatArray, surface: FloatArray, carry: tuple[FloatArray, FloatArray]
     ) -> Iterator[tuple[Transition, ...]]:
         """The ``lift_out`` moves from ``q0`` to each of :meth:`_lift_heights`, lowest first,
         that are reachable (none where ``q0`` is the height: the pose is clear already); a lift
@@ -240,7 +249,7 @@ class MovesMixin(MaterialMixin):
         return sorted({max(need + 2.0 * clear * j, y0) for j in range(_N_LIFT_HEIGHTS)})
 
     def _lift(
-        self, q0: FloatArray, y_lift: float, carry: FloatArray
+        self, q0: FloatArray, y_lift: float, carry: tuple[FloatArray, FloatArray]
     ) -> tuple[Transition, ...] | None:
         """``lift_out`` from ``q0`` straight up to tip height ``y_lift``: one move, or where it
         strays from the vertical into the material, pieces through poses on the vertical
@@ -259,7 +268,7 @@ class MovesMixin(MaterialMixin):
                         return first
                 poses.append(np.asarray(q, dtype=np.float64))
             moves = tuple(
-                self._checked(TransitionKind.LIFT_OUT, a, b, carry)
+                self._checked(TransitionKind.LIFT_OUT, a, b, *carry)
                 for a, b in itertools.pairwise(poses)
             )
             if first is None:

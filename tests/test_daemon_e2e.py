@@ -107,6 +107,13 @@ class Daemon:
         except (TimeoutError, BlockingIOError):
             pass
 
+    def idle(self, seconds: float) -> None:
+        """Let ``seconds`` pass, reading the notifications (:meth:`drain` returns at the first
+        quiet millisecond after one arrives, so it is no sleep)."""
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0.0:
+            self.drain(min(left, 0.1))
+
     def wait_for(self, line: str, timeout_s: float) -> None:
         end = time.monotonic() + timeout_s
         while not any(line in m.split("\n") for m in self.messages):

@@ -72,12 +72,11 @@ MAX_WALL_S = 1800.0
 #: Kills of the restart test (SIGKILL and SIGABRT alternating).
 RESTART_RUNS = int(os.environ.get("EXCAVATOR_RT_RESTART_RUNS", "2"))
 #: How long after the job reports a dig the restart test kills the daemon (s; task A's digs
-#: last 5-9 s, the drives move on for their SYNC watchdog's time after a kill).
-INTO_DIG_S = 3.0
-#: How long after the job reports its first dig (8.9 s long) the fault tests act (s). Not
-#: earlier: from poses in the first ~1.7 s of that dig the trench planner often finds no lift
-#: out of the material (docs/daemon.md, "Known limit"), the planner's to fix, not the daemon's.
-INTO_FIRST_DIG_S = 5.0
+#: last 5-9 s).
+INTO_DIG_S = 2.0
+#: How long after the job reports its first dig (8.9 s long) the fault tests act (s): early,
+#: the bucket entering tip first, where the resumed job's lift out is hardest to plan.
+INTO_FIRST_DIG_S = 1.0
 #: Longest wait for a dig to begin, for a job to end (s): bounds, not expectations.
 DIG_WAIT_S = 300.0
 JOB_WAIT_S = 300.0
@@ -346,7 +345,7 @@ def in_dig(
         return False
 
     until(digging, DIG_WAIT_S, f"dig {index}", daemon)
-    daemon.drain(into_s)
+    daemon.idle(into_s)
     return found[0]
 
 
@@ -448,7 +447,7 @@ def test_frozen_bus_latches_a_fault_and_reset_fault_resumes_the_job(bench: Bench
             daemon,
         )
         print(f"\n  fault latched {time.monotonic() - t_event:.2f} s after SIGSTOP")
-        daemon.drain(2.0)  # frozen a few seconds in all
+        daemon.idle(2.0)  # frozen a few seconds in all
     finally:
         os.kill(bench.hil.proc.pid, signal.SIGCONT)
     assert_latched(bench, daemon, "stale feedback")

@@ -205,9 +205,8 @@ class MovesMixin(MaterialMixin):
         for lift in self._lifts(q0, surface, carry):
             moves = list(lift)
             q_top = np.asarray(lift[-1].q_to_rad) if lift else q0
-            moves.append(
-                self._checked(TransitionKind.DUMP, q_top, dump, *((surface, None) if moves else carry))
-            )
+            under = (surface, None) if moves else carry
+            moves.append(self._checked(TransitionKind.DUMP, q_top, dump, *under))
             bad = [m for m in moves if m.penetration_m > TRANSITION_PENETRATION_M]
             if bad:
                 refused.append(max(bad, key=lambda m: m.penetration_m))

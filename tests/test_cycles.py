@@ -73,18 +73,27 @@ def test_a_blended_cycle_holds_every_limit_and_passes_its_corners(plan_a: Trench
         assert np.all(exact.position_high_rad <= RIG.q_max_rad + 1e-9), case
         assert traj.sampled_limit_check(1000.0).within_limits, case
         # Through every corner at its time, at rest at both ends only.
-        waypoints = np.asarray(c.waypoints_rad)
+        b = c.blend_from
+        waypoints = np.asarray(c.waypoints_rad[b:])
         np.testing.assert_allclose(traj.sample(traj.waypoint_times_s), waypoints, atol=1e-9)
-        assert traj.waypoint_times_s == pytest.approx(c.waypoint_times_s, abs=1e-12)
+        lead_s = sum(m.duration_s for m in c.moves)
+        assert c.waypoint_times_s[:b] == pytest.approx(
+            np.cumsum([0.0, *(m.duration_s for m in c.moves)])[:b], abs=1e-12
+        )
+        assert np.asarray(traj.waypoint_times_s) + lead_s == pytest.approx(
+            c.waypoint_times_s[b:], abs=1e-12
+        )
         for t in (0.0, traj.duration_s):
             assert np.abs(traj.sample(t, 1)).max() <= 1e-9
             assert np.abs(traj.sample(t, 2)).max() <= 1e-9
         speed = np.abs(traj.sample(np.asarray(traj.waypoint_times_s[1:-1]), 1)).max(axis=1)
         assert (speed > 1e-3).all(), case  # no stop at the corners
-        assert c.duration_s == pytest.approx(traj.duration_s, rel=1e-12)
-        assert c.bound_s == pytest.approx(float(reversal_bound_s(waypoints, *limits)))
+        assert c.duration_s == pytest.approx(lead_s + traj.duration_s, rel=1e-12)
+        every = np.asarray(c.waypoints_rad)
+        assert c.bound_s == pytest.approx(float(reversal_bound_s(every, *limits)))
         assert 0.0 <= c.penetration_m <= TRANSITION_PENETRATION_M
-        assert len(c.kinds) == len(waypoints) - 1 and c.kinds[-1] is TransitionKind.ENTER
+        assert len(c.kinds) == len(every) - 1 and c.kinds[-1] is TransitionKind.ENTER
+        assert all(k is TransitionKind.LIFT_OUT for k in c.kinds[:b])
 
 
 def test_every_dump_lies_in_the_spoil_zone_beside_the_trench(

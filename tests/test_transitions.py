@@ -28,7 +28,9 @@ import shapely
 from shapely.geometry import Polygon
 
 from rt_runtime import kinematics
-from rt_runtime.control.planner_worker import SessionDriver
+from rt_runtime.bench import random_tasks
+from rt_runtime.control.planner_worker import SessionDriver, chain
+from rt_runtime.control.setpoints import KIND_PHASE, connect_motion, sample_cycle
 from rt_runtime.errors import PlanningError
 from rt_runtime.planning.trench import (
     GRID_STEP_M,
@@ -36,6 +38,7 @@ from rt_runtime.planning.trench import (
     PlannedDig,
     Transition,
     TransitionKind,
+    TravelMove,
     TrenchPlanner,
     TrenchSession,
     joint_move,
@@ -139,11 +142,13 @@ CYCLE_STEP_S = 0.005
 def _check_cycle(cycle: Cycle, material: Any) -> float:
     """A blended cycle's independent penetration (m), with its allowances: up to its first
     corner the material carried out from its start pose, from the pose above the entry on each
-    outline point's depth at the entry."""
+    outline point's depth at the entry; a straight lift before the blend as rest-to-rest
+    moves (:func:`_check_moves`), the blend from its top."""
+    lead = max(_check_moves(cycle.moves, material, cycle.waypoints_rad[0])) if cycle.moves else 0.0
     traj = cycle.trajectory(RIG)
     t_wp = traj.waypoint_times_s
     t1, t2, t_end = float(t_wp[1]), float(t_wp[-2]), traj.duration_s
-    q0 = np.asarray(cycle.waypoints_rad[0])
+    q0 = np.asarray(cycle.waypoints_rad[cycle.blend_from])
     x = cycle.machine_x_m
     t = np.linspace(0.0, t_end, max(int(t_end / CYCLE_STEP_S), 2) + 1)
     pts = _bucket(traj.sample(t), x)
@@ -156,7 +161,7 @@ def _check_cycle(cycle: Cycle, material: Any) -> float:
         worst = max(worst, float(_depth(material, pts[middle]).max()))
     entry = _depth(material, _bucket(np.asarray(cycle.waypoints_rad[-1:]), x))[0]
     worst = max(worst, float((_depth(material, pts[enter]) - entry).max()))
-    p = max(0.0, worst)
+    p = max(0.0, worst, lead)
     assert p <= LIMIT_M, (cycle.kinds, p)
     assert abs(p - cycle.penetration_m) <= AGREE_M, (p, cycle.penetration_m)
     return p
@@ -172,50 +177,87 @@ def _assert_straight_up(moves: tuple[Transition, ...] | list[Transition]) -> Non
         assert b[1] > a[1]
 
 
-@pytest.mark.parametrize("name", list("ABCD"))
-def test_every_move_of_a_plan_keeps_the_bucket_out_of_the_material(
-    planner: TrenchPlanner, name: str
-) -> None:
-    s = planner.start(load_task(name, RIG))
-    kinds: set[str] = set()
-    worst = 0.0
-    blended = 0
+def _dig_checking_every_move(planner: TrenchPlanner, s: TrenchSession) -> list[Cycle]:
+    """Dig ``s`` to its end, every cycle checked independently on the material as it is when
+    the cycle runs; the cycles, in order."""
+    cycles = []
     while True:
         n0 = len(s.steps)
         dig = s.next_dig()
         if dig is None:
             break
-        new = s.steps[n0:]
+        new = [st for st in s.steps[n0:] if not isinstance(st, TravelMove)]
         assert len(new) == 1 and isinstance(new[0], Cycle)
         cycle = new[0]
-        kinds |= {k.label for k in cycle.kinds}
+        cycles.append(cycle)
         assert cycle.waypoints_rad[-1] == dig.problem.q_start_rad
         assert cycle.kinds[-2:] == (TransitionKind.APPROACH, TransitionKind.ENTER)
-        if s.digs:  # the moves out of the previous dig, on the material it left
-            assert cycle.after_dig and cycle.waypoints_rad[0] == s.digs[-1].problem.q_end_rad
-            assert cycle.kinds[0] is TransitionKind.LIFT_OUT
+        if cycle.after_dig:  # the moves out of the previous dig, on the material it left
+            assert cycle.waypoints_rad[0] == s.digs[-1].problem.q_end_rad
             assert TransitionKind.DUMP in cycle.kinds
+            if cycle.kinds[0] is not TransitionKind.LIFT_OUT:  # no lift: clear already
+                q0 = np.asarray(cycle.waypoints_rad[0])[None]
+                assert _depth(s.material, _bucket(q0, cycle.machine_x_m)).max() == 0.0
         else:  # from the home pose, in the spoil zone already
-            assert not cycle.after_dig
             assert np.allclose(cycle.waypoints_rad[0], planner.home_pose_rad, atol=0.0)
             assert TransitionKind.DUMP not in cycle.kinds
         if cycle.blended:
-            blended += 1
-            worst = max(worst, _check_cycle(cycle, s.material))
+            _assert_straight_up(cycle.moves)
+            assert all(m.kind is TransitionKind.LIFT_OUT for m in cycle.moves)
+            _check_cycle(cycle, s.material)
         else:
             exit_moves = [t for t in cycle.moves if t.kind.label in ("lift_out", "dump")]
             entry_moves = [t for t in cycle.moves if t.kind.label in ("approach", "enter")]
             assert list(cycle.moves) == exit_moves + entry_moves
             if exit_moves:
                 _assert_straight_up(exit_moves)
-                worst = max(worst, *_check_moves(exit_moves, s.material, s.q_now))
-            worst = max(worst, *_check_moves(entry_moves, s.material))
+                _check_moves(exit_moves, s.material, s.q_now)
+            _check_moves(entry_moves, s.material)
         s.record(dig, dig.tip_path_m)
-    assert {"lift_out", "dump", "approach", "enter"} <= kinds
-    assert blended >= 1
     report = s.finish(0.0).to_json()
     assert report["transition_penetration_max_mm"] <= LIMIT_M * 1e3
-    assert worst <= LIMIT_M
+    return cycles
+
+
+@pytest.mark.parametrize("name", list("ABCD"))
+def test_every_move_of_a_plan_keeps_the_bucket_out_of_the_material(
+    planner: TrenchPlanner, name: str
+) -> None:
+    cycles = _dig_checking_every_move(planner, planner.start(load_task(name, RIG)))
+    assert {"lift_out", "dump", "approach", "enter"} <= {k.label for c in cycles for k in c.kinds}
+    assert any(c.blended for c in cycles)
+
+
+def test_deep_corners_lift_straight_then_blend(planner: TrenchPlanner) -> None:
+    # Deep random tasks (0.27 / 0.20 m) whose lift out of a deep corner no blend through the
+    # lift's top keeps clear: the lift is made straight, at rest at its top, and the blend
+    # starts there; it streams as the lift's moves and then the blend, one chain.
+    tasks = random_tasks(RIG, 25, 7)
+    straight = []
+    for i in (18, 24):
+        cycles = _dig_checking_every_move(planner, planner.start(tasks[i]))
+        straight += [c for c in cycles if c.blended and c.moves]
+    assert straight, "no cycle lifted straight before its blend"
+    for c in straight:
+        b = c.blend_from
+        traj = c.trajectory(RIG)
+        assert np.abs(traj.sample(0.0, 1)).max() <= 1e-9  # the blend starts at rest
+        assert c.waypoints_rad[b] == c.moves[-1].q_to_rad
+        assert c.duration_s == pytest.approx(
+            sum(m.duration_s for m in c.moves) + traj.duration_s, rel=1e-12
+        )
+        motion = sample_cycle(RIG, 0.002, c)
+        np.testing.assert_array_equal(motion.q_start_rad, c.waypoints_rad[b])
+        assert motion.phase is KIND_PHASE[c.kinds[b]]
+        # As the planner process streams it: no connecting move is needed anywhere.
+        lift = [
+            connect_motion(RIG, 0.002, m.q_from_rad, m.q_to_rad, KIND_PHASE[m.kind])
+            for m in c.moves
+        ]
+        chained, end = chain(RIG, 0.002, np.asarray(c.waypoints_rad[0]), [*lift, motion])
+        assert len(chained) == len(lift) + 1
+        np.testing.assert_array_equal(end, c.waypoints_rad[-1])
+        assert c.duration_s / c.bound_s < 1.6
 
 
 def _partly_dug(planner: TrenchPlanner, digs: int = 3) -> TrenchSession:

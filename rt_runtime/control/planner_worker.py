@@ -490,10 +490,9 @@ class SessionDriver:
 
         out: list[SampledMotion] = []
         if cycle is not None:
+            out.extend(move(t) for t in cycle.moves)
             if cycle.blended:
                 out.append(sample_cycle(rig, period, cycle))
-            else:
-                out.extend(move(t) for t in cycle.moves)
         if dig is not None:
             out.append(
                 sample_motion(

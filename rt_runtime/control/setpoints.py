@@ -198,10 +198,12 @@ def _tables(
 
 
 def sample_cycle(rig: Rig, period_s: float, cycle: Cycle) -> SampledMotion:
-    """A blended dig cycle (:class:`~rt_runtime.planning.trench.Cycle`) sampled like
-    :func:`sample_motion` (its trajectory evaluated at all sample times at once; the last
-    sample is exactly its last waypoint, at rest), each sample in the phase of the waypoint
-    interval it lies in (:attr:`SampledMotion.phase_runs`).
+    """A blended dig cycle's blend (:class:`~rt_runtime.planning.trench.Cycle`, from waypoint
+    :attr:`~rt_runtime.planning.trench.Cycle.blend_from`: its rest-to-rest moves before it
+    stream with :func:`connect_motion`) sampled like :func:`sample_motion` (its trajectory
+    evaluated at all sample times at once; the last sample is exactly its last waypoint, at
+    rest), each sample in the phase of the waypoint interval it lies in
+    (:attr:`SampledMotion.phase_runs`).
 
     Raises:
         PlanningError: The cycle is not blended (stream its moves with
@@ -220,9 +222,11 @@ def sample_cycle(rig: Rig, period_s: float, cycle: Cycle) -> SampledMotion:
     qd[end] = 0.0
     qdd[end] = 0.0
     # Sample j (at (j + 1) T) belongs to the waypoint interval its time lies in.
-    starts = np.asarray(cycle.waypoint_times_s[1:-1])
+    b = cycle.blend_from
+    times = np.asarray(cycle.waypoint_times_s[b:])
+    starts = times[1:-1] - times[0]
     first = np.searchsorted(t, starts, side="left").tolist()
-    phases = [KIND_PHASE[k] for k in cycle.kinds]
+    phases = [KIND_PHASE[k] for k in cycle.kinds[b:]]
     runs: list[tuple[int, Phase]] = [(0, phases[0])]
     for j, ph in zip(first, phases[1:], strict=True):
         if ph is runs[-1][1]:
@@ -231,7 +235,7 @@ def sample_cycle(rig: Rig, period_s: float, cycle: Cycle) -> SampledMotion:
             runs[-1] = (runs[-1][0], ph)
         elif j < n:
             runs.append((j, ph))
-    q0 = np.asarray(cycle.waypoints_rad[0], dtype=np.float64)
+    q0 = np.asarray(cycle.waypoints_rad[b], dtype=np.float64)
     return _tables(rig, runs[0][1], q0, q, qd, qdd, -1, duration, tuple(runs))
 
 

@@ -36,7 +36,12 @@ Rules (arm frame, m, rad, s):
   above the entry on, each point of the bucket may be as deep as at the entry. Between those,
   the tip stays :data:`_GROUND_CLEAR_M` above the ground where it is outside the trench's top
   edges.
-* Fallback. Where no blended cycle is clear, the rest-to-rest moves through the best
+* Straight lift. Where no corner set gives a clear blend (deep corners: a blend through the
+  lift's top leaves the vertical while still in the material), the lowest clear lift is made
+  rest-to-rest, straight up, and the blend starts at rest at its top (the cycle's
+  :attr:`~rt_runtime.planning.trench.Cycle.moves` before its blend), with the first two
+  approach poses.
+* Fallback. Where that is not clear either, the rest-to-rest moves through the best
   candidate's corners (each checked), else through the home pose (the moves every dig's choice
   checked: :meth:`MovesMixin._check_transition_poses`).
 
@@ -203,7 +208,8 @@ class CyclesMixin(MovesMixin):
         The corners tried, at most :data:`_ATTEMPTS` sets: the lowest clear lift and the first
         clear approach pose first; where the best dump's cycle goes into the material in its
         first half the next lift (its intermediate poses as corners, then the next height),
-        in its second half the next approach pose (higher above the entry).
+        in its second half the next approach pose (higher above the entry); then the lowest
+        lift made straight with the blend from its top.
 
         Args:
             q_from_rad: Start pose ``(3,)``: a dig's exit, the home pose or a measured pose.
@@ -253,6 +259,14 @@ class CyclesMixin(MovesMixin):
                     li += 1
                 else:
                     break
+            # The lift straight, at rest at its top, and the blend from there.
+            for lift in lifts[:1] if lifts[0] else ():
+                for above in aboves[:2]:
+                    best, _ = self._blend(
+                        q0, [], dumps, above[0], qe, dump, after_dig, _N_PLANNED, lead=lift
+                    )
+                    if best is not None:
+                        return best[0]
         return self._fallback(
             q0,
             qe,
@@ -290,14 +304,19 @@ class CyclesMixin(MovesMixin):
         dump: bool,
         after_dig: bool,
         n_planned: int,
+        lead: tuple[Transition, ...] = (),
     ) -> tuple[tuple[Cycle, TimeJerkTrajectory] | None, int]:
         """The shortest clear blended cycle through ``q0``, ``lift_poses``, one of ``dumps``
         (the best ``n_planned`` by the bound), ``q_above`` and ``qe``, or None; and where the
         best candidate went deepest into the material when none is clear (a part of
-        :meth:`_cycle_depth`)."""
+        :meth:`_cycle_depth`). With ``lead`` (a clear lift from ``q0``) the blend starts at
+        rest at the lift's top, after its rest-to-rest moves."""
         rig = self.rig
         limits = (rig.qd_max_rad_s, rig.qdd_max_rad_s2, rig.qddd_max_rad_s3)
-        head = [q0, *lift_poses]
+        lead_poses = [np.asarray(m.q_to_rad) for m in lead]
+        q_blend = lead_poses[-1] if lead else q0
+        lead_s = sum(m.duration_s for m in lead)
+        head = [q_blend, *lift_poses]
         kinds_head = [TransitionKind.LIFT_OUT] * len(lift_poses)
         tail = [q_above, qe]
         kinds_tail = [TransitionKind.APPROACH, TransitionKind.ENTER]
@@ -314,24 +333,25 @@ class CyclesMixin(MovesMixin):
             if best is not None and bounds[i] >= best[0].duration_s:
                 break
             waypoints, wp_kinds = _distinct(corners[i], kinds)
-            traj, depth, part = self._clear_trajectory(waypoints, q0, qe)
+            traj, depth, part = self._clear_trajectory(waypoints, q_blend, qe)
             if first_part < 0:
                 first_part = part
             if traj is None or traj.duration_s >= self._stopping_s(waypoints):
                 continue
-            if best is None or traj.duration_s < best[0].duration_s:
+            if best is None or lead_s + traj.duration_s < best[0].duration_s:
+                every = np.array([q0, *lead_poses, *waypoints[1:]])
                 cycle = Cycle(
-                    waypoints_rad=tuple(_triple(q) for q in waypoints),
-                    kinds=tuple(wp_kinds),
+                    waypoints_rad=tuple(_triple(q) for q in every),
+                    kinds=(*(m.kind for m in lead), *wp_kinds),
                     piece_durations_s=tuple(float(h) for h in traj.piece_durations_s),
                     shape_knots=traj.problem.shape_knots,
                     shape_positions_rad=tuple(_triple(q) for q in traj.shape_positions_rad),
                     w_jerk=CYCLE_W_JERK,
-                    moves=(),
-                    duration_s=traj.duration_s,
-                    bound_s=float(reversal_bound_s(waypoints, *limits)),
+                    moves=lead,
+                    duration_s=lead_s + traj.duration_s,
+                    bound_s=float(reversal_bound_s(every, *limits)),
                     machine_x_m=self.machine_x,
-                    penetration_m=depth,
+                    penetration_m=max([depth, *(m.penetration_m for m in lead)]),
                     after_dig=after_dig,
                 )
                 best = (cycle, traj)

@@ -154,9 +154,11 @@ class Cycle:
 
     Blended (:attr:`piece_durations_s` given): one minimum time-jerk trajectory through the
     corners (Zhao eq 3, :mod:`rt_runtime.trajectory.timejerk`) at rest only at both ends, within
-    the rig's joint velocity, acceleration and jerk limits and ranges. Otherwise the
-    rest-to-rest ruckig moves :attr:`moves` through the same kind of corners, where no blend was
-    clear of the material (the cycle's fallback).
+    the rig's joint velocity, acceleration and jerk limits and ranges; where a blend from the
+    start was not clear but one from the lift's top is, the lift's rest-to-rest moves
+    :attr:`moves` come first and the blend starts at rest at the lift's top (waypoint
+    ``len(moves)``). Otherwise the rest-to-rest ruckig moves :attr:`moves` through the same
+    kind of corners, where no blend was clear of the material (the cycle's fallback).
 
     Attributes:
         waypoints_rad: The corners in order, ``(n + 1)`` poses (arm frame): the start (a dig's
@@ -167,8 +169,9 @@ class Cycle:
         shape_knots: ``(n,)`` the blended trajectory's shape knots in each waypoint interval.
         shape_positions_rad: Their positions (arm frame), in order.
         w_jerk: The weight of the jerk integral it was planned with (s^6/rad^2, w_time = 1).
-        moves: The rest-to-rest moves where not blended (empty when blended).
-        duration_s: The cycle's move time (s).
+        moves: The rest-to-rest moves: all of them where not blended; where blended, the lift's
+            before the blend (usually none).
+        duration_s: The cycle's move time (s), its rest-to-rest moves and blend together.
         bound_s: The time if each joint stopped only where it reverses through the same
             waypoints (:func:`rt_runtime.trajectory.timejerk.reversal_bound_s`).
         machine_x_m: The machine's travel from its first position.
@@ -197,25 +200,34 @@ class Cycle:
         return bool(self.piece_durations_s)
 
     @property
+    def blend_from(self) -> int:
+        """The waypoint the blended trajectory starts at (after the rest-to-rest moves)."""
+        return len(self.moves)
+
+    @property
     def waypoint_times_s(self) -> tuple[float, ...]:
         """When the cycle passes each waypoint (s from its start)."""
-        if self.blended:
-            knots = np.concatenate([[0.0], np.cumsum(self.piece_durations_s)])
-            kinds = TimeJerkProblem.knot_kinds_of(self.shape_knots)
-            return tuple(float(knots[i]) for i, c in enumerate(kinds) if c == "W")
         ends = np.cumsum([m.duration_s for m in self.moves])
-        return (0.0, *(float(t) for t in ends))
+        lead = (0.0, *(float(t) for t in ends))
+        if not self.blended:
+            return lead
+        knots = lead[-1] + np.concatenate([[0.0], np.cumsum(self.piece_durations_s)])
+        kinds = TimeJerkProblem.knot_kinds_of(self.shape_knots)
+        return lead[:-1] + tuple(float(knots[i]) for i, c in enumerate(kinds) if c == "W")
 
     def trajectory(self, rig: Rig) -> TimeJerkTrajectory:
         """The blended trajectory (:class:`~rt_runtime.trajectory.timejerk.TimeJerkTrajectory`)
-        rebuilt from its corners and piece durations (one linear solve, the same numbers).
+        rebuilt from its corners and piece durations (one linear solve, the same numbers): from
+        waypoint :attr:`blend_from` on, its time from there.
 
         Raises:
             PlanningError: The cycle is not blended.
         """
         if not self.blended:
             raise PlanningError("a cycle of rest-to-rest moves has no blended trajectory")
-        problem = cycle_problem(rig, self.waypoints_rad, self.w_jerk, self.shape_knots)
+        problem = cycle_problem(
+            rig, self.waypoints_rad[self.blend_from :], self.w_jerk, self.shape_knots
+        )
         return interpolate(problem, self.piece_durations_s, self.shape_positions_rad or None)
 
 
@@ -236,7 +248,8 @@ def cycle_problem(
 
 def iter_moves(steps: Any) -> list[Transition | Cycle]:
     """The moves of ``steps`` one by one: every :class:`Transition`, a blended :class:`Cycle`
-    as itself and a fallback cycle as its rest-to-rest moves."""
+    as itself (with any rest-to-rest lift before its blend) and a fallback cycle as its
+    rest-to-rest moves."""
     out: list[Transition | Cycle] = []
     for st in steps:
         if isinstance(st, Transition):

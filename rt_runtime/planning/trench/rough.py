@@ -220,7 +220,8 @@ class RoughMixin(DigsMixin):
         vx, vy = np.einsum("nij,nj->in", jac[:, :2], K)
         top = np.minimum(c_top, c_hi)
         steps = np.arange(_N_SCALE_STEPS + 1) / _N_SCALE_STEPS
-        cg = top[:, None] * (1.0 - steps[None, :])  # from top down to 0
+        # From top down to 0 (no scale where top <= 0, -inf where no scale is inside).
+        cg = np.where(top > 0.0, top, 0.0)[:, None] * (1.0 - steps[None, :])
         ang = np.arctan2(-(uy[:, None] + cg * vy[:, None]), np.abs(ux[:, None] + cg * vx[:, None]))
         tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
         ok = (ang >= tp_lo + 1e-3) & (ang <= tp_hi - 1e-3) & (cg >= c_lo[:, None])

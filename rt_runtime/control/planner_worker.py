@@ -54,6 +54,7 @@ import queue
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
@@ -726,9 +727,28 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
         )
         driver = SessionDriver(session, spec.period_s)
     except ExcavatorRtError as exc:
-        conn.send(PlannerError(f"planner process could not start: {exc}"))
+        with contextlib.suppress(EOFError, OSError):
+            conn.send(PlannerError(f"planner process could not start: {exc}"))
         conn.close()
         return
+
+    def reply(work: Callable[..., Any], arg: Any) -> tuple[bool, bool]:
+        """Send what ``work(arg)`` returns, or the error it raised: whether the pipe is still open
+        (not where the job's side is gone: a stopped job, a daemon that ended) and whether
+        ``work`` succeeded."""
+        done = False
+        try:
+            answer, done = work(arg), True
+        except ExcavatorRtError as exc:
+            answer = PlannerError(str(exc))
+        except Exception as exc:  # keep the process answering; the executor stops the job
+            answer = PlannerError(f"planner process: {type(exc).__name__}: {exc}")
+        try:
+            conn.send(answer)
+        except (EOFError, OSError):
+            return False, done
+        return True, done
+
     while True:
         try:
             message = conn.recv()
@@ -737,17 +757,13 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
         kind = message[0]
         if kind == "stop":
             break
-        try:
-            if kind == "plan":
-                conn.send(driver.plan(message[1]))
-            elif kind == "record":
-                conn.send(driver.record(message[1]))
-                if message[2]:
-                    conn.send(driver.plan(None))
-        except ExcavatorRtError as exc:
-            conn.send(PlannerError(str(exc)))
-        except Exception as exc:  # keep the process answering; the executor stops the job
-            conn.send(PlannerError(f"planner process: {type(exc).__name__}: {exc}"))
+        if kind == "plan":
+            if not reply(driver.plan, message[1])[0]:
+                break
+        elif kind == "record":
+            open_, recorded = reply(driver.record, message[1])
+            if not open_ or (recorded and message[2] and not reply(driver.plan, None)[0]):
+                break
     conn.close()
 
 

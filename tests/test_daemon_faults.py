@@ -62,7 +62,7 @@ from rt_runtime.rig import load_rig
 from rt_runtime.rig.loader import PROFILE_DIR
 from rt_runtime.service.config import load_config
 from rt_runtime.service.control import request
-from rt_runtime.service.jobstore import JobStore, read_store
+from rt_runtime.service.jobstore import JobStatus, JobStore, read_store
 from rt_runtime.service.runner import RigRunner
 
 RIG = "scale_model"
@@ -209,6 +209,40 @@ def test_the_runner_latches_a_bus_error_lives_and_resets_on_a_reopened_bus(
         assert runner.shutdown(10.0)
         hil.close()
         gc.unfreeze()
+
+
+def test_a_shutdown_right_after_a_job_keeps_its_report(tmp_path: Path) -> None:
+    """The runner on the lockstep HIL digs one dig and is shut down the moment the job is done:
+    the job's report (its telemetry file) is written before the shutdown returns, not cut
+    short with the process."""
+    from hil_sim.harness.lockstep import LockstepHil
+
+    rig = load_rig(RIG)
+    cfg_path = tmp_path / "d.toml"
+    cfg_path.write_text(
+        '[bus]\ninterface = "virtual"\nchannel = "unused"\nboot_timeout_s = 1.0\n'
+        '[rig]\nprofile = "scale_model"\n[loop]\nsched_fifo_priority = 0\n'
+        'lock_memory = false\n[paths]\nstate_dir = "state"\nsocket = "run/c.sock"\n'
+    )
+    config = load_config(cfg_path)
+    hil = LockstepHil(rig, TrenchPlanner(rig).home_pose_rad, vcu=False)
+    store = JobStore(config.paths.state_dir)
+    runner = RigRunner(config, rig, TrenchPlanner(rig), hil.master_bus, store, hil.clock)
+    task = {"name": "A", "length_m": 0.6, "depth_m": 0.15, "beta1_deg": 60.0,
+            "beta2_deg": 60.0, "start_x_m": 1.05}  # fmt: skip
+    try:
+        runner.start()
+        job = store.submit(task, "pinn", max_digs=1)
+        store.changed.set()
+        end = time.monotonic() + JOB_WAIT_S
+        while store.get(job.id).status is not JobStatus.DONE:
+            assert time.monotonic() < end, runner.state()
+            time.sleep(0.005)
+    finally:
+        assert runner.shutdown(30.0)
+        hil.close()
+        gc.unfreeze()
+    assert (config.paths.state_dir / "telemetry" / f"job-{job.id}.npz").is_file()
 
 
 @pytest.fixture

@@ -382,7 +382,8 @@ class Runner(Protocol):
 
     def shutdown(self, timeout_s: float) -> bool:
         """Stop safely (a running job: jerk-limited stop, left resumable), disable the drives,
-        end the thread. True when all of that happened in time."""
+        end the thread, and let the last job's report finish (a few seconds at most). True
+        when the thread ended in time."""
         ...
 
     def alive(self) -> bool:

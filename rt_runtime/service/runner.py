@@ -48,6 +48,7 @@ import os
 import queue
 import signal
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
@@ -449,8 +450,16 @@ class RigRunner:
             running.controller.request_stop(StopRequest.SHUTDOWN)
         if self._thread is None:
             return True
+        end = time.monotonic() + timeout_s
         self._thread.join(timeout_s)
-        return not self._thread.is_alive()
+        if self._thread.is_alive():
+            return False
+        # The last job's report (its planner closed, its telemetry file) runs on a daemon
+        # thread that the process's exit would cut short.
+        left = min(max(end - time.monotonic(), 0.0), AFTERMATH_TIMEOUT_S)
+        if not self._prep.after.drain(left):
+            log.warning("the last job's report did not finish within %.1f s", left)
+        return True
 
     def alive(self) -> bool:
         """See :meth:`Runner.alive`."""

@@ -136,7 +136,7 @@ def test_an_unreachable_spoil_zone_is_refused() -> None:
 def test_a_cycle_that_cannot_be_blended_falls_back_to_checked_rest_to_rest_moves(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    def refuse(self: Any, waypoints: Any, q0: Any, qe: Any) -> tuple[None, float, int]:
+    def refuse(self: Any, *args: Any) -> tuple[None, float, int]:
         return None, math.inf, 1
 
     monkeypatch.setattr(CyclesMixin, "_clear_trajectory", refuse)

@@ -140,14 +140,17 @@ CYCLE_STEP_S = 0.005
 
 
 def _check_cycle(cycle: Cycle, material: Any) -> float:
-    """A blended cycle's independent penetration (m), with its allowances: up to its first
-    corner the material carried out from its start pose, from the pose above the entry on each
-    outline point's depth at the entry; a straight lift before the blend as rest-to-rest
-    moves (:func:`_check_moves`), the blend from its top."""
+    """A blended cycle's independent penetration (m), with its allowances: up to its lift's
+    top (its first corner without a lift) the material carried out from its start pose, from
+    the pose above the entry on each outline point's depth at the entry; a straight lift
+    before the blend as rest-to-rest moves (:func:`_check_moves`), the blend from its top."""
     lead = max(_check_moves(cycle.moves, material, cycle.waypoints_rad[0])) if cycle.moves else 0.0
     traj = cycle.trajectory(RIG)
     t_wp = traj.waypoint_times_s
-    t1, t2, t_end = float(t_wp[1]), float(t_wp[-2]), traj.duration_s
+    kinds = cycle.kinds[cycle.blend_from :]
+    n_lift = next((i for i, k in enumerate(kinds) if k is not TransitionKind.LIFT_OUT), 0)
+    t2, t_end = float(t_wp[-2]), traj.duration_s
+    t1 = min(float(t_wp[max(n_lift, 1)]), t2)
     q0 = np.asarray(cycle.waypoints_rad[cycle.blend_from])
     x = cycle.machine_x_m
     t = np.linspace(0.0, t_end, max(int(t_end / CYCLE_STEP_S), 2) + 1)

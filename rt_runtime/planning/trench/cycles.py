@@ -31,8 +31,9 @@ Rules (arm frame, m, rad, s):
   without them where that is not clear) and the shortest clear cycle is taken.
 * Check. The whole bucket outline, sampled as a move's (:meth:`MovesMixin._depth_along`),
   stays within :data:`TRANSITION_PENETRATION_M` less :data:`_BLEND_MARGIN_M` of the material
-  left, with the moves' allowances: up to the first corner after the start (the lift's top)
-  the material straight above the bucket at the start is what it carries out; from the pose
+  left, with the moves' allowances: up to the lift's top (its last corner; the first corner
+  where there is no lift) the material straight above the bucket at the start is what it
+  carries out; from the pose
   above the entry on, each point of the bucket may be as deep as at the entry. Between those,
   the tip stays :data:`_GROUND_CLEAR_M` above the ground where it is outside the trench's top
   edges.
@@ -333,7 +334,8 @@ class CyclesMixin(MovesMixin):
             if best is not None and bounds[i] >= best[0].duration_s:
                 break
             waypoints, wp_kinds = _distinct(corners[i], kinds)
-            traj, depth, part = self._clear_trajectory(waypoints, q_blend, qe)
+            n_lift = sum(1 for _ in itertools.takewhile(_is_lift, wp_kinds))
+            traj, depth, part = self._clear_trajectory(waypoints, q_blend, qe, n_lift)
             if first_part < 0:
                 first_part = part
             if traj is None or traj.duration_s >= self._stopping_s(waypoints):
@@ -364,7 +366,7 @@ class CyclesMixin(MovesMixin):
         return sum(float(mover.move(a, b).duration) for a, b in itertools.pairwise(waypoints))
 
     def _clear_trajectory(
-        self, waypoints: FloatArray, q0: FloatArray, qe: FloatArray
+        self, waypoints: FloatArray, q0: FloatArray, qe: FloatArray, n_lift: int
     ) -> tuple[TimeJerkTrajectory | None, float, int]:
         """The blended trajectory through ``waypoints``, with shape knots in its long
         intervals, else without, the first that is clear (None where neither is), its depth
@@ -388,7 +390,7 @@ class CyclesMixin(MovesMixin):
                 )
             except PlanningError:
                 continue
-            depth, part = self._cycle_depth(traj, q0, qe)
+            depth, part = self._cycle_depth(traj, q0, qe, n_lift)
             if depth <= TRANSITION_PENETRATION_M - _BLEND_MARGIN_M:
                 return traj, depth, part
             if first_part < 0:
@@ -396,17 +398,19 @@ class CyclesMixin(MovesMixin):
         return None, math.inf, first_part
 
     def _cycle_depth(
-        self, traj: TimeJerkTrajectory, q0: FloatArray, qe: FloatArray
+        self, traj: TimeJerkTrajectory, q0: FloatArray, qe: FloatArray, n_lift: int
     ) -> tuple[float, int]:
         """How deep the blended ``traj`` takes the bucket into the material left beyond its
         allowances (m; see the module), ``inf`` where the tip comes nearer the ground than
         :data:`_GROUND_CLEAR_M` outside the trench; and the part where it is deepest: 0 up to
-        the first corner, 1 the first half from there to the pose above the entry
-        (:data:`_EARLY`), 2 the second half, 3 the enter."""
+        the lift's top (its ``n_lift``-th corner; the first corner where it has none), 1 the
+        first half from there to the pose above the entry (:data:`_EARLY`), 2 the second
+        half, 3 the enter."""
         surface = self.surface
         mover = self.planner.mover
         t_wp = traj.waypoint_times_s
-        t1, t2, t_end = float(t_wp[1]), float(t_wp[-2]), traj.duration_s
+        t2, t_end = float(t_wp[-2]), traj.duration_s
+        t1 = min(float(t_wp[max(n_lift, 1)]), t2)
         # No point of the bucket moves faster than the joints' peak speeds allow.
         speed = float(traj.limit_check().velocity_peak_rad_s @ mover.radius_m)
 
@@ -495,6 +499,10 @@ class CyclesMixin(MovesMixin):
             penetration_m=max(m.penetration_m for m in moves),
             after_dig=after_dig,
         )
+
+
+def _is_lift(kind: TransitionKind) -> bool:
+    return kind is TransitionKind.LIFT_OUT
 
 
 def _clear(moves: tuple[Transition, ...]) -> bool:

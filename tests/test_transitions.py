@@ -231,15 +231,24 @@ def test_every_move_of_a_plan_keeps_the_bucket_out_of_the_material(
     assert any(c.blended for c in cycles)
 
 
-def test_deep_corners_lift_straight_then_blend(planner: TrenchPlanner) -> None:
-    # Deep random tasks (0.27 / 0.20 m) whose lift out of a deep corner no blend through the
-    # lift's top keeps clear: the lift is made straight, at rest at its top, and the blend
-    # starts there; it streams as the lift's moves and then the blend, one chain.
+def test_deep_corners_blend_through_the_lift_pieces_or_lift_straight_first(
+    planner: TrenchPlanner,
+) -> None:
+    # Deep random tasks (0.27 / 0.20 m). Out of a deep corner the lift is clear only in
+    # pieces: the blend goes through the pieces' poses (checked against the material it
+    # carries out up to the lift's top), or where no blend through them is clear the lift is
+    # made straight, at rest at its top, and the blend starts there; that streams as the
+    # lift's moves and then the blend, one chain.
     tasks = random_tasks(RIG, 25, 7)
     straight = []
+    pieces = []
     for i in (18, 24):
         cycles = _dig_checking_every_move(planner, planner.start(tasks[i]))
         straight += [c for c in cycles if c.blended and c.moves]
+        lifts = [sum(k is TransitionKind.LIFT_OUT for k in c.kinds) for c in cycles]
+        through = [c.blended and not c.moves and n > 1 for c, n in zip(cycles, lifts, strict=True)]
+        pieces += [c for c, ok in zip(cycles, through, strict=True) if ok]
+    assert pieces, "no cycle blended through a lift in pieces"
     assert straight, "no cycle lifted straight before its blend"
     for c in straight:
         b = c.blend_from

@@ -1,16 +1,28 @@
-"""The planner process's serving loop (``planner_worker._worker_main``) against a job side that
-goes away: it ends by itself, without an exception, whatever it was doing."""
+"""The planner process's side: its serving loop (``planner_worker._worker_main``) against a job
+side that goes away (it ends by itself, without an exception, whatever it was doing), and the
+next dig planned ahead while one runs (``SessionDriver.lookahead``)."""
 
 from __future__ import annotations
 
 import multiprocessing
 import threading
 
-from rt_runtime.control.planner_worker import PlannerSpec, _worker_main
-from rt_runtime.planning.trench import TrenchPlanner, load_task
+import numpy as np
+import pytest
+
+from rt_runtime import actuation
+from rt_runtime.control.planner_worker import (
+    DigPlan,
+    PlannerSpec,
+    Recorded,
+    SessionDriver,
+    _worker_main,
+)
+from rt_runtime.planning.trench import PlannedDig, TrenchPlanner, load_task
 from rt_runtime.rig import load_rig
 
 RIG = load_rig("scale_model")
+PERIOD_S = 0.002
 
 
 def _serve(requests: list[tuple[object, ...]]) -> list[BaseException]:
@@ -43,3 +55,85 @@ def test_a_plan_whose_job_side_is_gone_ends_the_loop_quietly() -> None:
 def test_a_closed_pipe_before_any_request_ends_the_loop_quietly() -> None:
     assert _serve([("init", None)]) == []
     assert _serve([]) == []
+
+
+def _strokes(dig: PlannedDig, boom_offset_rad: float = 0.0) -> np.ndarray:
+    """The strokes a rig reports along ``dig`` (every 2 ms), the boom ``boom_offset_rad`` off."""
+    traj = dig.trajectory()
+    t = np.arange(0.0, dig.T_s + 1e-12, PERIOD_S)
+    q = np.array([traj.sample(float(x))[0] for x in t])
+    q[:, 0] += boom_offset_rad
+    return np.asarray(actuation.joint_to_stroke(RIG, q))
+
+
+def _same_dig(a: DigPlan, b: DigPlan) -> bool:
+    assert a.dig is not None and b.dig is not None
+    return bool(
+        np.allclose(a.dig.problem.q_start_rad, b.dig.problem.q_start_rad, rtol=0, atol=1e-9)
+        and np.allclose(a.dig.a6, b.dig.a6, rtol=0, atol=1e-9)
+    )
+
+
+def test_a_plan_made_ahead_is_taken_where_the_measured_material_allows() -> None:
+    planner = TrenchPlanner(RIG)
+    home = np.asarray(planner.home_pose_rad)
+    ahead = SessionDriver(planner.start(load_task("A", RIG)), PERIOD_S)
+    always = SessionDriver(planner.start(load_task("A", RIG)), PERIOD_S)
+    pa, pb = ahead.plan(home), always.plan(home)
+    taken = 0
+    for _ in range(3):
+        assert pa.dig is not None and ahead.lookahead()
+        strokes = _strokes(pa.dig)
+        ahead.record(strokes)
+        always.record(strokes)
+        pa, pb = ahead.plan(None), always.plan(None)
+        taken += pa.planned_ahead
+        # The same dig as planned after the record, the cycle's corners within 1 mrad (the
+        # lift's top follows the material's height) and its time within its search's
+        # tolerance: the drives tracked the plan, the measured material is the planned one
+        # within a fraction of a mm.
+        assert _same_dig(pa, pb) and not pb.planned_ahead
+        assert pa.cycle is not None and pb.cycle is not None
+        np.testing.assert_allclose(pa.cycle.waypoints_rad, pb.cycle.waypoints_rad, atol=1e-3)
+        assert pa.cycle.duration_s == pytest.approx(pb.cycle.duration_s, rel=1e-3)
+        np.testing.assert_array_equal(pa.sampled[-1].q_rad, pb.sampled[-1].q_rad)  # the dig
+        # The session goes on from the measured material either way.
+        np.testing.assert_array_equal(ahead.session.surface, always.session.surface)
+    assert taken >= 2
+
+
+def test_a_plan_made_ahead_is_dropped_where_the_measured_material_differs() -> None:
+    planner = TrenchPlanner(RIG)
+    home = np.asarray(planner.home_pose_rad)
+    ahead = SessionDriver(planner.start(load_task("A", RIG)), PERIOD_S)
+    always = SessionDriver(planner.start(load_task("A", RIG)), PERIOD_S)
+    pa, pb = ahead.plan(home), always.plan(home)
+    assert pa.dig is not None and ahead.lookahead()
+    strokes = _strokes(pa.dig, boom_offset_rad=0.01)  # the tip ~5 mm off its plan
+    ahead.record(strokes)
+    always.record(strokes)
+    pa, pb = ahead.plan(None), always.plan(None)
+    assert not pa.planned_ahead and _same_dig(pa, pb)
+
+
+def test_the_planner_process_plans_ahead_while_a_dig_runs() -> None:
+    planner = TrenchPlanner(RIG)
+    spec = PlannerSpec.of(planner.start(load_task("A", RIG)), PERIOD_S)
+    ours, theirs = multiprocessing.Pipe()
+    worker = threading.Thread(target=_worker_main, args=(theirs, spec), daemon=True)
+    worker.start()
+    try:
+        ours.send(("init", None))
+        ours.send(("plan", np.asarray(planner.home_pose_rad)))
+        first = ours.recv()
+        assert isinstance(first, DigPlan) and first.dig is not None
+        assert not first.planned_ahead
+        ours.send(("record", _strokes(first.dig), True))
+        assert isinstance(ours.recv(), Recorded)
+        second = ours.recv()
+        assert isinstance(second, DigPlan) and second.planned_ahead
+        ours.send(("stop",))
+    finally:
+        ours.close()
+        worker.join(120.0)
+    assert not worker.is_alive()

@@ -54,7 +54,9 @@ class DigResult:
         measured_volume_L: Volume of the tip path the drives reported (L).
         cut_volume_L: Volume the HIL's terrain lost to the true tip path (L; NaN when not cut).
         planned_energy_Wh: Energy of the plan (Wh).
-        plan_us: Planning time of the dig (us).
+        plan_us: Planning time of the dig (us): with ``planned_ahead``, the check of the plan
+            made while the dig before it ran against the measured material.
+        planned_ahead: Planned while the dig before it ran (a planner process only).
     """
 
     index: int
@@ -65,6 +67,7 @@ class DigResult:
     cut_volume_L: float
     planned_energy_Wh: float
     plan_us: float
+    planned_ahead: bool = False
 
     def to_json(self) -> dict[str, Any]:
         """The dig's keys, as the attributes."""
@@ -77,6 +80,7 @@ class DigResult:
             "cut_volume_L": self.cut_volume_L,
             "planned_energy_Wh": self.planned_energy_Wh,
             "plan_us": self.plan_us,
+            "planned_ahead": self.planned_ahead,
         }
 
 

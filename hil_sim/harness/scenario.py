@@ -514,6 +514,7 @@ def run_scenario(sc: Scenario) -> HilRun:
                 cut_volume_L=cut_m3.get(r.index, math.nan) * 1e3,
                 planned_energy_Wh=r.planned_energy_j / 3600.0,
                 plan_us=r.plan_us,
+                planned_ahead=r.planned_ahead,
             )
             for r in (result.digs if result is not None else ())
         ),

@@ -172,6 +172,9 @@ class DigRecord:
         sync_first: SYNC count of the dig's first SYNC.
         sync_last: SYNC count of the SYNC after its last setpoint (the dig's end pose).
         planned_energy_j: W_E of the verified plan.
+        planned_ahead: The dig was planned while the one before it ran
+            (:attr:`~rt_runtime.control.planner_worker.DigPlan.planned_ahead`; ``plan_us`` is
+            then the check against the measured material).
     """
 
     index: int
@@ -185,6 +188,7 @@ class DigRecord:
     sync_first: int = -1
     sync_last: int = -1
     planned_energy_j: float = math.nan
+    planned_ahead: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -308,6 +312,7 @@ class _Planning:
                 sync_first=first,
                 sync_last=last,
                 planned_energy_j=dig.energy_j if dig is not None else math.nan,
+                planned_ahead=plan.planned_ahead if plan is not None else False,
             )
         self.plan_out = False
         self.plan_us += reply.plan_us

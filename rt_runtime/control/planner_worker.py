@@ -47,6 +47,8 @@ from __future__ import annotations
 
 import bisect
 import contextlib
+import dataclasses
+import logging
 import math
 import multiprocessing
 import os
@@ -74,6 +76,7 @@ from rt_runtime.control.setpoints import (
 )
 from rt_runtime.errors import ConfigurationError, ExcavatorRtError, PlanningError
 from rt_runtime.planning.trench import (
+    TRANSITION_PENETRATION_M,
     Cycle,
     PlannedDig,
     Transition,
@@ -102,6 +105,8 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
+
+log = logging.getLogger(__name__)
 
 #: Nice value of the planner process.
 PLANNER_NICE = 10
@@ -135,6 +140,9 @@ class DigPlan:
             no period).
         exit_sampled: The exit moves as setpoint tables, chained from where :attr:`sampled`
             ends.
+        planned_ahead: Planned while the dig before it ran, on the material that dig's planned
+            path leaves, and taken after its record (:meth:`SessionDriver.lookahead`):
+            ``plan_us`` is then the time to check it against the measured material.
     """
 
     dig: PlannedDig | None
@@ -144,6 +152,19 @@ class DigPlan:
     plan_us: float
     sampled: tuple[SampledMotion, ...] = ()
     exit_sampled: tuple[SampledMotion, ...] = ()
+    planned_ahead: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class _Ahead:
+    """A plan made ahead (:meth:`SessionDriver.lookahead`): on a copy of the session that
+    recorded the pending dig ``index`` along its planned path, whose height field was then
+    ``surface_m``."""
+
+    index: int
+    surface_m: FloatArray
+    driver: SessionDriver
+    plan: DigPlan
 
 
 @dataclass(frozen=True, slots=True)
@@ -421,6 +442,69 @@ class SessionDriver:
         self.period_s = period_s
         #: Where the last motion handed out ends (the next plan's motions start there).
         self._end_rad: FloatArray | None = None
+        #: The next plan, made ahead while the pending dig runs (:meth:`lookahead`).
+        self._ahead: _Ahead | None = None
+
+    def lookahead(self) -> bool:
+        """Plan the dig after the pending one now, while the pending one runs: on a copy of
+        the session that records the pending dig along its planned path. The next
+        :meth:`plan` after the real :meth:`record` takes it where the measured material
+        allows (:meth:`_take_ahead`), else plans as always. Whether a plan was made (not
+        without a pending dig or a period, or where the copy's planning fails).
+
+        Only a driver that owns its session may look ahead (the planner process's): taking
+        the plan replaces :attr:`session` by the copy.
+        """
+        self._ahead = None
+        s = self.session
+        dig = s.pending
+        if dig is None or self.period_s is None:
+            return False
+        try:
+            copy = TrenchSession.restore(s.planner, s.task, s.state())
+            assert copy.pending is not None
+            copy.record(copy.pending, copy.pending.tip_path_m)
+            surface = copy.surface.copy()
+            driver = SessionDriver(copy, self.period_s)
+            driver._end_rad = self._end_rad
+            plan = driver.plan(None)
+        except ExcavatorRtError:
+            return False
+        if plan.dig is None or plan.travel:
+            return False  # the end of the task, or a section change: planned as always
+        self._ahead = _Ahead(dig.index, surface, driver, plan)
+        return True
+
+    def _take_ahead(self, t0: float) -> DigPlan | None:
+        """The plan made ahead, where it holds on the measured material; None otherwise.
+
+        It holds where the dig it followed was recorded (and nothing since) and its moves stay
+        within :data:`TRANSITION_PENETRATION_M` on the measured material: a point's depth
+        below the height field, and so its allowances, move by at most the largest difference
+        between the measured and the planned field, so a move's penetration moves by at most
+        twice that. The session then continues from the copy, with the measured material.
+        """
+        ahead, self._ahead = self._ahead, None
+        s = self.session
+        if ahead is None or s.pending is not None or not s.digs:
+            return None
+        if s.digs[-1].index != ahead.index:
+            return None
+        delta = float(np.max(np.abs(s.surface - ahead.surface_m)))
+        plan = ahead.plan
+        depths = [m.penetration_m for m in plan.exit]
+        if plan.cycle is not None:
+            depths.append(plan.cycle.penetration_m)
+        if max(depths, default=0.0) + 2.0 * delta > TRANSITION_PENETRATION_M:
+            return None
+        copy = ahead.driver.session
+        copy.material = s.material
+        copy.surface = s.surface.copy()
+        self.session = copy
+        self._end_rad = ahead.driver._end_rad
+        return dataclasses.replace(
+            plan, plan_us=(time.perf_counter() - t0) * 1e6, planned_ahead=True
+        )
 
     def plan(self, q_from_rad: FloatArray | None = None) -> DigPlan:
         """The next dig and its moves (see :class:`DigPlan`).
@@ -433,6 +517,11 @@ class SessionDriver:
             PlanningError: From the session (no verified dig; a move that cannot be planned).
         """
         t0 = time.perf_counter()
+        if q_from_rad is None and self._ahead is not None:
+            ahead = self._take_ahead(t0)
+            if ahead is not None:
+                return ahead
+        self._ahead = None
         s = self.session
         dig = s.pending if s.pending is not None else s.next_dig()
         tail: list[Any] = []
@@ -758,12 +847,23 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
         if kind == "stop":
             break
         if kind == "plan":
-            if not reply(driver.plan, message[1])[0]:
-                break
+            open_, planned = reply(driver.plan, message[1])
         elif kind == "record":
             open_, recorded = reply(driver.record, message[1])
-            if not open_ or (recorded and message[2] and not reply(driver.plan, None)[0]):
-                break
+            planned = False
+            if open_ and recorded and message[2]:
+                open_, planned = reply(driver.plan, None)
+        else:
+            continue
+        if not open_:
+            break
+        if planned:
+            # While the dig just handed out runs: the next one, taken at its record if the
+            # measured material allows.
+            try:
+                driver.lookahead()
+            except Exception:  # a plan made ahead is an optimisation; planning goes on
+                log.exception("planning ahead failed")
     conn.close()
 
 

@@ -347,19 +347,21 @@ class _Preparation:
         while True:
             job_id, rec = self.records.get()
             try:
-                store.record_dig(
-                    job_id, {k: getattr(rec, k) for k in DIG_KEYS}, rec.session_state
-                )
+                fields = {k: getattr(rec, k) for k in DIG_KEYS}
+                fields["planned_ahead"] = rec.planned_ahead
+                store.record_dig(job_id, fields, rec.session_state)
             except Exception:  # a bug must not end the thread silently
                 log.exception("job %d: dig %d not recorded", job_id, rec.index)
                 continue
             log.info(
-                "job %d: dig %d done (%s, planned %.2f L, measured %.2f L)",
+                "job %d: dig %d done (%s, planned %.2f L, measured %.2f L; planned in %.0f ms%s)",
                 job_id,
                 rec.index,
                 rec.dig_type,
                 rec.planned_volume_m3 * 1e3,
                 rec.measured_volume_m3 * 1e3,
+                rec.plan_us / 1e3,
+                ", ahead" if rec.planned_ahead else "",
             )
 
 

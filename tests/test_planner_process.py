@@ -18,7 +18,14 @@ from rt_runtime.control.planner_worker import (
     SessionDriver,
     _worker_main,
 )
-from rt_runtime.planning.trench import PlannedDig, TrenchPlanner, load_task
+from rt_runtime.planning.trench import (
+    TRANSITION_PENETRATION_M,
+    Cycle,
+    PlannedDig,
+    TrenchPlanner,
+    TrenchSession,
+    load_task,
+)
 from rt_runtime.rig import load_rig
 
 RIG = load_rig("scale_model")
@@ -137,3 +144,35 @@ def test_the_planner_process_plans_ahead_while_a_dig_runs() -> None:
         ours.close()
         worker.join(120.0)
     assert not worker.is_alive()
+
+
+def test_a_blend_made_ahead_beyond_the_bound_is_checked_again_on_the_measured_material(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The tip ~0.25 mm below its plan: A's first dig cycle (4.8 mm deep, planned on the
+    # material its planned path leaves) is beyond 5 mm less twice the difference, so it is
+    # checked again, exactly, on the measured material, and taken where it is clear there.
+    checked: list[float | None] = []
+    blend_clear = TrenchSession.blend_clear
+
+    def spy(self: TrenchSession, cycle: Cycle) -> float | None:
+        depth = blend_clear(self, cycle)
+        checked.append(depth)
+        return depth
+
+    monkeypatch.setattr(TrenchSession, "blend_clear", spy)
+    planner = TrenchPlanner(RIG)
+    home = np.asarray(planner.home_pose_rad)
+    ahead = SessionDriver(planner.start(load_task("A", RIG)), PERIOD_S)
+    always = SessionDriver(planner.start(load_task("A", RIG)), PERIOD_S)
+    pa, pb = ahead.plan(home), always.plan(home)
+    assert pa.dig is not None and ahead.lookahead()
+    strokes = _strokes(pa.dig, boom_offset_rad=-0.0005)
+    ahead.record(strokes)
+    always.record(strokes)
+    pa, pb = ahead.plan(None), always.plan(None)
+    assert len(checked) == 1 and checked[0] is not None
+    assert pa.planned_ahead and _same_dig(pa, pb) and pa.cycle is not None
+    assert pa.cycle.penetration_m == checked[0] <= TRANSITION_PENETRATION_M
+    cycles = [st for st in ahead.session.steps if isinstance(st, Cycle)]
+    assert cycles[-1] is pa.cycle  # the session's record of it too

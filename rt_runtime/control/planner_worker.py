@@ -482,7 +482,9 @@ class SessionDriver:
         within :data:`TRANSITION_PENETRATION_M` on the measured material: a point's depth
         below the height field, and so its allowances, move by at most the largest difference
         between the measured and the planned field, so a move's penetration moves by at most
-        twice that. The session then continues from the copy, with the measured material.
+        twice that; a blended cycle beyond that bound is checked again on the measured
+        material (:meth:`TrenchSession.blend_clear`, a few ms against a plan's 0.1-0.3 s).
+        The session then continues from the copy, with the measured material.
         """
         ahead, self._ahead = self._ahead, None
         s = self.session
@@ -492,18 +494,26 @@ class SessionDriver:
             return None
         delta = float(np.max(np.abs(s.surface - ahead.surface_m)))
         plan = ahead.plan
-        depths = [m.penetration_m for m in plan.exit]
-        if plan.cycle is not None:
-            depths.append(plan.cycle.penetration_m)
-        if max(depths, default=0.0) + 2.0 * delta > TRANSITION_PENETRATION_M:
+        limit = TRANSITION_PENETRATION_M - 2.0 * delta
+        if max((m.penetration_m for m in plan.exit), default=0.0) > limit:
             return None
         copy = ahead.driver.session
-        copy.material = s.material
-        copy.surface = s.surface.copy()
+        material, surface = copy.material, copy.surface
+        copy.material, copy.surface = s.material, s.surface.copy()
+        cycle = plan.cycle
+        if cycle is not None and cycle.penetration_m > limit:
+            # Beyond the bound: the blend checked again on the measured material, exactly.
+            depth = copy.blend_clear(cycle)
+            if depth is None:
+                copy.material, copy.surface = material, surface
+                return None
+            cycle = dataclasses.replace(cycle, penetration_m=depth)
+            at = next(i for i, st in enumerate(copy.steps) if st is plan.cycle)
+            copy.steps[at] = cycle
         self.session = copy
         self._end_rad = ahead.driver._end_rad
         return dataclasses.replace(
-            plan, plan_us=(time.perf_counter() - t0) * 1e6, planned_ahead=True
+            plan, cycle=cycle, plan_us=(time.perf_counter() - t0) * 1e6, planned_ahead=True
         )
 
     def plan(self, q_from_rad: FloatArray | None = None) -> DigPlan:

@@ -359,6 +359,19 @@ class CyclesMixin(MovesMixin):
                 best = (cycle, traj)
         return best, first_part
 
+    def blend_clear(self, cycle: Cycle) -> float | None:
+        """A blended cycle's depth into the current material beyond its allowances (m), as
+        :meth:`cycle` checks it, where it is within what :meth:`cycle` takes (the limit less
+        :data:`_BLEND_MARGIN_M`); None otherwise, or where it is not blended or lifts
+        rest-to-rest before its blend (a cycle planned on other material, checked again)."""
+        if not cycle.blended or cycle.moves:
+            return None
+        waypoints = np.asarray(cycle.waypoints_rad, dtype=np.float64)
+        n_lift = sum(1 for _ in itertools.takewhile(_is_lift, cycle.kinds))
+        traj = cycle.trajectory(self.rig)
+        depth, _ = self._cycle_depth(traj, waypoints[0], waypoints[-1], n_lift)
+        return depth if depth <= TRANSITION_PENETRATION_M - _BLEND_MARGIN_M else None
+
     def _stopping_s(self, waypoints: FloatArray) -> float:
         """The time of the rest-to-rest moves through ``waypoints`` (ruckig, stopping at every
         corner): a blend no shorter is no gain."""

@@ -482,8 +482,10 @@ class SessionDriver:
         within :data:`TRANSITION_PENETRATION_M` on the measured material: a point's depth
         below the height field, and so its allowances, move by at most the largest difference
         between the measured and the planned field, so a move's penetration moves by at most
-        twice that; a blended cycle beyond that bound is checked again on the measured
-        material (:meth:`TrenchSession.blend_clear`, a few ms against a plan's 0.1-0.3 s).
+        twice that. Beyond that bound (a near-vertical stretch of a path between two grid
+        columns can differ by cm in one column) the moves are checked again on the measured
+        material, exactly: a blended cycle (:meth:`TrenchSession.blend_clear`), the exit moves
+        planned again (they must be the same moves); a few ms against a plan's 0.1-0.3 s.
         The session then continues from the copy, with the measured material.
         """
         ahead, self._ahead = self._ahead, None
@@ -495,25 +497,41 @@ class SessionDriver:
         delta = float(np.max(np.abs(s.surface - ahead.surface_m)))
         plan = ahead.plan
         limit = TRANSITION_PENETRATION_M - 2.0 * delta
-        if max((m.penetration_m for m in plan.exit), default=0.0) > limit:
-            return None
         copy = ahead.driver.session
         material, surface = copy.material, copy.surface
         copy.material, copy.surface = s.material, s.surface.copy()
-        cycle = plan.cycle
-        if cycle is not None and cycle.penetration_m > limit:
-            # Beyond the bound: the blend checked again on the measured material, exactly.
-            depth = copy.blend_clear(cycle)
-            if depth is None:
-                copy.material, copy.surface = material, surface
-                return None
-            cycle = dataclasses.replace(cycle, penetration_m=depth)
+        cycle, exits = plan.cycle, plan.exit
+        try:
+            if cycle is not None and cycle.penetration_m > limit:
+                # Beyond the bound: the blend checked again on the measured material, exactly.
+                depth = copy.blend_clear(cycle)
+                if depth is None:
+                    raise PlanningError("the cycle planned ahead is not clear")
+                cycle = dataclasses.replace(cycle, penetration_m=depth)
+            if max((m.penetration_m for m in exits), default=0.0) > limit:
+                # The exit moves planned again on the measured material: the same moves, or
+                # the plan is not taken (their setpoint tables are the plan's).
+                dig = copy.pending
+                assert dig is not None
+                exits = copy.exit_transitions(dig.problem.q_end_rad, after=dig)
+                if [(m.q_from_rad, m.q_to_rad) for m in exits] != [
+                    (m.q_from_rad, m.q_to_rad) for m in plan.exit
+                ]:
+                    raise PlanningError("the exit moves planned ahead changed")
+        except PlanningError:
+            copy.material, copy.surface = material, surface
+            return None
+        if cycle is not None and cycle is not plan.cycle:
             at = next(i for i, st in enumerate(copy.steps) if st is plan.cycle)
             copy.steps[at] = cycle
         self.session = copy
         self._end_rad = ahead.driver._end_rad
         return dataclasses.replace(
-            plan, cycle=cycle, plan_us=(time.perf_counter() - t0) * 1e6, planned_ahead=True
+            plan,
+            cycle=cycle,
+            exit=exits,
+            plan_us=(time.perf_counter() - t0) * 1e6,
+            planned_ahead=True,
         )
 
     def plan(self, q_from_rad: FloatArray | None = None) -> DigPlan:

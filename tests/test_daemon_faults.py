@@ -58,9 +58,9 @@ from rt_runtime.control.clock import MonotonicClock
 from rt_runtime.control.hardware import DriveInterface
 from rt_runtime.errors import CommunicationError
 from rt_runtime.planning.trench import TrenchPlanner
-from rt_runtime.rig import load_rig
+from rt_runtime.rig import Rig, load_rig
 from rt_runtime.rig.loader import PROFILE_DIR
-from rt_runtime.service.config import load_config
+from rt_runtime.service.config import DaemonConfig, load_config
 from rt_runtime.service.control import request
 from rt_runtime.service.jobstore import JobStatus, JobStore, read_store
 from rt_runtime.service.runner import RigRunner
@@ -156,12 +156,9 @@ def test_fault_messages_name_axis_node_code_and_meaning() -> None:
     assert "bucket (node 3): undecodable" in text
 
 
-def test_the_runner_latches_a_bus_error_lives_and_resets_on_a_reopened_bus(
-    tmp_path: Path,
-) -> None:
-    """The runner on the lockstep HIL: the bus starts raising while it holds; the fault
-    latches (naming the exception and the nodes), the loop ends, the thread waits and feeds
-    the watchdog; a reset reopens the bus, boots the drives again and holds."""
+def _lockstep_bench(tmp_path: Path) -> tuple[Rig, DaemonConfig, Any]:
+    """The rig, a daemon configuration without real-time settings (state under ``tmp_path``)
+    and a lockstep HIL at the home pose, for a runner in this process."""
     from hil_sim.harness.lockstep import LockstepHil
 
     rig = load_rig(RIG)
@@ -171,8 +168,16 @@ def test_the_runner_latches_a_bus_error_lives_and_resets_on_a_reopened_bus(
         '[rig]\nprofile = "scale_model"\n[loop]\nsched_fifo_priority = 0\n'
         'lock_memory = false\n[paths]\nstate_dir = "state"\nsocket = "run/c.sock"\n'
     )
-    config = load_config(cfg_path)
-    hil = LockstepHil(rig, TrenchPlanner(rig).home_pose_rad, vcu=False)
+    return rig, load_config(cfg_path), LockstepHil(rig, TrenchPlanner(rig).home_pose_rad, vcu=False)
+
+
+def test_the_runner_latches_a_bus_error_lives_and_resets_on_a_reopened_bus(
+    tmp_path: Path,
+) -> None:
+    """The runner on the lockstep HIL: the bus starts raising while it holds; the fault
+    latches (naming the exception and the nodes), the loop ends, the thread waits and feeds
+    the watchdog; a reset reopens the bus, boots the drives again and holds."""
+    rig, config, hil = _lockstep_bench(tmp_path)
     opened: list[BreakableBus] = []
 
     def reopen() -> can.BusABC:
@@ -215,17 +220,7 @@ def test_a_shutdown_right_after_a_job_keeps_its_report(tmp_path: Path) -> None:
     """The runner on the lockstep HIL digs one dig and is shut down the moment the job is done:
     the job's report (its telemetry file) is written before the shutdown returns, not cut
     short with the process."""
-    from hil_sim.harness.lockstep import LockstepHil
-
-    rig = load_rig(RIG)
-    cfg_path = tmp_path / "d.toml"
-    cfg_path.write_text(
-        '[bus]\ninterface = "virtual"\nchannel = "unused"\nboot_timeout_s = 1.0\n'
-        '[rig]\nprofile = "scale_model"\n[loop]\nsched_fifo_priority = 0\n'
-        'lock_memory = false\n[paths]\nstate_dir = "state"\nsocket = "run/c.sock"\n'
-    )
-    config = load_config(cfg_path)
-    hil = LockstepHil(rig, TrenchPlanner(rig).home_pose_rad, vcu=False)
+    rig, config, hil = _lockstep_bench(tmp_path)
     store = JobStore(config.paths.state_dir)
     runner = RigRunner(config, rig, TrenchPlanner(rig), hil.master_bus, store, hil.clock)
     task = {"name": "A", "length_m": 0.6, "depth_m": 0.15, "beta1_deg": 60.0,

@@ -81,18 +81,27 @@ def _same_dig(a: DigPlan, b: DigPlan) -> bool:
     )
 
 
-def test_a_plan_made_ahead_is_taken_where_the_measured_material_allows() -> None:
+def _twins(boom_offset_rad: float = 0.0) -> tuple[SessionDriver, SessionDriver]:
+    """Two drivers of task A, one that plans ahead and one that does not, each with its first
+    plan handed out and recorded from the same reported strokes (the boom
+    ``boom_offset_rad`` off its plan)."""
     planner = TrenchPlanner(RIG)
     home = np.asarray(planner.home_pose_rad)
     ahead = SessionDriver(planner.start(load_task("A", RIG)), PERIOD_S)
     always = SessionDriver(planner.start(load_task("A", RIG)), PERIOD_S)
-    pa, pb = ahead.plan(home), always.plan(home)
+    first = ahead.plan(home)
+    always.plan(home)
+    assert first.dig is not None and ahead.lookahead()
+    strokes = _strokes(first.dig, boom_offset_rad)
+    ahead.record(strokes)
+    always.record(strokes)
+    return ahead, always
+
+
+def test_a_plan_made_ahead_is_taken_where_the_measured_material_allows() -> None:
+    ahead, always = _twins()
     taken = 0
     for _ in range(3):
-        assert pa.dig is not None and ahead.lookahead()
-        strokes = _strokes(pa.dig)
-        ahead.record(strokes)
-        always.record(strokes)
         pa, pb = ahead.plan(None), always.plan(None)
         taken += pa.planned_ahead
         # The same dig as planned after the record, the cycle's corners within 1 mrad (the
@@ -106,19 +115,15 @@ def test_a_plan_made_ahead_is_taken_where_the_measured_material_allows() -> None
         np.testing.assert_array_equal(pa.sampled[-1].q_rad, pb.sampled[-1].q_rad)  # the dig
         # The session goes on from the measured material either way.
         np.testing.assert_array_equal(ahead.session.surface, always.session.surface)
+        assert pa.dig is not None and ahead.lookahead()
+        strokes = _strokes(pa.dig)
+        ahead.record(strokes)
+        always.record(strokes)
     assert taken >= 2
 
 
 def test_a_plan_made_ahead_is_dropped_where_the_measured_material_differs() -> None:
-    planner = TrenchPlanner(RIG)
-    home = np.asarray(planner.home_pose_rad)
-    ahead = SessionDriver(planner.start(load_task("A", RIG)), PERIOD_S)
-    always = SessionDriver(planner.start(load_task("A", RIG)), PERIOD_S)
-    pa, pb = ahead.plan(home), always.plan(home)
-    assert pa.dig is not None and ahead.lookahead()
-    strokes = _strokes(pa.dig, boom_offset_rad=0.01)  # the tip ~5 mm off its plan
-    ahead.record(strokes)
-    always.record(strokes)
+    ahead, always = _twins(boom_offset_rad=0.01)  # the tip ~5 mm off its plan
     pa, pb = ahead.plan(None), always.plan(None)
     assert not pa.planned_ahead and _same_dig(pa, pb)
 
@@ -161,15 +166,7 @@ def test_a_blend_made_ahead_beyond_the_bound_is_checked_again_on_the_measured_ma
         return depth
 
     monkeypatch.setattr(TrenchSession, "blend_clear", spy)
-    planner = TrenchPlanner(RIG)
-    home = np.asarray(planner.home_pose_rad)
-    ahead = SessionDriver(planner.start(load_task("A", RIG)), PERIOD_S)
-    always = SessionDriver(planner.start(load_task("A", RIG)), PERIOD_S)
-    pa, pb = ahead.plan(home), always.plan(home)
-    assert pa.dig is not None and ahead.lookahead()
-    strokes = _strokes(pa.dig, boom_offset_rad=-0.0005)
-    ahead.record(strokes)
-    always.record(strokes)
+    ahead, always = _twins(boom_offset_rad=-0.0005)
     pa, pb = ahead.plan(None), always.plan(None)
     assert len(checked) == 1 and checked[0] is not None
     assert pa.planned_ahead and _same_dig(pa, pb) and pa.cycle is not None

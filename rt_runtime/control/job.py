@@ -165,7 +165,7 @@ class DigRecord:
         T_s: Planned duration.
         plan_us: Planning time of the dig (the planner's wall time for the request).
         planned_volume_m3: Material the planned path removes.
-        measured_volume_m3: Material the measured path removed (session accounting).
+        measured_volume_m3: Material the measured path removed (the trench's own accounting).
         tip_path_m: Measured tip path, work-site frame, ``(n, 2)``.
         session_state: ``TrenchSession.state()`` after the record (JSON-able): persist it to
             resume at the next dig.

@@ -719,17 +719,17 @@ class _AnsweredLink:
 
 
 class InlinePlanner(_AnsweredLink):
-    """Runs the session's requests in-process in :meth:`service` (simulated clock:
+    """Runs the trench's requests in-process in :meth:`service` (simulated clock:
     deterministic, time stands still while it plans).
 
     Args:
-        session: The session.
+        trench: The trench being dug (a :class:`TrenchSession`).
         period_s: The loop's period (see :class:`SessionDriver`).
     """
 
-    def __init__(self, session: TrenchSession, period_s: float | None = None) -> None:
+    def __init__(self, trench: TrenchSession, period_s: float | None = None) -> None:
         super().__init__()
-        self.driver = SessionDriver(session, period_s)
+        self.driver = SessionDriver(trench, period_s)
 
     def _run(self, fn: Any, *args: Any) -> None:
         try:
@@ -837,12 +837,12 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
             max_digs=spec.max_digs,
         )
         assert spec.task is not None
-        session = (
+        trench = (
             planner.start(spec.task)
             if state is None
             else TrenchSession.restore(planner, spec.task, state)
         )
-        driver = SessionDriver(session, spec.period_s)
+        driver = SessionDriver(trench, spec.period_s)
     except ExcavatorRtError as exc:
         with contextlib.suppress(EOFError, OSError):
             conn.send(PlannerError(f"planner process could not start: {exc}"))

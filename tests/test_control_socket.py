@@ -537,18 +537,26 @@ def test_sighup_reloads_the_reloadable_and_keeps_a_bad_file_out(tmp_path: Path) 
     assert code == EXIT_OK
 
 
-def test_client_commands(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    rs = RunningService(tmp_path)
+def _job_command(sock: Path) -> Callable[..., int]:
+    """``excavator-rt job ARGV... --socket SOCK`` in this process: its exit code."""
     parser = argparse.ArgumentParser()
     client.add_parser(parser.add_subparsers())
+
+    def job(*argv: str) -> int:
+        args = parser.parse_args(["job", *argv, "--socket", str(sock)])
+        code: int = args.handler(args)
+        return code
+
+    return job
+
+
+def test_client_commands(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rs = RunningService(tmp_path)
     task_file = tmp_path / "small.toml"
     task_file.write_text("length_m = 0.3\ndepth_m = 0.05\nbeta1_deg = 60.0\nbeta2_deg = 60.0\n")
     results: dict[str, Any] = {}
 
-    def job(*argv: str) -> int:
-        args = parser.parse_args(["job", *argv, "--socket", str(rs.sock)])
-        code: int = args.handler(args)
-        return code
+    job = _job_command(rs.sock)
 
     def script(rs: RunningService) -> None:
         rs.runner.pause()
@@ -578,14 +586,9 @@ def test_a_latched_fault_refuses_motion_until_reset_fault(
     manager = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     manager.bind(str(notify_path))
     rs = RunningService(tmp_path, notify=str(notify_path))
-    parser = argparse.ArgumentParser()
-    client.add_parser(parser.add_subparsers())
     results: dict[str, Any] = {}
 
-    def job(*argv: str) -> int:
-        args = parser.parse_args(["job", *argv, "--socket", str(rs.sock)])
-        code: int = args.handler(args)
-        return code
+    job = _job_command(rs.sock)
 
     def script(rs: RunningService) -> None:
         refused = rs.ask(cmd="reset-fault")

@@ -74,21 +74,20 @@ def solved() -> list[TimeJerkTrajectory]:
     return [plan(p) for p in PROBLEMS]
 
 
-@pytest.mark.parametrize("k", range(len(PROBLEMS)))
-def test_waypoints_end_states_and_continuity(k: int, solved: list[TimeJerkTrajectory]) -> None:
-    traj, p = solved[k], PROBLEMS[k]
-    assert traj.problem is p
-    assert traj.n_pieces == p.waypoints_rad.shape[0] + 1
+def _assert_through_waypoints_and_continuous(
+    traj: TimeJerkTrajectory, p: TimeJerkProblem, case: str
+) -> None:
+    """Through every waypoint at its time, the given end states, and each piece's end state
+    (position, velocity, acceleration) the next piece's start, from the coefficients."""
     np.testing.assert_allclose(
-        traj.sample(traj.waypoint_times_s), p.waypoints_rad, rtol=0, atol=1e-9
+        traj.sample(traj.waypoint_times_s), p.waypoints_rad, rtol=0, atol=1e-9, err_msg=case
     )
     start, end = traj.states(0.0), traj.states(traj.duration_s)
     for state, q, v, a in (
         (start, p.waypoints_rad[0], p.start_velocity_rad_s, p.start_acceleration_rad_s2),
         (end, p.waypoints_rad[-1], p.end_velocity_rad_s, p.end_acceleration_rad_s2),
     ):
-        np.testing.assert_allclose(state[:3], [q, v, a], rtol=0, atol=1e-9, err_msg=_case(p))
-    # Each piece's end state against the next piece's start, from the coefficients themselves.
+        np.testing.assert_allclose(state[:3], [q, v, a], rtol=0, atol=1e-9, err_msg=case)
     c, h = traj.coefficients, traj.piece_durations_s[:, None]
     ends = np.stack(
         [
@@ -98,7 +97,15 @@ def test_waypoints_end_states_and_continuity(k: int, solved: list[TimeJerkTrajec
         ]
     )[:, :-1]
     starts = np.stack([c[1:, :, 3], c[1:, :, 2], 2 * c[1:, :, 1]])
-    np.testing.assert_allclose(ends, starts, rtol=0, atol=1e-9, err_msg=_case(p))
+    np.testing.assert_allclose(ends, starts, rtol=0, atol=1e-9, err_msg=case)
+
+
+@pytest.mark.parametrize("k", range(len(PROBLEMS)))
+def test_waypoints_end_states_and_continuity(k: int, solved: list[TimeJerkTrajectory]) -> None:
+    traj, p = solved[k], PROBLEMS[k]
+    assert traj.problem is p
+    assert traj.n_pieces == p.waypoints_rad.shape[0] + 1
+    _assert_through_waypoints_and_continuous(traj, p, _case(p))
 
 
 @pytest.mark.parametrize("k", range(len(PROBLEMS)))
@@ -510,24 +517,7 @@ def test_shape_knots_keep_waypoints_continuity_and_every_limit(
     case = _case(p) + f", shape_knots={p.shape_knots}"
     assert traj.n_pieces == p.waypoints_rad.shape[0] + 1 + sum(p.shape_knots)
     assert traj.shape_positions_rad.shape == (sum(p.shape_knots), p.n_joints)
-    np.testing.assert_allclose(
-        traj.sample(traj.waypoint_times_s), p.waypoints_rad, rtol=0, atol=1e-9, err_msg=case
-    )
-    for t, v, a in (
-        (0.0, p.start_velocity_rad_s, p.start_acceleration_rad_s2),
-        (traj.duration_s, p.end_velocity_rad_s, p.end_acceleration_rad_s2),
-    ):
-        np.testing.assert_allclose(traj.states(t)[1:3], [v, a], rtol=0, atol=1e-9, err_msg=case)
-    c, h = traj.coefficients, traj.piece_durations_s[:, None]
-    ends = np.stack(
-        [
-            ((c[..., 0] * h + c[..., 1]) * h + c[..., 2]) * h + c[..., 3],
-            (3 * c[..., 0] * h + 2 * c[..., 1]) * h + c[..., 2],
-            6 * c[..., 0] * h + 2 * c[..., 1],
-        ]
-    )[:, :-1]
-    starts = np.stack([c[1:, :, 3], c[1:, :, 2], 2 * c[1:, :, 1]])
-    np.testing.assert_allclose(ends, starts, rtol=0, atol=1e-9, err_msg=case)
+    _assert_through_waypoints_and_continuous(traj, p, case)
     # The shape knots sit where the trajectory says.
     knots = traj.knots_s[list(p.shape_knot_indices)]
     np.testing.assert_allclose(traj.sample(knots), traj.shape_positions_rad, atol=1e-9)

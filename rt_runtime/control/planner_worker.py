@@ -157,12 +157,11 @@ class DigPlan:
 
 @dataclass(frozen=True, slots=True)
 class _Ahead:
-    """A plan made ahead (:meth:`SessionDriver.lookahead`): on a copy of the session that
-    recorded the pending dig ``index`` along its planned path, whose height field was then
-    ``surface_m``."""
+    """A plan made ahead (:meth:`SessionDriver.lookahead`) by ``driver``, on a copy of the
+    trench that recorded the pending dig ``index`` along its planned path (its height field
+    is the planned one: only a record changes it)."""
 
     index: int
-    surface_m: FloatArray
     driver: SessionDriver
     plan: DigPlan
 
@@ -464,7 +463,6 @@ class SessionDriver:
             copy = TrenchSession.restore(s.planner, s.task, s.state())
             assert copy.pending is not None
             copy.record(copy.pending, copy.pending.tip_path_m)
-            surface = copy.surface.copy()
             driver = SessionDriver(copy, self.period_s)
             driver._end_rad = self._end_rad
             plan = driver.plan(None)
@@ -472,7 +470,7 @@ class SessionDriver:
             return False
         if plan.dig is None or plan.travel:
             return False  # the end of the task, or a section change: planned as always
-        self._ahead = _Ahead(dig.index, surface, driver, plan)
+        self._ahead = _Ahead(dig.index, driver, plan)
         return True
 
     def _take_ahead(self, t0: float) -> DigPlan | None:
@@ -494,11 +492,10 @@ class SessionDriver:
             return None
         if s.digs[-1].index != ahead.index:
             return None
-        delta = float(np.max(np.abs(s.surface - ahead.surface_m)))
+        copy = ahead.driver.session
+        delta = float(np.max(np.abs(s.surface - copy.surface)))
         plan = ahead.plan
         limit = TRANSITION_PENETRATION_M - 2.0 * delta
-        copy = ahead.driver.session
-        material, surface = copy.material, copy.surface
         copy.material, copy.surface = s.material, s.surface.copy()
         cycle, exits = plan.cycle, plan.exit
         try:
@@ -519,8 +516,7 @@ class SessionDriver:
                 ]:
                     raise PlanningError("the exit moves planned ahead changed")
         except PlanningError:
-            copy.material, copy.surface = material, surface
-            return None
+            return None  # the copy goes with it
         if cycle is not None and cycle is not plan.cycle:
             at = next(i for i, st in enumerate(copy.steps) if st is plan.cycle)
             copy.steps[at] = cycle

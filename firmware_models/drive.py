@@ -1441,8 +1441,9 @@ class DriveFirmware:
         else:
             self._hold_at(self._demand_m)
 
-    def _raise_fault(self, code: int) -> None:
-        """A fault: EMCY, 0x603F, error register, transition 13 and the fault reaction."""
+    def _raise_fault(self, code: int, reaction: int | None = None) -> None:
+        """A fault: EMCY, 0x603F, error register, transition 13 and the fault reaction
+        (``reaction``: a fault reaction option code, 0x605E's when None)."""
         self._error_code = code
         self._error_register |= _error_register_bits(code)
         self._emcy_queue.append(code)
@@ -1450,7 +1451,8 @@ class DriveFirmware:
         if state in (_S.FAULT_REACTION_ACTIVE, _S.FAULT):
             return
         self._transition(13, _S.FAULT_REACTION_ACTIVE)
-        if state in (_S.OPERATION_ENABLED, _S.QUICK_STOP_ACTIVE) and self._fr_option != 0:
+        option = self._fr_option if reaction is None else reaction
+        if state in (_S.OPERATION_ENABLED, _S.QUICK_STOP_ACTIVE) and option != 0:
             self._start_ramp()
         else:
             self._transition(14, _S.FAULT)
@@ -1463,18 +1465,35 @@ class DriveFirmware:
         self._emcy_queue.append(EmcyCode.NO_ERROR)
         self._power_off()
 
-    def inject_fault(self, code: int) -> None:
+    def inject_fault(self, code: int, reaction: int | None = None) -> None:
         """Raise a drive fault from outside (scenarios): EMCY ``code`` and the fault reaction.
 
         Args:
             code: Emergency error code (u16), e.g. 0x2310 (continuous over-current).
+            reaction: The fault's own reaction, a fault reaction option code: 0 disable the
+                drive function at once (power stage off, brake on: an over-current or an
+                under-voltage leaves nothing to ramp with), 2 the quick-stop ramp (an
+                over-temperature warning still has power to stop with); None: 0x605E's.
 
         Raises:
-            ValueError: ``code`` is 0 or does not fit 16 bits.
+            ValueError: ``code`` is 0 or does not fit 16 bits, or ``reaction`` is not 0 or 2.
         """
         if not 0 < code <= 0xFFFF:
             raise ValueError(f"emergency code 0x{code:X} must be in 0x0001..0xFFFF")
-        self._raise_fault(code)
+        if reaction not in (None, 0, 2):
+            raise ValueError(f"fault reaction {reaction!r}; allowed: 0 (disable), 2 (ramp)")
+        self._raise_fault(code, reaction)
+
+    def power_cycle(self, now_s: float) -> list[Frame]:
+        """The drive reboots (its logic supply dipped): every object back to its stored value,
+        the power drive state machine from NOT READY TO SWITCH ON, the power stage off, and the
+        boot-up frame ``0x700+id [00]`` sent unannounced (PRE-OPERATIONAL: no PDOs until the
+        master starts the node again).
+
+        Returns:
+            The boot-up frame.
+        """
+        return self._reset(now_s, application=True)
 
     def _set_mode(self, mode: int) -> None:
         if mode == self._mode:

@@ -15,15 +15,29 @@ and the world, so the firmware behaves exactly as it would on a real bus:
   master sees no heartbeat and no TPDOs.
 * :attr:`DriveNode.deaf_to` -- COB-IDs the node no longer receives (the master's heartbeat 0x77E,
   say): the firmware's heartbeat consumer times out and it takes its fault reaction (EMCY 0x8130).
+* :attr:`FaultState.rock_direction` -- the axis has met a rock: pushing that way (+1 extending,
+  -1 retracting) the soil resists past the cylinder's force, so the plant receives 0.0 (the axis
+  stands, as braked) while the drive pushes into it; pulling back is free. The drive's
+  following-error check trips as for a jam once the demand runs on into the rock.
+* :attr:`FaultState.report_offset_m` -- the position the drive reports in its TPDO1 jumps by this
+  much (an encoder that lost counts on the way to the bus: a glitch of the load encoder the
+  drive reports, while its servo runs on the motor encoder), so the plant does not move but the
+  master reads a jump.
 
 Clock-free like the firmware: every call takes ``now_s``. Not thread-safe; one owner (the HIL).
 """
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass, field
 
 from firmware_models.drive import DriveFirmware, Frame
+
+#: TPDO1's COB-ID base and its default mapping: position actual 0x6064 (i32, um), velocity
+#: actual 0x606C (i32, um/s).
+_COB_TPDO1 = 0x180
+_TPDO1 = struct.Struct("<ii")
 
 __all__ = ["DriveNode", "FaultState"]
 
@@ -36,11 +50,22 @@ class FaultState:
         jammed: The axis is stuck: the plant receives effort 0.0 (braked) whatever the drive says.
         silent: The node sends no frame at all.
         deaf_to: Arbitration ids the node does not receive.
+        report_offset_m: Added to the position the node reports in its TPDO1 (m).
+        rock_direction: +1 or -1: the way the axis cannot push (a rock); 0: no rock.
     """
 
     jammed: bool = False
     silent: bool = False
     deaf_to: frozenset[int] = field(default_factory=frozenset)
+    report_offset_m: float = 0.0
+    rock_direction: float = 0.0
+
+    def clear(self) -> None:
+        """Every injected fault off (the cause is gone: a repaired stub, a freed axis)."""
+        self.jammed = self.silent = False
+        self.deaf_to = frozenset()
+        self.report_offset_m = 0.0
+        self.rock_direction = 0.0
 
 
 class DriveNode:
@@ -75,7 +100,21 @@ class DriveNode:
         if arbitration_id in self.faults.deaf_to:
             return []
         out = self.firmware.on_frame(arbitration_id, data, now_s)
-        return [] if self.faults.silent else out
+        faults = self.faults
+        if faults.silent:
+            return []
+        if faults.report_offset_m:
+            out = [self._offset(frame) for frame in out]
+        return out
+
+    def _offset(self, frame: Frame) -> Frame:
+        """``frame`` with :attr:`FaultState.report_offset_m` added to a TPDO1's position."""
+        cob, data = frame
+        if cob != _COB_TPDO1 + self.firmware.node_id or len(data) != _TPDO1.size:
+            return frame
+        position_um, velocity_um_s = _TPDO1.unpack(data)
+        position_um += round(self.faults.report_offset_m * 1e6)
+        return cob, _TPDO1.pack(max(-(2**31), min(2**31 - 1, position_um)), velocity_um_s)
 
     def pending_frames(self, now_s: float) -> list[Frame]:
         """Time supervision of the firmware; returns its due heartbeats and emergencies."""
@@ -84,5 +123,6 @@ class DriveNode:
 
     def servo_step(self, dt_s: float, stroke_m: float, stroke_rate_m_s: float) -> float:
         """One servo sub-step on the true stroke; returns the effort the plant receives."""
-        self.effort = self.firmware.servo_step(dt_s, stroke_m, stroke_rate_m_s)
-        return 0.0 if self.faults.jammed else self.effort
+        self.effort = e = self.firmware.servo_step(dt_s, stroke_m, stroke_rate_m_s)
+        faults = self.faults
+        return 0.0 if faults.jammed or e * faults.rock_direction > 0.0 else e

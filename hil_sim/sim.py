@@ -44,6 +44,7 @@ from rt_runtime.errors import ConfigurationError
 from rt_runtime.rig import Rig
 
 __all__ = [
+    "GLITCH_MM",
     "TRUTH_ROWS",
     "FaultKind",
     "HilCore",
@@ -66,7 +67,13 @@ _TRUTH_FIRST_ROWS = 4096
 
 
 class FaultKind(IntEnum):
-    """Faults a scenario injects into one drive node (see :mod:`hil_sim.drives`)."""
+    """Faults a HIL run injects, by where they act.
+
+    Drive faults act in one drive node (:mod:`hil_sim.drives`, :meth:`HilCore.inject`); bus
+    faults on the frames between the master and one node or the whole bus (the transport's
+    :class:`~hil_sim.busfaults.BusFaults`); host faults on the rig PC's side (the harness
+    applies them: the loop, the planner process, the job store).
+    """
 
     #: The axis jams (effort 0.0, braked): the drive's own following-error check trips (0x8611).
     FOLLOWING_ERROR = 1
@@ -74,6 +81,78 @@ class FaultKind(IntEnum):
     HEARTBEAT_LOSS = 2
     #: The drive stops transmitting: the master's heartbeat consumer trips.
     NODE_SILENT = 3
+    #: The drive's own over-current (EMCY 0x2310): power stage off at once (reaction 0).
+    OVERCURRENT = 4
+    #: The drive's own over-temperature (EMCY 0x4310): quick-stop ramp (reaction 2).
+    OVERTEMPERATURE = 5
+    #: The drive's DC link under-voltage (EMCY 0x3220): power stage off at once (reaction 0).
+    UNDERVOLTAGE = 6
+    #: The drive reboots: its boot-up frame arrives unannounced, PDOs stop (PRE-OPERATIONAL).
+    DRIVE_REBOOT = 7
+    #: The position the drive reports jumps by the parameter (mm) and stays off.
+    ENCODER_GLITCH = 8
+    #: The axis meets a rock: the soil's force past its cylinder's, it stalls moving into it.
+    ROCK = 9
+    #: Frames to and from the target lost at a rate (the parameter, 0..1).
+    FRAME_LOSS = 10
+    #: The target's next frame (either way) delivered late by the parameter (ms).
+    FRAME_DELAY = 11
+    #: The target's next two frames (either way) delivered in swapped order.
+    FRAME_REORDER = 12
+    #: The target's next frame to the master one byte short (a wrong DLC).
+    FRAME_TRUNCATED = 13
+    #: The target's next frame to the master with random bytes (its length kept).
+    FRAME_GARBAGE = 14
+    #: The target's next frame (either way) delivered twice.
+    FRAME_DUPLICATE = 15
+    #: Error frames on the bus (the parameter: how many, one per period).
+    ERROR_FRAMES = 16
+    #: The master's adapter goes bus-off: every send raises until it is reopened.
+    BUS_OFF = 17
+    #: The bus unplugged for the parameter (s): nothing passes either way, then it is back.
+    BUS_UNPLUGGED = 18
+    #: The master's loop does not run for the parameter (ms): a VM pause.
+    LOOP_STALL = 19
+    #: The job's planner process is killed (SIGKILL).
+    PLANNER_KILLED = 20
+
+    @property
+    def label(self) -> str:
+        """The kind's name on the command line: ``frame_loss``."""
+        return self.name.lower()
+
+    @property
+    def targets(self) -> tuple[str, ...]:
+        """What the kind acts on: axis names (a drive node, or the frames to and from it),
+        ``bus`` (every frame), ``host`` (the rig PC)."""
+        layer = self.layer
+        if layer == "drive":
+            return _AXES
+        if layer == "host":
+            return ("host",)
+        if self in (FaultKind.ERROR_FRAMES, FaultKind.BUS_OFF, FaultKind.BUS_UNPLUGGED):
+            return ("bus",)
+        return (*_AXES, "bus")
+
+    @property
+    def layer(self) -> str:
+        """``drive``, ``bus`` or ``host``."""
+        if self.value <= FaultKind.ROCK:
+            return "drive"
+        if self.value <= FaultKind.BUS_UNPLUGGED:
+            return "bus"
+        return "host"
+
+
+#: Drive faults that are the drive's own EMCY: code and fault reaction (0 power stage off at
+#: once, 2 quick-stop ramp).
+_DRIVE_EMCY = {
+    FaultKind.OVERCURRENT: (0x2310, 0),
+    FaultKind.OVERTEMPERATURE: (0x4310, 2),
+    FaultKind.UNDERVOLTAGE: (0x3220, 0),
+}
+#: An encoder glitch's default jump (mm).
+GLITCH_MM = 8.0
 
 
 class _ShiftedLoad:
@@ -350,7 +429,8 @@ class HilCore:
         """Advance drives and plant by ``dt_s`` in servo sub-steps (the last one shorter if
         ``dt_s`` is not a multiple of the servo period)."""
         # The servo loop of every sub-step, flattened: the drive nodes' servo_step (firmware
-        # cascade, then a jam applied at the axis) and the plant's servo_substep (the firmware's
+        # cascade, then a jam or a rock applied at the axis) and the plant's servo_substep (the
+        # firmware's
         # efforts are finite and within [-1, 1], so step()'s checks and clipping change nothing).
         remaining = dt_s
         plant = self.plant
@@ -371,7 +451,11 @@ class HilCore:
                 load.offset_m = vcu.travel_position_m if vcu is not None else 0.0
             plant.servo_substep(
                 h,
-                [0.0 if f0.jammed else e0, 0.0 if f1.jammed else e1, 0.0 if f2.jammed else e2],
+                [
+                    0.0 if f0.jammed or e0 * f0.rock_direction > 0.0 else e0,
+                    0.0 if f1.jammed or e1 * f1.rock_direction > 0.0 else e1,
+                    0.0 if f2.jammed or e2 * f2.rock_direction > 0.0 else e2,
+                ],
             )
             if vcu is not None:
                 vcu.step(h)
@@ -394,21 +478,62 @@ class HilCore:
 
     # -- injection and material -----------------------------------------------------------------
 
-    def inject(self, kind: FaultKind, axis: int) -> None:
-        """Switch a fault on in one drive node, from now on.
+    def inject(
+        self, kind: FaultKind, axis: int, param: float | None = None, now_s: float = 0.0
+    ) -> list[Frame]:
+        """Switch a drive fault on in one drive node, from now on (see :class:`FaultKind`).
+
+        Args:
+            kind: A drive fault (``kind.layer == "drive"``).
+            axis: The node's axis (0 boom, 1 stick, 2 bucket).
+            param: The kind's parameter (the glitch in mm, default :data:`GLITCH_MM`); unused
+                by the others.
+            now_s: The HIL's clock (a reboot's boot-up frame is stamped with it).
+
+        Returns:
+            Frames the node sends at once (a reboot's boot-up frame), for the transport to put
+            on the bus.
 
         Raises:
-            ValueError: ``axis`` not 0..2.
+            ValueError: ``axis`` not 0..2, or a bus or host kind.
         """
         if not 0 <= axis <= 2:
             raise ValueError(f"axis must be 0..2 (boom, stick, bucket); got {axis}")
-        faults = self.nodes[axis].faults
+        if kind.layer != "drive":
+            raise ValueError(f"{kind.label} is a {kind.layer} fault, not a drive node's")
+        node = self.nodes[axis]
+        faults = node.faults
         if kind is FaultKind.FOLLOWING_ERROR:
             faults.jammed = True
         elif kind is FaultKind.HEARTBEAT_LOSS:
             faults.deaf_to = faults.deaf_to | {COB_MASTER_HEARTBEAT}
-        else:
+        elif kind is FaultKind.NODE_SILENT:
             faults.silent = True
+        elif kind in _DRIVE_EMCY:
+            code, reaction = _DRIVE_EMCY[kind]
+            node.firmware.inject_fault(code, reaction)
+        elif kind is FaultKind.DRIVE_REBOOT:
+            return [] if faults.silent else node.firmware.power_cycle(now_s)
+        elif kind is FaultKind.ENCODER_GLITCH:
+            faults.report_offset_m = (GLITCH_MM if param is None else float(param)) * 1e-3
+        else:
+            faults.rock_direction = self._rock_direction(axis)
+        return []
+
+    def _rock_direction(self, axis: int) -> float:
+        """The way an axis meets a rock: the way it moves (or pushes, at rest), extending when
+        it does neither."""
+        _, rate = self.plant.stroke_state()
+        if abs(rate[axis]) > 1e-3:
+            return math.copysign(1.0, rate[axis])
+        effort = self.nodes[axis].effort
+        return math.copysign(1.0, effort) if effort else 1.0
+
+    def clear(self) -> None:
+        """Every drive fault's cause gone (a freed axis, a repaired stub, the rock removed);
+        what the drives latched stays latched until the master resets it."""
+        for node in self.nodes:
+            node.faults.clear()
 
     def truth(self) -> Truth:
         """The truth kept (the last ``truth_rows`` SYNCs; ``energy_j`` over the whole run)."""

@@ -19,7 +19,7 @@ watchdog 20 ms, heartbeat timeout 150 ms, following-error window 5 mm) in the HI
 daemon, and the example configuration ``rt_runtime/service/excavator-rtd.example.toml`` with
 only the bus (python-can's ``remote`` interface to the HIL's port) and the paths changed
 (:func:`stock_config` checks that every other key is the example's: SCHED_FIFO 80, mlockall,
-5 overruns in a row, 25 stale cycles). ``EXCAVATOR_E2E_RUNS=5`` runs the scenario five times
+5 overruns in a row, 10 stale cycles). ``EXCAVATOR_E2E_RUNS=5`` runs the scenario five times
 (each with a new HIL) to measure how often the stock settings hold on a machine. The HIL has no
 terrain here: its terrain is cut only on explicit commands of a scenario runner, which the daemon
 (like a rig) does not send, so a terrain would push back on every later dig as virgin soil; the

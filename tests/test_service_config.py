@@ -60,7 +60,7 @@ def test_example_config_loads_with_documented_defaults() -> None:
     assert cfg.rig_profile == "scale_model"
     assert cfg.loop.period_s == 0.002 and cfg.loop.sched_fifo_priority == 80
     assert cfg.loop.cpu is None and cfg.loop.lock_memory
-    assert cfg.loop.max_consecutive_overruns == 5 and cfg.stale_cycles == 25
+    assert cfg.loop.max_consecutive_overruns == 5 and cfg.stale_cycles == 10
     assert cfg.models_dir is None and cfg.feedforward and cfg.planner == "pinn"
     assert str(cfg.paths.socket) == "/run/excavator-rtd/control.sock"
     assert cfg.paths.trace is None and cfg.log_level == "info"

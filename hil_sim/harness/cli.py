@@ -5,7 +5,8 @@ here and in the report). ``rt_runtime.cli`` wires it in with :func:`add_parser` 
 
     excavator-rt hil --task A [--rig scale_model] [--realtime] [--trace FILE.blf|.asc]
                      [--no-feedforward] [--max-digs N] [--json] [--plot DIR]
-                     [--inject KIND:AXIS:AT_S ...]
+                     [--inject KIND:TARGET:AT_S[:PARAM] ...]
+    excavator-rt hil campaign [--kinds K,...] [--axes A,...] [--seeds N] [--json] [--out DIR]
     excavator-rt hil --path gao|FILE.json|joints [--joints-deg B,S,K ...] [--rig test_bench]
                      [--orders auto|3-4-5-4-3|...] [--durations 3,3,3,3,3] [--start-deg B,S,K]
                      [--realtime] [--no-feedforward] [--trace FILE] [--json] [--plot DIR]
@@ -28,6 +29,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+from hil_sim.harness import campaign
 from hil_sim.harness.reports import HilReport
 from hil_sim.harness.scenario import (
     FaultSpec,
@@ -75,29 +77,46 @@ def _durations(text: str) -> tuple[float, ...]:
 
 
 def parse_fault(text: str) -> FaultSpec:
-    """``KIND:AXIS:AT_S`` (e.g. ``following_error:stick:2.5``) as a :class:`FaultSpec`.
+    """``KIND:TARGET:AT_S[:PARAM]`` (e.g. ``following_error:stick:2.5``,
+    ``frame_loss:bus:1.0:0.1``) as a :class:`FaultSpec`.
 
     Raises:
-        argparse.ArgumentTypeError: Unknown kind or axis, or a bad time.
+        argparse.ArgumentTypeError: Unknown kind, a target the kind does not take, a bad time
+            or parameter.
     """
     parts = text.split(":")
-    kinds = ", ".join(k.name.lower() for k in FaultKind)
-    if len(parts) != 3:
-        raise argparse.ArgumentTypeError(f"--inject {text!r}: expected KIND:AXIS:AT_S ({kinds})")
-    kind, axis, at = parts
+    kinds = ", ".join(k.label for k in FaultKind)
+    if len(parts) not in (3, 4):
+        raise argparse.ArgumentTypeError(
+            f"--inject {text!r}: expected KIND:TARGET:AT_S[:PARAM] ({kinds})"
+        )
+    kind, target, at = parts[:3]
     try:
         fault_kind = FaultKind[kind.upper()]
     except KeyError:
         raise argparse.ArgumentTypeError(f"--inject kind {kind!r}; allowed: {kinds}") from None
-    if axis not in ("boom", "stick", "bucket"):
-        raise argparse.ArgumentTypeError(f"--inject axis {axis!r}; allowed: boom, stick, bucket")
+    if target not in fault_kind.targets:
+        raise argparse.ArgumentTypeError(
+            f"--inject {fault_kind.label} target {target!r}; allowed: "
+            + ", ".join(fault_kind.targets)
+        )
     try:
         at_s = float(at)
     except ValueError:
         raise argparse.ArgumentTypeError(f"--inject time {at!r} is not a number") from None
     if not (math.isfinite(at_s) and at_s >= 0.0):
         raise argparse.ArgumentTypeError(f"--inject time {at_s} must be >= 0 s")
-    return FaultSpec(fault_kind, axis, at_s)
+    param = None
+    if len(parts) == 4:
+        try:
+            param = float(parts[3])
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"--inject parameter {parts[3]!r} is not a number"
+            ) from None
+        if not math.isfinite(param):
+            raise argparse.ArgumentTypeError(f"--inject parameter {param} must be finite")
+    return FaultSpec(fault_kind, target, at_s, param)
 
 
 def register(subparsers: Any) -> None:
@@ -171,11 +190,15 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         action="append",
         type=parse_fault,
         default=[],
-        metavar="KIND:AXIS:AT_S",
-        help="inject a fault (repeatable)",
+        metavar="KIND:TARGET:AT_S[:PARAM]",
+        help="inject a fault (repeatable): KIND one of "
+        + ", ".join(k.label for k in FaultKind)
+        + "; TARGET an axis, bus or host",
     )
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     p.add_argument("--plot", default=None, metavar="DIR", help="write figures (Yao Fig. 17-21)")
+    sub = p.add_subparsers(dest="hil_command", metavar="{campaign}")
+    campaign.add_parser(sub)
     return p
 
 

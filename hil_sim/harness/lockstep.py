@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from firmware_models.drive import Frame
+from hil_sim.busfaults import BusFaults
 from hil_sim.sim import COB_SYNC, FaultKind, FloatArray, HilCore, open_trace
 from hil_sim.terrain import Terrain
 from rt_runtime.canbus.inprocess import ChannelBus, InProcessChannel
@@ -99,7 +100,12 @@ class LockstepBus(SimulatedTimeBus, ChannelBus):
         """The simulated clock (s)."""
         return self.sim_clock.now()
 
+    #: The adapter is bus-off (a :class:`~hil_sim.busfaults.BusFaults` fault): sends raise.
+    bus_off = False
+
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if self.bus_off:
+            raise can.CanOperationError(f"{self.channel_info}: the adapter is bus-off")
         super().send(msg, timeout)
         self._pump()
 
@@ -218,11 +224,21 @@ class LockstepHil:
         rig, q0_rad, terrain, period_s, vcu, keep_frames: As :class:`HilCore`.
         trace_path: Write the bus trace here (``.blf`` or ``.asc``), or None.
 
+    Bus faults (:class:`~hil_sim.busfaults.BusFaults`, :meth:`inject`): every frame either way
+    passes :attr:`bus_faults`; error frames go to the master one per SYNC; a bus-off adapter
+    makes the master's sends raise (:meth:`reopen_master_bus` gives the master a working end
+    again once the fault is cleared).
+
+    Plant time: each SYNC advances the plant to one period past the SYNC; when the clock moves
+    past the plant's time without a SYNC (a lost SYNC, an unplugged bus, a stalled loop) the
+    plant follows the clock, so the drives and the arm go on moving with the master silent.
+
     Attributes:
         core: The HIL.
         clock: The simulated clock; give ``clock.now`` to the master and the clock to the loop.
         channel: The in-process channel (open another end on it to watch the bus).
         master_bus: The bus end for the master.
+        bus_faults: The wire's faults.
         cost: The HIL's own wall time per SYNC period (:class:`HilCost`); it reads the wall
             clock only to measure, never to decide, so runs stay deterministic.
     """
@@ -237,25 +253,39 @@ class LockstepHil:
         vcu: bool = True,
         keep_frames: bool = False,
         trace_path: str | Path | None = None,
+        fault_seed: int = 0,
     ) -> None:
         self.core = HilCore(
             rig, q0_rad, terrain, period_s=period_s, vcu=vcu, keep_frames=keep_frames
         )
         if trace_path is not None:
             self.core.trace = open_trace(trace_path)
+        self.bus_faults = BusFaults(fault_seed)
         self.clock = LockstepClock(self._on_time)
         self.channel = InProcessChannel(f"excavator-hil-lockstep-{next(_channel_numbers)}")
         self._bus = ChannelBus(self.channel, clock=self.clock.now)
+        self._period_s = period_s
         self.master_bus = LockstepBus(self.channel, self.clock, self.pump, period_s)
         self._pumping = False
+        self._plant_t = 0.0
         self.cost = HilCost()
         self._send(self.core.pending_frames(0.0))  # power-on boot-up messages
 
+    def reopen_master_bus(self) -> LockstepBus:
+        """A new bus end for the master (the old one shut down): an adapter reopened after a
+        bus-off. It is bus-off again while the fault lasts."""
+        self.master_bus.shutdown()
+        self.master_bus = LockstepBus(self.channel, self.clock, self.pump, self._period_s)
+        self.master_bus.bus_off = self.bus_faults.bus_off
+        return self.master_bus
+
     def _send(self, frames: list[Frame]) -> None:
         now = self.clock.now()
-        for arbitration_id, data in frames:
-            self.core.log(arbitration_id, data, now, is_rx=False)
-            self._bus.send_data(arbitration_id, data)
+        faults = self.bus_faults
+        for frame in frames:
+            for arbitration_id, data in faults.to_master(frame, now) if faults.active else (frame,):
+                self.core.log(arbitration_id, data, now, is_rx=False)
+                self._bus.send_data(arbitration_id, data)
 
     def pump(self) -> None:
         """Handle every frame queued at the HIL's end, at the current simulated time."""
@@ -265,32 +295,82 @@ class LockstepHil:
         cost = self.cost
         started = perf_counter_ns()
         try:
-            core = self.core
+            faults = self.bus_faults
             while True:
                 msg = self._bus.take()
                 if msg is None:
                     break
                 now = self.clock.now()
-                data = bytes(msg.data)
+                frame = (msg.arbitration_id, bytes(msg.data))
                 if msg.arbitration_id == COB_SYNC:
                     started = cost.sync(started)
-                core.log(msg.arbitration_id, data, now, is_rx=True)
-                self._send(core.on_frame(msg.arbitration_id, data, now))
-                if msg.arbitration_id == COB_SYNC:
-                    core.advance(core.period_s)
+                    if faults.active and faults.error_frames_due():
+                        self._bus.send(can.Message(is_error_frame=True, check=False))
+                if faults.active:
+                    for arrived in faults.to_hil(frame, now):
+                        self._receive(arrived, now)
+                else:
+                    self._receive(frame, now)
         finally:
             self._pumping = False
             cost.add(started)
 
+    def _receive(self, frame: Frame, now: float) -> None:
+        """One frame reaches the HIL's nodes; a SYNC then advances the plant."""
+        core = self.core
+        arbitration_id, data = frame
+        core.log(arbitration_id, data, now, is_rx=True)
+        self._send(core.on_frame(arbitration_id, data, now))
+        if arbitration_id == COB_SYNC:
+            end = now + core.period_s
+            if end > self._plant_t:
+                core.advance(end - self._plant_t)
+                self._plant_t = end
+
     def _on_time(self, t_s: float) -> None:
         self.pump()
         started = perf_counter_ns()
+        if t_s > self._plant_t + 1e-9:  # no SYNC for longer than a period: the plant goes on
+            self.core.advance(t_s - self._plant_t)
+            self._plant_t = t_s
+        faults = self.bus_faults
+        if faults.active:
+            to_hil, to_master = faults.due(t_s)
+            for frame in to_hil:
+                self._receive(frame, t_s)
+            self._send_now(to_master)
         self._send(self.core.pending_frames(t_s))
         self.cost.add(started)
 
-    def inject(self, kind: FaultKind, axis: int) -> None:
-        """Inject a fault now (see :meth:`HilCore.inject`)."""
-        self.core.inject(kind, axis)
+    def _send_now(self, frames: list[Frame]) -> None:
+        """Frames to the master that already passed the bus faults (held back ones)."""
+        now = self.clock.now()
+        for arbitration_id, data in frames:
+            self.core.log(arbitration_id, data, now, is_rx=False)
+            self._bus.send_data(arbitration_id, data)
+
+    def inject(self, kind: FaultKind, axis: int, param: float | None = None) -> None:
+        """Inject a drive or bus fault now (:meth:`HilCore.inject`, :meth:`BusFaults.inject`).
+
+        ``axis`` is the target axis (0..2) or -1 for the whole bus (bus faults only).
+
+        Raises:
+            ValueError: A host fault, a bad axis or parameter.
+        """
+        now = self.clock.now()
+        if kind.layer == "bus":
+            node = None if axis < 0 else self.core.nodes[axis].node_id
+            self.bus_faults.inject(kind, node, param, now)
+            self.master_bus.bus_off = self.bus_faults.bus_off
+            return
+        self._send(self.core.inject(kind, axis, param, now))
+
+    def clear_faults(self) -> None:
+        """Every injected cause gone (the drives' and the wire's); what the drives latched
+        stays until the master resets it."""
+        self.core.clear()
+        self.bus_faults.clear()
+        self.master_bus.bus_off = False
 
     def close(self) -> None:
         """Close the trace and both bus ends."""

@@ -26,7 +26,7 @@ to a client that does not read is capped (:data:`hil_sim.harness.bridge.MAX_PEND
 and the trace (``--trace``) goes to its file.
 
 Control of the process (:class:`RealtimeHilProcess`): one line commands on stdin
-(``inject <kind> <axis>``, ``cut <sync_from> <sync_to>``, ``stop``), answers on stdout
+(``inject <kind> <axis> [<param>]``, ``cut <sync_from> <sync_to>``, ``stop``), answers on stdout
 (``READY <port>``, ``CUT <m3>``). On ``stop``, on end of stdin (the parent died) or after
 ``--max-wall-s`` it writes its truth (``numpy.savez``: :class:`~hil_sim.sim.Truth` arrays, the
 terrain's material as WKB, its loop statistics, its resident memory) and exits, so a test can
@@ -146,7 +146,9 @@ def serve(args: argparse.Namespace) -> int:
             if not words:
                 continue
             if words[0] == "inject":
-                core.inject(FaultKind[words[1]], int(words[2]))
+                param = float(words[3]) if len(words) > 3 else None
+                now = loop.now()
+                loop.send(core.inject(FaultKind[words[1]], int(words[2]), param, now), now)
             elif words[0] == "cut":
                 volume = core.cut(int(words[1]), int(words[2]))
                 print(f"CUT {volume!r}", flush=True)
@@ -290,6 +292,11 @@ class _HilLoop:
     def now(self) -> float:
         """Seconds on the HIL's clock."""
         return time.monotonic() - self.t0
+
+    def send(self, frames: list[tuple[int, bytes]], now_s: float) -> None:
+        """Put frames of the HIL's nodes on the bus now (an injected reboot's boot-up)."""
+        self._send(frames, now_s)
+        self.bridge.flush()
 
     def _send(self, frames: list[tuple[int, bytes]], now_s: float) -> None:
         core = self.core
@@ -498,9 +505,9 @@ class RealtimeHilProcess:
         self.proc.stdin.write(line + "\n")
         self.proc.stdin.flush()
 
-    def inject(self, kind: FaultKind, axis: int) -> None:
-        """Inject a fault in the HIL process now."""
-        self._command(f"inject {kind.name} {axis}")
+    def inject(self, kind: FaultKind, axis: int, param: float | None = None) -> None:
+        """Inject a drive fault in the HIL process now (:meth:`HilCore.inject`)."""
+        self._command(f"inject {kind.name} {axis}" + ("" if param is None else f" {param!r}"))
 
     def cut(self, sync_from: int, sync_to: int) -> float:
         """Cut the HIL's terrain with the true tip path between two SYNCs; the volume (m^3)."""

@@ -100,6 +100,7 @@ if TYPE_CHECKING:
 __all__ = [
     "GAO_TABLE2_JOINTS_DEG",
     "NO_RT",
+    "STALL_MS",
     "FaultSpec",
     "HilRun",
     "KeyPointPath",
@@ -128,27 +129,37 @@ GOALS_MM = {
 
 @dataclass(frozen=True, slots=True)
 class FaultSpec:
-    """A fault to inject.
+    """A fault to inject (``--inject KIND:TARGET:AT_S[:PARAM]``).
 
     Attributes:
         kind: What fails (:class:`~hil_sim.sim.FaultKind`).
-        axis: Axis name (``boom``, ``stick``, ``bucket``).
+        axis: The target: an axis name (``boom``, ``stick``, ``bucket``), ``bus`` or ``host``
+            (what the kind takes: :attr:`FaultKind.targets`).
         at_s: Seconds after the first motion starts.
+        param: The kind's parameter (a loss rate, a delay in ms, a glitch in mm, a stall in ms,
+            ...); None: its default.
     """
 
     kind: FaultKind
     axis: str
     at_s: float
+    param: float | None = None
 
     def axis_index(self) -> int:
-        """Index of :attr:`axis`.
+        """Index of :attr:`axis`, -1 for ``bus`` and ``host``.
 
         Raises:
-            ConfigurationError: Unknown axis name.
+            ConfigurationError: A target the kind does not take, or a parameter that is not
+                a finite number.
         """
-        if self.axis not in AXES:
-            raise ConfigurationError(f"fault axis {self.axis!r}; allowed: {', '.join(AXES)}")
-        return AXES.index(self.axis)
+        targets = self.kind.targets
+        if self.axis not in targets:
+            raise ConfigurationError(
+                f"fault {self.kind.label}: target {self.axis!r}; allowed: {', '.join(targets)}"
+            )
+        if self.param is not None and not math.isfinite(self.param):
+            raise ConfigurationError(f"fault {self.kind.label}: parameter {self.param} not finite")
+        return AXES.index(self.axis) if self.axis in AXES else -1
 
 
 @dataclass(frozen=True, slots=True)
@@ -202,7 +213,7 @@ class _Hil(Protocol):
     clock: Any
     master_bus: can.BusABC
 
-    def inject(self, kind: FaultKind, axis: int) -> None: ...
+    def inject(self, kind: FaultKind, axis: int, param: float | None) -> None: ...
 
     def cut(self, sync_from: int, sync_to: int) -> float: ...
 
@@ -219,8 +230,12 @@ class _LockstepAdapter:
         self.clock = hil.clock
         self.master_bus: can.BusABC = hil.master_bus
 
-    def inject(self, kind: FaultKind, axis: int) -> None:
-        self.hil.inject(kind, axis)
+    def inject(self, kind: FaultKind, axis: int, param: float | None) -> None:
+        if kind is FaultKind.LOOP_STALL:  # the executor's thread, between two cycles
+            clock = self.hil.clock
+            clock.sleep_until(clock.now() + (STALL_MS if param is None else param) * 1e-3)
+        else:
+            self.hil.inject(kind, axis, param)
 
     def cut(self, sync_from: int, sync_to: int) -> float:
         return self.hil.core.cut(sync_from, sync_to)
@@ -244,8 +259,8 @@ class _RealtimeAdapter:
         self.clock = hil.clock
         self.master_bus: can.BusABC = hil.master_bus
 
-    def inject(self, kind: FaultKind, axis: int) -> None:
-        self.hil.inject(kind, axis)
+    def inject(self, kind: FaultKind, axis: int, param: float | None) -> None:
+        self.hil.inject(kind, axis, param)
 
     def cut(self, sync_from: int, sync_to: int) -> float:
         return self.hil.cut(sync_from, sync_to)
@@ -306,6 +321,35 @@ _PHASE_KIND = {
 _OnCycle = Callable[[int, float], None]
 
 
+#: A loop stall's default length (ms).
+STALL_MS = 50.0
+
+
+def _checked_faults(sc: Scenario | PathScenario) -> list[tuple[FaultSpec, int]]:
+    """Each fault with its target's index, checked before anything moves.
+
+    Raises:
+        ConfigurationError: A target the kind does not take, a kind this transport cannot
+            inject (the real-time HIL takes the drive faults; bus faults, a loop stall and a
+            killed planner process run in lockstep or in ``hil campaign``).
+    """
+    out = []
+    for f in sc.faults:
+        index = f.axis_index()
+        if f.kind is FaultKind.PLANNER_KILLED:
+            raise ConfigurationError(
+                "planner_killed needs the daemon's planner process: run it with "
+                "`excavator-rt hil campaign --kinds planner_killed`"
+            )
+        if sc.realtime and f.kind.layer != "drive":
+            raise ConfigurationError(
+                f"{f.kind.label} is a {f.kind.layer} fault: the real-time HIL injects drive "
+                "faults only; run it in lockstep (without --realtime) or in `hil campaign`"
+            )
+        out.append((f, index))
+    return out
+
+
 def _fault_injector(hil: _Hil, faults: list[tuple[FaultSpec, int]]) -> _OnCycle:
     """The executor's per-cycle hook that switches each fault on ``at_s`` after the first cycle."""
     start: list[float] = []
@@ -317,7 +361,7 @@ def _fault_injector(hil: _Hil, faults: list[tuple[FaultSpec, int]]) -> _OnCycle:
         for i, (spec, axis) in enumerate(faults):
             if i not in injected and now_s - start[0] >= spec.at_s:
                 injected.add(i)
-                hil.inject(spec.kind, axis)
+                hil.inject(spec.kind, axis, spec.param)
 
     return on_cycle
 
@@ -438,7 +482,7 @@ def run_scenario(sc: Scenario) -> HilRun:
     plan_us = (time.perf_counter() - plan_t0) * 1e6
     terrain = Terrain(rig.ground_y_m, (float(trench.x_lo), float(trench.x_hi)), rig.bucket.width_m)
     initial_material = terrain.material
-    faults = [(f, f.axis_index()) for f in sc.faults]
+    faults = _checked_faults(sc)
     hil = _open_hil(sc, rig, q0, terrain)
     cut_m3: dict[int, float] = {}
     result: ExecutorResult | None = None
@@ -849,7 +893,7 @@ def run_path_scenario(sc: PathScenario) -> HilRun:
     q0 = kp.q_key_rad[0] if sc.start_deg is None else np.radians(np.asarray(sc.start_deg))
     q0 = np.asarray(q0, dtype=np.float64)
     actuation.joint_to_stroke(rig, q0, check_limits=True)  # the start pose must be reachable
-    faults = [(f, f.axis_index()) for f in sc.faults]
+    faults = _checked_faults(sc)
     hil = _open_hil(sc, rig, q0, None)
     try:
 

@@ -103,7 +103,7 @@ from rt_runtime.canbus.cia402 import (
 )
 from rt_runtime.canbus.config import DEFAULT_EDS, DriveInfo, MasterConfig
 from rt_runtime.canbus.emcy import Emcy, EmcyCode, emcy_meaning, emcy_message, parse_emcy
-from rt_runtime.canbus.feedback import CycleStatus, Feedback, WriteStatus
+from rt_runtime.canbus.feedback import CycleStatus, Feedback, RxCounts, WriteStatus
 from rt_runtime.canbus.heartbeat import (
     HeartbeatConsumer,
     HeartbeatEvent,
@@ -138,6 +138,7 @@ __all__ = [
     "NmtCommand",
     "NmtState",
     "PdoSpec",
+    "RxCounts",
     "SdoAbortedError",
     "SdoClient",
     "SdoProtocolError",

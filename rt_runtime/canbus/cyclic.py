@@ -299,6 +299,7 @@ class CyclicExchange:
         status = CycleStatus.OK
         if fb.stale.any():
             status = CycleStatus.STALE
+            fb.counts.missed_tpdo1 += int(fb.stale.sum())
         if any(not e.is_reset for e in fb.emcys):
             status = CycleStatus.EMCY
         if self.expect_enabled and any(x != _ENABLED for x in states):

@@ -55,6 +55,33 @@ class WriteStatus(IntEnum):
     BUS_ERROR = 2
 
 
+class RxCounts:
+    """What the master rode through on its receive side, counted since it was built.
+
+    Attributes:
+        malformed: Drive frames of the wrong length (TPDO1, TPDO2), ignored.
+        error_frames: Error frames read off the bus.
+        duplicate_tpdo1: A second TPDO1 of one drive for the same SYNC (a duplicate or a late
+            one); the later one's values are kept.
+        missed_tpdo1: Cycles a drive's TPDO1 was missing at the read (drive-cycles).
+        implausible: Positions refused as implausible by the drives' interface (a jump the
+            axis cannot make in the time since its last good report): counted as missing.
+    """
+
+    __slots__ = ("duplicate_tpdo1", "error_frames", "implausible", "malformed", "missed_tpdo1")
+
+    def __init__(self) -> None:
+        self.malformed = 0
+        self.error_frames = 0
+        self.duplicate_tpdo1 = 0
+        self.missed_tpdo1 = 0
+        self.implausible = 0
+
+    def to_json(self) -> dict[str, int]:
+        """``{"malformed", "error_frames", "duplicate_tpdo1", "missed_tpdo1", "implausible"}``."""
+        return {name: int(getattr(self, name)) for name in sorted(self.__slots__)}
+
+
 class Feedback:
     """The master's per-cycle feedback workspace (one object, reused every cycle).
 
@@ -80,9 +107,11 @@ class Feedback:
         emcys: EMCYs received during this call.
         heartbeat_events: Heartbeat events noticed during this call.
         reacted: The master sent its fault reaction (quick stop to every drive) this call.
+        counts: What the receive side rode through (:class:`RxCounts`), cumulative.
     """
 
     __slots__ = (
+        "counts",
         "emcys",
         "error_code",
         "heartbeat_events",
@@ -118,6 +147,7 @@ class Feedback:
         self.emcys: list[Emcy] = []
         self.heartbeat_events: list[HeartbeatEvent] = []
         self.reacted = False
+        self.counts = RxCounts()
 
     def drive_state(self, axis: int) -> DriveState | None:
         """Decoded state of ``axis`` (None when undecodable)."""
@@ -131,5 +161,9 @@ class Feedback:
             value = getattr(self, name)
             if isinstance(value, np.ndarray | list):
                 value = value.copy()
+            elif isinstance(value, RxCounts):
+                value = RxCounts()
+                for key in RxCounts.__slots__:
+                    setattr(value, key, getattr(self.counts, key))
             setattr(out, name, value)
         return out

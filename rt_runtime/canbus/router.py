@@ -6,8 +6,9 @@ loop needs. Every frame the master reads, wherever it reads it (an SDO transfer,
 the cycle's read), goes through one dispatcher, :meth:`FrameRouter.dispatch`: the drives' TPDO1
 and TPDO2 into the :class:`~rt_runtime.canbus.feedback.Feedback` workspace, their EMCYs into it
 and :attr:`FrameRouter.last_emcy`, their heartbeats to the heartbeat consumer (its events into
-the workspace); malformed drive frames are ignored, any other frame goes to the
-``on_other_frame`` callback. The router reads no bus and no clock: callers pass each frame and
+the workspace); malformed drive frames are ignored and counted, error frames counted
+(:class:`~rt_runtime.canbus.feedback.RxCounts`), any other frame goes to the ``on_other_frame``
+callback. The router reads no bus and no clock: callers pass each frame and
 its ``now_s``.
 """
 
@@ -78,7 +79,10 @@ class FrameRouter:
     def dispatch(self, msg: can.Message, now_s: float) -> None:
         """Route one received frame (loop safe; allocates only EMCY and heartbeat events)."""
         route = None
-        if not (msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame):
+        if msg.is_error_frame:
+            self.feedback.counts.error_frames += 1
+            return
+        if not (msg.is_extended_id or msg.is_remote_frame):
             route = self._routes.get(msg.arbitration_id)
         if route is None:
             if self.on_other_frame is not None:
@@ -89,14 +93,18 @@ class FrameRouter:
         data = msg.data
         if kind == _TPDO1:
             if len(data) != TPDO1.size:
+                fb.counts.malformed += 1
                 return
             fb.position_um[axis], fb.velocity_um_s[axis] = TPDO1.codec.unpack_from(data)
             fb.rx_timestamp_s[axis] = msg.timestamp
             if fb.tpdo1_sync[axis] != fb.sync_count:
                 fb.tpdo1_sync[axis] = fb.sync_count
                 self.pending -= 1
+            else:
+                fb.counts.duplicate_tpdo1 += 1
         elif kind == _TPDO2:
             if len(data) != TPDO2.size:
+                fb.counts.malformed += 1
                 return
             status, mode, error = TPDO2.codec.unpack_from(data)
             fb.statusword[axis], fb.mode_display[axis], fb.error_code[axis] = status, mode, error

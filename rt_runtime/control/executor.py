@@ -118,7 +118,7 @@ class ExecutorConfig:
     plan_in_worker: bool | None = None
     following_error_m: float | None = None
     following_error_cycles: int = 3
-    stale_cycles: int = 25
+    stale_cycles: int = 10
     read_timeout_s: float | None = None
     stop_timeout_s: float = 5.0
     rest_velocity_m_s: float = 1e-3

@@ -12,6 +12,14 @@ Units: strokes m, stroke rates m/s, times s. A drive whose TPDO1 for this SYNC d
 *stale*: its ``stroke_m`` and ``velocity_m_s`` are NaN this cycle, ``last_velocity_m_s`` keeps its
 last report.
 
+Plausibility: a reported stroke further from the axis's last good report than the axis can
+move in the time between them (:data:`JUMP_RATE_FACTOR` times the rig's largest stroke rate,
+plus :data:`JUMP_MARGIN_M`) is refused: the axis counts as stale this cycle and the master's
+:class:`~rt_runtime.canbus.feedback.RxCounts` counts it as ``implausible``. A garbled TPDO1 or
+an encoder that jumped never reaches the controllers as a position; if it persists, the stale
+feedback monitor stops the job (the drives' interface keeps the last good report as its
+reference, so a jump stays refused until the axis could have got there).
+
 Timing: :attr:`DriveFeedback.send_s` is the time the write spent handing its frames to the bus
 (RPDO1s and SYNC), :attr:`DriveFeedback.wait_s` the time :meth:`~DriveInterface.read` spent
 taking the answers off the bus (receiving and decoding, and waiting where ``read_timeout_s``
@@ -30,7 +38,12 @@ from rt_runtime.canbus import CanMaster, CycleStatus, DriveState, Emcy, WriteSta
 from rt_runtime.canbus.cyclic import bus_error_text
 from rt_runtime.control.clock import Clock
 
-__all__ = ["DriveFeedback", "DriveInterface"]
+__all__ = ["JUMP_MARGIN_M", "JUMP_RATE_FACTOR", "DriveFeedback", "DriveInterface"]
+
+#: A report is implausible past this many times the rig's largest stroke rate ...
+JUMP_RATE_FACTOR = 2.0
+#: ... plus this much (m): encoder quantisation and the servo's own overshoot.
+JUMP_MARGIN_M = 0.5e-3
 
 FloatArray = NDArray[np.float64]
 
@@ -113,6 +126,10 @@ class DriveInterface:
         self.axes: tuple[str, ...] = tuple(master.config.axes)
         self.feedback = DriveFeedback(self.n)
         self._zero_um = [0] * self.n
+        rate = JUMP_RATE_FACTOR * master.rig.actuators.velocity_max_m_s
+        self._jump_per_sync_m = rate * master.config.period_s
+        self._good_m = [math.nan] * self.n
+        self._good_sync = [0] * self.n
 
     @property
     def sync_count(self) -> int:
@@ -176,15 +193,37 @@ class DriveInterface:
         np.multiply(raw.velocity_um_s, 1e-6, out=vel)
         out.velocity_m_s[:] = vel
         out.stale[:] = raw.stale
+        if self._implausible(raw.sync_count, pos, out.stale):
+            out.fresh = fresh = False
+            out.rtt_s = math.nan
         if not fresh:
-            pos[raw.stale] = np.nan
-            out.velocity_m_s[raw.stale] = np.nan
+            pos[out.stale] = np.nan
+            out.velocity_m_s[out.stale] = np.nan
         out.state[:] = raw.state
         out.heartbeat_lost[:] = raw.heartbeat_lost
         out.status = raw.status
         out.emcys = raw.emcys
         out.wait_s = t1 - t0
         return out
+
+    def _implausible(self, sync: int, pos: FloatArray, stale: NDArray[np.bool_]) -> bool:
+        """Refuse the reports that jumped (see the module docstring): mark them stale, count
+        them; True when one was refused. Plain Python over the handful of axes."""
+        refused = False
+        good, good_sync = self._good_m, self._good_sync
+        step = self._jump_per_sync_m
+        for axis, (x, gone) in enumerate(zip(pos.tolist(), stale.tolist(), strict=True)):
+            if gone:
+                continue
+            last = good[axis]
+            if last == last and abs(x - last) > step * (sync - good_sync[axis]) + JUMP_MARGIN_M:
+                stale[axis] = True
+                refused = True
+                self.master.feedback.counts.implausible += 1
+                continue
+            good[axis] = x
+            good_sync[axis] = sync
+        return refused
 
     def describe(self, status: CycleStatus) -> str:
         """What the drives report, for a fault message (outside the hot path): the cycle's

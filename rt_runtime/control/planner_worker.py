@@ -989,6 +989,11 @@ class ProcessPlanner:
     def service(self) -> None:
         """Nothing: the process works on its own."""
 
+    @property
+    def pid(self) -> int | None:
+        """The planner process's id (None before it started)."""
+        return self._process.pid
+
     def exit_code(self) -> int | None:
         """The planner process's exit code once it has ended (negative: the signal that ended
         it), None while it runs. Any thread; one ``waitpid`` (not inside the cycle's step)."""

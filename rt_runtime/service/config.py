@@ -384,7 +384,7 @@ def parse_config(raw: Mapping[str, Any], source: str | Path = "") -> DaemonConfi
             "executor.planner", f"{planner!r} is not a planner; allowed: {', '.join(PLANNERS)}", src
         )
 
-    stale_cycles = ex.get("stale_cycles", 25)
+    stale_cycles = ex.get("stale_cycles", 10)
     if not 1 <= stale_cycles <= 10_000:
         raise ConfigKeyError(
             "executor.stale_cycles", f"must be in [1, 10000] cycles, got {stale_cycles}", src

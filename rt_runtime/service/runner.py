@@ -58,7 +58,7 @@ import can
 import numpy as np
 
 from rt_runtime import actuation
-from rt_runtime.canbus import CanMaster
+from rt_runtime.canbus import CanMaster, RxCounts
 from rt_runtime.canbus.cyclic import bus_error_text
 from rt_runtime.control.clock import Clock, MonotonicClock
 from rt_runtime.control.controllers import Command, GuardFilter, HoldController
@@ -384,6 +384,7 @@ class RigRunner:
             daemon shuts it down (:func:`close_bus`) after :meth:`shutdown`.
         error: Why the thread ended when it ended on its own (empty otherwise).
         enable_syncs: SYNCs the master had sent when the drives were (last) enabled.
+        fault_at_s: The runner's clock when the latest fault latched (NaN before the first).
         resets_done: Resets that ended, succeeded or not (:meth:`reset_fault` returns the
             number the requested one will have).
     """
@@ -419,6 +420,7 @@ class RigRunner:
         self._job_id: int | None = None
         self._beat_s = -math.inf
         self._fault = ""
+        self.fault_at_s = math.nan
         self._fault_job: int | None = None  # the job that failed with the fault ...
         self._fault_job_paused = False  # ... and whether it was paused then
         self._resets_requested = 0
@@ -521,6 +523,17 @@ class RigRunner:
     def current_job(self) -> int | None:
         """See :meth:`Runner.current_job`."""
         return self._job_id
+
+    def rx_counts(self) -> RxCounts | None:
+        """What the current boot's master rode through on its receive side (a copy; None
+        before the first boot)."""
+        parts = self._parts
+        return None if parts is None else parts.drives.master.feedback.copy().counts
+
+    def planner_pid(self) -> int | None:
+        """The running job's planner process id (None without a running job)."""
+        running = self._job
+        return None if running is None else running.planner.pid
 
     def progress(self) -> dict[str, Any] | None:
         """See :meth:`Runner.progress`."""
@@ -761,6 +774,7 @@ class RigRunner:
         """Latch a fault (the first cause stays), for job ``job_id`` when one failed with it."""
         if not self._fault:
             self._fault = text
+            self.fault_at_s = self.clock.now()
             if job_id is not None and self._fault_job is None:
                 self._fault_job = job_id
                 with contextlib.suppress(JobError):

@@ -1,0 +1,289 @@
+"""The fault model and the fault campaign (``excavator-rt hil campaign``).
+
+The unit part checks each piece of the fault model on its own: the wire's faults
+(:class:`~hil_sim.busfaults.BusFaults`), the drive node's faults (a jump in the reported
+position, a rock, a reboot, the drive's own EMCYs with their reactions), the master's counts of
+what it rides through and its refusal of implausible positions, and the ``--inject`` parser.
+
+The campaign part runs one case of every fault kind on the daemon's runner in the lockstep HIL
+(a one-dig job, each fault early in it) and asserts, per kind: detection within the kind's
+stated bound (or a ride-through the master counted), the stop within the guard's limits on the
+commanded RPDO1 stream and the plant, nothing enabling operation after the stop, and the job
+resumed and done, not lost. The full matrix (>= 500 cases) is the command's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import random
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+
+from firmware_models.drive import DeviceState, DriveFirmware
+from hil_sim.busfaults import BusFaults
+from hil_sim.harness.campaign import RULES, Case, matrix, run_campaign
+from hil_sim.harness.cli import parse_fault
+from hil_sim.harness.lockstep import LockstepHil
+from hil_sim.sim import FaultKind, HilCore
+from rt_runtime.canbus import TPDO1, CanMaster
+from rt_runtime.canbus.inprocess import ChannelBus
+from rt_runtime.control.hardware import DriveInterface
+from rt_runtime.planning.trench import TrenchPlanner
+from rt_runtime.rig import Rig, load_rig
+
+
+@pytest.fixture(scope="module")
+def rig() -> Rig:
+    return load_rig("scale_model")
+
+
+# -- the wire ---------------------------------------------------------------------------------
+
+TPDO1_BOOM = (0x181, bytes(8))
+RPDO1_STICK = (0x202, bytes(8))
+SYNC = (0x080, b"")
+
+
+def test_every_kind_has_a_rule_and_the_catalogue_is_large_enough() -> None:
+    assert set(RULES) == set(FaultKind)
+    assert len(FaultKind) >= 18
+    layers = {k.layer for k in FaultKind}
+    assert layers == {"drive", "bus", "host"}
+
+
+def test_frame_loss_drops_the_target_at_its_rate_and_leaves_the_others() -> None:
+    wire = BusFaults(seed=3)
+    wire.inject(FaultKind.FRAME_LOSS, 1, 0.3, 0.0)
+    passed = sum(len(wire.to_master(TPDO1_BOOM, 0.0)) for _ in range(4000))
+    assert 0.66 < passed / 4000 < 0.74
+    assert all(wire.to_hil(RPDO1_STICK, 0.0) == [RPDO1_STICK] for _ in range(200))
+    assert all(wire.to_hil(SYNC, 0.0) == [SYNC] for _ in range(200))  # a broadcast: bus only
+    assert wire.affected["frame_loss"] == 4000 - passed
+    wire.clear()
+    assert not wire.active and wire.to_master(TPDO1_BOOM, 0.0) == [TPDO1_BOOM]
+
+
+def test_one_shot_kinds_act_on_the_targets_next_frame_only() -> None:
+    wire = BusFaults(seed=1)
+    wire.inject(FaultKind.FRAME_DUPLICATE, 1, None, 0.0)
+    assert wire.to_master(TPDO1_BOOM, 0.0) == [TPDO1_BOOM, TPDO1_BOOM]
+    assert wire.to_master(TPDO1_BOOM, 0.0) == [TPDO1_BOOM]
+    wire.inject(FaultKind.FRAME_TRUNCATED, 1, None, 0.0)
+    assert wire.to_hil((0x201, bytes(8)), 0.0) == [(0x201, bytes(8))]  # device frames only
+    assert wire.to_master(TPDO1_BOOM, 0.0) == [(0x181, bytes(7))]
+    wire.inject(FaultKind.FRAME_GARBAGE, None, None, 0.0)
+    (cob, data), = wire.to_master(TPDO1_BOOM, 0.0)
+    assert cob == 0x181 and len(data) == 8 and data != bytes(8)
+    wire.inject(FaultKind.FRAME_DELAY, 1, 5.0, 1.0)
+    assert wire.to_master(TPDO1_BOOM, 1.0) == []
+    assert wire.due(1.004) == ([], [])
+    assert wire.due(1.005) == ([], [TPDO1_BOOM])
+    wire.inject(FaultKind.FRAME_REORDER, None, None, 2.0)
+    first, second = (0x181, b"\x01" * 8), (0x281, b"\x02" * 6)
+    assert wire.to_master(first, 2.0) == []
+    assert wire.to_master(second, 2.0) == [second, first]
+    assert not wire.active
+
+
+def test_unplugged_error_frames_and_bus_off() -> None:
+    wire = BusFaults()
+    wire.inject(FaultKind.BUS_UNPLUGGED, None, 0.2, 1.0)
+    assert wire.to_hil(SYNC, 1.1) == [] and wire.to_master(TPDO1_BOOM, 1.19) == []
+    assert wire.to_hil(SYNC, 1.2) == [SYNC]
+    wire.inject(FaultKind.ERROR_FRAMES, None, 2, 0.0)
+    assert [wire.error_frames_due() for _ in range(3)] == [True, True, False]
+    wire.inject(FaultKind.BUS_OFF, None, None, 0.0)
+    assert wire.bus_off
+    wire.clear()
+    assert not wire.bus_off
+
+
+@pytest.mark.parametrize(
+    ("kind", "node", "param", "words"),
+    [
+        (FaultKind.OVERCURRENT, 1, None, "not the bus's"),
+        (FaultKind.FRAME_LOSS, 1, 1.5, "must be in 0..1"),
+        (FaultKind.FRAME_DELAY, 1, -1.0, "finite and > 0"),
+        (FaultKind.BUS_UNPLUGGED, None, math.inf, "finite and > 0"),
+        (FaultKind.FRAME_LOSS, 200, 0.1, "1..127"),
+    ],
+)
+def test_bad_bus_faults_are_refused_by_name(
+    kind: FaultKind, node: int | None, param: float | None, words: str
+) -> None:
+    with pytest.raises(ValueError, match=words):
+        BusFaults().inject(kind, node, param, 0.0)
+
+
+# -- the drive nodes --------------------------------------------------------------------------
+
+
+def test_drive_emcys_take_their_own_reactions(rig: Rig) -> None:
+    core = HilCore(rig, TrenchPlanner(rig).home_pose_rad, vcu=False)
+    with pytest.raises(ValueError, match="fault reaction"):
+        core.nodes[0].firmware.inject_fault(0x2310, 5)
+    with pytest.raises(ValueError, match="not a drive node's"):
+        core.inject(FaultKind.BUS_OFF, 0)
+    fw: DriveFirmware = core.nodes[1].firmware
+    fw.inject_fault(0x4310, 0)  # not enabled: straight to FAULT whatever the reaction
+    assert fw.state is DeviceState.FAULT and fw.error_code == 0x4310
+
+
+def test_a_reboot_sends_its_boot_up_frame_and_forgets_the_masters_setup(rig: Rig) -> None:
+    with LockstepHil(rig, TrenchPlanner(rig).home_pose_rad, vcu=False, keep_frames=True) as hil:
+        master = CanMaster(hil.master_bus, rig, period_s=0.002, react_to_faults=False)
+        master.boot(hil.clock.now, 1.0)
+        master.enable(hil.clock.now, 1.0)
+        hil.core.frames.clear()
+        hil.inject(FaultKind.DRIVE_REBOOT, 2)
+        assert hil.core.frames == [(0x703, b"\x00")]
+        assert hil.core.nodes[2].firmware.state is DeviceState.SWITCH_ON_DISABLED
+
+
+def test_an_encoder_glitch_moves_the_report_not_the_axis_and_the_master_refuses_it(
+    rig: Rig,
+) -> None:
+    """The jump is refused as implausible (stale, counted) every cycle until the axis could
+    have got there, so it never reaches the controllers; the plant does not move."""
+    with LockstepHil(rig, TrenchPlanner(rig).home_pose_rad, vcu=False) as hil:
+        master = CanMaster(hil.master_bus, rig, period_s=0.002, react_to_faults=False)
+        master.boot(hil.clock.now, 1.0)
+        master.enable(hil.clock.now, 1.0)
+        drives = DriveInterface(master, hil.clock, 0.0)
+        held = master.feedback.position_um.astype(np.float64) * 1e-6
+        zero = np.zeros(3)
+
+        def cycle() -> Any:
+            hil.clock.sleep_until(hil.clock.now() + 0.002)
+            drives.write(held, zero)
+            return drives.read()
+
+        for _ in range(5):
+            fb = cycle()
+        assert fb.fresh and master.feedback.counts.implausible == 0
+        true_before = hil.core.plant.stroke_m.copy()
+        hil.inject(FaultKind.ENCODER_GLITCH, 1, 8.0)
+        stale = [bool(cycle().stale[1]) for _ in range(12)]
+        assert all(stale)
+        assert master.feedback.counts.implausible == 12
+        np.testing.assert_allclose(hil.core.plant.stroke_m, true_before, atol=2e-5)
+        hil.clear_faults()
+        fb = cycle()
+        assert fb.fresh and abs(fb.stroke_m[1] - held[1]) < 1e-4
+
+
+def test_the_router_counts_what_it_rides_through(rig: Rig) -> None:
+    with LockstepHil(rig, TrenchPlanner(rig).home_pose_rad, vcu=False) as hil:
+        master = CanMaster(hil.master_bus, rig, period_s=0.002, react_to_faults=False)
+        master.boot(hil.clock.now, 1.0)
+        master.enable(hil.clock.now, 1.0)
+        drives = DriveInterface(master, hil.clock, 0.0)
+        held = master.feedback.position_um.astype(np.float64) * 1e-6
+        other = ChannelBus(hil.channel)  # a second device repeating the boom's answer
+        hil.clock.sleep_until(hil.clock.now() + 0.002)
+        drives.write(held, np.zeros(3))
+        boom = int(master.feedback.position_um[0])
+        other.send(can.Message(arbitration_id=0x181, data=TPDO1.codec.pack(boom, 0),
+                               is_extended_id=False))  # fmt: skip
+        assert drives.read().fresh
+        other.shutdown()
+        hil.inject(FaultKind.FRAME_TRUNCATED, 1)
+        hil.inject(FaultKind.ERROR_FRAMES, -1, 2.0)
+        for _ in range(4):
+            hil.clock.sleep_until(hil.clock.now() + 0.002)
+            drives.write(held, np.zeros(3))
+            drives.read()
+        counts = master.feedback.counts
+        assert counts.duplicate_tpdo1 == 1
+        assert counts.malformed == 1
+        assert counts.error_frames == 2
+        assert counts.missed_tpdo1 >= 1
+
+
+# -- the command line -------------------------------------------------------------------------
+
+
+def test_inject_takes_a_target_and_a_parameter() -> None:
+    spec = parse_fault("frame_loss:bus:1.5:0.1")
+    assert (spec.kind, spec.axis, spec.at_s, spec.param) == (FaultKind.FRAME_LOSS, "bus", 1.5, 0.1)
+    assert parse_fault("rock:stick:2").param is None
+    for text, words in (
+        ("overcurrent:bus:1", "allowed: boom, stick, bucket"),
+        ("loop_stall:boom:1", "allowed: host"),
+        ("frame_loss:bus:1:nan", "must be finite"),
+        ("frame_loss:bus", "KIND:TARGET:AT_S"),
+        ("meteor:bus:1", "allowed: following_error"),
+    ):
+        with pytest.raises(argparse.ArgumentTypeError, match=words):
+            parse_fault(text)
+
+
+def test_the_matrix_covers_every_kind_on_every_target() -> None:
+    cases = matrix(seeds=10)
+    assert len(cases) >= 500
+    cells = {(c.kind, c.target) for c in cases}
+    assert cells == {(k, t) for k in FaultKind for t in k.targets}
+    assert len(matrix(axes=["stick"], seeds=1)) < len(matrix(seeds=1))
+
+
+# -- the campaign, one case of every kind -----------------------------------------------------
+
+#: Each case's fault early in its one-dig job (0.5-5 s after the first motion: the approach
+#: and the dig), its target drawn among those the kind takes.
+_SHORT_SEED = 27
+
+
+def _short_cases() -> list[Case]:
+    rng = random.Random(_SHORT_SEED)
+    return [
+        Case(i, kind, rng.choice(kind.targets), round(rng.uniform(0.5, 5.0), 2), i, digs=1)
+        for i, kind in enumerate(FaultKind)
+    ]
+
+
+@pytest.fixture(scope="module")
+def short_campaign() -> dict[str, Any]:
+    return run_campaign(_short_cases(), jobs=2)
+
+
+@pytest.mark.parametrize("kind", list(FaultKind), ids=lambda k: k.label)
+def test_each_kind_is_detected_stopped_within_limits_and_resumed(
+    short_campaign: dict[str, Any], kind: FaultKind
+) -> None:
+    (row,) = [r for r in short_campaign["cases"] if r["kind"] == kind.label]
+    assert not row["error"], row
+    assert row["violations"] == [], row
+    assert row["resumed"] and not row["lost_job"], row
+    if RULES[kind].outcome == "stopped":
+        assert row["outcome"] == "stopped", row
+        assert row["detection_s"] <= row["bound_s"], row
+        for key in ("v", "a", "j"):
+            assert (row["stop_peak"][key] or 0.0) <= 1.0, row
+        assert row["plant_peak_v"] is None or row["plant_peak_v"] <= 1.05, row
+    else:
+        # Ridden through, or (a run of losses taking out a heartbeat) a safe stop.
+        assert row["outcome"] in ("ridden_through", "stopped"), row
+    assert row["safe"], row
+
+
+def test_ridden_through_faults_are_counted(short_campaign: dict[str, Any]) -> None:
+    rows = {r["kind"]: r for r in short_campaign["cases"]}
+    assert rows["frame_loss"]["rode_through"]["missed_tpdo1"] > 0
+    assert rows["frame_duplicate"]["wire"]["frame_duplicate"] == 1
+    assert rows["error_frames"]["rode_through"]["error_frames"] >= 1
+    summary = short_campaign["summary"]
+    assert summary["cases"] == len(FaultKind)
+    assert summary["safe"] == summary["cases"] and summary["lost_jobs"] == 0
+
+
+def test_the_json_holds_every_documented_key(short_campaign: dict[str, Any]) -> None:
+    from test_report_keys import README, _list_of, _paragraph, contract_keys, missing
+
+    keys = contract_keys(_list_of(_paragraph(README, "`hil campaign --json`:")))
+    assert ("cases", "stop_peak", "j") in keys and ("summary", "lost_jobs") in keys
+    assert missing(short_campaign, keys) == []
+

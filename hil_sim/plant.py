@@ -723,10 +723,6 @@ class ArmPlant:
         """True stroke rates ``(3,)``."""
         return _vec3(*self.stroke_state()[1])
 
-    def set_soil(self, soil: TipLoad | None) -> None:
-        """The tip force law from the next sub-step on (None: a free arm)."""
-        self._soil = soil
-
     def stroke_state(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
         """True strokes and stroke rates as floats, ``((s0, s1, s2), (sd0, sd1, sd2))``: the
         values of :attr:`stroke_m` and :attr:`stroke_rate_m_s` without building arrays (the HIL

@@ -215,7 +215,7 @@ class LockstepHil:
     """The HIL in lockstep over an in-process channel (one process, deterministic).
 
     Args:
-        rig, q0_rad, terrain, period_s, vcu, keep_frames: As :class:`HilCore`.
+        rig, q0_rad, terrain, period_s, vcu, keep_frames, tpdo_at_start: As :class:`HilCore`.
         trace_path: Write the bus trace here (``.blf`` or ``.asc``), or None.
 
     Attributes:
@@ -237,9 +237,16 @@ class LockstepHil:
         vcu: bool = True,
         keep_frames: bool = False,
         trace_path: str | Path | None = None,
+        tpdo_at_start: bool = True,
     ) -> None:
         self.core = HilCore(
-            rig, q0_rad, terrain, period_s=period_s, vcu=vcu, keep_frames=keep_frames
+            rig,
+            q0_rad,
+            terrain,
+            period_s=period_s,
+            vcu=vcu,
+            keep_frames=keep_frames,
+            tpdo_at_start=tpdo_at_start,
         )
         if trace_path is not None:
             self.core.trace = open_trace(trace_path)

@@ -9,6 +9,7 @@ remapping procedure are built here by hand (``sdo_download``), not by the master
 from __future__ import annotations
 
 import contextlib
+import itertools
 import struct
 import time
 from collections.abc import Iterator, Sequence
@@ -500,9 +501,12 @@ def test_quick_stop_disable_and_bus_load(enabled: Enabled) -> None:
     assert master.quick_stop() is WriteStatus.OK
     assert master.disable() is WriteStatus.OK
     bus.assert_done()
+    # No TPDO2; 865 (713 nominal) bits of drive frames, 135 (111) of the VCU's status.
     load = master.bus_load()
-    assert load.worst_case == pytest.approx((865 + 4 * 65 * 0.002 / 0.05) / 2000)  # no TPDO2
-    assert load.nominal == pytest.approx((713 + 4 * 55 * 0.002 / 0.05) / 2000)
+    assert master.rig.can.vcu
+    assert load.worst_case == pytest.approx((865 + 135 + 4 * 65 * 0.002 / 0.05) / 2000)
+    assert load.nominal == pytest.approx((713 + 111 + 4 * 55 * 0.002 / 0.05) / 2000)
+    assert master.bus_load(vcu=False).nominal == pytest.approx((713 + 4 * 55 * 0.002 / 0.05) / 2000)
     assert master.bus_load(0.001).worst_case > load.worst_case
 
 
@@ -732,6 +736,7 @@ def test_a_drive_that_sends_its_tpdo2_only_on_change_is_enabled(rig: Rig) -> Non
         assert [master.feedback.drive_state(a) for a in range(3)] == [
             DriveState.OPERATION_ENABLED
         ] * 3
+        assert master.feedback.sync_count == 4  # no re-read needed: each step got its TPDO2
     ids = [i for i, _ in frames]
     started = max(k for k, (i, d) in enumerate(frames) if i == 0x000 and d[0] == 0x01)
     first_rpdo2 = min(k for k, i in enumerate(ids) if 0x301 <= i <= 0x303)
@@ -740,3 +745,41 @@ def test_a_drive_that_sends_its_tpdo2_only_on_change_is_enabled(rig: Rig) -> Non
     assert not [i for i in ids[started:first_rpdo2] if 0x281 <= i <= 0x283]
     # Each controlword step changed the statusword, so each step got its TPDO2 (3 per drive).
     assert [ids.count(0x280 + n) for n in NODES] == [3, 3, 3]
+
+
+@pytest.mark.parametrize("vcu", [True, False])
+def test_bus_load_counts_every_frame_of_a_lockstep_trace(rig: Rig, vcu: bool) -> None:
+    """The report's frames per period against the frames of the lockstep bus while the loop
+    holds the arm, with and without the VCU (the rig has one): the same frames in every SYNC
+    period (heartbeats aside), and the same load over the whole run."""
+    from hil_sim.harness.lockstep import LockstepHil
+    from rt_runtime.canbus.busload import frame_bits_nominal
+
+    with LockstepHil(rig, np.radians([30.0, -90.0, -60.0]), keep_frames=True, vcu=vcu) as hil:
+        master = CanMaster(hil.master_bus, rig, period_s=0.002)
+        master.boot(hil.clock.now, 1.0)
+        master.enable(hil.clock.now, 1.0)
+        hold = master.feedback.position_um.copy()
+        first = len(hil.core.frames)
+        start_s = hil.clock.now()
+        cycles = 500  # 1 s: 20 heartbeat periods of every node
+        for k in range(cycles):
+            master.heartbeat(hil.clock.now())
+            master.write_setpoints(hold, np.zeros(3, np.int32))
+            assert master.read_feedback(hil.clock.now(), 0.001).status is CycleStatus.OK
+            hil.clock.sleep_until(start_s + (k + 1) * 0.002)
+        frames = list(hil.core.frames[first:])
+    assert rig.can.vcu
+    load = master.bus_load() if vcu else master.bus_load(vcu=False)
+    # Per period the report lists whole frames (payload bytes, n per period) and heartbeats
+    # as a fraction; the trace's periods run from one SYNC to the next.
+    whole = [(size, int(count)) for size, count in master.cycle_frames(vcu=vcu) if count >= 1.0]
+    report = sorted(size for size, count in whole for _ in range(count))
+    syncs = [k for k, (i, _) in enumerate(frames) if i == 0x080]
+    assert len(syncs) == cycles
+    for a, b in itertools.pairwise(syncs):
+        period = [len(d) for i, d in frames[a:b] if not 0x700 <= i <= 0x77F]
+        assert sorted(period) == report
+    # Over the run, heartbeats included: the trace's load is the report's.
+    bits = sum(frame_bits_nominal(len(d)) for _, d in frames)
+    assert bits / (cycles * 0.002) / rig.can.bitrate == pytest.approx(load.nominal, rel=0.005)

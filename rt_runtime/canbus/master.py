@@ -29,7 +29,12 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
-from rt_runtime.canbus.busload import BusLoad, bus_load_report, cia402_cycle_frames
+from rt_runtime.canbus.busload import (
+    BusLoad,
+    bus_load_report,
+    cia402_cycle_frames,
+    vcu_cycle_frames,
+)
 from rt_runtime.canbus.cia402 import DriveState, Target
 from rt_runtime.canbus.config import (
     DEFAULT_EDS,
@@ -186,12 +191,24 @@ class CanMaster:
     def react_to_faults(self, on: bool) -> None:
         self.cycle.react_to_faults = on
 
-    def bus_load(self, period_s: float | None = None) -> BusLoad:
-        """Load of the cyclic traffic (RPDO1, SYNC, TPDO1, heartbeats) at ``period_s``
-        (default: the configured period) on the rig's bitrate."""
+    def cycle_frames(
+        self, period_s: float | None = None, *, vcu: bool | None = None
+    ) -> tuple[tuple[int, float], ...]:
+        """Every frame on the bus per SYNC period at ``period_s`` (default: the configured
+        period), as (payload bytes, frames per period): RPDO1, SYNC, TPDO1, heartbeats
+        (:func:`~.busload.cia402_cycle_frames`), and the VCU's status on every SYNC
+        (:func:`~.busload.vcu_cycle_frames`) when ``vcu`` (default: the rig's ``can.vcu``)
+        says the VCU is on the bus."""
         period = self.config.period_s if period_s is None else period_s
         frames = cia402_cycle_frames(self.n, period, self.config.heartbeat_period_s)
-        return bus_load_report(frames, period, self.config.bitrate)
+        if self.rig.can.vcu if vcu is None else vcu:
+            frames += vcu_cycle_frames(period)
+        return frames
+
+    def bus_load(self, period_s: float | None = None, *, vcu: bool | None = None) -> BusLoad:
+        """Load of :meth:`cycle_frames` (same arguments) on the rig's bitrate."""
+        period = self.config.period_s if period_s is None else period_s
+        return bus_load_report(self.cycle_frames(period, vcu=vcu), period, self.config.bitrate)
 
     # ------------------------------------------------------------------ waiting
 

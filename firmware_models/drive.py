@@ -18,8 +18,13 @@ Communication (CiA 301), object dictionary from ``cia402_drive.eds`` (see that f
 * PDOs from the mapping objects as they stand (remapping follows CiA 301: COB-ID invalid, then
   sub-index 0 = 0, entries, sub-index 0 = n, then COB-ID valid). Synchronous RPDOs (type 0-240)
   are buffered and applied at the next SYNC; event RPDOs (0xFE, 0xFF) on receipt. TPDOs of type
-  1-240 go out on every n-th SYNC, type 0 on a SYNC when their content changed. A short RPDO is
-  dropped with EMCY 0x8210.
+  1-240 go out on every n-th SYNC; type 0 (synchronous acyclic, CiA 301: sent at a SYNC after an
+  event, here a change of its content since the last one sent) at the first SYNC whose sampled
+  content differs from what it last sent. Whether entering OPERATIONAL counts as such a change is
+  the drive's choice (CiA 301 requires no transmission then): with ``tpdo_at_start`` (the
+  default) the content is sent at the first SYNC after every NMT start; without it the content
+  at NMT start is the baseline and nothing goes out until it changes. Event TPDOs (0xFE, 0xFF)
+  are not supported (abort 0x06090030). A short RPDO is dropped with EMCY 0x8210.
 * SYNC 0x080: apply buffered RPDOs, latch the CSP setpoint, send the TPDOs (operational only),
   sampled at the SYNC, i.e. from the last servo step, before the new period's motion.
 * Heartbeat producer (0x1017) and consumer of the master (0x1016 sub 1: producer node id in bits
@@ -705,6 +710,8 @@ class DriveFirmware:
         master_node_id: Heartbeat producer the stored 0x1016 sub 1 watches.
         velocity_filter_s: Velocity estimate low-pass; None for one servo period.
         initial_position_m: Stroke reported before the first :meth:`servo_step`.
+        tpdo_at_start: Send each type-0 TPDO at the first SYNC after NMT start; False: only
+            after its content changed from what it was at NMT start (see the module docstring).
 
     Attributes:
         node_id: CAN node id.
@@ -731,8 +738,10 @@ class DriveFirmware:
         master_node_id: int = MASTER_NODE_ID,
         velocity_filter_s: float | None = None,
         initial_position_m: float = 0.0,
+        tpdo_at_start: bool = True,
     ) -> None:
         self.node_id = node_id
+        self._tpdo_at_start = tpdo_at_start
         self.joint = joint
         self.od = load_object_dictionary(node_id, eds)
         self._params = DriveParameters.from_rig(rig, kind, velocity_filter_s)
@@ -945,6 +954,12 @@ class DriveFirmware:
         if command == NmtCommand.START:
             if self._nmt is not NmtState.OPERATIONAL:
                 self._rpdo_buffer.clear()
+                for pdo in self._tpdos:
+                    if pdo.transmission_type == 0:
+                        if self._tpdo_at_start:
+                            self._tpdo_last.pop(pdo.comm_index, None)
+                        else:
+                            self._tpdo_last[pdo.comm_index] = self._tpdo_payload(pdo)
             self._nmt = NmtState.OPERATIONAL
         elif command == NmtCommand.STOP:
             self._nmt = NmtState.STOPPED
@@ -1037,7 +1052,7 @@ class DriveFirmware:
             if self._check_value(key, value) is None:
                 self._store(key, value, now_s)
 
-    def _tpdo_on_sync(self, pdo: _Pdo) -> Frame | None:
+    def _tpdo_payload(self, pdo: _Pdo) -> bytes:
         # The mapped objects' values as _read gives them, looked up inline (every SYNC samples
         # every mapped object); a string object (excluded by the mapping checks) packs as 0.
         live, values = self._live, self._values
@@ -1046,7 +1061,10 @@ class DriveFirmware:
             getter = live.get(key)
             value = getter() if getter is not None else values[key]
             ints.append(value if isinstance(value, int) else 0)
-        payload = pdo.codec.pack(*ints)
+        return pdo.codec.pack(*ints)
+
+    def _tpdo_on_sync(self, pdo: _Pdo) -> Frame | None:
+        payload = self._tpdo_payload(pdo)
         tt = pdo.transmission_type
         if tt == 0:
             if self._tpdo_last.get(pdo.comm_index) == payload:

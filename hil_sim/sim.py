@@ -317,6 +317,8 @@ class HilCore:
         keep_frames: Keep every frame in :attr:`frames` (unbounded: for short lockstep runs).
         truth_rows: The truth kept: the last this many SYNCs (see :class:`TruthRing`).
         preallocate_truth: Allocate the whole truth ring at once (a long-running process).
+        tpdo_at_start: The drives send their type-0 TPDO2 at the first SYNC after NMT start;
+            False: only when its content changes (``DriveFirmware``'s option).
 
     Attributes:
         plant: The arm.
@@ -344,6 +346,7 @@ class HilCore:
         keep_frames: bool = False,
         truth_rows: int = TRUTH_ROWS,
         preallocate_truth: bool = False,
+        tpdo_at_start: bool = True,
     ) -> None:
         if not (math.isfinite(period_s) and period_s > 0.0):
             raise ConfigurationError(f"period_s {period_s} must be finite and > 0")
@@ -357,7 +360,13 @@ class HilCore:
         try:
             self.nodes = tuple(
                 DriveNode(
-                    DriveFirmware(ids[name], rig, name, initial_position_m=float(stroke0[axis])),
+                    DriveFirmware(
+                        ids[name],
+                        rig,
+                        name,
+                        initial_position_m=float(stroke0[axis]),
+                        tpdo_at_start=tpdo_at_start,
+                    ),
                     axis,
                 )
                 for axis, name in enumerate(_AXES)

@@ -1992,8 +1992,11 @@ def _bench_rate(
     hil_rig: str,
 ) -> tuple[LoopRateBench, dict[str, np.ndarray]]:
     """One rate of :func:`bench_loop`: its entry and raw arrays."""
+    import can
+
     from rt_runtime import actuation
     from rt_runtime.canbus import CanMaster, CycleStatus
+    from rt_runtime.canbus.pdo import COB_TPDO1
     from rt_runtime.control import (
         FixedRateLoop,
         LimitGuard,
@@ -2021,7 +2024,14 @@ def _bench_rate(
     try:
         # RT settings first: mlockall and gc.collect take longer than the drives' watchdog.
         loop.acquire_rt()
-        master = CanMaster(hil.master_bus, rig, period_s=period)
+        vcu_status: list[bytes] = []
+        vcu_id = COB_TPDO1 + rig.can.vcu_node_id  # VCU_Status (vcu.dbc, 0x180 + node)
+
+        def on_other_frame(msg: can.Message, now_s: float) -> None:
+            if msg.arbitration_id == vcu_id:
+                vcu_status[:] = [bytes(msg.data)]
+
+        master = CanMaster(hil.master_bus, rig, period_s=period, on_other_frame=on_other_frame)
         master.boot(clock.now, 5.0)
         master.enable(clock.now, 5.0)
         hold_um = master.feedback.position_um.copy()
@@ -2037,8 +2047,9 @@ def _bench_rate(
         stats = manager.run(hold, hold.command, s0, q0, max_cycles=n_cycles)
         snap = loop.telemetry.snapshot()
         master.disable()
-        load = master.bus_load(period)
-        realistic = _realistic_bus_load(master, hold_um, period)
+        # The VCU counts where its status was on the bus (else as the rig says).
+        load = master.bus_load(period, vcu=True if vcu_status else None)
+        realistic = _realistic_bus_load(master, hold_um, period, vcu_status)
         hil_extra = hil.finish()[3]
     finally:
         loop.release_rt()
@@ -2091,19 +2102,28 @@ def _bench_rate(
     return entry, arrays
 
 
-def _realistic_bus_load(master: Any, hold_um: np.ndarray, period_s: float) -> float:
+def _realistic_bus_load(
+    master: Any, hold_um: np.ndarray, period_s: float, vcu_status: list[bytes]
+) -> float:
     """Bus load of the cyclic frames as sent in the run, with their exact stuff bits.
 
     Per period: RPDO1 (the held target, zero velocity offset) per drive, SYNC (0x080), TPDO1
-    (packed from the last feedback) per drive; heartbeats at their period with the worst-case
-    length of a 1-byte frame (0.2 % of the frames at 500 Hz).
+    (packed from the last feedback) per drive, the VCU's status (the last one received, in
+    ``vcu_status``; the worst-case 8-byte length when none came and the rig has a VCU);
+    heartbeats at their period with the worst-case length of a 1-byte frame (0.2 % of the
+    frames at 500 Hz).
     """
     from rt_runtime.canbus import RPDO1, TPDO1
-    from rt_runtime.canbus.busload import frame_bits_exact, frame_bits_worst
+    from rt_runtime.canbus.busload import VCU_FRAME_BYTES, frame_bits_exact, frame_bits_worst
+    from rt_runtime.canbus.pdo import COB_TPDO1
 
     cfg = master.config
     fb = master.feedback
     bits = float(frame_bits_exact(0x080, b""))
+    if vcu_status:
+        bits += frame_bits_exact(COB_TPDO1 + master.rig.can.vcu_node_id, vcu_status[-1])
+    elif master.rig.can.vcu:
+        bits += frame_bits_worst(VCU_FRAME_BYTES)
     for axis, node in enumerate(cfg.node_ids):
         rpdo = RPDO1.codec.pack(int(hold_um[axis]), 0)
         bits += frame_bits_exact(RPDO1.cob_base + node, rpdo)

@@ -8,9 +8,11 @@ remapping procedure are built here by hand (``sdo_download``), not by the master
 
 from __future__ import annotations
 
+import contextlib
+import itertools
 import struct
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import can
@@ -159,8 +161,21 @@ def enable_step(controlwords: tuple[int | None, ...]) -> list[Step]:
     return [*steps, (TX, 0x080, b"")]
 
 
+def status_uploads(
+    statuswords: tuple[int, ...], error: tuple[int, ...] = (0, 0, 0), mode: int = 8
+) -> list[Step]:
+    """The SDO uploads that start enable: per drive the objects TPDO2 maps, in its order."""
+    steps: list[Step] = []
+    for node, word, err in zip(NODES, statuswords, error, strict=True):
+        steps += sdo_upload(node, 0x6041, 0, struct.pack("<H", word))
+        steps += sdo_upload(node, 0x6061, 0, struct.pack("<b", mode))
+        steps += sdo_upload(node, 0x603F, 0, struct.pack("<H", err))
+    return steps
+
+
 def enable_script() -> list[Step]:
-    steps: list[Step] = [(TX, 0x080, b""), *tpdos((SOD, SOD, SOD))]
+    steps: list[Step] = [*status_uploads((SOD, SOD, SOD)), (TX, 0x080, b"")]
+    steps += tpdos((SOD, SOD, SOD))
     for word, state in ((0x06, RTSO), (0x07, SO), (0x0F, OE)):
         steps += enable_step((word, word, word)) + tpdos((state, state, state))
     return steps
@@ -276,8 +291,8 @@ def test_boot_refuses_a_drive_without_csp(rig: Rig) -> None:
 
 def test_enable_resets_a_fault_with_an_edge_and_reports_a_persistent_one(rig: Rig) -> None:
     clock = ScriptClock()
-    steps = [*boot_script(rig), (TX, 0x080, b"")]
-    steps += tpdos((SOD, FAULT, SOD), error=(0, 0x8611, 0))
+    steps = [*boot_script(rig), *status_uploads((SOD, FAULT, SOD), error=(0, 0x8611, 0))]
+    steps += [(TX, 0x080, b""), *tpdos((SOD, FAULT, SOD), error=(0, 0x8611, 0))]
     steps += [(RX, 0x082, h("11 86 80 00 00 00 00 00"))]  # the stick's EMCY
     steps += enable_step((0x06, 0x80, 0x06)) + tpdos((RTSO, FAULT, RTSO))
     steps += enable_step((0x07, 0x00, 0x07)) + tpdos((SO, FAULT, SO))
@@ -287,6 +302,19 @@ def test_enable_resets_a_fault_with_an_edge_and_reports_a_persistent_one(rig: Ri
     with pytest.raises(DriveFault, match=r"stick \(node 2\): FAULT .*FOLLOWING_ERROR"):
         master.enable(clock, timeout_s=0.005)
     bus.assert_done()
+
+
+def test_enable_names_a_drive_that_does_not_report_its_status(rig: Rig) -> None:
+    clock = ScriptClock()
+    steps = [*boot_script(rig), (TX, 0x601, h("40 41 60 00 00 00 00 00"))]
+    steps += [(TX, 0x601, h("80 41 60 00 00 00 04 05"))]  # the client's abort: timed out
+    bus = ScriptedBus(steps, clock)
+    master = CanMaster(bus, rig, sdo_timeout_s=0.1)
+    master.boot(clock, timeout_s=0.5)
+    with pytest.raises(CommunicationError, match=r"status of the boom drive \(node 1\)"):
+        master.enable(clock, timeout_s=1.0)
+    bus.assert_done()
+    assert clock.now_s == pytest.approx(0.1)
 
 
 def test_enable_needs_boot(rig: Rig) -> None:
@@ -473,9 +501,12 @@ def test_quick_stop_disable_and_bus_load(enabled: Enabled) -> None:
     assert master.quick_stop() is WriteStatus.OK
     assert master.disable() is WriteStatus.OK
     bus.assert_done()
+    # No TPDO2; 865 (713 nominal) bits of drive frames, 135 (111) of the VCU's status.
     load = master.bus_load()
-    assert load.worst_case == pytest.approx((865 + 4 * 65 * 0.002 / 0.05) / 2000)  # no TPDO2
-    assert load.nominal == pytest.approx((713 + 4 * 55 * 0.002 / 0.05) / 2000)
+    assert master.rig.can.vcu
+    assert load.worst_case == pytest.approx((865 + 135 + 4 * 65 * 0.002 / 0.05) / 2000)
+    assert load.nominal == pytest.approx((713 + 111 + 4 * 55 * 0.002 / 0.05) / 2000)
+    assert master.bus_load(vcu=False).nominal == pytest.approx((713 + 4 * 55 * 0.002 / 0.05) / 2000)
     assert master.bus_load(0.001).worst_case > load.worst_case
 
 
@@ -494,8 +525,10 @@ def test_bus_error_is_a_status(enabled: Enabled) -> None:
 # ---------------------------------------------------------------- interoperability
 
 
-def test_boot_against_canopen_slaves_on_a_virtual_bus(rig: Rig) -> None:
-    """canopen's LocalNode (SDO server, NMT slave, heartbeat producer) as the drives."""
+@contextlib.contextmanager
+def canopen_slaves() -> Iterator[tuple[canopen.Network, can.BusABC, dict[int, canopen.LocalNode]]]:
+    """canopen's LocalNode (SDO server, NMT slave, heartbeat producer) as the drives, on a
+    virtual bus; yields the network, the master's end of the bus and the nodes by node id."""
     channel = f"canbus-interop-{time.monotonic_ns()}"
     network = canopen.Network()
     network.connect(interface="virtual", channel=channel, receive_own_messages=False)
@@ -514,6 +547,14 @@ def test_boot_against_canopen_slaves_on_a_virtual_bus(rig: Rig) -> None:
                 slaves[data[1]].nmt.send_command(0x80)
 
         network.subscribe(0, on_nmt)
+        yield network, bus, slaves
+    finally:
+        network.disconnect()
+        bus.shutdown()
+
+
+def test_boot_against_canopen_slaves_on_a_virtual_bus(rig: Rig) -> None:
+    with canopen_slaves() as (_, bus, slaves):
         master = CanMaster(bus, rig)
         info = master.boot(time.monotonic, timeout_s=2.0)
         assert [i.device_type for i in info] == [0x00020192] * 3
@@ -525,9 +566,62 @@ def test_boot_against_canopen_slaves_on_a_virtual_bus(rig: Rig) -> None:
                 obj = slave.sdo[index]
                 got = obj.raw if isinstance(obj, SdoVariable) else obj[sub].raw
                 assert got == value, (slave.id, hex(index), sub)
-    finally:
-        network.disconnect()
-        bus.shutdown()
+
+
+# CiA 402 device control, written from the standard for the canopen-built drives below:
+# (statusword, command pattern) -> statusword; the command is the controlword masked with 0x8F.
+_DEVICE_CONTROL = {
+    (SOD, 0x06): RTSO,
+    (RTSO, 0x07): SO,
+    (RTSO, 0x0F): SO,  # switch on (3); enable operation (4) needs a second controlword
+    (SO, 0x0F): OE,
+    (SO, 0x06): RTSO,
+    (OE, 0x07): SO,
+    (OE, 0x06): RTSO,
+}
+
+
+@pytest.mark.parametrize("tpdo2", ["on_change", "never"])
+def test_enable_against_canopen_slaves(rig: Rig, tpdo2: str) -> None:
+    """canopen's LocalNode as a CiA 402 drive: controlword from RPDO2, statusword 0x6041 in its
+    object dictionary (served by canopen's SDO server), TPDO1 on every SYNC, and TPDO2 either
+    sent at a SYNC when the statusword changed since NMT start (type 0) or never. The master
+    reaches OPERATION_ENABLED on every drive either way."""
+    with canopen_slaves() as (network, bus, slaves):
+        sent_status = {node: SOD for node in NODES}
+        tpdo2_sent: list[int] = []
+        for node, slave in slaves.items():
+            slave.sdo[0x6041].raw = SOD
+
+            def on_rpdo2(can_id: int, data: bytearray, timestamp: float) -> None:
+                slave = slaves[can_id - 0x300]
+                controlword = struct.unpack_from("<H", data)[0]
+                word = slave.sdo[0x6041].raw
+                slave.sdo[0x6041].raw = _DEVICE_CONTROL.get((word, controlword & 0x8F), word)
+
+            network.subscribe(0x300 + node, on_rpdo2)
+
+        def on_sync(can_id: int, data: bytearray, timestamp: float) -> None:
+            for node, slave in slaves.items():
+                if slave.nmt.state != "OPERATIONAL":
+                    continue
+                network.send_message(0x180 + node, struct.pack("<ii", POSITIONS_UM[node - 1], 0))
+                word = slave.sdo[0x6041].raw
+                if tpdo2 == "on_change" and word != sent_status[node]:
+                    network.send_message(0x280 + node, struct.pack("<HbH", word, 8, 0))
+                    sent_status[node] = word
+                    tpdo2_sent.append(node)
+
+        network.subscribe(0x080, on_sync)
+        master = CanMaster(bus, rig)
+        master.boot(time.monotonic, timeout_s=2.0)
+        master.enable(time.monotonic, timeout_s=2.0)
+        assert [master.feedback.drive_state(a) for a in range(3)] == [
+            DriveState.OPERATION_ENABLED
+        ] * 3
+        assert [slave.sdo[0x6041].raw for slave in slaves.values()] == [OE] * 3
+        assert list(master.feedback.position_um) == list(POSITIONS_UM)
+        assert len(tpdo2_sent) == (9 if tpdo2 == "on_change" else 0)
 
 
 class _FirmwareBus(SimulatedTimeBus):
@@ -624,3 +718,68 @@ def test_against_the_drive_firmware_model(rig: Rig, request: pytest.FixtureReque
     assert fb.drive_state(1) is DriveState.FAULT
     assert fb.drive_state(0) is fb.drive_state(2) is DriveState.SWITCH_ON_DISABLED
     assert abs(int(fb.velocity_um_s[0])) < 100
+
+
+def test_a_drive_that_sends_its_tpdo2_only_on_change_is_enabled(rig: Rig) -> None:
+    """Lockstep HIL, every drive's TPDO2 sent only when its content changes and not after NMT
+    start (CiA 301 type 0 requires nothing then): enable learns the states by SDO and reaches
+    OPERATION_ENABLED on every axis."""
+    from hil_sim.harness.lockstep import LockstepHil
+
+    with LockstepHil(
+        rig, np.radians([30.0, -90.0, -60.0]), keep_frames=True, tpdo_at_start=False
+    ) as hil:
+        master = CanMaster(hil.master_bus, rig, period_s=0.002)
+        master.boot(hil.clock.now, 1.0)
+        master.enable(hil.clock.now, 1.0)
+        frames = list(hil.core.frames)
+        assert [master.feedback.drive_state(a) for a in range(3)] == [
+            DriveState.OPERATION_ENABLED
+        ] * 3
+        assert master.feedback.sync_count == 4  # no re-read needed: each step got its TPDO2
+    ids = [i for i, _ in frames]
+    started = max(k for k, (i, d) in enumerate(frames) if i == 0x000 and d[0] == 0x01)
+    first_rpdo2 = min(k for k, i in enumerate(ids) if 0x301 <= i <= 0x303)
+    # The SYNCs before the first controlword got TPDO1s and no TPDO2.
+    assert 0x080 in ids[started:first_rpdo2]
+    assert not [i for i in ids[started:first_rpdo2] if 0x281 <= i <= 0x283]
+    # Each controlword step changed the statusword, so each step got its TPDO2 (3 per drive).
+    assert [ids.count(0x280 + n) for n in NODES] == [3, 3, 3]
+
+
+@pytest.mark.parametrize("vcu", [True, False])
+def test_bus_load_counts_every_frame_of_a_lockstep_trace(rig: Rig, vcu: bool) -> None:
+    """The report's frames per period against the frames of the lockstep bus while the loop
+    holds the arm, with and without the VCU (the rig has one): the same frames in every SYNC
+    period (heartbeats aside), and the same load over the whole run."""
+    from hil_sim.harness.lockstep import LockstepHil
+    from rt_runtime.canbus.busload import frame_bits_nominal
+
+    with LockstepHil(rig, np.radians([30.0, -90.0, -60.0]), keep_frames=True, vcu=vcu) as hil:
+        master = CanMaster(hil.master_bus, rig, period_s=0.002)
+        master.boot(hil.clock.now, 1.0)
+        master.enable(hil.clock.now, 1.0)
+        hold = master.feedback.position_um.copy()
+        first = len(hil.core.frames)
+        start_s = hil.clock.now()
+        cycles = 500  # 1 s: 20 heartbeat periods of every node
+        for k in range(cycles):
+            master.heartbeat(hil.clock.now())
+            master.write_setpoints(hold, np.zeros(3, np.int32))
+            assert master.read_feedback(hil.clock.now(), 0.001).status is CycleStatus.OK
+            hil.clock.sleep_until(start_s + (k + 1) * 0.002)
+        frames = list(hil.core.frames[first:])
+    assert rig.can.vcu
+    load = master.bus_load() if vcu else master.bus_load(vcu=False)
+    # Per period the report lists whole frames (payload bytes, n per period) and heartbeats
+    # as a fraction; the trace's periods run from one SYNC to the next.
+    whole = [(size, int(count)) for size, count in master.cycle_frames(vcu=vcu) if count >= 1.0]
+    report = sorted(size for size, count in whole for _ in range(count))
+    syncs = [k for k, (i, _) in enumerate(frames) if i == 0x080]
+    assert len(syncs) == cycles
+    for a, b in itertools.pairwise(syncs):
+        period = [len(d) for i, d in frames[a:b] if not 0x700 <= i <= 0x77F]
+        assert sorted(period) == report
+    # Over the run, heartbeats included: the trace's load is the report's.
+    bits = sum(frame_bits_nominal(len(d)) for _, d in frames)
+    assert bits / (cycles * 0.002) / rig.can.bitrate == pytest.approx(load.nominal, rel=0.005)

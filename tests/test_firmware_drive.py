@@ -505,6 +505,26 @@ def test_tpdo_transmission_types() -> None:
     assert [cid for cid, _ in h.send(SYNC)] == [TPDO2]
 
 
+@pytest.mark.parametrize("at_start", [True, False])
+def test_type_0_tpdo_after_nmt_start(at_start: bool) -> None:
+    """Type 0 (sent at a SYNC after its content changed): at the first SYNC after every NMT
+    start, or (``tpdo_at_start=False``) only once the content differs from what it was at NMT
+    start; then on each change."""
+    h = Harness(tpdo_at_start=at_start)
+    h.boot()
+    h.servo(1)
+    start = [TPDO1, TPDO2] if at_start else [TPDO1]
+    assert [cid for cid, _ in h.send(SYNC)] == start
+    assert [cid for cid, _ in h.send(SYNC)] == [TPDO1]
+    h.send(NMT, bytes([0x80, NODE]))  # pre-operational, then started again
+    h.send(NMT, bytes([0x01, NODE]))
+    assert [cid for cid, _ in h.send(SYNC)] == start
+    h.controlword(0x06)  # shutdown, mode 8
+    ready = struct.pack("<HbH", SW[DeviceState.READY_TO_SWITCH_ON], 8, 0)
+    assert h.send(SYNC)[1:] == [(TPDO2, ready)]
+    assert [cid for cid, _ in h.send(SYNC)] == [TPDO1]
+
+
 # ---------------------------------------------------------------------------------------------
 # CiA 402 state machine
 # ---------------------------------------------------------------------------------------------

@@ -221,7 +221,8 @@ class LockstepHil:
     """The HIL in lockstep over an in-process channel (one process, deterministic).
 
     Args:
-        rig, q0_rad, terrain, period_s, vcu, keep_frames: As :class:`HilCore`.
+        rig, q0_rad, terrain, period_s, vcu, keep_frames, tpdo_at_start: As :class:`HilCore`.
+        fault_seed: Seed of the wire's random faults (:class:`~hil_sim.busfaults.BusFaults`).
         trace_path: Write the bus trace here (``.blf`` or ``.asc``), or None.
 
     Bus faults (:class:`~hil_sim.busfaults.BusFaults`, :meth:`inject`): every frame either way
@@ -253,10 +254,17 @@ class LockstepHil:
         vcu: bool = True,
         keep_frames: bool = False,
         trace_path: str | Path | None = None,
+        tpdo_at_start: bool = True,
         fault_seed: int = 0,
     ) -> None:
         self.core = HilCore(
-            rig, q0_rad, terrain, period_s=period_s, vcu=vcu, keep_frames=keep_frames
+            rig,
+            q0_rad,
+            terrain,
+            period_s=period_s,
+            vcu=vcu,
+            keep_frames=keep_frames,
+            tpdo_at_start=tpdo_at_start,
         )
         if trace_path is not None:
             self.core.trace = open_trace(trace_path)

@@ -403,7 +403,7 @@ def _execute(
     finally:
         executor.close()
         loop.release_rt()
-    return result, master.bus_load()
+    return result, master.bus_load(vcu=sc.vcu)
 
 
 @dataclass(frozen=True, slots=True)

@@ -52,7 +52,8 @@ Setup, outside the loop (raises :class:`~rt_runtime.errors.ExcavatorRtError` sub
 0x1006, 0x60C2, 0x6065/0x6066 (from ``rig.drives``), 0x607D (the rig's cylinder travel),
 0x6085, 0x1017, 0x1016 and mode 8, starts the drives and waits for their OPERATIONAL heartbeats.
 ``enable`` holds every drive at its actual position while it steps the CiA 402 state machine
-with RPDO2 (one step per SYNC period) and returns when every TPDO2 reports OPERATION_ENABLED.
+with RPDO2 (one step per SYNC period) and returns when every drive reports OPERATION_ENABLED;
+it reads each drive's statusword by SDO first, since TPDO2 comes only when it changes.
 It raises :class:`~rt_runtime.errors.DriveFault` if a drive stays in FAULT.
 
 Each cycle (never raises for bus conditions, returns status codes)::
@@ -82,7 +83,7 @@ its heartbeat (or reboots), or leaves OPERATION_ENABLED, ``read_feedback`` sends
 ``Feedback.reacted``; the drives decelerate with 0x6085 and end in SWITCH_ON_DISABLED.
 ``quick_stop()`` does the same on demand; ``disable()`` sends disable voltage (power stages off
 at once, for axes at rest); both are loop safe.
-``bus_load(period_s)`` gives the cyclic traffic's load.
+``bus_load(period_s)`` gives the cyclic traffic's load (the VCU's status too, on a rig with a VCU).
 """
 
 from rt_runtime.canbus.busload import (
@@ -93,6 +94,7 @@ from rt_runtime.canbus.busload import (
     frame_bits_exact,
     frame_bits_nominal,
     frame_bits_worst,
+    vcu_cycle_frames,
 )
 from rt_runtime.canbus.cia402 import (
     Command,
@@ -157,4 +159,5 @@ __all__ = [
     "frame_bits_worst",
     "next_controlword",
     "parse_emcy",
+    "vcu_cycle_frames",
 ]

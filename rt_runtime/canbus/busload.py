@@ -1,7 +1,8 @@
 """CAN 2.0A frame lengths and bus load.
 
 Role: how much of the bus the cyclic traffic takes, for the bench and for choosing a period.
-Pure functions.
+Pure functions. The cyclic traffic is every frame that goes out each SYNC period: the drives'
+(:func:`cia402_cycle_frames`) and, on a rig with one, the VCU's (:func:`vcu_cycle_frames`).
 
 A CAN 2.0A (11-bit identifier) data frame with ``n`` data bytes has, on the wire::
 
@@ -26,6 +27,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 __all__ = [
+    "VCU_FRAME_BYTES",
     "BusLoad",
     "bus_load",
     "bus_load_report",
@@ -34,7 +36,11 @@ __all__ = [
     "frame_bits_exact",
     "frame_bits_nominal",
     "frame_bits_worst",
+    "vcu_cycle_frames",
 ]
+
+#: Payload of both VCU messages (``firmware_models/vcu.dbc``: VCU_Command, VCU_Status).
+VCU_FRAME_BYTES = 8
 
 _STUFFED_FIXED = 34  # SOF + 11 id + RTR + IDE + r0 + 4 DLC + 15 CRC
 _UNSTUFFED_TAIL = 13  # CRC delimiter, ACK slot, ACK delimiter, 7 EOF, 3 intermission
@@ -167,7 +173,8 @@ def cia402_cycle_frames(
     Per period: RPDO1 (8 B) per drive, one SYNC (0 B), TPDO1 (8 B) per drive; heartbeats (1 B)
     of every drive and of the master, ``period_s / heartbeat_period_s`` each. TPDO2 (statusword;
     synchronous acyclic, sent only when it changed), RPDO2, SDO and EMCY are event traffic and
-    not included: a few frames per state change, none while the drives run.
+    not included: a few frames per state change, none while the drives run. Other nodes' frames
+    (the VCU's: :func:`vcu_cycle_frames`) are added by the caller.
 
     Raises:
         ValueError: A non-positive period.
@@ -182,6 +189,26 @@ def cia402_cycle_frames(
         (8, float(n_drives)),  # TPDO1
         (1, (n_drives + 1) * period_s / heartbeat_period_s),  # heartbeats
     )
+
+
+def vcu_cycle_frames(
+    period_s: float, command_period_s: float | None = None
+) -> tuple[tuple[int, float], ...]:
+    """The VCU's frames per SYNC period (``firmware_models/vcu.dbc``).
+
+    VCU_Status (8 B) on every SYNC; VCU_Command (8 B) every ``command_period_s`` when a client
+    sends commands (None: none are sent; the DBC asks for one at least every 0.1 s while the
+    VCU is enabled). No heartbeat: the VCU sends none.
+
+    Raises:
+        ValueError: A non-positive period.
+    """
+    if not (period_s > 0.0 and (command_period_s is None or command_period_s > 0.0)):
+        raise ValueError(f"period {period_s} s and command period {command_period_s} s must be > 0")
+    status = ((VCU_FRAME_BYTES, 1.0),)  # VCU_Status
+    if command_period_s is None:
+        return status
+    return (*status, (VCU_FRAME_BYTES, period_s / command_period_s))  # VCU_Command
 
 
 def bus_load_report(

@@ -29,7 +29,12 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
-from rt_runtime.canbus.busload import BusLoad, bus_load_report, cia402_cycle_frames
+from rt_runtime.canbus.busload import (
+    BusLoad,
+    bus_load_report,
+    cia402_cycle_frames,
+    vcu_cycle_frames,
+)
 from rt_runtime.canbus.cia402 import DriveState, Target
 from rt_runtime.canbus.config import (
     DEFAULT_EDS,
@@ -43,17 +48,22 @@ from rt_runtime.canbus.emcy import Emcy
 from rt_runtime.canbus.feedback import Feedback, WriteStatus
 from rt_runtime.canbus.heartbeat import HeartbeatConsumer, HeartbeatEventKind
 from rt_runtime.canbus.nmt import NmtCommand, NmtState, nmt_message
+from rt_runtime.canbus.pdo import TPDO2
 from rt_runtime.canbus.router import FrameRouter
-from rt_runtime.canbus.sdo import SdoClient
+from rt_runtime.canbus.sdo import SdoClient, SdoTimeoutError
 from rt_runtime.errors import CommunicationError, DriveFault, ExcavatorRtError
 
 if TYPE_CHECKING:
     from rt_runtime.rig.model import Rig
 
-__all__ = ["CanMaster"]
+__all__ = ["STATUS_REREAD_SYNCS", "CanMaster"]
 
 _DEVICE_PROFILE_402 = 402
 _CSP_SUPPORTED_BIT = 1 << 7
+#: During :meth:`CanMaster.enable`, a drive not yet OPERATION_ENABLED whose status (0x6041,
+#: 0x6061, 0x603F) was last learned this many SYNCs ago (no TPDO2 since: TPDO2 is sent on change
+#: only, and a drive may send none) has it read again by SDO.
+STATUS_REREAD_SYNCS = 3
 
 
 @contextlib.contextmanager
@@ -181,12 +191,24 @@ class CanMaster:
     def react_to_faults(self, on: bool) -> None:
         self.cycle.react_to_faults = on
 
-    def bus_load(self, period_s: float | None = None) -> BusLoad:
-        """Load of the cyclic traffic (RPDO1, SYNC, TPDO1, heartbeats) at ``period_s``
-        (default: the configured period) on the rig's bitrate."""
+    def cycle_frames(
+        self, period_s: float | None = None, *, vcu: bool | None = None
+    ) -> tuple[tuple[int, float], ...]:
+        """Every frame on the bus per SYNC period at ``period_s`` (default: the configured
+        period), as (payload bytes, frames per period): RPDO1, SYNC, TPDO1, heartbeats
+        (:func:`~.busload.cia402_cycle_frames`), and the VCU's status on every SYNC
+        (:func:`~.busload.vcu_cycle_frames`) when ``vcu`` (default: the rig's ``can.vcu``)
+        says the VCU is on the bus."""
         period = self.config.period_s if period_s is None else period_s
         frames = cia402_cycle_frames(self.n, period, self.config.heartbeat_period_s)
-        return bus_load_report(frames, period, self.config.bitrate)
+        if self.rig.can.vcu if vcu is None else vcu:
+            frames += vcu_cycle_frames(period)
+        return frames
+
+    def bus_load(self, period_s: float | None = None, *, vcu: bool | None = None) -> BusLoad:
+        """Load of :meth:`cycle_frames` (same arguments) on the rig's bitrate."""
+        period = self.config.period_s if period_s is None else period_s
+        return bus_load_report(self.cycle_frames(period, vcu=vcu), period, self.config.bitrate)
 
     # ------------------------------------------------------------------ waiting
 
@@ -346,24 +368,49 @@ class CanMaster:
     def enable(self, now_fn: Callable[[], float], timeout_s: float) -> None:
         """Bring every drive to OPERATION_ENABLED (outside the loop).
 
-        One step per SYNC period (paced on ``now_fn``): RPDO1 holding each drive at its actual
+        First each drive's status, the objects TPDO2 maps (0x6041 statusword, 0x6061 modes
+        display, 0x603F error code), is read by SDO upload: TPDO2 is sent only when its content
+        changes (transmission type 0), so a drive need not send one after NMT start. Then one
+        step per SYNC period (paced on ``now_fn``): RPDO1 holding each drive at its actual
         position with zero velocity offset (so enabling does not jump), RPDO2 with the next
         controlword of :func:`~rt_runtime.canbus.cia402.next_controlword` to every drive not yet
-        there, then SYNC; the TPDOs answering it decide the next step. The first step is a SYNC
-        alone, to learn positions and states. A drive in FAULT gets fault-reset edges. Clears the
-        master's fault latch.
+        there, then SYNC; the TPDO1s answering it are awaited, a TPDO2 that comes updates the
+        drive's status. A drive not yet there whose status was last learned
+        :data:`STATUS_REREAD_SYNCS` SYNCs ago has it read again by SDO, so no decision waits
+        for a TPDO2. The first step is a SYNC alone, to learn positions. A drive in FAULT gets
+        fault-reset edges. Clears the master's fault latch.
 
         Args:
             now_fn: Clock (s), monotonic or simulated.
-            timeout_s: Time allowed for the whole sequence.
+            timeout_s: Time allowed for the whole sequence (each SDO upload is bounded by
+                ``sdo_timeout_s`` and by what is left of it, at least one period).
 
         Raises:
-            CommunicationError: Not booted, no TPDO answer in time, or the bus refused a frame
-                or failed (any exception out of the bus, named).
+            CommunicationError: Not booted, no TPDO1 answer or SDO response in time (naming the
+                drive), a drive aborted the upload of its status (:class:`SdoAbortedError`),
+                drives not there when time runs out, or the bus refused a frame or failed (any
+                exception out of the bus, named).
             DriveFault: A drive is (still) in FAULT when time runs out.
         """
         with _bus_errors("enable"):
             self._enable(now_fn, timeout_s)
+
+    def _read_status(self, axis: int, now_fn: Callable[[], float], deadline_s: float) -> None:
+        """Upload the objects TPDO2 maps from one drive and put them in the feedback."""
+        node = self.config.node_ids[axis]
+        sdo = SdoClient(self.bus, node, on_other=self.router.dispatch)
+        values = []
+        for index, sub, _ in TPDO2.entries:
+            timeout_s = min(self.sdo_timeout_s, max(deadline_s - now_fn(), self.config.period_s))
+            try:
+                values.append(int(sdo.read(self.ods[axis], index, sub, now_fn, timeout_s)))
+            except SdoTimeoutError as exc:
+                raise SdoTimeoutError(
+                    f"enable: reading the status of the {self.config.axes[axis]} drive "
+                    f"(node {node}): {exc}"
+                ) from exc
+        statusword, mode, error_code = values
+        self.router.set_status(axis, statusword, mode, error_code)
 
     def _enable(self, now_fn: Callable[[], float], timeout_s: float) -> None:
         if not self._booted:
@@ -374,15 +421,28 @@ class CanMaster:
         fb = self.feedback
         start_s = now_fn()
         deadline_s = start_s + timeout_s
+        # Per axis, the SYNC count at which its status was last learned (TPDO2 or SDO).
+        learned = np.full(self.n, fb.sync_count, np.int64)
+        for axis in range(self.n):
+            self._read_status(axis, now_fn, deadline_s)
         first = True
         while True:
             now_s = now_fn()
             cycle.produce_heartbeat(now_s)
             if not first:
+                np.maximum(learned, fb.tpdo2_sync, out=learned)
+                for axis in range(self.n):
+                    if (
+                        fb.state[axis] != DriveState.OPERATION_ENABLED
+                        and fb.sync_count - learned[axis] >= STATUS_REREAD_SYNCS
+                        and now_s < deadline_s
+                    ):
+                        self._read_status(axis, now_fn, deadline_s)
+                        learned[axis] = fb.sync_count
                 if (fb.state == DriveState.OPERATION_ENABLED).all():
                     cycle.expect_enabled = True
                     return
-                if now_s >= deadline_s:
+                if now_fn() >= deadline_s:
                     self._enable_failed(timeout_s)
                 for axis in range(self.n):
                     cycle.hold(axis, int(fb.position_um[axis]))

@@ -19,12 +19,23 @@ Payloads (little endian)::
     TPDO2 0x280+id  <HbH  0x6041 statusword, 0x6061 modes display, 0x603F error code
     SYNC  0x080     (no data)
 
-Transmission: RPDO1 and TPDO1 are synchronous (type 1: latched / sent on every SYNC). TPDO2 is
-synchronous acyclic (type 0): a drive sends it at a SYNC only when its content changed since the
-last one it sent (and once after NMT start). The statusword changes a few times per enable or
-fault, so this takes 3 x 5-byte frames per period off the bus (below 50 % bus load at 500 Hz on 1
-Mbit/s; design notes, C1) while a state change is still reported at the SYNC that follows it; a
-drive that stops talking is caught by TPDO1 staleness and the heartbeat consumer, not by TPDO2.
+Transmission types (comm sub 2; the master writes them at boot, the EDS defaults agree):
+
+* RPDO1, type 1 (synchronous): the drive buffers it and applies it at the next SYNC.
+* RPDO2, type 0xFF (event driven): applied on receipt, so a controlword acts before the SYNC.
+* TPDO1, type 1: sent at every SYNC, sampled at the SYNC.
+* TPDO2, type 0 (synchronous acyclic, CiA 301): sent at a SYNC only when its content (statusword,
+  modes display, error code) differs from the last TPDO2 the drive sent. CiA 301 does not say
+  whether entering OPERATIONAL counts as a change: the drive model (``DriveFirmware``) sends it at
+  the first SYNC after every NMT start by default, and with ``tpdo_at_start=False`` only after a
+  change, as other drives may. The master therefore never waits for a TPDO2: it reads the same
+  objects by SDO before enabling and again during enable when no TPDO2 came for a few SYNCs
+  (:meth:`~rt_runtime.canbus.master.CanMaster.enable`).
+
+The statusword changes a few times per enable or fault, so type 0 takes 3 x 5-byte frames per
+period off the bus (design notes, C1) while a state change is still reported at the SYNC that
+follows it; a drive that stops talking is caught by TPDO1 staleness and the heartbeat consumer,
+not by TPDO2.
 """
 
 from __future__ import annotations
@@ -103,8 +114,9 @@ class PdoSpec:
         comm_index: Communication parameter object (0x1400.., 0x1800..).
         mapping_index: Mapping object (0x1600.., 0x1A00..).
         cob_base: COB-ID without the node id.
-        transmission_type: 1 = synchronous on every SYNC, 0xFF = event driven (applied on
-            receipt for an RPDO).
+        transmission_type: 1 = synchronous on every SYNC, 0 = synchronous acyclic (a TPDO
+            sent at a SYNC when its content changed), 0xFF = event driven (applied on receipt
+            for an RPDO).
         entries: Mapped objects as (index, subindex, bit length).
         codec: Precompiled little-endian payload struct.
     """

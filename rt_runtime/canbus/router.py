@@ -76,6 +76,18 @@ class FrameRouter:
         self.feedback.sync_count += 1
         self.pending = len(self._node_ids)
 
+    def set_status(self, axis: int, statusword: int, mode: int, error_code: int) -> None:
+        """Put the objects TPDO2 maps (0x6041, 0x6061, 0x603F) of ``axis`` into the workspace
+        and decode its state, whether they came in a TPDO2 or by SDO upload. Loop safe."""
+        fb = self.feedback
+        fb.statusword[axis], fb.mode_display[axis], fb.error_code[axis] = (
+            statusword,
+            mode,
+            error_code,
+        )
+        state = decode_state(statusword)
+        fb.state[axis] = -1 if state is None else int(state)
+
     def dispatch(self, msg: can.Message, now_s: float) -> None:
         """Route one received frame (loop safe; allocates only EMCY and heartbeat events)."""
         route = None
@@ -106,10 +118,7 @@ class FrameRouter:
             if len(data) != TPDO2.size:
                 fb.counts.malformed += 1
                 return
-            status, mode, error = TPDO2.codec.unpack_from(data)
-            fb.statusword[axis], fb.mode_display[axis], fb.error_code[axis] = status, mode, error
-            state = decode_state(status)
-            fb.state[axis] = -1 if state is None else int(state)
+            self.set_status(axis, *TPDO2.codec.unpack_from(data))
             # TPDO2 is synchronous acyclic (sent only on change): never awaited per SYNC.
             fb.tpdo2_sync[axis] = fb.sync_count
         elif kind == _EMCY:

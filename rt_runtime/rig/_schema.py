@@ -130,6 +130,13 @@ class Table:
             raise self.error(key, f"must be{allowed} (got {value})")
         return int(value)
 
+    def boolean(self, key: str, *, default: Any = _MISSING) -> bool:
+        """A boolean (``true`` or ``false``)."""
+        value = self._get(key, default)
+        if not isinstance(value, bool):
+            raise self.error(key, f"must be true or false (got {value!r})")
+        return value
+
     def string(
         self, key: str, *, choices: tuple[str, ...] | None = None, default: Any = _MISSING
     ) -> str:

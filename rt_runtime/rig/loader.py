@@ -317,8 +317,9 @@ def _can(t: Table, has_swing: bool) -> Can:
             key = f"node_ids.{n}" if n != "vcu" else "vcu_node_id"
             raise t.error(key, f"node id {i} is already used by {seen[i]}; ids must be unique")
         seen[i] = n
+    on_bus = t.boolean("vcu", default=True)
     t.finish()
-    return Can(bitrate=bitrate, node_ids=ids, vcu_node_id=vcu)
+    return Can(bitrate=bitrate, node_ids=ids, vcu_node_id=vcu, vcu=on_bus)
 
 
 def _drives(t: Table) -> Drives:

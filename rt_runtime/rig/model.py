@@ -240,11 +240,14 @@ class Can:
         bitrate: Bus bitrate in bit/s.
         node_ids: Drive node id per joint name.
         vcu_node_id: Node id of the vehicle control unit (travel and swing motors).
+        vcu: Whether the VCU is on the bus (its status frame goes out on every SYNC); the id
+            stays reserved without it.
     """
 
     bitrate: int
     node_ids: tuple[tuple[str, int], ...]
     vcu_node_id: int
+    vcu: bool = True
 
     def node_id(self, joint: str) -> int:
         """Node id of ``joint``'s drive."""

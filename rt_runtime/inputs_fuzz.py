@@ -330,9 +330,10 @@ def _parent(doc: Any, path: Path_) -> Any:
 
 
 def _hint(path: Path_, value: Any = None, with_value: bool = False) -> tuple[str, ...]:
-    """What a refusal of a change at ``path`` may name: the nearest key, or the value."""
+    """What a refusal of a change at ``path`` may name: the nearest key, the table holding it
+    (a check across the table's keys names another of them), or the value."""
     keys = [k for k in path if isinstance(k, str)]
-    out = [keys[-1]] if keys else []
+    out = keys[-2:]
     if with_value:
         text = repr(value) if not isinstance(value, str) else value
         if text and len(text) <= 40:

@@ -870,6 +870,36 @@ def cmd_bench_timejerk(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_inputs(args: argparse.Namespace) -> int:
+    """``excavator-rt bench inputs``: property-based inputs into every entry point; exit 1 on
+    any traceback."""
+    try:
+        from rt_runtime.inputs_fuzz import bench_inputs
+    except ImportError as exc:
+        if exc.name != "hypothesis":
+            raise
+        raise ConfigurationError(
+            "bench inputs needs hypothesis: pip install hypothesis (or 'excavator-rt[test]')"
+        ) from exc
+    if args.examples < 1:
+        raise ConfigurationError(f"--examples {args.examples}; allowed: an integer >= 1")
+
+    def progress(e: Any) -> None:
+        if not args.json:
+            first = f"  first: {e.first_traceback[:160]}" if e.tracebacks else ""
+            print(f"{e.name:<16} {e.examples:>7} {e.refused:>8} {e.accepted:>8} {e.tracebacks:>10} {e.wall_s:>8.1f}{first}", flush=True)
+
+    if not args.json:
+        print(f"excavator-rt bench inputs: {args.examples} examples per entry point, seed {args.seed}")
+        print(f"{'entry point':<16} {'examples':>7} {'refused':>8} {'accepted':>8} {'tracebacks':>10} {'wall s':>8}")
+    r = bench_inputs(args.examples, args.seed, progress=progress)
+    if args.json:
+        _print_json(r.to_json())
+    else:
+        print(f"tracebacks: {r.tracebacks} (goal 0); {r.wall_s:.0f} s")
+    return 1 if r.tracebacks else 0
+
+
 def cmd_plan(args: argparse.Namespace) -> int:
     """``excavator-rt plan``: a trench task planned dig by dig.
 
@@ -1221,6 +1251,12 @@ def build_parser() -> argparse.ArgumentParser:
     b4.add_argument("--no-reference", action="store_true", help="skip CasADi/IPOPT and toppra (they need the reference extra)")
     b4.add_argument("--json", action="store_true")
     b4.set_defaults(handler=cmd_bench_timejerk)
+
+    b5 = bench_sub.add_parser("inputs", help="property-based inputs (hypothesis) into every entry point: task files, rig profiles, daemon config, control requests, model cards, CAN frames")
+    b5.add_argument("--examples", type=int, default=10_000, help="inputs per entry point (default 10000)")
+    b5.add_argument("--seed", type=int, default=0, help="hypothesis seed")
+    b5.add_argument("--json", action="store_true")
+    b5.set_defaults(handler=cmd_bench_inputs)
 
     pl = sub.add_parser("plan", help="plan a trench task dig by dig (Yao Fig. 5, Table 3); exit 1 when the plan is incomplete")
     pl.add_argument("--task", required=True, help="A, B, C, D (Yao Table 3) or a TOML file")

@@ -351,7 +351,7 @@ def test_planner_needs_the_c_kernel(
         ("corrupt", r"library .*pinn_backward_library.npz is corrupt or was replaced"),
         ("missing", r"library file .* does not exist"),
         ("k", r"library k must be in \[1, \d+\] and trigger_bulge_scale > 0"),
-        ("entry", r"invalid library entry"),
+        ("entry", r"library trigger_bulge_scale must be a finite number; got None"),
     ],
 )
 def test_bad_library_refused(

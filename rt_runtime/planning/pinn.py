@@ -303,11 +303,29 @@ class ModelCard:
     raw: dict[str, Any]
 
 
+def _finite_number(x: object) -> bool:
+    """A JSON number (not a bool) that is finite as a float."""
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        return False
+    try:
+        return math.isfinite(float(x))
+    except OverflowError:  # an integer beyond the float range
+        return False
+
+
+def _card_string(where: object, raw: dict[str, Any], key: str) -> str:
+    value = raw.get(key)
+    if not isinstance(value, str) or not value:
+        raise ConfigurationError(f"{where}: {key} must be a non-empty string; got {value!r:.80}")
+    return value
+
+
 def load_card(card_path: Path) -> ModelCard:
     """Read and check a model card (not yet against a rig).
 
     Raises:
-        ConfigurationError: Missing file, not JSON, wrong format, or a missing/ill-typed key.
+        ConfigurationError: Missing file, not JSON, wrong format, or a missing/ill-typed key
+            (the message names the key and what it must be).
     """
     if not card_path.is_file():
         raise ConfigurationError(
@@ -315,30 +333,45 @@ def load_card(card_path: Path) -> ModelCard:
         )
     try:
         raw = json.loads(card_path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    # ValueError: not UTF-8, not JSON, or an integer of more than 4300 digits.
+    except (OSError, ValueError) as exc:
         raise ConfigurationError(f"model card {card_path} is not valid JSON: {exc}") from exc
     if not isinstance(raw, dict) or raw.get("format") != CARD_FORMAT:
         raise ConfigurationError(f"{card_path}: format must be {CARD_FORMAT!r}")
-    try:
-        domain = raw["domain"]
-        lo = tuple(float(v) for v in domain["min"])
-        hi = tuple(float(v) for v in domain["max"])
-        card = ModelCard(
-            path=card_path,
-            model_path=card_path.parent / str(raw["model_file"]),
-            dig_type=DigType[str(raw["dig_type"]).upper()],
-            rig=str(raw["rig"]),
-            rig_planning_fingerprint=str(raw["rig_planning_fingerprint"]),
-            model_sha256=str(raw["model_sha256"]),
-            domain_min=lo,
-            domain_max=hi,
-            raw=raw,
+    model_file, dig, rig, fingerprint, digest = (
+        _card_string(card_path, raw, key)
+        for key in ("model_file", "dig_type", "rig", "rig_planning_fingerprint", "model_sha256")
+    )
+    kinds = [k.name.lower() for k in DigType]
+    if dig.lower() not in kinds:
+        raise ConfigurationError(
+            f"{card_path}: dig_type must be one of {', '.join(kinds)}; got {dig!r:.80}"
         )
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ConfigurationError(f"{card_path}: missing or invalid key: {exc}") from exc
-    if len(lo) != 7 or len(hi) != 7 or not all(a < b for a, b in zip(lo, hi, strict=True)):
+    domain = raw.get("domain")
+    if not isinstance(domain, dict):
+        raise ConfigurationError(f"{card_path}: domain must be an object with min and max")
+    bounds: list[tuple[float, ...]] = []
+    for key in ("min", "max"):
+        values = domain.get(key)
+        if not (isinstance(values, list) and len(values) == 7 and all(map(_finite_number, values))):
+            raise ConfigurationError(
+                f"{card_path}: domain.{key} must be 7 finite numbers; got {values!r:.120}"
+            )
+        bounds.append(tuple(float(v) for v in values))
+    lo, hi = bounds
+    if not all(a < b for a, b in zip(lo, hi, strict=True)):
         raise ConfigurationError(f"{card_path}: domain.min/max must be 7 increasing pairs")
-    return card
+    return ModelCard(
+        path=card_path,
+        model_path=card_path.parent / model_file,
+        dig_type=DigType[dig.upper()],
+        rig=rig,
+        rig_planning_fingerprint=fingerprint,
+        model_sha256=digest,
+        domain_min=lo,
+        domain_max=hi,
+        raw=raw,
+    )
 
 
 class _Library:
@@ -353,13 +386,20 @@ class _Library:
     def __init__(self, card: ModelCard) -> None:
         entry = card.raw["library"]
         where = str(card.path)
-        try:
-            path = card.path.parent / str(entry["name"])
-            digest = str(entry["sha256"])
-            self.trigger = float(entry["trigger_bulge_scale"])
-            self.k = int(entry["k"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ConfigurationError(f"{where}: invalid library entry: {exc}") from exc
+        if not isinstance(entry, dict):
+            raise ConfigurationError(f"{where}: library must be an object; got {entry!r:.80}")
+        name = _card_string(f"{where}: library", entry, "name")
+        digest = _card_string(f"{where}: library", entry, "sha256")
+        trigger, k = entry.get("trigger_bulge_scale"), entry.get("k")
+        if not _finite_number(trigger):
+            raise ConfigurationError(
+                f"{where}: library trigger_bulge_scale must be a finite number; got {trigger!r:.80}"
+            )
+        if isinstance(k, bool) or not isinstance(k, int):
+            raise ConfigurationError(f"{where}: library k must be an integer; got {k!r:.80}")
+        path = card.path.parent / name
+        self.trigger = float(trigger)  # type: ignore[arg-type]
+        self.k = k
         check_file(where, "library", path, digest)
         with np.load(path, allow_pickle=False) as z:
             X = np.array(z["X"], dtype=np.float64)

@@ -51,6 +51,11 @@ class Table:
         """Dotted key path of this table."""
         return self._path
 
+    @property
+    def source(self) -> str:
+        """File or profile name the table came from."""
+        return self._source
+
     def key_path(self, key: str) -> str:
         """Dotted path of ``key`` inside this table."""
         return f"{self._path}.{key}" if self._path else key
@@ -106,7 +111,10 @@ class Table:
         allowed = _allowed(gt, ge, lt, le)
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise self.error(key, f"must be a number{allowed} (got {value!r})")
-        x = float(value)
+        try:
+            x = float(value)
+        except OverflowError:  # an integer beyond the float range
+            x = math.inf
         if not math.isfinite(x):
             raise self.error(key, f"must be a finite number{allowed} (got {value!r})")
         if (

@@ -76,7 +76,9 @@ def load_rig(name_or_path: str | Path = DEFAULT_RIG) -> Rig:
         raise RigProfileError("file", f"cannot read {path}: not found") from e
     except OSError as e:
         raise RigProfileError("file", f"cannot read {path}: {e.strerror}") from e
-    except tomllib.TOMLDecodeError as e:
+    except UnicodeDecodeError as e:
+        raise RigProfileError("file", f"{path} is not UTF-8 text: {e}") from e
+    except ValueError as e:  # TOMLDecodeError, or an integer of more than 4300 digits
         raise RigProfileError("file", f"{path} is not valid TOML: {e}") from e
     return parse_rig(raw, source=str(path))
 
@@ -196,7 +198,7 @@ def _bucket(t: Table) -> Bucket:
         raise t.error("profile_m", "must list at least 3 points [along, normal] (tip first)")
     points: list[tuple[float, float]] = []
     for i, p in enumerate(raw):
-        sub = Table({"point": p}, t.key_path(f"profile_m[{i}]"), "")
+        sub = Table({"point": p}, t.key_path(f"profile_m[{i}]"), t.source)
         x, y = sub.numbers("point", 2, ge=-50.0, le=50.0)
         points.append((x, y))
     if points[0] != (0.0, 0.0):

@@ -254,9 +254,12 @@ def _check_type(key: str, kind: str, value: Any, source: str) -> Any:
     elif kind == "float":
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigKeyError(key, f"must be a number, got {value!r}", source)
+        try:
+            value = float(value)
+        except OverflowError:  # an integer beyond the float range
+            value = math.inf
         if not math.isfinite(value):
             raise ConfigKeyError(key, f"must be finite, got {value!r}", source)
-        value = float(value)
     elif kind == "str" and (not isinstance(value, str) or not value.strip()):
         raise ConfigKeyError(key, f"must be a non-empty string, got {value!r}", source)
     return value
@@ -464,9 +467,11 @@ def load_config(path: str | Path) -> DaemonConfig:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigurationError(f"config file {p}: cannot read: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigurationError(f"config file {p}: not UTF-8 text: {exc}") from exc
     try:
         raw = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
+    except ValueError as exc:  # TOMLDecodeError, or an integer of more than 4300 digits
         raise ConfigurationError(f"config file {p}: not valid TOML: {exc}") from exc
     return parse_config(raw, p.resolve())
 

@@ -223,7 +223,8 @@ def read_task_file(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, tomllib.TOMLDecodeError) as e:
+    # ValueError: not UTF-8, not TOML, or an integer of more than 4300 digits.
+    except (OSError, ValueError) as e:
         raise ConfigurationError(f"task file {path}: cannot read: {e}") from e
     check_task_keys(data, f"task file {path}")
     return data

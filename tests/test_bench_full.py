@@ -77,7 +77,10 @@ def test_loop_and_can_keys(report: dict[str, Any]) -> None:
         assert sum(e["cycle_status"].values()) == e["cycles"]
         assert 0 <= e["fault_cycles"] <= e["cycles"] and e["stale_cycles"] <= e["cycles"]
         load = e["bus_load"]
-        assert 0.0 < load["nominal"] <= load["realistic"] <= load["worst"] < 1.0
+        # The worst case (every frame stuffed to the limit) may pass 1 at 1 kHz with the VCU's
+        # status on every SYNC; the nominal load is what the bus carries.
+        assert 0.0 < load["nominal"] <= load["realistic"] <= load["worst"]
+        assert load["nominal"] < 1.0
         # --no-rt: nothing of the scheduler or memory was asked for.
         assert "sched_fifo" not in e["rt"] and "mlockall" not in e["rt"]
         assert e["rt"]["gc_freeze"]["applied"] is True

@@ -520,7 +520,7 @@ def test_sighup_reloads_the_reloadable_and_keeps_a_bad_file_out(tmp_path: Path) 
             text + '[executor]\nfeedforward = false\nplanner = "pso"\n[loop]\nperiod_s = 0.001\n'
         )
         os.kill(os.getpid(), signal.SIGHUP)
-        _wait(lambda: rs.runner.options == (False, 25))
+        _wait(lambda: rs.runner.options == (False, 10))
         assert rs.service.config.loop.period_s == 0.002  # needs a restart: kept
         assert rs.service.config.feedforward is False
         assert rs.service.config.planner == "pso"  # the default of the next submits

@@ -87,9 +87,11 @@ __all__ = [
     "CaseResult",
     "Rule",
     "add_parser",
+    "lockstep_config",
     "matrix",
     "run_campaign",
     "run_case",
+    "wait_for",
 ]
 
 AXES = ("boom", "stick", "bucket")
@@ -426,7 +428,7 @@ class _CaseClock:
                 if pid is None:
                     raise ConfigurationError("no planner process to kill")
                 os.kill(pid, signal.SIGKILL)
-                _wait(lambda: _dead(pid), "the killed planner process ending", 10.0)
+                wait_for(lambda: _dead(pid), "the killed planner process ending", 10.0)
             else:
                 axis = AXES.index(case.target) if case.target in AXES else -1
                 self.hil.inject(kind, axis, case.param)
@@ -445,7 +447,7 @@ def _dead(pid: int) -> bool:
     return stat[stat.rindex(")") + 2] in "ZX"
 
 
-def _config(state_dir: Path, rig_name: str) -> DaemonConfig:
+def lockstep_config(state_dir: Path, rig_name: str) -> DaemonConfig:
     """The daemon's configuration of a case: the example's loop and executor values, no
     real-time settings (simulated time), state under ``state_dir``."""
     raw = {
@@ -457,7 +459,9 @@ def _config(state_dir: Path, rig_name: str) -> DaemonConfig:
     return parse_config(raw, state_dir / "campaign.toml")
 
 
-def _wait(pred: Callable[[], bool], what: str, limit_s: float = PHASE_WALL_S) -> None:
+def wait_for(pred: Callable[[], bool], what: str, limit_s: float = PHASE_WALL_S) -> None:
+    """Poll ``pred`` until it holds (TimeoutError naming ``what`` after ``limit_s`` of wall
+    time)."""
     end = time.monotonic() + limit_s
     while not pred():
         if time.monotonic() > end:
@@ -478,7 +482,7 @@ def run_case(case: Case, rig_name: str = "scale_model") -> tuple[CaseResult, dic
     rig = load_rig(rig_name)
     planner = TrenchPlanner(rig)
     with tempfile.TemporaryDirectory(prefix="excavator-campaign-") as tmp:
-        cfg = _config(Path(tmp), rig_name)
+        cfg = lockstep_config(Path(tmp), rig_name)
         rule = RULES[case.kind]
         result.bound_s = rule.bound(rig, cfg) if rule.bound is not None else math.nan
         hil = LockstepHil(rig, planner.home_pose_rad, vcu=False, fault_seed=case.seed)
@@ -513,7 +517,7 @@ def _drive_case(
     clock: _CaseClock,
 ) -> None:
     runner.start()
-    _wait(lambda: runner.health()[0], "the runner holding")
+    wait_for(lambda: runner.health()[0], "the runner holding")
     job = store.submit(dict(CASE_TASK), "pinn", max_digs=case.digs)
     store.changed.set()
 
@@ -521,7 +525,7 @@ def _drive_case(
         status = store.get(job.id).status
         return bool(runner.fault()) or status in (JobStatus.DONE, JobStatus.FAILED)
 
-    _wait(settled, "the job ending or a fault")
+    wait_for(settled, "the job ending or a fault")
     before = None
     if clock.inject_error:
         raise ConfigurationError(f"the injection failed: {clock.inject_error}")
@@ -530,7 +534,7 @@ def _drive_case(
         result.digs = len(store.get(job.id).digs)
         return
     if runner.fault():
-        _wait(lambda: runner.state().endswith("waiting for reset-fault"), "the latch")
+        wait_for(lambda: runner.state().endswith("waiting for reset-fault"), "the latch")
         result.outcome = "stopped"
         result.fault = runner.fault()
         result.detection_s = runner.fault_at_s - clock.injected_at
@@ -539,12 +543,12 @@ def _drive_case(
         clock.reset_at = clock.now()  # the loop has ended: the clock stands still
         hil.clear_faults()
         number = runner.reset_fault()
-        _wait(lambda: runner.resets_done >= number, "the reset")
+        wait_for(lambda: runner.resets_done >= number, "the reset")
         if runner.fault():
             result.error = f"the reset failed: {runner.fault()}"
         else:
             store.changed.set()
-            _wait(
+            wait_for(
                 lambda: (
                     store.get(job.id).status in (JobStatus.DONE, JobStatus.FAILED)
                     or bool(runner.fault())

@@ -7,6 +7,7 @@ here and in the report). ``rt_runtime.cli`` wires it in with :func:`add_parser` 
                      [--no-feedforward] [--max-digs N] [--json] [--plot DIR]
                      [--inject KIND:TARGET:AT_S[:PARAM] ...]
     excavator-rt hil campaign [--kinds K,...] [--axes A,...] [--seeds N] [--json] [--out DIR]
+    excavator-rt hil soak [--hours H | --minutes M | --seconds S] [--fault-every-s S] [--json]
     excavator-rt hil --path gao|FILE.json|joints [--joints-deg B,S,K ...] [--rig test_bench]
                      [--orders auto|3-4-5-4-3|...] [--durations 3,3,3,3,3] [--start-deg B,S,K]
                      [--realtime] [--no-feedforward] [--trace FILE] [--json] [--plot DIR]
@@ -29,7 +30,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from hil_sim.harness import campaign
+from hil_sim.harness import campaign, hil_soak
 from hil_sim.harness.reports import HilReport
 from hil_sim.harness.scenario import (
     FaultSpec,
@@ -197,8 +198,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     p.add_argument("--plot", default=None, metavar="DIR", help="write figures (Yao Fig. 17-21)")
-    sub = p.add_subparsers(dest="hil_command", metavar="{campaign}")
+    sub = p.add_subparsers(dest="hil_command", metavar="{campaign,soak}")
     campaign.add_parser(sub)
+    hil_soak.add_parser(sub)
     return p
 
 

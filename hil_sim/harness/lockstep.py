@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 from firmware_models.drive import Frame
 from hil_sim.busfaults import BusFaults
-from hil_sim.sim import COB_SYNC, FaultKind, FloatArray, HilCore, open_trace
+from hil_sim.sim import COB_SYNC, TRUTH_ROWS, FaultKind, FloatArray, HilCore, open_trace
 from hil_sim.terrain import Terrain
 from rt_runtime.canbus.inprocess import ChannelBus, InProcessChannel
 from rt_runtime.canbus.simtime import SimulatedTimeBus
@@ -221,7 +221,8 @@ class LockstepHil:
     """The HIL in lockstep over an in-process channel (one process, deterministic).
 
     Args:
-        rig, q0_rad, terrain, period_s, vcu, keep_frames, tpdo_at_start: As :class:`HilCore`.
+        rig, q0_rad, terrain, period_s, vcu, keep_frames, tpdo_at_start, truth_rows: As
+            :class:`HilCore`.
         fault_seed: Seed of the wire's random faults (:class:`~hil_sim.busfaults.BusFaults`).
         trace_path: Write the bus trace here (``.blf`` or ``.asc``), or None.
 
@@ -256,6 +257,7 @@ class LockstepHil:
         trace_path: str | Path | None = None,
         tpdo_at_start: bool = True,
         fault_seed: int = 0,
+        truth_rows: int = TRUTH_ROWS,
     ) -> None:
         self.core = HilCore(
             rig,
@@ -265,6 +267,7 @@ class LockstepHil:
             vcu=vcu,
             keep_frames=keep_frames,
             tpdo_at_start=tpdo_at_start,
+            truth_rows=truth_rows,
         )
         if trace_path is not None:
             self.core.trace = open_trace(trace_path)

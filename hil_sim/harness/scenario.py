@@ -24,8 +24,12 @@ The report is built from the executor's telemetry: each motion (telemetry ``segm
 run of holding or stopping becomes one :class:`~hil_sim.report.Segment`, joined with the HIL's
 truth by SYNC count; ``tracking`` counts the cycles that streamed a motion.
 
-Faults (:class:`FaultSpec`) are switched on ``at_s`` seconds after the executor's first cycle,
-from its per-cycle hook, on the HIL's drive node (:mod:`hil_sim.drives`).
+Faults (:class:`FaultSpec`, ``docs/faults.md``) are switched on ``at_s`` seconds after the
+executor's first cycle, from its per-cycle hook: a drive fault on the HIL's drive node
+(:mod:`hil_sim.drives`), a bus fault on the lockstep transport's wire
+(:mod:`hil_sim.busfaults`), a loop stall by moving the lockstep clock on with the executor's
+thread held. The real-time HIL takes the drive faults; a killed planner process is the
+campaign's (:mod:`hil_sim.harness.campaign`, on the daemon's runner).
 
 Prescribed paths (:class:`PathScenario`, :func:`run_path_scenario`). A joint
 path through key points (Gao/Yang's mixed-order interpolation, :mod:`rt_runtime.trajectory.

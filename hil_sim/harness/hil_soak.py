@@ -18,8 +18,8 @@ operator would with ``reset-fault``.
 
 Checked all along:
 
-* after every dig the job store is written (:meth:`~rt_runtime.service.jobstore.JobStore.sync`)
-  and read back from its file (:func:`~rt_runtime.service.jobstore.read_store`): a file that
+* after every dig and every reset the job store is written
+  (:meth:`~rt_runtime.service.jobstore.JobStore.sync`) and read back from its file (:func:`~rt_runtime.service.jobstore.read_store`): a file that
   does not read, or a job whose digs on disk are not those in memory, is a corrupt record;
 * at the end every job submitted is in the store and done (a job failed for another reason
   than a latched fault, or missing, is lost);
@@ -151,6 +151,8 @@ def soak(
                         problems.append(f"reset failed: {runner.fault()}")
                         break
                     store.changed.set()
+                    checks += 1
+                    corrupt += _check_store(store, problems)
                 ended = not jobs or store.get(jobs[-1]).status in (JobStatus.DONE, JobStatus.FAILED)
                 if ended and not runner.fault():  # a failed job with no fault latched is lost
                     if jobs:

@@ -297,9 +297,9 @@ def test_a_short_soak_keeps_every_job_and_record() -> None:
     time: every fault latched is reset, the store reads back after every dig and reset, nothing
     is lost. The memory growth is the command's (10 minutes in the benchmark), reported, not
     asserted."""
-    from hil_sim.harness.hil_soak import soak
-
     from test_report_keys import README, _list_of, _paragraph, contract_keys, missing
+
+    from hil_sim.harness.hil_soak import soak
 
     report = soak(25.0, fault_every_s=8.0, seed=5, warmup_s=5.0)
     keys = contract_keys(_list_of(_paragraph(README, "`hil soak --json`:")))
@@ -307,5 +307,5 @@ def test_a_short_soak_keeps_every_job_and_record() -> None:
     assert report["faults_injected"] >= 3 and report["resets"] >= 1, report
     assert report["store_checks"] >= report["resets"], report
     assert report["lost_jobs"] == 0 and report["corrupt_records"] == 0, report["problems"]
-    assert 0.0 < report["memory_mb"]["warm"] and math.isfinite(report["memory_growth"])
+    assert report["memory_mb"]["warm"] > 0.0 and math.isfinite(report["memory_growth"])
     assert report["loop"]["speed"] > 0.0

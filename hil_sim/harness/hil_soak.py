@@ -19,8 +19,9 @@ operator would with ``reset-fault``.
 Checked all along:
 
 * after every dig and every reset the job store is written
-  (:meth:`~rt_runtime.service.jobstore.JobStore.sync`) and read back from its file (:func:`~rt_runtime.service.jobstore.read_store`): a file that
-  does not read, or a job whose digs on disk are not those in memory, is a corrupt record;
+  (:meth:`~rt_runtime.service.jobstore.JobStore.sync`) and read back from its file
+  (:func:`~rt_runtime.service.jobstore.read_store`): a file that does not read, or a job whose
+  digs on disk are not those in memory, is a corrupt record;
 * at the end every job submitted is in the store and done (a job failed for another reason
   than a latched fault, or missing, is lost);
 * the process's resident memory (``VmRSS``) at the end against its value after ``--warmup-s``

@@ -57,6 +57,7 @@ __all__ = [
     "Verdict",
     "bench_inputs",
     "mutated_document",
+    "mutated_frames",
     "run_entry",
     "runtime_entries",
     "toml_text",
@@ -831,6 +832,28 @@ def _master_context() -> Iterator[_MasterContext]:
 _FrameIn = tuple[int, bytes, bool]  # id, data, extended
 
 
+def mutated_frames(
+    valid: st.SearchStrategy[tuple[int, bytes]],
+) -> st.SearchStrategy[tuple[int, bytes]]:
+    """Frames ``(id, data)`` of ``valid``, kept or mutated: cut short, grown (to 8 bytes at
+    most) or with one byte flipped."""
+
+    @st.composite
+    def mutated(draw: st.DrawFn) -> tuple[int, bytes]:
+        cob, data = draw(valid)
+        how = draw(st.sampled_from(("keep", "cut", "grow", "flip")))
+        if how == "cut":
+            data = data[: draw(st.integers(0, max(len(data) - 1, 0)))]
+        elif how == "grow":
+            data = (data + draw(st.binary(min_size=1, max_size=8)))[:8]
+        elif how == "flip" and data:
+            i = draw(st.integers(0, len(data) - 1))
+            data = data[:i] + bytes([data[i] ^ draw(st.integers(1, 255))]) + data[i + 1 :]
+        return cob, data
+
+    return mutated()
+
+
 @st.composite
 def _frames(draw: st.DrawFn, node_ids: Sequence[int], vcu_status_id: int) -> list[_FrameIn]:
     """1..6 frames: valid drive frames mutated, random frames in the drives' COB ranges and
@@ -855,15 +878,7 @@ def _frames(draw: st.DrawFn, node_ids: Sequence[int], vcu_status_id: int) -> lis
 
         @st.composite
         def mutate(draw2: st.DrawFn) -> _FrameIn:
-            cob, data = draw2(valid)
-            how = draw2(st.sampled_from(("keep", "cut", "grow", "flip")))
-            if how == "cut":
-                data = data[: draw2(st.integers(0, max(len(data) - 1, 0)))]
-            elif how == "grow":
-                data = (data + draw2(st.binary(min_size=1, max_size=8)))[:8]
-            elif how == "flip" and data:
-                i = draw2(st.integers(0, len(data) - 1))
-                data = data[:i] + bytes([data[i] ^ draw2(st.integers(1, 255))]) + data[i + 1 :]
+            cob, data = draw2(mutated_frames(valid))
             return cob, data, False
 
         rand = st.tuples(ident, st.binary(max_size=8), st.just(False))

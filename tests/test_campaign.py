@@ -144,17 +144,23 @@ def test_a_reboot_sends_its_boot_up_frame_and_forgets_the_masters_setup(rig: Rig
         assert hil.core.nodes[2].firmware.state is DeviceState.SWITCH_ON_DISABLED
 
 
+def _enabled(hil: LockstepHil, rig: Rig) -> tuple[CanMaster, DriveInterface, np.ndarray]:
+    """A master booted and enabled on ``hil``, its drives' interface, and the strokes the
+    drives reported (m)."""
+    master = CanMaster(hil.master_bus, rig, period_s=0.002, react_to_faults=False)
+    master.boot(hil.clock.now, 1.0)
+    master.enable(hil.clock.now, 1.0)
+    drives = DriveInterface(master, hil.clock, 0.0)
+    return master, drives, master.feedback.position_um.astype(np.float64) * 1e-6
+
+
 def test_an_encoder_glitch_moves_the_report_not_the_axis_and_the_master_refuses_it(
     rig: Rig,
 ) -> None:
     """The jump is refused as implausible (stale, counted) every cycle until the axis could
     have got there, so it never reaches the controllers; the plant does not move."""
     with LockstepHil(rig, TrenchPlanner(rig).home_pose_rad, vcu=False) as hil:
-        master = CanMaster(hil.master_bus, rig, period_s=0.002, react_to_faults=False)
-        master.boot(hil.clock.now, 1.0)
-        master.enable(hil.clock.now, 1.0)
-        drives = DriveInterface(master, hil.clock, 0.0)
-        held = master.feedback.position_um.astype(np.float64) * 1e-6
+        master, drives, held = _enabled(hil, rig)
         zero = np.zeros(3)
 
         def cycle() -> Any:
@@ -178,11 +184,7 @@ def test_an_encoder_glitch_moves_the_report_not_the_axis_and_the_master_refuses_
 
 def test_the_router_counts_what_it_rides_through(rig: Rig) -> None:
     with LockstepHil(rig, TrenchPlanner(rig).home_pose_rad, vcu=False) as hil:
-        master = CanMaster(hil.master_bus, rig, period_s=0.002, react_to_faults=False)
-        master.boot(hil.clock.now, 1.0)
-        master.enable(hil.clock.now, 1.0)
-        drives = DriveInterface(master, hil.clock, 0.0)
-        held = master.feedback.position_um.astype(np.float64) * 1e-6
+        master, drives, held = _enabled(hil, rig)
         other = ChannelBus(hil.channel)  # a second device repeating the boom's answer
         hil.clock.sleep_until(hil.clock.now() + 0.002)
         drives.write(held, np.zeros(3))

@@ -29,7 +29,7 @@ from hypothesis import strategies as st
 from firmware_models.drive import DeviceState, DriveFirmware, NmtState
 from firmware_models.vcu import VcuModel
 from rt_runtime.canbus.vcu import VcuClient
-from rt_runtime.inputs_fuzz import InputEntry, PropertyViolation, Verdict
+from rt_runtime.inputs_fuzz import InputEntry, PropertyViolation, Verdict, mutated_frames
 from rt_runtime.rig import Rig, load_rig
 
 __all__ = ["entries"]
@@ -67,23 +67,11 @@ def _frame_strategy() -> st.SearchStrategy[list[Frame]]:
         st.tuples(st.just(_MASTER_HB), st.just(b"\x05")),
     )  # fmt: skip
 
-    @st.composite
-    def mutated(draw: st.DrawFn) -> Frame:
-        cob, data = draw(valid)
-        how = draw(st.sampled_from(("keep", "cut", "grow", "flip")))
-        if how == "cut":
-            data = data[: draw(st.integers(0, max(len(data) - 1, 0)))]
-        elif how == "grow":
-            data = (data + draw(st.binary(min_size=1, max_size=8)))[:8]
-        elif how == "flip" and data:
-            i = draw(st.integers(0, len(data) - 1))
-            data = data[:i] + bytes([data[i] ^ draw(st.integers(1, 255))]) + data[i + 1 :]
-        return cob, data
 
     known = [0x000, 0x080, _RPDO1 + _NODE, _RPDO2 + _NODE, _SDO_RX + _NODE, _MASTER_HB]
     ids = st.one_of(st.sampled_from(known), st.integers(0, 0x7FF))
     rand = st.tuples(ids, st.binary(max_size=8))
-    return st.lists(st.one_of(mutated(), rand), min_size=1, max_size=8)
+    return st.lists(st.one_of(mutated_frames(valid), rand), min_size=1, max_size=8)
 
 
 @dataclass(slots=True)

@@ -115,6 +115,9 @@ class FaultKind(IntEnum):
     LOOP_STALL = 19
     #: The job's planner process is killed (SIGKILL).
     PLANNER_KILLED = 20
+    #: The job store cannot be written (its disk full or read-only, its directory gone): the
+    #: campaign puts a file where the state directory was, so every write fails.
+    STORE_UNWRITABLE = 21
 
     @property
     def label(self) -> str:

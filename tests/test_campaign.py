@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import math
 import random
+from pathlib import Path
 from typing import Any
 
 import can
@@ -25,7 +26,7 @@ import pytest
 
 from firmware_models.drive import DeviceState, DriveFirmware
 from hil_sim.busfaults import BusFaults
-from hil_sim.harness.campaign import RULES, Case, matrix, run_campaign
+from hil_sim.harness.campaign import CASE_TASK, RULES, Case, matrix, run_campaign
 from hil_sim.harness.cli import parse_fault
 from hil_sim.harness.lockstep import LockstepHil
 from hil_sim.sim import FaultKind, HilCore
@@ -311,3 +312,47 @@ def test_a_short_soak_keeps_every_job_and_record() -> None:
     assert report["lost_jobs"] == 0 and report["corrupt_records"] == 0, report["problems"]
     assert report["memory_mb"]["warm"] > 0.0 and math.isfinite(report["memory_growth"])
     assert report["loop"]["speed"] > 0.0
+
+
+def test_an_unwritable_store_latches_and_a_reset_says_why_until_it_is_back(
+    rig: Rig, tmp_path: Path
+) -> None:
+    """The store's directory replaced by a file (every write fails, as on a full or read-only
+    disk): the next write (the job's submission) latches a fault naming the store; a reset
+    fails, saying so, while the cause stays; with the directory back the reset succeeds and the
+    job runs to its end."""
+    from hil_sim.harness.campaign import lockstep_config, wait_for
+    from rt_runtime.service.jobstore import JobStatus, JobStore
+    from rt_runtime.service.runner import RigRunner
+
+    cfg = lockstep_config(tmp_path / "state", "scale_model")
+    planner = TrenchPlanner(rig)
+    hil = LockstepHil(rig, planner.home_pose_rad, vcu=False)
+    store = JobStore(cfg.paths.state_dir)
+    store.start()
+    runner = RigRunner(cfg, rig, planner, hil.master_bus, store, hil.clock, hil.reopen_master_bus)
+    state = cfg.paths.state_dir
+    away = state.with_name("state.away")
+    try:
+        runner.start()
+        wait_for(lambda: runner.health()[0], "holding")
+        state.rename(away)
+        state.write_text("in the way")
+        job = store.submit(dict(CASE_TASK), "pinn", max_digs=1)
+        store.changed.set()
+        wait_for(lambda: runner.state().endswith("waiting for reset-fault"), "the latch")
+        assert "the job store is not written" in runner.fault(), runner.fault()
+        number = runner.reset_fault()
+        wait_for(lambda: runner.resets_done >= number, "the first reset")
+        assert "the latest reset failed: the job store is still not written" in runner.fault()
+        state.unlink()
+        away.rename(state)
+        number = runner.reset_fault()
+        wait_for(lambda: runner.resets_done >= number, "the second reset")
+        assert runner.fault() == ""
+        wait_for(lambda: store.get(job.id).status is JobStatus.DONE, "the job")
+        assert len(store.get(job.id).digs) == 1
+    finally:
+        assert runner.shutdown(30.0)
+        store.close()
+        hil.close()

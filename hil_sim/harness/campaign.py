@@ -213,6 +213,12 @@ RULES: dict[FaultKind, Rule] = {
         lambda rig, cfg: STALL_MS * 1e-3 + 3 * cfg.loop.period_s,
         "the drives' SYNC watchdog (EMCY 0x8250) during a 50 ms stall, read at the next cycle",
     ),
+    FaultKind.STORE_UNWRITABLE: Rule(
+        "stopped",
+        lambda rig, cfg: STORE_WRITE_S + (PLANNER_CHECK_CYCLES + 3) * cfg.loop.period_s,
+        "the runner's store check every PLANNER_CHECK_CYCLES cycles after the store's next "
+        "write fails (a dig's record or a job's status: within a dig cycle)",
+    ),
     FaultKind.PLANNER_KILLED: Rule(
         "stopped",
         lambda rig, cfg: (PLANNER_CHECK_CYCLES + 3) * cfg.loop.period_s,
@@ -220,6 +226,9 @@ RULES: dict[FaultKind, Rule] = {
         "still from the SIGKILL until the process has ended)",
     ),
 }
+#: The longest a running job goes without writing the store (a dig cycle, s): the bound of a
+#: store that cannot be written counts from its next write.
+STORE_WRITE_S = 20.0
 #: Faults seen only once their axis is commanded away: detection counts from when the command
 #: is a following-error window away from where the axis stuck (a jam of a held axis, or a rock
 #: the axis is not pushing into, harm nothing and show nothing).
@@ -376,6 +385,7 @@ class _CaseClock:
         self.injected_at = math.nan
         self.reset_at = math.inf
         self.rock_direction = 0.0
+        self.undo: Callable[[], None] | None = None  # clears a host fault's cause
         self.inject_error = ""
         #: Master frames seen: (time, cob, data) of RPDO1, RPDO2, SYNC and NMT.
         self.frames: list[tuple[float, int, bytes]] = []
@@ -423,6 +433,17 @@ class _CaseClock:
             if kind is FaultKind.LOOP_STALL:
                 stall = STALL_MS if case.param is None else case.param
                 self.hil.clock.sleep_until(now + stall * 1e-3)
+            elif kind is FaultKind.STORE_UNWRITABLE:
+                state = runner.store.path.parent
+                away = state.with_name(state.name + ".away")
+                state.rename(away)
+                state.write_text("not a directory: the job store cannot be written here\n")
+
+                def undo() -> None:
+                    state.unlink()
+                    away.rename(state)
+
+                self.undo = undo
             elif kind is FaultKind.PLANNER_KILLED:
                 pid = runner.planner_pid()
                 if pid is None:
@@ -489,6 +510,7 @@ def run_case(case: Case, rig_name: str = "scale_model") -> tuple[CaseResult, dic
         monitor = ChannelBus(hil.channel, clock=hil.clock.now)
         clock = _CaseClock(hil, case, monitor)
         store = JobStore(cfg.paths.state_dir)
+        store.start()  # its writer thread, as the daemon's
         runner = RigRunner(cfg, rig, planner, hil.master_bus, store, clock, hil.reopen_master_bus)
         clock.runner = runner
         try:
@@ -498,6 +520,9 @@ def run_case(case: Case, rig_name: str = "scale_model") -> tuple[CaseResult, dic
         finally:
             if not runner.shutdown(30.0):
                 result.error = result.error or "the runner did not shut down"
+            if clock.undo is not None and not runner.store.path.parent.is_dir():
+                clock.undo()
+            store.close()
             truth = hil.core.truth()
             trace = {"frames": clock.frames, "t_s": truth.t_s, "stroke_m": truth.stroke_m}
             _check_stop(result, rig, cfg, clock, truth.t_s, truth.stroke_m)
@@ -542,6 +567,8 @@ def _drive_case(
         before = runner.rx_counts()
         clock.reset_at = clock.now()  # the loop has ended: the clock stands still
         hil.clear_faults()
+        if clock.undo is not None:
+            clock.undo()
         number = runner.reset_fault()
         wait_for(lambda: runner.resets_done >= number, "the reset")
         if runner.fault():

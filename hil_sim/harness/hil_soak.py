@@ -68,8 +68,11 @@ TRUTH_ROWS = 1 << 14
 COST_PERIODS = 1 << 16
 #: Digs of each job.
 JOB_DIGS = 2
-#: Kinds mixed in: all but the killed planner (its kill waits on the wall clock).
-SOAK_KINDS = tuple(k for k in FaultKind if k is not FaultKind.PLANNER_KILLED)
+#: Kinds mixed in: all but the killed planner (its kill waits on the wall clock) and the
+#: unwritable store (the soak's own checks read the store).
+SOAK_KINDS = tuple(
+    k for k in FaultKind if k not in (FaultKind.PLANNER_KILLED, FaultKind.STORE_UNWRITABLE)
+)
 
 
 class _SoakClock:

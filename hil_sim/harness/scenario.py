@@ -28,8 +28,9 @@ Faults (:class:`FaultSpec`, ``docs/faults.md``) are switched on ``at_s`` seconds
 executor's first cycle, from its per-cycle hook: a drive fault on the HIL's drive node
 (:mod:`hil_sim.drives`), a bus fault on the lockstep transport's wire
 (:mod:`hil_sim.busfaults`), a loop stall by moving the lockstep clock on with the executor's
-thread held. The real-time HIL takes the drive faults; a killed planner process is the
-campaign's (:mod:`hil_sim.harness.campaign`, on the daemon's runner).
+thread held. The real-time HIL takes the drive faults; a killed planner process and an
+unwritable job store are the campaign's (:mod:`hil_sim.harness.campaign`, on the daemon's
+runner).
 
 Prescribed paths (:class:`PathScenario`, :func:`run_path_scenario`). A joint
 path through key points (Gao/Yang's mixed-order interpolation, :mod:`rt_runtime.trajectory.
@@ -340,10 +341,10 @@ def _checked_faults(sc: Scenario | PathScenario) -> list[tuple[FaultSpec, int]]:
     out = []
     for f in sc.faults:
         index = f.axis_index()
-        if f.kind is FaultKind.PLANNER_KILLED:
+        if f.kind in (FaultKind.PLANNER_KILLED, FaultKind.STORE_UNWRITABLE):
             raise ConfigurationError(
-                "planner_killed needs the daemon's planner process: run it with "
-                "`excavator-rt hil campaign --kinds planner_killed`"
+                f"{f.kind.label} needs the daemon's runner (its planner process, its job "
+                f"store): run it with `excavator-rt hil campaign --kinds {f.kind.label}`"
             )
         if sc.realtime and f.kind.layer != "drive":
             raise ConfigurationError(

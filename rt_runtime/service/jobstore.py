@@ -378,6 +378,15 @@ class JobStore:
             ok = w.cond.wait_for(lambda: w.written >= target, timeout_s)
             return ok and not w.error
 
+    def rewrite(self, timeout_s: float = 5.0) -> bool:
+        """Write the store again now (after a failed write: is its disk back?) and wait.
+
+        Returns:
+            True when written (:attr:`write_error` is then empty).
+        """
+        self._dirty()
+        return self.sync(timeout_s)
+
     @property
     def write_error(self) -> str:
         """The last write's error, empty when it succeeded."""

@@ -12,7 +12,9 @@ stream never pauses.
 
 Faults latch; the thread lives. A drive fault, EMCY or lost heartbeat, a following error, stale
 feedback, an overrun stop, a bus error (any exception out of the bus), the job's planner process
-ending, or an exception out of the loop itself latches a fault (:meth:`RigRunner.fault`, one
+ending, a failed write of the job store (a job whose digs cannot be kept does not go on digging;
+a reset first writes the store again and fails while it cannot), or an exception out of the
+loop itself latches a fault (:meth:`RigRunner.fault`, one
 line naming what happened, with each axis's node, state and EMCY code and meaning where the
 drives reported one). The running job stops with the guard's jerk-limited stop (where the bus
 is gone, the drives' own SYNC watchdogs stop them) and is marked ``failed``; the hold then
@@ -111,6 +113,8 @@ JOB_TELEMETRY_ROWS = 16_384
 _LATCHING = (ExecStatus.FAULT, ExecStatus.OVERRUN_STOP, ExecStatus.BUS_ERROR)
 #: A running job's planner process is checked every this many cycles (a power of two).
 PLANNER_CHECK_CYCLES = 128
+#: How long a reset waits for the job store to be written again after a failed write (s).
+STORE_CHECK_TIMEOUT_S = 5.0
 #: Longest wait for a bus's shutdown (s): a backend may block on a peer that does not answer.
 BUS_CLOSE_TIMEOUT_S = 2.0
 #: Longest wait of a reset for the previous boot's job report and preparation threads (s).
@@ -615,6 +619,11 @@ class RigRunner:
             # the previous boot finish first: none of it competes with the first cycles.
             for worker in (self._prep.after, self._prep.worker):
                 worker.drain(AFTERMATH_TIMEOUT_S)
+            if self.store.write_error and not self.store.rewrite(STORE_CHECK_TIMEOUT_S):
+                self._reset_error = f"the job store is still not written: {self.store.write_error}"
+                log.error("reset failed, the fault stays latched: %s", self._reset_error)
+                self._reset_ended()
+                return False
         try:
             parts = self._boot(retry=not first)
         except Exception as exc:
@@ -830,9 +839,12 @@ class RigRunner:
                 self._latch(f"job {job}: {self._job_fault_text(ctl.status, ctl.fault)}", job)
             if sync & (PLANNER_CHECK_CYCLES - 1) == 0:
                 self._check_planner(running)
+                self._check_store(running)
             return
         if hold.fault and not self._fault:
             self._latch(hold.fault)
+        if sync & (PLANNER_CHECK_CYCLES - 1) == 0 and not self._fault:
+            self._check_store(None)
         if self._stop or self._fault:
             if not self._powering_down:
                 self._powering_down = True
@@ -869,6 +881,21 @@ class RigRunner:
             return
         job = running.job.id
         self._latch(f"job {job}: the planner process ended ({_exit_text(code)})", job)
+        running.controller.request_stop(StopRequest.SHUTDOWN)
+
+    def _check_store(self, running: _PreparedJob | None) -> None:
+        """The job store's last write failed (its disk full or read-only, its directory gone):
+        latch the fault and stop the running job (the guard's stop); a job whose digs cannot be
+        kept must not go on digging. Loop thread, every :data:`PLANNER_CHECK_CYCLES` cycles
+        (one attribute read)."""
+        error = self.store.write_error
+        if not error or self._fault or self._stop:
+            return
+        if running is None:
+            self._latch(f"the job store is not written: {error}")
+            return
+        job = running.job.id
+        self._latch(f"job {job}: the job store is not written: {error}", job)
         running.controller.request_stop(StopRequest.SHUTDOWN)
 
     def _drop_prepared(self) -> None:

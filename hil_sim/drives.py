@@ -15,9 +15,10 @@ and the world, so the firmware behaves exactly as it would on a real bus:
   master sees no heartbeat and no TPDOs.
 * :attr:`DriveNode.deaf_to` -- COB-IDs the node no longer receives (the master's heartbeat 0x77E,
   say): the firmware's heartbeat consumer times out and it takes its fault reaction (EMCY 0x8130).
-* :attr:`FaultState.rock_direction` -- the axis has met a rock: pushing that way (+1 extending,
-  -1 retracting) the soil resists past the cylinder's force, so the plant receives 0.0 (the axis
-  stands, as braked) while the drive pushes into it; pulling back is free. The drive's
+* :attr:`FaultState.rock_direction` -- the axis has met a rock: that way (+1 extending, -1
+  retracting) the soil resists past the cylinder's force, so the plant receives 0.0 (the axis
+  stands, as braked) while the drive pushes into it or the axis moves into it (under gravity, a
+  boom lowers with its drive still holding it up); pulling back is free. The drive's
   following-error check trips as for a jam once the demand runs on into the rock.
 * :attr:`FaultState.report_offset_m` -- the position the drive reports in its TPDO1 jumps by this
   much (an encoder that lost counts on the way to the bus: a glitch of the load encoder the
@@ -125,4 +126,6 @@ class DriveNode:
         """One servo sub-step on the true stroke; returns the effort the plant receives."""
         self.effort = e = self.firmware.servo_step(dt_s, stroke_m, stroke_rate_m_s)
         faults = self.faults
-        return 0.0 if faults.jammed or e * faults.rock_direction > 0.0 else e
+        way = faults.rock_direction
+        into = e * way > 0.0 or stroke_rate_m_s * way > 0.0
+        return 0.0 if faults.jammed or into else e

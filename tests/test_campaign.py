@@ -19,6 +19,7 @@ import math
 import random
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
 import can
 import numpy as np
@@ -356,3 +357,20 @@ def test_an_unwritable_store_latches_and_a_reset_says_why_until_it_is_back(
         assert runner.shutdown(30.0)
         store.close()
         hil.close()
+
+
+def test_a_rock_stops_an_axis_that_pushes_or_moves_into_it(rig: Rig) -> None:
+    """A boom lowering under gravity has its drive still pushing up: the rock below stops it
+    all the same; resting on it and pulling away from it are free."""
+    core = HilCore(rig, TrenchPlanner(rig).home_pose_rad, vcu=False)
+    node = core.nodes[0]
+    stroke = float(core.plant.stroke_m[0])
+    with mock.patch.object(node.firmware, "servo_step", return_value=0.3):  # pushing up
+        node.faults.rock_direction = -1.0  # the rock is below: retracting runs into it
+        assert node.servo_step(2.5e-4, stroke, -0.01) == 0.0  # lowering: into the rock
+        assert node.servo_step(2.5e-4, stroke, 0.0) == 0.3  # resting on it
+        assert node.servo_step(2.5e-4, stroke, 0.01) == 0.3  # lifting off it
+        node.faults.rock_direction = 1.0  # a rock above
+        assert node.servo_step(2.5e-4, stroke, 0.0) == 0.0  # pushing into it
+        node.faults.clear()
+        assert node.servo_step(2.5e-4, stroke, 0.01) == 0.3

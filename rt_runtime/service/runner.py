@@ -36,8 +36,10 @@ new thread runs, and the new thread's stack is mapped with the interpreter lock 
 
 Real time: the RT settings are applied once to the runner thread for its life. The heap is
 frozen after boot and when a job is prepared (``gc.freeze`` is O(1)), and the collector is off
-while a job runs (switched at the boundaries); cyclic garbage made before a freeze is never
-collected while the daemon runs (a restart frees it).
+while a job runs (switched at the boundaries). Each boot first unfreezes and collects the whole
+heap (no loop runs then), so cyclic garbage frozen before it (a previous boot's parts, the jobs'
+leftovers) goes at the next reset; between resets, cyclic garbage a job leaves before the next
+job's freeze stays (a restart or a reset frees it).
 """
 
 from __future__ import annotations
@@ -685,6 +687,10 @@ class RigRunner:
             )
             # Keep what boot built out of later collections: the loop's first cycles, right
             # after enable, must be short (the drives' SYNC watchdog runs from enable on).
+            # Unfrozen first, so the whole heap is collected: what earlier boots and jobs froze
+            # and has become garbage since (a previous boot's parts) goes now, and a daemon
+            # that resets again and again does not grow (no loop runs during a boot).
+            gc.unfreeze()
             gc.collect()
             gc.freeze()
             parts = self._build(master)

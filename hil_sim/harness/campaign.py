@@ -49,6 +49,7 @@ plant's truth (``case-<n>.npz``).
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import math
 import os
@@ -735,6 +736,10 @@ def _run_one(args: tuple[Case, str, str | None]) -> dict[str, Any]:
         result, trace = run_case(case, rig_name)
     except Exception as exc:  # a bug in a case must not end the campaign: it is reported
         result, trace = CaseResult(case, error=f"{type(exc).__name__}: {exc}"), {}
+    # The runner freezes the heap (gc.freeze) at its boots and jobs: what this case froze is
+    # garbage now, and a worker runs case after case.
+    gc.unfreeze()
+    gc.collect()
     row = result.to_json()
     if out is not None and not result.safe and trace:
         path = Path(out) / f"case-{case.number}.npz"

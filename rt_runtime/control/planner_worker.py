@@ -892,30 +892,31 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
 
 
 class ProcessPlanner:
-    """The session in a planner process (real-time clock; see the module docstring).
+    """The trench being dug, continued in a planner process (real-time clock; see the module
+    docstring).
 
     A sender thread writes the requests to the pipe and a receiver thread reads and unpickles
     the replies (a plan's setpoint tables are hundreds of kB), so the loop's thread only puts
     and takes queue items.
 
     Args:
-        session: The session to continue (its state, pending dig included, is copied over; the
+        trench: The trench to continue (its state, pending dig included, is copied over; the
             object itself is not touched while the process runs).
-        spec: How to rebuild the planner; default :meth:`PlannerSpec.of` the session.
+        spec: How to rebuild the planner; default :meth:`PlannerSpec.of` the trench.
         period_s: The loop's period (replies carry their motions sampled on its grid), when
             ``spec`` is not given.
 
     Raises:
-        ConfigurationError: The session's planner cannot be rebuilt in another process.
+        ConfigurationError: The trench's planner cannot be rebuilt in another process.
     """
 
     def __init__(
         self,
-        session: TrenchSession,
+        trench: TrenchSession,
         spec: PlannerSpec | None = None,
         period_s: float | None = None,
     ) -> None:
-        self.spec = spec if spec is not None else PlannerSpec.of(session, period_s)
+        self.spec = spec if spec is not None else PlannerSpec.of(trench, period_s)
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=True)
         self._outbox: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
@@ -923,7 +924,7 @@ class ProcessPlanner:
         self._closing = False
         # The state goes first through the sender thread (see _worker_main), so start()
         # returns once the child is spawned, whatever the size of the job.
-        self._outbox.put(("init", session.state()))
+        self._outbox.put(("init", trench.state()))
         self._process = ctx.Process(
             target=_worker_main,
             args=(child, self.spec),

@@ -216,7 +216,7 @@ class PersistMixin(SectionsMixin):
         }
 
     def apply_state(self, state: dict[str, Any]) -> None:
-        """Replace this session's progress by ``state`` (see :meth:`restore`).
+        """Replace this trench's progress by ``state`` (see :meth:`restore`).
 
         Raises:
             ConfigurationError: As :meth:`restore`.

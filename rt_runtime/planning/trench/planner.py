@@ -134,19 +134,19 @@ class TrenchPlanner:
         its :attr:`TrenchPlan.planning_error`. Check :attr:`TrenchPlan.status`.
         """
         t0 = time.perf_counter()
-        session = self.start(task)
+        trench = self.start(task)
         error: str | None = None
         try:
             while True:
-                dig = session.next_dig()
+                dig = trench.next_dig()
                 if dig is None:
                     break
-                session.record(dig, dig.tip_path_m)
+                trench.record(dig, dig.tip_path_m)
         except PlanningError as e:
             error = str(e)
-        plan = session.finish(plan_total_us=0.0)
+        plan = trench.finish(plan_total_us=0.0)
         total = (time.perf_counter() - t0) * 1e6
-        stages = dict(session.stage_us)
+        stages = dict(trench.stage_us)
         stages["other"] = max(0.0, total - sum(stages.values()))
         if error is None:
             return dataclasses.replace(plan, plan_total_us=total, stage_us=stages)

@@ -40,7 +40,7 @@ from firmware_models.drive import DriveFirmware, Frame
 _COB_TPDO1 = 0x180
 _TPDO1 = struct.Struct("<ii")
 
-__all__ = ["DriveNode", "FaultState"]
+__all__ = ["DriveNode", "FaultState", "into_rock"]
 
 
 @dataclass(slots=True)
@@ -67,6 +67,12 @@ class FaultState:
         self.deaf_to = frozenset()
         self.report_offset_m = 0.0
         self.rock_direction = 0.0
+
+
+def into_rock(faults: FaultState, effort: float, rate_m_s: float) -> bool:
+    """The axis pushes or moves into its rock (:attr:`FaultState.rock_direction`)."""
+    way = faults.rock_direction
+    return effort * way > 0.0 or rate_m_s * way > 0.0
 
 
 class DriveNode:
@@ -126,6 +132,5 @@ class DriveNode:
         """One servo sub-step on the true stroke; returns the effort the plant receives."""
         self.effort = e = self.firmware.servo_step(dt_s, stroke_m, stroke_rate_m_s)
         faults = self.faults
-        way = faults.rock_direction
-        into = e * way > 0.0 or stroke_rate_m_s * way > 0.0
-        return 0.0 if faults.jammed or into else e
+        stands = faults.jammed or (faults.rock_direction and into_rock(faults, e, stroke_rate_m_s))
+        return 0.0 if stands else e

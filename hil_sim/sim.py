@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from firmware_models.drive import DriveFirmware, Frame
 from firmware_models.errors import FirmwareConfigurationError
 from firmware_models.vcu import VcuModel
-from hil_sim.drives import DriveNode, FaultState
+from hil_sim.drives import DriveNode, into_rock
 from hil_sim.plant import ArmPlant, TipLoad
 from hil_sim.terrain import Terrain
 from rt_runtime import kinematics
@@ -156,12 +156,6 @@ _DRIVE_EMCY = {
 }
 #: An encoder glitch's default jump (mm).
 GLITCH_MM = 8.0
-
-
-def _into(faults: FaultState, effort: float, rate_m_s: float) -> bool:
-    """The axis pushes or moves into its rock (:attr:`FaultState.rock_direction`)."""
-    way = faults.rock_direction
-    return effort * way > 0.0 or rate_m_s * way > 0.0
 
 
 class _ShiftedLoad:
@@ -470,9 +464,9 @@ class HilCore:
             plant.servo_substep(
                 h,
                 [
-                    0.0 if f0.jammed or (f0.rock_direction and _into(f0, e0, v0)) else e0,
-                    0.0 if f1.jammed or (f1.rock_direction and _into(f1, e1, v1)) else e1,
-                    0.0 if f2.jammed or (f2.rock_direction and _into(f2, e2, v2)) else e2,
+                    0.0 if f0.jammed or (f0.rock_direction and into_rock(f0, e0, v0)) else e0,
+                    0.0 if f1.jammed or (f1.rock_direction and into_rock(f1, e1, v1)) else e1,
+                    0.0 if f2.jammed or (f2.rock_direction and into_rock(f2, e2, v2)) else e2,
                 ],
             )
             if vcu is not None:

@@ -118,6 +118,9 @@ class FaultKind(IntEnum):
     #: The job store cannot be written (its disk full or read-only, its directory gone): the
     #: campaign puts a file where the state directory was, so every write fails.
     STORE_UNWRITABLE = 21
+    #: A model file the planner was verified from changes on disk (a model deployed under a
+    #: running job, a failing disk): the campaign overwrites the job's model with other bytes.
+    MODEL_CHANGED = 22
 
     @property
     def label(self) -> str:

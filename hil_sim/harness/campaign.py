@@ -54,6 +54,7 @@ import json
 import math
 import os
 import random
+import shutil
 import signal
 import sys
 import tempfile
@@ -74,6 +75,7 @@ from rt_runtime.canbus.pdo import RPDO1, RPDO2
 from rt_runtime.control.executor import ExecutorConfig
 from rt_runtime.control.guard import StrokeLimits, check_setpoint_trace
 from rt_runtime.errors import ConfigurationError
+from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR
 from rt_runtime.planning.trench import TrenchPlanner
 from rt_runtime.rig import Rig, load_rig
 from rt_runtime.service.config import DaemonConfig, parse_config
@@ -225,6 +227,13 @@ RULES: dict[FaultKind, Rule] = {
         lambda rig, cfg: (PLANNER_CHECK_CYCLES + 3) * cfg.loop.period_s,
         "the runner's planner check every PLANNER_CHECK_CYCLES cycles (the case's clock stands "
         "still from the SIGKILL until the process has ended)",
+    ),
+    FaultKind.MODEL_CHANGED: Rule(
+        "stopped",
+        lambda rig, cfg: (PLANNER_CHECK_CYCLES + 3) * cfg.loop.period_s,
+        "the planner process looks at its verified files every WATCH_PERIOD_S of wall time and "
+        "before each plan, says which changed and ends; the runner's planner check latches it "
+        "(the case's clock stands still until the process has ended)",
     ),
 }
 #: The longest a running job goes without writing the store (a dig cycle, s): the bound of a
@@ -387,6 +396,7 @@ class _CaseClock:
         self.reset_at = math.inf
         self.rock_direction = 0.0
         self.undo: Callable[[], None] | None = None  # clears a host fault's cause
+        self.model_dir: Path | None = None  # the case's own copy of the models
         self.inject_error = ""
         #: Master frames seen: (time, cob, data) of RPDO1, RPDO2, SYNC and NMT.
         self.frames: list[tuple[float, int, bytes]] = []
@@ -451,6 +461,12 @@ class _CaseClock:
                     raise ConfigurationError("no planner process to kill")
                 os.kill(pid, signal.SIGKILL)
                 wait_for(lambda: _dead(pid), "the killed planner process ending", 10.0)
+            elif kind is FaultKind.MODEL_CHANGED:
+                watched = runner.planner_pid()
+                if watched is None:
+                    raise ConfigurationError("no planner process to watch its models")
+                self.undo = _change_model(self.model_dir)
+                wait_for(lambda: _dead(watched), "the planner seeing its model changed", 10.0)
             else:
                 axis = AXES.index(case.target) if case.target in AXES else -1
                 self.hil.inject(kind, axis, case.param)
@@ -458,6 +474,25 @@ class _CaseClock:
                     self.rock_direction = self.hil.core.nodes[axis].faults.rock_direction
         except (ConfigurationError, ValueError, OSError) as exc:
             self.inject_error = f"{type(exc).__name__}: {exc}"
+
+
+def _change_model(model_dir: Path | None) -> Callable[[], None]:
+    """Deploy other bytes over the downward dig's model (a new file moved into place, as a
+    deployment does); return what puts the verified bytes back."""
+    if model_dir is None:
+        raise ConfigurationError("the case has no model directory of its own to change")
+    path = model_dir / "pinn_downward.onnx"
+    original = path.read_bytes()
+    changed = bytearray(original)
+    changed[len(changed) // 2] ^= 0xFF
+    staged = path.with_name(path.name + ".new")
+
+    def put(data: bytes) -> None:
+        staged.write_bytes(data)
+        os.replace(staged, path)
+
+    put(bytes(changed))
+    return lambda: put(original)
 
 
 def _dead(pid: int) -> bool:
@@ -469,15 +504,18 @@ def _dead(pid: int) -> bool:
     return stat[stat.rindex(")") + 2] in "ZX"
 
 
-def lockstep_config(state_dir: Path, rig_name: str) -> DaemonConfig:
+def lockstep_config(state_dir: Path, rig_name: str, model_dir: Path | None = None) -> DaemonConfig:
     """The daemon's configuration of a case: the example's loop and executor values, no
-    real-time settings (simulated time), state under ``state_dir``."""
-    raw = {
+    real-time settings (simulated time), state under ``state_dir``, the models of
+    ``model_dir`` (None: the shipped ones)."""
+    raw: dict[str, Any] = {
         "bus": {"interface": "virtual", "channel": "unused", "boot_timeout_s": 1.0},
         "rig": {"profile": rig_name},
         "loop": {"sched_fifo_priority": 0, "lock_memory": False},
         "paths": {"state_dir": str(state_dir), "socket": str(state_dir / "c.sock")},
     }
+    if model_dir is not None:
+        raw["models"] = {"dir": str(model_dir)}
     return parse_config(raw, state_dir / "campaign.toml")
 
 
@@ -502,14 +540,19 @@ def run_case(case: Case, rig_name: str = "scale_model") -> tuple[CaseResult, dic
     result = CaseResult(case)
     trace: dict[str, Any] = {}
     rig = load_rig(rig_name)
-    planner = TrenchPlanner(rig)
     with tempfile.TemporaryDirectory(prefix="excavator-campaign-") as tmp:
-        cfg = lockstep_config(Path(tmp), rig_name)
+        model_dir = None
+        if case.kind is FaultKind.MODEL_CHANGED:  # the shipped models stay as they are
+            model_dir = Path(tmp) / "models"
+            shutil.copytree(DEFAULT_MODEL_DIR, model_dir)
+        planner = TrenchPlanner(rig, model_dir=model_dir)
+        cfg = lockstep_config(Path(tmp), rig_name, model_dir)
         rule = RULES[case.kind]
         result.bound_s = rule.bound(rig, cfg) if rule.bound is not None else math.nan
         hil = LockstepHil(rig, planner.home_pose_rad, vcu=False, fault_seed=case.seed)
         monitor = ChannelBus(hil.channel, clock=hil.clock.now)
         clock = _CaseClock(hil, case, monitor)
+        clock.model_dir = model_dir
         store = JobStore(cfg.paths.state_dir)
         store.start()  # its writer thread, as the daemon's
         runner = RigRunner(cfg, rig, planner, hil.master_bus, store, clock, hil.reopen_master_bus)

@@ -341,7 +341,11 @@ def _checked_faults(sc: Scenario | PathScenario) -> list[tuple[FaultSpec, int]]:
     out = []
     for f in sc.faults:
         index = f.axis_index()
-        if f.kind in (FaultKind.PLANNER_KILLED, FaultKind.STORE_UNWRITABLE):
+        if f.kind in (
+            FaultKind.PLANNER_KILLED,
+            FaultKind.STORE_UNWRITABLE,
+            FaultKind.MODEL_CHANGED,
+        ):
             raise ConfigurationError(
                 f"{f.kind.label} needs the daemon's runner (its planner process, its job "
                 f"store): run it with `excavator-rt hil campaign --kinds {f.kind.label}`"

@@ -75,6 +75,7 @@ from rt_runtime.control.setpoints import (
     stroke_gap_m,
 )
 from rt_runtime.errors import ConfigurationError, ExcavatorRtError, PlanningError
+from rt_runtime.planning.filewatch import WATCH_PERIOD_S, FileWatch
 from rt_runtime.planning.trench import (
     TRANSITION_PENETRATION_M,
     Cycle,
@@ -89,6 +90,8 @@ from rt_runtime.rig import Rig
 
 __all__ = [
     "AT_ENTRY_TOLERANCE_M",
+    "MODELS_CHANGED_EXIT",
+    "PLANNER_START_EXIT",
     "DigPlan",
     "InlinePlanner",
     "JointMotion",
@@ -96,6 +99,7 @@ __all__ = [
     "PathLink",
     "PathPlan",
     "PlannerError",
+    "PlannerGone",
     "PlannerLink",
     "PlannerSpec",
     "PolynomialMotion",
@@ -186,6 +190,14 @@ class Recorded:
 @dataclass(frozen=True, slots=True)
 class PlannerError:
     """A request failed (the message says which and why)."""
+
+    message: str
+
+
+@dataclass(frozen=True, slots=True)
+class PlannerGone:
+    """The planner process's last words before it ends on its own: why it cannot plan on
+    (its model files changed on disk since they were verified). Not a reply to a request."""
 
     message: str
 
@@ -375,6 +387,11 @@ class PathPlan:
 
 
 Reply = DigPlan | Recorded | PlannerError | PathPlan
+#: Exit code of a planner process whose model files changed on disk (:class:`PlannerGone`).
+MODELS_CHANGED_EXIT = 3
+#: Exit code of a planner process that could not build its planner or trench
+#: (:class:`PlannerGone`).
+PLANNER_START_EXIT = 4
 
 
 @dataclass(frozen=True, slots=True)
@@ -840,10 +857,12 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
         )
         driver = SessionDriver(trench, spec.period_s)
     except ExcavatorRtError as exc:
+        # Its files (a model that fails its card's digest, say) or the state it was handed:
+        # the job cannot go on until the cause is cleared, and the process says why.
         with contextlib.suppress(EOFError, OSError):
-            conn.send(PlannerError(f"planner process could not start: {exc}"))
+            conn.send(PlannerGone(f"planner process could not start: {exc}"))
         conn.close()
-        return
+        raise SystemExit(PLANNER_START_EXIT) from None
 
     def reply(work: Callable[..., Any], arg: Any) -> tuple[bool, bool]:
         """Send what ``work(arg)`` returns, or the error it raised: whether the pipe is still open
@@ -862,8 +881,19 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
             return False, done
         return True, done
 
+    watch = FileWatch(planner.pinn.verified_files())
     while True:
         try:
+            ready = conn.poll(WATCH_PERIOD_S)
+            changed = watch.changed()
+            if changed is not None:
+                # What was verified is no longer what is on disk: plan nothing more from it.
+                with contextlib.suppress(EOFError, OSError):
+                    conn.send(PlannerGone(f"the planner's model files: {changed}"))
+                conn.close()
+                raise SystemExit(MODELS_CHANGED_EXIT)
+            if not ready:
+                continue
             message = conn.recv()
         except (EOFError, OSError):
             break
@@ -922,6 +952,8 @@ class ProcessPlanner:
         self._outbox: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
         self._inbox: queue.SimpleQueue[Reply] = queue.SimpleQueue()
         self._closing = False
+        #: Why the process ended on its own (:class:`PlannerGone`), once it said so.
+        self.last_words: str | None = None
         # The state goes first through the sender thread (see _worker_main), so start()
         # returns once the child is spawned, whatever the size of the job.
         self._outbox.put(("init", trench.state()))
@@ -961,13 +993,12 @@ class ProcessPlanner:
                 reply: Reply = self._conn.recv()
             except (EOFError, OSError) as exc:
                 if not self._closing:
-                    self._inbox.put(
-                        PlannerError(
-                            f"the planner process ended (exit code {self._process.exitcode}): "
-                            f"{exc!r}"
-                        )
-                    )
+                    why = self.last_words or repr(exc)
+                    self._inbox.put(PlannerError(f"the planner process ended: {why}"))
                 break
+            if isinstance(reply, PlannerGone):
+                self.last_words = reply.message
+                continue
             self._inbox.put(reply)
 
     def request_plan(self, q_from_rad: FloatArray | None) -> None:

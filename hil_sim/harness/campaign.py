@@ -804,17 +804,42 @@ def run_campaign(
     out: str | None = None,
 ) -> dict[str, Any]:  # fmt: skip
     """Run the cases over ``jobs`` processes (default: the CPUs); the report (see the README:
-    ``kinds``, ``cases``, ``summary``)."""
+    ``kinds``, ``cases``, ``summary``). With ``out``, each case's row is written to
+    ``out/cases.jsonl`` as it ends and the report to ``out/campaign.json`` at the end."""
     wall0 = time.monotonic()
     if out is not None:
         Path(out).mkdir(parents=True, exist_ok=True)
     work = [(c, rig_name, out) for c in cases]
     workers = max(1, min(jobs or os.cpu_count() or 1, len(work)))
-    if workers == 1:
-        rows = [_run_one(w) for w in work]
-    else:
-        with ProcessPoolExecutor(workers) as pool:
-            rows = list(pool.map(_run_one, work))
+    rows: list[dict[str, Any]] = []
+    log = None if out is None else (Path(out) / "cases.jsonl").open("w")
+
+    def keep(row: dict[str, Any]) -> None:
+        """A finished case: kept, one line in ``cases.jsonl`` (a long run that is stopped
+        keeps what it ran), and one progress line on stderr when it writes to a directory."""
+        rows.append(row)
+        if log is not None:
+            log.write(json.dumps(row) + "\n")
+            log.flush()
+            mark = "safe" if row["safe"] else "NOT SAFE"
+            print(
+                f"case {len(rows)}/{len(work)}: {row['kind']} on {row['target']} at "
+                f"{row['at_s']} s: {row['outcome']}, {mark}",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    try:
+        if workers == 1:
+            for w in work:
+                keep(_run_one(w))
+        else:
+            with ProcessPoolExecutor(workers) as pool:
+                for row in pool.map(_run_one, work):
+                    keep(row)
+    finally:
+        if log is not None:
+            log.close()
     kinds = sorted({c.kind.label for c in cases})
     stopped = [r for r in rows if r["outcome"] == "stopped"]
     detection: dict[str, dict[str, float | None]] = {}

@@ -121,6 +121,9 @@ class FaultKind(IntEnum):
     #: A model file the planner was verified from changes on disk (a model deployed under a
     #: running job, a failing disk): the campaign overwrites the job's model with other bytes.
     MODEL_CHANGED = 22
+    #: The daemon crashes mid-job (SIGKILL, a watchdog's SIGABRT): its loop stops sending and
+    #: nothing it would do on a stop happens; the drives stop on their own, systemd restarts it.
+    DAEMON_CRASH = 23
 
     @property
     def label(self) -> str:

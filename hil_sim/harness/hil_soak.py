@@ -69,12 +69,18 @@ COST_PERIODS = 1 << 16
 #: Digs of each job.
 JOB_DIGS = 2
 #: Kinds mixed in: all but the killed planner and the changed model (both wait on the wall
-#: clock for the planner process) and the unwritable store (the soak's own checks read the
-#: store).
+#: clock for the planner process), the unwritable store (the soak's own checks read the store)
+#: and the daemon's crash (the soak measures one runner's memory).
 SOAK_KINDS = tuple(
     k
     for k in FaultKind
-    if k not in (FaultKind.PLANNER_KILLED, FaultKind.STORE_UNWRITABLE, FaultKind.MODEL_CHANGED)
+    if k
+    not in (
+        FaultKind.PLANNER_KILLED,
+        FaultKind.STORE_UNWRITABLE,
+        FaultKind.MODEL_CHANGED,
+        FaultKind.DAEMON_CRASH,
+    )
 )
 
 

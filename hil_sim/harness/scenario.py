@@ -345,6 +345,7 @@ def _checked_faults(sc: Scenario | PathScenario) -> list[tuple[FaultSpec, int]]:
             FaultKind.PLANNER_KILLED,
             FaultKind.STORE_UNWRITABLE,
             FaultKind.MODEL_CHANGED,
+            FaultKind.DAEMON_CRASH,
         ):
             raise ConfigurationError(
                 f"{f.kind.label} needs the daemon's runner (its planner process, its job "

@@ -156,11 +156,11 @@ class OperatorParams:
             pace_period_s=float(rng.uniform(4.0, 7.0)),
             pace_phase_rad=float(rng.uniform(0.0, 2.0 * math.pi)),
             reaction_s=float(rng.uniform(0.18, 0.30)),
-            feedback_1_s=2.5,
-            lever_wn_rad_s=9.0,
-            lever_damping=0.45,
+            feedback_1_s=1.5,
+            lever_wn_rad_s=12.0,
+            lever_damping=0.5,
             lever_ramp_s=0.25,
-            lead_s=0.2,
+            lead_s=0.15,
             pauses_s=tuple(float(p) for p in pauses),
         )
 

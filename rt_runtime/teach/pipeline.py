@@ -97,6 +97,8 @@ class TeachSettings:
         w_time: Weight of the duration, > 0.
         cycles: Cycles of the trench, >= 1.
         step_m: Shift of each cycle along the trench axis, m (towards the machine).
+        alignment: ``dtw`` (dynamic time warping) or ``linear`` (each demonstration's time
+            scaled uniformly onto the reference's: the phase alignment DTW is checked against).
         refine: Most waypoints added where the planned tip strays from the mean path by more
             than ``epsilon_m`` (>= 0; 0: Douglas-Peucker's waypoints only).
     """
@@ -111,6 +113,7 @@ class TeachSettings:
     cycles: int = 7
     step_m: float = 0.15
     refine: int = 12
+    alignment: str = "dtw"
 
     def __post_init__(self) -> None:
         checks = (
@@ -128,6 +131,10 @@ class TeachSettings:
                 raise ConfigurationError(f"teach setting {name} = {value!r}: allowed {allowed}")
         if not (isinstance(self.cycles, int) and 1 <= self.cycles <= 1000):
             raise ConfigurationError(f"teach setting cycles = {self.cycles!r}: allowed 1..1000")
+        if self.alignment not in ("dtw", "linear"):
+            raise ConfigurationError(
+                f"teach setting alignment = {self.alignment!r}: allowed 'dtw' or 'linear'"
+            )
         if not (isinstance(self.refine, int) and 0 <= self.refine <= 100):
             raise ConfigurationError(f"teach setting refine = {self.refine!r}: allowed 0..100")
         if not (isinstance(self.dba_passes, int) and 0 <= self.dba_passes <= 10):
@@ -282,6 +289,15 @@ def mean_path(
     ref_t, ref_q = ts[k], qs[k]
     rate = 1.0 / float(np.median(np.diff(ref_t)))
     window = round(settings.window_s * rate)
+    if settings.alignment == "linear":
+        aligned = [
+            np.stack(
+                [np.interp(ref_t * (t[-1] / ref_t[-1]), t, q[:, j]) for j in range(q.shape[1])],
+                axis=1,
+            )
+            for t, q in zip(ts, qs, strict=True)
+        ]
+        return ref_t, average([moving_average(a, window) for a in aligned])
     mean = ref_q
     for _ in range(1 + settings.dba_passes):
         aligned = [

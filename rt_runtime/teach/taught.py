@@ -240,7 +240,7 @@ def _segments(path: Path, where: str, raw: Any, n_joints: int) -> tuple[FloatArr
         if not (math.isfinite(h[i]) and h[i] >= MIN_SEGMENT_S) or not np.all(np.isfinite(ci)):
             raise _fail(
                 path,
-                f"{where}.segments[{i}]: duration {h[i]!r} s and coefficients must be finite, "
+                f"{where}.segments[{i}]: duration {h[i]:g} s and coefficients must be finite, "
                 f"the duration >= {MIN_SEGMENT_S} s",
             )
         c[i] = ci

@@ -170,3 +170,16 @@ def test_settings_are_checked() -> None:
                 {"alignment": "phase"}, {"w_jerk": float("nan")}):
         with pytest.raises(ConfigurationError):
             pipeline.TeachSettings(**bad)  # type: ignore[arg-type]
+
+
+def test_idle_rest_around_the_cycle_is_not_the_operators_time(rig: Rig) -> None:
+    t = np.arange(0.0, 12.0, 0.01)
+    q = np.tile(np.radians([0.0, 20.0, -90.0, -60.0]), (t.size, 1))
+    moving = (t >= 2.0) & (t <= 9.0)
+    q[moving, 0] += np.radians(70.0) * np.sin(np.pi * (t[moving] - 2.0) / 7.0)
+    rng = np.random.default_rng(0)
+    noisy = q + rng.normal(0.0, np.radians(0.05), q.shape)
+    rec = DemoRecord("idle", t, noisy, np.arange(t.size))
+    trimmed = pipeline.trim_rest(rec)
+    assert trimmed.duration_s == pytest.approx(7.0, abs=0.6)
+    assert pipeline.cycle_times_s([rec])[0] == pytest.approx(trimmed.duration_s)

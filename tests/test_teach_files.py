@@ -160,6 +160,21 @@ def test_bad_traces_are_refused(demos: list[Demonstration], rig: Rig, tmp_path: 
         read_trace(rig, bad)
     with pytest.raises(DemonstrationError, match="rule 'file'"):
         read_demo(rig, tmp_path / "demo.txt")
+    # SYNCs before the drives answer (boot) and after the last answer are not samples.
+    booting = tmp_path / "boot.asc"
+    with can.ASCWriter(str(booting)) as w:
+        for k in range(5):
+            w.on_message_received(
+                can.Message(timestamp=msgs[0].timestamp - 0.05 + 0.01 * k, arbitration_id=0x080,
+                            is_extended_id=False, data=b"")
+            )
+        for m in msgs:
+            w.on_message_received(m)
+        w.on_message_received(can.Message(timestamp=msgs[-1].timestamp + 0.01,
+                                          arbitration_id=0x080, is_extended_id=False, data=b""))
+    rec = read_trace(rig, booting)
+    np.testing.assert_allclose(rec.q_rad, read_trace(rig, good).q_rad)
+    assert rec.rows[0] == 6
     empty = tmp_path / "empty.blf"
     with can.Logger(str(empty)):
         pass

@@ -99,7 +99,8 @@ def teach_report(
         "rig": rig.name,
         "joints": names,
         "demos": [
-            {"path": r.path, "samples": int(r.t_s.shape[0]), "duration_s": r.duration_s}
+            {"path": r.path, "samples": int(r.t_s.shape[0]), "duration_s": r.duration_s,
+             "cycle_s": pipeline.trim_rest(r).duration_s}
             for r in records
         ],
         "waypoints_deg": _deg(taught.waypoints_rad),
@@ -265,7 +266,7 @@ def cmd_teach(args: argparse.Namespace) -> int:
     taught = pipeline.Taught(
         mean_t_s=mean_t, mean_q_rad=mean_q, waypoint_indices=idx, waypoints_rad=wps,
         cycle=cycle, trench=trench,
-        operator_cycle_s=np.array([r.duration_s for r in records]), settings=settings,
+        operator_cycle_s=pipeline.cycle_times_s(records), settings=settings,
     )
     timing = {"read": (t1 - t0) * 1e3, "waypoints": (t2 - t1) * 1e3, "plan": (t3 - t2) * 1e3}
     report = teach_report(rig, records, taught, timing_ms=timing)

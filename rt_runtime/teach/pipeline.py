@@ -3,6 +3,7 @@
 Role: the pipeline of ``excavator-rt teach``. From validated demonstrations
 (:mod:`rt_runtime.teach.demos`, joints swing first, rad):
 
+0. **Rest trimmed** (:func:`trim_rest`): the idle machine before and after the cycle cut off.
 1. **Swing unwrapped** (:func:`unwrap_swing`): each demonstration's swing made continuous, and
    every demonstration put on the 2 pi branch of the first one, so an average never mixes
    -179 deg with +179 deg.
@@ -49,7 +50,7 @@ from scipy.spatial import cKDTree
 from rt_runtime import kinematics
 from rt_runtime.errors import ConfigurationError, KinematicsError, PlanningError
 from rt_runtime.rig import Rig
-from rt_runtime.teach.demos import DemoRecord
+from rt_runtime.teach.demos import JUMP_ALLOWANCE_RAD, MIN_SAMPLES, DemoRecord
 from rt_runtime.trajectory.timejerk import TimeJerkProblem, TimeJerkTrajectory, interpolate, plan
 
 __all__ = [
@@ -141,6 +142,29 @@ class TeachSettings:
             raise ConfigurationError(
                 f"teach setting dba_passes = {self.dba_passes!r}: allowed 0..10"
             )
+
+
+def trim_rest(record: DemoRecord, threshold_rad: float = JUMP_ALLOWANCE_RAD) -> DemoRecord:
+    """The demonstration without the rest before the operator starts and after he stops: from
+    the last sample before any joint has moved ``threshold_rad`` from the first sample, to the
+    first sample after which no joint moves that far from the last (0.5 deg: ten times the
+    angle sensors' noise). A recording of a manual run keeps the machine idle around the cycle;
+    the cycle (and the operator's cycle time) is the motion."""
+    q = record.q_rad
+    moved = np.flatnonzero(np.any(np.abs(q - q[0]) > threshold_rad, axis=1))
+    still = np.flatnonzero(np.any(np.abs(q - q[-1]) > threshold_rad, axis=1))
+    if moved.size == 0 or still.size == 0:
+        return record
+    a = max(int(moved[0]) - 1, 0)
+    b = min(int(still[-1]) + 1, q.shape[0] - 1)
+    if b - a + 1 < MIN_SAMPLES:
+        return record
+    return DemoRecord(record.path, record.t_s[a : b + 1], q[a : b + 1], record.rows[a : b + 1])
+
+
+def cycle_times_s(records: Sequence[DemoRecord]) -> FloatArray:
+    """The operator's cycle time of each demonstration: its motion (:func:`trim_rest`), s."""
+    return np.array([trim_rest(r).duration_s for r in records])
 
 
 def unwrap_swing(rig: Rig, demos: Sequence[FloatArray]) -> list[FloatArray]:
@@ -274,7 +298,7 @@ def average(aligned: Sequence[FloatArray]) -> FloatArray:
 def mean_path(
     rig: Rig, records: Sequence[DemoRecord], settings: TeachSettings
 ) -> tuple[FloatArray, FloatArray]:
-    """Steps 1-4: the operator's mean joint path ``(t_s (N,), q_rad (N, J))`` on the timeline of
+    """Steps 0-4: the operator's mean joint path ``(t_s (N,), q_rad (N, J))`` on the timeline of
     the demonstration of median duration (starting at 0).
 
     Raises:
@@ -282,6 +306,7 @@ def mean_path(
     """
     if not records:
         raise ConfigurationError("teach needs at least one demonstration")
+    records = [trim_rest(r) for r in records]
     qs = unwrap_swing(rig, [r.q_rad for r in records])
     ts = [r.t_s - r.t_s[0] for r in records]
     order = np.argsort([t[-1] for t in ts])
@@ -556,7 +581,7 @@ class Taught:
         waypoints_rad: ``(n, J)`` the waypoints in joint space.
         cycle: The taught cycle (at offset 0, ending where it started).
         trench: The trench.
-        operator_cycle_s: ``(D,)`` each demonstration's duration, s.
+        operator_cycle_s: ``(D,)`` each demonstration's cycle time (its motion), s.
         settings: The settings used.
     """
 
@@ -670,6 +695,6 @@ def teach(rig: Rig, records: Sequence[DemoRecord], settings: TeachSettings | Non
         waypoints_rad=wps,
         cycle=cycle,
         trench=trench,
-        operator_cycle_s=np.array([r.duration_s for r in records]),
+        operator_cycle_s=cycle_times_s(records),
         settings=s,
     )

@@ -76,6 +76,7 @@ def teach_report(
                 "offset_m": c.offset_m,
                 "start_s": start,
                 "T_s": tr.duration_s,
+                "w_jerk": tr.problem.w_jerk,
                 "waypoints_deg": _deg(c.waypoints_rad),
                 "segments": segments_json(tr.piece_durations_s, tr.coefficients),
             }
@@ -114,6 +115,7 @@ def teach_report(
         "operator_cycle_s": taught.operator_cycle_s.tolist(),
         "cycle": {
             "T_s": cyc.duration_s,
+            "w_jerk": cyc.problem.w_jerk,
             "waypoint_times_s": cyc.waypoint_times_s.tolist(),
             "segments": segments_json(cyc.piece_durations_s, cyc.coefficients),
             "coefficients_rule": (

@@ -50,7 +50,7 @@ from scipy.spatial import cKDTree
 from rt_runtime import kinematics
 from rt_runtime.errors import ConfigurationError, KinematicsError, PlanningError
 from rt_runtime.rig import Rig
-from rt_runtime.teach.demos import JUMP_ALLOWANCE_RAD, MIN_SAMPLES, DemoRecord
+from rt_runtime.teach.demos import MIN_SAMPLES, DemoRecord
 from rt_runtime.trajectory.timejerk import TimeJerkProblem, TimeJerkTrajectory, interpolate, plan
 
 __all__ = [
@@ -79,6 +79,8 @@ IntArray = NDArray[np.int64]
 #: Waypoints whose swing is this close to the dig's swing are on the dig side (they move
 #: with the cycle along the trench).
 DIG_SIDE_RAD = math.radians(5.0)
+#: A joint (averaged over 0.25 s) that moves this far from where it rests is in motion (rad).
+REST_THRESHOLD_RAD = math.radians(0.1)
 #: A waypoint's inverse kinematics must reproduce the averaged joints to this (rad).
 _BRANCH_TOL_RAD = 1e-6
 
@@ -144,15 +146,21 @@ class TeachSettings:
             )
 
 
-def trim_rest(record: DemoRecord, threshold_rad: float = JUMP_ALLOWANCE_RAD) -> DemoRecord:
-    """The demonstration without the rest before the operator starts and after he stops: from
-    the last sample before any joint has moved ``threshold_rad`` from the first sample, to the
-    first sample after which no joint moves that far from the last (0.5 deg: ten times the
-    angle sensors' noise). A recording of a manual run keeps the machine idle around the cycle;
-    the cycle (and the operator's cycle time) is the motion."""
+def trim_rest(
+    record: DemoRecord, threshold_rad: float = REST_THRESHOLD_RAD, window_s: float = 0.25
+) -> DemoRecord:
+    """The demonstration without the idle machine before the operator starts and after he
+    stops: from the last sample before any joint, averaged over ``window_s`` (centred), has
+    moved ``threshold_rad`` from where it rested at the start, to the first sample after which
+    none moves that far from where it rests at the end. A recording of a manual run keeps the
+    machine idle around the cycle; the cycle (and the operator's cycle time) is the motion.
+    0.1 deg: ten times the noise of the rigs' angle sensors (0.05 deg) left after the average
+    over 25 samples; the tip of the field excavator moves < 1 cm for it."""
     q = record.q_rad
-    moved = np.flatnonzero(np.any(np.abs(q - q[0]) > threshold_rad, axis=1))
-    still = np.flatnonzero(np.any(np.abs(q - q[-1]) > threshold_rad, axis=1))
+    rate = (q.shape[0] - 1) / max(record.duration_s, 1e-9)
+    smooth = moving_average(q, round(window_s * rate))
+    moved = np.flatnonzero(np.any(np.abs(smooth - smooth[0]) > threshold_rad, axis=1))
+    still = np.flatnonzero(np.any(np.abs(smooth - smooth[-1]) > threshold_rad, axis=1))
     if moved.size == 0 or still.size == 0:
         return record
     a = max(int(moved[0]) - 1, 0)
@@ -525,7 +533,7 @@ def plan_trench(
         wk = _shift(rig, wk, shift, axis)
         problem = TimeJerkProblem.for_rig(rig, wk, w_jerk=settings.w_jerk, w_time=settings.w_time)
         try:
-            traj = plan(problem)
+            traj = plan_cycle(rig, wk, settings)
         except PlanningError as e:
             fallback = None if taught is None else _scaled_from(problem, taught)
             if fallback is None:
@@ -619,8 +627,37 @@ def learn_waypoints(
     return t, q, idx, wps
 
 
+#: Jerk weights (s^6/rad^2) tried, in order, where the search with ``w_jerk = 0`` does not
+#: converge: pure minimum time drives the two end pieces to 1 ms, and SLSQP on a few dozen
+#: waypoints then now and then stops on a positive directional derivative; a weight of 1e-8
+#: gives the end pieces a finite jerk and changes T by about 1 % (design note Z3).
+JERK_REGULARISATION = (1e-8, 1e-6)
+
+
+def plan_cycle(rig: Rig, waypoints: FloatArray, s: TeachSettings) -> TimeJerkTrajectory:
+    """The minimum time-jerk trajectory through ``waypoints`` (rest to rest, within the rig's
+    velocity and acceleration limits and ranges). With ``w_jerk = 0`` and no convergence, the
+    search is repeated with the weights of :data:`JERK_REGULARISATION`; the trajectory's
+    ``problem.w_jerk`` says which weight it solved.
+
+    Raises:
+        PlanningError: No weight gives a trajectory within the limits.
+    """
+    try:
+        return plan(TimeJerkProblem.for_rig(rig, waypoints, w_jerk=s.w_jerk, w_time=s.w_time))
+    except PlanningError as first:
+        if s.w_jerk != 0.0:
+            raise
+        for w in JERK_REGULARISATION:
+            try:
+                return plan(TimeJerkProblem.for_rig(rig, waypoints, w_jerk=w, w_time=s.w_time))
+            except PlanningError:
+                continue
+        raise first from None
+
+
 def _plan_waypoints(rig: Rig, waypoints: FloatArray, s: TeachSettings) -> TimeJerkTrajectory:
-    return plan(TimeJerkProblem.for_rig(rig, waypoints, w_jerk=s.w_jerk, w_time=s.w_time))
+    return plan_cycle(rig, waypoints, s)
 
 
 def deviation_m(rig: Rig, traj: TimeJerkTrajectory, path_tree: cKDTree,

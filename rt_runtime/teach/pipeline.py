@@ -151,16 +151,21 @@ def trim_rest(
 ) -> DemoRecord:
     """The demonstration without the idle machine before the operator starts and after he
     stops: from the last sample before any joint, averaged over ``window_s`` (centred), has
-    moved ``threshold_rad`` from where it rested at the start, to the first sample after which
-    none moves that far from where it rests at the end. A recording of a manual run keeps the
-    machine idle around the cycle; the cycle (and the operator's cycle time) is the motion.
+    moved ``threshold_rad`` from where it rested at the start (the mean of the first window),
+    to the first sample after which none moves that far from where it rests at the end. A
+    recording of a manual run keeps the machine idle around the cycle; the cycle (and the
+    operator's cycle time) is the motion.
     0.1 deg: ten times the noise of the rigs' angle sensors (0.05 deg) left after the average
     over 25 samples; the tip of the field excavator moves < 1 cm for it."""
     q = record.q_rad
     rate = (q.shape[0] - 1) / max(record.duration_s, 1e-9)
-    smooth = moving_average(q, round(window_s * rate))
-    moved = np.flatnonzero(np.any(np.abs(smooth - smooth[0]) > threshold_rad, axis=1))
-    still = np.flatnonzero(np.any(np.abs(smooth - smooth[-1]) > threshold_rad, axis=1))
+    w = max(1, round(window_s * rate))
+    smooth = moving_average(q, w)
+    # Where it rests: the mean of the first and of the last window (a smoothed end sample
+    # leans on the end sample itself).
+    start, end = q[:w].mean(axis=0), q[-w:].mean(axis=0)
+    moved = np.flatnonzero(np.any(np.abs(smooth - start) > threshold_rad, axis=1))
+    still = np.flatnonzero(np.any(np.abs(smooth - end) > threshold_rad, axis=1))
     if moved.size == 0 or still.size == 0:
         return record
     a = max(int(moved[0]) - 1, 0)

@@ -25,7 +25,7 @@ from rt_runtime.fileio import atomic_write
 from rt_runtime.rig import Rig, load_rig
 from rt_runtime.teach import pipeline
 from rt_runtime.teach.demos import DemoRecord, read_demo
-from rt_runtime.teach.taught import TAUGHT_FILE, load_taught, segments_json
+from rt_runtime.teach.taught import TAUGHT_FILE, segments_json, taught_from_json
 
 __all__ = ["ZHAO_CYCLES", "ZHAO_TRENCH_S", "add_parser", "cmd_teach", "teach_report"]
 
@@ -276,10 +276,11 @@ def cmd_teach(args: argparse.Namespace) -> int:
         report["plots"] = _plot(rig, records, taught, Path(args.plot))
     if args.out:
         out = Path(args.out)
+        text = json.dumps(report, indent=1)
+        # Verified as the executor will load it, before the file exists.
+        taught_from_json(json.loads(text), rig, out / TAUGHT_FILE)
         out.mkdir(parents=True, exist_ok=True)
-        text = json.dumps(report, indent=1).encode()
-        atomic_write(out / TAUGHT_FILE, lambda f: f.write(text))
-        load_taught(out, rig)  # what the executor will load verifies as written
+        atomic_write(out / TAUGHT_FILE, lambda f: f.write(text.encode()))
         report["out"] = str(out / TAUGHT_FILE)
     if args.json:
         print(json.dumps(report, indent=2))

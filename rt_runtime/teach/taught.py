@@ -43,6 +43,7 @@ __all__ = [
     "TaughtLimitCheck",
     "load_taught",
     "segments_json",
+    "taught_from_json",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -272,6 +273,20 @@ def load_taught(directory: str | Path, rig: Rig | None = None) -> TaughtJob:
         ) from None
     except (OSError, ValueError) as e:
         raise _fail(path, f"not a readable JSON taught job ({e})") from None
+    return taught_from_json(data, rig, path)
+
+
+def taught_from_json(
+    data: Any, rig: Rig | None = None, path: str | Path = TAUGHT_FILE
+) -> TaughtJob:
+    """Verify a taught job held in memory (the object ``taught.json`` holds) as
+    :func:`load_taught` does; ``path`` names it in messages. ``teach --out`` runs it before
+    writing the file.
+
+    Raises:
+        ConfigurationError, PlanningError: As :func:`load_taught`.
+    """
+    path = Path(path)
     if not isinstance(data, dict):
         raise _fail(path, "must hold one JSON object")
     if rig is None:

@@ -592,7 +592,7 @@ class Taught:
         mean_q_rad: ``(N, J)`` the operator's mean joint path.
         waypoint_indices: ``(n,)`` samples of the mean path Douglas-Peucker kept.
         waypoints_rad: ``(n, J)`` the waypoints in joint space.
-        cycle: The taught cycle (at offset 0, ending where it started).
+        cycle: The taught cycle (at offset 0, from the mean path's first sample to its last).
         trench: The trench.
         operator_cycle_s: ``(D,)`` each demonstration's cycle time (its motion), s.
         settings: The settings used.
@@ -635,7 +635,8 @@ def learn_waypoints(
 #: Jerk weights (s^6/rad^2) tried, in order, where the search with ``w_jerk = 0`` does not
 #: converge: pure minimum time drives the two end pieces to 1 ms, and SLSQP on a few dozen
 #: waypoints then now and then stops on a positive directional derivative; a weight of 1e-8
-#: gives the end pieces a finite jerk and changes T by about 1 % (design note Z3).
+#: gives the end pieces a finite jerk: where both converge, T differs by < 0.01 % (design
+#: note Z3).
 JERK_REGULARISATION = (1e-8, 1e-6)
 
 
@@ -659,10 +660,6 @@ def plan_cycle(rig: Rig, waypoints: FloatArray, s: TeachSettings) -> TimeJerkTra
             except PlanningError:
                 continue
         raise first from None
-
-
-def _plan_waypoints(rig: Rig, waypoints: FloatArray, s: TeachSettings) -> TimeJerkTrajectory:
-    return plan_cycle(rig, waypoints, s)
 
 
 def deviation_m(rig: Rig, traj: TimeJerkTrajectory, path_tree: cKDTree,
@@ -693,13 +690,13 @@ def refine_cycle(
     pose = kinematics.forward_3d(rig, mean_q)
     idx = np.asarray(indices, dtype=np.int64)
     wps = _ik_on_branch(rig, pose[idx], mean_q[idx])
-    traj = _plan_waypoints(rig, wps, s)
+    traj = plan_cycle(rig, wps, s)
     inserted = 0
     for attempt in range(s.refine + 1):
         if attempt:
             more = _ik_on_branch(rig, pose[idx], mean_q[idx])
             try:
-                traj_more = _plan_waypoints(rig, more, s)
+                traj_more = plan_cycle(rig, more, s)
             except PlanningError:
                 # SLSQP may fail on the larger problem: keep the plan before the insertion.
                 idx = np.delete(idx, inserted)

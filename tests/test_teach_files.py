@@ -311,3 +311,15 @@ def test_bench_teach_json_holds_the_documented_keys() -> None:
     assert {("waypoints_ms", "p50"), ("frechet_intended_m",)} <= keys
     assert missing(report, keys) == []
     assert report["within_limits"]["exact"]
+
+
+def test_teach_plots_and_prints_the_report(files: Path, tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    code, stdout, err = _run(
+        ["teach", "--demos", *map(str, sorted(files.glob("*.csv"))[:2]), "--cycles", "2",
+         "--plot", str(tmp_path)]
+    )
+    assert code == 0, err
+    for name in ("teach_demos.png", "teach_trench.png", "teach_joints.png"):
+        assert (tmp_path / name).stat().st_size > 10_000
+    assert "of the operator's mean" in stdout and "Zhao: 80.8 s for 7" in stdout

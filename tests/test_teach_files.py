@@ -323,3 +323,37 @@ def test_teach_plots_and_prints_the_report(files: Path, tmp_path: Path) -> None:
     for name in ("teach_demos.png", "teach_trench.png", "teach_joints.png"):
         assert (tmp_path / name).stat().st_size > 10_000
     assert "of the operator's mean" in stdout and "Zhao: 80.8 s for 7" in stdout
+
+
+def test_any_bytes_as_a_demonstration_give_a_demonstration_error_or_a_record(
+    rig: Rig, tmp_path: Path
+) -> None:
+    """Property-based: mutated CSV text and random bytes are refused with the documented error
+    (naming the file and a rule) or read; never another exception."""
+    hypothesis = pytest.importorskip("hypothesis")
+    st = hypothesis.strategies
+    good = HEADER + "\n" + "\n".join(
+        f"{0.01 * k:.2f},0.0,{20 + 0.01 * k:.3f},-90.0,-60.0" for k in range(60)
+    )
+
+    @hypothesis.settings(max_examples=400, deadline=None, derandomize=True)
+    @hypothesis.given(
+        st.one_of(
+            st.binary(max_size=400),
+            st.builds(
+                lambda i, t: (good[:i] + t + good[i:]).encode("utf-8", "surrogatepass"),
+                st.integers(0, len(good)),
+                st.text(max_size=12),
+            ),
+        ),
+        st.sampled_from(["d.csv", "d.asc", "d.blf"]),
+    )
+    def check(data: bytes, name: str) -> None:
+        path = tmp_path / name
+        path.write_bytes(data)
+        try:
+            read_demo(rig, path)
+        except DemonstrationError as e:
+            assert str(path) in str(e) and "rule '" in str(e)
+
+    check()

@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import csv
 import math
-import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -231,6 +230,8 @@ def read_csv(rig: Rig, path: str | Path) -> DemoRecord:
                 rows.append(line)
     except OSError as e:
         raise DemonstrationError(p, 0, "file", f"cannot be read ({e.strerror or e})") from None
+    except csv.Error as e:
+        raise DemonstrationError(p, 0, "file", f"is not CSV text ({e})") from None
     except UnicodeDecodeError:
         raise DemonstrationError(p, 0, "file", "is not UTF-8 text (a CSV demonstration is "
                                  "text)") from None
@@ -289,9 +290,9 @@ def read_trace(rig: Rig, path: str | Path) -> DemoRecord:
                     raw[-1][node_index[cob]] = float(unpack(bytes(msg.data))[0])
     except DemonstrationError:
         raise
-    except (OSError, ValueError, struct.error) as e:
+    except Exception as e:  # python-can's readers raise any type on a malformed file
         raise DemonstrationError(p, 0, "file", f"not a readable {suffix[1:].upper()} trace "
-                                 f"({e})") from None
+                                 f"({type(e).__name__}: {e})") from None
     answered = np.isfinite(np.array(raw, dtype=np.float64).reshape(-1, n))
     complete = np.flatnonzero(answered.all(axis=1))
     if complete.size == 0:

@@ -357,3 +357,51 @@ def test_any_bytes_as_a_demonstration_give_a_demonstration_error_or_a_record(
             assert str(path) in str(e) and "rule '" in str(e)
 
     check()
+
+
+def test_any_damage_to_a_taught_job_is_refused_with_the_documented_errors(
+    taught: tuple[dict[str, Any], Path], rig: Rig, tmp_path: Path
+) -> None:
+    """Property-based: a taught job with one value replaced anywhere (a number, a string, a
+    list, null, an object) loads (when the value did not matter) or raises ConfigurationError or
+    PlanningError; never another exception."""
+    hypothesis = pytest.importorskip("hypothesis")
+    st = hypothesis.strategies
+    _, out = taught
+    data = json.loads((out / TAUGHT_FILE).read_text())
+    data["trench"]["cycles"] = data["trench"]["cycles"][:1]
+    paths: list[tuple[Any, ...]] = []
+
+    def walk(node: Any, at: tuple[Any, ...]) -> None:
+        if len(paths) > 3000:
+            return
+        paths.append(at)
+        if isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, (*at, k))
+        elif isinstance(node, list):
+            for i, v in enumerate(node[:3]):
+                walk(v, (*at, i))
+
+    walk(data, ())
+    values = st.one_of(
+        st.none(), st.booleans(), st.integers(-5, 5), st.floats(allow_nan=True),
+        st.text(max_size=5), st.lists(st.integers(0, 3), max_size=3), st.just({}),
+    )
+
+    @hypothesis.settings(max_examples=300, deadline=None, derandomize=True)
+    @hypothesis.given(st.sampled_from(paths[1:]), values)
+    def check(at: tuple[Any, ...], value: Any) -> None:
+        doc = json.loads(json.dumps(data))
+        node = doc
+        for key in at[:-1]:
+            node = node[key]
+        node[at[-1]] = value
+        path = tmp_path / TAUGHT_FILE
+        path.write_text(json.dumps(doc))
+        try:
+            load_taught(tmp_path, rig)
+        except (ConfigurationError, PlanningError) as e:
+            assert str(path) in str(e)
+
+    check()

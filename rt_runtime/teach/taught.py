@@ -294,7 +294,10 @@ def taught_from_json(
         if not isinstance(name, str):
             raise _fail(path, "needs the rig's profile name under 'rig'")
         rig = load_rig(name)
-    names = tuple(data.get("joints", ()))
+    if not isinstance(data.get("joints"), list):
+        raise _fail(path, f"needs joints, the list of joint names {list(rig.joint_names)}")
+    joints = data.get("joints")
+    names = tuple(joints) if isinstance(joints, list) else ()
     if names != tuple(rig.joint_names):
         raise _fail(
             path, f"joints {list(names)} are not the rig {rig.name}'s {list(rig.joint_names)}"
@@ -326,8 +329,9 @@ def taught_from_json(
     _continuity(path, h, c)
     try:
         waypoints = np.radians(np.array(data.get("waypoints_deg", []), dtype=np.float64))
+        waypoints = waypoints.reshape(-1, n_j)
     except (TypeError, ValueError):
-        raise _fail(path, "waypoints_deg must be rows of numbers") from None
+        raise _fail(path, f"waypoints_deg must be rows of {n_j} numbers") from None
     job = TaughtJob(
         rig_name=rig.name,
         joint_names=names,
@@ -335,7 +339,7 @@ def taught_from_json(
         coefficients=c,
         cycle_starts_s=np.array(starts),
         offsets_m=np.array(offsets),
-        waypoints_rad=waypoints.reshape(-1, n_j) if waypoints.size else np.zeros((0, n_j)),
+        waypoints_rad=waypoints,
     )
     check = job.limit_check(rig)
     if not check.within_limits:

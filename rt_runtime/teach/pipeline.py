@@ -10,9 +10,9 @@ Role: the pipeline of ``excavator-rt teach``. From validated demonstrations
 2. **Time alignment** by dynamic time warping (:func:`dtw_path`, :func:`align`): every
    demonstration warped onto the timeline of a reference (the one of median duration). The
    warping path is computed on a lightly smoothed copy (noise makes DTW warp for nothing) and
-   applied to the raw samples: each reference sample takes the mean of the samples matched to
-   it. A second pass (DTW barycentre averaging) aligns the demonstrations to their first average,
-   which removes the reference's own hesitations from the timeline.
+   applied to the raw samples (the demonstration read at the reference-time map the match
+   gives). Passes of DTW barycentre averaging (all aligned again to their average) are an
+   option (``dba_passes``); they did not bring the mean path nearer the intended one (Z2).
 3. **Centred moving average** (:func:`moving_average`) of each aligned demonstration: centred,
    because a causal filter lags and moves the waypoints along the path.
 4. **Average** over demonstrations (:func:`average`).
@@ -110,7 +110,7 @@ class TeachSettings:
     window_s: float = 0.15
     dtw_smooth_s: float = 0.1
     dtw_rate_hz: float = 20.0
-    dba_passes: int = 1
+    dba_passes: int = 0
     w_jerk: float = 0.0
     w_time: float = 1.0
     cycles: int = 7

@@ -38,7 +38,7 @@ from firmware_models.errors import FirmwareConfigurationError
 from firmware_models.vcu import VcuModel
 from hil_sim.drives import DriveNode, into_rock
 from hil_sim.plant import ArmPlant, TipLoad
-from hil_sim.terrain import Terrain
+from hil_sim.terrain import CutResult, Terrain
 from rt_runtime import kinematics
 from rt_runtime.errors import ConfigurationError
 from rt_runtime.rig import Rig
@@ -330,6 +330,7 @@ class HilCore:
         vcu: The VCU model or None.
         sync_count: SYNCs received.
         truth_ring: The truth of the last ``truth_rows`` SYNCs.
+        cuts: What each :meth:`cut` removed, in order.
         frames: Every frame on the bus as ``(arbitration id, data)`` in bus order, when
             ``keep_frames`` was set (the determinism test compares these).
 
@@ -387,6 +388,7 @@ class HilCore:
         self.truth_ring = TruthRing(truth_rows, preallocate=preallocate_truth)
         self._energy_at_sync = self.plant.energy_j
         self._dt_since_sync = 0.0
+        self.cuts: list[CutResult] = []
 
     # -- frames ---------------------------------------------------------------------------------
 
@@ -453,9 +455,11 @@ class HilCore:
         vcu = self.vcu
         servo = self._servo_dt_s
         full = servo * (1.0 + 1e-9)
+        # What the drives' sensors read: the true strokes on an ideal plant.
+        sense = plant.stroke_state if plant.imperfections is None else plant.sensed_stroke_state
         while remaining > 1e-12:
             h = servo if remaining > full else remaining
-            (s0, s1, s2), (v0, v1, v2) = plant.stroke_state()
+            (s0, s1, s2), (v0, v1, v2) = sense()
             e0 = n0.effort = fw0.servo_step(h, s0, v0)
             e1 = n1.effort = fw1.servo_step(h, s1, v1)
             e2 = n2.effort = fw2.servo_step(h, s2, v2)
@@ -585,4 +589,6 @@ class HilCore:
         if len(rows) < 2:
             return 0.0
         tip = self._tip_m(np.ascontiguousarray(rows[:, 5:8]), rows[:, 8])
-        return self.terrain.cut(tip).volume_m3
+        result = self.terrain.cut(tip)
+        self.cuts.append(result)
+        return result.volume_m3

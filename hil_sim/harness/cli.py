@@ -5,6 +5,7 @@ here and in the report). ``rt_runtime.cli`` wires it in with :func:`add_parser` 
 
     excavator-rt hil --task A [--rig scale_model] [--realtime] [--trace FILE.blf|.asc]
                      [--no-feedforward] [--controller csp|p] [--imperfect|--ideal] [--scanner]
+                     [--material NAME]
                      [--max-digs N] [--json] [--plot DIR]
                      [--inject KIND:TARGET:AT_S[:PARAM] ...]
     excavator-rt hil campaign [--kinds K,...] [--axes A,...] [--seeds N] [--json] [--out DIR]
@@ -207,6 +208,13 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         help="emulate the rig's profile scanner ([hil.scanner]) and plan each dig on the "
         "surface it measured (a task's lockstep run)",
     )
+    p.add_argument(
+        "--material",
+        default=None,
+        metavar="NAME",
+        help="the pit's granular material, one of the profile's [hil.materials] (with "
+        "--imperfect; default the profile's hil.material)",
+    )
     real = p.add_mutually_exclusive_group()
     real.add_argument(
         "--imperfect",
@@ -340,6 +348,7 @@ def run(args: argparse.Namespace) -> int:
         controller=args.controller,
         host_gain_1_s=_host_gain(args),
         scanner=args.scanner,
+        material=args.material,
     )
     return _print_run(args, lambda: run_scenario(scenario))
 

@@ -199,6 +199,8 @@ class Scenario:
         scanner: Emulate the rig's profile scanner (``[hil.scanner]``) and plan each dig on
             the surface it measured after the last (lockstep); False: plan on the measured tip
             paths alone.
+        material: The granular material in the pit, one of the profile's
+            ``[hil.materials]``; None: the profile's ``hil.material``.
     """
 
     task: str = "A"
@@ -218,6 +220,7 @@ class Scenario:
     controller: str = "csp"
     host_gain_1_s: float = 0.0
     scanner: bool = False
+    material: str | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -862,6 +865,11 @@ def scenario_rig(sc: Scenario | PathScenario) -> Rig:
             f"controller {sc.controller!r}; allowed: {', '.join(CONTROLLERS)}"
         )
     rig = load_rig(sc.rig)
+    material = getattr(sc, "material", None)
+    if material is not None:
+        if rig.hil is None:
+            raise ConfigurationError(f"rig {rig.name} has no [hil] table: no materials")
+        rig = dataclasses.replace(rig, hil=rig.hil.with_material(material))
     if sc.imperfect is None:
         return rig
     if rig.hil is None:

@@ -20,11 +20,12 @@ Tables (all optional but ``[hil]`` itself; a missing one is an ideal part):
   coupling), ``breakaway_friction_n`` (static friction, above the profile's Coulomb friction),
   ``stribeck_velocity_mm_s`` (speed over which friction falls from breakaway to Coulomb),
   ``current_bandwidth_hz`` (the drive's current loop as a first-order lag on the force).
-* ``[hil.material]``: ``name``, ``spill_fraction`` (of the material a dig sweeps, what the
-  bucket does not keep), ``fallback_fraction`` (of that spill, what falls back into the
-  trench; the rest leaves the section to the sides), ``repose_deg`` (angle of repose: faces
-  steeper than it slump), ``resistance_factor`` (the granular material's digging resistance
-  against Yao eq 8's).
+* ``[hil.materials.<name>]``: granular materials the rig digs, one table each:
+  ``spill_fraction`` (of the material a dig sweeps, what the bucket does not keep),
+  ``fallback_fraction`` (of that spill, what falls back into the trench; the rest leaves the
+  section to the sides), ``repose_deg`` (angle of repose: faces steeper than it slump),
+  ``resistance_factor`` (the material's digging resistance against Yao eq 8's); ``[hil]``
+  ``material`` names the one in the pit.
 * ``[hil.scanner]``: a 2-D profile scanner over the trench (optional equipment of the rig):
   ``spacing_mm`` (between its samples along the trench), ``noise_mm`` (standard deviation of
   each sample's height).
@@ -32,9 +33,11 @@ Tables (all optional but ``[hil]`` itself; a missing one is an ideal part):
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
+from rt_runtime.errors import ConfigurationError
 from rt_runtime.rig._schema import Table
 
 __all__ = [
@@ -99,10 +102,10 @@ class ElectricImperfections:
 
 @dataclass(frozen=True, slots=True)
 class Material:
-    """The granular material dug (``[hil.material]``).
+    """A granular material the rig digs (``[hil.materials.<name>]``).
 
     Attributes:
-        name: What it is (e.g. ``rubber particles``).
+        name: Its table's name (e.g. ``rubber``).
         spill_fraction: Of what a dig sweeps, the part the bucket does not keep.
         fallback_fraction: Of the spill, the part that falls back into the trench.
         repose_rad: Angle of repose; steeper faces slump to it.
@@ -139,7 +142,9 @@ class RigImperfections:
         valve: Valve imperfections (hydraulic rigs) or None.
         sensor: Stroke sensor imperfections or None.
         electric: Electric axis imperfections (electric rigs) or None.
-        material: The granular material or None (the terrain removes what the tip sweeps).
+        material: The granular material in the pit, or None (the terrain removes what the
+            tip sweeps).
+        materials: Every material the profile describes, by name.
         scanner: The rig's profile scanner, or None (it digs blind).
     """
 
@@ -150,10 +155,23 @@ class RigImperfections:
     electric: ElectricImperfections | None
     material: Material | None
     scanner: Scanner | None = None
+    materials: tuple[Material, ...] = ()
 
     def active(self) -> RigImperfections | None:
         """This table if enabled, else None (what the HIL applies)."""
         return self if self.enabled else None
+
+    def with_material(self, name: str) -> RigImperfections:
+        """The same with material ``name`` in the pit.
+
+        Raises:
+            ConfigurationError: No material of that name.
+        """
+        for m in self.materials:
+            if m.name == name:
+                return dataclasses.replace(self, material=m)
+        names = ", ".join(m.name for m in self.materials) or "(none)"
+        raise ConfigurationError(f"material {name!r}; the profile describes: {names}")
 
 
 def parse_imperfections(t: Table, kind: str, coulomb_friction_n: float) -> RigImperfections:
@@ -205,17 +223,30 @@ def parse_imperfections(t: Table, kind: str, coulomb_friction_n: float) -> RigIm
             current_bandwidth_hz=electric_t.number("current_bandwidth_hz", gt=0.0, le=1e6),
         )
         electric_t.finish()
+    materials = []
+    materials_t = t.optional_table("materials")
+    if materials_t is not None:
+        for name in materials_t.keys():
+            m_t = materials_t.table(name)
+            materials.append(
+                Material(
+                    name=name,
+                    spill_fraction=m_t.number("spill_fraction", ge=0.0, lt=1.0),
+                    fallback_fraction=m_t.number("fallback_fraction", ge=0.0, le=1.0),
+                    repose_rad=math.radians(m_t.number("repose_deg", gt=0.0, lt=90.0)),
+                    resistance_factor=m_t.number("resistance_factor", gt=0.0, le=10.0),
+                )
+            )
+            m_t.finish()
+        materials_t.finish()
+    in_pit = t.string("material", default=None) if t.has("material") else None
     material = None
-    material_t = t.optional_table("material")
-    if material_t is not None:
-        material = Material(
-            name=material_t.string("name"),
-            spill_fraction=material_t.number("spill_fraction", ge=0.0, lt=1.0),
-            fallback_fraction=material_t.number("fallback_fraction", ge=0.0, le=1.0),
-            repose_rad=math.radians(material_t.number("repose_deg", gt=0.0, lt=90.0)),
-            resistance_factor=material_t.number("resistance_factor", gt=0.0, le=10.0),
-        )
-        material_t.finish()
+    if in_pit is not None:
+        found = [m for m in materials if m.name == in_pit]
+        if not found:
+            names = ", ".join(m.name for m in materials) or "(none)"
+            raise t.error("material", f"names no [hil.materials] table; described: {names}")
+        material = found[0]
     scanner = None
     scanner_t = t.optional_table("scanner")
     if scanner_t is not None:
@@ -233,4 +264,5 @@ def parse_imperfections(t: Table, kind: str, coulomb_friction_n: float) -> RigIm
         electric=electric,
         material=material,
         scanner=scanner,
+        materials=tuple(materials),
     )

@@ -10,23 +10,33 @@ trench planner; the CLI's new options and their refusals.
 from __future__ import annotations
 
 import json
+from typing import Any
 
 import numpy as np
 import pytest
+from test_report_keys import README, _list_of, _paragraph, contract_keys, missing
 
-from hil_sim.harness.bench import calibrate_gao
+from hil_sim.harness.bench import BenchHilReport, TaskCalibration, TaskSpeed, calibrate_gao
 from hil_sim.harness.scenario import Scenario, run_scenario
 from rt_runtime.cli import main
 from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.planning.trench import TrenchPlanner, load_task
+from rt_runtime.reports import Distribution
 from rt_runtime.rig import load_rig
 from rt_runtime.trajectory.mixed_order import GAO_TABLE2_JOINTS_DEG
 
 REDUCED_GAO = tuple((float(b), float(s), float(k)) for b, s, k in GAO_TABLE2_JOINTS_DEG[2:5])
 
 
-def test_gao_reduced_p_loop_trails_by_millimetres_and_ours_stays_within_one() -> None:
-    g = calibrate_gao(REDUCED_GAO)
+@pytest.fixture(scope="module")
+def gao_reduced() -> Any:
+    return calibrate_gao(REDUCED_GAO)
+
+
+def test_gao_reduced_p_loop_trails_by_millimetres_and_ours_stays_within_one(
+    gao_reduced: Any,
+) -> None:
+    g = gao_reduced
     p = {axis: f["max_mm"] for axis, f in g.p.items()}
     csp = {axis: f["max_mm"] for axis, f in g.csp.items()}
     assert max(p.values()) >= 1.5, p  # Gao +-3 mm on the full path
@@ -120,3 +130,22 @@ def test_the_host_loop_gain_must_be_finite_and_not_negative() -> None:
 
     with pytest.raises(ConfigurationError, match="correction_gain_1_s"):
         ExecutorConfig(correction_gain_1_s=-1.0)
+
+
+def test_the_imperfect_hil_json_holds_its_documented_keys(
+    task_a_two_digs: dict[str, object],
+) -> None:
+    keys = contract_keys(_list_of(_paragraph(README, "`hil --json --imperfect` of a task")))
+    assert ("material", "table6", "beta2") in keys
+    assert missing(task_a_two_digs, keys) == []
+
+
+def test_bench_hil_calibration_json_holds_its_documented_keys(gao_reduced: Any) -> None:
+    keys = contract_keys(_list_of(_paragraph(README, "`bench hil --json` calibration")))
+    assert ("gao", "p", "max_mm") in keys and ("task_a", "table6_closed", "beta1") in keys
+    table6 = {"L": 0.1, "D": 0.1, "beta1": 0.1, "beta2": 0.1}
+    task = TaskCalibration(0.1, (0.1,), 0.9, table6, table6, 0.05, 0.02, 0.2, 0.05, 5, 7)
+    d = Distribution(1.0, 1.0)
+    speed = TaskSpeed("A", "scale_model", "done", 1, 1.0, 1.0, 0.002, d, d, 0.5, 0.5, 1.0)
+    report = BenchHilReport(speed, None, gao_reduced, task).to_json()
+    assert missing({k: report[k] for k in ("gao", "task_a")}, keys) == []

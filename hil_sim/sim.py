@@ -38,7 +38,7 @@ from firmware_models.errors import FirmwareConfigurationError
 from firmware_models.vcu import VcuModel
 from hil_sim.drives import DriveNode, into_rock
 from hil_sim.plant import ArmPlant, TipLoad
-from hil_sim.terrain import CutResult, Terrain
+from hil_sim.terrain import Terrain
 from rt_runtime import kinematics
 from rt_runtime.errors import ConfigurationError
 from rt_runtime.rig import Rig
@@ -330,7 +330,6 @@ class HilCore:
         vcu: The VCU model or None.
         sync_count: SYNCs received.
         truth_ring: The truth of the last ``truth_rows`` SYNCs.
-        cuts: What each :meth:`cut` removed, in order.
         frames: Every frame on the bus as ``(arbitration id, data)`` in bus order, when
             ``keep_frames`` was set (the determinism test compares these).
 
@@ -388,7 +387,6 @@ class HilCore:
         self.truth_ring = TruthRing(truth_rows, preallocate=preallocate_truth)
         self._energy_at_sync = self.plant.energy_j
         self._dt_since_sync = 0.0
-        self.cuts: list[CutResult] = []
 
     # -- frames ---------------------------------------------------------------------------------
 
@@ -589,6 +587,4 @@ class HilCore:
         if len(rows) < 2:
             return 0.0
         tip = self._tip_m(np.ascontiguousarray(rows[:, 5:8]), rows[:, 8])
-        result = self.terrain.cut(tip)
-        self.cuts.append(result)
-        return result.volume_m3
+        return self.terrain.cut(tip).volume_m3

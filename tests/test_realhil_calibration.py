@@ -17,6 +17,8 @@ import pytest
 from test_report_keys import README, _list_of, _paragraph, contract_keys, missing
 
 from hil_sim.harness.bench import BenchHilReport, TaskCalibration, TaskSpeed, calibrate_gao
+from hil_sim.harness.cli import format_report
+from hil_sim.harness.reports import HilReport
 from hil_sim.harness.scenario import Scenario, run_scenario
 from rt_runtime.cli import main
 from rt_runtime.errors import ConfigurationError, PlanningError
@@ -48,9 +50,19 @@ def test_gao_reduced_p_loop_trails_by_millimetres_and_ours_stays_within_one(
 
 
 @pytest.fixture(scope="module")
-def task_a_two_digs() -> dict[str, object]:
+def task_a_report() -> HilReport:
     # Open loop, as Yao's rig dug: the planner fed the tip paths only.
-    return run_scenario(Scenario(max_digs=2, imperfect=True)).report.to_json()
+    return run_scenario(Scenario(max_digs=2, imperfect=True)).report
+
+
+@pytest.fixture(scope="module")
+def task_a_two_digs(task_a_report: HilReport) -> dict[str, object]:
+    return task_a_report.to_json()
+
+
+def test_the_text_report_carries_yaos_figures(task_a_report: HilReport) -> None:
+    text = format_report(task_a_report)
+    assert "(imperfect)" in text and "Table 6" in text and "Yao +13 %" in text
 
 
 def test_task_a_energy_and_load_against_the_plan_in_yaos_range(

@@ -296,6 +296,20 @@ def format_report(report: HilReport) -> str:
             f"{report.overdig_max_mm:.2f} mm"
         )
     lines.append(f"  energy {report.energy_Wh:.3f} Wh")
+    mat = report.material
+    if mat is not None:
+        lines.append(
+            f"  material {mat.name}: bucket kept {mat.load_L:.2f} of {mat.swept_L:.2f} L swept, "
+            f"{mat.load_ratio:.1%} of the planned {mat.planned_L:.2f} L (Yao 91 %); dig energy "
+            f"{mat.energy_ratio:+.1%} against the plan (Yao +13 %); fell back "
+            f"{mat.fallback_L:.2f} L, slumped {mat.slumped_L:.2f} L"
+        )
+        if mat.table6 is not None:
+            t6 = mat.table6
+            lines.append(
+                f"  Table 6 (relative errors): L {t6.L:.1%}, D {t6.D:.1%}, beta1 {t6.beta1:.1%}, "
+                f"beta2 {t6.beta2:.1%} (Yao 6.7, 6.7, 5.0, 11.7 %)"
+            )
     load = report.can.bus_load
     if load is not None:
         lines.append(f"  bus load {load.nominal:.1%} nominal, {load.worst:.1%} worst case")

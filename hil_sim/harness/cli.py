@@ -275,7 +275,8 @@ def format_report(report: HilReport) -> str:
             )
     lines = [
         f"HIL {report.transport}: task {report.task} on {report.rig}"
-        f"{' (imperfect)' if report.imperfect else ''}, controller {report.controller}, "
+        f"{' (imperfect)' if report.imperfect else ''}, controller {report.controller}"
+        f"{f' (host loop {report.host_gain_1_s:g} 1/s)' if report.host_gain_1_s else ''}, "
         f"feed-forward {'on' if report.feedforward else 'off'}: {report.status}"
         + (f" ({report.fault})" if report.fault else ""),
         f"  digs {len(report.digs)}, simulated {report.sim_s:.1f} s, wall "

@@ -404,6 +404,7 @@ class HilReport:
         imperfect: The profile's ``[hil]`` imperfections were applied.
         material: Granular figures of a task's run on imperfect material, else None.
         scanner: The trench planner planned on a profile scanner's measured surface.
+        host_gain_1_s: Gain of the host's proportional loop over the bus (1/s; 0: none).
     """
 
     task: str
@@ -441,6 +442,7 @@ class HilReport:
     imperfect: bool = False
     material: MaterialFigures | None = None
     scanner: bool = False
+    host_gain_1_s: float = 0.0
 
     def to_json(self) -> dict[str, Any]:
         """The report as one JSON object (``json.dumps`` takes it as it is)."""
@@ -495,4 +497,5 @@ class HilReport:
         if self.material is not None:
             out["material"] = self.material.to_json()
         out["scanner"] = self.scanner
+        out["host_gain_1_s"] = self.host_gain_1_s
         return out

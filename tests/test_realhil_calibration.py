@@ -17,6 +17,7 @@ import pytest
 from test_report_keys import README, _list_of, _paragraph, contract_keys, missing
 
 from hil_sim.harness.bench import BenchHilReport, TaskCalibration, TaskSpeed, calibrate_gao
+from hil_sim.harness.bench import format_report as bench_text
 from hil_sim.harness.cli import format_report
 from hil_sim.harness.reports import HilReport
 from hil_sim.harness.scenario import Scenario, run_scenario
@@ -121,6 +122,7 @@ def test_observe_surface_makes_the_material_what_lies_below_it() -> None:
         (["hil", "--rig", "field_excavator", "--imperfect", "--max-digs", "1"], "no [hil]"),
         (["hil", "--imperfect", "--material", "gravel", "--max-digs", "1"], "gravel"),
         (["hil", "--scanner", "--realtime", "--max-digs", "1"], "lockstep"),
+        (["hil", "--path", "gao", "--realtime", "--imperfect"], "real-time HIL process"),
     ],
 )
 def test_the_cli_refuses_what_it_cannot_run(
@@ -159,5 +161,44 @@ def test_bench_hil_calibration_json_holds_its_documented_keys(gao_reduced: Any) 
     task = TaskCalibration(0.1, (0.1,), 0.9, table6, table6, 0.05, 0.02, 0.2, 0.05, 5, 7)
     d = Distribution(1.0, 1.0)
     speed = TaskSpeed("A", "scale_model", "done", 1, 1.0, 1.0, 0.002, d, d, 0.5, 0.5, 1.0)
-    report = BenchHilReport(speed, None, gao_reduced, task).to_json()
+    bench = BenchHilReport(speed, None, gao_reduced, task)
+    report = bench.to_json()
     assert missing({k: report[k] for k in ("gao", "task_a")}, keys) == []
+    text = bench_text(bench)
+    assert "Gao path, imperfect bench, p (Gao)" in text and "Table 6 closed loop" in text
+
+
+def test_the_host_loop_adds_its_correction_to_the_velocity_offset() -> None:
+    """With feed-forward off and a host gain K, the velocity offset sent is
+    ``K * (last target - reported stroke)`` per axis, in micrometres per second."""
+    import struct
+
+    from hil_sim.harness.lockstep import LockstepHil
+    from rt_runtime.canbus import CanMaster
+    from rt_runtime.control.hardware import DriveInterface
+
+    rig = load_rig("scale_model")
+    gain = 10.0
+    with LockstepHil(rig, np.radians([30.0, -90.0, -60.0]), keep_frames=True) as hil:
+        master = CanMaster(hil.master_bus, rig, period_s=0.002)
+        master.boot(hil.clock.now, 1.0)
+        master.enable(hil.clock.now, 1.0)
+        drives = DriveInterface(master, hil.clock, 0.0, feedforward=False, correction_gain_1_s=gain)
+        fb = drives.read()
+        target = fb.stroke_m + np.array([1e-3, -2e-3, 0.5e-3])
+        zero = np.zeros(3)
+        drives.write(target, zero)  # no last target yet: no correction
+        hil.clock.sleep_until(hil.clock.now() + 0.002)
+        fb = drives.read()
+        reported = fb.stroke_m.copy()
+        first = len(hil.core.frames)
+        drives.write(target, zero)
+        sent = [
+            struct.unpack("<ii", data)
+            for cob, data in hil.core.frames[first:]
+            if 0x201 <= cob <= 0x203
+        ]
+    assert len(sent) == 3
+    for axis, (_, velocity_um_s) in enumerate(sent):
+        assert velocity_um_s == round(gain * (target[axis] - reported[axis]) * 1e6)
+        assert velocity_um_s != 0

@@ -88,6 +88,13 @@ def slump(y_m: FloatArray, dx_m: float, repose_rad: float, tol_m: float = 1e-6) 
     that a sample between two steep faces never overshoots); the sum of the heights (the area,
     times ``dx``) is conserved to rounding. Stops once no excess is above ``tol_m``.
 
+    The passes diffuse a face's excess one sample at a time, so a face of n samples takes of
+    the order of n^2 passes; the relaxation therefore runs first on the surface coarsened by
+    pairs (means, twice the spacing: the same area), recursively, and each pair takes its
+    coarse change back (the area stays); the passes on the fine surface then only smooth what
+    the coarse one could not see, within a few samples (a 1 m face on a 1 mm grid: ~0.1 s
+    instead of minutes).
+
     Args:
         y_m: Heights ``(n,)`` on a uniform grid, changed in place.
         dx_m: Grid spacing (m), > 0.
@@ -98,16 +105,33 @@ def slump(y_m: FloatArray, dx_m: float, repose_rad: float, tol_m: float = 1e-6) 
         The area moved (m^2): the sum of the height lost where the surface fell, times dx.
     """
     before = y_m.copy()
-    step = math.tan(repose_rad) * dx_m
-    while True:
-        d = y_m[:-1] - y_m[1:]
-        excess = np.sign(d) * np.maximum(np.abs(d) - step, 0.0)
-        if float(np.abs(excess).max(initial=0.0)) <= tol_m:
-            break
-        move = 0.25 * excess
-        y_m[:-1] -= move
-        y_m[1:] += move
+    _relax(y_m, dx_m, math.tan(repose_rad), tol_m)
     return float(np.maximum(before - y_m, 0.0).sum() * dx_m)
+
+
+#: Below this many samples the relaxation runs on the surface as it is.
+_SLUMP_DIRECT_SAMPLES = 64
+
+
+def _relax(y: FloatArray, dx: float, slope: float, tol: float) -> None:
+    """:func:`slump`'s relaxation, coarse to fine (see there)."""
+    n = y.shape[0]
+    if n >= 2 * _SLUMP_DIRECT_SAMPLES:
+        m = n // 2
+        pairs = y[: 2 * m].reshape(m, 2)
+        coarse = pairs.mean(axis=1)
+        relaxed = coarse.copy()
+        _relax(relaxed, 2.0 * dx, slope, tol)
+        pairs += (relaxed - coarse)[:, None]  # a view of y: each pair keeps its area change
+    step = slope * dx
+    while True:
+        d = y[:-1] - y[1:]
+        excess = np.sign(d) * np.maximum(np.abs(d) - step, 0.0)
+        if float(np.abs(excess).max(initial=0.0)) <= tol:
+            return
+        move = 0.25 * excess
+        y[:-1] -= move
+        y[1:] += move
 
 
 def _finite(name: str, value: float) -> float:

@@ -276,6 +276,19 @@ def test_slump_relaxes_a_steep_face_to_the_repose_angle_conserving_area() -> Non
     assert math.degrees(math.atan(fit)) == pytest.approx(35.0, abs=0.5)
 
 
+@pytest.mark.parametrize("seed", range(5))
+def test_slump_of_a_random_surface_conserves_area_and_bounds_every_slope(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    dx = 1e-3
+    n = int(rng.integers(50, 3000))
+    y = np.cumsum(rng.normal(0.0, 5e-3, n)) + np.where(rng.random(n) < 0.01, -0.1, 0.0)
+    area = y.sum() * dx
+    repose = math.radians(float(rng.uniform(25.0, 60.0)))
+    slump(y, dx, repose)
+    assert y.sum() * dx == pytest.approx(area, abs=1e-9), (seed, n)
+    assert (np.abs(np.diff(y)) <= math.tan(repose) * dx + 1e-6 + 1e-12).all(), (seed, n)
+
+
 def test_slump_leaves_a_face_flatter_than_repose_alone() -> None:
     dx = 1e-3
     x = np.arange(0.0, 0.4, dx)

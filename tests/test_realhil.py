@@ -337,3 +337,41 @@ def test_trench_shape_measures_a_design_profile() -> None:
     assert length == pytest.approx(0.6, abs=5e-3)
     assert far == pytest.approx(b1, abs=1e-3)
     assert near == pytest.approx(b2, abs=1e-3)
+
+
+def test_a_materials_resistance_factor_scales_yaos_force() -> None:
+    assert BENCH.hil is not None
+    hard = BENCH.hil.with_material("hard").material
+    soft = BENCH.hil.with_material("soft").material
+    assert hard is not None and soft is not None
+    forces = []
+    for mat in (None, soft, hard):
+        terrain = Terrain(BENCH.ground_y_m, (0.0, 3.0), BENCH.bucket.width_m, material=mat)
+        load = terrain.soil_model(BENCH)
+        forces.append(load.tip_load(1.5, BENCH.ground_y_m - 0.1, 0.2, -0.05)[:2])
+    assert forces[1] == pytest.approx(forces[0])
+    assert np.asarray(forces[2]) == pytest.approx(3.0 * np.asarray(forces[0]))
+
+
+def test_an_unknown_material_is_refused_naming_the_known_ones() -> None:
+    from rt_runtime.errors import ConfigurationError
+
+    assert BENCH.hil is not None
+    with pytest.raises(ConfigurationError, match="soft, hard"):
+        BENCH.hil.with_material("gravel")
+
+
+def test_the_scanner_samples_the_surface_with_its_noise() -> None:
+    from hil_sim.scanner import ProfileScanner
+    from rt_runtime.rig import Scanner
+
+    terrain = Terrain(0.0, (0.0, 1.0), 0.2)
+    terrain.cut(np.array([[0.3, 0.01], [0.3, -0.1], [0.7, -0.1], [0.7, 0.01]]))
+    x, y = ProfileScanner(terrain, Scanner(spacing_m=0.005, noise_m=0.0)).scan()
+    assert np.diff(x) == pytest.approx(0.005)
+    assert y == pytest.approx(terrain.surface_y(x))
+    noisy = ProfileScanner(terrain, Scanner(spacing_m=0.005, noise_m=1e-3), seed=2)
+    _, y1 = noisy.scan()
+    assert np.std(y1 - y) == pytest.approx(1e-3, rel=0.2)
+    _, y2 = ProfileScanner(terrain, Scanner(spacing_m=0.005, noise_m=1e-3), seed=2).scan()
+    assert (y1 == y2).all()  # seeded

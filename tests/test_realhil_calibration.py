@@ -100,19 +100,19 @@ def test_the_scanner_surface_reaches_the_planner() -> None:
 def test_observe_surface_makes_the_material_what_lies_below_it() -> None:
     rig = load_rig("scale_model")
     planner = TrenchPlanner(rig, "pinn")
-    session = planner.start(load_task("A", rig))
-    x = np.linspace(session.x_lo, session.x_hi, 200)
-    mid = 0.5 * (session.x_lo + session.x_hi)
+    trench = planner.start(load_task("A", rig))
+    x = np.linspace(trench.x_lo, trench.x_hi, 200)
+    mid = 0.5 * (trench.x_lo + trench.x_hi)
     dip = (x > mid - 0.1) & (x < mid + 0.1)
-    y = np.where(dip, session.ground_y - 0.05, session.ground_y)
-    session.observe_surface(x, y)
-    assert float(session.surface.min()) == pytest.approx(session.ground_y - 0.05, abs=1e-9)
-    hole = float(session.initial.area) - float(session.material.area)
+    y = np.where(dip, trench.ground_y - 0.05, trench.ground_y)
+    trench.observe_surface(x, y)
+    assert float(trench.surface.min()) == pytest.approx(trench.ground_y - 0.05, abs=1e-9)
+    hole = float(trench.initial.area) - float(trench.material.area)
     assert hole == pytest.approx(0.05 * 0.2, rel=0.05)
     with pytest.raises(PlanningError, match="increasing"):
-        session.observe_surface(x[::-1], y)
+        trench.observe_surface(x[::-1], y)
     with pytest.raises(PlanningError, match="non-finite"):
-        session.observe_surface(x, np.full_like(y, np.nan))
+        trench.observe_surface(x, np.full_like(y, np.nan))
 
 
 @pytest.mark.parametrize(

@@ -439,8 +439,8 @@ class SessionDriver:
             not sampled.
         surface_source: A profile scanner's latest measured surface, ``(x_m, y_m)`` in the
             work-site frame or None when it has none, asked after each :meth:`record`: the
-            session plans the next dig on it (:meth:`TrenchSession.observe_surface`). None:
-            no scanner, the session plans from the measured tip paths alone.
+            next dig is planned on it (:meth:`TrenchSession.observe_surface`). None: no
+            scanner, the trench is planned from the measured tip paths alone.
     """
 
     def __init__(

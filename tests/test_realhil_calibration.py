@@ -133,6 +133,11 @@ def test_the_cli_refuses_what_it_cannot_run(
     assert out["status"] == "error" and says in out["error"], out
 
 
+def test_the_cli_refuses_a_scanner_on_a_path(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["hil", "--path", "gao", "--scanner"]) == 2
+    assert "--scanner" in capsys.readouterr().out
+
+
 def test_the_cli_refuses_an_unknown_controller() -> None:
     with pytest.raises(SystemExit) as exc:
         main(["hil", "--path", "gao", "--controller", "pid"])

@@ -392,6 +392,9 @@ def _run_path(
     if joints and path != "joints":
         print("excavator-rt hil: --joints-deg gives the key points itself; use it without --path")
         return 2
+    if args.scanner:
+        print("excavator-rt hil: --scanner scans a task's trench; a path has none")
+        return 2
     scenario = PathScenario(
         path=path,
         rig=args.rig if args.rig is not None else "test_bench",

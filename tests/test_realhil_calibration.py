@@ -77,6 +77,10 @@ def test_task_a_energy_and_load_against_the_plan_in_yaos_range(
     assert 0.85 <= mat["load_ratio"] <= 0.97, mat  # Yao 4.63 / 5.07 L
     assert mat["load_L"] == pytest.approx((1.0 - 0.087) * mat["swept_L"])
     assert len(mat["energy_ratio_digs"]) == 2
+    digs = r["digs"]
+    assert isinstance(digs, list)
+    for dig, ratio in zip(digs, mat["energy_ratio_digs"], strict=True):
+        assert dig["energy_Wh"] / dig["planned_energy_Wh"] - 1.0 == pytest.approx(ratio)
     assert set(mat["table6"]) == {"L", "D", "beta1", "beta2"}
 
 

@@ -18,6 +18,7 @@ no ``coverage_error``).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -59,6 +60,8 @@ class DigResult:
         plan_us: Planning time of the dig (us): with ``planned_ahead``, the check of the plan
             made while the dig before it ran against the measured material.
         planned_ahead: Planned while the dig before it ran (a planner process only).
+        energy_Wh: The plant's drive energy over the dig's cycles (Wh; Yao's W_E reading, as
+            the plan's), NaN where the truth no longer holds them.
     """
 
     index: int
@@ -70,6 +73,7 @@ class DigResult:
     planned_energy_Wh: float
     plan_us: float
     planned_ahead: bool = False
+    energy_Wh: float = math.nan
 
     def to_json(self) -> dict[str, Any]:
         """The dig's keys, as the attributes."""
@@ -83,6 +87,7 @@ class DigResult:
             "planned_energy_Wh": self.planned_energy_Wh,
             "plan_us": self.plan_us,
             "planned_ahead": self.planned_ahead,
+            "energy_Wh": self.energy_Wh,
         }
 
 

@@ -578,8 +578,9 @@ def run_scenario(sc: Scenario) -> HilRun:
         design = plan.design
     except PlanningError:
         design = trench.design
+    dig_energy_j = _dig_energy_j(segments, sc.period_s)
     material_figures = (
-        _material_figures(rig, task, result, segments, terrain, sc.period_s)
+        _material_figures(rig, task, result, dig_energy_j, terrain)
         if result is not None and terrain.granular is not None and not sc.realtime
         else None
     )
@@ -618,6 +619,7 @@ def run_scenario(sc: Scenario) -> HilRun:
                 planned_energy_Wh=r.planned_energy_j / 3600.0,
                 plan_us=r.plan_us,
                 planned_ahead=r.planned_ahead,
+                energy_Wh=dig_energy_j.get(r.index, math.nan) / 3600.0,
             )
             for r in (result.digs if result is not None else ())
         ),
@@ -664,13 +666,21 @@ def _scanner(sc: Scenario, rig: Rig, terrain: Terrain) -> ProfileScanner | None:
     return ProfileScanner(terrain, spec, seed=rig.hil.seed if rig.hil is not None else 0)
 
 
+def _dig_energy_j(segments: list[Segment], period_s: float) -> dict[int, float]:
+    """The plant's drive energy over each dig's cycles (J), by dig index."""
+    out: dict[int, float] = {}
+    for seg in segments:
+        if seg.kind == "dig":
+            out[seg.index] = out.get(seg.index, 0.0) + float(np.nansum(seg.power_w)) * period_s
+    return out
+
+
 def _material_figures(
     rig: Rig,
     task: Any,
     result: ExecutorResult,
-    segments: list[Segment],
+    dig_energy_j: dict[int, float],
     terrain: Terrain,
-    period_s: float,
 ) -> MaterialFigures:
     """Yao's material-flow figures of a lockstep task run on granular material: bucket load
     against V_p, executed against planned energy per dig, the finished trench (Table 6)."""
@@ -678,19 +688,14 @@ def _material_figures(
 
     digs = result.digs
     planned_l = sum(r.planned_volume_m3 for r in digs) * 1e3
-    executed = []
-    for r in digs:
-        dig_power = [
-            float(np.nansum(seg.power_w)) * period_s
-            for seg in segments
-            if seg.kind == "dig" and seg.index == r.index
-        ]
-        planned = r.planned_energy_j
-        executed.append(sum(dig_power) / planned - 1.0 if planned > 0.0 else math.nan)
-    planned_e = sum(r.planned_energy_j for r in digs)
-    executed_e = sum(
-        float(np.nansum(seg.power_w)) * period_s for seg in segments if seg.kind == "dig"
+    executed = tuple(
+        dig_energy_j.get(r.index, math.nan) / r.planned_energy_j - 1.0
+        if r.planned_energy_j > 0.0
+        else math.nan
+        for r in digs
     )
+    planned_e = sum(r.planned_energy_j for r in digs)
+    executed_e = sum(dig_energy_j.get(r.index, math.nan) for r in digs)
     length, depth, b_far, b_near = trench_shape(
         terrain.surface_x_m, terrain.surface_y_m, rig.ground_y_m
     )
@@ -709,7 +714,7 @@ def _material_figures(
         planned_L=planned_l,
         load_ratio=terrain.load_m3 * 1e3 / planned_l if planned_l > 0.0 else math.nan,
         energy_ratio=executed_e / planned_e - 1.0 if planned_e > 0.0 else math.nan,
-        energy_ratio_digs=tuple(executed),
+        energy_ratio_digs=executed,
         fallback_L=terrain.fallback_m3 * 1e3,
         slumped_L=terrain.slumped_m3 * 1e3,
         table6=table6,

@@ -33,6 +33,15 @@ Model, per sub-step (equations of motion in joint space, forces along the cylind
   changing with stroke; force ``p_A A_A - p_B A_B``; pressures clipped to [0, 1.1 p_s] (cavitation
   and port relief valves).
 
+Imperfections of a real rig (profile ``[hil]``, applied only when ``hil.enabled``; with it off
+every path and float is the ideal plant's): on a hydraulic axis the spool command passes a dead
+time, a hysteresis (play operator) and the spool's lag with a slew limit, and no metering edge
+opens inside the spool overlap (:func:`valve_opening`); on an electric axis the force follows
+its command through the drive's current loop (first-order lag), friction falls from breakaway
+to Coulomb over a Stribeck speed, and the screw's backlash is a gap the motor crosses without
+pushing the rod; :meth:`ArmPlant.sensed_stroke_state` is what the drives' sensors read (motor
+side of the gap, a linearity error of the sensor's class, seeded noise). Design notes, H8.
+
 Integration: fixed sub-steps (default the drive's servo period, 250 us; ``step(dt)`` splits dt
 into equal sub-steps no longer than that), semi-implicit Euler: the velocity first, with the
 forces at the start of the sub-step and the efforts held (zero-order hold, as a drive applies

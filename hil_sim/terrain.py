@@ -22,6 +22,12 @@ Fast lookups. Besides the polygon the terrain keeps the surface sampled on a uni
 soil force (:class:`YaoTipLoad`, index arithmetic, no polygon operation). The grid is updated by
 each cut from the same lower envelope, so grid and polygon agree at every grid abscissa.
 
+Granular material (``material``, profile ``[hil.materials]``): a cut keeps the spill out of the
+bucket (:attr:`CutResult.load_m3`), lays the part of it that falls back into the trench over the
+span it lowered, then relaxes every face steeper than the angle of repose (:func:`slump`,
+area-conserving) and rebuilds the polygon from the sampled surface; the material's resistance
+factor scales Yao eq 8. Without a material a cut removes exactly what the tip swept.
+
 Soil force: :meth:`Terrain.soil_force` is Yao eq 8 through :func:`rt_runtime.soil.yao_resistance`
 with the ground height looked up above each tip (batched). :class:`YaoTipLoad` is the same law
 written out for one tip in plain floats (about ten times cheaper), plus the velocity derivative

@@ -442,6 +442,10 @@ class PlannerSpec:
         )
 
 
+#: A profile scanner's latest surface, ``(x_m, y_m)`` (work-site frame), or None.
+SurfaceSource = Callable[[], "tuple[FloatArray, FloatArray] | None"]
+
+
 class SessionDriver:
     """The executor's two requests on a session (see the module docstring).
 
@@ -450,12 +454,22 @@ class SessionDriver:
         period_s: The loop's period: each :class:`DigPlan` carries its motions sampled on this
             grid (:attr:`DigPlan.sampled`), chained from the pose of the first request; None:
             not sampled.
+        surface_source: A profile scanner's latest measured surface, ``(x_m, y_m)`` in the
+            work-site frame or None when it has none, asked after each :meth:`record`: the
+            next dig is planned on it (:meth:`TrenchSession.observe_surface`). None: no
+            scanner, the trench is planned from the measured tip paths alone.
     """
 
-    def __init__(self, session: TrenchSession, period_s: float | None = None) -> None:
+    def __init__(
+        self,
+        session: TrenchSession,
+        period_s: float | None = None,
+        surface_source: SurfaceSource | None = None,
+    ) -> None:
         self.session = session
         self.rig = session.rig
         self.period_s = period_s
+        self.surface_source = surface_source
         #: Where the last motion handed out ends (the next plan's motions start there).
         self._end_rad: FloatArray | None = None
         #: The next plan, made ahead while the pending dig runs (:meth:`lookahead`).
@@ -654,6 +668,10 @@ class SessionDriver:
         tip = tip[np.isfinite(tip).all(axis=1)]
         tip[:, 0] += dig.machine_x_m
         volume = s.record(dig, tip)
+        if self.surface_source is not None:
+            measured = self.surface_source()
+            if measured is not None:
+                s.observe_surface(*measured)
         return Recorded(dig.index, volume, tip, s.state())
 
 
@@ -738,11 +756,17 @@ class InlinePlanner(_AnsweredLink):
     Args:
         trench: The trench being dug (a :class:`TrenchSession`).
         period_s: The loop's period (see :class:`SessionDriver`).
+        surface_source: A profile scanner (see :class:`SessionDriver`), or None.
     """
 
-    def __init__(self, trench: TrenchSession, period_s: float | None = None) -> None:
+    def __init__(
+        self,
+        trench: TrenchSession,
+        period_s: float | None = None,
+        surface_source: SurfaceSource | None = None,
+    ) -> None:
         super().__init__()
-        self.driver = SessionDriver(trench, period_s)
+        self.driver = SessionDriver(trench, period_s, surface_source)
 
     def _run(self, fn: Any, *args: Any) -> None:
         try:

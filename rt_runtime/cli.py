@@ -1252,6 +1252,10 @@ def build_parser() -> argparse.ArgumentParser:
     b4.add_argument("--json", action="store_true")
     b4.set_defaults(handler=cmd_bench_timejerk)
 
+    from rt_runtime.bench_mintorque import add_parsers as add_mintorque_parsers
+
+    add_mintorque_parsers(sub, bench_sub)
+
     b5 = bench_sub.add_parser("inputs", help="property-based inputs (hypothesis) into every entry point: task files, rig profiles, daemon config, control requests, model cards, CAN frames")
     b5.add_argument("--examples", type=int, default=10_000, help="inputs per entry point (default 10000)")
     b5.add_argument("--seed", type=int, default=0, help="hypothesis seed")

@@ -51,6 +51,7 @@ Everything here runs outside the fixed-rate loop: it allocates, and a solve take
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import time
@@ -153,7 +154,7 @@ class MinTorqueProblem:
     intervals_s: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
     interval_bounds_s: tuple[float, float] = (0.3, 3.0)
     fixed_time: bool = False
-    samples_per_interval: int = 24
+    samples_per_interval: int = 32
     n_elements: int = DEFAULT_N_ELEMENTS
 
 
@@ -166,7 +167,7 @@ def make_problem(
     entry_x_m: tuple[float, float] | None = None,
     surface_y_m: float | None = None,
     depth_m: tuple[float, float] | None = None,
-    samples_per_interval: int = 24,
+    samples_per_interval: int = 32,
 ) -> MinTorqueProblem:
     """A checked problem on ``rig``: Yang/Pan Experiment I by default (0.8-1.0 m^3, 1 s starts).
 
@@ -681,6 +682,22 @@ class Evaluator:
         )
         return Evaluation(np.asarray(m.cost(smp)), named, split)
 
+    def gradients(self, x: ArrayLike) -> tuple[float, FloatArray, FloatArray, FloatArray]:
+        """Cost, its gradient ``(n,)``, the optimiser's constraints ``(m,)`` and their Jacobian
+        ``(m, n)`` at one point, by forward differences of step :data:`FD_STEP` evaluated in
+        one batched pass (the point and its ``n`` perturbations)."""
+        xa = np.asarray(x, dtype=np.float64)
+        n = xa.size
+        X = np.repeat(xa[None, :], n + 1, axis=0)
+        X[1:] += FD_STEP * np.eye(n)
+        e = self.evaluate(X)
+        return (
+            float(e.cost[0]),
+            (e.cost[1:] - e.cost[0]) / FD_STEP,
+            e.split[0],
+            ((e.split[1:] - e.split[0]) / FD_STEP).T,
+        )
+
 
 # --------------------------------------------------------------------------------------------
 # Starts, solve and the exact re-check.
@@ -892,7 +909,6 @@ def _slsqp(
     """SLSQP with the batched forward-difference gradients of ``ev`` (one pass per point)."""
     from scipy.optimize import minimize
 
-    n = x0.size
     cache: dict[bytes, tuple[float, FloatArray, FloatArray, FloatArray]] = {}
     # The cost is scaled to 1 at the start, so that SLSQP's ftol is a relative tolerance.
     f_scale = 1.0 / max(float(ev.evaluate(x0[None, :]).cost[0]), 1e-12)
@@ -901,16 +917,9 @@ def _slsqp(
         key = x.tobytes()
         hit = cache.get(key)
         if hit is None:
-            X = np.repeat(x[None, :], n + 1, axis=0)
-            X[1:] += FD_STEP * np.eye(n)
-            e = ev.evaluate(X)
-            g = -(e.split + CONSTRAINT_OFFSET)  # SLSQP: fun(x) >= 0 holds
-            hit = (
-                f_scale * float(e.cost[0]),
-                f_scale * (e.cost[1:] - e.cost[0]) / FD_STEP,
-                g[0],
-                ((g[1:] - g[0]) / FD_STEP).T,
-            )
+            f, df, c, dc = ev.gradients(x)
+            # SLSQP: fun(x) >= 0 holds.
+            hit = (f_scale * f, f_scale * df, -(c + CONSTRAINT_OFFSET), -dc)
             cache.clear()
             cache[key] = hit
         return hit
@@ -951,7 +960,7 @@ def solve(
     rig: Rig,
     problem: MinTorqueProblem,
     *,
-    n_starts: int = 2,
+    n_starts: int = 3,
     starts: Sequence[ArrayLike] | None = None,
     max_iterations: int = 150,
     rechecks: int = 2,
@@ -1069,75 +1078,114 @@ class ReferenceSolution:
     solve_s: float
 
 
-def solve_reference(
-    rig: Rig,
-    problem: MinTorqueProblem,
-    x0: ArrayLike,
-    *,
-    limit_scale: FloatArray | None = None,
-    max_iterations: int = 500,
-) -> ReferenceSolution:
-    """The same problem as one NLP for IPOPT through CasADi, from ``x0``.
+class CasadiReference:
+    """The same problem as one NLP for IPOPT through CasADi (the benchmark's reference).
 
-    The objective and the keypoint constraints are the smoothed model's; the sampled limits
-    are one constraint per sample, joint and side (the optimiser takes their maximum), with the
-    same tightening ``limit_scale`` and offset. Exact Hessian by CasADi's automatic
-    differentiation.
+    The objective and the keypoint constraints are the smoothed model's, built from the same
+    code on CasADi expressions; the sampled limits are one constraint per sample, joint and
+    side (the optimiser sees the same rows), with the same tightening and offset. Exact
+    derivatives by CasADi's automatic differentiation. One solver is built per problem
+    structure (fixed or variable time, samples, plates, heading cones, surface band); the
+    problem's numbers (surface, bands, soil, limit scales, fixed intervals) are parameters.
+    Needs casadi (the ``reference`` extra).
     """
-    import casadi
 
-    ops = _CasadiOps()
-    m = _Model(rig, problem, ops)
-    x0a = np.asarray(x0, dtype=np.float64)
-    xs = casadi.SX.sym("x", x0a.size)
-    keys = _keys_of(xs, lambda a, i: a[i])
-    if problem.fixed_time:
-        h: list[Any] = list(problem.intervals_s)
-    else:
-        h = [xs[3 * N_KEY + i] for i in range(N_INTERVALS)]
-    smp = m.samples(keys, h)
-    scale = np.ones((2, 3)) if limit_scale is None else np.asarray(limit_scale)
-    g: list[Any] = []
-    for j in range(3):
-        span = float(rig.q_max_rad[j] - rig.q_min_rad[j])
-        g += [
-            (float(rig.q_min_rad[j]) - smp.q[j]) / span,
-            (smp.q[j] - float(rig.q_max_rad[j])) / span,
-        ]
-        v = float(rig.qd_max_rad_s[j] * scale[0, j])
-        t = float(rig.tau_max_nm[j] * scale[1, j])
-        g += [
-            smp.qd[j] / v - 1.0,
-            -smp.qd[j] / v - 1.0,
-            smp.tau[j] / t - 1.0,
-            -smp.tau[j] / t - 1.0,
-        ]
-    g += list(m.keypoint_constraints(keys))
-    gv = casadi.vertcat(*g) + CONSTRAINT_OFFSET
-    solver = casadi.nlpsol(
-        "mintorque_reference",
-        "ipopt",
-        {"x": xs, "f": m.cost(smp), "g": gv},
-        {
-            "ipopt.tol": 1e-10,
+    def __init__(self, rig: Rig, tolerance: float = 1e-10, max_iterations: int = 500) -> None:
+        import casadi
+
+        self.ca = casadi
+        self.rig = rig
+        self.opts = {
+            "ipopt.tol": tolerance,
             "ipopt.max_iter": max_iterations,
             "ipopt.print_level": 0,
             "ipopt.sb": "yes",
             "print_time": False,
-        },
-    )
-    bounds = variable_bounds(rig, problem)
-    t0 = time.perf_counter()
-    res = solver(
-        x0=x0a,
-        lbx=[b[0] for b in bounds],
-        ubx=[b[1] for b in bounds],
-        lbg=-np.inf,
-        ubg=0.0,
-    )
-    solve_s = time.perf_counter() - t0
-    stats = solver.stats()
-    x = np.asarray(res["x"], dtype=np.float64).reshape(-1)
-    return ReferenceSolution(
-        bool(stats["success"]), str(stats["return_status"]), x, float(res["f"]), solve_s
-    )
+        }
+        self._solvers: dict[tuple[Any, ...], Any] = {}
+
+    @staticmethod
+    def _key(p: MinTorqueProblem) -> tuple[Any, ...]:
+        return (
+            p.fixed_time,
+            p.samples_per_interval,
+            p.n_elements,
+            p.entry_heading_deg,
+            p.lift_heading_deg,
+            p.surface_band_m,
+        )
+
+    def _build(self, p: MinTorqueProblem) -> Any:
+        ca, rig = self.ca, self.rig
+        par = ca.SX.sym("p", 11 + 6 + N_INTERVALS)
+        sym = dataclasses.replace(
+            p,
+            soil=FluidSoil(p.soil.name, par[0], par[1], par[2], par[3]),
+            surface_y_m=par[4],
+            volume_m3=(par[5], par[6]),
+            depth_m=(par[7], par[8]),
+            entry_x_m=(par[9], par[10]),
+        )
+        scale = [[par[11 + 3 * r + j] for j in range(3)] for r in range(2)]
+        m = _Model(rig, sym, _CasadiOps())
+        n = 3 * N_KEY + (0 if p.fixed_time else N_INTERVALS)
+        xs = ca.SX.sym("x", n)
+        keys = _keys_of(xs, lambda a, i: a[i])
+        if p.fixed_time:
+            h: list[Any] = [par[17 + i] for i in range(N_INTERVALS)]
+        else:
+            h = [xs[3 * N_KEY + i] for i in range(N_INTERVALS)]
+        smp = m.samples(keys, h)
+        g: list[Any] = []
+        for j in range(3):
+            lo, hi = float(rig.q_min_rad[j]), float(rig.q_max_rad[j])
+            g += [(lo - smp.q[j]) / (hi - lo), (smp.q[j] - hi) / (hi - lo)]
+            v = float(rig.qd_max_rad_s[j]) * scale[0][j]
+            t = float(rig.tau_max_nm[j]) * scale[1][j]
+            g += [smp.qd[j] / v - 1.0, -smp.qd[j] / v - 1.0]
+            g += [smp.tau[j] / t - 1.0, -smp.tau[j] / t - 1.0]
+        g += list(m.keypoint_constraints(keys))
+        nlp = {"x": xs, "p": par, "f": m.cost(smp), "g": ca.vertcat(*g) + CONSTRAINT_OFFSET}
+        return ca.nlpsol("mintorque_reference", "ipopt", nlp, self.opts)
+
+    def solve(
+        self, problem: MinTorqueProblem, x0: ArrayLike, limit_scale: ArrayLike | None = None
+    ) -> ReferenceSolution:
+        """Solve ``problem`` from the optimiser's point ``x0`` with the limits scaled by
+        ``limit_scale`` ``(2, 3)`` (velocity, torque; default 1)."""
+        validate_problem(problem)
+        key = self._key(problem)
+        if key not in self._solvers:
+            self._solvers[key] = self._build(problem)
+        solver = self._solvers[key]
+        fs = problem.soil
+        scale = np.ones((2, 3)) if limit_scale is None else np.asarray(limit_scale, np.float64)
+        par = np.concatenate(
+            [
+                [fs.density_kg_m3, fs.kp, fs.kv, fs.ks, problem.surface_y_m],
+                problem.volume_m3,
+                problem.depth_m,
+                problem.entry_x_m,
+                scale.reshape(-1),
+                problem.intervals_s,
+            ]
+        )
+        bounds = variable_bounds(self.rig, problem)
+        t0 = time.perf_counter()
+        res = solver(
+            x0=np.asarray(x0, dtype=np.float64),
+            p=par,
+            lbx=[b[0] for b in bounds],
+            ubx=[b[1] for b in bounds],
+            lbg=-np.inf,
+            ubg=0.0,
+        )
+        solve_s = time.perf_counter() - t0
+        stats = solver.stats()
+        return ReferenceSolution(
+            bool(stats["success"]),
+            str(stats["return_status"]),
+            np.asarray(res["x"], dtype=np.float64).reshape(-1),
+            float(res["f"]),
+            solve_s,
+        )

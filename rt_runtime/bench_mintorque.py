@@ -70,7 +70,7 @@ def _path(sol: mt.Solution) -> dict[str, Any]:
 
 
 def bench_mintorque(
-    n_problems: int = 20, seed: int = 0, *, reference: bool = True
+    n_problems: int = 20, seed: int = 0, *, reference: bool = True, n_starts: int = 3
 ) -> dict[str, Any]:
     """The optimiser on :func:`random_problems`, the comparisons, and (with ``reference``) the
     gap to IPOPT from the same start on the same smoothed model and grid.
@@ -80,11 +80,13 @@ def bench_mintorque(
         exact model at 1 ms), ``gap_to_reference`` (p50, max of ``(ours - IPOPT) / IPOPT``
         costs; null without reference), ``soil`` (per soil: ``max_depth_m``, ``T_s``, ``cost``
         and the path), ``time`` (``variable`` and ``fixed``: ``T_s``, ``cost``), and more.
+        ``n_starts`` kinematic starts per solve (3, the optimiser's default; fewer for a quick
+        look).
     """
     rig = load_rig(RIG)
     problems = random_problems(rig, n_problems, seed)
     mt.solve(rig, problems[0], n_starts=1)  # warm-up (imports, caches)
-    solutions = [mt.solve(rig, p) for p in problems]
+    solutions = [mt.solve(rig, p, n_starts=n_starts) for p in problems]
     solve_s = np.array([s.solve_s for s in solutions])
     feasible = [s.feasible for s in solutions]
     in_band = [
@@ -96,13 +98,14 @@ def bench_mintorque(
     # Yang/Pan's comparisons on Experiment I, from the same kinematic starts.
     comp: dict[str, mt.Solution] = {}
     for name in SOILS:
-        comp[name] = mt.solve(rig, mt.make_problem(rig, name))
-    comp["fixed"] = mt.solve(rig, mt.make_problem(rig, "soft", fixed_time=True))
+        comp[name] = mt.solve(rig, mt.make_problem(rig, name), n_starts=n_starts)
+    comp["fixed"] = mt.solve(rig, mt.make_problem(rig, "soft", fixed_time=True), n_starts=n_starts)
 
     out: dict[str, Any] = {
         "problems": n_problems,
         "seed": seed,
         "rig": RIG,
+        "n_starts": n_starts,
         "solve_s": Distribution.spread(solve_s).to_json(),
         "load_average": list(os.getloadavg()),
         "feasible": float(np.mean(feasible)),
@@ -326,7 +329,7 @@ def cmd_bench_mintorque(args: argparse.Namespace) -> int:
         except ImportError:
             reference = False
     try:
-        r = bench_mintorque(n, args.seed, reference=reference)
+        r = bench_mintorque(n, args.seed, reference=reference, n_starts=1 if args.quick else 3)
     except PlanningError as e:
         raise ConfigurationError(f"bench mintorque: {e}") from None
     r["sizes"] = "quick" if args.quick else "full"
@@ -404,7 +407,11 @@ def add_parsers(sub: Any, bench_sub: Any) -> None:
     )
     bp.add_argument("--problems", type=int, help="seeded problems (default 20; 4 with --quick)")
     bp.add_argument("--seed", type=int, default=0)
-    bp.add_argument("--quick", action="store_true", help="small sizes (a first look, the tests)")
+    bp.add_argument(
+        "--quick",
+        action="store_true",
+        help="4 problems, one start per solve (a first look, the tests)",
+    )
     bp.add_argument(
         "--no-reference",
         action="store_true",

@@ -337,7 +337,8 @@ def test_bench_json_on_one_problem_without_the_reference(
 
     from rt_runtime.cli import main
 
-    assert main(["bench", "mintorque", "--problems", "1", "--no-reference", "--json"]) == 0
+    args = ["bench", "mintorque", "--quick", "--problems", "1", "--no-reference", "--json"]
+    assert main(args) == 0
     report = json.loads(capsys.readouterr().out)
     keys = contract_keys(_list_of(_paragraph(README, "`bench mintorque --json`")))
     # Without the reference its figures are null or absent.
@@ -346,5 +347,5 @@ def test_bench_json_on_one_problem_without_the_reference(
     }
     assert report["gap_to_reference"] is None and report["reference_skipped"]
     assert missing(report, keys) == []
-    assert report["problems"] == 1 and 0.0 <= report["feasible"] <= 1.0
-    assert report["soil"]["hard"]["max_depth_m"] < report["soil"]["soft"]["max_depth_m"]
+    assert report["problems"] == 1 and report["n_starts"] == 1
+    assert 0.0 <= report["feasible"] <= 1.0

@@ -349,3 +349,32 @@ def test_bench_json_on_one_problem_without_the_reference(
     assert missing(report, keys) == []
     assert report["problems"] == 1 and report["n_starts"] == 1
     assert 0.0 <= report["feasible"] <= 1.0
+
+
+def test_min_torque_one_shot_planner_in_the_trench_planner() -> None:
+    """The torque cost as a one-shot planner: verified sextics no costlier (in that cost) than
+    the PSO teacher's plan of the same problem, and a trench task with a dig it planned."""
+    from rt_runtime.planning import oneshot
+    from rt_runtime.planning.mintorque_oneshot import MinTorqueOneShot
+    from rt_runtime.planning.trench import TrenchPlanner, load_task
+
+    rig = load_rig("scale_model")
+    planner = TrenchPlanner(rig, "min_torque")
+    adapter = planner.oneshot
+    assert isinstance(adapter, MinTorqueOneShot) and adapter.name == "min_torque"
+    problem = oneshot.sample_problems(rig, 1, oneshot.DigType.DOWNWARD, seed=1)[0]
+    res = adapter.plan_dig(problem, 1.0)
+    assert res.status == "min_torque"
+    pso = oneshot.solve_pso(rig, [problem])[0]
+    assert pso.feasible
+    ours, v = adapter.cost(problem, oneshot.particle_from_a6(res.a6, res.T_s)[None, :])
+    theirs, _ = adapter.cost(problem, oneshot.particle_from_a6(pso.a6, pso.T_s)[None, :])
+    assert np.all(v <= 0.0)
+    assert ours[0] <= theirs[0] * 1.001
+    plan = planner.plan(load_task("D", rig))
+    assert plan.status.name == "DONE"
+    assert any(getattr(s, "status", "") == "min_torque" for s in plan.steps)
+    with pytest.raises(ConfigurationError, match="min_torque"):
+        TrenchPlanner(rig, "unknown")
+    with pytest.raises(ConfigurationError, match="no fluid soil 'clay'"):
+        MinTorqueOneShot(rig, planner.verifier, "clay")

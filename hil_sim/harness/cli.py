@@ -185,7 +185,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--no-feedforward", action="store_true", help="velocity offset 0x60B1 = 0")
     p.add_argument("--max-digs", type=int, default=None, help="stop after N digs")
     p.add_argument("--period-ms", type=float, default=2.0, help="SYNC period (ms)")
-    p.add_argument("--planner", default="pinn", choices=("pinn", "pso"))
+    p.add_argument("--planner", default="pinn", choices=("pinn", "pso", "min_torque"))
     p.add_argument(
         "--inject",
         action="append",

@@ -180,7 +180,7 @@ def _reference(
     for k, (p, sol) in enumerate(zip(problems, solutions, strict=True)):
         r = ref.solve(p, sol.start, sol.limit_scale)
         ev = mt.Evaluator(rig, p, limit_scale=sol.limit_scale).evaluate(r.x[None, :])
-        if not r.ok or float(np.max(ev.split[0])) > 1e-6:
+        if not r.ok or float(np.max(ev.constraints[0])) > 1e-6:
             failed.append({"problem": k, "status": r.status})
             continue
         ref_s.append(r.solve_s)

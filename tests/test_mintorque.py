@@ -281,7 +281,7 @@ def test_reference_is_the_same_problem() -> None:
     assert r.ok, r.status
     ev = mt.Evaluator(RIG, p, limit_scale=sol.limit_scale).evaluate(r.x[None, :])
     assert ev.cost[0] == pytest.approx(r.cost_model, rel=1e-9)
-    assert np.max(ev.split[0]) <= 1e-6
+    assert np.max(ev.constraints[0]) <= 1e-6
     # From our answer IPOPT only improves, and by little: our answer is feasible for its
     # formulation and near one of its stationary points (SLSQP's quasi-Newton Hessian stops
     # ~2 % short on this problem: design note Y1).

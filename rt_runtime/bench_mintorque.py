@@ -177,6 +177,7 @@ def _reference(
     gaps: list[float] = []
     ref_s: list[float] = []
     failed: list[dict[str, Any]] = []
+    per_problem: list[dict[str, Any]] = []
     for k, (p, sol) in enumerate(zip(problems, solutions, strict=True)):
         r = ref.solve(p, sol.start, sol.limit_scale)
         ev = mt.Evaluator(rig, p, limit_scale=sol.limit_scale).evaluate(r.x[None, :])
@@ -185,6 +186,15 @@ def _reference(
             continue
         ref_s.append(r.solve_s)
         gaps.append((sol.cost_model - r.cost_model) / r.cost_model)
+        per_problem.append(
+            {
+                "problem": k,
+                "soil": p.soil.name,
+                "cost": sol.cost_model,
+                "reference_cost": r.cost_model,
+                "gap": gaps[-1],
+            }
+        )
     ours_p50 = float(np.median([s.solve_s for s in solutions]))
     return {
         "gap_to_reference": {
@@ -200,6 +210,7 @@ def _reference(
             "failed": failed,
             "solve_s": Distribution.spread(ref_s).to_json() if ref_s else None,
             "reference_over_ours_solve_p50": float(np.median(ref_s)) / ours_p50 if ref_s else None,
+            "per_problem": per_problem,
         },
     }
 

@@ -1154,19 +1154,23 @@ class CasadiReference:
             g += [smp.qd[j] / v - 1.0, -smp.qd[j] / v - 1.0]
             g += [smp.tau[j] / t - 1.0, -smp.tau[j] / t - 1.0]
         g += list(m.keypoint_constraints(keys))
-        nlp = {"x": xs, "p": par, "f": m.cost(smp), "g": ca.vertcat(*g) + CONSTRAINT_OFFSET}
-        return ca.nlpsol("mintorque_reference", "ipopt", nlp, self.opts)
+        f = m.cost(smp)
+        gv = ca.vertcat(*g) + CONSTRAINT_OFFSET
+        nlp = {"x": xs, "p": par, "f": f, "g": gv}
+        return (
+            ca.nlpsol("mintorque_reference", "ipopt", nlp, self.opts),
+            ca.Function("mintorque_reference_fg", [xs, par], [f, gv]),
+        )
 
-    def solve(
-        self, problem: MinTorqueProblem, x0: ArrayLike, limit_scale: ArrayLike | None = None
-    ) -> ReferenceSolution:
-        """Solve ``problem`` from the optimiser's point ``x0`` with the limits scaled by
-        ``limit_scale`` ``(2, 3)`` (velocity, torque; default 1)."""
+    def _prepared(
+        self, problem: MinTorqueProblem, limit_scale: ArrayLike | None
+    ) -> tuple[Any, Any, FloatArray]:
+        """The solver and the (f, g) function of ``problem``'s structure, and its parameters."""
         validate_problem(problem)
         key = self._key(problem)
         if key not in self._solvers:
             self._solvers[key] = self._build(problem)
-        solver = self._solvers[key]
+        solver, fg = self._solvers[key]
         fs = problem.soil
         scale = np.ones((2, 3)) if limit_scale is None else np.asarray(limit_scale, np.float64)
         par = np.concatenate(
@@ -1179,6 +1183,22 @@ class CasadiReference:
                 problem.intervals_s,
             ]
         )
+        return solver, fg, par
+
+    def evaluate(
+        self, problem: MinTorqueProblem, x: ArrayLike, limit_scale: ArrayLike | None = None
+    ) -> tuple[float, FloatArray]:
+        """The NLP's objective and constraints (``<= 0`` holds, offset included) at ``x``."""
+        _, fg, par = self._prepared(problem, limit_scale)
+        f, g = fg(np.asarray(x, dtype=np.float64), par)
+        return float(f), np.asarray(g, dtype=np.float64).reshape(-1)
+
+    def solve(
+        self, problem: MinTorqueProblem, x0: ArrayLike, limit_scale: ArrayLike | None = None
+    ) -> ReferenceSolution:
+        """Solve ``problem`` from the optimiser's point ``x0`` with the limits scaled by
+        ``limit_scale`` ``(2, 3)`` (velocity, torque; default 1)."""
+        solver, _, par = self._prepared(problem, limit_scale)
         bounds = variable_bounds(self.rig, problem)
         t0 = time.perf_counter()
         res = solver(

@@ -408,3 +408,18 @@ def test_cli_exit_1_when_the_answer_is_not_feasible(
     report = json.loads(capsys.readouterr().out)
     assert report["feasible"] is False
     assert min(report["margins"].values()) < 0.0
+
+
+def test_cli_refuses_a_rig_without_the_fluid_soil_table(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from rt_runtime.cli import main
+
+    lines = PROFILE.read_text().splitlines()
+    start = next(i for i, ln in enumerate(lines) if ln.startswith("[soil.fluid.soft]"))
+    end = next(i for i, ln in enumerate(lines) if ln.startswith("[cylinders]"))
+    path = tmp_path / "no_fluid.toml"
+    path.write_text("\n".join(lines[:start] + lines[end:]) + "\n")
+    assert main(["mintorque", "--rig", str(path), "--soil", "soft", "--json"]) == 2
+    out = capsys.readouterr()
+    assert "fluid" in out.err and out.out == ""

@@ -174,7 +174,8 @@ def make_problem(
     """A checked problem on ``rig``: Yang/Pan Experiment I by default (0.8-1.0 m^3, 1 s starts).
 
     Defaults scale with the rig: surface at the rig's ground, entry window 60-72 % of the reach
-    (boom + stick + bucket), depth band 10 %-100 % of the bucket length.
+    (boom + stick + bucket), depth band 10 %-100 % of the bucket length l3, surface band
+    (entry and exit heights) 0.1 l3.
 
     Raises:
         ConfigurationError: An unknown soil (the message lists the rig's), a volume band that
@@ -207,6 +208,7 @@ def make_problem(
         volume_m3=(lo, hi),
         depth_m=depth_m if depth_m is not None else (0.1 * l3, 1.0 * l3),
         entry_x_m=entry_x_m if entry_x_m is not None else (0.60 * reach, 0.72 * reach),
+        surface_band_m=0.1 * l3,
         fixed_time=fixed_time,
         samples_per_interval=samples_per_interval,
     )
@@ -716,20 +718,22 @@ def _template(
 ) -> FloatArray | None:
     """Keypoint joint angles ``(5, 3)`` of a kinematic dig template, or None when unreachable.
 
-    Tip poses: a on the surface with the teeth down, b ``depth`` below and 0.3 m nearer the
-    machine, c ``drag`` further at the same depth, the rotation keypoint half-way up, d just
-    above the surface with the bucket curled; attitudes -95, -120, -160, -210, -250 deg.
+    Tip poses (lengths in bucket lengths l3): a on the surface with the teeth down, b
+    ``depth`` below and 0.3 l3 nearer the machine, c ``drag`` further at the same depth, the
+    rotation keypoint 0.4 l3 on and half-way up, d 0.3 l3 on, just above the surface with the
+    bucket curled; attitudes -95, -120, -160, -210, -250 deg.
     """
     H = p.surface_y_m
-    xb = entry_x - 0.3
+    l3 = float(rig.lengths_m[2])
+    xb = entry_x - 0.3 * l3
     xc = xb - drag
-    xr = xc - 0.4
+    xr = xc - 0.4 * l3
     poses = (
         (entry_x, H - 0.25 * p.surface_band_m, -95.0),
         (xb, H - depth, -120.0),
         (xc, H - depth, -160.0),
         (xr, H - 0.5 * depth, -210.0),
-        (xr - 0.3, H + 0.5 * p.surface_band_m, -250.0),
+        (xr - 0.3 * l3, H + 0.5 * p.surface_band_m, -250.0),
     )
     arm = kinematics.FastArm(rig)
     out = []
@@ -744,7 +748,8 @@ def _template(
 def kinematic_starts(rig: Rig, p: MinTorqueProblem, n: int) -> list[FloatArray]:
     """Up to ``n`` starts ``(15,)`` from a coarse reachability search over dig templates.
 
-    The templates (entry x over the window, depth over the band, drag length) whose keypoints
+    The templates (entry x over the window, depth over the band, drag length 0.4-1.3 bucket
+    lengths) whose keypoints
     the arm reaches within its joint limits are ranked by how far their quadrilateral's volume
     lies from the middle of the band; the best ``n`` with distinct (depth, drag) are kept.
     Depends on kinematics only, so every soil gets the same starts.
@@ -754,8 +759,8 @@ def kinematic_starts(rig: Rig, p: MinTorqueProblem, n: int) -> list[FloatArray]:
     target = 0.5 * sum(p.volume_m3)
     for ex in np.linspace(*p.entry_x_m, 3):
         for depth in np.linspace(z_lo + 0.25 * (z_hi - z_lo), z_hi - 0.1 * (z_hi - z_lo), 3):
-            for drag in (0.4, 0.7, 1.0, 1.3):
-                keys = _template(rig, p, float(ex), float(depth), drag)
+            for drag in np.array([0.4, 0.7, 1.0, 1.3]) * float(rig.lengths_m[2]):
+                keys = _template(rig, p, float(ex), float(depth), float(drag))
                 if keys is None:
                     continue
                 pos = kinematics.forward(rig, keys)
@@ -764,7 +769,7 @@ def kinematic_starts(rig: Rig, p: MinTorqueProblem, n: int) -> list[FloatArray]:
                     quad[:, 0] * np.roll(quad[:, 1], -1) - np.roll(quad[:, 0], -1) * quad[:, 1]
                 )
                 vol = -0.5 * twice * rig.bucket.width_m
-                cands.append((abs(vol - target), float(depth), drag, keys.reshape(-1)))
+                cands.append((abs(vol - target), float(depth), float(drag), keys.reshape(-1)))
     cands.sort(key=lambda c: c[0])
     out: list[FloatArray] = []
     seen: set[tuple[float, float]] = set()

@@ -372,7 +372,7 @@ def cmd_bench_mintorque(args: argparse.Namespace) -> int:
         )
     v, f = r["time"]["variable"], r["time"]["fixed"]
     print(
-        f"  variable time T {v['T_s']:.2f} s cost {v['cost']:.5g}; fixed (1 s intervals) T {f['T_s']:.2f} s cost {f['cost']:.5g} (paper 5.5 vs 6.4 s)"
+        f"  variable time T {v['T_s']:.2f} s cost {v['cost']:.5g}; fixed (1.25 s intervals) T {f['T_s']:.2f} s cost {f['cost']:.5g} (paper 5.5 vs 6.4 s)"
     )
     print(
         "  met: "
@@ -396,7 +396,7 @@ def add_parsers(sub: Any, bench_sub: Any) -> None:
     mp.add_argument(
         "--fixed-time",
         action="store_true",
-        help="keep the four intervals at 1 s (Yang/Pan Experiment I)",
+        help="keep the four intervals at 1.25 s (Yang/Pan Experiment I has 1 s; design note Y1)",
     )
     mp.add_argument(
         "--volume-m3",

@@ -26,6 +26,9 @@ Choices where the paper is silent or wrong (design note Y1 gives the numbers):
   normalised sum is dimensionless per second and weighs each joint by its share of capacity.
 * Eq 12 prints vector norms ``||qd|| < v_max``, ``||tau|| < tau_max`` where Table 1 gives one
   limit per joint: the limits hold per joint, ``|qd_j| <= v_max_j``, ``|tau_j| <= tau_max_j``.
+  The rig's joint acceleration and jerk limits hold too (``acceleration_*``, ``jerk_*``;
+  eq 12 has neither, but the executor refuses a path beyond them, so a dig without them could
+  not be run).
 * Eq 10 runs ``i = 0 .. M`` over M + 1 keypoints and so reads one keypoint past the end: the
   heading turns are taken between consecutive keypoints (four pairs), the travel turns between
   consecutive keypoint chords (three pairs).
@@ -78,7 +81,8 @@ JOINTS: tuple[str, ...] = ("boom", "stick", "bucket")
 #: Optimiser smoothing of the soil model: depth scale (m) and speed scale (m/s).
 SMOOTH_DEPTH_M = 0.02
 SMOOTH_SPEED_M_S = 0.02
-#: Share of the velocity and torque limits the optimiser keeps in reserve for the exact model
+#: Share of the velocity, acceleration, jerk and torque limits the optimiser keeps in reserve
+#: for the exact model
 #: and the 1 ms resample (design note Y1).
 LIMIT_MARGIN = 0.02
 #: Every normalised constraint is held to ``<= -CONSTRAINT_OFFSET`` in the optimiser, so that
@@ -95,6 +99,8 @@ SAMPLE_CONSTRAINTS: tuple[str, ...] = (
     *(f"angle_min_{j}" for j in JOINTS),
     *(f"angle_max_{j}" for j in JOINTS),
     *(f"velocity_{j}" for j in JOINTS),
+    *(f"acceleration_{j}" for j in JOINTS),
+    *(f"jerk_{j}" for j in JOINTS),
     *(f"torque_{j}" for j in JOINTS),
 )
 KEYPOINT_CONSTRAINTS: tuple[str, ...] = (
@@ -137,7 +143,9 @@ class MinTorqueProblem:
         surface_band_m: Entry a lies in ``[H - band, H]``, exit d in ``[H, H + band]``.
         entry_heading_deg: Half-angle of the cone around straight down the entry heading keeps.
         lift_heading_deg: Half-angle of the cone around straight up the exit heading keeps.
-        intervals_s: Start intervals (and the intervals of a fixed-time solve).
+        intervals_s: Start intervals (and the intervals of a fixed-time solve): 1.25 s, where
+            Yang/Pan's Experiment I has 1 s (within the rig's jerk limits 1 s intervals leave
+            the volume band out of reach; design note Y1).
         interval_bounds_s: Bounds of each interval in a variable-time solve.
         fixed_time: Keep the intervals at ``intervals_s``.
         samples_per_interval: Trapezoid steps per interval (the cost's time step is
@@ -153,7 +161,7 @@ class MinTorqueProblem:
     surface_band_m: float = 0.1
     entry_heading_deg: float = 45.0
     lift_heading_deg: float = 50.0
-    intervals_s: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
+    intervals_s: tuple[float, ...] = (1.25, 1.25, 1.25, 1.25)
     interval_bounds_s: tuple[float, float] = (0.3, 3.0)
     fixed_time: bool = False
     samples_per_interval: int = 32
@@ -171,7 +179,7 @@ def make_problem(
     depth_m: tuple[float, float] | None = None,
     samples_per_interval: int = 32,
 ) -> MinTorqueProblem:
-    """A checked problem on ``rig``: Yang/Pan Experiment I by default (0.8-1.0 m^3, 1 s starts).
+    """A checked problem on ``rig``: Yang/Pan Experiment I by default (0.8-1.0 m^3).
 
     Defaults scale with the rig: surface at the rig's ground, entry window 60-72 % of the reach
     (boom + stick + bucket), depth band 10 %-100 % of the bucket length l3, surface band
@@ -304,6 +312,9 @@ def _hermite_basis(Q: int) -> dict[str, FloatArray]:
         "a0": -60 * u + 180 * u2 - 120 * u3,
         "a1": -36 * u + 96 * u2 - 60 * u3,
         "a4": -24 * u + 84 * u2 - 60 * u3,
+        "j0": -60 + 360 * u - 360 * u2,
+        "j1": -36 + 192 * u - 180 * u2,
+        "j4": -24 + 168 * u - 180 * u2,
         "w": w,
     }
 
@@ -397,6 +408,8 @@ class _Samples:
 
     q: list[Any]
     qd: list[Any]
+    qdd: list[Any]
+    jerk: list[Any]
     tau: list[Any]
     weight: Any
     tip_y: Any
@@ -424,8 +437,9 @@ class _Model:
         q: list[Any] = []
         qd: list[Any] = []
         qdd: list[Any] = []
+        qddd: list[Any] = []
         for j in range(3):
-            qs, vs, acs = [], [], []
+            qs, vs, acs, js = [], [], [], []
             for i in range(N_INTERVALS):
                 p0, p1, v0, v1, hi = keys[i][j], keys[i + 1][j], vel[i][j], vel[i + 1][j], h[i]
                 qs.append(
@@ -444,12 +458,18 @@ class _Model:
                     + ops.scaled(v0 / hi, B["a1"])
                     + ops.scaled(v1 / hi, B["a4"])
                 )
+                js.append(
+                    ops.scaled((p0 - p1) / (hi * hi * hi), B["j0"])
+                    + ops.scaled(v0 / (hi * hi), B["j1"])
+                    + ops.scaled(v1 / (hi * hi), B["j4"])
+                )
             q.append(ops.cat(qs))
             qd.append(ops.cat(vs))
             qdd.append(ops.cat(acs))
+            qddd.append(ops.cat(js))
         weight = ops.cat([ops.scaled(h[i], B["w"]) for i in range(N_INTERVALS)])
         tau, tip_y = self._torques(q, qd, qdd)
-        return _Samples(q, qd, tau, weight, tip_y)
+        return _Samples(q, qd, qdd, qddd, tau, weight, tip_y)
 
     def _torques(self, q: list[Any], qd: list[Any], qdd: list[Any]) -> tuple[list[Any], Any]:
         ops, ch = self.ops, self.chain
@@ -638,9 +658,10 @@ class Evaluator:
         self.rig = rig
         self.problem = problem
         self.model = _Model(rig, problem, _NumpyOps)
-        #: Per-joint scale (<= 1) of the velocity and torque limits: ``(2, 3)``.
+        #: Per-joint scale (<= 1) of the velocity, acceleration, jerk and torque limits:
+        #: ``(4, 3)``.
         self.limit_scale = (
-            np.ones((2, 3)) if limit_scale is None else np.asarray(limit_scale, np.float64)
+            np.ones((4, 3)) if limit_scale is None else np.asarray(limit_scale, np.float64)
         )
 
     def evaluate(self, X: ArrayLike) -> Evaluation:
@@ -656,10 +677,14 @@ class Evaluator:
         rig = self.rig
         q = np.stack(smp.q, axis=-1)  # (B, S, 3)
         qd = np.stack(smp.qd, axis=-1)
+        qdd = np.stack(smp.qdd, axis=-1)
+        jerk = np.stack(smp.jerk, axis=-1)
         tau = np.stack(smp.tau, axis=-1)
         span = rig.q_max_rad - rig.q_min_rad
         v_lim = rig.qd_max_rad_s * self.limit_scale[0]
-        t_lim = rig.tau_max_nm * self.limit_scale[1]
+        a_lim = rig.qdd_max_rad_s2 * self.limit_scale[1]
+        j_lim = _jerk_max(rig) * self.limit_scale[2]
+        t_lim = rig.tau_max_nm * self.limit_scale[3]
         B = x.shape[0]
         per_sample = np.concatenate(
             [
@@ -667,12 +692,16 @@ class Evaluator:
                 (q - rig.q_max_rad) / span,
                 qd / v_lim - 1.0,
                 -qd / v_lim - 1.0,
+                qdd / a_lim - 1.0,
+                -qdd / a_lim - 1.0,
+                jerk / j_lim - 1.0,
+                -jerk / j_lim - 1.0,
                 tau / t_lim - 1.0,
                 -tau / t_lim - 1.0,
             ],
             axis=-1,
-        )  # (B, S, 18)
-        peak = np.max(per_sample, axis=1).reshape(B, 6, 3)
+        )  # (B, S, 30)
+        peak = np.max(per_sample, axis=1).reshape(B, 10, 3)
         kp = np.stack(m.keypoint_constraints(keys), axis=-1)
         # Per interval, joint and side the smooth maximum (Kreisselmeier-Steinhauser) of the
         # interval's samples: above the true peak by at most log(Q + 1) / KS_RHO.
@@ -686,6 +715,8 @@ class Evaluator:
                 peak[:, 1],
                 np.maximum(peak[:, 2], peak[:, 3]),
                 np.maximum(peak[:, 4], peak[:, 5]),
+                np.maximum(peak[:, 6], peak[:, 7]),
+                np.maximum(peak[:, 8], peak[:, 9]),
                 kp,
             ],
             axis=1,
@@ -821,7 +852,7 @@ class Solution:
     x: FloatArray
     iterations: int
     message: str
-    limit_scale: FloatArray = field(default_factory=lambda: np.ones((2, 3)))
+    limit_scale: FloatArray = field(default_factory=lambda: np.ones((4, 3)))
 
     def sample(self, t_s: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Joint angles, velocities and accelerations ``(n, 3)`` each at times ``t_s`` (s)."""
@@ -860,6 +891,29 @@ def sample_path(
         + v1 / hs * (-24 * u + 84 * u2 - 60 * u3)
     )
     return q, qd, qdd
+
+
+def path_jerk(keypoints_rad: ArrayLike, intervals_s: ArrayLike, t_s: ArrayLike) -> FloatArray:
+    """Joint jerk ``(n, 3)`` (rad/s^3) of the interpolation at times ``t_s``."""
+    keys = np.asarray(keypoints_rad, dtype=np.float64)
+    h = np.asarray(intervals_s, dtype=np.float64)
+    t = np.clip(np.atleast_1d(np.asarray(t_s, dtype=np.float64)), 0.0, float(np.sum(h)))
+    knots = np.concatenate([[0.0], np.cumsum(h)])
+    seg = np.clip(np.searchsorted(knots, t, side="right") - 1, 0, len(h) - 1)
+    vel = np.asarray(knot_velocities(keys.tolist(), h.tolist()), dtype=np.float64)
+    hs = h[seg][:, None]
+    u = ((t - knots[seg]) / h[seg])[:, None]
+    p0, p1, v0, v1 = keys[seg], keys[seg + 1], vel[seg], vel[seg + 1]
+    jerk: FloatArray = (
+        (p0 - p1) / hs**3 * (-60 + 360 * u - 360 * u**2)
+        + v0 / hs**2 * (-36 + 192 * u - 180 * u**2)
+        + v1 / hs**2 * (-24 + 168 * u - 180 * u**2)
+    )
+    return jerk
+
+
+def _jerk_max(rig: Rig) -> FloatArray:
+    return np.array([j.jerk_max_rad_s3 for j in rig.joints], dtype=np.float64)
 
 
 @dataclass(frozen=True, slots=True)
@@ -902,6 +956,8 @@ def exact_check(
             (rig.q_min_rad - q.min(axis=0)) / span,
             (q.max(axis=0) - rig.q_max_rad) / span,
             np.abs(qd).max(axis=0) / rig.qd_max_rad_s - 1.0,
+            np.abs(qdd).max(axis=0) / rig.qdd_max_rad_s2 - 1.0,
+            np.abs(path_jerk(keys, h, t)).max(axis=0) / _jerk_max(rig) - 1.0,
             np.abs(tau).max(axis=0) / rig.tau_max_nm - 1.0,
         ]
     )
@@ -981,9 +1037,9 @@ def solve(
     """Optimise one dig (module docstring) and re-check it on the exact model at 1 ms.
 
     Each start is solved by SLSQP; the best by Deb's rule (feasible on the smoothed model
-    first, then cost) is re-checked on the exact model. Where a sampled velocity or torque
-    margin is negative there, that limit is tightened by the excess (plus 0.5 %) and the solve
-    repeated from the answer, at most ``rechecks`` times.
+    first, then cost) is re-checked on the exact model. Where a sampled velocity, acceleration,
+    jerk or torque margin is negative there, that limit is tightened by the excess (plus 0.5 %) and
+    the solve repeated from the answer, at most ``rechecks`` times.
 
     Args:
         rig: The rig.
@@ -1018,7 +1074,7 @@ def solve(
     bounds = variable_bounds(rig, problem)
     lo = np.array([b[0] for b in bounds])
     hi = np.array([b[1] for b in bounds])
-    scale = np.full((2, 3), 1.0 - LIMIT_MARGIN)
+    scale = np.full((4, 3), 1.0 - LIMIT_MARGIN)
     ev = Evaluator(rig, problem, limit_scale=scale)
     best: tuple[tuple[float, float], FloatArray, FloatArray, Any] | None = None
     for s in start_list:
@@ -1034,7 +1090,8 @@ def solve(
     for _ in range(rechecks + 1):
         keys, h = _split_point(problem, x)
         chk = exact_check(rig, problem, keys, h)
-        worst = chk.constraints[6:12].reshape(2, 3)  # velocity, torque: peak / limit - 1
+        # Velocity, acceleration, jerk, torque: peak / limit - 1.
+        worst = chk.constraints[6:18].reshape(4, 3)
         if np.all(chk.constraints <= 0.0) or not np.any(worst > 0.0):
             break
         scale = np.where(worst > 0.0, scale / (1.0 + worst) - 0.005, scale)
@@ -1131,7 +1188,7 @@ class CasadiReference:
 
     def _build(self, p: MinTorqueProblem) -> Any:
         ca, rig = self.ca, self.rig
-        par = ca.SX.sym("p", 11 + 6 + N_INTERVALS)
+        par = ca.SX.sym("p", 11 + 12 + N_INTERVALS)
         sym = dataclasses.replace(
             p,
             soil=FluidSoil(p.soil.name, par[0], par[1], par[2], par[3]),
@@ -1140,13 +1197,13 @@ class CasadiReference:
             depth_m=(par[7], par[8]),
             entry_x_m=(par[9], par[10]),
         )
-        scale = [[par[11 + 3 * r + j] for j in range(3)] for r in range(2)]
+        scale = [[par[11 + 3 * r + j] for j in range(3)] for r in range(4)]
         m = _Model(rig, sym, _CasadiOps())
         n = 3 * N_KEY + (0 if p.fixed_time else N_INTERVALS)
         xs = ca.SX.sym("x", n)
         keys = _keys_of(xs, lambda a, i: a[i])
         if p.fixed_time:
-            h: list[Any] = [par[17 + i] for i in range(N_INTERVALS)]
+            h: list[Any] = [par[23 + i] for i in range(N_INTERVALS)]
         else:
             h = [xs[3 * N_KEY + i] for i in range(N_INTERVALS)]
         smp = m.samples(keys, h)
@@ -1155,8 +1212,12 @@ class CasadiReference:
             lo, hi = float(rig.q_min_rad[j]), float(rig.q_max_rad[j])
             g += [(lo - smp.q[j]) / (hi - lo), (smp.q[j] - hi) / (hi - lo)]
             v = float(rig.qd_max_rad_s[j]) * scale[0][j]
-            t = float(rig.tau_max_nm[j]) * scale[1][j]
+            a = float(rig.qdd_max_rad_s2[j]) * scale[1][j]
+            jm = float(_jerk_max(rig)[j]) * scale[2][j]
+            t = float(rig.tau_max_nm[j]) * scale[3][j]
             g += [smp.qd[j] / v - 1.0, -smp.qd[j] / v - 1.0]
+            g += [smp.qdd[j] / a - 1.0, -smp.qdd[j] / a - 1.0]
+            g += [smp.jerk[j] / jm - 1.0, -smp.jerk[j] / jm - 1.0]
             g += [smp.tau[j] / t - 1.0, -smp.tau[j] / t - 1.0]
         g += list(m.keypoint_constraints(keys))
         f = m.cost(smp)
@@ -1177,7 +1238,7 @@ class CasadiReference:
             self._solvers[key] = self._build(problem)
         solver, fg = self._solvers[key]
         fs = problem.soil
-        scale = np.ones((2, 3)) if limit_scale is None else np.asarray(limit_scale, np.float64)
+        scale = np.ones((4, 3)) if limit_scale is None else np.asarray(limit_scale, np.float64)
         par = np.concatenate(
             [
                 [fs.density_kg_m3, fs.kp, fs.kv, fs.ks, problem.surface_y_m],
@@ -1202,7 +1263,7 @@ class CasadiReference:
         self, problem: MinTorqueProblem, x0: ArrayLike, limit_scale: ArrayLike | None = None
     ) -> ReferenceSolution:
         """Solve ``problem`` from the optimiser's point ``x0`` with the limits scaled by
-        ``limit_scale`` ``(2, 3)`` (velocity, torque; default 1)."""
+        ``limit_scale`` ``(4, 3)`` (velocity, acceleration, jerk, torque; default 1)."""
         solver, _, par = self._prepared(problem, limit_scale)
         bounds = variable_bounds(self.rig, problem)
         t0 = time.perf_counter()

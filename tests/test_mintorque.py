@@ -423,3 +423,25 @@ def test_cli_refuses_a_rig_without_the_fluid_soil_table(
     assert main(["mintorque", "--rig", str(path), "--soil", "soft", "--json"]) == 2
     out = capsys.readouterr()
     assert "fluid" in out.err and out.out == ""
+
+
+def test_hil_mintorque_runs_the_dig_and_reports_torques(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """The optimised dig on the lockstep HIL in soft soil: it runs to its end, tracking and
+    plant-against-planned torques are reported with every documented key."""
+    from test_report_keys import README, _list_of, _paragraph, contract_keys, missing
+
+    from rt_runtime.cli import main
+
+    assert main(["hil", "--mintorque", "soft", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    keys = contract_keys(_list_of(_paragraph(README, "`hil --mintorque --json`")))
+    assert {("torque", "rms_plant_nm"), ("tracking", "reported", "max_mm")} <= keys
+    assert missing(report, keys) == []
+    assert report["status"] == "done"
+    assert set(report["torque"]) == set(mt.JOINTS)
+    for t in report["torque"].values():
+        assert t["rms_planned_nm"] > 0.0 and t["rms_plant_nm"] > 0.0
+    assert main(["hil", "--mintorque", "clay", "--json"]) == 2
+    assert "clay" in json.loads(capsys.readouterr().out)["error"]

@@ -11,6 +11,10 @@ here and in the report). ``rt_runtime.cli`` wires it in with :func:`add_parser` 
     excavator-rt hil --path gao|FILE.json|joints [--joints-deg B,S,K ...] [--rig test_bench]
                      [--orders auto|3-4-5-4-3|...] [--durations 3,3,3,3,3] [--start-deg B,S,K]
                      [--realtime] [--no-feedforward] [--trace FILE] [--json] [--plot DIR]
+    excavator-rt hil --mintorque soft|hard [--rig yang_pan_excavator] [--fixed-time] [--json]
+
+``--mintorque`` plans a minimum-torque dig (Yang/Pan) and runs it on the lockstep HIL in the
+same fluid soil (:mod:`hil_sim.harness.mintorque`).
 
 ``--path`` runs a prescribed joint path instead of a task (:func:`hil_sim.harness.scenario.
 run_path_scenario`): ``gao`` is Gao Table 2 with 3 s segments and the smoothest order pattern,

@@ -859,11 +859,12 @@ class Solution:
         return sample_path(self.keypoints_rad, self.intervals_s, t_s)
 
 
-def sample_path(
+def _pieces(
     keypoints_rad: ArrayLike, intervals_s: ArrayLike, t_s: ArrayLike
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """The interpolation between keypoints (module docstring) at times ``t_s`` (clipped to
-    ``[0, T]``): ``q``, ``qd``, ``qdd`` shaped ``(n, 3)``."""
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Each time's piece of the interpolation: its end keypoints ``p0``, ``p1`` and knot
+    velocities ``v0``, ``v1`` (``(n, 3)``), its duration ``hs`` and the normalised time ``u``
+    in it (``(n, 1)``); times clipped to ``[0, T]``."""
     keys = np.asarray(keypoints_rad, dtype=np.float64)
     h = np.asarray(intervals_s, dtype=np.float64)
     t = np.clip(np.atleast_1d(np.asarray(t_s, dtype=np.float64)), 0.0, float(np.sum(h)))
@@ -872,8 +873,16 @@ def sample_path(
     vel = np.asarray(knot_velocities(keys.tolist(), h.tolist()), dtype=np.float64)
     hs = h[seg][:, None]
     u = ((t - knots[seg]) / h[seg])[:, None]
+    return keys[seg], keys[seg + 1], vel[seg], vel[seg + 1], hs, u
+
+
+def sample_path(
+    keypoints_rad: ArrayLike, intervals_s: ArrayLike, t_s: ArrayLike
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The interpolation between keypoints (module docstring) at times ``t_s`` (clipped to
+    ``[0, T]``): ``q``, ``qd``, ``qdd`` shaped ``(n, 3)``."""
+    p0, p1, v0, v1, hs, u = _pieces(keypoints_rad, intervals_s, t_s)
     u2, u3, u4, u5 = u**2, u**3, u**4, u**5
-    p0, p1, v0, v1 = keys[seg], keys[seg + 1], vel[seg], vel[seg + 1]
     q = (
         p0 * (1 - 10 * u3 + 15 * u4 - 6 * u5)
         + p1 * (10 * u3 - 15 * u4 + 6 * u5)
@@ -895,15 +904,7 @@ def sample_path(
 
 def path_jerk(keypoints_rad: ArrayLike, intervals_s: ArrayLike, t_s: ArrayLike) -> FloatArray:
     """Joint jerk ``(n, 3)`` (rad/s^3) of the interpolation at times ``t_s``."""
-    keys = np.asarray(keypoints_rad, dtype=np.float64)
-    h = np.asarray(intervals_s, dtype=np.float64)
-    t = np.clip(np.atleast_1d(np.asarray(t_s, dtype=np.float64)), 0.0, float(np.sum(h)))
-    knots = np.concatenate([[0.0], np.cumsum(h)])
-    seg = np.clip(np.searchsorted(knots, t, side="right") - 1, 0, len(h) - 1)
-    vel = np.asarray(knot_velocities(keys.tolist(), h.tolist()), dtype=np.float64)
-    hs = h[seg][:, None]
-    u = ((t - knots[seg]) / h[seg])[:, None]
-    p0, p1, v0, v1 = keys[seg], keys[seg + 1], vel[seg], vel[seg + 1]
+    p0, p1, v0, v1, hs, u = _pieces(keypoints_rad, intervals_s, t_s)
     jerk: FloatArray = (
         (p0 - p1) / hs**3 * (-60 + 360 * u - 360 * u**2)
         + v0 / hs**2 * (-36 + 192 * u - 180 * u**2)

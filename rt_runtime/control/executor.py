@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from rt_runtime import actuation
+from rt_runtime import axes
 from rt_runtime.canbus import CanMaster, Emcy
 from rt_runtime.control.controllers import GuardFilter
 from rt_runtime.control.guard import DEFAULT_MARGIN, LimitGuard, StrokeLimits
@@ -262,6 +262,17 @@ class Executor:
         self.period_s = period
         self.realtime = bool(loop.clock.realtime)
         self.plan_in_worker = self.realtime if cfg.plan_in_worker is None else cfg.plan_in_worker
+        if master.n != axes.count(rig):
+            raise ConfigurationError(
+                f"the master drives {master.n} axes ({', '.join(master.config.axes)}); rig "
+                f"{rig.name} has {axes.count(rig)} ({', '.join(axes.names(rig))})"
+            )
+        if rig.swing is not None and not isinstance(work, PathJob):
+            raise ConfigurationError(
+                f"rig {rig.name} has a swing axis: the trench planner plans the arm plane only, "
+                "so a trench job cannot run on it; allowed: a prescribed path over all four "
+                "axes (a taught job, a path job)"
+            )
         if isinstance(work, PathJob):
             # Checked before anything is sent; a path has nothing to plan in a process.
             work.check(rig)
@@ -373,7 +384,7 @@ class Executor:
             )
         s0 = drives.measured_stroke_m()
         self.guard.reset(s0)
-        q0 = actuation.stroke_to_joint(self.rig, s0, check_limits=False)
+        q0 = axes.actuator_to_joint(self.rig, s0, check_limits=False)
         job = self.job
         try:
             first = job.start(s0)

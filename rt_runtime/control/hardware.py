@@ -8,9 +8,10 @@ between metres and the drives' integer micrometres. One cycle is :meth:`~DriveIn
 ``read_timeout_s``, then the master's heartbeat when due). Both are loop safe: preallocated
 buffers, no exceptions for bus conditions (statuses instead).
 
-Units: strokes m, stroke rates m/s, times s. A drive whose TPDO1 for this SYNC did not arrive is
-*stale*: its ``stroke_m`` and ``velocity_m_s`` are NaN this cycle, ``last_velocity_m_s`` keeps its
-last report.
+Units: strokes m, stroke rates m/s, times s; a swing axis (index 3, :mod:`rt_runtime.axes`)
+in rad and rad/s under the same names, microradians on the bus. A drive whose TPDO1 for this
+SYNC did not arrive is *stale*: its ``stroke_m`` and ``velocity_m_s`` are NaN this cycle,
+``last_velocity_m_s`` keeps its last report.
 
 Plausibility: a reported stroke further from the axis's last good report than the axis can
 move in the time between them (:data:`JUMP_RATE_FACTOR` times the rig's largest stroke rate,
@@ -126,8 +127,10 @@ class DriveInterface:
         self.axes: tuple[str, ...] = tuple(master.config.axes)
         self.feedback = DriveFeedback(self.n)
         self._zero_um = [0] * self.n
-        rate = JUMP_RATE_FACTOR * master.rig.actuators.velocity_max_m_s
-        self._jump_per_sync_m = rate * master.config.period_s
+        from rt_runtime import axes
+
+        rate = JUMP_RATE_FACTOR * axes.actuator_velocity_max(master.rig)
+        self._jump_per_sync_m: list[float] = (rate * master.config.period_s).tolist()
         self._good_m = [math.nan] * self.n
         self._good_sync = [0] * self.n
 
@@ -216,7 +219,10 @@ class DriveInterface:
             if gone:
                 continue
             last = good[axis]
-            if last == last and abs(x - last) > step * (sync - good_sync[axis]) + JUMP_MARGIN_M:
+            if (
+                last == last
+                and abs(x - last) > step[axis] * (sync - good_sync[axis]) + JUMP_MARGIN_M
+            ):
                 stale[axis] = True
                 refused = True
                 self.master.feedback.counts.implausible += 1

@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from rt_runtime import actuation
+from rt_runtime import axes as rig_axes
 from rt_runtime.canbus import CycleStatus, DriveState, Emcy, WriteStatus
 from rt_runtime.control.controllers import Command, ControllerStatus, GuardFilter, Mode
 from rt_runtime.control.guard import GuardState
@@ -236,8 +236,8 @@ class _Collector:
 
     __slots__ = ("active", "buf", "dig", "first", "last", "n")
 
-    def __init__(self, capacity: int) -> None:
-        self.buf = np.zeros((capacity, 3))
+    def __init__(self, capacity: int, n: int = 3) -> None:
+        self.buf = np.zeros((capacity, n))
         self.active = False
         self.n = 0
         self.first = -1
@@ -451,9 +451,10 @@ class JobController:
         self.monitors = _Monitors(limits, axes, describe)
         self._on_record = on_record
         self.planning = _Planning(link)
-        self.collector = _Collector(dig_capacity)
+        n = len(axes)
+        self.collector = _Collector(dig_capacity, n)
         self.stream: _Stream | None = None
-        self.command = Command()
+        self.command = Command(n)
         self.state = JobState.RUNNING
         self.status: ExecStatus | None = None
         self.fault = ""
@@ -462,7 +463,7 @@ class JobController:
         self._stop_request = StopRequest.NONE
         self._paused = False
         self._progress = JobProgress()
-        self._s_ref = np.zeros(3)  # the demand at the SYNC the next feedback answers
+        self._s_ref = np.zeros(n)  # the demand at the SYNC the next feedback answers
         self._t0_s = -1.0  # when the settle or the stop began (-1: at the next update)
         self._updates = 0
 
@@ -524,7 +525,7 @@ class JobController:
         request, answered in-process here when the link answers in-process; the first
         command. Outside the loop (any thread, before the switch to this controller)."""
         s0 = np.asarray(s0_m, dtype=np.float64).copy()
-        q0 = actuation.stroke_to_joint(self.rig, s0, check_limits=False)
+        q0 = rig_axes.actuator_to_joint(self.rig, s0, check_limits=False)
         self.stream = _Stream(q0, s0)
         self._s_ref[:] = s0
         self.planning.plan_out = True

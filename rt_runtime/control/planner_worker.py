@@ -63,7 +63,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from rt_runtime import actuation, kinematics
+from rt_runtime import actuation, axes, kinematics
 from rt_runtime.control.setpoints import (
     CONNECT_TOLERANCE_M,
     KIND_PHASE,
@@ -193,8 +193,9 @@ class PlannerError:
 @runtime_checkable
 class JointMotion(Protocol):
     """A joint motion the executor can stream: ``sample(t_s) -> (q, qd, qdd)`` for
-    ``0 <= t_s <= duration_s`` (rad, rad/s, rad/s^2, each ``(3,)``). Called once per cycle in
-    the loop: it must be cheap."""
+    ``0 <= t_s <= duration_s`` (rad, rad/s, rad/s^2, each ``(n,)`` over the rig's axes in axis
+    order: boom, stick, bucket, then swing on a rig with swing, :mod:`rt_runtime.axes`).
+    Called once per cycle in the loop: it must be cheap."""
 
     @property
     def duration_s(self) -> float:
@@ -312,24 +313,31 @@ class PathJob:
         """
         if not (math.isfinite(step_s) and step_s > 0.0):
             raise ConfigurationError(f"path check step_s = {step_s}; allowed: a finite value > 0")
-        names = [j.name for j in rig.joints][:3]
+        names = axes.names(rig)
+        k = len(names)
+        _, _, qd_max, qdd_max, qddd_max = axes.joint_limits(rig)
         limits = (
-            ("velocity", np.asarray(rig.qd_max_rad_s, dtype=np.float64), "deg/s"),
-            ("acceleration", np.asarray(rig.qdd_max_rad_s2, dtype=np.float64), "deg/s^2"),
-            ("jerk", np.asarray(rig.qddd_max_rad_s3, dtype=np.float64), "deg/s^3"),
+            ("velocity", qd_max, "deg/s"),
+            ("acceleration", qdd_max, "deg/s^2"),
+            ("jerk", qddd_max, "deg/s^3"),
         )
         for i, motion in enumerate(self.motions):
             duration = float(motion.duration_s)
             n = max(math.ceil(duration / step_s), 1)
             ts = np.linspace(0.0, duration, n + 1)
             rows = [motion.sample(float(t)) for t in ts]
-            q = np.array([r[0] for r in rows], dtype=np.float64).reshape(-1, 3)
-            qd = np.array([r[1] for r in rows], dtype=np.float64).reshape(-1, 3)
-            qdd = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 3)
+            q = np.array([r[0] for r in rows], dtype=np.float64)
+            qd = np.array([r[1] for r in rows], dtype=np.float64)
+            qdd = np.array([r[2] for r in rows], dtype=np.float64)
+            if q.ndim != 2 or q.shape[1] != k or qd.shape != q.shape or qdd.shape != q.shape:
+                raise PlanningError(
+                    f"path motion {i} samples joint states of shape {q.shape[1:]}; the rig "
+                    f"{rig.name} has {k} axes ({', '.join(names)})"
+                )
             if not (np.isfinite(q).all() and np.isfinite(qd).all() and np.isfinite(qdd).all()):
                 raise PlanningError(f"path motion {i} samples a non-finite joint state")
             # Raises JointLimitError naming the joint, the value and the range.
-            actuation.joint_to_stroke(rig, q, check_limits=True)
+            axes.joint_to_actuator(rig, q, check_limits=True)
             jerk = np.diff(qdd, axis=0) / np.diff(ts)[:, None]
             for (what, limit, unit), values, slack in zip(
                 limits, (qd, qdd, jerk), (1.0, 1.0, 1.001), strict=True

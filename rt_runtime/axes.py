@@ -32,6 +32,7 @@ from rt_runtime.rig import Rig
 __all__ = [
     "ARM_AXES",
     "SWING",
+    "SWING_FOLLOWING_ERROR_WINDOW_RAD",
     "actuator_jacobian",
     "actuator_limits",
     "actuator_to_joint",
@@ -52,6 +53,9 @@ ARM_AXES = ("boom", "stick", "bucket")
 #: The swing axis's name (index 3 on a rig with swing).
 SWING = "swing"
 _SWING_TOL_RAD = 1e-9
+#: The swing drive's following-error window (rad): ten times the swing's 0.3 deg tracking goal,
+#: as the cylinders' window is ten times their 3 mm goal.
+SWING_FOLLOWING_ERROR_WINDOW_RAD = math.radians(3.0)
 
 
 def names(rig: Rig) -> tuple[str, ...]:

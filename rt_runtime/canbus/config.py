@@ -42,9 +42,6 @@ MODE_CSP = 8
 #: The arm's axes in array order (a rig with swing appends ``swing``:
 #: :func:`rt_runtime.axes.names`).
 AXES = ("boom", "stick", "bucket")
-#: The swing drive's following-error window (rad): ten times the swing's 0.3 deg tracking goal,
-#: as the cylinders' window is ten times their 3 mm goal.
-SWING_FOLLOWING_ERROR_WINDOW_RAD = math.radians(3.0)
 
 _COB_INVALID = 0x8000_0000
 
@@ -63,7 +60,7 @@ class MasterConfig:
         heartbeat_period_s: Heartbeat period of drives and master.
         heartbeat_timeout_s: Consumer timeout, both ways.
         following_error_window_um: 0x6065 per axis (the swing's:
-            :data:`SWING_FOLLOWING_ERROR_WINDOW_RAD` in urad).
+            :data:`rt_runtime.axes.SWING_FOLLOWING_ERROR_WINDOW_RAD` in urad).
         following_error_timeout_ms: 0x6066.
         stroke_min_um: 0x607D sub 1 per axis.
         stroke_max_um: 0x607D sub 2 per axis.
@@ -95,6 +92,7 @@ class MasterConfig:
                 does not fit its CAN object.
         """
         from rt_runtime import axes as rig_axes
+        from rt_runtime.axes import SWING_FOLLOWING_ERROR_WINDOW_RAD
 
         if not (math.isfinite(period_s) and period_s > 0.0):
             raise ConfigurationError(f"cycle period {period_s} s must be finite and > 0")

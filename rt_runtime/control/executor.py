@@ -98,7 +98,8 @@ class ExecutorConfig:
         feedforward: Send the stroke rate as velocity offset 0x60B1 (else 0).
         plan_in_worker: Plan in a separate process; None: when the loop's clock is real time.
         following_error_m: Largest |demand - reported stroke| (m); None: 0.8 of the drives'
-            following-error window (the executor stops the job before the drive faults).
+            following-error window (the executor stops the job before the drive faults). The
+            swing's bound (rad) is the same fraction of its drive's window.
         following_error_cycles: Consecutive cycles beyond it that count as a fault (>= 1).
         stale_cycles: Consecutive cycles without a drive's TPDO1 that count as a fault (>= 1).
         read_timeout_s: Longest wait for a missing TPDO when the cycle reads the answers to the
@@ -158,11 +159,8 @@ class ExecutorConfig:
 
     def limits(self, rig: Rig) -> JobLimits:
         """The job controller's monitors and endings on ``rig``."""
-        following = (
-            self.following_error_m
-            if self.following_error_m is not None
-            else 0.8 * rig.drives.following_error_window_m
-        )
+        window = rig.drives.following_error_window_m
+        following = self.following_error_m if self.following_error_m is not None else 0.8 * window
         return JobLimits(
             following_error_m=following,
             following_error_cycles=self.following_error_cycles,
@@ -171,6 +169,8 @@ class ExecutorConfig:
             rest_velocity_m_s=self.rest_velocity_m_s,
             settle_s=self.settle_s,
             max_digs=self.max_digs,
+            # The swing's window in the same proportion to its drive's window (0x6065).
+            swing_following_error_rad=following / window * axes.SWING_FOLLOWING_ERROR_WINDOW_RAD,
         )
 
 

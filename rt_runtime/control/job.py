@@ -153,6 +153,7 @@ class JobLimits:
     rest_velocity_m_s: float
     settle_s: float
     max_digs: int | None
+    swing_following_error_rad: float = math.inf
 
 
 @dataclass(frozen=True, slots=True)
@@ -348,7 +349,16 @@ class _Monitors:
     docstring): the causes to stop for, in the order found. Per-axis counts in plain Python
     (three axes: cheaper than numpy's per-call cost)."""
 
-    __slots__ = ("axes", "causes", "describe", "fe_count", "limits", "prev_status", "stale_count")
+    __slots__ = (
+        "axes",
+        "causes",
+        "describe",
+        "fe_count",
+        "limits",
+        "prev_status",
+        "stale_count",
+        "windows",
+    )
 
     def __init__(
         self, limits: JobLimits, axes: tuple[str, ...], describe: Callable[[CycleStatus], str]
@@ -358,6 +368,10 @@ class _Monitors:
         self.describe = describe
         self.fe_count = [0] * len(axes)
         self.stale_count = [0] * len(axes)
+        # The swing (axis 3, rad) has its own window; the cylinders share one (m).
+        self.windows = [limits.following_error_m] * 3 + [limits.swing_following_error_rad] * (
+            len(axes) - 3
+        )
         self.prev_status = CycleStatus.OK
         self.causes: list[tuple[ExecStatus, str]] = []
 
@@ -398,21 +412,22 @@ class _Monitors:
         pos = fb.stroke_m.tolist()
         ref = s_ref.tolist()
         enabled = (fb.state == DriveState.OPERATION_ENABLED).tolist()
-        window = limits.following_error_m
+        windows = self.windows
         fe = self.fe_count
         worst = 0
         for i, gone in enumerate(stale):
-            over = abs(pos[i] - ref[i]) > window and not gone and enabled[i]
+            over = abs(pos[i] - ref[i]) > windows[i] and not gone and enabled[i]
             fe[i] = fe[i] + 1 if over else 0
             if fe[i] > fe[worst]:
                 worst = i
         if fe[worst] >= limits.following_error_cycles and not stopping:
             err = abs(pos[worst] - ref[worst])
+            scale, unit = (math.degrees(1.0), "deg") if worst == 3 else (1e3, "mm")
             causes.append(
                 (
                     ExecStatus.FAULT,
-                    f"following error on the {self.axes[worst]} axis: {err * 1e3:.2f} mm > "
-                    f"{window * 1e3:.2f} mm for {fe[worst]} cycles",
+                    f"following error on the {self.axes[worst]} axis: {err * scale:.2f} {unit} "
+                    f"> {windows[worst] * scale:.2f} {unit} for {fe[worst]} cycles",
                 )
             )
         return causes

@@ -314,7 +314,7 @@ class PathJob:
         if not (math.isfinite(step_s) and step_s > 0.0):
             raise ConfigurationError(f"path check step_s = {step_s}; allowed: a finite value > 0")
         names = axes.names(rig)
-        k = len(names)
+        n_axes = len(names)
         _, _, qd_max, qdd_max, qddd_max = axes.joint_limits(rig)
         limits = (
             ("velocity", qd_max, "deg/s"),
@@ -329,10 +329,15 @@ class PathJob:
             q = np.array([r[0] for r in rows], dtype=np.float64)
             qd = np.array([r[1] for r in rows], dtype=np.float64)
             qdd = np.array([r[2] for r in rows], dtype=np.float64)
-            if q.ndim != 2 or q.shape[1] != k or qd.shape != q.shape or qdd.shape != q.shape:
+            if (
+                q.ndim != 2
+                or q.shape[1] != n_axes
+                or qd.shape != q.shape
+                or qdd.shape != q.shape
+            ):
                 raise PlanningError(
                     f"path motion {i} samples joint states of shape {q.shape[1:]}; the rig "
-                    f"{rig.name} has {k} axes ({', '.join(names)})"
+                    f"{rig.name} has {n_axes} axes ({', '.join(names)})"
                 )
             if not (np.isfinite(q).all() and np.isfinite(qd).all() and np.isfinite(qdd).all()):
                 raise PlanningError(f"path motion {i} samples a non-finite joint state")

@@ -1243,6 +1243,10 @@ def build_parser() -> argparse.ArgumentParser:
     tj.add_argument("--json", action="store_true")
     tj.set_defaults(handler=cmd_timejerk)
 
+    from rt_runtime.teach import command as _teach
+
+    _teach.add_parser(sub)
+
     b4 = bench_sub.add_parser("timejerk", help="minimum time-jerk generator: solve time, feasibility, gap to CasADi/IPOPT, T over toppra")
     b4.add_argument("--problems", type=int, help="seeded random problems (default 200; 8 with --quick)")
     b4.add_argument("--waypoints", type=int, help="waypoints per problem (default 10; 5 with --quick)")

@@ -8,6 +8,8 @@ here and in the report). ``rt_runtime.cli`` wires it in with :func:`add_parser` 
                      [--inject KIND:TARGET:AT_S[:PARAM] ...]
     excavator-rt hil campaign [--kinds K,...] [--axes A,...] [--seeds N] [--json] [--out DIR]
     excavator-rt hil soak [--hours H | --minutes M | --seconds S] [--fault-every-s S] [--json]
+    excavator-rt hil --operator --demos N --out DIR [--seed S] [--json]
+    excavator-rt hil --teach DIR [--trace FILE] [--inject KIND:TARGET:AT_S] [--json]
     excavator-rt hil --path gao|FILE.json|joints [--joints-deg B,S,K ...] [--rig test_bench]
                      [--orders auto|3-4-5-4-3|...] [--durations 3,3,3,3,3] [--start-deg B,S,K]
                      [--realtime] [--no-feedforward] [--trace FILE] [--json] [--plot DIR]
@@ -30,7 +32,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from hil_sim.harness import campaign, hil_soak
+from hil_sim.harness import campaign, fouraxis, hil_soak
 from hil_sim.harness.reports import HilReport
 from hil_sim.harness.scenario import (
     FaultSpec,
@@ -198,6 +200,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     p.add_argument("--plot", default=None, metavar="DIR", help="write figures (Yao Fig. 17-21)")
+    fouraxis.add_arguments(p)
     sub = p.add_subparsers(dest="hil_command", metavar="{campaign,soak}")
     campaign.add_parser(sub)
     hil_soak.add_parser(sub)
@@ -260,6 +263,8 @@ def format_report(report: HilReport) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run the ``hil`` sub-command; returns the exit status."""
+    if getattr(args, "operator", False) or getattr(args, "teach", None) is not None:
+        return fouraxis.run_command(args)
     path = getattr(args, "path", None)
     joints = tuple(getattr(args, "joints_deg", []) or [])
     if path is not None or joints:

@@ -52,6 +52,7 @@ from ruckig import (
     OutputParameter,
     Result,
     Ruckig,
+    RuckigError,
     Synchronization,
 )
 
@@ -226,6 +227,7 @@ class LimitGuard:
         self.position_m = np.zeros(n)
         self.velocity_m_s = np.zeros(n)
         self.acceleration_m_s2 = np.zeros(n)
+        self._zeros: list[float] = [0.0] * n
         self._v_list: list[float] = self._v_max.tolist()
         self._a_list: list[float] = self._a_max.tolist()
         self.stopping = False
@@ -286,8 +288,8 @@ class LimitGuard:
         inp.control_interface = ControlInterface.Velocity
         inp.synchronization = Synchronization.No
         inp.minimum_duration = None
-        inp.target_velocity = [0.0, 0.0, 0.0]
-        inp.target_acceleration = [0.0, 0.0, 0.0]
+        inp.target_velocity = list(self._zeros)
+        inp.target_acceleration = list(self._zeros)
         self.state = GuardState.STOPPING
 
     @property
@@ -313,6 +315,14 @@ class LimitGuard:
         self.acceleration_m_s2[:] = out.new_acceleration
         out.pass_to_input(self._inp)
 
+    def _update(self) -> Result:
+        """One ruckig update; a refusal the binding raises comes back as its error code."""
+        try:
+            result: Result = self._otg.update(self._inp, self._out)
+        except RuckigError:
+            return Result.ErrorInvalidInput
+        return result
+
     def _aim(
         self,
         position_m: list[float],
@@ -327,7 +337,13 @@ class LimitGuard:
         inp.target_position = position_m
         inp.target_velocity = velocity_m_s
         inp.target_acceleration = acceleration_m_s2
-        result = self._otg.update(inp, self._out)
+        try:
+            result = self._otg.update(inp, self._out)
+        except RuckigError:
+            # The binding raises for some refused inputs (a target whose acceleration points
+            # beyond a velocity limit it is near) where others return an error code: the same
+            # refusal, and the caller's retries are the same.
+            return False
         if result not in _OK:
             return False
         if horizon_s is None:
@@ -377,7 +393,7 @@ class LimitGuard:
             self._take_output()
             self.state = GuardState.PASSTHROUGH
             return self.state
-        if self._aim(p, v, a, None) or self._aim(p, v, [0.0, 0.0, 0.0], None):
+        if self._aim(p, v, a, None) or self._aim(p, v, self._zeros, None):
             self._take_output()
             self.state = GuardState.LIMITED
             return self.state
@@ -386,7 +402,7 @@ class LimitGuard:
         inp.control_interface = ControlInterface.Velocity
         inp.synchronization = Synchronization.No
         inp.minimum_duration = None
-        result = self._otg.update(inp, self._out)
+        result = self._update()
         self._track_mode()
         if result not in _OK:
             self.stop()
@@ -412,7 +428,7 @@ class LimitGuard:
             self.acceleration_m_s2[:] = 0.0
             self.state = GuardState.AT_REST
             return self.state
-        result = self._otg.update(self._inp, self._out)
+        result = self._update()
         if result in _OK:
             self._take_output()
             if result is Result.Finished:

@@ -278,10 +278,15 @@ class PathJob:
     Attributes:
         motions: The motions, at least one.
         name: A label for reports.
+        jerk_by_guard: The path bounds velocity and acceleration only (a minimum-time cubic
+            spline through waypoints, Zhao eq 3, whose jerk is piecewise constant and
+            unbounded by its planner): :meth:`check` leaves the jerk to the limit guard,
+            which streams such a path within the jerk limits and trails it where it must.
     """
 
     motions: tuple[JointMotion, ...]
     name: str = "path"
+    jerk_by_guard: bool = False
 
     def __post_init__(self) -> None:
         if len(self.motions) == 0:
@@ -297,9 +302,10 @@ class PathJob:
         """Refuse a path the rig cannot follow, before anything is sent.
 
         Samples every motion every ``step_s`` (and at its end) and checks the joint ranges,
-        the joint velocity, acceleration and jerk limits (jerk as the difference of consecutive
-        accelerations over the step, within 0.1 % headroom for that estimate) and rest at both
-        ends.
+        the joint velocity, acceleration and jerk limits (velocity and acceleration to 1e-9
+        relative, the rounding of a trajectory planned onto its limits; jerk as the difference
+        of consecutive accelerations over the step, within 0.1 % headroom for that estimate)
+        and rest at both ends.
 
         Args:
             rig: The rig.
@@ -321,6 +327,7 @@ class PathJob:
             ("acceleration", qdd_max, "deg/s^2"),
             ("jerk", qddd_max, "deg/s^3"),
         )
+        checked = limits[:2] if self.jerk_by_guard else limits
         for i, motion in enumerate(self.motions):
             duration = float(motion.duration_s)
             n = max(math.ceil(duration / step_s), 1)
@@ -345,7 +352,7 @@ class PathJob:
             axes.joint_to_actuator(rig, q, check_limits=True)
             jerk = np.diff(qdd, axis=0) / np.diff(ts)[:, None]
             for (what, limit, unit), values, slack in zip(
-                limits, (qd, qdd, jerk), (1.0, 1.0, 1.001), strict=True
+                checked, (qd, qdd, jerk), (1.0 + 1e-9, 1.0 + 1e-9, 1.001), strict=False
             ):
                 peak = np.max(np.abs(values), axis=0)
                 over = np.flatnonzero(peak > limit * slack)

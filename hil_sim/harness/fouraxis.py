@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 
 from hil_sim.harness.lockstep import LockstepHil
 from hil_sim.harness.scenario import NO_RT as _NO_RT
-from hil_sim.sim import FaultKind
+from hil_sim.sim import FaultKind, open_trace
 from rt_runtime import axes, kinematics
 from rt_runtime.canbus import CanMaster
 from rt_runtime.control import FixedRateLoop, LoopConfig
@@ -387,9 +387,12 @@ def run_operator_demo(
 
     The operator starts at rest on his cycle's first pose; every lever tick he reads the joint
     angles the drives report and moves the levers; the machine adds its hydraulic jerks to the
-    lever command (:meth:`hil_sim.operator.Operator.hydraulic_jerk_rad_s`). Written to
-    ``out_dir``: ``<name>.csv`` with ``<name>.intended.json`` beside it
-    (:func:`hil_sim.operator.write_csv`) and ``<name>.blf``.
+    lever command (:meth:`hil_sim.operator.Operator.hydraulic_jerk_rad_s`). Manual mode runs
+    from the first cycle after the drives are enabled until the axes are at rest after the
+    operator let go; the recording covers exactly that: the CAN trace ``<name>.blf`` every
+    frame of it, the CSV ``<name>.csv`` (:func:`hil_sim.operator.write_csv`, with
+    ``<name>.intended.json`` beside it) one row per SYNC with the joint angles the drives
+    reported for it and the lever then held, as a rig's logger of the same feedback would.
 
     Args:
         rig: A rig with swing.
@@ -423,6 +426,7 @@ def run_operator_demo(
     t_rec: list[float] = []
     q_rec: list[FloatArray] = []
     lever_rec: list[FloatArray] = []
+    last_lever = np.zeros(4)
     limit_s = 40.0 * op.path.duration_s / op.params.speed + 60.0
     start: list[float] = []
 
@@ -432,15 +436,13 @@ def run_operator_demo(
         if op.finished or op.t_s > limit_s or not np.all(np.isfinite(q_axis)):
             return None
         q = axes.to_joint_order(rig, q_axis)
-        t_rec.append(op.t_s)
-        q_rec.append(q)
         lever = op.step(q)
-        lever_rec.append(lever)
+        last_lever[:] = lever
         machine = lever + (op.hydraulic_jerk_rad_s(op.t_s) if jerks else 0.0)
         machine = np.clip(machine, -op.velocity_max_rad_s, op.velocity_max_rad_s)
         return axes.from_joint_order(rig, machine)
 
-    with LockstepHil(rig, q0, trace_path=trace) as hil:
+    with LockstepHil(rig, q0) as hil:
         master = _boot(hil, rig)
         drives = DriveInterface(master, hil.clock, 0.0, True)
         drives.react_to_faults(False)
@@ -455,6 +457,11 @@ def run_operator_demo(
             if fault is not None and start and not injected and now_s - start[0] >= fault[2]:
                 hil.inject(fault[0], fault[1])
                 injected.append(now_s)
+            q = lever.q_measured_rad
+            if start and np.all(np.isfinite(q)):
+                t_rec.append(now_s - start[0])
+                q_rec.append(axes.to_joint_order(rig, q))
+                lever_rec.append(last_lever.copy())
 
         rows = int(limit_s / PERIOD_S) + 1000
         loop = FixedRateLoop(
@@ -462,11 +469,17 @@ def run_operator_demo(
         )
         manager = ControllerManager(drives, gf, loop, on_cycle=on_cycle)
         q_start = axes.actuator_to_joint(rig, s0, check_limits=False)
-        manager.run(lever, lever.first(), s0, q_start, max_cycles=rows)
-        drives.disable()
+        logger = open_trace(trace)
+        hil.core.trace = logger
+        try:
+            manager.run(lever, lever.first(), s0, q_start, max_cycles=rows)
+            drives.disable()
+        finally:
+            hil.core.trace = None
+            logger.stop()
     if len(t_rec) < 2:
         raise ConfigurationError(f"operator seed {seed}: no lever tick was recorded")
-    it, iq = op.path.sampled(rate_hz)
+    it, iq = op.path.sampled(1.0 / PERIOD_S)
     q_arr = np.asarray(q_rec)
     demo = Demonstration(
         t_s=np.round(np.asarray(t_rec), 9),

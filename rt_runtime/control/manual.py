@@ -149,6 +149,10 @@ class LeverController:
     ) -> tuple[Command, ControllerStatus]:
         """The next target from the levers (loop safe)."""
         cmd = self.command
+        if feedback.fresh:
+            self.q_measured_rad = axes.actuator_to_joint(
+                self.rig, feedback.stroke_m, check_limits=False
+            )
         if self._stopping:
             rest = self.guard.at_rest and bool(
                 np.all(np.abs(feedback.last_velocity_m_s) < self.rest_velocity)
@@ -163,10 +167,6 @@ class LeverController:
         if self._stale >= self.stale_cycles:
             self._stop(f"stale feedback for {self._stale} cycles in manual mode")
             return cmd, ControllerStatus.RUNNING
-        if feedback.fresh:
-            self.q_measured_rad = axes.actuator_to_joint(
-                self.rig, feedback.stroke_m, check_limits=False
-            )
         if self._cycles % self.tick == 0:
             lever = self.source(t_s, self.q_measured_rad)
             self.ticks += 1

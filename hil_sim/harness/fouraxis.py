@@ -105,18 +105,18 @@ class SwingTracking:
     cycles: int
 
     def to_json(self) -> dict[str, Any]:
-        """``tracking`` per axis (cylinders ``max_mm``, ``rms_mm``; swing ``max_deg``,
+        """``tracking`` per cylinder axis (``max_mm``, ``rms_mm``), ``swing`` (``max_deg``,
         ``rms_deg``, ``overshoot_deg``), ``tip_error_max_mm``, ``cycles``."""
-        tracking: dict[str, Any] = {
-            name: {"max_mm": mx, "rms_mm": rms} for name, (mx, rms) in self.cylinders_mm.items()
-        }
-        tracking["swing"] = {
-            "max_deg": self.swing_max_deg,
-            "rms_deg": self.swing_rms_deg,
-            "overshoot_deg": self.swing_overshoot_deg,
-        }
         return {
-            "tracking": tracking,
+            "tracking": {
+                name: {"max_mm": mx, "rms_mm": rms}
+                for name, (mx, rms) in self.cylinders_mm.items()
+            },
+            "swing": {
+                "max_deg": self.swing_max_deg,
+                "rms_deg": self.swing_rms_deg,
+                "overshoot_deg": self.swing_overshoot_deg,
+            },
             "tip_error_max_mm": self.tip_error_max_mm,
             "cycles": self.cycles,
         }
@@ -648,7 +648,7 @@ def _text(report: dict[str, Any]) -> str:
     ]
     for name in axes.ARM_AXES:
         lines.append(f"  {name:6s} max {t[name]['max_mm']:.3f} mm, rms {t[name]['rms_mm']:.3f} mm")
-    sw = t["swing"]
+    sw = report["swing"]
     lines.append(
         f"  swing  max {sw['max_deg']:.3f} deg, rms {sw['rms_deg']:.3f} deg, overshoot "
         f"{sw['overshoot_deg']:.3f} deg"

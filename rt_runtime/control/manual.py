@@ -104,7 +104,8 @@ class LeverController:
         self._hi = hi - RANGE_MARGIN_RAD
         self._v_max = v_max
         self._a_max = a_max
-        self._brake_s = a_max / j_max  # time to build up the braking deceleration
+        self._j_max = j_max
+        self._held = np.zeros(n, dtype=bool)
         self._otg = Ruckig(n, guard.guard.period_s)
         self._inp = InputParameter(n)
         self._out = OutputParameter(n)
@@ -181,11 +182,21 @@ class LeverController:
         inp, out = self._inp, self._out
         q0 = self._q_ref
         v0 = np.asarray(inp.current_velocity)
-        # Brake so as to stop at the range's margin: where the stop from here would pass it.
-        reach = q0 + v0 * (np.abs(v0) / (2.0 * self._a_max) + self._brake_s)
+        a0 = np.abs(np.asarray(inp.current_acceleration))
+        # Brake so as to stop inside the range's margin: where a jerk-limited stop from here
+        # (the acceleration first turned round, the speed growing meanwhile) could pass it.
+        # Once braking, an axis stays held until its lever points away from that end.
+        v = np.abs(v0) + a0 * a0 / (2.0 * self._j_max)
+        stop = v * ((a0 + self._a_max) / self._j_max) + v * v / (2.0 * self._a_max)
         want = np.clip(self.lever, -self._v_max, self._v_max)
-        want = np.where(((reach >= self._hi) & (want > 0.0)) | ((reach <= self._lo) & (want < 0.0)),
-                        0.0, want)
+        held = self._held
+        held |= ((q0 + stop >= self._hi) & (v0 > 0.0) & (want > 0.0)) | (
+            (q0 - stop <= self._lo) & (v0 < 0.0) & (want < 0.0)
+        )
+        held &= ((q0 > 0.5 * (self._lo + self._hi)) & (want > 0.0)) | (
+            (q0 < 0.5 * (self._lo + self._hi)) & (want < 0.0)
+        )
+        want = np.where(held, 0.0, want)
         inp.target_velocity = want.tolist()
         inp.target_acceleration = [0.0] * len(want)
         if self._otg.update(inp, out) not in (Result.Working, Result.Finished):

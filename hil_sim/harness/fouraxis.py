@@ -9,7 +9,8 @@ carry cross it:
 
 * :func:`run_path`: a :class:`~rt_runtime.control.planner_worker.PathJob` through the
   :class:`~rt_runtime.control.executor.Executor`; :func:`run_taught` loads a taught job
-  (``teach --out DIR``, :func:`rt_runtime.teach.load_taught`) and runs it so;
+  (``teach --out DIR``, :func:`rt_runtime.control.taught_path.load_taught_path`) and runs it
+  so;
 * :func:`run_operator_demo`: the simulated operator (:class:`hil_sim.operator.Operator`) on the
   levers of manual mode (:class:`~rt_runtime.control.manual.LeverController`), recorded as the
   issue's CSV (the drives' reported positions mapped to joint angles at every lever tick, the
@@ -64,7 +65,6 @@ __all__ = [
     "DemoFiles",
     "FourAxisRun",
     "SwingTracking",
-    "TaughtMotion",
     "four_axis_tracking",
     "run_operator_demo",
     "run_path",
@@ -274,33 +274,6 @@ def job_duration_s(job: PathJob) -> float:
     return float(sum(float(m.duration_s) for m in job.motions))
 
 
-class TaughtMotion:
-    """A taught job (:class:`rt_runtime.teach.TaughtJob`, swing first) as a
-    :class:`~rt_runtime.control.planner_worker.JointMotion` in axis order."""
-
-    __slots__ = ("_perm", "job")
-
-    def __init__(self, job: Any, rig: Rig) -> None:
-        _require_swing(rig)
-        self.job = job
-        # Axis k takes joint _perm[k] of the swing-first order.
-        self._perm = [1, 2, 3, 0]
-
-    @property
-    def duration_s(self) -> float:
-        """The taught trench's length (s)."""
-        return float(self.job.duration_s)
-
-    def sample(self, t_s: float) -> tuple[Any, Any, Any]:
-        """``(q, qd, qdd)`` in axis order at ``t_s``."""
-        p = self._perm
-        return (
-            self.job.sample(t_s, 0)[p],
-            self.job.sample(t_s, 1)[p],
-            self.job.sample(t_s, 2)[p],
-        )
-
-
 def run_taught(
     rig: Rig,
     directory: str | Path,
@@ -316,15 +289,11 @@ def run_taught(
             joints (nothing moves).
         PlanningError: The taught trench breaks a limit of the rig (nothing moves).
     """
-    from rt_runtime.teach import load_taught
+    from rt_runtime.control.taught_path import load_taught_path
 
     _require_swing(rig)
-    job = load_taught(directory, rig)
-    motion = TaughtMotion(job, rig)
+    path, job = load_taught_path(directory, rig)
     q0 = axes.from_joint_order(rig, job.q0_rad)
-    path = PathJob(
-        (motion,), name=f"taught trench ({job.n_cycles} cycles)", jerk_by_guard=True
-    )
     return run_path(rig, path, q0, trace_path=trace_path, fault=fault), job
 
 

@@ -58,6 +58,7 @@ __all__ = [
     "SwingParameters",
     "SwingPlant",
     "swing_drive_rig",
+    "velocity_lead_s",
 ]
 
 #: Encoder resolution of the swing drive (rad): one microradian, the bus unit.
@@ -252,6 +253,24 @@ def swing_drive_rig(rig: Rig) -> _SwingDriveRig:
         flow = p.no_load_rad_s * p.displacement_m3_rad / math.sqrt(supply / 2.0 / 3.5e6)
         hydraulic = _SwingHydraulic(supply, p.displacement_m3_rad, 0.0, flow)
     return _SwingDriveRig(drives, _SwingActuators(p.no_load_rad_s, hydraulic))
+
+
+def velocity_lead_s(rig: Rig) -> tuple[float, ...]:
+    """The lag of each axis of the HIL's plant between its drive's velocity offset and its
+    motion (s, axis order), as a commissioning engineer would measure it on this rig: the
+    cylinders' valve spool lag; for the swing the spool lag plus the low-frequency lag of its
+    hydraulic mode, ``2 zeta / w_h`` at the mean of the tucked and stretched arm's inertia. For
+    ``ExecutorConfig.velocity_lead_s``. Electric rigs: 0.
+
+    Raises:
+        ConfigurationError: The rig has no swing.
+    """
+    p = SwingParameters.from_rig(rig)
+    hyd = rig.actuators.hydraulic
+    valve = hyd.valve_time_constant_s if hyd is not None else 0.0
+    j_lo, j_hi = _inertia_range(rig, p.upper_inertia_kgm2)
+    mode = 2.0 * HYDRAULIC_DAMPING / p.mode_rad_s(0.5 * (j_lo + j_hi)) if p.hydraulic else 0.0
+    return (valve, valve, valve, valve + mode)
 
 
 class SwingPlant:

@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 from hil_sim.harness.lockstep import LockstepHil
 from hil_sim.harness.scenario import NO_RT as _NO_RT
 from hil_sim.sim import FaultKind, open_trace
+from hil_sim.swing import velocity_lead_s
 from rt_runtime import axes, kinematics
 from rt_runtime.canbus import CanMaster
 from rt_runtime.control import FixedRateLoop, LoopConfig
@@ -280,9 +281,12 @@ def run_taught(
     *,
     trace_path: str | Path | None = None,
     fault: tuple[FaultKind, int, float] | None = None,
+    lead: bool = True,
 ) -> tuple[FourAxisRun, Any]:
     """Load ``directory``'s taught job (verified against ``rig``) and run it on the HIL from its
-    first pose; returns the run and the job.
+    first pose; returns the run and the job. With ``lead`` the velocity offsets lead by each
+    axis's lag in this plant (:func:`hil_sim.swing.velocity_lead_s`), as a commissioned rig's
+    would.
 
     Raises:
         ConfigurationError: No swing, a missing or malformed taught job, one taught on other
@@ -294,7 +298,8 @@ def run_taught(
     _require_swing(rig)
     path, job = load_taught_path(directory, rig)
     q0 = axes.from_joint_order(rig, job.q0_rad)
-    return run_path(rig, path, q0, trace_path=trace_path, fault=fault), job
+    config = ExecutorConfig(velocity_lead_s=velocity_lead_s(rig) if lead else None)
+    return run_path(rig, path, q0, trace_path=trace_path, fault=fault, config=config), job
 
 
 @dataclass(frozen=True, slots=True)
@@ -496,6 +501,11 @@ def add_arguments(p: Any) -> None:
         metavar="DIR",
         help="run the taught trench of DIR (teach --out DIR) on the HIL, four axes",
     )
+    g.add_argument(
+        "--no-lead",
+        action="store_true",
+        help="with --teach: the velocity offsets without the lead of each axis's lag",
+    )
 
 
 def _fault(args: Any, rig: Rig) -> tuple[FaultKind, int, float] | None:
@@ -570,7 +580,10 @@ def _operator(args: Any, rig: Rig) -> dict[str, Any]:
 
 
 def _taught(args: Any, rig: Rig) -> dict[str, Any]:
-    run, job = run_taught(rig, args.teach, trace_path=args.trace, fault=_fault(args, rig))
+    lead = not args.no_lead
+    run, job = run_taught(
+        rig, args.teach, trace_path=args.trace, fault=_fault(args, rig), lead=lead
+    )
     tr = run.tracking
     goal = {"cylinders_max_mm": 3.0, "swing_max_deg": 0.3}
     cyl_max = max(mx for mx, _ in tr.cylinders_mm.values())
@@ -581,6 +594,7 @@ def _taught(args: Any, rig: Rig) -> dict[str, Any]:
         "taught": str(args.teach),
         "cycles_total": job.n_cycles,
         "T_s": job.duration_s,
+        "velocity_lead_s": list(velocity_lead_s(rig)) if lead else None,
         **tr.to_json(),
         "goal": goal,
         "goal_met": {

@@ -110,6 +110,10 @@ class ExecutorConfig:
         max_digs: Stop after this many digs of this run (None: until the task is done).
         guard_margin: Headroom of the guard's limits over the joint limits' image.
         disable_at_end: Disable the drives in the last cycle (see the module docstring).
+        velocity_lead_s: Per axis (axis order) the lead of the velocity offset
+            (:class:`~rt_runtime.control.hardware.DriveInterface`'s ``lead_s``: the offset is
+            ``rate + lead * acceleration``), the lag of the axis's valve and load as its
+            commissioning measured it; None: the rate alone.
 
     Raises:
         ConfigurationError: A value outside its range (the message names it).
@@ -127,6 +131,7 @@ class ExecutorConfig:
     max_digs: int | None = None
     guard_margin: float = DEFAULT_MARGIN
     disable_at_end: bool = True
+    velocity_lead_s: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         positive = {
@@ -152,6 +157,11 @@ class ExecutorConfig:
         ):
             if count < 1:
                 raise ConfigurationError(f"executor {key} = {count}; allowed: an integer >= 1")
+        lead = self.velocity_lead_s
+        if lead is not None and not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in lead):
+            raise ConfigurationError(
+                f"executor velocity_lead_s = {lead}; allowed: one value in [0, 1] s per axis"
+            )
         if self.max_digs is not None and self.max_digs < 1:
             raise ConfigurationError(
                 f"executor max_digs = {self.max_digs}; allowed: None or an integer >= 1"
@@ -279,7 +289,15 @@ class Executor:
             self.plan_in_worker = False
         self.guard = LimitGuard(StrokeLimits.from_rig(rig, margin=cfg.guard_margin), period)
         read_timeout_s = 0.0 if cfg.read_timeout_s is None else cfg.read_timeout_s
-        self.drives = DriveInterface(master, loop.clock, read_timeout_s, cfg.feedforward)
+        lead = None if cfg.velocity_lead_s is None else np.asarray(cfg.velocity_lead_s)
+        if lead is not None and lead.shape != (master.n,):
+            raise ConfigurationError(
+                f"executor velocity_lead_s has {lead.size} values; the master drives "
+                f"{master.n} axes ({', '.join(master.config.axes)})"
+            )
+        self.drives = DriveInterface(
+            master, loop.clock, read_timeout_s, cfg.feedforward, lead_s=lead
+        )
         self.drives.react_to_faults(False)
         # Started here, before the caller enables the drives and applies RT settings: spawning
         # takes ~20 ms (no SYNC meanwhile) and must not inherit a real-time policy.

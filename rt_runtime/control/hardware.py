@@ -111,10 +111,19 @@ class DriveInterface:
         clock: The loop's clock (times of SYNC, answers, heartbeat).
         read_timeout_s: Longest wait for one missing answer (s); 0: take what arrived.
         feedforward: Send the stroke rate as velocity offset 0x60B1 (else 0).
+        lead_s: Per axis, a lead (s) added to the velocity offset as ``lead * acceleration``:
+            the velocity demand of a first-order lag ``1 / (lead s + 1)`` between the offset
+            and the axis's motion (a valve's spool, a motor's hydraulic spring) made good ahead
+            of time. None: none (the offset is the rate).
     """
 
     def __init__(
-        self, master: CanMaster, clock: Clock, read_timeout_s: float, feedforward: bool = True
+        self,
+        master: CanMaster,
+        clock: Clock,
+        read_timeout_s: float,
+        feedforward: bool = True,
+        lead_s: NDArray[np.float64] | None = None,
     ) -> None:
         self.master = master
         # The cycle's calls go straight to the master's cyclic part (CyclicExchange): one call
@@ -127,6 +136,16 @@ class DriveInterface:
         self.axes: tuple[str, ...] = tuple(master.config.axes)
         self.feedback = DriveFeedback(self.n)
         self._zero_um = [0] * self.n
+        self.lead_s: NDArray[np.float64] | None = None
+        if lead_s is not None:
+            lead = np.asarray(lead_s, dtype=np.float64)
+            if lead.shape != (self.n,) or not bool(np.all(np.isfinite(lead) & (lead >= 0.0))):
+                raise ValueError(
+                    f"velocity lead {lead_s!r}: allowed one finite value >= 0 s per axis "
+                    f"({self.n})"
+                )
+            self.lead_s = lead
+        self._offset = np.zeros(self.n)
         from rt_runtime import axes
 
         rate = JUMP_RATE_FACTOR * axes.actuator_velocity_max(master.rig)
@@ -154,10 +173,21 @@ class DriveInterface:
             s.name if (s := fb.drive_state(a)) is not None else "undecodable" for a in range(self.n)
         ]
 
-    def write(self, stroke_m: FloatArray, velocity_m_s: FloatArray) -> WriteStatus:
-        """RPDO1 (target stroke, velocity offset when feed-forward is on) to every drive, then
-        SYNC; rounds to micrometres. Loop safe."""
+    def write(
+        self,
+        stroke_m: FloatArray,
+        velocity_m_s: FloatArray,
+        acceleration_m_s2: FloatArray | None = None,
+    ) -> WriteStatus:
+        """RPDO1 (target stroke, velocity offset when feed-forward is on: the rate, plus
+        ``lead_s * acceleration`` when a lead is set and the acceleration given) to every drive,
+        then SYNC; rounds to micrometres. Loop safe."""
         clock = self.clock
+        lead = self.lead_s
+        if lead is not None and acceleration_m_s2 is not None:
+            np.multiply(lead, acceleration_m_s2, out=self._offset)
+            self._offset += velocity_m_s
+            velocity_m_s = self._offset
         # round() is round-half-to-even, as np.rint; plain ints skip numpy's per-call cost.
         try:
             target = [round(x * 1e6) for x in stroke_m.tolist()]

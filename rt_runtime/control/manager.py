@@ -278,7 +278,7 @@ class ControllerManager:
         if cmd.disable:
             drives.disable()
         gstate = guard.apply(cmd)
-        drives.write(guard.position_m, guard.velocity_m_s)
+        drives.write(guard.position_m, guard.velocity_m_s, guard.guard.acceleration_m_s2)
         tel = self._tel
         slot = tel.slot
         c_sync[slot] = drives.sync_count

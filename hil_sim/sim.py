@@ -63,8 +63,6 @@ COB_SYNC = 0x080
 #: The master's heartbeat COB-ID (node 0x7E), which drives consume.
 COB_MASTER_HEARTBEAT = 0x700 + 0x7E
 _AXES = ("boom", "stick", "bucket")
-#: Drive-fault targets: the arm's axes and the swing (on a rig with swing).
-_DRIVE_TARGETS = (*_AXES, "swing")
 #: Truth rows a :class:`HilCore` keeps by default: the last 2**20 SYNCs (35 min at 500 Hz,
 #: 17 min at 1 kHz; 80 MB when full). Older rows are overwritten.
 TRUTH_ROWS = 1 << 20
@@ -132,16 +130,22 @@ class FaultKind(IntEnum):
 
     @property
     def targets(self) -> tuple[str, ...]:
-        """What the kind acts on: axis names (a drive node, or the frames to and from it),
-        ``bus`` (every frame), ``host`` (the rig PC)."""
+        """What the kind acts on on every rig: the arm's axis names (a drive node, or the frames
+        to and from it), ``bus`` (every frame), ``host`` (the rig PC)."""
         layer = self.layer
         if layer == "drive":
-            return _DRIVE_TARGETS
+            return _AXES
         if layer == "host":
             return ("host",)
         if self in (FaultKind.ERROR_FRAMES, FaultKind.BUS_OFF, FaultKind.BUS_UNPLUGGED):
             return ("bus",)
-        return (*_DRIVE_TARGETS, "bus")
+        return (*_AXES, "bus")
+
+    @property
+    def swing_targets(self) -> tuple[str, ...]:
+        """:attr:`targets` on a rig with swing: ``swing`` as well where an axis is one."""
+        targets = self.targets
+        return (*_AXES, "swing", *targets[3:]) if targets[:3] == _AXES else targets
 
     @property
     def layer(self) -> str:
@@ -609,7 +613,7 @@ class HilCore:
             ValueError: ``axis`` not a node's, or a bus or host kind.
         """
         if not 0 <= axis < len(self.nodes):
-            names = ", ".join(_DRIVE_TARGETS[: len(self.nodes)])
+            names = ", ".join((*_AXES, "swing")[: len(self.nodes)])
             raise ValueError(f"axis must be 0..{len(self.nodes) - 1} ({names}); got {axis}")
         if kind.layer != "drive":
             raise ValueError(f"{kind.label} is a {kind.layer} fault, not a drive node's")

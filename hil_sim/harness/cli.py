@@ -98,10 +98,11 @@ def parse_fault(text: str) -> FaultSpec:
         fault_kind = FaultKind[kind.upper()]
     except KeyError:
         raise argparse.ArgumentTypeError(f"--inject kind {kind!r}; allowed: {kinds}") from None
-    if target not in fault_kind.targets:
+    if target not in fault_kind.swing_targets:
         raise argparse.ArgumentTypeError(
             f"--inject {fault_kind.label} target {target!r}; allowed: "
-            + ", ".join(fault_kind.targets)
+            + ", ".join(fault_kind.swing_targets)
+            + " (swing on a rig with swing)"
         )
     try:
         at_s = float(at)

@@ -197,3 +197,14 @@ def test_a_broken_taught_job_is_refused_and_nothing_moves(
     assert not trace.exists()  # refused before the HIL was built: no frame was sent
     code, out = _run(["hil", "--teach", str(tmp_path / "nowhere"), "--json"])
     assert code == 2 and "no taught job" in json.loads(out)["error"]
+
+
+def test_hil_teach_with_a_fault_on_the_swing_drive_stops(taught_dir: Path) -> None:
+    code, out = _run(["hil", "--teach", str(taught_dir), "--inject", "overcurrent:swing:2",
+                      "--json"])  # fmt: skip
+    report = json.loads(out)
+    assert code == 1, report
+    assert report["status"] == "fault" and "swing" in report["fault"], report["fault"]
+    code, out = _run(["hil", "--teach", str(taught_dir), "--inject", "frame_loss:bus:1:0.1",
+                      "--json"])  # fmt: skip
+    assert code == 2 and "one drive fault" in json.loads(out)["error"]

@@ -514,14 +514,14 @@ def _fault(args: Any, rig: Rig) -> tuple[FaultKind, int, float] | None:
     if not faults:
         return None
     names = axes.names(rig)
-    if len(faults) > 1 or faults[0].kind.layer != "drive" or faults[0].target not in names:
+    if len(faults) > 1 or faults[0].kind.layer != "drive" or faults[0].axis not in names:
         raise ConfigurationError(
             "a four-axis run takes one drive fault on an axis ("
             + ", ".join(names)
             + "), e.g. --inject overcurrent:swing:5"
         )
     spec = faults[0]
-    return spec.kind, names.index(spec.target), spec.at_s
+    return spec.kind, names.index(spec.axis), spec.at_s
 
 
 def run_command(args: Any) -> int:

@@ -5,7 +5,7 @@ a trench on a rig with swing: penetrate, drag, curl, lift, swing to the dump poi
 back (:func:`intended_cycle`, the same path for every demonstration: the ground truth). A human
 does not follow that path the way a controller would. Per demonstration (all seeded):
 
-* pace: a speed factor between 0.80 and 1.50 of the nominal pace (+-30 % about 1.15, between
+* pace: a speed factor between 0.75 and 1.55 of the nominal pace (+-35 % about 1.15, between
   demonstrations; consecutive seeds walk through the range on the golden-ratio sequence, so 15
   demonstrations cover it evenly), modulated within the cycle by +-12 % (a slow sine of random
   phase);
@@ -107,7 +107,7 @@ class OperatorParams:
     """One demonstration's operator (drawn by :meth:`draw` from a seed).
 
     Attributes:
-        speed: Pace over the nominal one (0.80..1.50).
+        speed: Pace over the nominal one (0.75..1.55).
         pace_wobble: Amplitude of the within-cycle pace modulation (fraction).
         pace_period_s: Period of that modulation, s.
         pace_phase_rad: Its phase.
@@ -142,7 +142,7 @@ class OperatorParams:
         """
         rng = np.random.default_rng([seed, 0x0E7A])
         if speed is None:
-            speed = 0.80 + 0.70 * ((seed * _GOLDEN) % 1.0)
+            speed = 0.75 + 0.80 * ((seed * _GOLDEN) % 1.0)
         if not (math.isfinite(speed) and 0.0 < speed <= 3.0):
             raise ConfigurationError(
                 f"operator speed {speed!r}: allowed (0, 3] of the nominal pace"

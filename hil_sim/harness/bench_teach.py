@@ -90,7 +90,7 @@ def bench_teach(
     frechet = frechet_m(planned, intended)
     mean_frechet = frechet_m(pipeline.tip_path(rig, mean_q), intended)
     linear_frechet = frechet_m(pipeline.tip_path(rig, ref_learned[1]), intended)
-    durations = np.array([r.duration_s for r in records])
+    durations = pipeline.cycle_times_s(records)
     op_mean = float(durations.mean())
     checks = [c.trajectory.limit_check() for c in trench.cycles]
     exact = all(c.within_limits for c in checks)

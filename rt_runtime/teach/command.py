@@ -25,7 +25,7 @@ from rt_runtime.fileio import atomic_write
 from rt_runtime.rig import Rig, load_rig
 from rt_runtime.teach import pipeline
 from rt_runtime.teach.demos import DemoRecord, read_demo
-from rt_runtime.teach.taught import TAUGHT_FILE, load_taught, segments_json
+from rt_runtime.teach.taught import TAUGHT_FILE, segments_json, taught_from_json
 
 __all__ = ["ZHAO_CYCLES", "ZHAO_TRENCH_S", "add_parser", "cmd_teach", "teach_report"]
 
@@ -76,6 +76,7 @@ def teach_report(
                 "offset_m": c.offset_m,
                 "start_s": start,
                 "T_s": tr.duration_s,
+                "w_jerk": tr.problem.w_jerk,
                 "waypoints_deg": _deg(c.waypoints_rad),
                 "segments": segments_json(tr.piece_durations_s, tr.coefficients),
             }
@@ -99,7 +100,8 @@ def teach_report(
         "rig": rig.name,
         "joints": names,
         "demos": [
-            {"path": r.path, "samples": int(r.t_s.shape[0]), "duration_s": r.duration_s}
+            {"path": r.path, "samples": int(r.t_s.shape[0]), "duration_s": r.duration_s,
+             "cycle_s": pipeline.trim_rest(r).duration_s}
             for r in records
         ],
         "waypoints_deg": _deg(taught.waypoints_rad),
@@ -113,6 +115,7 @@ def teach_report(
         "operator_cycle_s": taught.operator_cycle_s.tolist(),
         "cycle": {
             "T_s": cyc.duration_s,
+            "w_jerk": cyc.problem.w_jerk,
             "waypoint_times_s": cyc.waypoint_times_s.tolist(),
             "segments": segments_json(cyc.piece_durations_s, cyc.coefficients),
             "coefficients_rule": (
@@ -265,7 +268,7 @@ def cmd_teach(args: argparse.Namespace) -> int:
     taught = pipeline.Taught(
         mean_t_s=mean_t, mean_q_rad=mean_q, waypoint_indices=idx, waypoints_rad=wps,
         cycle=cycle, trench=trench,
-        operator_cycle_s=np.array([r.duration_s for r in records]), settings=settings,
+        operator_cycle_s=pipeline.cycle_times_s(records), settings=settings,
     )
     timing = {"read": (t1 - t0) * 1e3, "waypoints": (t2 - t1) * 1e3, "plan": (t3 - t2) * 1e3}
     report = teach_report(rig, records, taught, timing_ms=timing)
@@ -273,10 +276,11 @@ def cmd_teach(args: argparse.Namespace) -> int:
         report["plots"] = _plot(rig, records, taught, Path(args.plot))
     if args.out:
         out = Path(args.out)
+        text = json.dumps(report, indent=1)
+        # Verified as the executor will load it, before the file exists.
+        taught_from_json(json.loads(text), rig, out / TAUGHT_FILE)
         out.mkdir(parents=True, exist_ok=True)
-        text = json.dumps(report, indent=1).encode()
-        atomic_write(out / TAUGHT_FILE, lambda f: f.write(text))
-        load_taught(out, rig)  # what the executor will load verifies as written
+        atomic_write(out / TAUGHT_FILE, lambda f: f.write(text.encode()))
         report["out"] = str(out / TAUGHT_FILE)
     if args.json:
         print(json.dumps(report, indent=2))

@@ -34,8 +34,6 @@ from __future__ import annotations
 
 import csv
 import math
-import struct
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -232,6 +230,8 @@ def read_csv(rig: Rig, path: str | Path) -> DemoRecord:
                 rows.append(line)
     except OSError as e:
         raise DemonstrationError(p, 0, "file", f"cannot be read ({e.strerror or e})") from None
+    except csv.Error as e:
+        raise DemonstrationError(p, 0, "file", f"is not CSV text ({e})") from None
     except UnicodeDecodeError:
         raise DemonstrationError(p, 0, "file", "is not UTF-8 text (a CSV demonstration is "
                                  "text)") from None
@@ -247,9 +247,10 @@ def read_trace(rig: Rig, path: str | Path) -> DemoRecord:
     """Read and validate one CAN trace (BLF or ASC) of a manual run.
 
     A sample per SYNC: the SYNC's timestamp, and the joint angles from the TPDO1 of every drive
-    that follows it before the next SYNC. TPDO1s before the first SYNC are ignored; a SYNC that
-    is not answered by every drive is skipped when it is the last one of the trace (the trace
-    stopped), and an error otherwise.
+    that follows it before the next SYNC. TPDO1s before the first SYNC are ignored. SYNCs before
+    the first one every drive answers (the drives not yet operational) and after the last one
+    are skipped; one in between that a drive does not answer is an error. Rows are the SYNCs'
+    numbers in the trace, from 1.
 
     Raises:
         DemonstrationError: Unknown suffix, unreadable file, no SYNC, a drive missing after a
@@ -263,14 +264,11 @@ def read_trace(rig: Rig, path: str | Path) -> DemoRecord:
     if not p.is_file():
         raise DemonstrationError(p, 0, "file", "no such file")
     axes = _axis_nodes(rig)
-    node_index = {cob: i for i, (_, node) in enumerate(axes) for cob in (COB_TPDO1 + node,)}
+    node_index = {COB_TPDO1 + node: i for i, (_, node) in enumerate(axes)}
     n = len(axes)
     times: list[float] = []
     raw: list[list[float]] = []
     frames: list[int] = []
-    current: list[float] | None = None
-    cur_t = 0.0
-    cur_frame = 0
     unpack = TPDO1.codec.unpack_from
     try:
         reader = can.BLFReader(str(p)) if suffix == ".blf" else can.ASCReader(str(p))
@@ -280,36 +278,45 @@ def read_trace(rig: Rig, path: str | Path) -> DemoRecord:
                 if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
                     continue
                 if cob == COB_SYNC and len(msg.data) == 0:
-                    if current is not None:
-                        _close(p, current, axes, len(times) + 1, cur_frame)
-                        times.append(cur_t)
-                        raw.append(current)
-                        frames.append(cur_frame)
-                    current = [math.nan] * n
-                    cur_t = float(msg.timestamp)
-                    cur_frame = k
-                elif current is not None and cob in node_index:
+                    times.append(float(msg.timestamp))
+                    raw.append([math.nan] * n)
+                    frames.append(k)
+                elif raw and cob in node_index:
                     if len(msg.data) != TPDO1.size:
                         raise DemonstrationError(
-                            p, len(times) + 1, "frames", f"frame {k}: TPDO1 0x{cob:03X} has "
+                            p, len(times), "frames", f"frame {k}: TPDO1 0x{cob:03X} has "
                             f"{len(msg.data)} bytes; TPDO1 is {TPDO1.size} (0x6064, 0x606C)"
                         )
-                    current[node_index[cob]] = float(unpack(bytes(msg.data))[0])
+                    raw[-1][node_index[cob]] = float(unpack(bytes(msg.data))[0])
     except DemonstrationError:
         raise
-    except (OSError, ValueError, struct.error) as e:
+    except Exception as e:  # python-can's readers raise any type on a malformed file
         raise DemonstrationError(p, 0, "file", f"not a readable {suffix[1:].upper()} trace "
-                                 f"({e})") from None
-    if current is not None and all(math.isfinite(v) for v in current):
-        times.append(cur_t)
-        raw.append(current)
-        frames.append(cur_frame)
-    if not times:
+                                 f"({type(e).__name__}: {e})") from None
+    answered = np.isfinite(np.array(raw, dtype=np.float64).reshape(-1, n))
+    complete = np.flatnonzero(answered.all(axis=1))
+    if complete.size == 0:
         raise DemonstrationError(
-            p, 0, "frames", "no SYNC (0x080) answered by the drives' TPDO1: not the trace of a "
-            "run of this rig (drives on nodes "
+            p, 0, "frames", "no SYNC (0x080) answered by every drive's TPDO1: not the trace of "
+            "a run of this rig (drives on nodes "
             + ", ".join(f"{name} {node}" for name, node in axes) + ")"
         )
+    # Before the first answered SYNC the drives were not yet operational (boot), after the last
+    # the trace stopped; in between every drive answers every SYNC.
+    first, last = int(complete[0]), int(complete[-1])
+    gaps = np.flatnonzero(~answered[first : last + 1].all(axis=1))
+    if gaps.size:
+        i = first + int(gaps[0])
+        lost = [f"{name} (node {node})" for (name, node), ok in zip(axes, answered[i], strict=True)
+                if not ok]
+        raise DemonstrationError(
+            p, i + 1, "frames", f"SYNC at frame {frames[i]} has no TPDO1 from "
+            f"{', '.join(lost)}; every drive answers every SYNC"
+        )
+    times = times[first : last + 1]
+    raw = raw[first : last + 1]
+    frames = frames[first : last + 1]
+    sync_rows = np.arange(first + 1, last + 2)
     a = np.array(raw) / _BUS_SCALE
     q = np.empty_like(a)
     names = rig.joint_names
@@ -320,24 +327,13 @@ def read_trace(rig: Rig, path: str | Path) -> DemoRecord:
     if np.any(bad):
         i, j = (int(x) for x in np.argwhere(bad)[0])
         raise DemonstrationError(
-            p, i + 1, "range", f"frame {frames[i]}: {names[arm[j]]} cylinder stroke "
+            p, int(sync_rows[i]), "range", f"frame {frames[i]}: {names[arm[j]]} cylinder stroke "
             f"{strokes[i, j] * 1e3:.3f} mm is outside its travel [0, {hi[j] * 1e3:.3f}] mm"
         )
     q[:, arm] = actuation.stroke_to_joint(rig, np.clip(strokes, lo, hi), check_limits=False)
     if rig.swing is not None:
         q[:, names.index("swing")] = a[:, names.index("swing")]
-    return validate(rig, p, np.array(times), q, np.arange(1, len(times) + 1))
-
-
-def _close(p: Path, current: list[float], axes: Sequence[tuple[str, int]], row: int,
-           frame: int) -> None:
-    missing = [f"{name} (node {node})" for (name, node), v in zip(axes, current, strict=True)
-               if not math.isfinite(v)]
-    if missing:
-        raise DemonstrationError(
-            p, row, "frames", f"SYNC at frame {frame} has no TPDO1 from {', '.join(missing)}; "
-            "every drive answers every SYNC"
-        )
+    return validate(rig, p, np.array(times), q, sync_rows)
 
 
 def read_demo(rig: Rig, path: str | Path) -> DemoRecord:

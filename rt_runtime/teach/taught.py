@@ -43,6 +43,7 @@ __all__ = [
     "TaughtLimitCheck",
     "load_taught",
     "segments_json",
+    "taught_from_json",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -240,7 +241,7 @@ def _segments(path: Path, where: str, raw: Any, n_joints: int) -> tuple[FloatArr
         if not (math.isfinite(h[i]) and h[i] >= MIN_SEGMENT_S) or not np.all(np.isfinite(ci)):
             raise _fail(
                 path,
-                f"{where}.segments[{i}]: duration {h[i]!r} s and coefficients must be finite, "
+                f"{where}.segments[{i}]: duration {h[i]:g} s and coefficients must be finite, "
                 f"the duration >= {MIN_SEGMENT_S} s",
             )
         c[i] = ci
@@ -272,6 +273,20 @@ def load_taught(directory: str | Path, rig: Rig | None = None) -> TaughtJob:
         ) from None
     except (OSError, ValueError) as e:
         raise _fail(path, f"not a readable JSON taught job ({e})") from None
+    return taught_from_json(data, rig, path)
+
+
+def taught_from_json(
+    data: Any, rig: Rig | None = None, path: str | Path = TAUGHT_FILE
+) -> TaughtJob:
+    """Verify a taught job held in memory (the object ``taught.json`` holds) as
+    :func:`load_taught` does; ``path`` names it in messages. ``teach --out`` runs it before
+    writing the file.
+
+    Raises:
+        ConfigurationError, PlanningError: As :func:`load_taught`.
+    """
+    path = Path(path)
     if not isinstance(data, dict):
         raise _fail(path, "must hold one JSON object")
     if rig is None:
@@ -279,7 +294,10 @@ def load_taught(directory: str | Path, rig: Rig | None = None) -> TaughtJob:
         if not isinstance(name, str):
             raise _fail(path, "needs the rig's profile name under 'rig'")
         rig = load_rig(name)
-    names = tuple(data.get("joints", ()))
+    if not isinstance(data.get("joints"), list):
+        raise _fail(path, f"needs joints, the list of joint names {list(rig.joint_names)}")
+    joints = data.get("joints")
+    names = tuple(joints) if isinstance(joints, list) else ()
     if names != tuple(rig.joint_names):
         raise _fail(
             path, f"joints {list(names)} are not the rig {rig.name}'s {list(rig.joint_names)}"
@@ -311,8 +329,9 @@ def load_taught(directory: str | Path, rig: Rig | None = None) -> TaughtJob:
     _continuity(path, h, c)
     try:
         waypoints = np.radians(np.array(data.get("waypoints_deg", []), dtype=np.float64))
+        waypoints = waypoints.reshape(-1, n_j)
     except (TypeError, ValueError):
-        raise _fail(path, "waypoints_deg must be rows of numbers") from None
+        raise _fail(path, f"waypoints_deg must be rows of {n_j} numbers") from None
     job = TaughtJob(
         rig_name=rig.name,
         joint_names=names,
@@ -320,7 +339,7 @@ def load_taught(directory: str | Path, rig: Rig | None = None) -> TaughtJob:
         coefficients=c,
         cycle_starts_s=np.array(starts),
         offsets_m=np.array(offsets),
-        waypoints_rad=waypoints.reshape(-1, n_j) if waypoints.size else np.zeros((0, n_j)),
+        waypoints_rad=waypoints,
     )
     check = job.limit_check(rig)
     if not check.within_limits:

@@ -58,6 +58,7 @@ __all__ = [
     "SwingParameters",
     "SwingPlant",
     "swing_drive_rig",
+    "velocity_lead2_s2",
     "velocity_lead_s",
 ]
 
@@ -265,12 +266,33 @@ def velocity_lead_s(rig: Rig) -> tuple[float, ...]:
     Raises:
         ConfigurationError: The rig has no swing.
     """
+    valve, lag, _ = _swing_lags(rig)
+    return (valve, valve, valve, valve + lag)
+
+
+def velocity_lead2_s2(rig: Rig) -> tuple[float, ...]:
+    """The second-order term of each axis's lead (s^2, axis order; for
+    ``ExecutorConfig.velocity_lead2_s2``): 0 for the cylinders (a first-order valve), for the
+    swing ``1 / w_h^2 + tau_valve 2 zeta / w_h`` (the inverse of its mode behind its valve to
+    second order), at the mean inertia as :func:`velocity_lead_s`.
+
+    Raises:
+        ConfigurationError: The rig has no swing.
+    """
+    valve, lag, inv_w2 = _swing_lags(rig)
+    return (0.0, 0.0, 0.0, inv_w2 + valve * lag)
+
+
+def _swing_lags(rig: Rig) -> tuple[float, float, float]:
+    """``(tau_valve, 2 zeta / w_h, 1 / w_h^2)`` of the swing at its mean inertia."""
     p = SwingParameters.from_rig(rig)
     hyd = rig.actuators.hydraulic
     valve = hyd.valve_time_constant_s if hyd is not None else 0.0
+    if not p.hydraulic:
+        return valve, 0.0, 0.0
     j_lo, j_hi = _inertia_range(rig, p.upper_inertia_kgm2)
-    mode = 2.0 * HYDRAULIC_DAMPING / p.mode_rad_s(0.5 * (j_lo + j_hi)) if p.hydraulic else 0.0
-    return (valve, valve, valve, valve + mode)
+    w = p.mode_rad_s(0.5 * (j_lo + j_hi))
+    return valve, 2.0 * HYDRAULIC_DAMPING / w, 1.0 / (w * w)
 
 
 class SwingPlant:

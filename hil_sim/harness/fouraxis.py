@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 from hil_sim.harness.lockstep import LockstepHil
 from hil_sim.harness.scenario import NO_RT as _NO_RT
 from hil_sim.sim import FaultKind, open_trace
-from hil_sim.swing import velocity_lead_s
+from hil_sim.swing import velocity_lead2_s2, velocity_lead_s
 from rt_runtime import axes, kinematics
 from rt_runtime.canbus import CanMaster
 from rt_runtime.control import FixedRateLoop, LoopConfig
@@ -298,7 +298,10 @@ def run_taught(
     _require_swing(rig)
     path, job = load_taught_path(directory, rig)
     q0 = axes.from_joint_order(rig, job.q0_rad)
-    config = ExecutorConfig(velocity_lead_s=velocity_lead_s(rig) if lead else None)
+    config = ExecutorConfig(
+        velocity_lead_s=velocity_lead_s(rig) if lead else None,
+        velocity_lead2_s2=velocity_lead2_s2(rig) if lead else None,
+    )
     return run_path(rig, path, q0, trace_path=trace_path, fault=fault, config=config), job
 
 
@@ -595,6 +598,7 @@ def _taught(args: Any, rig: Rig) -> dict[str, Any]:
         "cycles_total": job.n_cycles,
         "T_s": job.duration_s,
         "velocity_lead_s": list(velocity_lead_s(rig)) if lead else None,
+        "velocity_lead2_s2": list(velocity_lead2_s2(rig)) if lead else None,
         **tr.to_json(),
         "goal": goal,
         "goal_met": {

@@ -114,6 +114,9 @@ class ExecutorConfig:
             (:class:`~rt_runtime.control.hardware.DriveInterface`'s ``lead_s``: the offset is
             ``rate + lead * acceleration``), the lag of the axis's valve and load as its
             commissioning measured it; None: the rate alone.
+        velocity_lead2_s2: Per axis the second-order term of that lead (``DriveInterface``'s
+            ``lead2_s2``: ``+ lead2 * jerk``), for an axis behind a spring-mass mode; None:
+            none. Needs ``velocity_lead_s``.
 
     Raises:
         ConfigurationError: A value outside its range (the message names it).
@@ -132,6 +135,7 @@ class ExecutorConfig:
     guard_margin: float = DEFAULT_MARGIN
     disable_at_end: bool = True
     velocity_lead_s: tuple[float, ...] | None = None
+    velocity_lead2_s2: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         positive = {
@@ -161,6 +165,14 @@ class ExecutorConfig:
         if lead is not None and not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in lead):
             raise ConfigurationError(
                 f"executor velocity_lead_s = {lead}; allowed: one value in [0, 1] s per axis"
+            )
+        lead2 = self.velocity_lead2_s2
+        if lead2 is not None and (
+            lead is None or not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in lead2)
+        ):
+            raise ConfigurationError(
+                f"executor velocity_lead2_s2 = {lead2}; allowed: with velocity_lead_s, one "
+                "value in [0, 1] s^2 per axis"
             )
         if self.max_digs is not None and self.max_digs < 1:
             raise ConfigurationError(
@@ -290,13 +302,15 @@ class Executor:
         self.guard = LimitGuard(StrokeLimits.from_rig(rig, margin=cfg.guard_margin), period)
         read_timeout_s = 0.0 if cfg.read_timeout_s is None else cfg.read_timeout_s
         lead = None if cfg.velocity_lead_s is None else np.asarray(cfg.velocity_lead_s)
-        if lead is not None and lead.shape != (master.n,):
-            raise ConfigurationError(
-                f"executor velocity_lead_s has {lead.size} values; the master drives "
-                f"{master.n} axes ({', '.join(master.config.axes)})"
-            )
+        lead2 = None if cfg.velocity_lead2_s2 is None else np.asarray(cfg.velocity_lead2_s2)
+        for values in (lead, lead2):
+            if values is not None and values.shape != (master.n,):
+                raise ConfigurationError(
+                    f"executor velocity lead has {values.size} values; the master drives "
+                    f"{master.n} axes ({', '.join(master.config.axes)})"
+                )
         self.drives = DriveInterface(
-            master, loop.clock, read_timeout_s, cfg.feedforward, lead_s=lead
+            master, loop.clock, read_timeout_s, cfg.feedforward, lead_s=lead, lead2_s2=lead2
         )
         self.drives.react_to_faults(False)
         # Started here, before the caller enables the drives and applies RT settings: spawning

@@ -115,6 +115,10 @@ class DriveInterface:
             the velocity demand of a first-order lag ``1 / (lead s + 1)`` between the offset
             and the axis's motion (a valve's spool, a motor's hydraulic spring) made good ahead
             of time. None: none (the offset is the rate).
+        lead2_s2: Per axis, the second-order term (s^2) of the same inverse, added as
+            ``lead2 * jerk`` (the jerk as the change of the acceleration given over one
+            period): for an axis behind a spring-mass mode ``1 / (s^2 / w^2 + 2 zeta s / w +
+            1)``, ``1 / w^2`` (plus the product with a first-order lag). Needs ``lead_s``.
     """
 
     def __init__(
@@ -124,6 +128,7 @@ class DriveInterface:
         read_timeout_s: float,
         feedforward: bool = True,
         lead_s: NDArray[np.float64] | None = None,
+        lead2_s2: NDArray[np.float64] | None = None,
     ) -> None:
         self.master = master
         # The cycle's calls go straight to the master's cyclic part (CyclicExchange): one call
@@ -145,7 +150,23 @@ class DriveInterface:
                     f"({self.n})"
                 )
             self.lead_s = lead
+        self.lead2_s2: NDArray[np.float64] | None = None
+        if lead2_s2 is not None:
+            lead2 = np.asarray(lead2_s2, dtype=np.float64)
+            if (
+                self.lead_s is None
+                or lead2.shape != (self.n,)
+                or not bool(np.all(np.isfinite(lead2) & (lead2 >= 0.0)))
+            ):
+                raise ValueError(
+                    f"second-order velocity lead {lead2_s2!r}: allowed with lead_s, one finite "
+                    f"value >= 0 s^2 per axis ({self.n})"
+                )
+            self.lead2_s2 = lead2
         self._offset = np.zeros(self.n)
+        self._jerk = np.zeros(self.n)
+        self._accel_prev: NDArray[np.float64] | None = None
+        self._inv_period = 1.0 / master.config.period_s
         from rt_runtime import axes
 
         rate = JUMP_RATE_FACTOR * axes.actuator_velocity_max(master.rig)
@@ -187,6 +208,16 @@ class DriveInterface:
         if lead is not None and acceleration_m_s2 is not None:
             np.multiply(lead, acceleration_m_s2, out=self._offset)
             self._offset += velocity_m_s
+            lead2 = self.lead2_s2
+            if lead2 is not None:
+                prev = self._accel_prev
+                if prev is None:
+                    self._accel_prev = prev = np.array(acceleration_m_s2, dtype=np.float64)
+                np.subtract(acceleration_m_s2, prev, out=self._jerk)
+                self._jerk *= self._inv_period
+                self._jerk *= lead2
+                self._offset += self._jerk
+                prev[:] = acceleration_m_s2
             velocity_m_s = self._offset
         # round() is round-half-to-even, as np.rint; plain ints skip numpy's per-call cost.
         try:

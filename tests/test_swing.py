@@ -260,3 +260,29 @@ def test_a_fault_on_the_swing_drive_stops_all_four_axes_safely(field: Rig) -> No
     stop_cycles = int(np.count_nonzero(tel["phase"] == 8))
     v_max, a_max, j_max = StrokeLimits.from_rig(field).as_arrays()
     assert stop_cycles * PERIOD_S <= float(np.max(v_max / a_max + 2 * a_max / j_max)) + 0.3
+
+
+def test_the_velocity_lead_is_rate_plus_lead_times_acceleration_and_jerk(field: Rig) -> None:
+    from hil_sim.harness.lockstep import LockstepHil
+    from rt_runtime.canbus import CanMaster
+    from rt_runtime.control.hardware import DriveInterface
+
+    lead = np.array([0.015, 0.015, 0.015, 0.04])
+    lead2 = np.array([0.0, 0.0, 0.0, 0.002])
+    with LockstepHil(field, Q0, keep_frames=True, vcu=False) as hil:
+        master = CanMaster(hil.master_bus, field, period_s=PERIOD_S, react_to_faults=False)
+        master.boot(hil.clock.now, 1.0)
+        master.enable(hil.clock.now, 1.0)
+        drives = DriveInterface(master, hil.clock, 0.0, True, lead_s=lead, lead2_s2=lead2)
+        s = master.last_target_um() * 1e-6
+        v = np.array([0.01, -0.02, 0.0, 0.3])
+        a1 = np.array([0.1, 0.0, 0.0, 1.0])
+        a2 = np.array([0.2, 0.0, 0.0, 1.5])
+        drives.write(s, v, a1)
+        drives.write(s, v, a2)
+        nodes = [dict(field.can.node_ids)[n] for n in axes.names(field)]
+        _, velocity = rpdo1_setpoints(hil.core.frames, nodes)
+    expected = v + lead * a2 + lead2 * (a2 - a1) / PERIOD_S
+    np.testing.assert_allclose(velocity[-1] * 1e-6, expected, atol=1e-6)
+    with pytest.raises(ValueError, match="lead"):
+        DriveInterface(master, hil.clock, 0.0, True, lead2_s2=lead2)

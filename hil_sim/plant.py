@@ -33,6 +33,15 @@ Model, per sub-step (equations of motion in joint space, forces along the cylind
   changing with stroke; force ``p_A A_A - p_B A_B``; pressures clipped to [0, 1.1 p_s] (cavitation
   and port relief valves).
 
+Imperfections of a real rig (profile ``[hil]``, applied only when ``hil.enabled``; with it off
+every path and float is the ideal plant's): on a hydraulic axis the spool command passes a dead
+time, a hysteresis (play operator) and the spool's lag with a slew limit, and no metering edge
+opens inside the spool overlap (:func:`valve_opening`); on an electric axis the force follows
+its command through the drive's current loop (first-order lag), friction falls from breakaway
+to Coulomb over a Stribeck speed, and the screw's backlash is a gap the motor crosses without
+pushing the rod; :meth:`ArmPlant.sensed_stroke_state` is what the drives' sensors read (motor
+side of the gap, a linearity error of the sensor's class, seeded noise). Design notes, H8.
+
 Integration: fixed sub-steps (default the drive's servo period, 250 us; ``step(dt)`` splits dt
 into equal sub-steps no longer than that), semi-implicit Euler: the velocity first, with the
 forces at the start of the sub-step and the efforts held (zero-order hold, as a drive applies
@@ -72,6 +81,7 @@ fixed-rate control loop of the runtime; it raises only for wrong arguments.
 from __future__ import annotations
 
 import math
+import random
 from collections.abc import Sequence
 from typing import Protocol
 
@@ -81,7 +91,7 @@ from numpy.typing import ArrayLike, NDArray
 from hil_sim.terrain import Terrain
 from rt_runtime import actuation, dynamics, kinematics
 from rt_runtime.errors import ConfigurationError
-from rt_runtime.rig import Rig
+from rt_runtime.rig import Rig, RigImperfections
 
 FloatArray = NDArray[np.float64]
 
@@ -216,6 +226,39 @@ def _reg_sqrt(dp: float) -> tuple[float, float]:
     a = abs(dp) + ORIFICE_TRANSITION_PA
     r = math.sqrt(a)
     return dp / r, (0.5 * abs(dp) + ORIFICE_TRANSITION_PA) / (a * r)
+
+
+def valve_opening(x: float, overlap: float) -> float:
+    """Metering opening of a spool at ``x`` (fraction of full travel) with positive overlap.
+
+    No metering edge opens while ``|x| <= overlap`` (the dead band); beyond it the opening
+    grows linearly to 1 at full travel: ``sign(x) (|x| - overlap) / (1 - overlap)``.
+    """
+    a = abs(x) - overlap
+    if a <= 0.0:
+        return 0.0
+    return math.copysign(a / (1.0 - overlap), x)
+
+
+def play(y_prev: float, u: float, width: float) -> float:
+    """The play (backlash) operator of total ``width``: the output stays put until the input
+    has moved half the width past it, then follows it at that distance (a hysteresis loop of
+    ``width`` between rising and falling input)."""
+    half = 0.5 * width
+    if u - y_prev > half:
+        return u - half
+    if y_prev - u > half:
+        return u + half
+    return y_prev
+
+
+def sensor_error_m(
+    stroke_m: float, full_scale_m: float, linearity_fs: float, phase: float
+) -> float:
+    """Linearity error of a stroke sensor: ``linearity_fs * FS * sin(2 pi s / FS + phase)``,
+    at most ``linearity_fs`` of full scale over the travel (a smooth calibration error, the
+    form a datasheet's linearity class bounds)."""
+    return linearity_fs * full_scale_m * math.sin(2.0 * math.pi * stroke_m / full_scale_m + phase)
 
 
 def _solve3(
@@ -360,6 +403,67 @@ class ArmPlant:
             self._pa = [float(v) for v in pa]
             self._pb = [self._ps - float(v) for v in pa]
             self._force = [self._pa[i] * self._aa - self._pb[i] * self._ab for i in range(3)]
+        self._init_imperfections(rig.hil.active() if rig.hil is not None else None)
+
+    def _init_imperfections(self, imp: RigImperfections | None) -> None:
+        """State of the profile's ``[hil]`` imperfections (all off when ``imp`` is None)."""
+        self._imperfections = imp
+        valve = imp.valve if imp is not None and self._hydraulic else None
+        electric = imp.electric if imp is not None and not self._hydraulic else None
+        sensor = imp.sensor if imp is not None else None
+        self._valve_imp = valve
+        self._electric_imp = electric
+        self._sensor_imp = sensor
+        # Valve: the spool command's dead time as a ring of sub-steps, the hysteresis output.
+        n_delay = round(valve.delay_s / self._substep) if valve is not None else 0
+        self._delay_ring = [[0.0] * n_delay for _ in range(3)] if n_delay else []
+        self._delay_at = 0
+        self._play = [0.0, 0.0, 0.0]
+        # Electric: the force the current loop delivers, the screw's gap and its rate.
+        self._f_motor = [0.0, 0.0, 0.0]
+        half = 0.5 * electric.backlash_m if electric is not None else 0.0
+        self._half_gap = half
+        # At rest the screw's load side is in contact: under gravity the motor holds the rod.
+        self._gap = [0.0, 0.0, 0.0]
+        self._gap_rate = [0.0, 0.0, 0.0]
+        if electric is not None and half > 0.0:
+            hold = dynamics.gravity_torque(self._rig, self._q)
+            slope = [g[1] for g in self._geo]
+            self._gap = [math.copysign(half, float(hold[i]) / slope[i]) for i in range(3)]
+        # Sensor: a phase of the linearity error per axis and the noise generator (seeded).
+        self._rng = random.Random(imp.seed if imp is not None else 0)
+        self._sensor_phase = [self._rng.uniform(0.0, 2.0 * math.pi) for _ in range(3)]
+
+    @property
+    def imperfections(self) -> RigImperfections | None:
+        """The ``[hil]`` imperfections applied, or None (the ideal plant)."""
+        return self._imperfections
+
+    def sensed_stroke_state(
+        self,
+    ) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """Strokes and stroke rates as each drive's sensor reads them: the true ones
+        (:meth:`stroke_state`) on an ideal plant; with ``[hil]`` imperfections, an electric
+        axis's encoder sits on the motor (the rod plus the screw's gap), and a stroke sensor
+        adds its linearity error and a white noise draw per reading (seeded).
+
+        The rates are the true ones (a drive differentiates its encoder instead)."""
+        strokes, rates = self.stroke_state()
+        if self._imperfections is None:
+            return strokes, rates
+        s = list(strokes)
+        if self._electric_imp is not None:
+            gap = self._gap
+            s = [s[0] + gap[0], s[1] + gap[1], s[2] + gap[2]]
+        sensor = self._sensor_imp
+        if sensor is not None:
+            lin, sigma = sensor.linearity_fs, sensor.noise_m
+            phase, fs = self._sensor_phase, self._smax
+            gauss = self._rng.gauss
+            for i in range(3):
+                err = sensor_error_m(s[i], fs[i], lin, phase[i]) if lin > 0.0 else 0.0
+                s[i] += err + (gauss(0.0, sigma) if sigma > 0.0 else 0.0)
+        return (s[0], s[1], s[2]), rates
 
     def _chain(self, rig: Rig) -> None:
         # The constants of rt_runtime.dynamics._Chain (absolute-angle form), as plain floats.
@@ -517,6 +621,10 @@ class ArmPlant:
         qd = (w0, w1, w2)
         tau = [0.0, 0.0, 0.0]
         damp = [0.0, 0.0, 0.0]
+        elec = self._electric_imp
+        if elec is not None:
+            f_motor = self._f_motor
+            cur_alpha = 1.0 - math.exp(-h * 2.0 * math.pi * elec.current_bandwidth_hz)
         for i in range(3):
             s, ds, dds = geo[i]
             w = qd[i]
@@ -527,6 +635,11 @@ class ArmPlant:
             else:
                 ui = u[i]
                 f_act = ui * fmax
+                if elec is not None:
+                    # The current loop: the force follows its command with a first-order lag.
+                    fm = f_motor[i] + (f_act - f_motor[i]) * cur_alpha
+                    f_motor[i] = f_act = fm
+                    ui = fm / fmax
                 if f_act * sd > 0.0 and abs(sd) > vknee:
                     span = vmax - vknee
                     scale = (vmax - abs(sd)) / span
@@ -535,10 +648,18 @@ class ArmPlant:
                         d += abs(ui) * fmax / span
                     else:
                         f_act = 0.0
+                if elec is not None and self._half_gap > 0.0:
+                    f_act = self._through_screw(i, f_act, h)
             force[i] = f_act
             tf = tanh(sd / COULOMB_SMOOTHING_M_S)
-            f = f_act - fc * tf - cv * sd
-            d += fc * (1.0 - tf * tf) / COULOMB_SMOOTHING_M_S
+            if elec is not None:
+                # Stribeck: friction falls from breakaway to Coulomb over the Stribeck speed.
+                r = sd / elec.stribeck_velocity_m_s
+                fci = fc + (elec.breakaway_friction_n - fc) * math.exp(-r * r)
+            else:
+                fci = fc
+            f = f_act - fci * tf - cv * sd
+            d += fci * (1.0 - tf * tf) / COULOMB_SMOOTHING_M_S
             over = -s if s < 0.0 else s - smax[i]
             if over > 0.0:
                 m_eff = diag_m[i] / (ds * ds) + mr
@@ -640,6 +761,34 @@ class ArmPlant:
         if hydraulic:
             self._hydraulic_step(h, u, (stroke0, stroke1, stroke2), (sd0, sd1, sd2))
 
+    def _through_screw(self, i: int, f_motor_n: float, h: float) -> float:
+        """The force the screw passes to the rod of axis ``i`` over a sub-step of ``h``, and
+        the motor's motion across the screw's gap (backlash).
+
+        In contact on the side the motor pushes (gap at +-half the backlash), the whole force
+        passes. Otherwise the motor crosses the gap under its own force against its own
+        (reflected) inertia, the rod receives none of it, and contact is made (inelastically)
+        at the other side: the lost motion of a reversal.
+        """
+        half = self._half_gap
+        g = self._gap[i]
+        if (g >= half and f_motor_n > 0.0) or (g <= -half and f_motor_n < 0.0):
+            self._gap_rate[i] = 0.0
+            return f_motor_n
+        mr = self._mr
+        if mr > 0.0:
+            vg = self._gap_rate[i] + h * f_motor_n / mr
+            g += h * vg
+        else:
+            vg, g = 0.0, math.copysign(half, f_motor_n) if f_motor_n else g
+        if g >= half:
+            g, vg = half, 0.0
+        elif g <= -half:
+            g, vg = -half, 0.0
+        self._gap[i] = g
+        self._gap_rate[i] = vg
+        return 0.0
+
     def _hydraulic_step(
         self,
         h: float,
@@ -651,8 +800,15 @@ class ArmPlant:
         aa, ab, v0, pmax, smax = self._aa, self._ab, self._v0, self._pmax, self._smax
         pa_all, pb_all, spool, force = self._pa, self._pb, self._spool, self._force
         lag = 1.0 - math.exp(-h / self._tau_v)
+        valve = self._valve_imp
+        if valve is not None:
+            u = self._valve_command(u, valve.hysteresis)
+            slew = valve.slew_1_s * h
+            overlap = valve.overlap
         for i in range(3):
             x = spool[i]
+            if valve is not None:
+                x = valve_opening(x, overlap)
             pa, pb = pa_all[i], pb_all[i]
             if x >= 0.0:
                 ra, dra = _reg_sqrt(ps - pa)
@@ -678,8 +834,30 @@ class ArmPlant:
             pb = min(max(pb, 0.0), pmax)
             pa_all[i] = pa
             pb_all[i] = pb
-            spool[i] = x + (u[i] - x) * lag
+            x = spool[i]
+            dx = (u[i] - x) * lag
+            if valve is not None and abs(dx) > slew:
+                dx = math.copysign(slew, dx)
+            spool[i] = x + dx
             force[i] = pa * aa - pb * ab
+
+    def _valve_command(self, u: list[float], hysteresis: float) -> list[float]:
+        """The spool commands after the dead time (a ring of sub-steps) and the hysteresis
+        (the play operator of :func:`play`)."""
+        ring = self._delay_ring
+        if ring:
+            k = self._delay_at
+            delayed = [ring[0][k], ring[1][k], ring[2][k]]
+            ring[0][k], ring[1][k], ring[2][k] = u[0], u[1], u[2]
+            self._delay_at = (k + 1) % len(ring[0])
+            u = delayed
+        if hysteresis > 0.0:
+            p = self._play
+            p[0] = play(p[0], u[0], hysteresis)
+            p[1] = play(p[1], u[1], hysteresis)
+            p[2] = play(p[2], u[2], hysteresis)
+            u = [p[0], p[1], p[2]]
+        return u
 
     # --- state ----------------------------------------------------------------------------
 

@@ -50,6 +50,7 @@ __all__ = [
     "profile_errors",
     "tip_reference",
     "tracking_figures",
+    "trench_shape",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -225,6 +226,53 @@ def profile_errors(initial: Any, final: Any, design: Any) -> ProfileErrors:
         if len(coords):
             over_max = float(np.max(shapely.distance(shapely.points(coords), design)))
     return ProfileErrors(coverage, over_max * 1e3, float(dug.area))
+
+
+def trench_shape(
+    x_m: FloatArray, y_m: FloatArray, ground_y_m: float
+) -> tuple[float, float, float, float]:
+    """The trench a sampled surface shows, in Yao Table 6's terms.
+
+    ``D`` is the ground height less the lowest point; each wall's slope is the line fitted
+    (least squares) through its samples between 20 % and 80 % of D below the ground, the walls
+    split at the middle of the bottom (the samples within 10 % of D of the lowest); ``L`` the
+    length at the top, between the two fitted walls where they meet the ground (without two
+    walls: between the outermost samples more than 2 % of D below the ground).
+
+    Args:
+        x_m: Abscissae ``(n,)``, increasing.
+        y_m: Surface heights ``(n,)``.
+        ground_y_m: The undisturbed ground height.
+
+    Returns:
+        ``(L_m, D_m, beta_far_rad, beta_near_rad)``: the far wall is the one at larger x
+        (Yao's beta1, where the task starts), the near one at smaller x (beta2); NaN where the
+        surface shows no trench or a wall has fewer than two samples in its band.
+    """
+    x = np.asarray(x_m, dtype=np.float64)
+    y = np.asarray(y_m, dtype=np.float64)
+    depth = ground_y_m - float(y.min())
+    if not depth > 0.0:
+        return math.nan, math.nan, math.nan, math.nan
+    below = np.flatnonzero(y < ground_y_m - 0.02 * depth)
+    length = float(x[below[-1]] - x[below[0]])
+    bottom = np.flatnonzero(y <= float(y.min()) + 0.1 * depth)
+    x_mid = 0.5 * (float(x[bottom[0]]) + float(x[bottom[-1]]))
+    band = (y <= ground_y_m - 0.2 * depth) & (y >= ground_y_m - 0.8 * depth)
+    slopes = []
+    at_ground = []
+    for side in (x > x_mid, x < x_mid):
+        sel = band & side
+        if int(sel.sum()) < 2:
+            slopes.append(math.nan)
+            continue
+        m, c = (float(v) for v in np.polyfit(x[sel], y[sel], 1))
+        slopes.append(math.atan(abs(m)))
+        if m != 0.0:
+            at_ground.append((ground_y_m - c) / m)
+    if len(at_ground) == 2:
+        length = at_ground[0] - at_ground[1]
+    return length, depth, slopes[0], slopes[1]
 
 
 def tip_reference(rig: Rig, q_ref_rad: FloatArray, machine_x_m: FloatArray) -> FloatArray:

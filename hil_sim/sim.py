@@ -122,6 +122,12 @@ class FaultKind(IntEnum):
     #: The job store cannot be written (its disk full or read-only, its directory gone): the
     #: campaign puts a file where the state directory was, so every write fails.
     STORE_UNWRITABLE = 21
+    #: A model file the planner was verified from changes on disk (a model deployed under a
+    #: running job, a failing disk): the campaign overwrites the job's model with other bytes.
+    MODEL_CHANGED = 22
+    #: The daemon crashes mid-job (SIGKILL, a watchdog's SIGABRT): its loop stops sending and
+    #: nothing it would do on a stop happens; the drives stop on their own, systemd restarts it.
+    DAEMON_CRASH = 23
 
     @property
     def label(self) -> str:
@@ -512,9 +518,11 @@ class HilCore:
         vcu = self.vcu
         servo = self._servo_dt_s
         full = servo * (1.0 + 1e-9)
+        # What the drives' sensors read: the true strokes on an ideal plant.
+        sense = plant.stroke_state if plant.imperfections is None else plant.sensed_stroke_state
         while remaining > 1e-12:
             h = servo if remaining > full else remaining
-            (s0, s1, s2), (v0, v1, v2) = plant.stroke_state()
+            (s0, s1, s2), (v0, v1, v2) = sense()
             e0 = n0.effort = fw0.servo_step(h, s0, v0)
             e1 = n1.effort = fw1.servo_step(h, s1, v1)
             e2 = n2.effort = fw2.servo_step(h, s2, v2)

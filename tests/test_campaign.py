@@ -359,6 +359,58 @@ def test_an_unwritable_store_latches_and_a_reset_says_why_until_it_is_back(
         hil.close()
 
 
+def test_a_changed_model_latches_and_a_reset_says_why_until_it_is_back(
+    rig: Rig, tmp_path: Path
+) -> None:
+    """Other bytes deployed over a model under a running job: its planner process names the
+    file and ends, the runner latches; a reset while the file stays changed fails the planner's
+    start, saying which file and why; with the verified bytes back the job resumes to its end."""
+    import shutil
+
+    from hil_sim.harness.campaign import _change_model, _dead, lockstep_config, wait_for
+    from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR
+    from rt_runtime.service.jobstore import JobStatus, JobStore
+    from rt_runtime.service.runner import RigRunner
+
+    models = tmp_path / "models"
+    shutil.copytree(DEFAULT_MODEL_DIR, models)
+    cfg = lockstep_config(tmp_path / "state", "scale_model", models)
+    planner = TrenchPlanner(rig, model_dir=models)
+    hil = LockstepHil(rig, planner.home_pose_rad, vcu=False)
+    store = JobStore(cfg.paths.state_dir)
+    store.start()
+    runner = RigRunner(cfg, rig, planner, hil.master_bus, store, hil.clock, hil.reopen_master_bus)
+    try:
+        runner.start()
+        wait_for(lambda: runner.health()[0], "holding")
+        job = store.submit(dict(CASE_TASK), "pinn", max_digs=2)
+        store.changed.set()
+        # The first dig recorded: the planner process serves (it was verified and watches).
+        wait_for(lambda: len(store.get(job.id).digs) >= 1, "the first dig")
+        pid = runner.planner_pid()
+        assert pid is not None
+        undo = _change_model(models)
+        wait_for(lambda: _dead(pid), "the planner process ending", 30.0)
+        wait_for(lambda: runner.state().endswith("waiting for reset-fault"), "the latch")
+        assert "pinn_downward.onnx changed on disk" in runner.fault(), runner.fault()
+        number = runner.reset_fault()
+        wait_for(lambda: runner.resets_done >= number, "the first reset")
+        wait_for(lambda: runner.state().endswith("waiting for reset-fault"), "the second latch")
+        fault = runner.fault()
+        assert "could not start" in fault and "pinn_downward.onnx" in fault, fault
+        assert "corrupt or was replaced" in fault, fault
+        undo()
+        number = runner.reset_fault()
+        wait_for(lambda: runner.resets_done >= number, "the second reset")
+        wait_for(lambda: store.get(job.id).status is JobStatus.DONE, "the job")
+        assert runner.fault() == ""
+        assert len(store.get(job.id).digs) == 2
+    finally:
+        assert runner.shutdown(30.0)
+        store.close()
+        hil.close()
+
+
 def test_a_rock_stops_an_axis_that_pushes_or_moves_into_it(rig: Rig) -> None:
     """A boom lowering under gravity has its drive still pushing up: the rock below stops it
     all the same; resting on it and pulling away from it are free."""

@@ -38,7 +38,8 @@ def test_bench_hil_refuses_a_negative_duration(capsys: pytest.CaptureFixture[str
 def test_bench_hil_runs_a_dig_and_says_whose_time_it_was(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    assert main(["bench", "hil", "--max-digs", "1", "--seconds", "0.2", "--json"]) == 0
+    argv = ["bench", "hil", "--max-digs", "1", "--seconds", "0.2", "--no-calibration", "--json"]
+    assert main(argv) == 0
     r = json.loads(capsys.readouterr().out)
     task = r["task"]
     assert (task["task"], task["status"], task["digs"]) == ("A", "done", 1)

@@ -48,11 +48,15 @@ from rt_runtime.trajectory import sextic
 
 __all__ = [
     "BenchHilReport",
+    "GaoCalibration",
     "StepCost",
+    "TaskCalibration",
     "TaskSpeed",
     "add_parser",
     "bench_hil",
     "bench_step",
+    "calibrate_gao",
+    "calibrate_task",
     "format_report",
     "run",
 ]
@@ -86,6 +90,12 @@ def add_parser(bench_sub: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--cpu", action="store_true", help="step measurement in thread CPU time (loaded hosts)"
     )
+    p.add_argument(
+        "--no-calibration",
+        dest="calibration",
+        action="store_false",
+        help="skip the calibration runs against the papers (gao, task_a; ~2 min)",
+    )
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=run)
     return p
@@ -102,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
         max_digs=args.max_digs,
         step_seconds=args.seconds,
         cpu=args.cpu,
+        calibration=args.calibration,
     )
     print(json.dumps(report.to_json()) if args.json else format_report(report))
     return 0 if report.task.status == "done" else 1
@@ -201,23 +212,168 @@ class StepCost:
 
 
 @dataclass(frozen=True, slots=True)
+class GaoCalibration:
+    """Gao's path on the imperfect test bench, his controller and ours (``gao``).
+
+    Attributes:
+        p: Per axis ``max_mm`` (and ``rms_mm``) with Gao's proportional loop (``--controller
+            p``); the paper measured +-3 mm (Fig. 12).
+        csp: The same with ours, CSP with velocity feed-forward and the host's loop.
+        host_gain_1_s: The host loop's gain in both runs (1/s).
+        path: ``gao`` (Table 2, 3 s segments) or the reduced path's name.
+    """
+
+    p: dict[str, dict[str, float]]
+    csp: dict[str, dict[str, float]]
+    host_gain_1_s: float
+    path: str
+
+    def to_json(self) -> dict[str, Any]:
+        """The keys of README ``bench hil --json`` ``gao``."""
+        return {"p": self.p, "csp": self.csp, "host_gain_1_s": self.host_gain_1_s,
+                "path": self.path}  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True)
+class TaskCalibration:
+    """Task A on the imperfect scale model against Yao's measurements (``task_a``).
+
+    Attributes:
+        energy_ratio: Executed over planned drive energy of the digs, minus 1 (Yao: 0.13).
+        energy_ratio_digs: The same per dig.
+        load_ratio: Bucket load over planned V_p (Yao: 4.63 / 5.07 L = 0.91).
+        table6_open: Yao Table 6 errors (fractions) with the planner fed the tip paths only.
+        table6_closed: The same with the planner on the profile scanner's surface.
+        coverage_open: The HIL's coverage error, open loop.
+        coverage_closed: The same, closed loop.
+        tracking_max_mm: Largest tracking error over the axes and both runs (truth, mm).
+        tracking_rms_mm: Largest RMS tracking error over the axes and both runs (mm).
+        digs_open: Digs of the open-loop run.
+        digs_closed: Digs of the closed-loop run.
+    """
+
+    energy_ratio: float
+    energy_ratio_digs: tuple[float, ...]
+    load_ratio: float
+    table6_open: dict[str, float]
+    table6_closed: dict[str, float]
+    coverage_open: float
+    coverage_closed: float
+    tracking_max_mm: float
+    tracking_rms_mm: float
+    digs_open: int
+    digs_closed: int
+
+    def to_json(self) -> dict[str, Any]:
+        """The keys of README ``bench hil --json`` ``task_a``."""
+        return {
+            "energy_ratio": self.energy_ratio,
+            "energy_ratio_digs": list(self.energy_ratio_digs),
+            "load_ratio": self.load_ratio,
+            "table6_open": self.table6_open,
+            "table6_closed": self.table6_closed,
+            "coverage_open": self.coverage_open,
+            "coverage_closed": self.coverage_closed,
+            "tracking_max_mm": self.tracking_max_mm,
+            "tracking_rms_mm": self.tracking_rms_mm,
+            "digs_open": self.digs_open,
+            "digs_closed": self.digs_closed,
+        }
+
+
+@dataclass(frozen=True, slots=True)
 class BenchHilReport:
     """The report of ``excavator-rt bench hil``.
 
     Attributes:
         task: The task run on the lockstep HIL.
         step: The models alone, None when skipped (``--seconds 0``).
+        gao: Gao's path on the imperfect bench, None when skipped (``--no-calibration``).
+        task_a: Task A on the imperfect scale model, None when skipped.
     """
 
     task: TaskSpeed
     step: StepCost | None = None
+    gao: GaoCalibration | None = None
+    task_a: TaskCalibration | None = None
 
     def to_json(self) -> dict[str, Any]:
-        """``{"task", "step"}`` (``step`` where measured)."""
+        """``{"task", "step", "gao", "task_a"}`` (each but ``task`` where measured)."""
         out: dict[str, Any] = {"task": self.task.to_json()}
         if self.step is not None:
             out["step"] = self.step.to_json()
+        if self.gao is not None:
+            out["gao"] = self.gao.to_json()
+        if self.task_a is not None:
+            out["task_a"] = self.task_a.to_json()
         return out
+
+
+def calibrate_gao(
+    joints_deg: tuple[tuple[float, float, float], ...] = (),
+    host_gain_1_s: float | None = None,
+) -> GaoCalibration:
+    """Gao's path (or the key points ``joints_deg``, a reduced path) on the imperfect test
+    bench with Gao's proportional loop and with ours.
+
+    Raises:
+        ConfigurationError: Bad key points.
+    """
+    from hil_sim.harness.scenario import GAO_HOST_GAIN_1_S, PathScenario, run_path_scenario
+
+    gain = GAO_HOST_GAIN_1_S if host_gain_1_s is None else host_gain_1_s
+    path = "joints" if joints_deg else "gao"
+    out: dict[str, dict[str, dict[str, float]]] = {}
+    for controller in ("p", "csp"):
+        sc = PathScenario(
+            path=path,
+            joints_deg=joints_deg,
+            imperfect=True,
+            controller=controller,
+            host_gain_1_s=gain,
+        )
+        report = run_path_scenario(sc).report
+        out[controller] = {
+            axis: {"max_mm": fig.max_mm, "rms_mm": fig.rms_mm}
+            for axis, fig in report.tracking.items()
+        }
+    return GaoCalibration(out["p"], out["csp"], gain, path)
+
+
+def calibrate_task(task: str = "A", max_digs: int | None = None) -> TaskCalibration:
+    """Task ``task`` on the imperfect scale model, the planner on the tip paths (open loop)
+    and on the profile scanner's surface (closed loop).
+
+    Raises:
+        ConfigurationError: Bad task.
+        RuntimeError: A run on which the granular material was not modelled.
+    """
+    from hil_sim.harness.scenario import Scenario, run_scenario
+
+    runs = []
+    for scanner in (False, True):
+        sc = Scenario(task=task, max_digs=max_digs, imperfect=True, scanner=scanner)
+        runs.append(run_scenario(sc).report)
+    open_r, closed_r = runs
+    mat_open, mat_closed = open_r.material, closed_r.material
+    if mat_open is None or mat_closed is None or mat_open.table6 is None:
+        raise RuntimeError("the calibration runs carry no material figures")
+    table6_closed = mat_closed.table6
+    assert table6_closed is not None
+    figs = [fig for r in runs for fig in r.tracking.values()]
+    return TaskCalibration(
+        energy_ratio=mat_open.energy_ratio,
+        energy_ratio_digs=mat_open.energy_ratio_digs,
+        load_ratio=mat_open.load_ratio,
+        table6_open=mat_open.table6.to_json(),
+        table6_closed=table6_closed.to_json(),
+        coverage_open=math.nan if open_r.coverage_error is None else open_r.coverage_error,
+        coverage_closed=math.nan if closed_r.coverage_error is None else closed_r.coverage_error,
+        tracking_max_mm=max(f.max_mm for f in figs),
+        tracking_rms_mm=max(f.rms_mm for f in figs),
+        digs_open=len(open_r.digs),
+        digs_closed=len(closed_r.digs),
+    )
 
 
 def bench_hil(
@@ -227,8 +383,10 @@ def bench_hil(
     max_digs: int | None = None,
     step_seconds: float = 10.0,
     cpu: bool = False,
+    calibration: bool = False,
 ) -> BenchHilReport:
-    """Both measurements (see the module docstring).
+    """Both measurements (see the module docstring), and with ``calibration`` the runs
+    against the papers (:func:`calibrate_gao`, :func:`calibrate_task`).
 
     Raises:
         ConfigurationError: Bad task or rig.
@@ -258,7 +416,9 @@ def bench_hil(
         periods_wall_s=cost.wall_s,
     )
     step = bench_step(load_rig(_STEP_RIG), step_seconds, cpu=cpu) if step_seconds > 0.0 else None
-    return BenchHilReport(speed, step)
+    if not calibration:
+        return BenchHilReport(speed, step)
+    return BenchHilReport(speed, step, calibrate_gao(), calibrate_task())
 
 
 def _reference(rig: Rig, dig: int) -> tuple[NDArray[np.float64], NDArray[np.float64],
@@ -357,4 +517,28 @@ def format_report(report: BenchHilReport) -> str:
             f"{step.advance_us.p99:.0f}, frames {step.frames_us.p50:.0f} / "
             f"{step.frames_us.p99:.0f}, total {step.total_us.p50:.0f} / {step.total_us.p99:.0f}"
         )
+    gao = report.gao
+    if gao is not None:
+        for name, figs in (("p (Gao)", gao.p), ("csp (ours)", gao.csp)):
+            lines.append(
+                f"  Gao path, imperfect bench, {name}: max "
+                + ", ".join(f"{axis} {f['max_mm']:.2f}" for axis, f in figs.items())
+                + " mm (paper +-3 mm)"
+            )
+    ta = report.task_a
+    if ta is not None:
+        lines.append(
+            f"  task A, imperfect scale model: energy {ta.energy_ratio:+.1%} against the plan "
+            f"(Yao +13 %), bucket load {ta.load_ratio:.1%} of V_p (Yao 91 %), tracking max "
+            f"{ta.tracking_max_mm:.2f} mm"
+        )
+        for name, t6, cov in (
+            ("open", ta.table6_open, ta.coverage_open),
+            ("closed", ta.table6_closed, ta.coverage_closed),
+        ):
+            lines.append(
+                f"  Table 6 {name} loop: "
+                + ", ".join(f"{k} {v:.1%}" for k, v in t6.items())
+                + f" (Yao L 6.7, D 6.7, beta1 5.0, beta2 11.7 %), coverage {cov:.1%}"
+            )
     return "\n".join(lines)

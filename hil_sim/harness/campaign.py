@@ -54,9 +54,11 @@ import json
 import math
 import os
 import random
+import shutil
 import signal
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -66,6 +68,7 @@ from typing import Any
 
 import numpy as np
 
+from firmware_models.drive import DeviceState
 from hil_sim.harness.lockstep import LockstepHil
 from hil_sim.harness.scenario import STALL_MS
 from hil_sim.sim import FaultKind
@@ -74,6 +77,7 @@ from rt_runtime.canbus.pdo import RPDO1, RPDO2
 from rt_runtime.control.executor import ExecutorConfig
 from rt_runtime.control.guard import StrokeLimits, check_setpoint_trace
 from rt_runtime.errors import ConfigurationError
+from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR
 from rt_runtime.planning.trench import TrenchPlanner
 from rt_runtime.rig import Rig, load_rig
 from rt_runtime.service.config import DaemonConfig, parse_config
@@ -226,7 +230,23 @@ RULES: dict[FaultKind, Rule] = {
         "the runner's planner check every PLANNER_CHECK_CYCLES cycles (the case's clock stands "
         "still from the SIGKILL until the process has ended)",
     ),
+    FaultKind.DAEMON_CRASH: Rule(
+        "stopped",
+        lambda rig, cfg: rig.drives.sync_timeout_s + 3 * cfg.loop.period_s,
+        "the drives' own SYNC watchdog (EMCY 0x8250) once the crashed daemon's SYNCs stop: "
+        "the first drive out of operation enabled; the restarted daemon (RESTART_S later) "
+        "boots the drives from their fault and resumes the job from its store",
+    ),
+    FaultKind.MODEL_CHANGED: Rule(
+        "stopped",
+        lambda rig, cfg: (PLANNER_CHECK_CYCLES + 3) * cfg.loop.period_s,
+        "the planner process looks at its verified files every WATCH_PERIOD_S of wall time and "
+        "before each plan, says which changed and ends; the runner's planner check latches it "
+        "(the case's clock stands still until the process has ended)",
+    ),
 }
+#: The daemon's restart after a crash: systemd's ``RestartSec`` of the shipped unit (s).
+RESTART_S = 2.0
 #: The longest a running job goes without writing the store (a dig cycle, s): the bound of a
 #: store that cannot be written counts from its next write.
 STORE_WRITE_S = 20.0
@@ -387,6 +407,11 @@ class _CaseClock:
         self.reset_at = math.inf
         self.rock_direction = 0.0
         self.undo: Callable[[], None] | None = None  # clears a host fault's cause
+        self.model_dir: Path | None = None  # the case's own copy of the models
+        #: A crash: the crashed runner's loop hangs in the clock (it sends nothing more) until
+        #: ``release`` at the case's end.
+        self.crashed = threading.Event()
+        self.release = threading.Event()
         self.inject_error = ""
         #: Master frames seen: (time, cob, data) of RPDO1, RPDO2, SYNC and NMT.
         self.frames: list[tuple[float, int, bytes]] = []
@@ -451,6 +476,15 @@ class _CaseClock:
                     raise ConfigurationError("no planner process to kill")
                 os.kill(pid, signal.SIGKILL)
                 wait_for(lambda: _dead(pid), "the killed planner process ending", 10.0)
+            elif kind is FaultKind.DAEMON_CRASH:
+                self.crashed.set()
+                self.release.wait()  # this loop's process is gone
+            elif kind is FaultKind.MODEL_CHANGED:
+                watched = runner.planner_pid()
+                if watched is None:
+                    raise ConfigurationError("no planner process to watch its models")
+                self.undo = _change_model(self.model_dir)
+                wait_for(lambda: _dead(watched), "the planner seeing its model changed", 10.0)
             else:
                 axis = AXES.index(case.target) if case.target in AXES else -1
                 self.hil.inject(kind, axis, case.param)
@@ -458,6 +492,25 @@ class _CaseClock:
                     self.rock_direction = self.hil.core.nodes[axis].faults.rock_direction
         except (ConfigurationError, ValueError, OSError) as exc:
             self.inject_error = f"{type(exc).__name__}: {exc}"
+
+
+def _change_model(model_dir: Path | None) -> Callable[[], None]:
+    """Deploy other bytes over the downward dig's model (a new file moved into place, as a
+    deployment does); return what puts the verified bytes back."""
+    if model_dir is None:
+        raise ConfigurationError("the case has no model directory of its own to change")
+    path = model_dir / "pinn_downward.onnx"
+    original = path.read_bytes()
+    changed = bytearray(original)
+    changed[len(changed) // 2] ^= 0xFF
+    staged = path.with_name(path.name + ".new")
+
+    def put(data: bytes) -> None:
+        staged.write_bytes(data)
+        os.replace(staged, path)
+
+    put(bytes(changed))
+    return lambda: put(original)
 
 
 def _dead(pid: int) -> bool:
@@ -469,15 +522,18 @@ def _dead(pid: int) -> bool:
     return stat[stat.rindex(")") + 2] in "ZX"
 
 
-def lockstep_config(state_dir: Path, rig_name: str) -> DaemonConfig:
+def lockstep_config(state_dir: Path, rig_name: str, model_dir: Path | None = None) -> DaemonConfig:
     """The daemon's configuration of a case: the example's loop and executor values, no
-    real-time settings (simulated time), state under ``state_dir``."""
-    raw = {
+    real-time settings (simulated time), state under ``state_dir``, the models of
+    ``model_dir`` (None: the shipped ones)."""
+    raw: dict[str, Any] = {
         "bus": {"interface": "virtual", "channel": "unused", "boot_timeout_s": 1.0},
         "rig": {"profile": rig_name},
         "loop": {"sched_fifo_priority": 0, "lock_memory": False},
         "paths": {"state_dir": str(state_dir), "socket": str(state_dir / "c.sock")},
     }
+    if model_dir is not None:
+        raw["models"] = {"dir": str(model_dir)}
     return parse_config(raw, state_dir / "campaign.toml")
 
 
@@ -502,24 +558,55 @@ def run_case(case: Case, rig_name: str = "scale_model") -> tuple[CaseResult, dic
     result = CaseResult(case)
     trace: dict[str, Any] = {}
     rig = load_rig(rig_name)
-    planner = TrenchPlanner(rig)
     with tempfile.TemporaryDirectory(prefix="excavator-campaign-") as tmp:
-        cfg = lockstep_config(Path(tmp), rig_name)
+        model_dir = None
+        if case.kind is FaultKind.MODEL_CHANGED:  # the shipped models stay as they are
+            model_dir = Path(tmp) / "models"
+            shutil.copytree(DEFAULT_MODEL_DIR, model_dir)
+        planner = TrenchPlanner(rig, model_dir=model_dir)
+        cfg = lockstep_config(Path(tmp), rig_name, model_dir)
         rule = RULES[case.kind]
         result.bound_s = rule.bound(rig, cfg) if rule.bound is not None else math.nan
         hil = LockstepHil(rig, planner.home_pose_rad, vcu=False, fault_seed=case.seed)
         monitor = ChannelBus(hil.channel, clock=hil.clock.now)
         clock = _CaseClock(hil, case, monitor)
+        clock.model_dir = model_dir
         store = JobStore(cfg.paths.state_dir)
         store.start()  # its writer thread, as the daemon's
         runner = RigRunner(cfg, rig, planner, hil.master_bus, store, clock, hil.reopen_master_bus)
         clock.runner = runner
+        restarted: list[tuple[RigRunner, JobStore]] = []
+
+        def restart() -> tuple[RigRunner, JobStore]:
+            """The daemon as systemd starts it again: its store read from disk, a new runner
+            on a new bus end, the same clock."""
+            again = JobStore(cfg.paths.state_dir)
+            again.start()
+            new = RigRunner(cfg, rig, planner, hil.master_bus, again, clock, hil.reopen_master_bus)
+            restarted.append((new, again))
+            clock.runner = new
+            return new, again
+
         try:
-            _drive_case(case, result, runner, store, hil, clock)
+            _drive_case(case, result, runner, store, hil, clock, restart)
         except (TimeoutError, ConfigurationError) as exc:
-            result.error = f"{type(exc).__name__}: {exc}; runner: {runner.state()}"
+            now = restarted[-1][0] if restarted else runner
+            result.error = f"{type(exc).__name__}: {exc}; runner: {now.state()}"
         finally:
-            if not runner.shutdown(30.0):
+            for again, again_store in reversed(restarted):
+                if not again.shutdown(30.0):
+                    result.error = result.error or "the restarted runner did not shut down"
+                again_store.close()
+            if clock.crashed.is_set():
+                # The crashed runner's loop, let go on a bus end and a store that are closed:
+                # asked to stop first (else its next send fails on the closed end and it
+                # latches; either way it ends and writes nowhere).
+                stopper = threading.Thread(target=runner.shutdown, args=(30.0,), daemon=True)
+                stopper.start()
+                time.sleep(0.1)
+                clock.release.set()
+                stopper.join(30.0)
+            elif not runner.shutdown(30.0):
                 result.error = result.error or "the runner did not shut down"
             if clock.undo is not None and not runner.store.path.parent.is_dir():
                 clock.undo()
@@ -541,6 +628,7 @@ def _drive_case(
     store: JobStore,
     hil: LockstepHil,
     clock: _CaseClock,
+    restart: Callable[[], tuple[RigRunner, JobStore]],
 ) -> None:
     runner.start()
     wait_for(lambda: runner.health()[0], "the runner holding")
@@ -548,10 +636,15 @@ def _drive_case(
     store.changed.set()
 
     def settled() -> bool:
+        if clock.crashed.is_set():
+            return True
         status = store.get(job.id).status
         return bool(runner.fault()) or status in (JobStatus.DONE, JobStatus.FAILED)
 
     wait_for(settled, "the job ending or a fault")
+    if clock.crashed.is_set():
+        _crash_and_restart(result, store, hil, clock, job.id, restart)
+        return
     before = None
     if clock.inject_error:
         raise ConfigurationError(f"the injection failed: {clock.inject_error}")
@@ -602,6 +695,66 @@ def _drive_case(
     if result.outcome == "stopped" and before is not None:  # the boot before the reset's too
         for key, value in before.to_json().items():
             result.rode_through[key] = result.rode_through.get(key, 0) + value
+
+
+def _crash_and_restart(
+    result: CaseResult,
+    store: JobStore,
+    hil: LockstepHil,
+    clock: _CaseClock,
+    job_id: int,
+    restart: Callable[[], tuple[RigRunner, JobStore]],
+) -> None:
+    """A crashed daemon: its loop hangs (nothing more is sent), its bus end is gone, its store
+    is what it had written; the world goes on for :data:`RESTART_S` (the drives' watchdogs stop
+    them: the detection is the first drive out of operation enabled), then a new runner reads
+    the store and must resume the job at its next undone dig.
+
+    The old store's writer is stopped with what it had queued written: a crash can also cut a
+    write short, which the store's atomic replace survives (``tests/test_jobstore.py`` kills a
+    writer at random moments)."""
+    digs_at_crash = len(store.get(job_id).digs)
+    store.close()
+    hil.reopen_master_bus()  # the crashed process's socket: closed
+    nodes, plant = hil.core.nodes, hil.core.plant
+    period = hil.period_s
+    rate_limit = StrokeLimits.from_rig(hil.core.rig).as_arrays()[0]
+    peak = 0.0  # the plant's stroke rate from the detection on, as a fraction of the limit
+    t = clock.now()
+    end = t + RESTART_S
+    while t < end:
+        t = min(t + period, end)
+        hil.clock.sleep_until(t)
+        if math.isnan(result.detection_s) and any(
+            n.firmware.state is not DeviceState.OPERATION_ENABLED for n in nodes
+        ):
+            result.detection_s = clock.now() - clock.injected_at
+        if not math.isnan(result.detection_s):
+            peak = max(peak, float(np.max(np.abs(plant.stroke_rate_m_s) / rate_limit)))
+    result.plant_peak_v = peak
+    if peak > 1.0 + PLANT_RATE_MARGIN:
+        result.violations.append(f"the plant's stroke rate {peak:.3f} of the limit")
+    result.outcome = "stopped"
+    result.fault = "the daemon crashed; the drives stopped on their own"
+    clock.reset_at = clock.now()
+    runner, again = restart()
+    runner.start()
+    wait_for(lambda: runner.health()[0] or bool(runner.fault()), "the restarted runner holding")
+    again.changed.set()
+    wait_for(
+        lambda: (
+            again.get(job_id).status in (JobStatus.DONE, JobStatus.FAILED) or bool(runner.fault())
+        ),
+        "the resumed job ending",
+    )
+    final = again.get(job_id)
+    result.digs = len(final.digs)
+    result.resumed = final.status is JobStatus.DONE and result.digs >= result.case.digs
+    result.lost_job = result.digs < digs_at_crash
+    if not result.resumed:
+        result.error = f"not resumed: job {final.status.label}, {final.fault or runner.fault()}"
+    counts = runner.rx_counts()
+    result.rode_through = counts.to_json() if counts is not None else {}
 
 
 def _check_stop(
@@ -761,17 +914,42 @@ def run_campaign(
     out: str | None = None,
 ) -> dict[str, Any]:  # fmt: skip
     """Run the cases over ``jobs`` processes (default: the CPUs); the report (see the README:
-    ``kinds``, ``cases``, ``summary``)."""
+    ``kinds``, ``cases``, ``summary``). With ``out``, each case's row is written to
+    ``out/cases.jsonl`` as it ends and the report to ``out/campaign.json`` at the end."""
     wall0 = time.monotonic()
     if out is not None:
         Path(out).mkdir(parents=True, exist_ok=True)
     work = [(c, rig_name, out) for c in cases]
     workers = max(1, min(jobs or os.cpu_count() or 1, len(work)))
-    if workers == 1:
-        rows = [_run_one(w) for w in work]
-    else:
-        with ProcessPoolExecutor(workers) as pool:
-            rows = list(pool.map(_run_one, work))
+    rows: list[dict[str, Any]] = []
+    log = None if out is None else (Path(out) / "cases.jsonl").open("w")
+
+    def keep(row: dict[str, Any]) -> None:
+        """A finished case: kept, one line in ``cases.jsonl`` (a long run that is stopped
+        keeps what it ran), and one progress line on stderr when it writes to a directory."""
+        rows.append(row)
+        if log is not None:
+            log.write(json.dumps(row) + "\n")
+            log.flush()
+            mark = "safe" if row["safe"] else "NOT SAFE"
+            print(
+                f"case {len(rows)}/{len(work)}: {row['kind']} on {row['target']} at "
+                f"{row['at_s']} s: {row['outcome']}, {mark}",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    try:
+        if workers == 1:
+            for w in work:
+                keep(_run_one(w))
+        else:
+            with ProcessPoolExecutor(workers) as pool:
+                for row in pool.map(_run_one, work):
+                    keep(row)
+    finally:
+        if log is not None:
+            log.close()
     kinds = sorted({c.kind.label for c in cases})
     stopped = [r for r in rows if r["outcome"] == "stopped"]
     detection: dict[str, dict[str, float | None]] = {}

@@ -4,7 +4,9 @@ Role: the command-line edge of :mod:`hil_sim.harness.scenario` (mm, Wh and perce
 here and in the report). ``rt_runtime.cli`` wires it in with :func:`add_parser` and :func:`run`::
 
     excavator-rt hil --task A [--rig scale_model] [--realtime] [--trace FILE.blf|.asc]
-                     [--no-feedforward] [--max-digs N] [--json] [--plot DIR]
+                     [--no-feedforward] [--controller csp|p] [--imperfect|--ideal] [--scanner]
+                     [--material NAME]
+                     [--max-digs N] [--json] [--plot DIR]
                      [--inject KIND:TARGET:AT_S[:PARAM] ...]
     excavator-rt hil campaign [--kinds K,...] [--axes A,...] [--seeds N] [--json] [--out DIR]
     excavator-rt hil soak [--hours H | --minutes M | --seconds S] [--fault-every-s S] [--json]
@@ -35,6 +37,8 @@ from typing import Any
 from hil_sim.harness import campaign, fouraxis, hil_soak
 from hil_sim.harness.reports import HilReport
 from hil_sim.harness.scenario import (
+    CONTROLLERS,
+    GAO_HOST_GAIN_1_S,
     FaultSpec,
     HilRun,
     PathScenario,
@@ -43,7 +47,7 @@ from hil_sim.harness.scenario import (
     run_scenario,
 )
 from hil_sim.sim import FaultKind
-from rt_runtime.errors import ExcavatorRtError
+from rt_runtime.errors import ConfigurationError, ExcavatorRtError
 
 __all__ = ["add_parser", "format_report", "parse_fault", "parse_floats", "run"]
 
@@ -186,6 +190,50 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "--trace", default=None, metavar="FILE", help="write the CAN trace (.blf or .asc)"
     )
     p.add_argument("--no-feedforward", action="store_true", help="velocity offset 0x60B1 = 0")
+    p.add_argument(
+        "--controller",
+        default="csp",
+        choices=CONTROLLERS,
+        help="csp: target stroke with velocity feed-forward (ours); p: Gao's plain proportional "
+        "displacement loop (no feed-forward), the paper's reference",
+    )
+    p.add_argument(
+        "--host-gain",
+        type=float,
+        default=None,
+        metavar="1/S",
+        help="gain of the host's proportional displacement loop over the bus, added to the "
+        f"velocity offset (default {GAO_HOST_GAIN_1_S:g} with --controller p, 0 with csp)",
+    )
+    p.add_argument(
+        "--scanner",
+        action="store_true",
+        help="emulate the rig's profile scanner ([hil.scanner]) and plan each dig on the "
+        "surface it measured (a task's lockstep run)",
+    )
+    p.add_argument(
+        "--material",
+        default=None,
+        metavar="NAME",
+        help="the pit's granular material, one of the profile's [hil.materials] (with "
+        "--imperfect; default the profile's hil.material)",
+    )
+    real = p.add_mutually_exclusive_group()
+    real.add_argument(
+        "--imperfect",
+        dest="imperfect",
+        action="store_const",
+        const=True,
+        default=None,
+        help="apply the rig profile's [hil] imperfections (valves, sensors, motors, material)",
+    )
+    real.add_argument(
+        "--ideal",
+        dest="imperfect",
+        action="store_const",
+        const=False,
+        help="the ideal HIL whatever the profile's hil.enabled says",
+    )
     p.add_argument("--max-digs", type=int, default=None, help="stop after N digs")
     p.add_argument("--period-ms", type=float, default=2.0, help="SYNC period (ms)")
     p.add_argument("--planner", default="pinn", choices=("pinn", "pso"))
@@ -230,8 +278,10 @@ def format_report(report: HilReport) -> str:
                 )
             )
     lines = [
-        f"HIL {report.transport}: task {report.task} on {report.rig}, feed-forward "
-        f"{'on' if report.feedforward else 'off'}: {report.status}"
+        f"HIL {report.transport}: task {report.task} on {report.rig}"
+        f"{' (imperfect)' if report.imperfect else ''}, controller {report.controller}"
+        f"{f' (host loop {report.host_gain_1_s:g} 1/s)' if report.host_gain_1_s else ''}, "
+        f"feed-forward {'on' if report.feedforward else 'off'}: {report.status}"
         + (f" ({report.fault})" if report.fault else ""),
         f"  digs {len(report.digs)}, simulated {report.sim_s:.1f} s, wall "
         f"{report.wall_s:.1f} s, overruns {report.overruns}",
@@ -251,6 +301,20 @@ def format_report(report: HilReport) -> str:
             f"{report.overdig_max_mm:.2f} mm"
         )
     lines.append(f"  energy {report.energy_Wh:.3f} Wh")
+    mat = report.material
+    if mat is not None:
+        lines.append(
+            f"  material {mat.name}: bucket kept {mat.load_L:.2f} of {mat.swept_L:.2f} L swept, "
+            f"{mat.load_ratio:.1%} of the planned {mat.planned_L:.2f} L (Yao 91 %); dig energy "
+            f"{mat.energy_ratio:+.1%} against the plan (Yao +13 %); fell back "
+            f"{mat.fallback_L:.2f} L, slumped {mat.slumped_L:.2f} L"
+        )
+        if mat.table6 is not None:
+            t6 = mat.table6
+            lines.append(
+                f"  Table 6 (relative errors): L {t6.L:.1%}, D {t6.D:.1%}, beta1 {t6.beta1:.1%}, "
+                f"beta2 {t6.beta2:.1%} (Yao 6.7, 6.7, 5.0, 11.7 %)"
+            )
     load = report.can.bus_load
     if load is not None:
         lines.append(f"  bus load {load.nominal:.1%} nominal, {load.worst:.1%} worst case")
@@ -262,10 +326,30 @@ def format_report(report: HilReport) -> str:
     return "\n".join(lines)
 
 
+def _host_gain(args: argparse.Namespace) -> float:
+    """``--host-gain``, or the controller's default: Gao's PC loop for ``p``, none for csp.
+
+    Raises:
+        ConfigurationError: A gain that is negative or not finite.
+    """
+    gain = args.host_gain
+    if gain is None:
+        return GAO_HOST_GAIN_1_S if args.controller == "p" else 0.0
+    if not (math.isfinite(gain) and gain >= 0.0):
+        raise ConfigurationError(f"--host-gain {gain}: allowed a finite gain >= 0 (1/s)")
+    return float(gain)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the ``hil`` sub-command; returns the exit status."""
     if getattr(args, "operator", False) or getattr(args, "teach", None) is not None:
         return fouraxis.run_command(args)
+    try:
+        _host_gain(args)
+    except ConfigurationError as exc:
+        text = json.dumps({"status": "error", "error": str(exc)})
+        print(text if args.json else f"excavator-rt hil: {exc}")
+        return 2
     path = getattr(args, "path", None)
     joints = tuple(getattr(args, "joints_deg", []) or [])
     if path is not None or joints:
@@ -281,6 +365,11 @@ def run(args: argparse.Namespace) -> int:
         period_s=args.period_ms * 1e-3,
         planner=args.planner,
         plot_dir=args.plot,
+        imperfect=args.imperfect,
+        controller=args.controller,
+        host_gain_1_s=_host_gain(args),
+        scanner=args.scanner,
+        material=args.material,
     )
     return _print_run(args, lambda: run_scenario(scenario))
 
@@ -309,6 +398,9 @@ def _run_path(
     if joints and path != "joints":
         print("excavator-rt hil: --joints-deg gives the key points itself; use it without --path")
         return 2
+    if args.scanner:
+        print("excavator-rt hil: --scanner scans a task's trench; a path has none")
+        return 2
     scenario = PathScenario(
         path=path,
         rig=args.rig if args.rig is not None else "test_bench",
@@ -322,5 +414,8 @@ def _run_path(
         period_s=args.period_ms * 1e-3,
         plot_dir=args.plot,
         faults=tuple(args.inject),
+        imperfect=args.imperfect,
+        controller=args.controller,
+        host_gain_1_s=_host_gain(args),
     )
     return _print_run(args, lambda: run_path_scenario(scenario))

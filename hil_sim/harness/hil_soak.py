@@ -68,10 +68,19 @@ TRUTH_ROWS = 1 << 14
 COST_PERIODS = 1 << 16
 #: Digs of each job.
 JOB_DIGS = 2
-#: Kinds mixed in: all but the killed planner (its kill waits on the wall clock) and the
-#: unwritable store (the soak's own checks read the store).
+#: Kinds mixed in: all but the killed planner and the changed model (both wait on the wall
+#: clock for the planner process), the unwritable store (the soak's own checks read the store)
+#: and the daemon's crash (the soak measures one runner's memory).
 SOAK_KINDS = tuple(
-    k for k in FaultKind if k not in (FaultKind.PLANNER_KILLED, FaultKind.STORE_UNWRITABLE)
+    k
+    for k in FaultKind
+    if k
+    not in (
+        FaultKind.PLANNER_KILLED,
+        FaultKind.STORE_UNWRITABLE,
+        FaultKind.MODEL_CHANGED,
+        FaultKind.DAEMON_CRASH,
+    )
 )
 
 

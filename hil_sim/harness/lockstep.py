@@ -282,6 +282,11 @@ class LockstepHil:
         self.cost = HilCost()
         self._send(self.core.pending_frames(0.0))  # power-on boot-up messages
 
+    @property
+    def period_s(self) -> float:
+        """The SYNC period the HIL steps by when the master is silent (s)."""
+        return self._period_s
+
     def reopen_master_bus(self) -> LockstepBus:
         """A new bus end for the master (the old one shut down): an adapter reopened after a
         bus-off. It is bus-off again while the fault lasts."""

@@ -112,7 +112,9 @@ def serve(args: argparse.Namespace) -> int:
     terrain = None
     if args.terrain is not None:
         ground, x_lo, x_hi, width = args.terrain
-        terrain = Terrain(ground, (x_lo, x_hi), width)
+        active = rig.hil.active() if rig.hil is not None else None
+        material = active.material if active is not None else None
+        terrain = Terrain(ground, (x_lo, x_hi), width, material=material)
     core = HilCore(
         rig,
         np.asarray(args.q0, dtype=np.float64),

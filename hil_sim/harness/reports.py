@@ -18,6 +18,7 @@ no ``coverage_error``).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -35,9 +36,11 @@ __all__ = [
     "EmcyRecord",
     "HilProcessFigures",
     "HilReport",
+    "MaterialFigures",
     "PathFigures",
     "PlanFigures",
     "StrategyPeaks",
+    "Table6",
     "TrackingGoal",
 ]
 
@@ -57,6 +60,8 @@ class DigResult:
         plan_us: Planning time of the dig (us): with ``planned_ahead``, the check of the plan
             made while the dig before it ran against the measured material.
         planned_ahead: Planned while the dig before it ran (a planner process only).
+        energy_Wh: The plant's drive energy over the dig's cycles (Wh; Yao's W_E reading, as
+            the plan's), NaN where the truth no longer holds them.
     """
 
     index: int
@@ -68,6 +73,7 @@ class DigResult:
     planned_energy_Wh: float
     plan_us: float
     planned_ahead: bool = False
+    energy_Wh: float = math.nan
 
     def to_json(self) -> dict[str, Any]:
         """The dig's keys, as the attributes."""
@@ -81,6 +87,7 @@ class DigResult:
             "planned_energy_Wh": self.planned_energy_Wh,
             "plan_us": self.plan_us,
             "planned_ahead": self.planned_ahead,
+            "energy_Wh": self.energy_Wh,
         }
 
 
@@ -297,6 +304,71 @@ class HilProcessFigures:
 
 
 @dataclass(frozen=True, slots=True)
+class Table6:
+    """The finished trench against its design in Yao Table 6's form: relative errors.
+
+    Attributes:
+        L: Top length |L_dug - L| / L.
+        D: Depth |D_dug - D| / D.
+        beta1: Near wall slope |beta1_dug - beta1| / beta1.
+        beta2: Far wall slope |beta2_dug - beta2| / beta2.
+    """
+
+    L: float
+    D: float
+    beta1: float
+    beta2: float
+
+    def to_json(self) -> dict[str, float]:
+        """``L``, ``D``, ``beta1``, ``beta2`` as fractions."""
+        return {"L": self.L, "D": self.D, "beta1": self.beta1, "beta2": self.beta2}
+
+
+@dataclass(frozen=True, slots=True)
+class MaterialFigures:
+    """What the granular material did in a task's run (Yao's material-flow figures).
+
+    Attributes:
+        name: The material.
+        swept_L: Material the tip paths swept (L).
+        load_L: Material the bucket kept (L).
+        planned_L: Volume the planner planned, sum of V_p (L).
+        load_ratio: Bucket load over planned V_p (Yao: 4.63 / 5.07 L = 91 %).
+        energy_ratio: Executed over planned drive energy of the digs, minus 1 (Yao: +13 %).
+        energy_ratio_digs: The same per dig.
+        fallback_L: Spill that fell back into the trench (L).
+        slumped_L: Material the faces' slumps moved (L).
+        table6: The finished trench against the design (Yao Table 6), or None.
+    """
+
+    name: str
+    swept_L: float
+    load_L: float
+    planned_L: float
+    load_ratio: float
+    energy_ratio: float
+    energy_ratio_digs: tuple[float, ...]
+    fallback_L: float
+    slumped_L: float
+    table6: Table6 | None
+
+    def to_json(self) -> dict[str, Any]:
+        """The figures under their attribute names."""
+        return {
+            "name": self.name,
+            "swept_L": self.swept_L,
+            "load_L": self.load_L,
+            "planned_L": self.planned_L,
+            "load_ratio": self.load_ratio,
+            "energy_ratio": self.energy_ratio,
+            "energy_ratio_digs": list(self.energy_ratio_digs),
+            "fallback_L": self.fallback_L,
+            "slumped_L": self.slumped_L,
+            "table6": self.table6.to_json() if self.table6 is not None else None,
+        }
+
+
+@dataclass(frozen=True, slots=True)
 class HilReport:
     """One HIL run's report (see the module docstring for the keys).
 
@@ -333,6 +405,11 @@ class HilReport:
         hil_process: The real-time HIL process's own figures (real-time runs).
         plots: Figures written, when asked for.
         trace: The CAN trace written, when asked for.
+        controller: ``csp`` (ours) or ``p`` (Gao's proportional displacement loop).
+        imperfect: The profile's ``[hil]`` imperfections were applied.
+        material: Granular figures of a task's run on imperfect material, else None.
+        scanner: The trench planner planned on a profile scanner's measured surface.
+        host_gain_1_s: Gain of the host's proportional loop over the bus (1/s; 0: none).
     """
 
     task: str
@@ -366,6 +443,11 @@ class HilReport:
     hil_process: HilProcessFigures | None = None
     plots: tuple[str, ...] | None = None
     trace: str | None = None
+    controller: str = "csp"
+    imperfect: bool = False
+    material: MaterialFigures | None = None
+    scanner: bool = False
+    host_gain_1_s: float = 0.0
 
     def to_json(self) -> dict[str, Any]:
         """The report as one JSON object (``json.dumps`` takes it as it is)."""
@@ -415,4 +497,10 @@ class HilReport:
             out["plots"] = list(self.plots)
         if self.trace is not None:
             out["trace"] = self.trace
+        out["controller"] = self.controller
+        out["imperfect"] = self.imperfect
+        if self.material is not None:
+            out["material"] = self.material.to_json()
+        out["scanner"] = self.scanner
+        out["host_gain_1_s"] = self.host_gain_1_s
         return out

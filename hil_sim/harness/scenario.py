@@ -48,6 +48,7 @@ largest difference between the commanded stroke and the key point's stroke at ea
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import time
@@ -67,9 +68,11 @@ from hil_sim.harness.reports import (
     EmcyRecord,
     HilProcessFigures,
     HilReport,
+    MaterialFigures,
     PathFigures,
     PlanFigures,
     StrategyPeaks,
+    Table6,
     TrackingGoal,
 )
 from hil_sim.report import (
@@ -80,6 +83,7 @@ from hil_sim.report import (
     tip_reference,
     tracking_figures,
 )
+from hil_sim.scanner import ProfileScanner
 from hil_sim.sim import FaultKind, Truth
 from hil_sim.terrain import Terrain
 from rt_runtime import actuation
@@ -186,6 +190,17 @@ class Scenario:
         keep_frames: Keep every bus frame in the run (:attr:`HilRun.frames`; lockstep;
             determinism tests).
         vcu: Put the VCU model on the bus.
+        imperfect: Apply the profile's ``[hil]`` imperfections (True), the ideal HIL
+            (False), or the profile's own ``hil.enabled`` (None).
+        controller: ``csp`` (target stroke with velocity feed-forward when ``feedforward``)
+            or ``p`` (Gao's plain proportional displacement loop: no feed-forward).
+        host_gain_1_s: Gain of the host's proportional displacement loop over the bus, added
+            to the velocity offset (1/s; 0: none; see ``ExecutorConfig.correction_gain_1_s``).
+        scanner: Emulate the rig's profile scanner (``[hil.scanner]``) and plan each dig on
+            the surface it measured after the last (lockstep); False: plan on the measured tip
+            paths alone.
+        material: The granular material in the pit, one of the profile's
+            ``[hil.materials]``; None: the profile's ``hil.material``.
     """
 
     task: str = "A"
@@ -201,6 +216,11 @@ class Scenario:
     plot_dir: str | None = None
     keep_frames: bool = False
     vcu: bool = True
+    imperfect: bool | None = None
+    controller: str = "csp"
+    host_gain_1_s: float = 0.0
+    scanner: bool = False
+    material: str | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -341,7 +361,12 @@ def _checked_faults(sc: Scenario | PathScenario) -> list[tuple[FaultSpec, int]]:
     out = []
     for f in sc.faults:
         index = f.axis_index()
-        if f.kind in (FaultKind.PLANNER_KILLED, FaultKind.STORE_UNWRITABLE):
+        if f.kind in (
+            FaultKind.PLANNER_KILLED,
+            FaultKind.STORE_UNWRITABLE,
+            FaultKind.MODEL_CHANGED,
+            FaultKind.DAEMON_CRASH,
+        ):
             raise ConfigurationError(
                 f"{f.kind.label} needs the daemon's runner (its planner process, its job "
                 f"store): run it with `excavator-rt hil campaign --kinds {f.kind.label}`"
@@ -473,7 +498,7 @@ def run_scenario(sc: Scenario) -> HilRun:
     from rt_runtime.planning.trench import TrenchPlanner, load_task
 
     wall0 = time.perf_counter()
-    rig = load_rig(sc.rig)
+    rig = scenario_rig(sc)
     task = load_task(sc.task, rig)
     plan_t0 = time.perf_counter()
     planner = TrenchPlanner(rig, sc.planner)
@@ -485,19 +510,40 @@ def run_scenario(sc: Scenario) -> HilRun:
         if first_dig is not None:
             q0 = np.asarray(first_dig.problem.q_start_rad, dtype=np.float64)
     plan_us = (time.perf_counter() - plan_t0) * 1e6
-    terrain = Terrain(rig.ground_y_m, (float(trench.x_lo), float(trench.x_hi)), rig.bucket.width_m)
+    imperfections = rig.hil.active() if rig.hil is not None else None
+    terrain = Terrain(
+        rig.ground_y_m,
+        (float(trench.x_lo), float(trench.x_hi)),
+        rig.bucket.width_m,
+        material=imperfections.material if imperfections is not None else None,
+    )
     initial_material = terrain.material
     faults = _checked_faults(sc)
+    scanner = _scanner(sc, rig, terrain)
     hil = _open_hil(sc, rig, q0, terrain)
     cut_m3: dict[int, float] = {}
     result: ExecutorResult | None = None
     error = ""
     bus_load = None
+    scanned = [0, 0.0]  # the last SYNC the terrain was cut to, the volume of that cut
     try:
 
         def on_dig_done(record: DigRecord) -> None:
-            # The HIL's terrain loses what the true tip path cut, before the next dig runs.
+            # The HIL's terrain loses what the true tip path cut, before the next dig runs
+            # (with a scanner, it was cut when the scanner looked).
+            if scanner is not None:
+                cut_m3[record.index] = float(scanned[1])
+                return
             cut_m3[record.index] = hil.cut(record.sync_first, record.sync_last)
+
+        def scan_surface() -> tuple[FloatArray, FloatArray]:
+            # After a dig is recorded: the terrain cut by the true tip path since the last
+            # look, then scanned; the planner plans the next dig on it.
+            assert scanner is not None and isinstance(hil, _LockstepAdapter)
+            last = hil.hil.core.sync_count
+            scanned[1] = hil.cut(int(scanned[0]) + 1, last)
+            scanned[0] = last
+            return scanner.scan()
 
         def make_executor(master: CanMaster, loop: FixedRateLoop, on_cycle: _OnCycle) -> Executor:
             return Executor(
@@ -505,9 +551,14 @@ def run_scenario(sc: Scenario) -> HilRun:
                 rig,
                 loop,
                 trench,
-                ExecutorConfig(feedforward=sc.feedforward, max_digs=sc.max_digs),
+                ExecutorConfig(
+                    feedforward=_feedforward(sc),
+                    correction_gain_1_s=sc.host_gain_1_s,
+                    max_digs=sc.max_digs,
+                ),
                 on_dig_done=on_dig_done,
                 on_cycle=on_cycle,
+                surface_source=scan_surface if scanner is not None else None,
             )
 
         result, bus_load = _execute(sc, rig, hil, faults, _MAX_RUN_S, make_executor)
@@ -532,6 +583,12 @@ def run_scenario(sc: Scenario) -> HilRun:
         design = plan.design
     except PlanningError:
         design = trench.design
+    dig_energy_j = _dig_energy_j(segments, sc.period_s)
+    material_figures = (
+        _material_figures(rig, task, result, dig_energy_j, terrain)
+        if result is not None and terrain.granular is not None and not sc.realtime
+        else None
+    )
     plots: tuple[str, ...] | None = None
     if sc.plot_dir is not None:
         surface = None
@@ -546,7 +603,10 @@ def run_scenario(sc: Scenario) -> HilRun:
         task=task.name,
         rig=rig.name,
         transport=_transport(sc),
-        feedforward=sc.feedforward,
+        feedforward=_feedforward(sc),
+        controller=sc.controller,
+        host_gain_1_s=sc.host_gain_1_s,
+        imperfect=rig.hil is not None and rig.hil.enabled,
         period_s=sc.period_s,
         status=result.status.name.lower() if result is not None else "planning_error",
         fault=result.fault if result is not None else error,
@@ -564,6 +624,7 @@ def run_scenario(sc: Scenario) -> HilRun:
                 planned_energy_Wh=r.planned_energy_j / 3600.0,
                 plan_us=r.plan_us,
                 planned_ahead=r.planned_ahead,
+                energy_Wh=dig_energy_j.get(r.index, math.nan) / 3600.0,
             )
             for r in (result.digs if result is not None else ())
         ),
@@ -585,8 +646,84 @@ def run_scenario(sc: Scenario) -> HilRun:
         hil_process=end.hil_process,
         plots=plots,
         trace=str(Path(sc.trace_path)) if sc.trace_path is not None else None,
+        material=material_figures,
+        scanner=scanner is not None,
     )
     return HilRun(report, end.frames if sc.keep_frames else None)
+
+
+def _scanner(sc: Scenario, rig: Rig, terrain: Terrain) -> ProfileScanner | None:
+    """The scenario's profile scanner, or None.
+
+    Raises:
+        ConfigurationError: A scanner asked of a real-time run or of a rig whose profile has
+            no ``[hil.scanner]``.
+    """
+    if not sc.scanner:
+        return None
+    if sc.realtime:
+        raise ConfigurationError(
+            "the profile scanner runs in the lockstep HIL only (drop --realtime or --scanner)"
+        )
+    spec = rig.hil.scanner if rig.hil is not None else None
+    if spec is None:
+        raise ConfigurationError(f"rig {rig.name} has no [hil.scanner] in its profile")
+    return ProfileScanner(terrain, spec, seed=rig.hil.seed if rig.hil is not None else 0)
+
+
+def _dig_energy_j(segments: list[Segment], period_s: float) -> dict[int, float]:
+    """The plant's drive energy over each dig's cycles (J), by dig index."""
+    out: dict[int, float] = {}
+    for seg in segments:
+        if seg.kind == "dig":
+            out[seg.index] = out.get(seg.index, 0.0) + float(np.nansum(seg.power_w)) * period_s
+    return out
+
+
+def _material_figures(
+    rig: Rig,
+    task: Any,
+    result: ExecutorResult,
+    dig_energy_j: dict[int, float],
+    terrain: Terrain,
+) -> MaterialFigures:
+    """Yao's material-flow figures of a lockstep task run on granular material: bucket load
+    against V_p, executed against planned energy per dig, the finished trench (Table 6)."""
+    from hil_sim.report import trench_shape
+
+    digs = result.digs
+    planned_l = sum(r.planned_volume_m3 for r in digs) * 1e3
+    executed = tuple(
+        dig_energy_j.get(r.index, math.nan) / r.planned_energy_j - 1.0
+        if r.planned_energy_j > 0.0
+        else math.nan
+        for r in digs
+    )
+    planned_e = sum(r.planned_energy_j for r in digs)
+    executed_e = sum(dig_energy_j.get(r.index, math.nan) for r in digs)
+    length, depth, b_far, b_near = trench_shape(
+        terrain.surface_x_m, terrain.surface_y_m, rig.ground_y_m
+    )
+    table6 = Table6(
+        L=abs(length - task.length_m) / task.length_m,
+        D=abs(depth - task.depth_m) / task.depth_m,
+        beta1=abs(b_far - task.beta1_rad) / task.beta1_rad,
+        beta2=abs(b_near - task.beta2_rad) / task.beta2_rad,
+    )
+    mat = terrain.granular
+    assert mat is not None
+    return MaterialFigures(
+        name=mat.name,
+        swept_L=terrain.swept_m3 * 1e3,
+        load_L=terrain.load_m3 * 1e3,
+        planned_L=planned_l,
+        load_ratio=terrain.load_m3 * 1e3 / planned_l if planned_l > 0.0 else math.nan,
+        energy_ratio=executed_e / planned_e - 1.0 if planned_e > 0.0 else math.nan,
+        energy_ratio_digs=executed,
+        fallback_L=terrain.fallback_m3 * 1e3,
+        slumped_L=terrain.slumped_m3 * 1e3,
+        table6=table6,
+    )
 
 
 def _transport(sc: Scenario | PathScenario) -> str:
@@ -695,6 +832,9 @@ class PathScenario:
         keep_frames: Keep every bus frame in the run (:attr:`HilRun.frames`; lockstep).
         vcu: Put the VCU model on the bus (off: a bench arm has no travel or swing).
         faults: Faults to inject (as :class:`Scenario`).
+        imperfect: As :class:`Scenario`.
+        controller: As :class:`Scenario`.
+        host_gain_1_s: As :class:`Scenario`.
     """
 
     path: str = "gao"
@@ -711,6 +851,55 @@ class PathScenario:
     keep_frames: bool = False
     vcu: bool = False
     faults: tuple[FaultSpec, ...] = field(default_factory=tuple)
+    imperfect: bool | None = None
+    controller: str = "csp"
+    host_gain_1_s: float = 0.0
+
+
+#: The controllers a scenario can run: ours (CSP with velocity feed-forward) and Gao's.
+CONTROLLERS = ("csp", "p")
+#: Gain of Gao's proportional displacement loop in the PC (1/s). Gao gives none; with the
+#: drive's own 10 1/s it makes a 20 1/s loop, the highest below the test bench's hydraulic
+#: ringing (design notes, H30), and it reproduces his +-3 mm (Fig. 12) on the imperfect bench.
+GAO_HOST_GAIN_1_S = 10.0
+
+
+def scenario_rig(sc: Scenario | PathScenario) -> Rig:
+    """The scenario's rig with its ``[hil]`` imperfections switched as the scenario asks.
+
+    Raises:
+        ConfigurationError: Unknown rig or controller, or imperfections asked of a rig whose
+            profile has no ``[hil]`` table.
+    """
+    if sc.controller not in CONTROLLERS:
+        raise ConfigurationError(
+            f"controller {sc.controller!r}; allowed: {', '.join(CONTROLLERS)}"
+        )
+    rig = load_rig(sc.rig)
+    material = getattr(sc, "material", None)
+    if material is not None:
+        if rig.hil is None:
+            raise ConfigurationError(f"rig {rig.name} has no [hil] table: no materials")
+        rig = dataclasses.replace(rig, hil=rig.hil.with_material(material))
+    if sc.imperfect is None:
+        return rig
+    if rig.hil is None:
+        if sc.imperfect:
+            raise ConfigurationError(
+                f"rig {rig.name} has no [hil] table: no imperfections to switch on"
+            )
+        return rig
+    if sc.realtime and sc.imperfect != rig.hil.enabled:
+        raise ConfigurationError(
+            "the real-time HIL process loads the profile by name and applies its own "
+            f"hil.enabled ({str(rig.hil.enabled).lower()}); switch it in the profile"
+        )
+    return dataclasses.replace(rig, hil=dataclasses.replace(rig.hil, enabled=sc.imperfect))
+
+
+def _feedforward(sc: Scenario | PathScenario) -> bool:
+    """Velocity feed-forward on the bus: CSP's, never Gao's proportional loop."""
+    return sc.feedforward and sc.controller == "csp"
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -893,7 +1082,7 @@ def run_path_scenario(sc: PathScenario) -> HilRun:
         CommunicationError, DriveFault: Boot or enable failed.
     """
     wall0 = time.perf_counter()
-    rig = load_rig(sc.rig)
+    rig = scenario_rig(sc)
     kp = _scenario_path(sc, rig)
     q0 = kp.q_key_rad[0] if sc.start_deg is None else np.radians(np.asarray(sc.start_deg))
     q0 = np.asarray(q0, dtype=np.float64)
@@ -908,7 +1097,10 @@ def run_path_scenario(sc: PathScenario) -> HilRun:
                 rig,
                 loop,
                 kp.job,
-                ExecutorConfig(feedforward=sc.feedforward),
+                ExecutorConfig(
+                    feedforward=_feedforward(sc),
+                    correction_gain_1_s=sc.host_gain_1_s,
+                ),
                 on_cycle=on_cycle,
             )
 
@@ -931,7 +1123,10 @@ def run_path_scenario(sc: PathScenario) -> HilRun:
         task=f"path {kp.job.name}",
         rig=rig.name,
         transport=_transport(sc),
-        feedforward=sc.feedforward,
+        feedforward=_feedforward(sc),
+        controller=sc.controller,
+        host_gain_1_s=sc.host_gain_1_s,
+        imperfect=rig.hil is not None and rig.hil.enabled,
         period_s=sc.period_s,
         status=result.status.name.lower(),
         fault=result.fault,

@@ -67,6 +67,7 @@ from rt_runtime.control.planner_worker import (
     PathLink,
     PlannerLink,
     ProcessPlanner,
+    SurfaceSource,
 )
 from rt_runtime.control.setpoints import Phase
 from rt_runtime.errors import ConfigurationError, DriveFault, PlanningError
@@ -96,6 +97,9 @@ class ExecutorConfig:
 
     Attributes:
         feedforward: Send the stroke rate as velocity offset 0x60B1 (else 0).
+        correction_gain_1_s: Gain of the host's proportional displacement loop added to the
+            velocity offset (1/s; see :class:`~rt_runtime.control.hardware.DriveInterface`);
+            0: none.
         plan_in_worker: Plan in a separate process; None: when the loop's clock is real time.
         following_error_m: Largest |demand - reported stroke| (m); None: 0.8 of the drives'
             following-error window (the executor stops the job before the drive faults). The
@@ -123,6 +127,7 @@ class ExecutorConfig:
     """
 
     feedforward: bool = True
+    correction_gain_1_s: float = 0.0
     plan_in_worker: bool | None = None
     following_error_m: float | None = None
     following_error_cycles: int = 3
@@ -151,6 +156,7 @@ class ExecutorConfig:
             ("read_timeout_s", self.read_timeout_s),
             ("settle_s", self.settle_s),
             ("guard_margin", self.guard_margin),
+            ("correction_gain_1_s", self.correction_gain_1_s),
         )
         for key, opt in optional:
             if opt is not None and not (math.isfinite(opt) and opt >= 0.0):
@@ -249,10 +255,15 @@ class Executor:
             thread); must not raise.
         on_cycle: Called at the end of every cycle with ``(sync_index, now_s)`` on the loop's
             thread (fault injection in tests); must be cheap and must not raise.
+        surface_source: A profile scanner's measured surface, asked after each dig is
+            recorded, on which the next dig is planned (see
+            :class:`~rt_runtime.control.planner_worker.SessionDriver`); in-process planning
+            only. None: the trench is planned from the measured tip paths.
 
     Raises:
-        ConfigurationError: A bad configuration, a loop period other than the master's, or a
-            trench planner that cannot run in a planner process when one is asked for.
+        ConfigurationError: A bad configuration, a loop period other than the master's, a
+            trench planner that cannot run in a planner process when one is asked for, or a
+            surface source with a planner process.
         JointLimitError: A path leaves a joint's range (nothing was sent).
         PlanningError: A path is faster than the rig's joint limits or does not start and end
             at rest (nothing was sent).
@@ -268,6 +279,7 @@ class Executor:
         *,
         on_dig_done: Callable[[DigRecord], None] | None = None,
         on_cycle: Callable[[int, float], None] | None = None,
+        surface_source: SurfaceSource | None = None,
     ) -> None:
         self.master = master
         self.rig = rig
@@ -310,7 +322,13 @@ class Executor:
                     f"{master.n} axes ({', '.join(master.config.axes)})"
                 )
         self.drives = DriveInterface(
-            master, loop.clock, read_timeout_s, cfg.feedforward, lead_s=lead, lead2_s2=lead2
+            master,
+            loop.clock,
+            read_timeout_s,
+            cfg.feedforward,
+            cfg.correction_gain_1_s,
+            lead_s=lead,
+            lead2_s2=lead2,
         )
         self.drives.react_to_faults(False)
         # Started here, before the caller enables the drives and applies RT settings: spawning
@@ -318,10 +336,15 @@ class Executor:
         link: PlannerLink
         if isinstance(work, PathJob):
             link = PathLink(work, rig, period)
+        elif self.plan_in_worker and surface_source is not None:
+            raise ConfigurationError(
+                "a profile scanner's surface reaches an in-process planner only; set "
+                "ExecutorConfig.plan_in_worker = False"
+            )
         elif self.plan_in_worker:
             link = ProcessPlanner(work, period_s=period)
         else:
-            link = InlinePlanner(work, period)
+            link = InlinePlanner(work, period, surface_source)
         self._callbacks: queue.SimpleQueue[DigRecord | None] | None = None
         self._cb_thread: threading.Thread | None = None
         if self.realtime and on_dig_done is not None:

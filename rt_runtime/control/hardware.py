@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from rt_runtime.canbus import CanMaster, CycleStatus, DriveState, Emcy, WriteStatus, emcy_meaning
 from rt_runtime.canbus.cyclic import bus_error_text
 from rt_runtime.control.clock import Clock
+from rt_runtime.errors import ConfigurationError
 
 __all__ = ["JUMP_MARGIN_M", "JUMP_RATE_FACTOR", "DriveFeedback", "DriveInterface"]
 
@@ -111,6 +112,11 @@ class DriveInterface:
         clock: The loop's clock (times of SYNC, answers, heartbeat).
         read_timeout_s: Longest wait for one missing answer (s); 0: take what arrived.
         feedforward: Send the stroke rate as velocity offset 0x60B1 (else 0).
+        correction_gain_1_s: Gain of the host's proportional displacement loop (1/s): each
+            cycle adds ``gain * (last target - reported stroke)`` to the velocity offset, on a
+            fresh report (0: none). It closes a second loop over the bus around the drive's
+            own, as a PC controller does (Gao 4.1), and takes out the part of the following
+            error that the drive's loop leaves (a valve's dead band, a screw's friction).
         lead_s: Per axis, a lead (s) added to the velocity offset as ``lead * acceleration``:
             the velocity demand of a first-order lag ``1 / (lead s + 1)`` between the offset
             and the axis's motion (a valve's spool, a motor's hydraulic spring) made good ahead
@@ -127,6 +133,7 @@ class DriveInterface:
         clock: Clock,
         read_timeout_s: float,
         feedforward: bool = True,
+        correction_gain_1_s: float = 0.0,
         lead_s: NDArray[np.float64] | None = None,
         lead2_s2: NDArray[np.float64] | None = None,
     ) -> None:
@@ -137,6 +144,12 @@ class DriveInterface:
         self.clock = clock
         self.read_timeout_s = float(read_timeout_s)
         self.feedforward = feedforward
+        if not (math.isfinite(correction_gain_1_s) and correction_gain_1_s >= 0.0):
+            raise ConfigurationError(
+                f"correction_gain_1_s = {correction_gain_1_s}; allowed: a finite value >= 0"
+            )
+        self.correction_gain_1_s = float(correction_gain_1_s)
+        self._last_target_m: list[float] | None = None
         self.n = master.n
         self.axes: tuple[str, ...] = tuple(master.config.axes)
         self.feedback = DriveFeedback(self.n)
@@ -227,6 +240,16 @@ class DriveInterface:
                 if self.feedforward
                 else self._zero_um
             )
+            gain = self.correction_gain_1_s
+            if gain > 0.0:
+                last = self._last_target_m
+                fb = self.feedback
+                if last is not None and fb.fresh:
+                    velocity = [
+                        v + round(gain * (t - x) * 1e6)
+                        for v, t, x in zip(velocity, last, fb.stroke_m.tolist(), strict=True)
+                    ]
+                self._last_target_m = stroke_m.tolist()
         except (ValueError, OverflowError):  # NaN or infinite: nothing is sent
             status = WriteStatus.OUT_OF_RANGE
         else:

@@ -75,6 +75,7 @@ from rt_runtime.control.setpoints import (
     stroke_gap_m,
 )
 from rt_runtime.errors import ConfigurationError, ExcavatorRtError, PlanningError
+from rt_runtime.planning.filewatch import WATCH_PERIOD_S, FileWatch
 from rt_runtime.planning.trench import (
     TRANSITION_PENETRATION_M,
     Cycle,
@@ -89,6 +90,8 @@ from rt_runtime.rig import Rig
 
 __all__ = [
     "AT_ENTRY_TOLERANCE_M",
+    "MODELS_CHANGED_EXIT",
+    "PLANNER_START_EXIT",
     "DigPlan",
     "InlinePlanner",
     "JointMotion",
@@ -96,6 +99,7 @@ __all__ = [
     "PathLink",
     "PathPlan",
     "PlannerError",
+    "PlannerGone",
     "PlannerLink",
     "PlannerSpec",
     "PolynomialMotion",
@@ -186,6 +190,14 @@ class Recorded:
 @dataclass(frozen=True, slots=True)
 class PlannerError:
     """A request failed (the message says which and why)."""
+
+    message: str
+
+
+@dataclass(frozen=True, slots=True)
+class PlannerGone:
+    """The planner process's last words before it ends on its own: why it cannot plan on
+    (its model files changed on disk since they were verified). Not a reply to a request."""
 
     message: str
 
@@ -395,6 +407,11 @@ class PathPlan:
 
 
 Reply = DigPlan | Recorded | PlannerError | PathPlan
+#: Exit code of a planner process whose model files changed on disk (:class:`PlannerGone`).
+MODELS_CHANGED_EXIT = 3
+#: Exit code of a planner process that could not build its planner or trench
+#: (:class:`PlannerGone`).
+PLANNER_START_EXIT = 4
 
 
 @dataclass(frozen=True, slots=True)
@@ -445,6 +462,10 @@ class PlannerSpec:
         )
 
 
+#: A profile scanner's latest surface, ``(x_m, y_m)`` (work-site frame), or None.
+SurfaceSource = Callable[[], "tuple[FloatArray, FloatArray] | None"]
+
+
 class SessionDriver:
     """The executor's two requests on a session (see the module docstring).
 
@@ -453,12 +474,22 @@ class SessionDriver:
         period_s: The loop's period: each :class:`DigPlan` carries its motions sampled on this
             grid (:attr:`DigPlan.sampled`), chained from the pose of the first request; None:
             not sampled.
+        surface_source: A profile scanner's latest measured surface, ``(x_m, y_m)`` in the
+            work-site frame or None when it has none, asked after each :meth:`record`: the
+            next dig is planned on it (:meth:`TrenchSession.observe_surface`). None: no
+            scanner, the trench is planned from the measured tip paths alone.
     """
 
-    def __init__(self, session: TrenchSession, period_s: float | None = None) -> None:
+    def __init__(
+        self,
+        session: TrenchSession,
+        period_s: float | None = None,
+        surface_source: SurfaceSource | None = None,
+    ) -> None:
         self.session = session
         self.rig = session.rig
         self.period_s = period_s
+        self.surface_source = surface_source
         #: Where the last motion handed out ends (the next plan's motions start there).
         self._end_rad: FloatArray | None = None
         #: The next plan, made ahead while the pending dig runs (:meth:`lookahead`).
@@ -657,6 +688,10 @@ class SessionDriver:
         tip = tip[np.isfinite(tip).all(axis=1)]
         tip[:, 0] += dig.machine_x_m
         volume = s.record(dig, tip)
+        if self.surface_source is not None:
+            measured = self.surface_source()
+            if measured is not None:
+                s.observe_surface(*measured)
         return Recorded(dig.index, volume, tip, s.state())
 
 
@@ -741,11 +776,17 @@ class InlinePlanner(_AnsweredLink):
     Args:
         trench: The trench being dug (a :class:`TrenchSession`).
         period_s: The loop's period (see :class:`SessionDriver`).
+        surface_source: A profile scanner (see :class:`SessionDriver`), or None.
     """
 
-    def __init__(self, trench: TrenchSession, period_s: float | None = None) -> None:
+    def __init__(
+        self,
+        trench: TrenchSession,
+        period_s: float | None = None,
+        surface_source: SurfaceSource | None = None,
+    ) -> None:
         super().__init__()
-        self.driver = SessionDriver(trench, period_s)
+        self.driver = SessionDriver(trench, period_s, surface_source)
 
     def _run(self, fn: Any, *args: Any) -> None:
         try:
@@ -860,10 +901,12 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
         )
         driver = SessionDriver(trench, spec.period_s)
     except ExcavatorRtError as exc:
+        # Its files (a model that fails its card's digest, say) or the state it was handed:
+        # the job cannot go on until the cause is cleared, and the process says why.
         with contextlib.suppress(EOFError, OSError):
-            conn.send(PlannerError(f"planner process could not start: {exc}"))
+            conn.send(PlannerGone(f"planner process could not start: {exc}"))
         conn.close()
-        return
+        raise SystemExit(PLANNER_START_EXIT) from None
 
     def reply(work: Callable[..., Any], arg: Any) -> tuple[bool, bool]:
         """Send what ``work(arg)`` returns, or the error it raised: whether the pipe is still open
@@ -882,8 +925,19 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
             return False, done
         return True, done
 
+    watch = FileWatch(planner.pinn.verified_files())
     while True:
         try:
+            ready = conn.poll(WATCH_PERIOD_S)
+            changed = watch.changed()
+            if changed is not None:
+                # What was verified is no longer what is on disk: plan nothing more from it.
+                with contextlib.suppress(EOFError, OSError):
+                    conn.send(PlannerGone(f"the planner's model files: {changed}"))
+                conn.close()
+                raise SystemExit(MODELS_CHANGED_EXIT)
+            if not ready:
+                continue
             message = conn.recv()
         except (EOFError, OSError):
             break
@@ -942,6 +996,8 @@ class ProcessPlanner:
         self._outbox: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
         self._inbox: queue.SimpleQueue[Reply] = queue.SimpleQueue()
         self._closing = False
+        #: Why the process ended on its own (:class:`PlannerGone`), once it said so.
+        self.last_words: str | None = None
         # The state goes first through the sender thread (see _worker_main), so start()
         # returns once the child is spawned, whatever the size of the job.
         self._outbox.put(("init", trench.state()))
@@ -981,13 +1037,12 @@ class ProcessPlanner:
                 reply: Reply = self._conn.recv()
             except (EOFError, OSError) as exc:
                 if not self._closing:
-                    self._inbox.put(
-                        PlannerError(
-                            f"the planner process ended (exit code {self._process.exitcode}): "
-                            f"{exc!r}"
-                        )
-                    )
+                    why = self.last_words or repr(exc)
+                    self._inbox.put(PlannerError(f"the planner process ended: {why}"))
                 break
+            if isinstance(reply, PlannerGone):
+                self.last_words = reply.message
+                continue
             self._inbox.put(reply)
 
     def request_plan(self, q_from_rad: FloatArray | None) -> None:

@@ -301,6 +301,7 @@ class ModelCard:
     domain_min: tuple[float, ...]
     domain_max: tuple[float, ...]
     raw: dict[str, Any]
+    card_sha256: str = ""
 
 
 def _finite_number(x: object) -> bool:
@@ -332,7 +333,8 @@ def load_card(card_path: Path) -> ModelCard:
             f"model card {card_path} does not exist (a model needs its card beside it)"
         )
     try:
-        raw = json.loads(card_path.read_text())
+        data = card_path.read_bytes()
+        raw = json.loads(data.decode())
     # ValueError: not UTF-8, not JSON, or an integer of more than 4300 digits.
     except (OSError, ValueError) as exc:
         raise ConfigurationError(f"model card {card_path} is not valid JSON: {exc}") from exc
@@ -371,6 +373,7 @@ def load_card(card_path: Path) -> ModelCard:
         domain_min=lo,
         domain_max=hi,
         raw=raw,
+        card_sha256=hashlib.sha256(data).hexdigest(),
     )
 
 
@@ -398,6 +401,7 @@ class _Library:
         if isinstance(k, bool) or not isinstance(k, int):
             raise ConfigurationError(f"{where}: library k must be an integer; got {k!r:.80}")
         path = card.path.parent / name
+        self.path, self.sha256 = path, digest
         self.trigger = float(trigger)  # type: ignore[arg-type]
         self.k = k
         check_file(where, "library", path, digest)
@@ -672,6 +676,17 @@ class PinnPlanner:
         self._fr_out_row = self._fr_out[0]
         self._coarse = Verifier(rig, _REPAIR_SECANT_SAMPLES, backend="c")
         self._coarse_rows = self._coarse._run
+
+    def verified_files(self) -> tuple[tuple[Path, str], ...]:
+        """Every file the planner was loaded and verified from, with its SHA-256: each dig
+        type's card, model and solution library (see :mod:`rt_runtime.planning.filewatch`)."""
+        files: list[tuple[Path, str]] = []
+        for kind, card in self.cards.items():
+            files += [(card.path, card.card_sha256), (card.model_path, card.model_sha256)]
+            lib = self._libraries.get(kind)
+            if lib is not None:
+                files.append((lib.path, lib.sha256))
+        return tuple(files)
 
     def _check_card(self, card: ModelCard, kind: DigType) -> None:
         where = str(card.path)

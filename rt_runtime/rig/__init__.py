@@ -1,6 +1,14 @@
 """Rig profiles: TOML data with sources, loaded into validated frozen dataclasses."""
 
 from rt_runtime.rig.cylinders import BucketLinkage, Cylinders, PinCylinder
+from rt_runtime.rig.imperfections import (
+    ElectricImperfections,
+    Material,
+    RigImperfections,
+    Scanner,
+    SensorImperfections,
+    ValveImperfections,
+)
 from rt_runtime.rig.loader import DEFAULT_RIG, load_rig, parse_rig, profile_names
 from rt_runtime.rig.model import (
     ARM_JOINTS,
@@ -30,17 +38,23 @@ __all__ = [
     "Can",
     "Cylinders",
     "Drives",
+    "ElectricImperfections",
     "FluidSoil",
     "HydraulicActuator",
     "Joint",
     "Link",
+    "Material",
     "PinCylinder",
     "Planning",
     "Rig",
+    "RigImperfections",
+    "Scanner",
+    "SensorImperfections",
     "Soil",
     "SpoilZone",
     "Swing",
     "TrenchDomain",
+    "ValveImperfections",
     "YaoSoil",
     "load_rig",
     "parse_rig",

@@ -17,6 +17,7 @@ from typing import Any
 from rt_runtime.errors import RigProfileError
 from rt_runtime.rig._schema import Table
 from rt_runtime.rig.cylinders import parse_cylinders
+from rt_runtime.rig.imperfections import parse_imperfections
 from rt_runtime.rig.model import (
     ARM_JOINTS,
     SCALE_MODEL_REACH_M,
@@ -120,6 +121,12 @@ def parse_rig(raw: dict[str, Any], source: str = "") -> Rig:
     trench_t = root.optional_table("trench")
     reach_m = sum(link.length_m for link in links)
     trench = _trench(trench_t, reach_m) if trench_t is not None else _trench_default(reach_m)
+    hil_t = root.optional_table("hil")
+    hil = (
+        parse_imperfections(hil_t, cylinders.kind, actuators.coulomb_friction_n)
+        if hil_t is not None
+        else None
+    )
     assumed = _assumed(root.table("assumed"), raw)
     root.finish()
 
@@ -142,6 +149,7 @@ def parse_rig(raw: dict[str, Any], source: str = "") -> Rig:
         drives=drives,
         actuators=actuators,
         trench=trench,
+        hil=hil,
     )
     # Imported here: actuation imports this package.
     from rt_runtime.actuation import validate_cylinders

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rt_runtime.rig.cylinders import Cylinders
+from rt_runtime.rig.imperfections import RigImperfections
 
 ARM_JOINTS: tuple[str, str, str] = ("boom", "stick", "bucket")
 #: Reach of the scale model (Yao Table 1: l1 + l2 + l3, m): the trench planner scales its
@@ -380,6 +381,8 @@ class Rig:
             :attr:`planning_fingerprint`.
         trench: The trench task domain and spoil zone; not part of :attr:`planning_fingerprint`
             (no one-shot plan depends on it).
+        hil: What the real rig does that the ideal HIL does not (profile ``[hil]``), or None;
+            not part of :attr:`planning_fingerprint`.
     """
 
     name: str
@@ -400,6 +403,7 @@ class Rig:
     drives: Drives
     actuators: Actuators
     trench: TrenchDomain
+    hil: RigImperfections | None = None
     lengths_m: NDArray[np.float64] = field(init=False, repr=False, compare=False)
     q_min_rad: NDArray[np.float64] = field(init=False, repr=False, compare=False)
     q_max_rad: NDArray[np.float64] = field(init=False, repr=False, compare=False)

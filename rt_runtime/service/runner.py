@@ -72,7 +72,7 @@ from rt_runtime.control.hardware import DriveInterface
 from rt_runtime.control.job import DigRecord, ExecStatus, JobController, StopRequest
 from rt_runtime.control.loop import FixedRateLoop, LoopConfig, OverrunPolicy
 from rt_runtime.control.manager import ControllerManager, executor_telemetry
-from rt_runtime.control.planner_worker import PathLink, ProcessPlanner
+from rt_runtime.control.planner_worker import MODELS_CHANGED_EXIT, PathLink, ProcessPlanner
 from rt_runtime.control.rt import RtSettings, apply_rt, restore_rt
 from rt_runtime.control.setpoints import Phase
 from rt_runtime.control.taught_path import load_taught_path
@@ -177,6 +177,19 @@ def _exit_text(code: int) -> str:
         except ValueError:
             return f"killed by signal {-code}"
     return f"exit code {code}"
+
+
+def _planner_end(planner: ProcessPlanner, code: int | None) -> str:
+    """A planner process that ended (``code``: its exit code, None while not yet reaped), as
+    the latch says it: with its last words (why it ended on its own) when it left any."""
+    text = "the planner process ended"
+    if code is not None:
+        text += f" ({_exit_text(code)})"
+    if planner.last_words:
+        text += f": {planner.last_words}"
+    elif code == MODELS_CHANGED_EXIT:
+        text += ": its model files changed on disk since they were verified"
+    return text
 
 
 @dataclass(slots=True)
@@ -905,7 +918,7 @@ class RigRunner:
         if code is None:
             return
         job = running.job.id
-        self._latch(f"job {job}: the planner process ended ({_exit_text(code)})", job)
+        self._latch(f"job {job}: {_planner_end(running.planner, code)}", job)
         running.controller.request_stop(StopRequest.SHUTDOWN)
 
     def _check_store(self, running: _PreparedJob | None) -> None:
@@ -1023,8 +1036,8 @@ class RigRunner:
             and isinstance(running.planner, ProcessPlanner)
         ):
             code = running.planner.exit_code()
-            if code is not None:
-                self._latch(f"job {job.id}: the planner process ended ({_exit_text(code)})", job.id)
+            if code is not None or running.planner.last_words:
+                self._latch(f"job {job.id}: {_planner_end(running.planner, code)}", job.id)
         if st is ExecStatus.STOPPED and not self._fault:
             # Shut down mid-job: resumable at the next undone dig after the restart.
             paused = self.store.get(job.id).status is JobStatus.PAUSED

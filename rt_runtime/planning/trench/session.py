@@ -214,6 +214,46 @@ class TrenchSession(PersistMixin):
         self.pending = None
         return removed
 
+    def observe_surface(self, x_m: ArrayLike, y_m: ArrayLike) -> None:
+        """Take a measured surface (a profile scanner's, work-site frame) as the material.
+
+        After :meth:`record`: the material becomes everything below the measured surface
+        (linear between the samples, the ground beyond them, never above the ground), so what
+        slumped or fell back into the trench, which no tip path shows, is planned for again.
+        Without a scanner the material stays the one the measured tip paths left.
+
+        Args:
+            x_m: Abscissae ``(m,)``, m >= 2, strictly increasing.
+            y_m: Surface heights ``(m,)``.
+
+        Raises:
+            PlanningError: Malformed samples (shapes, non-finite, not increasing), or a dig
+                is pending (record it first).
+        """
+        if self.pending is not None:
+            raise PlanningError("record() the pending dig before observing the surface")
+        x = np.asarray(x_m, dtype=np.float64)
+        y = np.asarray(y_m, dtype=np.float64)
+        if x.ndim != 1 or x.shape != y.shape or x.shape[0] < 2:
+            raise PlanningError(
+                f"measured surface must be two (m >= 2,) arrays; got {x.shape}, {y.shape}"
+            )
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+            raise PlanningError("measured surface has non-finite values")
+        if not np.all(np.diff(x) > 0.0):
+            raise PlanningError("measured surface abscissae must be strictly increasing")
+        surface = np.minimum(
+            np.interp(self.grid, x, y, left=self.ground_y, right=self.ground_y), self.ground_y
+        )
+        box_bottom = float(self.initial.bounds[1])
+        ring = [
+            (self.x_lo, box_bottom),
+            *zip(self.grid.tolist(), surface.tolist(), strict=True),
+            (self.x_hi, box_bottom),
+        ]
+        self.material = Polygon(ring).buffer(0).intersection(self.initial)
+        self.surface = surface
+
     @_stage("finish")
     def finish(self, plan_total_us: float) -> TrenchPlan:
         """The frozen plan of everything recorded so far."""

@@ -1256,6 +1256,10 @@ def build_parser() -> argparse.ArgumentParser:
     b4.add_argument("--json", action="store_true")
     b4.set_defaults(handler=cmd_bench_timejerk)
 
+    from rt_runtime.bench_mintorque import add_parsers as add_mintorque_parsers
+
+    add_mintorque_parsers(sub, bench_sub)
+
     b5 = bench_sub.add_parser("inputs", help="property-based inputs (hypothesis) into every entry point: task files, rig profiles, daemon config, control requests, model cards, CAN frames")
     b5.add_argument("--examples", type=int, default=10_000, help="inputs per entry point (default 10000)")
     b5.add_argument("--seed", type=int, default=0, help="hypothesis seed")
@@ -1265,7 +1269,7 @@ def build_parser() -> argparse.ArgumentParser:
     pl = sub.add_parser("plan", help="plan a trench task dig by dig (Yao Fig. 5, Table 3); exit 1 when the plan is incomplete")
     pl.add_argument("--task", required=True, help="A, B, C, D (Yao Table 3) or a TOML file")
     pl.add_argument("--rig", default=DEFAULT_RIG)
-    pl.add_argument("--planner", choices=("pinn", "pso"), default="pinn")
+    pl.add_argument("--planner", choices=("pinn", "pso", "min_torque"), default="pinn")
     pl.add_argument("--models", help="model directory (default: the shipped onnx/)")
     pl.add_argument("--plot", metavar="FILE.png", help="design contour, tip paths, dug profile (Yao Fig. 14)")
     pl.add_argument("--json", action="store_true")

@@ -15,6 +15,10 @@ here and in the report). ``rt_runtime.cli`` wires it in with :func:`add_parser` 
     excavator-rt hil --path gao|FILE.json|joints [--joints-deg B,S,K ...] [--rig test_bench]
                      [--orders auto|3-4-5-4-3|...] [--durations 3,3,3,3,3] [--start-deg B,S,K]
                      [--realtime] [--no-feedforward] [--trace FILE] [--json] [--plot DIR]
+    excavator-rt hil --mintorque soft|hard [--rig yang_pan_excavator] [--fixed-time] [--json]
+
+``--mintorque`` plans a minimum-torque dig (Yang/Pan) and runs it on the lockstep HIL in the
+same fluid soil (:mod:`hil_sim.harness.mintorque`).
 
 ``--path`` runs a prescribed joint path instead of a task (:func:`hil_sim.harness.scenario.
 run_path_scenario`): ``gao`` is Gao Table 2 with 3 s segments and the smoothest order pattern,
@@ -236,7 +240,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("--max-digs", type=int, default=None, help="stop after N digs")
     p.add_argument("--period-ms", type=float, default=2.0, help="SYNC period (ms)")
-    p.add_argument("--planner", default="pinn", choices=("pinn", "pso"))
+    p.add_argument("--planner", default="pinn", choices=("pinn", "pso", "min_torque"))
     p.add_argument(
         "--inject",
         action="append",
@@ -249,6 +253,16 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     p.add_argument("--plot", default=None, metavar="DIR", help="write figures (Yao Fig. 17-21)")
+    p.add_argument(
+        "--mintorque",
+        default=None,
+        metavar="SOIL",
+        help="plan a minimum-torque dig (Yang/Pan) in this fluid soil (soft, hard) and run it "
+        "on the lockstep HIL in the same soil (rig default yang_pan_excavator)",
+    )
+    p.add_argument(
+        "--fixed-time", action="store_true", help="with --mintorque: keep the intervals fixed"
+    )
     fouraxis.add_arguments(p)
     sub = p.add_subparsers(dest="hil_command", metavar="{campaign,soak}")
     campaign.add_parser(sub)
@@ -344,6 +358,8 @@ def run(args: argparse.Namespace) -> int:
     """Run the ``hil`` sub-command; returns the exit status."""
     if getattr(args, "operator", False) or getattr(args, "teach", None) is not None:
         return fouraxis.run_command(args)
+    if getattr(args, "mintorque", None) is not None:
+        return _run_mintorque(args)
     try:
         _host_gain(args)
     except ConfigurationError as exc:
@@ -389,6 +405,50 @@ def _print_run(args: argparse.Namespace, run: Callable[[], HilRun]) -> int:
     if report.status == "planning_error":
         return 2
     return 0 if report.status == "done" else 1
+
+
+def _run_mintorque(args: argparse.Namespace) -> int:
+    """``hil --mintorque SOIL``: exit 0 when the dig ran to its end, 1 when it stopped
+    otherwise, 2 on bad input or when no feasible dig was found (nothing moved)."""
+    from hil_sim.harness.mintorque import run_mintorque
+
+    try:
+        r = run_mintorque(
+            args.mintorque,
+            args.rig if args.rig is not None else "yang_pan_excavator",
+            fixed_time=args.fixed_time,
+            period_s=args.period_ms * 1e-3,
+            feedforward=not args.no_feedforward,
+        )
+    except (ExcavatorRtError, ValueError) as exc:
+        if args.json:
+            print(json.dumps({"status": "error", "error": str(exc)}))
+        else:
+            print(f"excavator-rt hil: {exc}")
+        return 2
+    if args.json:
+        print(json.dumps(r))
+    else:
+        plan = r["plan"]
+        print(
+            f"HIL lockstep: minimum-torque dig on {r['rig']} in {r['soil']} soil: {r['status']}"
+            f"; T {plan['T_s']:.2f} s, cost {plan['cost']:.4g} s, max depth "
+            f"{plan['max_depth_m']:.3f} m"
+        )
+        for axis, fig in r["tracking"].items():
+            print(f"  {axis:6s} tracking max {fig['max_mm']:.3f} mm, rms {fig['rms_mm']:.3f} mm")
+        for joint, t in r["torque"].items():
+            print(
+                f"  {joint:6s} torque rms planned {t['rms_planned_nm'] / 1e3:.1f} kN*m, plant "
+                f"{t['rms_plant_nm'] / 1e3:.1f} kN*m, difference rms "
+                f"{t['rms_difference_nm'] / 1e3:.1f} kN*m ({t['rms_difference_of_limit']:.1%} "
+                "of the limit)"
+            )
+        print(
+            f"  soil moment about the tip (not applied by the plant) rms "
+            f"{r['soil_moment_rms_nm'] / 1e3:.2f} kN*m"
+        )
+    return 0 if r["status"] == "done" else 1
 
 
 def _run_path(

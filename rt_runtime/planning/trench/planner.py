@@ -31,7 +31,9 @@ class TrenchPlanner:
 
     Args:
         rig: The rig (needs planning thresholds and shipped PINN models for screening).
-        planner: ``pinn`` (default), ``pso``, or an object with ``plan_dig``.
+        planner: ``pinn`` (default), ``pso``, ``min_torque`` (Yang/Pan's torque cost with the
+            soft fluid soil, :mod:`rt_runtime.planning.mintorque_oneshot`), or an object with
+            ``plan_dig``.
         model_dir: PINN model directory (default: the shipped ``onnx/``).
         pso_options: Keyword arguments for :func:`rt_runtime.planning.oneshot.solve_pso`.
         max_digs: Safety bound on the number of digs of one task (None: 20 a section).
@@ -79,8 +81,14 @@ class TrenchPlanner:
                 self.oneshot: OneShotPlanner = PinnOneShot(self.pinn)
             elif planner == "pso":
                 self.oneshot = PsoOneShot(rig, self.verifier, **(pso_options or {}))
+            elif planner == "min_torque":
+                from rt_runtime.planning.mintorque_oneshot import MinTorqueOneShot
+
+                self.oneshot = MinTorqueOneShot(rig, self.verifier)
             else:
-                raise ConfigurationError(f"unknown planner {planner!r}; allowed: pinn, pso")
+                raise ConfigurationError(
+                    f"unknown planner {planner!r}; allowed: pinn, pso, min_torque"
+                )
         else:
             self.oneshot = planner
         self.max_digs = max_digs

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -319,7 +319,6 @@ class DemoFiles:
         status: ``done`` or ``fault``.
         fault: Why it stopped early (empty when done).
         lever_ticks: Lever commands given.
-        extra: More figures for the report.
     """
 
     csv: Path
@@ -331,7 +330,6 @@ class DemoFiles:
     status: str
     fault: str
     lever_ticks: int
-    extra: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """The entry of ``hil --operator --json``'s ``demos``."""
@@ -345,7 +343,6 @@ class DemoFiles:
             "status": self.status,
             "fault": self.fault,
             "lever_ticks": self.lever_ticks,
-            **self.extra,
         }
 
 

@@ -1,4 +1,5 @@
-"""A cylinder drive on the bus: a :class:`~firmware_models.drive.DriveFirmware` and one plant axis.
+"""A drive on the bus: a :class:`~firmware_models.drive.DriveFirmware` and one plant axis (a
+cylinder, or the swing motor on a rig with swing).
 
 Role: the HIL's emulated servo drive. A :class:`DriveNode` routes the frames the bus delivers to
 its firmware model, returns the firmware's replies and time-triggered frames, and runs the
@@ -80,7 +81,8 @@ class DriveNode:
 
     Args:
         firmware: The drive's firmware model (node id, rig parameters, EDS).
-        axis: Index of the plant axis it drives (0 boom, 1 stick, 2 bucket).
+        axis: Index of the plant axis it drives (0 boom, 1 stick, 2 bucket, 3 swing: the swing
+            plant, :mod:`hil_sim.swing`, whose positions are rad).
 
     Attributes:
         firmware: The firmware model.
@@ -90,8 +92,10 @@ class DriveNode:
     """
 
     def __init__(self, firmware: DriveFirmware, axis: int) -> None:
-        if not 0 <= axis <= 2:
-            raise ValueError(f"axis must be 0 (boom), 1 (stick) or 2 (bucket); got {axis}")
+        if not 0 <= axis <= 3:
+            raise ValueError(
+                f"axis must be 0 (boom), 1 (stick), 2 (bucket) or 3 (swing); got {axis}"
+            )
         self.firmware = firmware
         self.axis = axis
         self.faults = FaultState()

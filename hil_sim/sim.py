@@ -1,9 +1,12 @@
-"""The HIL's core: plant, terrain, three drive nodes and the VCU behind the CAN frames.
+"""The HIL's core: plant, terrain, the drive nodes and the VCU behind the CAN frames.
 
 Role: emulate the rig behind the CAN bus (DESIGN.md "Loop, HIL and time"). :class:`HilCore` is the
 transport-free part: it takes each frame the bus carries with its time, answers it through the
 drive nodes (:mod:`hil_sim.drives`) and the VCU model, advances the plant in servo sub-steps, and
-records the truth (true strokes, joint angles, tip, machine travel) at every SYNC. The truth is
+records the truth (true strokes, joint angles, tip, machine travel) at every SYNC. A rig with
+swing has a fourth drive node (node ``can.node_ids.swing``, axis 3) on the swing plant
+(:class:`~hil_sim.swing.SwingPlant`), composed beside the planar arm plant; its truth adds the
+swing angle and rate. The truth is
 bounded: the last ``truth_rows`` SYNCs are kept (:data:`TRUTH_ROWS` by default, a ring that
 overwrites the oldest row), so a HIL that runs for hours keeps a flat memory. Two transports
 drive it:
@@ -38,6 +41,7 @@ from firmware_models.errors import FirmwareConfigurationError
 from firmware_models.vcu import VcuModel
 from hil_sim.drives import DriveNode, into_rock
 from hil_sim.plant import ArmPlant, TipLoad
+from hil_sim.swing import SwingPlant, swing_drive_rig
 from hil_sim.terrain import Terrain
 from rt_runtime import kinematics
 from rt_runtime.errors import ConfigurationError
@@ -132,8 +136,8 @@ class FaultKind(IntEnum):
 
     @property
     def targets(self) -> tuple[str, ...]:
-        """What the kind acts on: axis names (a drive node, or the frames to and from it),
-        ``bus`` (every frame), ``host`` (the rig PC)."""
+        """What the kind acts on on every rig: the arm's axis names (a drive node, or the frames
+        to and from it), ``bus`` (every frame), ``host`` (the rig PC)."""
         layer = self.layer
         if layer == "drive":
             return _AXES
@@ -142,6 +146,12 @@ class FaultKind(IntEnum):
         if self in (FaultKind.ERROR_FRAMES, FaultKind.BUS_OFF, FaultKind.BUS_UNPLUGGED):
             return ("bus",)
         return (*_AXES, "bus")
+
+    @property
+    def swing_targets(self) -> tuple[str, ...]:
+        """:attr:`targets` on a rig with swing: ``swing`` as well where an axis is one."""
+        targets = self.targets
+        return (*_AXES, "swing", *targets[3:]) if targets[:3] == _AXES else targets
 
     @property
     def layer(self) -> str:
@@ -192,6 +202,8 @@ class Truth:
         machine_x_m: Machine travel, ``(n,)``.
         power_w: Drive power (non-regenerating) in the period before the SYNC, ``(n,)``.
         energy_j: Energy drawn so far (plant's Yao W_E reading).
+        swing_rad: True swing angle ``(n,)`` on a rig with swing, else None.
+        swing_rate_rad_s: True swing rate ``(n,)`` on a rig with swing, else None.
     """
 
     sync_index: NDArray[np.int64]
@@ -202,10 +214,16 @@ class Truth:
     machine_x_m: FloatArray
     power_w: FloatArray
     energy_j: float
+    swing_rad: FloatArray | None = None
+    swing_rate_rad_s: FloatArray | None = None
 
     def to_npz_dict(self) -> dict[str, Any]:
         """Arrays for ``numpy.savez`` (the real-time HIL hands its truth over in a file)."""
+        swing = {}
+        if self.swing_rad is not None and self.swing_rate_rad_s is not None:
+            swing = {"swing_rad": self.swing_rad, "swing_rate_rad_s": self.swing_rate_rad_s}
         return {
+            **swing,
             "sync_index": self.sync_index,
             "t_s": self.t_s,
             "stroke_m": self.stroke_m,
@@ -228,15 +246,24 @@ class Truth:
             machine_x_m=np.asarray(data["machine_x_m"], dtype=np.float64),
             power_w=np.asarray(data["power_w"], dtype=np.float64),
             energy_j=float(data["energy_j"]),
+            swing_rad=(
+                np.asarray(data["swing_rad"], dtype=np.float64) if "swing_rad" in data else None
+            ),
+            swing_rate_rad_s=(
+                np.asarray(data["swing_rate_rad_s"], dtype=np.float64)
+                if "swing_rate_rad_s" in data
+                else None
+            ),
         )
 
 
 class TruthRing:
     """The truth at every SYNC in a bounded ring: the last ``capacity`` rows.
 
-    One float64 array ``(rows, 10)``; a row is the SYNC index (exact in a float64 below 2**53),
-    the HIL clock (s), the true strokes (m, 3), the joint angles (rad, 3), the machine travel
-    (m) and the drive power in the period before the SYNC (W). The array grows by doubling up
+    One float64 array ``(rows, columns)``; a row is the SYNC index (exact in a float64 below
+    2**53), the HIL clock (s), the true strokes (m, 3), the joint angles (rad, 3), the machine
+    travel (m) and the drive power in the period before the SYNC (W); with ``columns = 12`` (a
+    rig with swing) then the swing angle (rad) and rate (rad/s). The array grows by doubling up
     to ``capacity`` rows, or is allocated whole at the start with every page written
     (``preallocate``: the memory of a long-running process is then flat from its first SYNC);
     once it holds ``capacity`` rows, each new row overwrites the oldest.
@@ -247,6 +274,7 @@ class TruthRing:
     Args:
         capacity: Rows kept, >= 2.
         preallocate: Allocate and touch all of them now.
+        columns: Values per row: :attr:`COLUMNS`, or 12 with the swing.
 
     Raises:
         ConfigurationError: ``capacity`` below 2.
@@ -258,9 +286,10 @@ class TruthRing:
 
     COLUMNS = 10
 
-    def __init__(self, capacity: int, *, preallocate: bool = False) -> None:
+    def __init__(self, capacity: int, *, preallocate: bool = False, columns: int = 10) -> None:
         if capacity < 2:
             raise ConfigurationError(f"truth capacity {capacity} rows must be >= 2")
+        self.COLUMNS = int(columns)
         self.capacity = int(capacity)
         rows = self.capacity if preallocate else min(self.capacity, _TRUTH_FIRST_ROWS)
         # np.full writes every element, so the pages are resident from here on.
@@ -319,7 +348,9 @@ class HilCore:
 
     Args:
         rig: The rig simulated (drives, actuators, cylinders, node ids).
-        q0_rad: Initial joint angles ``(3,)``.
+        q0_rad: Initial joint angles ``(3,)`` (boom, stick, bucket); on a rig with swing
+            ``(4,)`` in axis order (the swing angle last, :mod:`rt_runtime.axes`) or ``(3,)``
+            with the swing at 0.
         terrain: Material the bucket cuts (work-site frame), or None for a free arm.
         period_s: SYNC period; the lockstep transport advances the plant by it per SYNC.
         vcu: Put the VCU model (travel and swing) on the bus.
@@ -363,11 +394,20 @@ class HilCore:
         self.period_s = period_s
         self.terrain = terrain
         self._load = _ShiftedLoad(terrain.soil_model(rig)) if terrain is not None else None
-        self.plant = ArmPlant(rig, np.asarray(q0_rad, dtype=np.float64), soil=self._load)
+        q0 = np.asarray(q0_rad, dtype=np.float64).reshape(-1)
+        if q0.shape not in ((3,), (4,)) or (q0.shape == (4,) and rig.swing is None):
+            raise ConfigurationError(
+                f"initial pose of shape {q0.shape}; allowed: (3,) (boom, stick, bucket), or "
+                "(4,) with the swing angle last on a rig with swing"
+            )
+        self.plant = ArmPlant(rig, q0[:3], soil=self._load)
+        self.swing: SwingPlant | None = None
+        if rig.swing is not None:
+            self.swing = SwingPlant(rig, float(q0[3]) if q0.shape == (4,) else 0.0)
         ids = dict(rig.can.node_ids)
         stroke0 = self.plant.stroke_m
         try:
-            self.nodes = tuple(
+            nodes = [
                 DriveNode(
                     DriveFirmware(
                         ids[name],
@@ -379,7 +419,21 @@ class HilCore:
                     axis,
                 )
                 for axis, name in enumerate(_AXES)
-            )
+            ]
+            if self.swing is not None:
+                nodes.append(
+                    DriveNode(
+                        DriveFirmware(
+                            ids["swing"],
+                            swing_drive_rig(rig),
+                            "swing",
+                            initial_position_m=self.swing.theta_rad,
+                            tpdo_at_start=tpdo_at_start,
+                        ),
+                        3,
+                    )
+                )
+            self.nodes = tuple(nodes)
             self.vcu = VcuModel.from_rig(rig) if vcu else None
         except FirmwareConfigurationError as exc:
             raise ConfigurationError(
@@ -390,7 +444,9 @@ class HilCore:
         self.frames: list[tuple[int, bytes]] = []
         self.trace: can.Listener | None = None
         self._servo_dt_s = rig.drives.servo_period_s
-        self.truth_ring = TruthRing(truth_rows, preallocate=preallocate_truth)
+        self.truth_ring = TruthRing(
+            truth_rows, preallocate=preallocate_truth, columns=10 if self.swing is None else 12
+        )
         self._energy_at_sync = self.plant.energy_j
         self._dt_since_sync = 0.0
 
@@ -450,6 +506,9 @@ class HilCore:
         # cascade, then a jam or a rock applied at the axis) and the plant's servo_substep (the
         # firmware's
         # efforts are finite and within [-1, 1], so step()'s checks and clipping change nothing).
+        if self.swing is not None:
+            self._advance_with_swing(dt_s, self.swing)
+            return
         remaining = dt_s
         plant = self.plant
         n0, n1, n2 = self.nodes
@@ -482,6 +541,47 @@ class HilCore:
             remaining -= h
         self._dt_since_sync += dt_s
 
+    def _advance_with_swing(self, dt_s: float, swing: SwingPlant) -> None:
+        """:meth:`advance` with the swing's node and plant: each sub-step the arm as there, then
+        the swing on the arm's new pose (its inertia depends on the reach)."""
+        remaining = dt_s
+        plant = self.plant
+        n0, n1, n2, n3 = self.nodes
+        fw0, fw1, fw2, fw3 = n0.firmware, n1.firmware, n2.firmware, n3.firmware
+        f0, f1, f2, f3 = n0.faults, n1.faults, n2.faults, n3.faults
+        load = self._load
+        vcu = self.vcu
+        servo = self._servo_dt_s
+        full = servo * (1.0 + 1e-9)
+        while remaining > 1e-12:
+            h = servo if remaining > full else remaining
+            (s0, s1, s2), (v0, v1, v2) = plant.stroke_state()
+            w = swing.omega_rad_s
+            e0 = n0.effort = fw0.servo_step(h, s0, v0)
+            e1 = n1.effort = fw1.servo_step(h, s1, v1)
+            e2 = n2.effort = fw2.servo_step(h, s2, v2)
+            e3 = n3.effort = fw3.servo_step(h, swing.theta_rad, w)
+            if load is not None:
+                load.offset_m = vcu.travel_position_m if vcu is not None else 0.0
+            plant.servo_substep(
+                h,
+                [
+                    0.0 if f0.jammed or (f0.rock_direction and into_rock(f0, e0, v0)) else e0,
+                    0.0 if f1.jammed or (f1.rock_direction and into_rock(f1, e1, v1)) else e1,
+                    0.0 if f2.jammed or (f2.rock_direction and into_rock(f2, e2, v2)) else e2,
+                ],
+            )
+            q = plant.q_rad
+            swing.step(
+                h,
+                0.0 if f3.jammed or (f3.rock_direction and into_rock(f3, e3, w)) else e3,
+                (float(q[0]), float(q[1]), float(q[2])),
+            )
+            if vcu is not None:
+                vcu.step(h)
+            remaining -= h
+        self._dt_since_sync += dt_s
+
     def _sample_truth(self, now_s: float) -> None:
         self.sync_count += 1
         plant = self.plant
@@ -492,9 +592,12 @@ class HilCore:
         power = (energy - self._energy_at_sync) / dt if dt > 0.0 else 0.0
         self._energy_at_sync = energy
         self._dt_since_sync = 0.0
-        self.truth_ring.append(
-            (self.sync_count, now_s, s0, s1, s2, q0, q1, q2, self.machine_x_m, power)
+        row: tuple[float, ...] = (
+            self.sync_count, now_s, s0, s1, s2, q0, q1, q2, self.machine_x_m, power
         )
+        if self.swing is not None:
+            row += (self.swing.theta_rad, self.swing.omega_rad_s)
+        self.truth_ring.append(row)
 
     # -- injection and material -----------------------------------------------------------------
 
@@ -505,7 +608,7 @@ class HilCore:
 
         Args:
             kind: A drive fault (``kind.layer == "drive"``).
-            axis: The node's axis (0 boom, 1 stick, 2 bucket).
+            axis: The node's axis (0 boom, 1 stick, 2 bucket, 3 swing on a rig with swing).
             param: The kind's parameter (the glitch in mm, default :data:`GLITCH_MM`); unused
                 by the others.
             now_s: The HIL's clock (a reboot's boot-up frame is stamped with it).
@@ -515,10 +618,11 @@ class HilCore:
             on the bus.
 
         Raises:
-            ValueError: ``axis`` not 0..2, or a bus or host kind.
+            ValueError: ``axis`` not a node's, or a bus or host kind.
         """
-        if not 0 <= axis <= 2:
-            raise ValueError(f"axis must be 0..2 (boom, stick, bucket); got {axis}")
+        if not 0 <= axis < len(self.nodes):
+            names = ", ".join((*_AXES, "swing")[: len(self.nodes)])
+            raise ValueError(f"axis must be 0..{len(self.nodes) - 1} ({names}); got {axis}")
         if kind.layer != "drive":
             raise ValueError(f"{kind.label} is a {kind.layer} fault, not a drive node's")
         node = self.nodes[axis]
@@ -543,7 +647,8 @@ class HilCore:
     def _rock_direction(self, axis: int) -> float:
         """The way an axis meets a rock: the way it moves (or pushes, at rest), extending when
         it does neither."""
-        _, rate = self.plant.stroke_state()
+        _, arm_rate = self.plant.stroke_state()
+        rate = (*arm_rate, self.swing.omega_rad_s if self.swing is not None else 0.0)
         if abs(rate[axis]) > 1e-3:
             return math.copysign(1.0, rate[axis])
         effort = self.nodes[axis].effort
@@ -569,6 +674,8 @@ class HilCore:
             machine_x_m=mx,
             power_w=rows[:, 9].copy(),
             energy_j=self.plant.energy_j,
+            swing_rad=rows[:, 10].copy() if self.swing is not None else None,
+            swing_rate_rad_s=rows[:, 11].copy() if self.swing is not None else None,
         )
 
     def _tip_m(self, q_rad: FloatArray, machine_x_m: FloatArray) -> FloatArray:

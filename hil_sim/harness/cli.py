@@ -10,6 +10,8 @@ here and in the report). ``rt_runtime.cli`` wires it in with :func:`add_parser` 
                      [--inject KIND:TARGET:AT_S[:PARAM] ...]
     excavator-rt hil campaign [--kinds K,...] [--axes A,...] [--seeds N] [--json] [--out DIR]
     excavator-rt hil soak [--hours H | --minutes M | --seconds S] [--fault-every-s S] [--json]
+    excavator-rt hil --operator --demos N --out DIR [--seed S] [--json]
+    excavator-rt hil --teach DIR [--trace FILE] [--inject KIND:TARGET:AT_S] [--json]
     excavator-rt hil --path gao|FILE.json|joints [--joints-deg B,S,K ...] [--rig test_bench]
                      [--orders auto|3-4-5-4-3|...] [--durations 3,3,3,3,3] [--start-deg B,S,K]
                      [--realtime] [--no-feedforward] [--trace FILE] [--json] [--plot DIR]
@@ -36,7 +38,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from hil_sim.harness import campaign, hil_soak
+from hil_sim.harness import campaign, fouraxis, hil_soak
 from hil_sim.harness.reports import HilReport
 from hil_sim.harness.scenario import (
     CONTROLLERS,
@@ -104,10 +106,11 @@ def parse_fault(text: str) -> FaultSpec:
         fault_kind = FaultKind[kind.upper()]
     except KeyError:
         raise argparse.ArgumentTypeError(f"--inject kind {kind!r}; allowed: {kinds}") from None
-    if target not in fault_kind.targets:
+    if target not in fault_kind.swing_targets:
         raise argparse.ArgumentTypeError(
             f"--inject {fault_kind.label} target {target!r}; allowed: "
-            + ", ".join(fault_kind.targets)
+            + ", ".join(fault_kind.swing_targets)
+            + " (swing on a rig with swing)"
         )
     try:
         at_s = float(at)
@@ -260,6 +263,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--fixed-time", action="store_true", help="with --mintorque: keep the intervals fixed"
     )
+    fouraxis.add_arguments(p)
     sub = p.add_subparsers(dest="hil_command", metavar="{campaign,soak}")
     campaign.add_parser(sub)
     hil_soak.add_parser(sub)
@@ -352,6 +356,8 @@ def _host_gain(args: argparse.Namespace) -> float:
 
 def run(args: argparse.Namespace) -> int:
     """Run the ``hil`` sub-command; returns the exit status."""
+    if getattr(args, "operator", False) or getattr(args, "teach", None) is not None:
+        return fouraxis.run_command(args)
     if getattr(args, "mintorque", None) is not None:
         return _run_mintorque(args)
     try:

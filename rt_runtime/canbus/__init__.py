@@ -60,9 +60,9 @@ Each cycle (never raises for bus conditions, returns status codes)::
 
     fb = master.read_feedback(now_s, timeout_s=0.0)   # answers to the previous SYNC
     # fb.status: CycleStatus (OK, STALE, EMCY, NOT_ENABLED, HEARTBEAT_LOST, DRIVE_FAULT,
-    #            BUS_ERROR); fb.position_um, fb.velocity_um_s (int32, shape (3,)), fb.state,
+    #            BUS_ERROR); fb.position_um, fb.velocity_um_s (int32, shape (n,)), fb.state,
     #            fb.statusword, fb.stale, fb.emcys, fb.heartbeat_events, fb.reacted
-    status = master.write_setpoints(stroke_um, velocity_um_s)   # RPDO1 x 3, then SYNC
+    status = master.write_setpoints(stroke_um, velocity_um_s)   # RPDO1 x n, then SYNC
     master.heartbeat(now_s)                                       # sends when due
 
 From ``boot`` on the drives watch the master's heartbeat (0x1016): whoever holds the master
@@ -71,8 +71,10 @@ alike, or the drives take their heartbeat-loss fault reaction (EMCY 0x8130). Whi
 OPERATION_ENABLED it also needs a SYNC and an RPDO1 within ``rig.drives.sync_timeout_s``
 (EMCY 0x8250): keep calling ``write_setpoints`` (holding the position) while enabled.
 
-Axis order is boom, stick, bucket (``master.config.axes``); setpoints are integer micrometres
-of stroke and micrometres per second (the executor converts from metres at this edge).
+Axis order is boom, stick, bucket, then swing on a rig with swing (``master.config.axes``,
+:mod:`rt_runtime.axes`); setpoints are integer micrometres of stroke and micrometres per
+second, the swing drive's microradians and microradians per second (the executor converts from
+SI at this edge).
 ``read_feedback`` returns one reused :class:`Feedback` object; ``Feedback.copy()`` for other
 threads. A TPDO is attributed to the latest SYNC sent (the SYNC has no counter byte), so a
 TPDO that arrives only after the next SYNC counts for that one.

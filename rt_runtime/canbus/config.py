@@ -39,7 +39,8 @@ DEFAULT_EDS = Path(__file__).resolve().parents[2] / "firmware_models" / "cia402_
 #: Modes of operation (0x6060): cyclic synchronous position.
 MODE_CSP = 8
 
-#: The arm's axes in array order.
+#: The arm's axes in array order (a rig with swing appends ``swing``:
+#: :func:`rt_runtime.axes.names`).
 AXES = ("boom", "stick", "bucket")
 
 _COB_INVALID = 0x8000_0000
@@ -50,17 +51,21 @@ class MasterConfig:
     """Everything the master writes to the drives, in CAN units, derived from the rig.
 
     Attributes:
-        axes: Axis names in array order (``boom``, ``stick``, ``bucket``).
+        axes: Axis names in array order (``boom``, ``stick``, ``bucket``, then ``swing`` on a
+            rig with swing: :mod:`rt_runtime.axes`). Positions are millionths of the axis's SI
+            unit: micrometres of stroke, microradians of swing.
         node_ids: Drive node id per axis.
         master_node_id: The master's heartbeat node id (0x7E by default).
         period_s: Cycle (SYNC) period.
         heartbeat_period_s: Heartbeat period of drives and master.
         heartbeat_timeout_s: Consumer timeout, both ways.
-        following_error_window_um: 0x6065.
+        following_error_window_um: 0x6065 per axis (the swing's:
+            :data:`rt_runtime.axes.SWING_FOLLOWING_ERROR_WINDOW_RAD` in urad).
         following_error_timeout_ms: 0x6066.
         stroke_min_um: 0x607D sub 1 per axis.
         stroke_max_um: 0x607D sub 2 per axis.
-        quick_stop_deceleration_um_s2: 0x6085.
+        quick_stop_deceleration_um_s2: 0x6085 per axis (the swing's: its acceleration limit in
+            urad/s^2).
         bitrate: Bus bitrate (bit/s).
     """
 
@@ -70,52 +75,60 @@ class MasterConfig:
     period_s: float
     heartbeat_period_s: float
     heartbeat_timeout_s: float
-    following_error_window_um: int
+    following_error_window_um: tuple[int, ...]
     following_error_timeout_ms: int
     stroke_min_um: tuple[int, ...]
     stroke_max_um: tuple[int, ...]
-    quick_stop_deceleration_um_s2: int
+    quick_stop_deceleration_um_s2: tuple[int, ...]
     bitrate: int
 
     @classmethod
     def from_rig(cls, rig: Rig, master_node_id: int, period_s: float) -> MasterConfig:
-        """Derive the configuration from the rig's ``can``, ``drives`` and cylinder travel.
+        """Derive the configuration from the rig's ``can``, ``drives``, cylinder travel and, on
+        a rig with swing, its swing joint (node ``can.node_ids.swing``).
 
         Raises:
             ConfigurationError: A node id is missing or clashes with the master's, or a value
                 does not fit its CAN object.
         """
-        from rt_runtime.actuation import stroke_limits
+        from rt_runtime import axes as rig_axes
+        from rt_runtime.axes import SWING_FOLLOWING_ERROR_WINDOW_RAD
 
         if not (math.isfinite(period_s) and period_s > 0.0):
             raise ConfigurationError(f"cycle period {period_s} s must be finite and > 0")
         ids = dict(rig.can.node_ids)
-        missing = [axis for axis in AXES if axis not in ids]
+        names = rig_axes.names(rig)
+        missing = [axis for axis in names if axis not in ids]
         if missing:
             raise ConfigurationError(
                 f"rig {rig.name}: can.node_ids has no drive for {missing}; the master needs "
-                f"{list(AXES)}"
+                f"{list(names)}"
             )
-        node_ids = tuple(ids[axis] for axis in AXES)
+        node_ids = tuple(ids[axis] for axis in names)
         if master_node_id in node_ids or not 1 <= master_node_id <= 127:
             raise ConfigurationError(
                 f"master node id {master_node_id} must be in 1..127 and differ from the drives' "
                 f"{node_ids}"
             )
-        lo_m, hi_m = stroke_limits(rig)
+        lo_m, hi_m = rig_axes.actuator_limits(rig)
         drives = rig.drives
+        window = [drives.following_error_window_m] * 3
+        quick_stop = [drives.quick_stop_deceleration_m_s2] * 3
+        if rig.swing is not None:
+            window.append(SWING_FOLLOWING_ERROR_WINDOW_RAD)
+            quick_stop.append(rig.swing.joint.acceleration_max_rad_s2)
         config = cls(
-            axes=AXES,
+            axes=names,
             node_ids=node_ids,
             master_node_id=master_node_id,
             period_s=period_s,
             heartbeat_period_s=drives.heartbeat_period_s,
             heartbeat_timeout_s=drives.heartbeat_timeout_s,
-            following_error_window_um=round(drives.following_error_window_m * 1e6),
+            following_error_window_um=tuple(round(w * 1e6) for w in window),
             following_error_timeout_ms=round(drives.following_error_timeout_s * 1e3),
             stroke_min_um=tuple(round(float(v) * 1e6) for v in lo_m),
             stroke_max_um=tuple(round(float(v) * 1e6) for v in hi_m),
-            quick_stop_deceleration_um_s2=round(drives.quick_stop_deceleration_m_s2 * 1e6),
+            quick_stop_deceleration_um_s2=tuple(round(d * 1e6) for d in quick_stop),
             bitrate=rig.can.bitrate,
         )
         hb_ms = round(config.heartbeat_period_s * 1e3)
@@ -224,11 +237,15 @@ def configuration_writes(
         SdoWrite(0x1006, 0, round(config.period_s * 1e6), "communication cycle period (us)"),
         SdoWrite(0x60C2, 1, ip_value, "interpolation period value"),
         SdoWrite(0x60C2, 2, ip_index, "interpolation period index"),
-        SdoWrite(0x6065, 0, config.following_error_window_um, "following error window (um)"),
+        SdoWrite(
+            0x6065, 0, config.following_error_window_um[axis], "following error window (um)"
+        ),
         SdoWrite(0x6066, 0, config.following_error_timeout_ms, "following error timeout (ms)"),
         SdoWrite(0x607D, 1, config.stroke_min_um[axis], "software position limit min (um)"),
         SdoWrite(0x607D, 2, config.stroke_max_um[axis], "software position limit max (um)"),
-        SdoWrite(0x6085, 0, config.quick_stop_deceleration_um_s2, "quick stop deceleration"),
+        SdoWrite(
+            0x6085, 0, config.quick_stop_deceleration_um_s2[axis], "quick stop deceleration"
+        ),
         SdoWrite(0x1017, 0, hb_ms, "producer heartbeat time (ms)"),
         SdoWrite(0x1016, 1, config.master_node_id << 16 | timeout_ms, "consume master heartbeat"),
         SdoWrite(0x6060, 0, MODE_CSP, "modes of operation: cyclic synchronous position"),

@@ -69,7 +69,8 @@ class Command:
 
     Attributes:
         mode: TRACK or STOP.
-        stroke_m, rate_m_s, accel_m_s2: Target stroke state ``(3,)`` (m, m/s, m/s^2).
+        stroke_m, rate_m_s, accel_m_s2: Target actuator state ``(n,)`` in axis order (stroke m,
+            m/s, m/s^2; the swing's rad, rad/s, rad/s^2: :mod:`rt_runtime.axes`).
         q_rad: The joint reference of the target (rad), for the telemetry.
         phase: :class:`~rt_runtime.control.setpoints.Phase` value (telemetry ``phase``).
         segment: Motion number, -1 while holding or stopping.
@@ -93,12 +94,12 @@ class Command:
         "tracking",
     )
 
-    def __init__(self) -> None:
+    def __init__(self, n: int = 3) -> None:
         self.mode = Mode.TRACK
-        self.stroke_m: FloatArray = np.zeros(3)
-        self.rate_m_s: FloatArray = np.zeros(3)
-        self.accel_m_s2: FloatArray = np.zeros(3)
-        self.q_rad: FloatArray = np.zeros(3)
+        self.stroke_m: FloatArray = np.zeros(n)
+        self.rate_m_s: FloatArray = np.zeros(n)
+        self.accel_m_s2: FloatArray = np.zeros(n)
+        self.q_rad: FloatArray = np.zeros(n)
         self.phase = int(Phase.WAIT)
         self.segment = -1
         self.dig = -1
@@ -180,7 +181,7 @@ class HoldController:
     docstring).
 
     Args:
-        stroke_m: The stroke to hold (m), ``(3,)``: the last commanded one.
+        stroke_m: The actuator positions to hold, ``(n,)`` in axis order: the last commanded.
         q_rad: Its joint pose (telemetry).
         settled_m: How close to the held stroke the drives' report counts as settled (m).
         describe: Text of the drives' state for the fault message (axes, nodes, EMCY codes;
@@ -199,8 +200,9 @@ class HoldController:
         settled_m: float = 2e-6,
         describe: Callable[[CycleStatus], str] | None = None,
     ) -> None:
-        self.command = Command()
-        self.command.hold(np.asarray(stroke_m, dtype=np.float64), q_rad, Phase.WAIT)
+        hold = np.asarray(stroke_m, dtype=np.float64)
+        self.command = Command(len(hold))
+        self.command.hold(hold, q_rad, Phase.WAIT)
         self.settled_m = float(settled_m)
         self._describe = describe
         self.fault = ""

@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from rt_runtime import actuation
+from rt_runtime import axes
 from rt_runtime.canbus import CanMaster, Emcy
 from rt_runtime.control.controllers import GuardFilter
 from rt_runtime.control.guard import DEFAULT_MARGIN, LimitGuard, StrokeLimits
@@ -102,7 +102,8 @@ class ExecutorConfig:
             0: none.
         plan_in_worker: Plan in a separate process; None: when the loop's clock is real time.
         following_error_m: Largest |demand - reported stroke| (m); None: 0.8 of the drives'
-            following-error window (the executor stops the job before the drive faults).
+            following-error window (the executor stops the job before the drive faults). The
+            swing's bound (rad) is the same fraction of its drive's window.
         following_error_cycles: Consecutive cycles beyond it that count as a fault (>= 1).
         stale_cycles: Consecutive cycles without a drive's TPDO1 that count as a fault (>= 1).
         read_timeout_s: Longest wait for a missing TPDO when the cycle reads the answers to the
@@ -113,6 +114,13 @@ class ExecutorConfig:
         max_digs: Stop after this many digs of this run (None: until the task is done).
         guard_margin: Headroom of the guard's limits over the joint limits' image.
         disable_at_end: Disable the drives in the last cycle (see the module docstring).
+        velocity_lead_s: Per axis (axis order) the lead of the velocity offset
+            (:class:`~rt_runtime.control.hardware.DriveInterface`'s ``lead_s``: the offset is
+            ``rate + lead * acceleration``), the lag of the axis's valve and load as its
+            commissioning measured it; None: the rate alone.
+        velocity_lead2_s2: Per axis the second-order term of that lead (``DriveInterface``'s
+            ``lead2_s2``: ``+ lead2 * jerk``), for an axis behind a spring-mass mode; None:
+            none. Needs ``velocity_lead_s``.
 
     Raises:
         ConfigurationError: A value outside its range (the message names it).
@@ -131,6 +139,8 @@ class ExecutorConfig:
     max_digs: int | None = None
     guard_margin: float = DEFAULT_MARGIN
     disable_at_end: bool = True
+    velocity_lead_s: tuple[float, ...] | None = None
+    velocity_lead2_s2: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         positive = {
@@ -157,6 +167,19 @@ class ExecutorConfig:
         ):
             if count < 1:
                 raise ConfigurationError(f"executor {key} = {count}; allowed: an integer >= 1")
+        lead = self.velocity_lead_s
+        if lead is not None and not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in lead):
+            raise ConfigurationError(
+                f"executor velocity_lead_s = {lead}; allowed: one value in [0, 1] s per axis"
+            )
+        lead2 = self.velocity_lead2_s2
+        if lead2 is not None and (
+            lead is None or not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in lead2)
+        ):
+            raise ConfigurationError(
+                f"executor velocity_lead2_s2 = {lead2}; allowed: with velocity_lead_s, one "
+                "value in [0, 1] s^2 per axis"
+            )
         if self.max_digs is not None and self.max_digs < 1:
             raise ConfigurationError(
                 f"executor max_digs = {self.max_digs}; allowed: None or an integer >= 1"
@@ -164,11 +187,8 @@ class ExecutorConfig:
 
     def limits(self, rig: Rig) -> JobLimits:
         """The job controller's monitors and endings on ``rig``."""
-        following = (
-            self.following_error_m
-            if self.following_error_m is not None
-            else 0.8 * rig.drives.following_error_window_m
-        )
+        window = rig.drives.following_error_window_m
+        following = self.following_error_m if self.following_error_m is not None else 0.8 * window
         return JobLimits(
             following_error_m=following,
             following_error_cycles=self.following_error_cycles,
@@ -177,6 +197,8 @@ class ExecutorConfig:
             rest_velocity_m_s=self.rest_velocity_m_s,
             settle_s=self.settle_s,
             max_digs=self.max_digs,
+            # The swing's window in the same proportion to its drive's window (0x6065).
+            swing_following_error_rad=following / window * axes.SWING_FOLLOWING_ERROR_WINDOW_RAD,
         )
 
 
@@ -274,14 +296,39 @@ class Executor:
         self.period_s = period
         self.realtime = bool(loop.clock.realtime)
         self.plan_in_worker = self.realtime if cfg.plan_in_worker is None else cfg.plan_in_worker
+        if master.n != axes.count(rig):
+            raise ConfigurationError(
+                f"the master drives {master.n} axes ({', '.join(master.config.axes)}); rig "
+                f"{rig.name} has {axes.count(rig)} ({', '.join(axes.names(rig))})"
+            )
+        if rig.swing is not None and not isinstance(work, PathJob):
+            raise ConfigurationError(
+                f"rig {rig.name} has a swing axis: the trench planner plans the arm plane only, "
+                "so a trench job cannot run on it; allowed: a prescribed path over all four "
+                "axes (a taught job, a path job)"
+            )
         if isinstance(work, PathJob):
             # Checked before anything is sent; a path has nothing to plan in a process.
             work.check(rig)
             self.plan_in_worker = False
         self.guard = LimitGuard(StrokeLimits.from_rig(rig, margin=cfg.guard_margin), period)
         read_timeout_s = 0.0 if cfg.read_timeout_s is None else cfg.read_timeout_s
+        lead = None if cfg.velocity_lead_s is None else np.asarray(cfg.velocity_lead_s)
+        lead2 = None if cfg.velocity_lead2_s2 is None else np.asarray(cfg.velocity_lead2_s2)
+        for values in (lead, lead2):
+            if values is not None and values.shape != (master.n,):
+                raise ConfigurationError(
+                    f"executor velocity lead has {values.size} values; the master drives "
+                    f"{master.n} axes ({', '.join(master.config.axes)})"
+                )
         self.drives = DriveInterface(
-            master, loop.clock, read_timeout_s, cfg.feedforward, cfg.correction_gain_1_s
+            master,
+            loop.clock,
+            read_timeout_s,
+            cfg.feedforward,
+            cfg.correction_gain_1_s,
+            lead_s=lead,
+            lead2_s2=lead2,
         )
         self.drives.react_to_faults(False)
         # Started here, before the caller enables the drives and applies RT settings: spawning
@@ -392,7 +439,7 @@ class Executor:
             )
         s0 = drives.measured_stroke_m()
         self.guard.reset(s0)
-        q0 = actuation.stroke_to_joint(self.rig, s0, check_limits=False)
+        q0 = axes.actuator_to_joint(self.rig, s0, check_limits=False)
         job = self.job
         try:
             first = job.start(s0)

@@ -12,8 +12,8 @@ velocity interface with target velocity 0: a jerk-limited stop from the current 
 output is a state on one continuous trajectory whose velocity, acceleration and jerk stay within
 :class:`StrokeLimits`, so no frame ever commands a step beyond a limit.
 
-How passthrough is exact. ruckig (``Ruckig(3, period_s)``, ``update`` per cycle, no intermediate
-waypoints) plans from the guard's previous output to the target state; with
+How passthrough is exact. ruckig (``Ruckig(n, period_s)`` over the n axes, ``update`` per
+cycle, no intermediate waypoints) plans from the guard's previous output to the target state; with
 ``minimum_duration = period_s`` and time synchronisation its trajectory takes exactly one period
 whenever that is feasible within the limits, so the state after one period is the target. Only
 when the target cannot be reached in one period does the trajectory take longer, and the output
@@ -52,6 +52,7 @@ from ruckig import (
     OutputParameter,
     Result,
     Ruckig,
+    RuckigError,
     Synchronization,
 )
 
@@ -80,28 +81,42 @@ _OK = (Result.Working, Result.Finished)
 
 @dataclass(frozen=True, slots=True)
 class StrokeLimits:
-    """Per-axis limits of the commanded stroke (boom, stick, bucket).
+    """Per-axis limits of the commanded actuator position, in axis order (boom, stick, bucket
+    strokes in m; the swing angle in rad on a rig with swing, :mod:`rt_runtime.axes`). The
+    ``_m`` names hold the swing's values in rad.
 
     Attributes:
-        velocity_m_s: Largest stroke rate ``(3,)``.
-        acceleration_m_s2: Largest stroke acceleration ``(3,)``.
-        jerk_m_s3: Largest stroke jerk ``(3,)``.
+        velocity_m_s: Largest rate ``(n,)``.
+        acceleration_m_s2: Largest acceleration ``(n,)``.
+        jerk_m_s3: Largest jerk ``(n,)``.
 
     Raises:
-        ConfigurationError: A limit is not finite and > 0, or not three of each.
+        ConfigurationError: A limit is not finite and > 0, or not three or four of each, or
+            not as many of each.
     """
 
-    velocity_m_s: tuple[float, float, float]
-    acceleration_m_s2: tuple[float, float, float]
-    jerk_m_s3: tuple[float, float, float]
+    velocity_m_s: tuple[float, ...]
+    acceleration_m_s2: tuple[float, ...]
+    jerk_m_s3: tuple[float, ...]
 
     def __post_init__(self) -> None:
+        n = len(self.velocity_m_s)
         for name in ("velocity_m_s", "acceleration_m_s2", "jerk_m_s3"):
             values = getattr(self, name)
-            if len(values) != 3 or not all(math.isfinite(v) and v > 0.0 for v in values):
+            if (
+                len(values) != n
+                or n not in (3, 4)
+                or not all(math.isfinite(v) and v > 0.0 for v in values)
+            ):
                 raise ConfigurationError(
-                    f"stroke limit {name} = {values}; allowed: three finite values > 0"
+                    f"stroke limit {name} = {values}; allowed: three (or four, with swing) "
+                    "finite values > 0, as many of each"
                 )
+
+    @property
+    def n(self) -> int:
+        """Number of axes."""
+        return len(self.velocity_m_s)
 
     @classmethod
     def from_rig(cls, rig: Rig, margin: float = DEFAULT_MARGIN, n_grid: int = 4001) -> StrokeLimits:
@@ -132,10 +147,16 @@ class StrokeLimits:
         jerk = (np.abs(j) * jq + 3.0 * np.abs(dj) * vq * aq + np.abs(ddj) * vq**3).max(axis=0)
         f = 1.0 + margin
         vel = np.minimum(vel * f, rig.actuators.velocity_max_m_s)
-        return cls(_triple(vel), _triple(acc * f), _triple(jerk * f))
+        vel, acc, jerk = _triple(vel), _triple(acc * f), _triple(jerk * f)
+        if rig.swing is not None:  # the swing drive's position is the joint angle itself
+            sw = rig.swing.joint
+            vel += (sw.velocity_max_rad_s * f,)
+            acc += (sw.acceleration_max_rad_s2 * f,)
+            jerk += (sw.jerk_max_rad_s3 * f,)
+        return cls(vel, acc, jerk)
 
     def as_arrays(self) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """``(velocity, acceleration, jerk)`` as ``(3,)`` arrays."""
+        """``(velocity, acceleration, jerk)`` as ``(n,)`` arrays."""
         return (
             np.array(self.velocity_m_s),
             np.array(self.acceleration_m_s2),
@@ -151,8 +172,8 @@ def _gradient(values: FloatArray, step: FloatArray) -> FloatArray:
     return out
 
 
-def _triple(a: FloatArray) -> tuple[float, float, float]:
-    return (float(a[0]), float(a[1]), float(a[2]))
+def _triple(a: FloatArray) -> tuple[float, ...]:
+    return tuple(float(x) for x in a)
 
 
 class GuardState(IntEnum):
@@ -180,7 +201,8 @@ class LimitGuard:
 
     Attributes:
         position_m, velocity_m_s, acceleration_m_s2: The commanded state after the last cycle
-            (the setpoint to send), ``(3,)`` arrays owned by the guard (overwritten each cycle).
+            (the setpoint to send), ``(n,)`` arrays owned by the guard (overwritten each
+            cycle).
         stopping: :meth:`stop` was called and :meth:`reset` not since.
         state: :class:`GuardState` of the last cycle.
 
@@ -194,16 +216,18 @@ class LimitGuard:
         self.limits = limits
         self.period_s = float(period_s)
         self._v_max, self._a_max, _ = limits.as_arrays()
-        self._otg = Ruckig(3, self.period_s)
-        self._inp = InputParameter(3)
-        self._out = OutputParameter(3)
+        self.n = n = limits.n
+        self._otg = Ruckig(n, self.period_s)
+        self._inp = InputParameter(n)
+        self._out = OutputParameter(n)
         inp = self._inp
         inp.max_velocity = list(limits.velocity_m_s)
         inp.max_acceleration = list(limits.acceleration_m_s2)
         inp.max_jerk = list(limits.jerk_m_s3)
-        self.position_m = np.zeros(3)
-        self.velocity_m_s = np.zeros(3)
-        self.acceleration_m_s2 = np.zeros(3)
+        self.position_m = np.zeros(n)
+        self.velocity_m_s = np.zeros(n)
+        self.acceleration_m_s2 = np.zeros(n)
+        self._zeros: list[float] = [0.0] * n
         self._v_list: list[float] = self._v_max.tolist()
         self._a_list: list[float] = self._a_max.tolist()
         self.stopping = False
@@ -228,19 +252,22 @@ class LimitGuard:
         stop mode.
 
         Args:
-            position_m: Strokes ``(3,)``.
-            velocity_m_s: Stroke rates ``(3,)``, default 0.
-            acceleration_m_s2: Stroke accelerations ``(3,)``, default 0.
+            position_m: Strokes ``(n,)``.
+            velocity_m_s: Stroke rates ``(n,)``, default 0.
+            acceleration_m_s2: Stroke accelerations ``(n,)``, default 0.
 
         Raises:
             ConfigurationError: A value is not finite or not three.
         """
         p = np.asarray(position_m, dtype=np.float64).reshape(-1)
-        v = np.zeros(3) if velocity_m_s is None else np.asarray(velocity_m_s, np.float64)
-        a = np.zeros(3) if acceleration_m_s2 is None else np.asarray(acceleration_m_s2, np.float64)
+        n = self.n
+        v = np.zeros(n) if velocity_m_s is None else np.asarray(velocity_m_s, np.float64)
+        a = np.zeros(n) if acceleration_m_s2 is None else np.asarray(acceleration_m_s2, np.float64)
         for name, x in (("position_m", p), ("velocity_m_s", v), ("acceleration_m_s2", a)):
-            if x.shape != (3,) or not np.isfinite(x).all():
-                raise ConfigurationError(f"guard reset {name} = {x}; allowed: three finite values")
+            if x.shape != (n,) or not np.isfinite(x).all():
+                raise ConfigurationError(
+                    f"guard reset {name} = {x}; allowed: {n} finite values (one per axis)"
+                )
         self.position_m[:] = p
         self.velocity_m_s[:] = v
         self.acceleration_m_s2[:] = a
@@ -261,8 +288,8 @@ class LimitGuard:
         inp.control_interface = ControlInterface.Velocity
         inp.synchronization = Synchronization.No
         inp.minimum_duration = None
-        inp.target_velocity = [0.0, 0.0, 0.0]
-        inp.target_acceleration = [0.0, 0.0, 0.0]
+        inp.target_velocity = list(self._zeros)
+        inp.target_acceleration = list(self._zeros)
         self.state = GuardState.STOPPING
 
     @property
@@ -288,6 +315,14 @@ class LimitGuard:
         self.acceleration_m_s2[:] = out.new_acceleration
         out.pass_to_input(self._inp)
 
+    def _update(self) -> Result:
+        """One ruckig update; a refusal the binding raises comes back as its error code."""
+        try:
+            result: Result = self._otg.update(self._inp, self._out)
+        except RuckigError:
+            return Result.ErrorInvalidInput
+        return result
+
     def _aim(
         self,
         position_m: list[float],
@@ -302,7 +337,13 @@ class LimitGuard:
         inp.target_position = position_m
         inp.target_velocity = velocity_m_s
         inp.target_acceleration = acceleration_m_s2
-        result = self._otg.update(inp, self._out)
+        try:
+            result = self._otg.update(inp, self._out)
+        except RuckigError:
+            # The binding raises for some refused inputs (a target whose acceleration points
+            # beyond a velocity limit it is near) where others return an error code: the same
+            # refusal, and the caller's retries are the same.
+            return False
         if result not in _OK:
             return False
         if horizon_s is None:
@@ -324,7 +365,7 @@ class LimitGuard:
         In stop mode the target is ignored and the stop advances (as :meth:`step_stop`).
 
         Args:
-            position_m, velocity_m_s, acceleration_m_s2: Target stroke state ``(3,)``.
+            position_m, velocity_m_s, acceleration_m_s2: Target stroke state ``(n,)``.
 
         Returns:
             PASSTHROUGH (output = target), LIMITED, STOPPING/AT_REST (stop mode), or ERROR
@@ -352,7 +393,7 @@ class LimitGuard:
             self._take_output()
             self.state = GuardState.PASSTHROUGH
             return self.state
-        if self._aim(p, v, a, None) or self._aim(p, v, [0.0, 0.0, 0.0], None):
+        if self._aim(p, v, a, None) or self._aim(p, v, self._zeros, None):
             self._take_output()
             self.state = GuardState.LIMITED
             return self.state
@@ -361,7 +402,7 @@ class LimitGuard:
         inp.control_interface = ControlInterface.Velocity
         inp.synchronization = Synchronization.No
         inp.minimum_duration = None
-        result = self._otg.update(inp, self._out)
+        result = self._update()
         self._track_mode()
         if result not in _OK:
             self.stop()
@@ -387,7 +428,7 @@ class LimitGuard:
             self.acceleration_m_s2[:] = 0.0
             self.state = GuardState.AT_REST
             return self.state
-        result = self._otg.update(self._inp, self._out)
+        result = self._update()
         if result in _OK:
             self._take_output()
             if result is Result.Finished:
@@ -419,9 +460,9 @@ class TraceCheck:
         frames: Setpoints checked per axis.
     """
 
-    velocity: tuple[float, float, float]
-    acceleration: tuple[float, float, float]
-    jerk: tuple[float, float, float]
+    velocity: tuple[float, ...]
+    acceleration: tuple[float, ...]
+    jerk: tuple[float, ...]
     frames: int
 
     @property
@@ -432,7 +473,7 @@ class TraceCheck:
 
 def _ratio(diff: FloatArray, allowance: float, limit: FloatArray) -> FloatArray:
     if diff.shape[0] == 0:
-        return np.zeros(3)
+        return np.zeros(diff.shape[1])
     return np.asarray(np.maximum(np.abs(diff).max(axis=0) - allowance, 0.0) / limit)
 
 
@@ -448,36 +489,37 @@ def check_setpoint_trace(
     """Check consecutive RPDO1 setpoints (one per SYNC) against the stroke limits.
 
     Args:
-        target_um: Target strokes per frame, integer micrometres, ``(n, 3)``.
+        target_um: Target positions per frame, integer millionths (um, urad), ``(n, axes)``.
         limits: The limits.
         period_s: SYNC period (the time between consecutive setpoints).
-        velocity_um_s: Velocity offsets per frame (um/s) when feed-forward was on, ``(n, 3)``.
+        velocity_um_s: Velocity offsets per frame (um/s) when feed-forward was on, ``(n, axes)``.
         span_acc_frames: Span of the acceleration differences (frames).
         span_jerk_frames: Span of the jerk differences (frames).
 
     Returns:
         The ratios to the limits (:attr:`TraceCheck.ok` when none exceeds 1).
     """
-    s = np.asarray(target_um, dtype=np.float64).reshape(-1, 3) * 1e-6
+    k = limits.n
+    s = np.asarray(target_um, dtype=np.float64).reshape(-1, k) * 1e-6
     v_max, a_max, j_max = limits.as_arrays()
     T = period_s
     q = 1e-6  # one micrometre of rounding per frame
     vel = _ratio(np.diff(s, axis=0), q, v_max * T)
     m = span_acc_frames
-    d2 = s[2 * m :] - 2.0 * s[m:-m] + s[: -2 * m] if len(s) > 2 * m else np.zeros((0, 3))
+    d2 = s[2 * m :] - 2.0 * s[m:-m] + s[: -2 * m] if len(s) > 2 * m else np.zeros((0, k))
     acc = _ratio(d2, 2.0 * q, a_max * (m * T) ** 2)
     m = span_jerk_frames
     if len(s) > 3 * m:
         d3 = s[3 * m :] - 3.0 * s[2 * m : -m] + 3.0 * s[m : -2 * m] - s[: -3 * m]
     else:
-        d3 = np.zeros((0, 3))
+        d3 = np.zeros((0, k))
     jerk = _ratio(d3, 4.0 * q, j_max * (m * T) ** 3)
     if velocity_um_s is not None:
-        v = np.asarray(velocity_um_s, dtype=np.float64).reshape(-1, 3) * 1e-6
+        v = np.asarray(velocity_um_s, dtype=np.float64).reshape(-1, k) * 1e-6
         vel = np.maximum(vel, _ratio(v, 0.5 * q, v_max))
         acc = np.maximum(acc, _ratio(np.diff(v, axis=0), q, a_max * T))
         m = max(1, span_acc_frames // 2)
-        dv2 = v[2 * m :] - 2.0 * v[m:-m] + v[: -2 * m] if len(v) > 2 * m else np.zeros((0, 3))
+        dv2 = v[2 * m :] - 2.0 * v[m:-m] + v[: -2 * m] if len(v) > 2 * m else np.zeros((0, k))
         jerk = np.maximum(jerk, _ratio(dv2, 2.0 * q, j_max * (m * T) ** 2))
     return TraceCheck(_triple(vel), _triple(acc), _triple(jerk), int(s.shape[0]))
 

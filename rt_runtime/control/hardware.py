@@ -8,9 +8,10 @@ between metres and the drives' integer micrometres. One cycle is :meth:`~DriveIn
 ``read_timeout_s``, then the master's heartbeat when due). Both are loop safe: preallocated
 buffers, no exceptions for bus conditions (statuses instead).
 
-Units: strokes m, stroke rates m/s, times s. A drive whose TPDO1 for this SYNC did not arrive is
-*stale*: its ``stroke_m`` and ``velocity_m_s`` are NaN this cycle, ``last_velocity_m_s`` keeps its
-last report.
+Units: strokes m, stroke rates m/s, times s; a swing axis (index 3, :mod:`rt_runtime.axes`)
+in rad and rad/s under the same names, microradians on the bus. A drive whose TPDO1 for this
+SYNC did not arrive is *stale*: its ``stroke_m`` and ``velocity_m_s`` are NaN this cycle,
+``last_velocity_m_s`` keeps its last report.
 
 Plausibility: a reported stroke further from the axis's last good report than the axis can
 move in the time between them (:data:`JUMP_RATE_FACTOR` times the rig's largest stroke rate,
@@ -116,6 +117,14 @@ class DriveInterface:
             fresh report (0: none). It closes a second loop over the bus around the drive's
             own, as a PC controller does (Gao 4.1), and takes out the part of the following
             error that the drive's loop leaves (a valve's dead band, a screw's friction).
+        lead_s: Per axis, a lead (s) added to the velocity offset as ``lead * acceleration``:
+            the velocity demand of a first-order lag ``1 / (lead s + 1)`` between the offset
+            and the axis's motion (a valve's spool, a motor's hydraulic spring) made good ahead
+            of time. None: none (the offset is the rate).
+        lead2_s2: Per axis, the second-order term (s^2) of the same inverse, added as
+            ``lead2 * jerk`` (the jerk as the change of the acceleration given over one
+            period): for an axis behind a spring-mass mode ``1 / (s^2 / w^2 + 2 zeta s / w +
+            1)``, ``1 / w^2`` (plus the product with a first-order lag). Needs ``lead_s``.
     """
 
     def __init__(
@@ -125,6 +134,8 @@ class DriveInterface:
         read_timeout_s: float,
         feedforward: bool = True,
         correction_gain_1_s: float = 0.0,
+        lead_s: NDArray[np.float64] | None = None,
+        lead2_s2: NDArray[np.float64] | None = None,
     ) -> None:
         self.master = master
         # The cycle's calls go straight to the master's cyclic part (CyclicExchange): one call
@@ -143,8 +154,36 @@ class DriveInterface:
         self.axes: tuple[str, ...] = tuple(master.config.axes)
         self.feedback = DriveFeedback(self.n)
         self._zero_um = [0] * self.n
-        rate = JUMP_RATE_FACTOR * master.rig.actuators.velocity_max_m_s
-        self._jump_per_sync_m = rate * master.config.period_s
+        self.lead_s: NDArray[np.float64] | None = None
+        if lead_s is not None:
+            lead = np.asarray(lead_s, dtype=np.float64)
+            if lead.shape != (self.n,) or not bool(np.all(np.isfinite(lead) & (lead >= 0.0))):
+                raise ValueError(
+                    f"velocity lead {lead_s!r}: allowed one finite value >= 0 s per axis "
+                    f"({self.n})"
+                )
+            self.lead_s = lead
+        self.lead2_s2: NDArray[np.float64] | None = None
+        if lead2_s2 is not None:
+            lead2 = np.asarray(lead2_s2, dtype=np.float64)
+            if (
+                self.lead_s is None
+                or lead2.shape != (self.n,)
+                or not bool(np.all(np.isfinite(lead2) & (lead2 >= 0.0)))
+            ):
+                raise ValueError(
+                    f"second-order velocity lead {lead2_s2!r}: allowed with lead_s, one finite "
+                    f"value >= 0 s^2 per axis ({self.n})"
+                )
+            self.lead2_s2 = lead2
+        self._offset = np.zeros(self.n)
+        self._jerk = np.zeros(self.n)
+        self._accel_prev: NDArray[np.float64] | None = None
+        self._inv_period = 1.0 / master.config.period_s
+        from rt_runtime import axes
+
+        rate = JUMP_RATE_FACTOR * axes.actuator_velocity_max(master.rig)
+        self._jump_per_sync_m: list[float] = (rate * master.config.period_s).tolist()
         self._good_m = [math.nan] * self.n
         self._good_sync = [0] * self.n
 
@@ -168,10 +207,31 @@ class DriveInterface:
             s.name if (s := fb.drive_state(a)) is not None else "undecodable" for a in range(self.n)
         ]
 
-    def write(self, stroke_m: FloatArray, velocity_m_s: FloatArray) -> WriteStatus:
-        """RPDO1 (target stroke, velocity offset when feed-forward is on) to every drive, then
-        SYNC; rounds to micrometres. Loop safe."""
+    def write(
+        self,
+        stroke_m: FloatArray,
+        velocity_m_s: FloatArray,
+        acceleration_m_s2: FloatArray | None = None,
+    ) -> WriteStatus:
+        """RPDO1 (target stroke, velocity offset when feed-forward is on: the rate, plus
+        ``lead_s * acceleration`` when a lead is set and the acceleration given) to every drive,
+        then SYNC; rounds to micrometres. Loop safe."""
         clock = self.clock
+        lead = self.lead_s
+        if lead is not None and acceleration_m_s2 is not None:
+            np.multiply(lead, acceleration_m_s2, out=self._offset)
+            self._offset += velocity_m_s
+            lead2 = self.lead2_s2
+            if lead2 is not None:
+                prev = self._accel_prev
+                if prev is None:
+                    self._accel_prev = prev = np.array(acceleration_m_s2, dtype=np.float64)
+                np.subtract(acceleration_m_s2, prev, out=self._jerk)
+                self._jerk *= self._inv_period
+                self._jerk *= lead2
+                self._offset += self._jerk
+                prev[:] = acceleration_m_s2
+            velocity_m_s = self._offset
         # round() is round-half-to-even, as np.rint; plain ints skip numpy's per-call cost.
         try:
             target = [round(x * 1e6) for x in stroke_m.tolist()]
@@ -243,7 +303,10 @@ class DriveInterface:
             if gone:
                 continue
             last = good[axis]
-            if last == last and abs(x - last) > step * (sync - good_sync[axis]) + JUMP_MARGIN_M:
+            if (
+                last == last
+                and abs(x - last) > step[axis] * (sync - good_sync[axis]) + JUMP_MARGIN_M
+            ):
                 stale[axis] = True
                 refused = True
                 self.master.feedback.counts.implausible += 1

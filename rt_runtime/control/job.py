@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from rt_runtime import actuation
+from rt_runtime import axes as rig_axes
 from rt_runtime.canbus import CycleStatus, DriveState, Emcy, WriteStatus
 from rt_runtime.control.controllers import Command, ControllerStatus, GuardFilter, Mode
 from rt_runtime.control.guard import GuardState
@@ -153,6 +153,7 @@ class JobLimits:
     rest_velocity_m_s: float
     settle_s: float
     max_digs: int | None
+    swing_following_error_rad: float = math.inf
 
 
 @dataclass(frozen=True, slots=True)
@@ -236,8 +237,8 @@ class _Collector:
 
     __slots__ = ("active", "buf", "dig", "first", "last", "n")
 
-    def __init__(self, capacity: int) -> None:
-        self.buf = np.zeros((capacity, 3))
+    def __init__(self, capacity: int, n: int = 3) -> None:
+        self.buf = np.zeros((capacity, n))
         self.active = False
         self.n = 0
         self.first = -1
@@ -348,7 +349,16 @@ class _Monitors:
     docstring): the causes to stop for, in the order found. Per-axis counts in plain Python
     (three axes: cheaper than numpy's per-call cost)."""
 
-    __slots__ = ("axes", "causes", "describe", "fe_count", "limits", "prev_status", "stale_count")
+    __slots__ = (
+        "axes",
+        "causes",
+        "describe",
+        "fe_count",
+        "limits",
+        "prev_status",
+        "stale_count",
+        "windows",
+    )
 
     def __init__(
         self, limits: JobLimits, axes: tuple[str, ...], describe: Callable[[CycleStatus], str]
@@ -358,6 +368,10 @@ class _Monitors:
         self.describe = describe
         self.fe_count = [0] * len(axes)
         self.stale_count = [0] * len(axes)
+        # The swing (axis 3, rad) has its own window; the cylinders share one (m).
+        self.windows = [limits.following_error_m] * 3 + [limits.swing_following_error_rad] * (
+            len(axes) - 3
+        )
         self.prev_status = CycleStatus.OK
         self.causes: list[tuple[ExecStatus, str]] = []
 
@@ -398,21 +412,22 @@ class _Monitors:
         pos = fb.stroke_m.tolist()
         ref = s_ref.tolist()
         enabled = (fb.state == DriveState.OPERATION_ENABLED).tolist()
-        window = limits.following_error_m
+        windows = self.windows
         fe = self.fe_count
         worst = 0
         for i, gone in enumerate(stale):
-            over = abs(pos[i] - ref[i]) > window and not gone and enabled[i]
+            over = abs(pos[i] - ref[i]) > windows[i] and not gone and enabled[i]
             fe[i] = fe[i] + 1 if over else 0
             if fe[i] > fe[worst]:
                 worst = i
         if fe[worst] >= limits.following_error_cycles and not stopping:
             err = abs(pos[worst] - ref[worst])
+            scale, unit = (math.degrees(1.0), "deg") if worst == 3 else (1e3, "mm")
             causes.append(
                 (
                     ExecStatus.FAULT,
-                    f"following error on the {self.axes[worst]} axis: {err * 1e3:.2f} mm > "
-                    f"{window * 1e3:.2f} mm for {fe[worst]} cycles",
+                    f"following error on the {self.axes[worst]} axis: {err * scale:.2f} {unit} "
+                    f"> {windows[worst] * scale:.2f} {unit} for {fe[worst]} cycles",
                 )
             )
         return causes
@@ -451,9 +466,10 @@ class JobController:
         self.monitors = _Monitors(limits, axes, describe)
         self._on_record = on_record
         self.planning = _Planning(link)
-        self.collector = _Collector(dig_capacity)
+        n = len(axes)
+        self.collector = _Collector(dig_capacity, n)
         self.stream: _Stream | None = None
-        self.command = Command()
+        self.command = Command(n)
         self.state = JobState.RUNNING
         self.status: ExecStatus | None = None
         self.fault = ""
@@ -462,7 +478,7 @@ class JobController:
         self._stop_request = StopRequest.NONE
         self._paused = False
         self._progress = JobProgress()
-        self._s_ref = np.zeros(3)  # the demand at the SYNC the next feedback answers
+        self._s_ref = np.zeros(n)  # the demand at the SYNC the next feedback answers
         self._t0_s = -1.0  # when the settle or the stop began (-1: at the next update)
         self._updates = 0
 
@@ -524,7 +540,7 @@ class JobController:
         request, answered in-process here when the link answers in-process; the first
         command. Outside the loop (any thread, before the switch to this controller)."""
         s0 = np.asarray(s0_m, dtype=np.float64).copy()
-        q0 = actuation.stroke_to_joint(self.rig, s0, check_limits=False)
+        q0 = rig_axes.actuator_to_joint(self.rig, s0, check_limits=False)
         self.stream = _Stream(q0, s0)
         self._s_ref[:] = s0
         self.planning.plan_out = True

@@ -46,31 +46,37 @@ from rt_runtime.control.hardware import DriveFeedback, DriveInterface
 from rt_runtime.control.loop import CycleInfo, FixedRateLoop, LoopAction, LoopStats
 from rt_runtime.control.telemetry import LOOP_COLUMNS, Column, Telemetry
 
-__all__ = ["EXECUTOR_COLUMNS", "ControllerManager", "executor_telemetry"]
+__all__ = ["EXECUTOR_COLUMNS", "ControllerManager", "executor_columns", "executor_telemetry"]
 
 log = logging.getLogger(__name__)
 
-#: The manager's telemetry columns (after the loop's): build the loop's Telemetry with them
-#: (:func:`executor_telemetry`).
-EXECUTOR_COLUMNS: tuple[Column, ...] = (
-    Column("sync", np.int64, (), -1),  # SYNC count of this cycle's SYNC
-    Column("phase", np.int8, (), -1),  # Phase
-    Column("segment", np.int32, (), -1),  # motion number (-1 while holding or stopping)
-    Column("dig", np.int16, (), -1),  # dig index during a dig
-    Column("tracking", np.bool_, (), False),  # streaming a plan's motion
-    Column("q_ref_rad", np.float64, (3,)),  # joint reference at this SYNC
-    Column("stroke_ref_m", np.float64, (3,)),  # demand at this SYNC (last cycle's command)
-    Column("stroke_cmd_m", np.float64, (3,)),  # RPDO1 target with this SYNC (for one period on)
-    Column("vel_cmd_m_s", np.float64, (3,)),  # RPDO1 velocity offset
-    Column("guard", np.int8, (), -1),  # GuardState
-    Column("stroke_fb_m", np.float64, (3,)),  # TPDO1 answering this SYNC (NaN: stale)
-    Column("vel_fb_m_s", np.float64, (3,)),
-    Column("drive_state", np.int8, (3,), -1),
-    Column("cycle_status", np.int8, (), -1),
-    Column("rtt_s", np.float64),  # SYNC sent -> every TPDO1 in (clock), NaN if one was missing
-    Column("wait_s", np.float64),  # time the read waited for the answers (transport + drives)
-    Column("send_s", np.float64),  # time the write spent sending its frames (transport)
-)
+def executor_columns(n: int = 3) -> tuple[Column, ...]:
+    """The manager's telemetry columns for ``n`` axes (axis order, :mod:`rt_runtime.axes`; the
+    ``_m`` columns hold the swing's rad): build the loop's Telemetry with them
+    (:func:`executor_telemetry`)."""
+    return (
+        Column("sync", np.int64, (), -1),  # SYNC count of this cycle's SYNC
+        Column("phase", np.int8, (), -1),  # Phase
+        Column("segment", np.int32, (), -1),  # motion number (-1 while holding or stopping)
+        Column("dig", np.int16, (), -1),  # dig index during a dig
+        Column("tracking", np.bool_, (), False),  # streaming a plan's motion
+        Column("q_ref_rad", np.float64, (n,)),  # joint reference at this SYNC
+        Column("stroke_ref_m", np.float64, (n,)),  # demand at this SYNC (last cycle's command)
+        Column("stroke_cmd_m", np.float64, (n,)),  # RPDO1 target with this SYNC (one period on)
+        Column("vel_cmd_m_s", np.float64, (n,)),  # RPDO1 velocity offset
+        Column("guard", np.int8, (), -1),  # GuardState
+        Column("stroke_fb_m", np.float64, (n,)),  # TPDO1 answering this SYNC (NaN: stale)
+        Column("vel_fb_m_s", np.float64, (n,)),
+        Column("drive_state", np.int8, (n,), -1),
+        Column("cycle_status", np.int8, (), -1),
+        Column("rtt_s", np.float64),  # SYNC sent -> every TPDO1 in (clock), NaN if one missing
+        Column("wait_s", np.float64),  # time the read waited for the answers
+        Column("send_s", np.float64),  # time the write spent sending its frames (transport)
+    )
+
+
+#: The manager's telemetry columns of a three-axis rig (:func:`executor_columns`).
+EXECUTOR_COLUMNS: tuple[Column, ...] = executor_columns(3)
 
 
 #: Columns written with the command (the write), in the order the cycle unpacks them.
@@ -82,13 +88,14 @@ _COMMAND_COLUMNS = (
 _ANSWER_COLUMNS = ("stroke_fb_m", "vel_fb_m_s", "drive_state", "cycle_status", "rtt_s", "wait_s")
 
 
-def executor_telemetry(capacity: int) -> Telemetry:
-    """A telemetry ring buffer with the manager's columns (give it to the loop).
+def executor_telemetry(capacity: int, n: int = 3) -> Telemetry:
+    """A telemetry ring buffer with the manager's columns for ``n`` axes (give it to the loop;
+    a manager on another number of axes replaces it by its own, same capacity).
 
     Raises:
         ConfigurationError: ``capacity`` below 1.
     """
-    return Telemetry(capacity, EXECUTOR_COLUMNS)
+    return Telemetry(capacity, executor_columns(n))
 
 
 OnEnded = Callable[[Any], "tuple[Any, Command] | None"]
@@ -125,12 +132,14 @@ class ControllerManager:
         self.period_s = loop.config.period_s
         self.realtime = bool(loop.clock.realtime)
         self.controller: Any = None
-        self._cmd = Command()
+        self.n = n = drives.n
+        self._columns = executor_columns(n)
+        self._cmd = Command(n)
         self._pending: tuple[Any, Command] | None = None
         self._stop = False
         self._lock = threading.Lock()
-        self._s_ref = np.zeros(3)
-        self._q_ref = np.zeros(3)
+        self._s_ref = np.zeros(n)
+        self._q_ref = np.zeros(n)
         self._sent_slot = -1  # the telemetry row of the last SYNC sent (-1: none yet)
         self._install_telemetry()
         self._sent_cols: tuple[Any, ...] = ()
@@ -139,12 +148,13 @@ class ControllerManager:
 
     def _install_telemetry(self) -> None:
         tel = self.loop.telemetry
-        names = {c.name for c in tel.columns}
-        if all(c.name in names for c in EXECUTOR_COLUMNS):
+        have = {c.name: c for c in tel.columns}
+        if all(c.name in have and have[c.name].shape == c.shape for c in self._columns):
             return
+        ours = {c.name for c in self._columns}
         loop_names = {c.name for c in LOOP_COLUMNS}
-        extra = [c for c in tel.columns if c.name not in loop_names]
-        extra += [c for c in EXECUTOR_COLUMNS if c.name not in names]
+        extra = [c for c in tel.columns if c.name not in loop_names and c.name not in ours]
+        extra += list(self._columns)
         self.loop.telemetry = Telemetry(tel.capacity, extra)
 
     # -- any thread -----------------------------------------------------------------------------
@@ -268,7 +278,7 @@ class ControllerManager:
         if cmd.disable:
             drives.disable()
         gstate = guard.apply(cmd)
-        drives.write(guard.position_m, guard.velocity_m_s)
+        drives.write(guard.position_m, guard.velocity_m_s, guard.guard.acceleration_m_s2)
         tel = self._tel
         slot = tel.slot
         c_sync[slot] = drives.sync_count

@@ -63,7 +63,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from rt_runtime import actuation, kinematics
+from rt_runtime import actuation, axes, kinematics
 from rt_runtime.control.setpoints import (
     CONNECT_TOLERANCE_M,
     KIND_PHASE,
@@ -205,8 +205,9 @@ class PlannerGone:
 @runtime_checkable
 class JointMotion(Protocol):
     """A joint motion the executor can stream: ``sample(t_s) -> (q, qd, qdd)`` for
-    ``0 <= t_s <= duration_s`` (rad, rad/s, rad/s^2, each ``(3,)``). Called once per cycle in
-    the loop: it must be cheap."""
+    ``0 <= t_s <= duration_s`` (rad, rad/s, rad/s^2, each ``(n,)`` over the rig's axes in axis
+    order: boom, stick, bucket, then swing on a rig with swing, :mod:`rt_runtime.axes`).
+    Called once per cycle in the loop: it must be cheap."""
 
     @property
     def duration_s(self) -> float:
@@ -289,10 +290,15 @@ class PathJob:
     Attributes:
         motions: The motions, at least one.
         name: A label for reports.
+        jerk_by_guard: The path bounds velocity and acceleration only (a minimum-time cubic
+            spline through waypoints, Zhao eq 3, whose jerk is piecewise constant and
+            unbounded by its planner): :meth:`check` leaves the jerk to the limit guard,
+            which streams such a path within the jerk limits and trails it where it must.
     """
 
     motions: tuple[JointMotion, ...]
     name: str = "path"
+    jerk_by_guard: bool = False
 
     def __post_init__(self) -> None:
         if len(self.motions) == 0:
@@ -308,9 +314,10 @@ class PathJob:
         """Refuse a path the rig cannot follow, before anything is sent.
 
         Samples every motion every ``step_s`` (and at its end) and checks the joint ranges,
-        the joint velocity, acceleration and jerk limits (jerk as the difference of consecutive
-        accelerations over the step, within 0.1 % headroom for that estimate) and rest at both
-        ends.
+        the joint velocity, acceleration and jerk limits (velocity and acceleration to 1e-9
+        relative, the rounding of a trajectory planned onto its limits; jerk as the difference
+        of consecutive accelerations over the step, within 0.1 % headroom for that estimate)
+        and rest at both ends.
 
         Args:
             rig: The rig.
@@ -324,27 +331,40 @@ class PathJob:
         """
         if not (math.isfinite(step_s) and step_s > 0.0):
             raise ConfigurationError(f"path check step_s = {step_s}; allowed: a finite value > 0")
-        names = [j.name for j in rig.joints][:3]
+        names = axes.names(rig)
+        n_axes = len(names)
+        _, _, qd_max, qdd_max, qddd_max = axes.joint_limits(rig)
         limits = (
-            ("velocity", np.asarray(rig.qd_max_rad_s, dtype=np.float64), "deg/s"),
-            ("acceleration", np.asarray(rig.qdd_max_rad_s2, dtype=np.float64), "deg/s^2"),
-            ("jerk", np.asarray(rig.qddd_max_rad_s3, dtype=np.float64), "deg/s^3"),
+            ("velocity", qd_max, "deg/s"),
+            ("acceleration", qdd_max, "deg/s^2"),
+            ("jerk", qddd_max, "deg/s^3"),
         )
+        checked = limits[:2] if self.jerk_by_guard else limits
         for i, motion in enumerate(self.motions):
             duration = float(motion.duration_s)
             n = max(math.ceil(duration / step_s), 1)
             ts = np.linspace(0.0, duration, n + 1)
             rows = [motion.sample(float(t)) for t in ts]
-            q = np.array([r[0] for r in rows], dtype=np.float64).reshape(-1, 3)
-            qd = np.array([r[1] for r in rows], dtype=np.float64).reshape(-1, 3)
-            qdd = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 3)
+            q = np.array([r[0] for r in rows], dtype=np.float64)
+            qd = np.array([r[1] for r in rows], dtype=np.float64)
+            qdd = np.array([r[2] for r in rows], dtype=np.float64)
+            if (
+                q.ndim != 2
+                or q.shape[1] != n_axes
+                or qd.shape != q.shape
+                or qdd.shape != q.shape
+            ):
+                raise PlanningError(
+                    f"path motion {i} samples joint states of shape {q.shape[1:]}; the rig "
+                    f"{rig.name} has {n_axes} axes ({', '.join(names)})"
+                )
             if not (np.isfinite(q).all() and np.isfinite(qd).all() and np.isfinite(qdd).all()):
                 raise PlanningError(f"path motion {i} samples a non-finite joint state")
             # Raises JointLimitError naming the joint, the value and the range.
-            actuation.joint_to_stroke(rig, q, check_limits=True)
+            axes.joint_to_actuator(rig, q, check_limits=True)
             jerk = np.diff(qdd, axis=0) / np.diff(ts)[:, None]
             for (what, limit, unit), values, slack in zip(
-                limits, (qd, qdd, jerk), (1.0, 1.0, 1.001), strict=True
+                checked, (qd, qdd, jerk), (1.0 + 1e-9, 1.0 + 1e-9, 1.001), strict=False
             ):
                 peak = np.max(np.abs(values), axis=0)
                 over = np.flatnonzero(peak > limit * slack)

@@ -12,6 +12,9 @@ A motion streams in one phase, or where it passes through several (a blended dig
 out, dump, approach, enter without stopping between them) in one phase a run of samples
 (:attr:`SampledMotion.phase_runs`).
 
+On a rig with swing every array is in axis order over four axes (boom, stick, bucket, swing;
+:mod:`rt_runtime.axes`): the swing's "stroke" is its angle (rad), its Jacobian 1.
+
 Every queued motion starts where the one before it ends: the planner side inserts a
 :data:`Phase.CONNECT` move (a rest-to-rest ruckig move within the rig's joint limits) where two
 motions, or the measured pose and the first motion, are further apart than
@@ -29,7 +32,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from rt_runtime import actuation
+from rt_runtime import axes
+from rt_runtime.errors import PlanningError
 from rt_runtime.planning.trench import Cycle, TransitionKind, joint_move
 from rt_runtime.rig import Rig
 
@@ -90,9 +94,11 @@ class SampledMotion:
 
     Attributes:
         phase: The phase it streams in.
-        q_start_rad: Its start pose (rad), ``(3,)``, and ``stroke_start_m`` its strokes (m).
-        q_rad: Joint reference of sample ``j`` (at ``(j + 1) T``), ``(n, 3)``.
-        stroke_m, rate_m_s, accel_m_s2: Stroke, rate and acceleration of sample ``j``, ``(n, 3)``.
+        q_start_rad: Its start pose (rad), ``(a,)`` over the rig's ``a`` axes, and
+            ``stroke_start_m`` its actuator positions (m; the swing's rad).
+        q_rad: Joint reference of sample ``j`` (at ``(j + 1) T``), ``(n, a)``.
+        stroke_m, rate_m_s, accel_m_s2: Actuator position, rate and acceleration of sample
+            ``j``, ``(n, a)``.
         dig_index: The dig's index (phase DIG), else -1.
         duration_s: The motion's length (s).
         phase_runs: Where the motion passes through several phases: ``(j, phase)`` pairs in
@@ -152,9 +158,10 @@ def sample_motion(
     """
     duration = float(duration_s)
     n = _n_samples(duration, period_s)
-    q = np.empty((n, 3))
-    qd = np.empty((n, 3))
-    qdd = np.empty((n, 3))
+    k = axes.count(rig)
+    q = np.empty((n, k))
+    qd = np.empty((n, k))
+    qdd = np.empty((n, k))
     for j in range(n):
         t = min(max((j + 1) * period_s, 0.0), duration)
         if q_end_rad is not None and t >= duration:
@@ -181,13 +188,14 @@ def _tables(
     duration: float,
     phase_runs: tuple[tuple[int, Phase], ...] = (),
 ) -> SampledMotion:
-    """The joint samples ``(n, 3)`` mapped to stroke, rate and acceleration (module docstring)."""
-    s0 = actuation.joint_to_stroke(rig, q0, check_limits=False)
+    """The joint samples ``(n, a)`` mapped to actuator position, rate and acceleration (module
+    docstring)."""
+    s0 = axes.joint_to_actuator(rig, q0, check_limits=False)
     q3 = np.repeat(q[:, None, :], 3, axis=1)
     q3[:, 0] -= H_RAD
     q3[:, 2] += H_RAD
-    s3 = actuation.joint_to_stroke(rig, q3, check_limits=False)
-    jac = actuation.stroke_jacobian(rig, q, check_limits=False)
+    s3 = axes.joint_to_actuator(rig, q3, check_limits=False)
+    jac = axes.actuator_jacobian(rig, q, check_limits=False)
     dj = (s3[:, 2] - 2.0 * s3[:, 1] + s3[:, 0]) * (1.0 / (H_RAD * H_RAD))
     stroke = np.ascontiguousarray(s3[:, 1])
     rate = jac * qd
@@ -249,13 +257,43 @@ def connect_motion(
         PlanningError: ruckig cannot plan it.
     """
     q_to = np.asarray(q_to_rad, dtype=np.float64)
-    traj, duration = joint_move(rig, q_from_rad, q_to)
+    if rig.swing is None:
+        traj, duration = joint_move(rig, q_from_rad, q_to)
+    else:
+        traj, duration = _axis_move(rig, q_from_rad, q_to)
     motion = sample_motion(rig, period_s, phase, duration, traj.at_time, q_end_rad=q_to)
     return motion
 
 
+def _axis_move(rig: Rig, q_from_rad: Any, q_to_rad: FloatArray) -> tuple[Any, float]:
+    """Rest-to-rest ruckig move over every axis (axis order) within the joint limits (no
+    intermediate waypoints): ``(ruckig.Trajectory, duration_s)``.
+
+    Raises:
+        PlanningError: ruckig cannot plan it.
+    """
+    from ruckig import InputParameter, Result, Ruckig, Trajectory
+
+    n = axes.count(rig)
+    _, _, v, a, j = axes.joint_limits(rig)
+    inp = InputParameter(n)
+    inp.max_velocity = v.tolist()
+    inp.max_acceleration = a.tolist()
+    inp.max_jerk = j.tolist()
+    inp.current_position = np.asarray(q_from_rad, dtype=np.float64).tolist()
+    inp.target_position = q_to_rad.tolist()
+    traj = Trajectory(n)
+    result = Ruckig(n).calculate(inp, traj)
+    if result not in (Result.Working, Result.Finished):
+        raise PlanningError(
+            f"no rest-to-rest move from ({axes.degrees_text(rig, inp.current_position)}) deg to "
+            f"({axes.degrees_text(rig, q_to_rad)}) deg: ruckig {result}"
+        )
+    return traj, float(traj.duration)
+
+
 def stroke_gap_m(rig: Rig, q_a_rad: Any, q_b_rad: Any) -> float:
-    """Largest stroke difference between two poses (m)."""
-    s_a = actuation.joint_to_stroke(rig, np.asarray(q_a_rad, dtype=np.float64), check_limits=False)
-    s_b = actuation.joint_to_stroke(rig, np.asarray(q_b_rad, dtype=np.float64), check_limits=False)
+    """Largest actuator difference between two poses (m; the swing's rad)."""
+    s_a = axes.joint_to_actuator(rig, np.asarray(q_a_rad, dtype=np.float64), check_limits=False)
+    s_b = axes.joint_to_actuator(rig, np.asarray(q_b_rad, dtype=np.float64), check_limits=False)
     return float(np.max(np.abs(s_a - s_b)))

@@ -4,6 +4,7 @@
 
     excavator-rt job submit --task A [--planner pinn|pso] [--max-digs N]
     excavator-rt job submit --task my_trench.toml      # read here, sent as numbers
+    excavator-rt job submit --teach runs/taught        # a taught trench (rig with swing)
     excavator-rt job status [ID]
     excavator-rt job list
     excavator-rt job pause [ID] | resume ID | cancel ID
@@ -65,8 +66,15 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
     common.add_argument("--json", action="store_true", help="print the daemon's reply as JSON")
     sub = p.add_subparsers(dest="job_command", required=True, metavar="COMMAND")
-    s = sub.add_parser("submit", parents=[common], help="queue a trench job")
-    s.add_argument("--task", required=True, help="A, B, C, D (Yao Table 3) or a task TOML file")
+    s = sub.add_parser("submit", parents=[common], help="queue a trench job or a taught job")
+    what = s.add_mutually_exclusive_group(required=True)
+    what.add_argument("--task", help="A, B, C, D (Yao Table 3) or a task TOML file")
+    what.add_argument(
+        "--teach",
+        metavar="DIR",
+        help="a taught trench (teach --out DIR) on a rig with swing; the daemon reads and "
+        "verifies DIR/taught.json on this machine and keeps a copy",
+    )
     s.add_argument("--planner", choices=PLANNERS, help="one-shot planner (daemon default)")
     s.add_argument("--max-digs", type=int, help="the job is done after this many digs")
     st = sub.add_parser("status", parents=[common], help="the daemon and a job (default: current)")
@@ -196,7 +204,11 @@ def run(args: argparse.Namespace) -> int:
     if command == "reset-fault":
         return _reset_fault(args)
     req: dict[str, Any] = {"cmd": command}
-    if command == "submit":
+    if command == "submit" and args.teach is not None:
+        # A taught trench (~200 kB for 7 cycles) is larger than a request line may be: the
+        # daemon, on this machine behind an owner-only socket, reads it from its absolute path.
+        req["teach"] = str(Path(args.teach).resolve())
+    elif command == "submit":
         req["task"] = _task_spec(args.task)
         if args.planner:
             req["planner"] = args.planner

@@ -515,8 +515,11 @@ def check_directory(path: Path, key: str, *, create: bool, mode: int = 0o700) ->
     return False
 
 
-def load_planning(config: DaemonConfig, planner: str | None = None) -> tuple[Rig, TrenchPlanner]:
-    """Load the rig and the trench planner with its PINN models, checked against the rig.
+def load_planning(
+    config: DaemonConfig, planner: str | None = None
+) -> tuple[Rig, TrenchPlanner | None]:
+    """Load the rig and the trench planner with its PINN models, checked against the rig; a
+    rig with swing has no trench planner (None: it takes taught jobs, ``job submit --teach``).
 
     Still before the bus: a wrong profile or a model directory for another rig stops the daemon
     here, with the key named.
@@ -540,7 +543,8 @@ def load_planning(config: DaemonConfig, planner: str | None = None) -> tuple[Rig
     src = str(config.source)
     try:
         rig = load_rig(config.rig_profile)
-        require_planning(rig)
+        if rig.swing is None:
+            require_planning(rig)
     except ConfigurationError as exc:
         raise ConfigKeyError("rig.profile", str(exc), src) from exc
     if config.bus.bitrate is not None and config.bus.bitrate != rig.can.bitrate:
@@ -550,6 +554,8 @@ def load_planning(config: DaemonConfig, planner: str | None = None) -> tuple[Rig
             f"{rig.can.bitrate}; leave it out or make them equal",
             src,
         )
+    if rig.swing is not None:
+        return rig, None
     try:
         trench = TrenchPlanner(rig, planner or config.planner, model_dir=config.models_dir)
     except ConfigurationError as exc:

@@ -511,12 +511,21 @@ class Service:
         return {"job": job.to_json(with_state=False)}
 
     def cmd_submit(self, req: dict[str, Any]) -> dict[str, Any]:
-        """``submit {task, planner?, max_digs?}``: validate the task and queue a job (nothing
-        moves on a refusal)."""
-        unknown = sorted(set(req) - {"cmd", "task", "planner", "max_digs"})
+        """``submit {task, planner?, max_digs?}`` or ``submit {teach}``: validate the task (or
+        the taught job) and queue a job (nothing moves on a refusal)."""
+        unknown = sorted(set(req) - {"cmd", "task", "planner", "max_digs", "teach"})
         if unknown:
             raise ConfigurationError(
-                f"submit: unknown key(s) {', '.join(unknown)}; allowed: task, planner, max_digs"
+                f"submit: unknown key(s) {', '.join(unknown)}; allowed: task, planner, "
+                "max_digs, teach"
+            )
+        if "teach" in req:
+            return self._submit_taught(req)
+        if self.rig.swing is not None:
+            raise ConfigurationError(
+                f"rig {self.rig.name} has a swing axis: it takes taught jobs "
+                '(submit {"teach": DIR}, `job submit --teach DIR`); the trench planner plans '
+                "the arm plane only"
             )
         planner = req.get("planner", self.config.planner)
         if planner not in PLANNERS:
@@ -535,6 +544,51 @@ class Service:
         fault = self.runner.fault()
         if fault:
             out["fault"] = fault  # queued; nothing starts before a reset-fault
+        return out
+
+    def _submit_taught(self, req: dict[str, Any]) -> dict[str, Any]:
+        """A taught job: ``teach`` is the directory ``teach --out`` wrote (or its
+        ``taught.json``), on this machine. It is verified against the rig (the exact limit
+        check) and copied into the state directory, under its SHA-256, so the job does not
+        depend on the original staying; nothing moves on a refusal."""
+        import hashlib
+        import json
+
+        from rt_runtime.control.taught_path import load_taught_path
+        from rt_runtime.service.jobstore import atomic_write_json
+
+        extra = sorted(set(req) - {"cmd", "teach"})
+        if extra:
+            raise ConfigurationError(
+                f"submit with teach takes no {', '.join(extra)}: a taught job runs its trench"
+            )
+        spec = req["teach"]
+        if not isinstance(spec, str) or not spec:
+            raise ConfigurationError('submit "teach" must be the path of a taught job directory')
+        src = Path(spec)
+        if not src.is_absolute():
+            raise ConfigurationError(
+                f"submit teach {spec!r}: the daemon needs an absolute path (the client sends one)"
+            )
+        path_job, taught = load_taught_path(src, self.rig)
+        path_job.check(self.rig)
+        file = src / "taught.json" if src.is_dir() else src
+        data = json.loads(file.read_text(encoding="utf-8"))
+        digest = hashlib.sha256(file.read_bytes()).hexdigest()[:16]
+        keep = self.store.path.parent / f"taught-{digest}.json"
+        atomic_write_json(keep, data)
+        job = self.store.submit({}, self.config.planner, taught=str(keep))
+        log.info(
+            "job %d submitted: taught trench of %d cycles (%.1f s) from %s",
+            job.id,
+            taught.n_cycles,
+            taught.duration_s,
+            file,
+        )
+        out = self._synced(job)
+        fault = self.runner.fault()
+        if fault:
+            out["fault"] = fault
         return out
 
     def _refuse_if_faulted(self, what: str) -> None:

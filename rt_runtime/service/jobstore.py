@@ -3,7 +3,9 @@
 A job is a trench task to dig: its task (the resolved numbers), the one-shot planner, a status
 (:data:`STATUSES`), a summary of every dig done and, until the job is done or cancelled, the
 planner session's state after the last dig (``TrenchSession.state()``), from which a restarted
-daemon resumes at the next undone dig.
+daemon resumes at the next undone dig. A taught job (a rig with swing: ``job submit --teach
+DIR``) has ``taught``, the path of its taught trench (copied into the state directory when it
+was submitted) and the task ``{"name": "taught"}``; it runs whole, from its start, each time.
 
 Store format (``<state_dir>/jobs.json``, UTF-8 JSON)::
 
@@ -50,6 +52,7 @@ __all__ = [
     "FINAL",
     "STATUSES",
     "STORE_FORMAT",
+    "TAUGHT_TASK",
     "Job",
     "JobError",
     "JobStatus",
@@ -105,6 +108,8 @@ FINAL = (JobStatus.DONE, JobStatus.CANCELLED)
 ACTIVE = (JobStatus.RUNNING, JobStatus.QUEUED)
 STORE_NAME = "jobs.json"
 _TASK_KEYS = ("name", "length_m", "depth_m", "beta1_deg", "beta2_deg", "start_x_m")
+#: The task of a taught job (its trench is its file's).
+TAUGHT_TASK: dict[str, Any] = {"name": "taught"}
 #: Keys of a dig summary in a job record (the daemon builds them from the executor's record).
 DIG_KEYS = ("index", "dig_type", "T_s", "plan_us", "planned_volume_m3", "measured_volume_m3")
 
@@ -128,6 +133,7 @@ class Job:
         session_state: ``TrenchSession.state()`` after the last dig done, or None before.
         fault: Why the job failed or was cancelled (empty otherwise).
         max_digs: The job is done after this many digs (None: when the task is dug).
+        taught: A taught job's file (``taught.json`` in the state directory), else None.
     """
 
     id: int
@@ -140,6 +146,7 @@ class Job:
     session_state: dict[str, Any] | None = None
     fault: str = ""
     max_digs: int | None = None
+    taught: str | None = None
 
     def to_json(self, *, with_state: bool = True) -> dict[str, Any]:
         """JSON-able form (the store's; ``with_state=False`` leaves out the session state)."""
@@ -154,6 +161,8 @@ class Job:
             "max_digs": self.max_digs,
             "digs": [dict(d) for d in self.digs],
         }
+        if self.taught is not None:
+            out["taught"] = self.taught
         if with_state:
             out["session_state"] = self.session_state
         return out
@@ -170,7 +179,13 @@ class Job:
         try:
             status = JobStatus.parse(raw["status"])
             task = raw["task"]
-            if not isinstance(task, dict) or set(task) != set(_TASK_KEYS):
+            taught = raw.get("taught")
+            if taught is not None:
+                if not isinstance(taught, str) or task != TAUGHT_TASK:
+                    raise ValueError(
+                        f"a taught job has a file path under taught and the task {TAUGHT_TASK}"
+                    )
+            elif not isinstance(task, dict) or set(task) != set(_TASK_KEYS):
                 raise ValueError(f"task must have keys {', '.join(_TASK_KEYS)}")
             digs = raw["digs"]
             if not isinstance(digs, list) or not all(
@@ -199,6 +214,7 @@ class Job:
                 session_state=state,
                 fault=str(raw.get("fault", "")),
                 max_digs=max_digs,
+                taught=taught,
             )
         except KeyError as exc:
             raise ValueError(f"missing key {exc.args[0]!r}") from exc
@@ -457,12 +473,27 @@ class JobStore:
             job = self.get(job_id)
             return self._put(dataclasses.replace(job, updated_unix_s=time.time(), **changes))
 
-    def submit(self, task: dict[str, Any], planner: str, max_digs: int | None = None) -> Job:
-        """Queue a new job (the task already validated)."""
+    def submit(
+        self,
+        task: dict[str, Any],
+        planner: str,
+        max_digs: int | None = None,
+        *,
+        taught: str | None = None,
+    ) -> Job:
+        """Queue a new job (the task already validated; a taught job: its file, already
+        verified, and the task :data:`TAUGHT_TASK`)."""
         with self._lock:
             now = time.time()
             job = Job(
-                self._next_id, JobStatus.QUEUED, dict(task), planner, now, now, max_digs=max_digs
+                self._next_id,
+                JobStatus.QUEUED,
+                dict(TAUGHT_TASK) if taught is not None else dict(task),
+                planner,
+                now,
+                now,
+                max_digs=max_digs,
+                taught=taught,
             )
             self._next_id += 1
             return self._put(job)

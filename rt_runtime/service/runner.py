@@ -61,7 +61,7 @@ from typing import TYPE_CHECKING, Any
 import can
 import numpy as np
 
-from rt_runtime import actuation
+from rt_runtime import axes
 from rt_runtime.canbus import CanMaster, RxCounts
 from rt_runtime.canbus.cyclic import bus_error_text
 from rt_runtime.control.clock import Clock, MonotonicClock
@@ -72,11 +72,12 @@ from rt_runtime.control.hardware import DriveInterface
 from rt_runtime.control.job import DigRecord, ExecStatus, JobController, StopRequest
 from rt_runtime.control.loop import FixedRateLoop, LoopConfig, OverrunPolicy
 from rt_runtime.control.manager import ControllerManager, executor_telemetry
-from rt_runtime.control.planner_worker import MODELS_CHANGED_EXIT, ProcessPlanner
+from rt_runtime.control.planner_worker import MODELS_CHANGED_EXIT, PathLink, ProcessPlanner
 from rt_runtime.control.rt import RtSettings, apply_rt, restore_rt
 from rt_runtime.control.setpoints import Phase
+from rt_runtime.control.taught_path import load_taught_path
 from rt_runtime.control.telemetry import Telemetry
-from rt_runtime.errors import CommunicationError, ExcavatorRtError
+from rt_runtime.errors import CommunicationError, ConfigurationError, ExcavatorRtError
 from rt_runtime.planning.trench import TrenchPlanner, TrenchSession, make_task
 from rt_runtime.service.config import DaemonConfig
 from rt_runtime.service.jobstore import ACTIVE, DIG_KEYS, Job, JobError, JobStatus, JobStore
@@ -198,7 +199,7 @@ class _PreparedJob:
 
     job: Job
     controller: JobController
-    planner: ProcessPlanner
+    planner: ProcessPlanner | PathLink
     first: Command
     telemetry: Telemetry
     boot: int
@@ -259,9 +260,11 @@ class _Preparation:
         planner: The configured trench planner (more are built by name when a job asks).
     """
 
-    def __init__(self, runner: RigRunner, planner: TrenchPlanner) -> None:
+    def __init__(self, runner: RigRunner, planner: TrenchPlanner | None) -> None:
         self.runner = runner
-        self.planners: dict[str, TrenchPlanner] = {runner.config.planner: planner}
+        self.planners: dict[str, TrenchPlanner] = (
+            {runner.config.planner: planner} if planner is not None else {}
+        )
         #: Feed-forward and stale-cycle limit for the next job (SIGHUP reload).
         self.options = (runner.config.feedforward, runner.config.stale_cycles)
         self.prepared: _PreparedJob | None = None
@@ -294,6 +297,11 @@ class _Preparation:
         return prepared
 
     def _planner(self, name: str) -> TrenchPlanner:
+        if self.runner.rig.swing is not None:
+            raise ConfigurationError(
+                f"rig {self.runner.rig.name} has a swing axis: it runs taught jobs "
+                "(job submit --teach DIR); the trench planner plans the arm plane only"
+            )
         if name not in self.planners:
             r = self.runner
             self.planners[name] = TrenchPlanner(r.rig, name, model_dir=r.config.models_dir)
@@ -323,12 +331,6 @@ class _Preparation:
             r.job_prepared(None)
             return
         try:
-            planner = self._planner(job.planner)
-            task = _task_of(job, rig)
-            if job.session_state is None:
-                session = planner.start(task)
-            else:
-                session = TrenchSession.restore(planner, task, job.session_state)
             options = ExecutorConfig(
                 feedforward=self.options[0],
                 stale_cycles=self.options[1],
@@ -336,7 +338,21 @@ class _Preparation:
             )
             t_max = rig.planning.t_max_s if rig.planning is not None else 10.0
             records = self.records
-            link = ProcessPlanner(session, period_s=period)
+            link: ProcessPlanner | PathLink
+            if job.taught is not None:
+                # A taught trench runs whole from its start (a resume starts it again): the
+                # path job connects the held pose to its first pose.
+                path, _ = load_taught_path(job.taught, rig)
+                path.check(rig)
+                link = PathLink(path, rig, period)
+            else:
+                planner = self._planner(job.planner)
+                task = _task_of(job, rig)
+                if job.session_state is None:
+                    session = planner.start(task)
+                else:
+                    session = TrenchSession.restore(planner, task, job.session_state)
+                link = ProcessPlanner(session, period_s=period)
             controller = JobController(
                 link,
                 parts.guard,
@@ -348,7 +364,7 @@ class _Preparation:
                 int(2.0 * t_max / period) + 16,
             )
             first = controller.start(held_m)
-            telemetry = executor_telemetry(JOB_TELEMETRY_ROWS)
+            telemetry = executor_telemetry(JOB_TELEMETRY_ROWS, axes.count(rig))
         except (ExcavatorRtError, KeyError, TypeError, ValueError) as exc:
             log.error("job %d cannot start: %s", job.id, exc)
             r.store.set_status(job.id, JobStatus.FAILED, f"cannot start: {exc}")
@@ -412,7 +428,7 @@ class RigRunner:
         self,
         config: DaemonConfig,
         rig: Rig,
-        planner: TrenchPlanner,
+        planner: TrenchPlanner | None,
         bus: can.BusABC,
         store: JobStore,
         clock: Clock | None = None,
@@ -552,7 +568,9 @@ class RigRunner:
     def planner_pid(self) -> int | None:
         """The running job's planner process id (None without a running job)."""
         running = self._job
-        return None if running is None else running.planner.pid
+        if running is None or not isinstance(running.planner, ProcessPlanner):
+            return None
+        return running.planner.pid
 
     def progress(self) -> dict[str, Any] | None:
         """See :meth:`Runner.progress`."""
@@ -744,12 +762,13 @@ class RigRunner:
                 rt=RtSettings(None, False, None, None, False),
                 overrun=OverrunPolicy(max_consecutive=cfg.max_consecutive_overruns),
             ),
-            executor_telemetry(1024),
+            executor_telemetry(1024, axes.count(self.rig)),
         )
         drives = DriveInterface(master, self.clock, 0.0, self._prep.options[0])
         drives.react_to_faults(False)
         guard = GuardFilter(LimitGuard(StrokeLimits.from_rig(self.rig), self.period_s))
-        hold = HoldController(np.zeros(3), np.zeros(3), SETTLED_M, drives.describe)
+        n = axes.count(self.rig)
+        hold = HoldController(np.zeros(n), np.zeros(n), SETTLED_M, drives.describe)
         manager = ControllerManager(
             drives, guard, loop, on_cycle=self._on_cycle, on_ended=self._job_ended
         )
@@ -832,7 +851,7 @@ class RigRunner:
         guard, hold = self._parts.guard, self._parts.hold
         s = np.asarray(stroke_m, dtype=np.float64)
         guard.guard.reset(s)
-        q = actuation.stroke_to_joint(self.rig, s, check_limits=False)
+        q = axes.actuator_to_joint(self.rig, s, check_limits=False)
         hold.command.hold(s, q, Phase.WAIT)
 
     def _store_changed(self) -> None:
@@ -893,7 +912,7 @@ class RigRunner:
     def _check_planner(self, running: _PreparedJob) -> None:
         """A running job whose planner process has ended: latch the fault and stop the job
         (the guard's stop). Loop thread, every :data:`PLANNER_CHECK_CYCLES` cycles."""
-        if self._fault or self._stop:
+        if self._fault or self._stop or not isinstance(running.planner, ProcessPlanner):
             return
         code = running.planner.exit_code()
         if code is None:
@@ -1011,7 +1030,11 @@ class RigRunner:
             self.store.set_status(job.id, JobStatus.CANCELLED, "cancelled by request")
             return
         stopping = self._stop  # a stop ends the planner process too (SIGINT to the group)
-        if st in (ExecStatus.STOPPED, ExecStatus.PLANNING_ERROR) and not (self._fault or stopping):
+        if (
+            st in (ExecStatus.STOPPED, ExecStatus.PLANNING_ERROR)
+            and not (self._fault or stopping)
+            and isinstance(running.planner, ProcessPlanner)
+        ):
             code = running.planner.exit_code()
             if code is not None or running.planner.last_words:
                 self._latch(f"job {job.id}: {_planner_end(running.planner, code)}", job.id)

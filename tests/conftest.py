@@ -210,9 +210,12 @@ def run_on_bridge(
 
 
 def rpdo1_limit_check(rig: Rig, frames: Iterable[tuple[int, bytes]]) -> TraceCheck:
-    """The RPDO1 setpoints of every drive in ``frames`` checked against the rig's stroke limits
-    (2 ms SYNC period)."""
-    nodes = [n for _, n in rig.can.node_ids]
+    """The RPDO1 setpoints of every drive in ``frames``, in bus order (the arm's three, then the
+    swing where the rig has one), checked against the rig's stroke limits (2 ms SYNC period)."""
+    from rt_runtime import axes
+
+    ids = dict(rig.can.node_ids)
+    nodes = [ids[name] for name in axes.names(rig)]
     target, velocity = rpdo1_setpoints(frames, nodes)
     return check_setpoint_trace(target, StrokeLimits.from_rig(rig), 0.002, velocity_um_s=velocity)
 

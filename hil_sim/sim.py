@@ -553,9 +553,11 @@ class HilCore:
         vcu = self.vcu
         servo = self._servo_dt_s
         full = servo * (1.0 + 1e-9)
+        # What the arm drives' sensors read (as in advance()).
+        sense = plant.stroke_state if plant.imperfections is None else plant.sensed_stroke_state
         while remaining > 1e-12:
             h = servo if remaining > full else remaining
-            (s0, s1, s2), (v0, v1, v2) = plant.stroke_state()
+            (s0, s1, s2), (v0, v1, v2) = sense()
             w = swing.omega_rad_s
             e0 = n0.effort = fw0.servo_step(h, s0, v0)
             e1 = n1.effort = fw1.servo_step(h, s1, v1)

@@ -363,9 +363,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         _host_gain(args)
     except ConfigurationError as exc:
-        text = json.dumps({"status": "error", "error": str(exc)})
-        print(text if args.json else f"excavator-rt hil: {exc}")
-        return 2
+        return _refused(args, exc)
     path = getattr(args, "path", None)
     joints = tuple(getattr(args, "joints_deg", []) or [])
     if path is not None or joints:
@@ -390,17 +388,22 @@ def run(args: argparse.Namespace) -> int:
     return _print_run(args, lambda: run_scenario(scenario))
 
 
+def _refused(args: argparse.Namespace, exc: Exception) -> int:
+    """Print why a run was refused before anything moved (``--json`` or text); exit status 2."""
+    if args.json:
+        print(json.dumps({"status": "error", "error": str(exc)}))
+    else:
+        print(f"excavator-rt hil: {exc}")
+    return 2
+
+
 def _print_run(args: argparse.Namespace, run: Callable[[], HilRun]) -> int:
     """Run a scenario and print its report (``--json`` or text); the command's exit status:
     0 done, 1 stopped otherwise, 2 refused before anything moved (bad input, planning)."""
     try:
         report = run().report
     except (ExcavatorRtError, ValueError) as exc:
-        if args.json:
-            print(json.dumps({"status": "error", "error": str(exc)}))
-        else:
-            print(f"excavator-rt hil: {exc}")
-        return 2
+        return _refused(args, exc)
     print(json.dumps(report.to_json()) if args.json else format_report(report))
     if report.status == "planning_error":
         return 2
@@ -421,11 +424,7 @@ def _run_mintorque(args: argparse.Namespace) -> int:
             feedforward=not args.no_feedforward,
         )
     except (ExcavatorRtError, ValueError) as exc:
-        if args.json:
-            print(json.dumps({"status": "error", "error": str(exc)}))
-        else:
-            print(f"excavator-rt hil: {exc}")
-        return 2
+        return _refused(args, exc)
     if args.json:
         print(json.dumps(r))
     else:

@@ -349,10 +349,10 @@ class _Preparation:
                 planner = self._planner(job.planner)
                 task = _task_of(job, rig)
                 if job.session_state is None:
-                    session = planner.start(task)
+                    trench = planner.start(task)
                 else:
-                    session = TrenchSession.restore(planner, task, job.session_state)
-                link = ProcessPlanner(session, period_s=period)
+                    trench = TrenchSession.restore(planner, task, job.session_state)
+                link = ProcessPlanner(trench, period_s=period)
             controller = JobController(
                 link,
                 parts.guard,

@@ -58,7 +58,14 @@ Servo cascade (:meth:`servo_step`, sub-step ``dt_s``, 250 us by default):
 * hydraulic (no velocity loop): ``u = v_cmd / K_q`` with the valve's no-load velocity gain
   ``K_q`` (rod speed at full opening, from the rated flow per metering edge at 3.5 MPa and the
   differential cylinder's area balance, see :func:`valve_velocity_gains_m_s`; one value
-  extending, one retracting), saturated to [-1, 1] (the spool's full opening);
+  extending, one retracting), saturated to [-1, 1] (the spool's full opening). With load
+  compensation (``load_compensation_filter_s`` > 0) the gain follows the load: the drive reads
+  the cylinder force ``F = p_A A_A - p_B A_B`` from its chamber-pressure transducers (the
+  ``load_force_n`` argument), low-passes it, and divides by the steady-state flow-gain ratio
+  of the orifice law under that force, ``sqrt(1 - F / (p_s A_A))`` extending and
+  ``sqrt(1 + F / (p_s A_B))`` retracting (:func:`load_gain_ratio`); a boom held up by its
+  weight then extends slower and lowers faster than without load, and the drive opens the
+  valve that much more or less;
 * following error: ``|p_demand - p| > 0x6065`` continuously for longer than 0x6066 -> EMCY
   0x8611, statusword bit 13, fault reaction; 0x6065 = 0xFFFFFFFF switches it off;
 * disabled states put out 0 (motor free or valve centred) and the demand follows the measured
@@ -98,6 +105,7 @@ from firmware_models import CIA402_DRIVE_EDS
 from firmware_models.errors import FirmwareConfigurationError
 
 __all__ = [
+    "LOAD_GAIN_RATIO_MIN",
     "MASTER_NODE_ID",
     "DeviceState",
     "DriveFirmware",
@@ -109,6 +117,7 @@ __all__ = [
     "NmtState",
     "OdEntry",
     "SdoAbort",
+    "load_gain_ratio",
     "load_object_dictionary",
     "valve_velocity_gains_m_s",
 ]
@@ -470,6 +479,8 @@ class DrivesLike(Protocol):
     def sync_timeout_s(self) -> float: ...
     @property
     def quick_stop_deceleration_m_s2(self) -> float: ...
+    @property
+    def load_compensation_filter_s(self) -> float: ...
 
 
 class HydraulicLike(Protocol):
@@ -519,6 +530,11 @@ class DriveParameters:
         sync_timeout_s: Longest gap between SYNCs or RPDO1s while OPERATION ENABLED.
         valve_gain_extend_m_s: Hydraulic: no-load rod velocity at full opening, extending.
         valve_gain_retract_m_s: Hydraulic: the same retracting.
+        load_filter_s: Hydraulic: time constant of the load-force low-pass of the load
+            compensation; 0 for none.
+        stall_force_extend_n: Hydraulic: ``p_s A_A``, the force at which extending stalls.
+        stall_force_retract_n: Hydraulic: ``p_s A_B``, the pulling force at which retracting
+            stalls.
     """
 
     kind: DriveKind
@@ -532,6 +548,9 @@ class DriveParameters:
     sync_timeout_s: float
     valve_gain_extend_m_s: float
     valve_gain_retract_m_s: float
+    load_filter_s: float = 0.0
+    stall_force_extend_n: float = 0.0
+    stall_force_retract_n: float = 0.0
 
     def __post_init__(self) -> None:
         positive = (
@@ -545,7 +564,12 @@ class DriveParameters:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise FirmwareConfigurationError(f"drive parameter {name} = {value!r} must be > 0")
-        non_negative = ("velocity_gain_s_m", "velocity_integral_gain_1_s", "velocity_filter_s")
+        non_negative = (
+            "velocity_gain_s_m",
+            "velocity_integral_gain_1_s",
+            "velocity_filter_s",
+            "load_filter_s",
+        )
         for name in non_negative:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
@@ -561,6 +585,16 @@ class DriveParameters:
             raise FirmwareConfigurationError(
                 "hydraulic drive: valve velocity gains must be > 0, got "
                 f"{self.valve_gain_extend_m_s!r} / {self.valve_gain_retract_m_s!r} m/s"
+            )
+        if self.load_filter_s > 0.0 and not (
+            self.kind is DriveKind.HYDRAULIC
+            and self.stall_force_extend_n > 0.0
+            and self.stall_force_retract_n > 0.0
+        ):
+            raise FirmwareConfigurationError(
+                "load compensation needs a hydraulic drive with stall forces > 0, got "
+                f"{self.kind.value} with {self.stall_force_extend_n!r} / "
+                f"{self.stall_force_retract_n!r} N"
             )
 
     @classmethod
@@ -596,13 +630,17 @@ class DriveParameters:
                 raise FirmwareConfigurationError(
                     f"drive kind {kind!r} is unknown; allowed: {allowed}"
                 ) from None
-        extend_m_s = retract_m_s = 0.0
+        extend_m_s = retract_m_s = stall_extend_n = stall_retract_n = 0.0
+        load_filter_s = float(drives.load_compensation_filter_s)
         if resolved is DriveKind.HYDRAULIC:
             if hydraulic is None:
                 raise FirmwareConfigurationError(
                     "a hydraulic drive needs rig.actuators.hydraulic ([actuators.hydraulic])"
                 )
             extend_m_s, retract_m_s = valve_velocity_gains_m_s(hydraulic)
+            supply = hydraulic.supply_pressure_pa
+            stall_extend_n = supply * hydraulic.piston_area_m2
+            stall_retract_n = supply * (hydraulic.piston_area_m2 - hydraulic.rod_area_m2)
         return cls(
             kind=resolved,
             encoder_resolution_m=float(drives.encoder_resolution_m),
@@ -617,7 +655,32 @@ class DriveParameters:
             sync_timeout_s=float(drives.sync_timeout_s),
             valve_gain_extend_m_s=extend_m_s,
             valve_gain_retract_m_s=retract_m_s,
+            load_filter_s=load_filter_s,
+            stall_force_extend_n=stall_extend_n,
+            stall_force_retract_n=stall_retract_n,
         )
+
+
+#: Smallest flow-gain ratio the load compensation divides by: near stall the orifice law's
+#: gain goes to 0 and the opening it asks for would be unbounded (it saturates anyway).
+LOAD_GAIN_RATIO_MIN = 0.2
+
+
+def load_gain_ratio(
+    force_n: float, extending: bool, stall_extend_n: float, stall_retract_n: float
+) -> float:
+    """Steady-state rod velocity per opening under the cylinder force ``force_n`` (positive
+    pushing out) over the no-load one, by the orifice law on both metering edges:
+    ``sqrt(1 - F / (p_s A_A))`` extending, ``sqrt(1 + F / (p_s A_B))`` retracting, bounded
+    below by :data:`LOAD_GAIN_RATIO_MIN`.
+
+    Extending, ``Q_A = K x sqrt(p_s - p_A) = A_A v`` and ``Q_B = K x sqrt(p_B) = A_B v``; with
+    ``F = p_A A_A - p_B A_B`` that is ``(v / K x)^2 (A_A^3 + A_B^3) = p_s A_A - F``; retracting
+    the edges swap and ``(v / K x)^2 (A_A^3 + A_B^3) = p_s A_B + F``. At ``F = 0`` these are
+    :func:`valve_velocity_gains_m_s`.
+    """
+    ratio = 1.0 - force_n / stall_extend_n if extending else 1.0 + force_n / stall_retract_n
+    return math.sqrt(ratio) if ratio > LOAD_GAIN_RATIO_MIN**2 else LOAD_GAIN_RATIO_MIN
 
 
 def valve_velocity_gains_m_s(hydraulic: HydraulicLike) -> tuple[float, float]:
@@ -757,6 +820,10 @@ class DriveFirmware:
         self._valve_output = p.kind is DriveKind.HYDRAULIC
         self._valve_extend_m_s = p.valve_gain_extend_m_s
         self._valve_retract_m_s = p.valve_gain_retract_m_s
+        self._load_filter_s = p.load_filter_s
+        self._stall_extend_n = p.stall_force_extend_n
+        self._stall_retract_n = p.stall_force_retract_n
+        self._load_n: float | None = None  # the filtered cylinder force; None before a reading
         # Anti-windup bound of the integral (what the output can use), formed once.
         self._integral_bound_m = (
             1.0 / (p.velocity_gain_s_m * p.velocity_integral_gain_1_s)
@@ -1604,7 +1671,15 @@ class DriveFirmware:
         self._seg_t_s = 0.0
         self._seg_T_s = period_s
 
-    def servo_step(self, dt_s: float, position_m: float, velocity_m_s: float) -> float:
+    @property
+    def load_compensated(self) -> bool:
+        """True for a valve drive that reads the cylinder force (``load_force_n`` of
+        :meth:`servo_step`) to scale its flow gain to the load."""
+        return self._load_filter_s > 0.0
+
+    def servo_step(
+        self, dt_s: float, position_m: float, velocity_m_s: float, load_force_n: float = 0.0
+    ) -> float:
         """Advance the servo cascade by one sub-step.
 
         Args:
@@ -1612,6 +1687,8 @@ class DriveFirmware:
             position_m: True cylinder stroke from the plant, m (quantised here).
             velocity_m_s: True stroke rate, m/s; seeds the velocity estimate on the first call
                 only (afterwards the firmware differentiates its encoder, as a drive must).
+            load_force_n: Cylinder force from the chamber-pressure transducers, N (positive
+                pushing out); read only by a valve drive with load compensation.
 
         Returns:
             Effort in [-1, 1]: force / force_max_n (electric) or valve opening (hydraulic);
@@ -1630,6 +1707,16 @@ class DriveFirmware:
             self._v_est_m_s = v_est + (v_raw - v_est) * (dt_s / (self._filter_s + dt_s))
             self._p_prev_m = p_meas
         self._p_meas_m = p_meas
+        load = None
+        tau = self._load_filter_s
+        if tau > 0.0:  # the transducers' force, low-passed whatever the state
+            load = self._load_n
+            load = (
+                load_force_n
+                if load is None
+                else load + (load_force_n - load) * (dt_s / (tau + dt_s))
+            )
+            self._load_n = load
         state = self._state
         if state is _OPERATION_ENABLED:
             if self._mode == _MODE_CSP:
@@ -1666,6 +1753,10 @@ class DriveFirmware:
             v_cmd, limited = -v_max, True
         if self._valve_output:
             u = v_cmd / (self._valve_extend_m_s if v_cmd >= 0.0 else self._valve_retract_m_s)
+            if load is not None:
+                u /= load_gain_ratio(
+                    load, v_cmd >= 0.0, self._stall_extend_n, self._stall_retract_n
+                )
         else:
             error = v_cmd - self._v_est_m_s
             ki = self._ki_1_s

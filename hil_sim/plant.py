@@ -927,6 +927,13 @@ class ArmPlant:
         return _vec3(*self._force)
 
     @property
+    def cylinder_forces_n(self) -> tuple[float, float, float]:
+        """:attr:`cylinder_force_n` as a tuple of floats (what a valve drive's chamber-pressure
+        transducers read, for the servo loop without an array per sub-step)."""
+        f = self._force
+        return (f[0], f[1], f[2])
+
+    @property
     def soil_force_xy_n(self) -> FloatArray:
         """The soil model's force on the tip in the last sub-step ``(2,)`` (zero without soil)."""
         return np.array(self._soil_f)

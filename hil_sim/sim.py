@@ -63,6 +63,8 @@ COB_SYNC = 0x080
 #: The master's heartbeat COB-ID (node 0x7E), which drives consume.
 COB_MASTER_HEARTBEAT = 0x700 + 0x7E
 _AXES = ("boom", "stick", "bucket")
+#: The cylinder forces passed to drives that do not read them.
+_NO_LOAD = (0.0, 0.0, 0.0)
 #: Truth rows a :class:`HilCore` keeps by default: the last 2**20 SYNCs (35 min at 500 Hz,
 #: 17 min at 1 kHz; 80 MB when full). Older rows are overwritten.
 TRUTH_ROWS = 1 << 20
@@ -520,12 +522,15 @@ class HilCore:
         full = servo * (1.0 + 1e-9)
         # What the drives' sensors read: the true strokes on an ideal plant.
         sense = plant.stroke_state if plant.imperfections is None else plant.sensed_stroke_state
+        # Valve drives with load compensation read the cylinder forces (chamber pressures).
+        pressures = fw0.load_compensated or fw1.load_compensated or fw2.load_compensated
         while remaining > 1e-12:
             h = servo if remaining > full else remaining
             (s0, s1, s2), (v0, v1, v2) = sense()
-            e0 = n0.effort = fw0.servo_step(h, s0, v0)
-            e1 = n1.effort = fw1.servo_step(h, s1, v1)
-            e2 = n2.effort = fw2.servo_step(h, s2, v2)
+            l0, l1, l2 = plant.cylinder_forces_n if pressures else _NO_LOAD
+            e0 = n0.effort = fw0.servo_step(h, s0, v0, l0)
+            e1 = n1.effort = fw1.servo_step(h, s1, v1, l1)
+            e2 = n2.effort = fw2.servo_step(h, s2, v2, l2)
             if load is not None:
                 load.offset_m = vcu.travel_position_m if vcu is not None else 0.0
             plant.servo_substep(
@@ -555,13 +560,16 @@ class HilCore:
         full = servo * (1.0 + 1e-9)
         # What the arm drives' sensors read (as in advance()).
         sense = plant.stroke_state if plant.imperfections is None else plant.sensed_stroke_state
+        # Valve drives with load compensation read the cylinder forces (chamber pressures).
+        pressures = fw0.load_compensated or fw1.load_compensated or fw2.load_compensated
         while remaining > 1e-12:
             h = servo if remaining > full else remaining
             (s0, s1, s2), (v0, v1, v2) = sense()
             w = swing.omega_rad_s
-            e0 = n0.effort = fw0.servo_step(h, s0, v0)
-            e1 = n1.effort = fw1.servo_step(h, s1, v1)
-            e2 = n2.effort = fw2.servo_step(h, s2, v2)
+            l0, l1, l2 = plant.cylinder_forces_n if pressures else _NO_LOAD
+            e0 = n0.effort = fw0.servo_step(h, s0, v0, l0)
+            e1 = n1.effort = fw1.servo_step(h, s1, v1, l1)
+            e2 = n2.effort = fw2.servo_step(h, s2, v2, l2)
             e3 = n3.effort = fw3.servo_step(h, swing.theta_rad, w)
             if load is not None:
                 load.offset_m = vcu.travel_position_m if vcu is not None else 0.0

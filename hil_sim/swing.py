@@ -48,6 +48,9 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
+from rt_runtime import actuation, dynamics
 from rt_runtime.axes import SWING_FOLLOWING_ERROR_WINDOW_RAD
 from rt_runtime.errors import ConfigurationError
 from rt_runtime.rig import Rig
@@ -246,6 +249,7 @@ def swing_drive_rig(rig: Rig) -> _SwingDriveRig:
         encoder_resolution_m=SWING_ENCODER_RAD,
         following_error_window_m=SWING_FOLLOWING_ERROR_WINDOW_RAD,
         quick_stop_deceleration_m_s2=rig.swing.joint.acceleration_max_rad_s2,
+        load_compensation_filter_s=0.0,  # the swing motor's pressures are not read
     )
     hydraulic = None
     if p.hydraulic:
@@ -272,15 +276,47 @@ def velocity_lead_s(rig: Rig) -> tuple[float, ...]:
 
 def velocity_lead2_s2(rig: Rig) -> tuple[float, ...]:
     """The second-order term of each axis's lead (s^2, axis order; for
-    ``ExecutorConfig.velocity_lead2_s2``): 0 for the cylinders (a first-order valve), for the
-    swing ``1 / w_h^2 + tau_valve 2 zeta / w_h`` (the inverse of its mode behind its valve to
-    second order), at the mean inertia as :func:`velocity_lead_s`.
+    ``ExecutorConfig.velocity_lead2_s2``): for a hydraulic cylinder ``1 / w_h^2`` of its
+    oil-column mode (:func:`cylinder_inverse_mode_s2`; electric: 0), for the swing
+    ``1 / w_h^2 + tau_valve 2 zeta / w_h`` (the inverse of its mode behind its valve to second
+    order), at the mean inertia as :func:`velocity_lead_s`.
 
     Raises:
         ConfigurationError: The rig has no swing.
     """
     valve, lag, inv_w2 = _swing_lags(rig)
-    return (0.0, 0.0, 0.0, inv_w2 + valve * lag)
+    return (*cylinder_inverse_mode_s2(rig), inv_w2 + valve * lag)
+
+
+def cylinder_inverse_mode_s2(rig: Rig) -> tuple[float, float, float]:
+    """``1 / w_h^2`` of each arm cylinder's hydraulic mode (s^2; 0 on an electric rig): the oil
+    columns' stiffness ``k = beta (A_A^2 / V_A + A_B^2 / V_B)`` (chamber volumes with the
+    profile's dead volume at the stroke) against the arm's inertia reflected to the rod,
+    ``m = M_ii(q) / (ds_i / dq_i)^2`` (the joint's diagonal of :func:`rt_runtime.dynamics.
+    mass_matrix`: the other joints held by their own oil columns), averaged over a 9^3 grid
+    of the joint ranges as the swing's inertia is (:func:`velocity_lead_s`). The cylinders'
+    own damping is light, so their first-order term ``2 zeta / w_h`` is left out.
+    """
+    hyd = rig.actuators.hydraulic
+    if hyd is None:
+        return (0.0, 0.0, 0.0)
+    grid = [np.linspace(j.min_rad, j.max_rad, 9) for j in rig.joints]
+    q = np.stack(np.meshgrid(*grid, indexing="ij"), axis=-1).reshape(-1, 3)
+    mass = dynamics.mass_matrix(rig, q)
+    slope = actuation.stroke_jacobian(rig, q)
+    stroke = actuation.joint_to_stroke(rig, q)
+    piston = hyd.piston_area_m2
+    annulus = piston - hyd.rod_area_m2
+    out = []
+    cyls = rig.cylinders
+    full = (cyls.boom.stroke_max_m, cyls.stick.stroke_max_m, cyls.bucket.stroke_max_m)
+    for i, stroke_max_m in enumerate(full):
+        m = mass[:, i, i] / slope[:, i] ** 2
+        v_a = hyd.chamber_volume_m3 + piston * stroke[:, i]
+        v_b = hyd.chamber_volume_m3 + annulus * (stroke_max_m - stroke[:, i])
+        k = hyd.bulk_modulus_pa * (piston**2 / v_a + annulus**2 / v_b)
+        out.append(float(np.mean(m / k)))
+    return (out[0], out[1], out[2])
 
 
 def _swing_lags(rig: Rig) -> tuple[float, float, float]:

@@ -22,6 +22,7 @@ from canopen.sdo.exceptions import SdoAbortedError
 
 from firmware_models import CIA402_DRIVE_EDS
 from firmware_models.drive import (
+    LOAD_GAIN_RATIO_MIN,
     DeviceState,
     DriveFirmware,
     DriveKind,
@@ -29,6 +30,7 @@ from firmware_models.drive import (
     EmcyCode,
     NmtState,
     SdoAbort,
+    load_gain_ratio,
     valve_velocity_gains_m_s,
 )
 from firmware_models.errors import FirmwareConfigurationError
@@ -82,6 +84,7 @@ class Drives:
     heartbeat_timeout_s: float = 0.3
     sync_timeout_s: float = 0.02
     quick_stop_deceleration_m_s2: float = 1.0
+    load_compensation_filter_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -885,6 +888,91 @@ def test_hydraulic_cascade_is_position_p_plus_feed_forward_over_valve_gain() -> 
     error = h.fw.position_demand_m - h.fw.position_actual_m
     expected = max(80.0 * error - 0.1, -0.28) / retract
     assert h.efforts[-1] == pytest.approx(max(expected, -1.0), rel=1e-9)
+
+
+def _steady_velocity(hyd: Hydraulic, force_n: float, opening: float) -> float:
+    """Rod velocity of a differential cylinder at a fixed valve opening under a constant
+    force, by solving the orifice law on both metering edges for the chamber pressures
+    (scipy's root finder on the force balance; no closed form used)."""
+    from scipy.optimize import brentq
+
+    k = hyd.valve_flow_m3_s / math.sqrt(3.5e6)
+    a_a, a_b, p_s = hyd.piston_area_m2, hyd.piston_area_m2 - hyd.rod_area_m2, hyd.supply_pressure_pa
+    x = abs(opening)
+
+    def force_residual(v: float) -> float:
+        if opening > 0.0:  # supply -> A, B -> tank
+            p_a = p_s - (a_a * v / (k * x)) ** 2
+            p_b = (a_b * v / (k * x)) ** 2
+        else:  # supply -> B, A -> tank
+            p_b = p_s - (a_b * v / (k * x)) ** 2
+            p_a = (a_a * v / (k * x)) ** 2
+        return p_a * a_a - p_b * a_b - force_n
+
+    v = brentq(force_residual, 0.0, 10.0)
+    return v if opening > 0.0 else -v
+
+
+@pytest.mark.parametrize("force_kn", [-40.0, -5.0, 0.0, 12.0, 60.0])
+def test_load_gain_ratio_is_the_orifice_laws_velocity_under_the_force(force_kn: float) -> None:
+    hyd = Hydraulic()
+    f = force_kn * 1e3
+    stall_out = hyd.supply_pressure_pa * hyd.piston_area_m2
+    stall_in = hyd.supply_pressure_pa * (hyd.piston_area_m2 - hyd.rod_area_m2)
+    extend, retract = valve_velocity_gains_m_s(hyd)
+    assert _steady_velocity(hyd, 0.0, 1.0) == pytest.approx(extend, rel=1e-9)
+    assert _steady_velocity(hyd, 0.0, -1.0) == pytest.approx(-retract, rel=1e-9)
+    for opening in (0.3, -0.3):
+        ratio = load_gain_ratio(f, opening > 0.0, stall_out, stall_in)
+        gain = extend if opening > 0.0 else retract
+        assert abs(_steady_velocity(hyd, f, opening)) == pytest.approx(
+            ratio * gain * 0.3, rel=1e-9
+        )
+    # A weight (F > 0) slows extending and speeds retracting; near stall the ratio is floored.
+    assert load_gain_ratio(0.999 * stall_out, True, stall_out, stall_in) == LOAD_GAIN_RATIO_MIN
+
+
+def test_load_compensation_divides_the_valve_command_by_the_filtered_ratio() -> None:
+    hyd = Hydraulic()
+    actuators = Actuators(velocity_max_m_s=0.28, hydraulic=hyd)
+    tau = 0.05
+    plain = Harness(Rig(actuators=actuators))
+    comp = Harness(Rig(drives=Drives(load_compensation_filter_s=tau), actuators=actuators))
+    assert comp.fw.load_compensated and not plain.fw.load_compensated
+    stall_out = hyd.supply_pressure_pa * hyd.piston_area_m2
+    stall_in = hyd.supply_pressure_pa * (hyd.piston_area_m2 - hyd.rod_area_m2)
+    for h in (plain, comp):
+        h.boot()
+        h.enable()  # one servo step with no load: the filter starts from an unloaded reading
+    force = 30e3
+    efforts: dict[str, list[float]] = {"plain": [], "comp": []}
+    for name, h in (("plain", plain), ("comp", comp)):
+        fw = h.fw
+        fw.on_frame(RPDO1, struct.pack("<ii", 100_050, 20_000), 0.0)  # 50 um ahead, 20 mm/s
+        fw.on_frame(SYNC, b"", 0.0)
+        n_tau = round(tau / DT_S)
+        for _ in range(20 * n_tau):  # the position is held: same error, same feed-forward
+            efforts[name].append(fw.servo_step(DT_S, 0.1, 0.0, force))
+    settled = efforts["plain"][-1] / load_gain_ratio(force, True, stall_out, stall_in)
+    assert efforts["comp"][-1] == pytest.approx(settled, rel=1e-9)
+    # One time constant after the step the filter holds 1 - 1/e of the force.
+    k = round(tau / DT_S) - 1
+    at_tau = efforts["plain"][k] / load_gain_ratio(
+        force * (1.0 - math.exp(-1.0)), True, stall_out, stall_in
+    )
+    assert efforts["comp"][k] == pytest.approx(at_tau, rel=5e-3)
+    with pytest.raises(FirmwareConfigurationError, match="load compensation"):
+        DriveParameters.from_rig(Rig(drives=Drives(load_compensation_filter_s=tau)))
+
+
+def test_only_the_field_excavators_valve_drives_compensate_the_load() -> None:
+    from rt_runtime.rig import load_rig
+    from rt_runtime.rig.loader import profile_names
+
+    for name in profile_names():
+        rig = load_rig(name)
+        fw = DriveFirmware(1, rig, "boom")
+        assert fw.load_compensated is (name == "field_excavator"), name
 
 
 def test_parameters_from_the_shipped_rigs_and_their_errors() -> None:

@@ -175,6 +175,11 @@ def test_hil_teach_runs_the_taught_trench_on_four_axes(taught_dir: Path, tmp_pat
     print("hil --teach:", json.dumps(report["tracking"]), report["swing"])
     sw = report["swing"]
     assert 0.0 < sw["max_deg"] < 3.0 and sw["overshoot_deg"] >= 0.0
+    # Gao's band on every cylinder: the valve drives scale their flow gain to the load and
+    # the executor leads each cylinder's oil-column mode (without either the boom is off by
+    # 6-10 mm lowering and lifting).
+    for axis, fig in report["tracking"].items():
+        assert fig["max_mm"] <= 3.0, (axis, fig)
     assert trace.is_file()
     # The trace is the run's: its swing drive (node 4) answered every SYNC.
     rig = load_rig("field_excavator")

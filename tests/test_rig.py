@@ -274,6 +274,18 @@ def test_servo_period_defaults_to_250_us() -> None:
             r"drives\.quick_stop_deceleration_mm_s2: must be a finite number",
         ),
         (
+            "field_excavator",
+            "drives.load_compensation_filter_ms",
+            -1.0,
+            r"drives\.load_compensation_filter_ms: must be >= 0",
+        ),
+        (
+            "scale_model",
+            "drives.load_compensation_filter_ms",
+            50.0,
+            r"drives\.load_compensation_filter_ms: only for valve drives",
+        ),
+        (
             "scale_model",
             "actuators.force_max_n",
             0.0,

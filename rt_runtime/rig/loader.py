@@ -116,7 +116,7 @@ def parse_rig(raw: dict[str, Any], source: str = "") -> Rig:
     planning_t = root.optional_table("planning")
     planning = _planning(planning_t) if planning_t is not None else None
     can = _can(root.table("can"), swing is not None)
-    drives = _drives(root.table("drives"))
+    drives = _drives(root.table("drives"), cylinders.kind)
     actuators = _actuators(root.table("actuators"), cylinders.kind)
     trench_t = root.optional_table("trench")
     reach_m = sum(link.length_m for link in links)
@@ -332,7 +332,7 @@ def _can(t: Table, has_swing: bool) -> Can:
     return Can(bitrate=bitrate, node_ids=ids, vcu_node_id=vcu, vcu=on_bus)
 
 
-def _drives(t: Table) -> Drives:
+def _drives(t: Table, kind: str) -> Drives:
     # Integer milliseconds and micrometres where the CAN object is an integer of that unit
     # (0x1016/0x1017/0x6066 u16 ms); bounds are the objects' ranges or far beyond any rig.
     window_mm = t.number("following_error_window_mm", gt=0.0, le=1000.0)
@@ -357,7 +357,17 @@ def _drives(t: Table) -> Drives:
         sync_timeout_s=t.integer("sync_timeout_ms", ge=1, le=65535) * 1e-3,
         quick_stop_deceleration_m_s2=t.number("quick_stop_deceleration_mm_s2", gt=0.0, le=1e6)
         * 1e-3,
+        load_compensation_filter_s=t.number(
+            "load_compensation_filter_ms", ge=0.0, le=10_000.0, default=0.0
+        )
+        * 1e-3,
     )
+    if drives.load_compensation_filter_s > 0.0 and kind != "hydraulic":
+        raise t.error(
+            "load_compensation_filter_ms",
+            f"only for valve drives (cylinders.kind = 'hydraulic'), not {kind!r}; "
+            "0 or leave it out",
+        )
     t.finish()
     return drives
 

@@ -276,6 +276,10 @@ class Drives:
         sync_timeout_s: SYNC/RPDO watchdog: longest gap while operation is enabled.
         quick_stop_deceleration_m_s2: Stroke deceleration of quick stop and fault reactions
             (0x6085).
+        load_compensation_filter_s: Valve drives: time constant of the low-pass on the
+            cylinder force the drive reads from its two chamber-pressure transducers, with
+            which it scales the valve's flow gain to the load (see
+            :class:`firmware_models.drive.DriveParameters`); 0 for none (the no-load gain).
     """
 
     encoder_resolution_m: float
@@ -289,6 +293,7 @@ class Drives:
     heartbeat_timeout_s: float
     sync_timeout_s: float
     quick_stop_deceleration_m_s2: float
+    load_compensation_filter_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)

@@ -288,6 +288,16 @@ def velocity_lead2_s2(rig: Rig) -> tuple[float, ...]:
     return (*cylinder_inverse_mode_s2(rig), inv_w2 + valve * lag)
 
 
+def cylinder_velocity_lead(rig: Rig) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The arm cylinders' lead terms for ``ExecutorConfig`` on any rig, swing or not:
+    ``(velocity_lead_s, velocity_lead2_s2)``, each ``(boom, stick, bucket)``: the valve's time
+    constant and :func:`cylinder_inverse_mode_s2` on a hydraulic rig, zeros on an electric one
+    (the servo motors' current loop is far faster than the SYNC period)."""
+    hyd = rig.actuators.hydraulic
+    valve = hyd.valve_time_constant_s if hyd is not None else 0.0
+    return (valve, valve, valve), cylinder_inverse_mode_s2(rig)
+
+
 def cylinder_inverse_mode_s2(rig: Rig) -> tuple[float, float, float]:
     """``1 / w_h^2`` of each arm cylinder's hydraulic mode (s^2; 0 on an electric rig): the oil
     columns' stiffness ``k = beta (A_A^2 / V_A + A_B^2 / V_B)`` (chamber volumes with the

@@ -440,6 +440,11 @@ def test_hil_mintorque_runs_the_dig_and_reports_torques(
     assert {("torque", "rms_plant_nm"), ("tracking", "reported", "max_mm")} <= keys
     assert missing(report, keys) == []
     assert report["status"] == "done"
+    # Soft soil within Gao's band on every cylinder with the lead of each cylinder's valve and
+    # oil-column mode (the boom is 3.1 mm without it).
+    assert report["velocity_lead2_s2"][0] > 0.0
+    for axis, fig in report["tracking"].items():
+        assert fig["max_mm"] <= 3.0, (axis, fig)
     assert set(report["torque"]) == set(mt.JOINTS)
     for t in report["torque"].values():
         assert t["rms_planned_nm"] > 0.0 and t["rms_plant_nm"] > 0.0

@@ -422,6 +422,7 @@ def _run_mintorque(args: argparse.Namespace) -> int:
             fixed_time=args.fixed_time,
             period_s=args.period_ms * 1e-3,
             feedforward=not args.no_feedforward,
+            lead=not args.no_lead,
         )
     except (ExcavatorRtError, ValueError) as exc:
         return _refused(args, exc)

@@ -504,7 +504,8 @@ def add_arguments(p: Any) -> None:
     g.add_argument(
         "--no-lead",
         action="store_true",
-        help="with --teach: the velocity offsets without the lead of each axis's lag",
+        help="with --teach or --mintorque: the velocity offsets without the lead of each "
+        "axis's lag",
     )
 
 

@@ -34,6 +34,7 @@ from hil_sim.harness.scenario import (
     _segments,
 )
 from hil_sim.report import tracking_figures
+from hil_sim.swing import cylinder_velocity_lead
 from hil_sim.terrain import Terrain
 from rt_runtime import actuation, soil
 from rt_runtime.canbus import CanMaster
@@ -122,8 +123,12 @@ def run_mintorque(
     fixed_time: bool = False,
     period_s: float = 0.002,
     feedforward: bool = True,
+    lead: bool = True,
 ) -> dict[str, Any]:
     """Plan the dig, execute it on the lockstep HIL in the same soil, report (module docstring).
+    With ``lead`` (and the feed-forward) the velocity offsets lead each cylinder's valve lag and
+    hydraulic mode (:func:`hil_sim.swing.cylinder_velocity_lead`), as a commissioned rig's
+    would.
 
     Raises:
         ConfigurationError: Bad rig or soil.
@@ -131,6 +136,10 @@ def run_mintorque(
     """
     wall0 = time.perf_counter()
     rig = load_rig(rig_name)
+    lead_s, lead2_s2 = cylinder_velocity_lead(rig) if lead and feedforward else (None, None)
+    config = ExecutorConfig(
+        feedforward=feedforward, velocity_lead_s=lead_s, velocity_lead2_s2=lead2_s2
+    )
     problem = mt.make_problem(rig, soil_name, fixed_time=fixed_time)
     sol = mt.solve(rig, problem)
     if not sol.feasible:
@@ -159,7 +168,7 @@ def run_mintorque(
         def make_executor(master: CanMaster, loop: FixedRateLoop, _hook: Any) -> Executor:
             job = PathJob((DigMotion(sol),), name=f"mintorque {soil_name}")
             return Executor.for_path(
-                master, rig, loop, job, ExecutorConfig(feedforward=feedforward), on_cycle=on_cycle
+                master, rig, loop, job, config, on_cycle=on_cycle
             )
 
         result, _ = _execute(sc, rig, hil, [], sol.T_s + 30.0, make_executor)
@@ -186,6 +195,8 @@ def run_mintorque(
         },
         **figures.to_json(),
         "tracking_goal_max_mm": None if goal is None else goal.max_mm,
+        "velocity_lead_s": None if lead_s is None else list(lead_s),
+        "velocity_lead2_s2": None if lead2_s2 is None else list(lead2_s2),
         "torque": torque,
         "soil_moment_rms_nm": math.sqrt(load.moment_sq / max(load.samples, 1)),
         "soil_moment_applied": False,

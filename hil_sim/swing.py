@@ -8,8 +8,9 @@ encoder count a microradian), its "velocity" the swing rate (rad/s).
 
 Model, per servo sub-step (``rig.drives.servo_period_s``):
 
-* Inertia about the vertical axis ``J(q) = J_upper + sum_i (m_i r_i^2 + I_i cos^2 phi_i)`` over
-  the arm links: ``r_i`` the horizontal distance of link i's centre of mass from the swing axis
+* Inertia about the vertical axis ``J(q) = J_upper + sum_i (m_i r_i^2 + I_i cos^2 phi_i)``:
+  ``J_upper`` the upper structure's (``rig.swing.upper_inertia_kgm2``), the sum over the arm
+  links with ``r_i`` the horizontal distance of link i's centre of mass from the swing axis
   (``a1`` plus its x in the arm frame), ``I_i`` its inertia about the centre of mass and
   ``phi_i`` its absolute angle (a link's own inertia about a vertical axis shrinks as it turns
   upright). The arm's reach therefore sets the swing's inertia: stretched out it is about twice
@@ -18,17 +19,17 @@ Model, per servo sub-step (``rig.drives.servo_period_s``):
 * Hydraulic swing motor (``rig.actuators.hydraulic`` set): a pressure-compensated valve whose
   flow follows the drive's effort (spool opening in [-1, 1]) through the same first-order spool
   lag as the cylinders' valves, ``Q = u D w_nl - K_c dp``; the motor of displacement ``D`` (per
-  radian of swing, through the reduction gear) between two lines of volume ``V`` each:
-  ``dp/dt = 2 beta / V (Q - D w)``, torque ``D dp`` clipped by the port relief valves to the
-  swing's ``torque_max_nm``, minus viscous friction. ``K_c`` (the valve's flow-pressure
-  coefficient with the motor's leakage) sets the damping of the hydraulic mode (natural
-  frequency ``sqrt(2 beta D^2 / (V J))``, 3-4 Hz here): it is chosen for a damping ratio of
-  :data:`HYDRAULIC_DAMPING` at the mean of the tucked and the stretched arm's inertia. ``D``
-  follows from the relief torque and the supply pressure; ``w_nl``, the swing rate at full
-  opening without load, is 10 % above the swing's velocity limit, like the cylinders' valves.
-  The swing drive's position gain is at most ``zeta w_h`` at the stretched arm
-  (:data:`POSITION_GAIN_OVER_MODE`; a P loop on a flow source behind a spring of damping zeta
-  is stable below ``2 zeta w_h``).
+  radian of swing, through the reduction gear) between two lines of volume ``V`` each
+  (``rig.swing.motor_line_volume_m3``): ``dp/dt = 2 beta / V (Q - D w)``, torque ``D dp``
+  clipped by the port relief valves to the swing's ``torque_max_nm``, minus viscous friction.
+  ``K_c`` (the valve's flow-pressure coefficient with the motor's leakage) sets the damping of
+  the hydraulic mode (natural frequency ``sqrt(2 beta D^2 / (V J))``, 3-4 Hz here): it is
+  chosen for a damping ratio of :data:`HYDRAULIC_DAMPING` at the mean of the tucked and the
+  stretched arm's inertia. ``D`` follows from the relief torque and the supply pressure;
+  ``w_nl``, the swing rate at full opening without load, is 10 % above the swing's velocity
+  limit, like the cylinders' valves. The swing drive's position gain is at most ``zeta w_h``
+  at the stretched arm (:data:`POSITION_GAIN_OVER_MODE`; a P loop on a flow source behind a
+  spring of damping zeta is stable below ``2 zeta w_h``).
 * Electric swing motor (no ``hydraulic``): torque ``u tau_max``, falling linearly to zero over
   the last 20 % of ``w_nl`` while motoring; a holding brake locks the swing at effort exactly 0.0
   (as the cylinders' motors do).
@@ -38,8 +39,10 @@ Model, per servo sub-step (``rig.drives.servo_period_s``):
 What it leaves out, stated: the centrifugal and Coriolis loads of the swing on the arm's planar
 dynamics (the arm plant runs in its own plane), and the bucket's payload in ``J``.
 
-Parameters that no paper gives (marked in :data:`ASSUMED`): the upper structure's inertia, the
-motor lines' volume, the cross-port leakage and the viscous friction.
+Parameters that no paper gives (all four listed in :data:`ASSUMED`): the upper structure's
+inertia and the motor lines' volume, set by the rig profile (``[swing]`` keys
+``upper_inertia_kgm2`` and ``motor_line_volume_l``, marked in its ``[assumed]`` table with their
+reasons), and the cross-port leakage and the viscous friction, set here.
 """
 
 from __future__ import annotations
@@ -77,11 +80,11 @@ HYDRAULIC_DAMPING = 0.3
 #: ``2 zeta w_h``; half of that keeps a gain margin of 2 at the least favourable reach.
 POSITION_GAIN_OVER_MODE = 1.0
 
-#: Values no source gives, with the reason for each.
+#: Values no source gives, with the reason for each; the two the rig profile sets are marked
+#: assumed, with their reasons, in the profile's ``[assumed]`` table.
 ASSUMED = {
-    "upper_inertia_kgm2": "upper structure (cab, engine, counterweight ~3.8 t) of a 6-t class "
-    "excavator about the swing axis, radius of gyration ~1.1 m",
-    "line_volume_m3": "swing motor, its two lines and the valve section: 2 L per side",
+    "upper_inertia_kgm2": "from the rig profile: swing.upper_inertia_kgm2 (see its [assumed])",
+    "line_volume_m3": "from the rig profile: swing.motor_line_volume_l (see its [assumed])",
     "leakage_m3_s_pa": f"valve flow-pressure coefficient and leakage for a damping ratio of "
     f"{HYDRAULIC_DAMPING} (HYDRAULIC_DAMPING)",
     "viscous_nm_s": "gear and bearing friction: 1 % of the relief torque at the velocity limit",
@@ -94,11 +97,12 @@ class SwingParameters:
     """The swing plant's constants (SI).
 
     Attributes:
-        upper_inertia_kgm2: Upper structure's inertia about the swing axis, arm excluded.
+        upper_inertia_kgm2: Upper structure's inertia about the swing axis, arm excluded
+            (``rig.swing.upper_inertia_kgm2``).
         torque_max_nm: Relief (hydraulic) or peak motor (electric) torque.
         no_load_rad_s: Swing rate at full valve opening without load (electric: top speed).
         displacement_m3_rad: Motor displacement per radian of swing (hydraulic).
-        line_volume_m3: Oil volume per line (hydraulic).
+        line_volume_m3: Oil volume per line (hydraulic; ``rig.swing.motor_line_volume_m3``).
         bulk_modulus_pa: Effective bulk modulus (hydraulic).
         leakage_m3_s_pa: Flow-pressure coefficient ``K_c`` (valve and leakage; hydraulic).
         valve_time_constant_s: Spool lag (hydraulic).
@@ -122,20 +126,23 @@ class SwingParameters:
 
     @classmethod
     def from_rig(cls, rig: Rig) -> SwingParameters:
-        """The swing of ``rig`` (its swing joint, its actuators' supply and valve lag).
+        """The swing of ``rig`` (its swing joint and plant constants, its actuators' supply and
+        valve lag).
 
         Raises:
             ConfigurationError: The rig has no swing.
         """
         if rig.swing is None:
             raise ConfigurationError(f"rig {rig.name} has no swing joint ([swing] table)")
-        joint = rig.swing.joint
+        swing = rig.swing
+        joint = swing.joint
         hyd = rig.actuators.hydraulic
         torque = joint.torque_max_nm
         no_load = NO_LOAD_OVER_LIMIT * joint.velocity_max_rad_s
         supply = hyd.supply_pressure_pa if hyd is not None else 25e6
         beta = hyd.bulk_modulus_pa if hyd is not None else 1.2e9
-        upper, volume, d = 4600.0, 2e-3, torque / supply
+        upper, volume = swing.upper_inertia_kgm2, swing.motor_line_volume_m3
+        d = torque / supply
         j_lo, j_hi = _inertia_range(rig, upper)
         # zeta = K_c / (2 D) sqrt(2 beta J / V)  (Merritt, with V_t = 2 V)
         k_c = 2.0 * HYDRAULIC_DAMPING * d / math.sqrt(2.0 * beta * 0.5 * (j_lo + j_hi) / volume)

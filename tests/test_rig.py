@@ -420,3 +420,97 @@ def test_trench_domain_is_checked_and_stays_out_of_the_planning_fingerprint() ->
     doc["trench"] = {"length_max_m": 20.0, "width_m": 1.0}
     with pytest.raises(RigProfileError, match=r"trench\.width_m: unknown key"):
         parse_rig(doc)
+
+
+# --- the swing's dynamics constants ([swing] upper_inertia_kgm2, motor_line_volume_l) ---------
+
+
+def _electric_with_swing() -> dict[str, Any]:
+    """The scale model (electric cylinders) with the field excavator's ``[swing]`` table, less
+    the hydraulic-only key."""
+    doc = copy.deepcopy(_raw("scale_model"))
+    doc["swing"] = copy.deepcopy(_raw("field_excavator")["swing"])
+    del doc["swing"]["motor_line_volume_l"]
+    doc["can"]["node_ids"]["swing"] = 4
+    return doc
+
+
+def test_field_excavator_sets_the_swing_s_dynamics_constants_as_assumed() -> None:
+    rig = load_rig("field_excavator")
+    assert rig.swing is not None
+    assert rig.swing.upper_inertia_kgm2 == 4600.0
+    assert rig.swing.motor_line_volume_m3 == pytest.approx(2e-3, rel=1e-15)
+    assert rig.is_assumed("swing.upper_inertia_kgm2")
+    assert rig.is_assumed("swing.motor_line_volume_l")
+
+
+def test_swing_dynamics_constants_default_to_the_field_excavator_s() -> None:
+    doc = copy.deepcopy(_raw("field_excavator"))
+    for key in ("upper_inertia_kgm2", "motor_line_volume_l"):
+        del doc["swing"][key]
+        del doc["assumed"][f"swing.{key}"]
+    rig = parse_rig(doc)
+    assert rig.swing == load_rig("field_excavator").swing
+    assert rig.swing is not None
+    assert (rig.swing.upper_inertia_kgm2, rig.swing.motor_line_volume_m3) == (4600.0, 2e-3)
+
+
+def test_swing_dynamics_constants_load_in_si_and_stay_out_of_the_planning_fingerprint() -> None:
+    doc = copy.deepcopy(_raw("field_excavator"))
+    base = parse_rig(doc).planning_fingerprint
+    doc["swing"]["upper_inertia_kgm2"] = 9000.0
+    doc["swing"]["motor_line_volume_l"] = 3.5
+    rig = parse_rig(doc)
+    assert rig.swing is not None
+    assert rig.swing.upper_inertia_kgm2 == 9000.0
+    assert rig.swing.motor_line_volume_m3 == pytest.approx(3.5e-3, rel=1e-15)
+    assert rig.planning_fingerprint == base
+    doc["swing"]["base_offset_m"] = 0.9  # the swing's geometry still counts
+    assert parse_rig(doc).planning_fingerprint != base
+
+
+@pytest.mark.parametrize("key", ["upper_inertia_kgm2", "motor_line_volume_l"])
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        (0.0, r"must be > 0 \(got 0\)"),
+        (-4600, r"must be > 0 \(got -4600\)"),
+        (float("nan"), r"must be a finite number > 0 \(got nan\)"),
+        (float("inf"), r"must be a finite number > 0 \(got inf\)"),
+        ("4600", r"must be a number > 0 \(got '4600'\)"),
+        (True, r"must be a number > 0 \(got True\)"),
+    ],
+)
+def test_bad_swing_dynamics_constants_name_the_key(key: str, value: Any, message: str) -> None:
+    doc = copy.deepcopy(_raw("field_excavator"))
+    doc["swing"][key] = value
+    with pytest.raises(RigProfileError, match=rf"swing\.{key}: {message}") as info:
+        parse_rig(doc, source="bad.toml")
+    assert str(info.value).startswith("bad.toml: ")
+
+
+def test_the_swing_motor_line_volume_is_refused_on_an_electric_rig() -> None:
+    doc = _electric_with_swing()
+    doc["swing"]["upper_inertia_kgm2"] = 3000.0  # the inertia belongs to any swing
+    rig = parse_rig(doc)
+    assert rig.actuators.hydraulic is None and rig.swing is not None
+    assert rig.swing.upper_inertia_kgm2 == 3000.0
+    assert rig.swing.motor_line_volume_m3 == 2e-3  # the default, unused without hydraulics
+    doc["swing"]["motor_line_volume_l"] = 2.0
+    with pytest.raises(
+        RigProfileError,
+        match=r"swing\.motor_line_volume_l: only for a hydraulic swing motor "
+        r"\(cylinders\.kind = 'hydraulic'\), not 'electric'; leave it out",
+    ):
+        parse_rig(doc)
+
+
+def test_unknown_swing_keys_list_the_dynamics_constants() -> None:
+    doc = copy.deepcopy(_raw("field_excavator"))
+    doc["swing"]["upper_inertia_kg_m2"] = 4600.0
+    with pytest.raises(
+        RigProfileError,
+        match=r"swing\.upper_inertia_kg_m2: unknown key; allowed here: .*motor_line_volume_l.*"
+        r"upper_inertia_kgm2",
+    ):
+        parse_rig(doc)

@@ -12,7 +12,7 @@ import pytest
 
 from hil_sim.harness.fouraxis import PERIOD_S, FourAxisRun, run_path
 from hil_sim.sim import FaultKind, HilCore
-from hil_sim.swing import SwingParameters, SwingPlant, swing_drive_rig
+from hil_sim.swing import SwingParameters, SwingPlant, swing_drive_rig, velocity_lead_s
 from rt_runtime import axes
 from rt_runtime.canbus import DriveState
 from rt_runtime.canbus.config import DEFAULT_EDS, MasterConfig, configuration_writes, load_od
@@ -151,6 +151,43 @@ def test_swing_conserves_angular_momentum_as_the_arm_reaches_out(field: Rig) -> 
     swing_rate_rad_s = plant.omega_rad_s
     assert swing_rate_rad_s < 0.5 * 0.8
     assert l1 == pytest.approx(l0, rel=1e-3)
+
+
+def test_the_plant_takes_the_upper_inertia_and_line_volume_from_the_rig(field: Rig) -> None:
+    assert field.swing is not None
+    base = SwingParameters.from_rig(field)
+    assert base.upper_inertia_kgm2 == field.swing.upper_inertia_kgm2
+    assert base.line_volume_m3 == field.swing.motor_line_volume_m3
+    stretched = tuple(np.radians([0.0, -30.0, 0.0]))
+    j_base = SwingPlant(field, 0.0).inertia(stretched)
+    w_base = base.mode_rad_s(j_base)
+
+    heavy_upper = 2.0 * field.swing.upper_inertia_kgm2
+    heavy = dataclasses.replace(
+        field, swing=dataclasses.replace(field.swing, upper_inertia_kgm2=heavy_upper)
+    )
+    p = SwingParameters.from_rig(heavy)
+    assert p.upper_inertia_kgm2 == heavy_upper
+    j_heavy = SwingPlant(heavy, 0.0).inertia(stretched)
+    assert j_heavy == pytest.approx(j_base + field.swing.upper_inertia_kgm2, rel=1e-12)
+    # The hydraulic mode goes as 1 / sqrt(J): slower on the heavier upper structure, and the
+    # swing's velocity lead (its mode's lag 2 zeta / w_h) longer.
+    w_heavy = p.mode_rad_s(j_heavy)
+    assert w_heavy < w_base
+    assert w_heavy == pytest.approx(w_base * math.sqrt(j_base / j_heavy), rel=1e-12)
+    assert velocity_lead_s(heavy)[3] > velocity_lead_s(field)[3]
+    assert velocity_lead_s(heavy)[:3] == velocity_lead_s(field)[:3]
+
+    # Twice the oil in each line: a softer spring, the mode down by sqrt(2) at the same J.
+    soft = dataclasses.replace(
+        field,
+        swing=dataclasses.replace(
+            field.swing, motor_line_volume_m3=2.0 * field.swing.motor_line_volume_m3
+        ),
+    )
+    p = SwingParameters.from_rig(soft)
+    assert p.line_volume_m3 == 2.0 * field.swing.motor_line_volume_m3
+    assert p.mode_rad_s(j_base) == pytest.approx(w_base / math.sqrt(2.0), rel=1e-12)
 
 
 def test_the_swing_drive_is_the_same_firmware_on_node_4(field: Rig) -> None:

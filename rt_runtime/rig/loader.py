@@ -20,6 +20,8 @@ from rt_runtime.rig.cylinders import parse_cylinders
 from rt_runtime.rig.imperfections import parse_imperfections
 from rt_runtime.rig.model import (
     ARM_JOINTS,
+    DEFAULT_SWING_MOTOR_LINE_VOLUME_M3,
+    DEFAULT_SWING_UPPER_INERTIA_KGM2,
     SCALE_MODEL_REACH_M,
     SCALE_MODEL_SPOIL,
     SCALE_MODEL_TRENCH_LENGTH_MAX_M,
@@ -107,12 +109,11 @@ def parse_rig(raw: dict[str, Any], source: str = "") -> Rig:
     joints_t.finish()
     links_t.finish()
 
-    swing_t = root.optional_table("swing")
-    swing = _swing(swing_t) if swing_t is not None else None
-
     bucket = _bucket(root.table("bucket"))
     soil = _soil(root.table("soil"))
     cylinders = parse_cylinders(root.table("cylinders"))
+    swing_t = root.optional_table("swing")
+    swing = _swing(swing_t, cylinders.kind) if swing_t is not None else None
     planning_t = root.optional_table("planning")
     planning = _planning(planning_t) if planning_t is not None else None
     can = _can(root.table("can"), swing is not None)
@@ -191,11 +192,28 @@ def _link(t: Table, name: str) -> Link:
     return link
 
 
-def _swing(t: Table) -> Swing:
+def _swing(t: Table, kind: str) -> Swing:
     offset = t.number("base_offset_m", ge=0.0, le=50.0)
     height = t.number("base_height_m", ge=-50.0, le=50.0)
+    upper = t.number("upper_inertia_kgm2", gt=0.0, default=DEFAULT_SWING_UPPER_INERTIA_KGM2)
+    if kind != "hydraulic" and t.has("motor_line_volume_l"):
+        raise t.error(
+            "motor_line_volume_l",
+            f"only for a hydraulic swing motor (cylinders.kind = 'hydraulic'), not {kind!r}; "
+            "leave it out",
+        )
+    line_m3 = (
+        t.number("motor_line_volume_l", gt=0.0, default=DEFAULT_SWING_MOTOR_LINE_VOLUME_M3 * 1e3)
+        * 1e-3
+    )
     joint = _joint(t, "swing")  # the same limit keys as an arm joint; finish() ran there
-    return Swing(joint=joint, base_offset_m=offset, base_height_m=height)
+    return Swing(
+        joint=joint,
+        base_offset_m=offset,
+        base_height_m=height,
+        upper_inertia_kgm2=upper,
+        motor_line_volume_m3=line_m3,
+    )
 
 
 def _bucket(t: Table) -> Bucket:

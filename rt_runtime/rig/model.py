@@ -30,6 +30,12 @@ SCALE_MODEL_REACH_M = 1.31
 #: Longest trench task on the scale model (m) where a profile gives no
 #: ``trench.length_max_m``; other rigs scale it by reach (:data:`SCALE_MODEL_REACH_M`).
 SCALE_MODEL_TRENCH_LENGTH_MAX_M = 20.0
+#: The upper structure's inertia about the swing axis (kg m^2) where ``[swing]`` gives no
+#: ``upper_inertia_kgm2``: the field excavator's (a 6-t class machine, assumed).
+DEFAULT_SWING_UPPER_INERTIA_KGM2 = 4600.0
+#: Oil volume of each of the swing motor's two lines (m^3) where ``[swing]`` gives no
+#: ``motor_line_volume_l``: the field excavator's 2 L (assumed).
+DEFAULT_SWING_MOTOR_LINE_VOLUME_M3 = 2e-3
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,17 +82,31 @@ class Link:
 
 @dataclass(frozen=True, slots=True)
 class Swing:
-    """Swing joint and the boom foot's offsets from the swing axis (Zhao Table I).
+    """Swing joint, the boom foot's offsets from the swing axis (Zhao Table I) and the constants
+    of the swing's dynamics (:data:`SWING_PLANT_KEYS`).
 
     Attributes:
         joint: Limits of the swing joint theta0 (about the vertical axis).
         base_offset_m: a1, horizontal distance from the swing axis to the boom foot pin.
         base_height_m: d1, height of the boom foot pin above the swing frame origin.
+        upper_inertia_kgm2: Inertia of the upper structure (cab, engine, counterweight) about
+            the swing axis, arm excluded; > 0. Not part of :attr:`Rig.planning_fingerprint`.
+        motor_line_volume_m3: Oil volume of each of the hydraulic swing motor's two lines
+            (motor, line and valve section); > 0, set only on a hydraulic rig (the default,
+            unused, on an electric one). Not part of :attr:`Rig.planning_fingerprint`.
     """
 
     joint: Joint
     base_offset_m: float
     base_height_m: float
+    upper_inertia_kgm2: float = DEFAULT_SWING_UPPER_INERTIA_KGM2
+    motor_line_volume_m3: float = DEFAULT_SWING_MOTOR_LINE_VOLUME_M3
+
+
+#: The fields of :class:`Swing` that describe the swing's dynamics, read by the HIL's swing plant
+#: and what is tuned against it; no plan depends on them, so :attr:`Rig.planning_fingerprint`
+#: leaves them out.
+SWING_PLANT_KEYS: tuple[str, ...] = ("upper_inertia_kgm2", "motor_line_volume_m3")
 
 
 @dataclass(frozen=True, slots=True)
@@ -373,7 +393,7 @@ class Rig:
         ground_y_m: Height of the ground the machine stands on, in the arm frame.
         joints: Arm joints (boom, stick, bucket).
         links: Arm links, same order.
-        swing: Swing joint and base offsets, or None for a planar rig.
+        swing: Swing joint, base offsets and dynamics constants, or None for a planar rig.
         bucket: Bucket dimensions.
         soil: Soil model parameters.
         cylinders: Cylinder and linkage geometry.
@@ -450,13 +470,18 @@ class Rig:
 
         Geometry, limits, masses, ground, bucket, soil and the planning thresholds, as canonical
         JSON (floats in their exact repr); not the name, sources, cylinders, CAN, drive or actuator
-        settings. A model card records it, so a network trained for other values is refused
-        even when the profile keeps its name.
+        settings, nor the swing's plant constants (:data:`SWING_PLANT_KEYS`). A model card
+        records it, so a network trained for other values is refused even when the profile
+        keeps its name.
         """
         import dataclasses
         import hashlib
         import json
 
+        swing = dataclasses.asdict(self.swing) if self.swing is not None else None
+        if swing is not None:
+            for key in SWING_PLANT_KEYS:
+                del swing[key]
         data = {
             key: dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value
             for key, value in (
@@ -464,7 +489,7 @@ class Rig:
                 ("ground_y_m", self.ground_y_m),
                 ("joints", [dataclasses.asdict(j) for j in self.joints]),
                 ("links", [dataclasses.asdict(lk) for lk in self.links]),
-                ("swing", self.swing),
+                ("swing", swing),
                 ("bucket", self.bucket),
                 ("soil", self.soil),
                 ("planning", self.planning),

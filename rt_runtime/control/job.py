@@ -11,7 +11,9 @@ with its cycle from this dig's exit, where the arm holds (at rest) until the pla
 Where no dig follows (the session has none left, ``max_digs`` digs ran, the planner failed)
 the arm streams the plan's exit moves (lift out, dump to the home pose), then the job settles
 at rest and ends. A dig cut short by a stop is not recorded: a restart plans it again from the
-session's state.
+session's state. A prescribed path whose motions are steps (a taught trench's cycles,
+:attr:`~rt_runtime.control.planner_worker.PathJob.steps`) records each step when its last
+sample is sent, the same way; a step cut short is not recorded and a restart streams it again.
 
 Each update, on the feedback answering this cycle's SYNC:
 
@@ -303,8 +305,8 @@ class _Planning:
             first, last = self.sync_ranges.get(reply.index, (-1, -1))
             return DigRecord(
                 index=reply.index,
-                dig_type=dig.dig_type.name.lower() if dig is not None else "",
-                T_s=dig.T_s if dig is not None else math.nan,
+                dig_type=dig.dig_type.name.lower() if dig is not None else reply.step,
+                T_s=dig.T_s if dig is not None else reply.duration_s,
                 plan_us=plan.plan_us if plan is not None else math.nan,
                 planned_volume_m3=dig.volume_m3 if dig is not None else math.nan,
                 measured_volume_m3=reply.measured_volume_m3,
@@ -722,7 +724,9 @@ class JobController:
         return True
 
     def _finish_motion(self, sync_count: int) -> None:
-        """The current motion sent its end pose: hold it; a dig's feedback ends one SYNC later."""
+        """The current motion sent its end pose: hold it; a dig's feedback ends one SYNC later,
+        a path's step (:attr:`~rt_runtime.control.planner_worker.PathJob.steps`) is recorded
+        now."""
         stream = self.stream
         assert stream is not None and stream.current is not None
         motion = stream.current
@@ -730,6 +734,11 @@ class JobController:
         stream.hold_s[:] = motion.stroke_m[-1]
         if stream.phase is Phase.DIG:
             self.collector.last = sync_count + 1
+        elif motion.phase is Phase.PATH and motion.dig_index >= 0:
+            plan = self.planning
+            plan.sync_ranges[motion.dig_index] = (-1, sync_count + 1)
+            plan.record_out = True
+            plan.link.request_record(self.collector.buf[:0], False)
         stream.current = None
         stream.segment = -1
 

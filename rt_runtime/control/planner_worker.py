@@ -174,17 +174,24 @@ class _Ahead:
 class Recorded:
     """An executed dig recorded into the session.
 
+    A path job's step (:attr:`PathJob.steps`) is recorded the same way: ``index`` the step's,
+    no material (NaN), ``state`` ``{"steps_done": index + 1}``.
+
     Attributes:
         index: Dig index.
         measured_volume_m3: Material the measured path removed from the session's material.
         tip_path_m: Measured tip path, work-site frame, ``(n, 2)``.
         state: ``TrenchSession.state()`` after the record (JSON-able).
+        step: A path step's kind (its record's ``dig_type``); empty for a dig.
+        duration_s: A path step's length (s); NaN for a dig (its plan has it).
     """
 
     index: int
     measured_volume_m3: float
     tip_path_m: FloatArray
     state: dict[str, Any]
+    step: str = ""
+    duration_s: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)
@@ -294,11 +301,25 @@ class PathJob:
             spline through waypoints, Zhao eq 3, whose jerk is piecewise constant and
             unbounded by its planner): :meth:`check` leaves the jerk to the limit guard,
             which streams such a path within the jerk limits and trails it where it must.
+        steps: Each motion is a step of a longer job (a taught trench's cycles) that the
+            executor records when it has streamed it to its end (a :class:`Recorded` with
+            ``state = {"steps_done": n}``), so a job cut short resumes at the step it was in.
+            Motion ``i`` is step ``first_step + i``, named :attr:`step_name` in its record.
+        first_step: The first motion's step index (a resumed job's steps done).
+        step_name: The steps' kind in their records (the record's ``dig_type``).
+        retreat: The move the arm makes first, from the pose it holds (axis order, rad),
+            before the CONNECT move to the first motion: a motion starting at that pose, or
+            None (connect straight). A taught trench resumed with the bucket in the ground
+            lifts it out this way (:func:`rt_runtime.control.taught_path.lift_out`).
     """
 
     motions: tuple[JointMotion, ...]
     name: str = "path"
     jerk_by_guard: bool = False
+    steps: bool = False
+    first_step: int = 0
+    step_name: str = "step"
+    retreat: Callable[[FloatArray], JointMotion | None] | None = None
 
     def __post_init__(self) -> None:
         if len(self.motions) == 0:
@@ -815,8 +836,9 @@ class PathLink(_AnsweredLink):
     """The planner link of a :class:`PathJob`: hands out its motions once (inline, any clock).
 
     The first :meth:`request_plan` is answered with a :class:`PathPlan`; a later one with an
-    empty plan (nothing left); :meth:`request_record` with a :class:`PlannerError` (a path has no
-    digs to record; the executor never asks).
+    empty plan (nothing left). :meth:`request_record` records the next step of a job with
+    :attr:`PathJob.steps` (the executor asks as each step's motion ends, in order), and is
+    answered with a :class:`PlannerError` for any other path (it has nothing to record).
 
     Args:
         job: The path.
@@ -830,6 +852,7 @@ class PathLink(_AnsweredLink):
         self.rig = rig
         self.period_s = period_s
         self._handed_out = False
+        self._next_step = job.first_step
 
     def request_plan(self, q_from_rad: FloatArray | None) -> None:
         """Queue the path's motions (first request) or an empty plan (later ones)."""
@@ -837,30 +860,60 @@ class PathLink(_AnsweredLink):
         self._requests.append(("plan", q))
 
     def request_record(self, strokes_m: FloatArray, plan_next: bool) -> None:
-        """A path records nothing: answered with a :class:`PlannerError`."""
+        """Record the next step (a path with steps), else answered with a
+        :class:`PlannerError`."""
         self._requests.append(("record",))
 
     def _answer(self, request: tuple[Any, ...]) -> None:
+        job = self.job
         if request[0] == "record":
-            self._replies.append(PlannerError("a path job has no digs to record"))
+            self._replies.append(self._record())
             return
         t0 = time.perf_counter()
-        motions = () if self._handed_out else self.job.motions
+        motions = () if self._handed_out else job.motions
         self._handed_out = True
         sampled: tuple[SampledMotion, ...] = ()
         if self.rig is not None and self.period_s is not None and motions:
             rig, period = self.rig, self.period_s
             try:
                 tables = [
-                    sample_motion(rig, period, Phase.PATH, m.duration_s, m.sample)
-                    for m in motions
+                    sample_motion(
+                        rig,
+                        period,
+                        Phase.PATH,
+                        m.duration_s,
+                        m.sample,
+                        dig_index=job.first_step + i if job.steps else -1,
+                    )
+                    for i, m in enumerate(motions)
                 ]
-                sampled = tuple(chain(rig, period, request[1], tables)[0])
+                at = request[1]
+                back = None if at is None or job.retreat is None else job.retreat(at)
+                if back is not None:
+                    tables.insert(
+                        0,
+                        sample_motion(rig, period, Phase.CONNECT, back.duration_s, back.sample),
+                    )
+                sampled = tuple(chain(rig, period, at, tables)[0])
             except ExcavatorRtError as exc:
                 self._replies.append(PlannerError(str(exc)))
                 return
-        self._replies.append(
-            PathPlan(motions, self.job.name, (time.perf_counter() - t0) * 1e6, sampled)
+        self._replies.append(PathPlan(motions, job.name, (time.perf_counter() - t0) * 1e6, sampled))
+
+    def _record(self) -> Recorded | PlannerError:
+        """The next step's record (see :attr:`PathJob.steps`)."""
+        job = self.job
+        i = self._next_step - job.first_step
+        if not job.steps or not 0 <= i < len(job.motions):
+            return PlannerError(f"path job {job.name!r} has no step {self._next_step} to record")
+        self._next_step += 1
+        return Recorded(
+            index=job.first_step + i,
+            measured_volume_m3=math.nan,
+            tip_path_m=np.zeros((0, 2)),
+            state={"steps_done": job.first_step + i + 1},
+            step=job.step_name,
+            duration_s=float(job.motions[i].duration_s),
         )
 
 

@@ -5,7 +5,9 @@ A job is a trench task to dig: its task (the resolved numbers), the one-shot pla
 planner session's state after the last dig (``TrenchSession.state()``), from which a restarted
 daemon resumes at the next undone dig. A taught job (a rig with swing: ``job submit --teach
 DIR``) has ``taught``, the path of its taught trench (copied into the state directory when it
-was submitted) and the task ``{"name": "taught"}``; it runs whole, from its start, each time.
+was submitted) and the task ``{"name": "taught"}``; each of its cycles streamed to its end is
+one of its ``digs`` (``dig_type`` ``"cycle"``, volumes null, ``session_state``
+``{"steps_done": n}``), and a restart resumes it at its first undone cycle.
 
 Store format (``<state_dir>/jobs.json``, UTF-8 JSON)::
 

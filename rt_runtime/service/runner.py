@@ -75,13 +75,14 @@ from rt_runtime.control.manager import ControllerManager, executor_telemetry
 from rt_runtime.control.planner_worker import MODELS_CHANGED_EXIT, PathLink, ProcessPlanner
 from rt_runtime.control.rt import RtSettings, apply_rt, restore_rt
 from rt_runtime.control.setpoints import Phase
-from rt_runtime.control.taught_path import load_taught_path
+from rt_runtime.control.taught_path import taught_path
 from rt_runtime.control.telemetry import Telemetry
 from rt_runtime.errors import CommunicationError, ConfigurationError, ExcavatorRtError
 from rt_runtime.planning.trench import TrenchPlanner, TrenchSession, make_task
 from rt_runtime.service.config import DaemonConfig
 from rt_runtime.service.jobstore import ACTIVE, DIG_KEYS, Job, JobError, JobStatus, JobStore
 from rt_runtime.service.preflight import loop_rt_settings, timing_self_test
+from rt_runtime.teach import load_taught
 
 if TYPE_CHECKING:
     from rt_runtime.planning.trench import TrenchTask
@@ -340,9 +341,15 @@ class _Preparation:
             records = self.records
             link: ProcessPlanner | PathLink
             if job.taught is not None:
-                # A taught trench runs whole from its start (a resume starts it again): the
-                # path job connects the held pose to its first pose.
-                path, _ = load_taught_path(job.taught, rig)
+                # A taught trench resumes at its first undone cycle (each cycle streamed to
+                # its end is a dig of the job); the path lifts the bucket out of the ground
+                # and connects the held pose to that cycle's start.
+                taught = load_taught(job.taught, rig)
+                if done >= taught.n_cycles:
+                    r.store.set_status(job.id, JobStatus.DONE)
+                    r.job_prepared(None)
+                    return
+                path = taught_path(taught, rig, done)
                 path.check(rig)
                 link = PathLink(path, rig, period)
             else:
@@ -382,11 +389,19 @@ class _Preparation:
         while True:
             job_id, rec = self.records.get()
             try:
-                fields = {k: getattr(rec, k) for k in DIG_KEYS}
+                # A taught cycle has no material accounting: its volumes are null.
+                fields = {
+                    k: None if isinstance(v, float) and math.isnan(v) else v
+                    for k in DIG_KEYS
+                    for v in (getattr(rec, k),)
+                }
                 fields["planned_ahead"] = rec.planned_ahead
                 store.record_dig(job_id, fields, rec.session_state)
             except Exception:  # a bug must not end the thread silently
                 log.exception("job %d: dig %d not recorded", job_id, rec.index)
+                continue
+            if rec.dig_type == "cycle":
+                log.info("job %d: taught cycle %d done (%.1f s)", job_id, rec.index + 1, rec.T_s)
                 continue
             log.info(
                 "job %d: dig %d done (%s, planned %.2f L, measured %.2f L; planned in %.0f ms%s)",

@@ -49,6 +49,7 @@ from rt_runtime.rig import Rig
 
 __all__ = [
     "GLITCH_MM",
+    "GLITCH_SWING_MRAD",
     "TRUTH_ROWS",
     "FaultKind",
     "HilCore",
@@ -174,6 +175,12 @@ _DRIVE_EMCY = {
 }
 #: An encoder glitch's default jump (mm).
 GLITCH_MM = 8.0
+#: An encoder glitch's default jump on the swing (mrad, a thousandth of the swing drive's bus
+#: unit as a mm is the cylinders'): 5.7 deg. The master refuses a report that jumped further
+#: than twice the velocity limit allows since the last good one, a bound that grows with every
+#: refused cycle: at 2 ms and the field excavator's 70 deg/s it passes 50 mrad after the 10
+#: stale cycles that stop a job, so a smaller jump is taken as real before then.
+GLITCH_SWING_MRAD = 100.0
 
 
 class _ShiftedLoad:
@@ -619,8 +626,8 @@ class HilCore:
         Args:
             kind: A drive fault (``kind.layer == "drive"``).
             axis: The node's axis (0 boom, 1 stick, 2 bucket, 3 swing on a rig with swing).
-            param: The kind's parameter (the glitch in mm, default :data:`GLITCH_MM`); unused
-                by the others.
+            param: The kind's parameter (the glitch in mm, default :data:`GLITCH_MM`; on the
+                swing in mrad, default :data:`GLITCH_SWING_MRAD`); unused by the others.
             now_s: The HIL's clock (a reboot's boot-up frame is stamped with it).
 
         Returns:
@@ -649,7 +656,8 @@ class HilCore:
         elif kind is FaultKind.DRIVE_REBOOT:
             return [] if faults.silent else node.firmware.power_cycle(now_s)
         elif kind is FaultKind.ENCODER_GLITCH:
-            faults.report_offset_m = (GLITCH_MM if param is None else float(param)) * 1e-3
+            default = GLITCH_SWING_MRAD if axis == 3 else GLITCH_MM
+            faults.report_offset_m = (default if param is None else float(param)) * 1e-3
         else:
             faults.rock_direction = self._rock_direction(axis)
         return []

@@ -27,13 +27,21 @@ import pytest
 
 from firmware_models.drive import DeviceState, DriveFirmware
 from hil_sim.busfaults import BusFaults
-from hil_sim.harness.campaign import CASE_TASK, RULES, Case, matrix, run_campaign
+from hil_sim.harness.campaign import (
+    CASE_TASK,
+    PLANNER_KINDS,
+    RULES,
+    Case,
+    matrix,
+    run_campaign,
+)
 from hil_sim.harness.cli import parse_fault
 from hil_sim.harness.lockstep import LockstepHil
 from hil_sim.sim import FaultKind, HilCore
 from rt_runtime.canbus import TPDO1, CanMaster
 from rt_runtime.canbus.inprocess import ChannelBus
 from rt_runtime.control.hardware import DriveInterface
+from rt_runtime.errors import ConfigurationError
 from rt_runtime.planning.trench import TrenchPlanner
 from rt_runtime.rig import Rig, load_rig
 
@@ -232,6 +240,45 @@ def test_the_matrix_covers_every_kind_on_every_target() -> None:
     cells = {(c.kind, c.target) for c in cases}
     assert cells == {(k, t) for k in FaultKind for t in k.targets}
     assert len(matrix(axes=["stick"], seeds=1)) < len(matrix(seeds=1))
+
+
+def test_on_a_rig_with_swing_the_swing_is_a_target_and_the_planner_kinds_are_left_out() -> None:
+    cases = matrix(seeds=1, swing=True)
+    cells = {(c.kind, c.target) for c in cases}
+    assert cells == {
+        (k, t) for k in FaultKind if k not in PLANNER_KINDS for t in k.swing_targets
+    }
+    assert (FaultKind.OVERCURRENT, "swing") in cells
+    assert {c.target for c in matrix(axes=["swing"], seeds=1, swing=True)} <= {
+        "swing",
+        "bus",
+        "host",
+    }
+    with pytest.raises(ConfigurationError, match="no planner process"):
+        matrix([FaultKind.PLANNER_KILLED], seeds=1, swing=True)
+    with pytest.raises(ConfigurationError, match="swing: the rig has boom, stick, bucket"):
+        matrix(axes=["swing"], seeds=1)
+
+
+def test_a_swing_campaign_stops_every_fault_on_the_swing_drive_safely_and_resumes() -> None:
+    """The field excavator's taught trench (one cycle: the swing to the dump 3.1-4.7 s in, and
+    back 5.9-7 s) with a fault on its swing drive, and the daemon's crash, on four axes."""
+    cases = [
+        Case(0, FaultKind.OVERCURRENT, "swing", 4.0, 0, digs=1),
+        Case(1, FaultKind.ROCK, "swing", 3.4, 1, digs=1),
+        Case(2, FaultKind.ENCODER_GLITCH, "swing", 6.2, 2, digs=1),
+        Case(3, FaultKind.DAEMON_CRASH, "host", 3.8, 3, digs=1),
+    ]
+    report = run_campaign(cases, "field_excavator", jobs=2)
+    for row in report["cases"]:
+        assert not row["error"], row
+        assert row["violations"] == [], row
+        assert row["outcome"] == "stopped" and row["resumed"] and not row["lost_job"], row
+        assert row["detection_s"] is not None and row["detection_s"] <= row["bound_s"], row
+        assert row["digs"] == 1 and row["safe"], row
+    # The three stops the master commanded (the crashed daemon commands none) within limits.
+    peaks = [r["stop_peak"] for r in report["cases"] if r["stop_peak"].get("v") is not None]
+    assert len(peaks) == 3 and all(p[k] <= 1.0 for p in peaks for k in ("v", "a", "j"))
 
 
 # -- the campaign, one case of every kind -----------------------------------------------------

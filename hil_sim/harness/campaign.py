@@ -10,7 +10,10 @@ A *case* is one fault kind on one target at one time. It runs the product's own 
 :class:`~rt_runtime.service.runner.RigRunner` (the daemon's runner: boot, hold, job, latch, reset,
 resume) on a :class:`~hil_sim.harness.lockstep.LockstepHil` (simulated time, deterministic),
 with a job store in a temporary state directory and a short job (:data:`CASE_TASK`, two digs by
-default).
+default). On a rig with swing (``--rig field_excavator``) the job is a taught trench of as many
+cycles (:func:`taught_case_job`, taught once per campaign from the simulated operator), each
+cycle a dig of the job; the swing is a target as the cylinders are, and the kinds that strike
+the planner process (:data:`PLANNER_KINDS`) are left out: a taught job has none.
 The fault is switched on ``at_s`` seconds after the job's first commanded motion, on the
 runner's own thread between two cycles (:class:`_CaseClock`), so nothing races the loop. Then:
 
@@ -74,6 +77,7 @@ from firmware_models.drive import DeviceState
 from hil_sim.harness.lockstep import LockstepHil
 from hil_sim.harness.scenario import STALL_MS
 from hil_sim.sim import FaultKind
+from rt_runtime import axes as rig_axes
 from rt_runtime.canbus.inprocess import ChannelBus
 from rt_runtime.canbus.pdo import RPDO1, RPDO2
 from rt_runtime.control.executor import ExecutorConfig
@@ -85,10 +89,12 @@ from rt_runtime.rig import Rig, load_rig
 from rt_runtime.service.config import DaemonConfig, parse_config
 from rt_runtime.service.jobstore import JobStatus, JobStore
 from rt_runtime.service.runner import PLANNER_CHECK_CYCLES, RigRunner
+from rt_runtime.teach import load_taught
 
 __all__ = [
     "AXES",
     "CASE_TASK",
+    "PLANNER_KINDS",
     "RULES",
     "Case",
     "CaseResult",
@@ -98,10 +104,15 @@ __all__ = [
     "matrix",
     "run_campaign",
     "run_case",
+    "taught_case_job",
     "wait_for",
 ]
 
 AXES = ("boom", "stick", "bucket")
+#: The kinds that strike the planner process: a rig with swing runs taught jobs, which have none.
+PLANNER_KINDS = (FaultKind.PLANNER_KILLED, FaultKind.MODEL_CHANGED)
+#: The operator seeds whose demonstrations teach a swing rig's case job.
+TAUGHT_SEEDS = (0, 1, 2)
 #: The job of every case: scale model task A's trench (its digs: :attr:`Case.digs`).
 CASE_TASK: dict[str, Any] = {
     "name": "campaign",
@@ -357,23 +368,41 @@ def matrix(
     seeds: int = 1,
     seed: int = 0,
     digs: int = 2,
+    swing: bool = False,
 ) -> list[Case]:
     """The cases: every kind on every target it takes (axes filtered by ``axes``; ``bus`` and
-    ``host`` always), ``seeds`` times each at a time drawn from :data:`AT_RANGE_S`.
+    ``host`` always), ``seeds`` times each at a time drawn from :data:`AT_RANGE_S`. With
+    ``swing`` (a rig with swing, whose case job is a taught trench of ``digs`` cycles) the swing
+    is an axis too and the :data:`PLANNER_KINDS` are left out (a taught job has no planner
+    process).
 
     Raises:
-        ConfigurationError: No case (a filter left nothing) or ``seeds`` below 1.
+        ConfigurationError: No case (a filter left nothing), ``seeds`` below 1, a planner kind
+            asked for on a rig with swing, or the swing asked for on a planar rig.
     """
     if seeds < 1:
         raise ConfigurationError(f"--seeds {seeds} must be >= 1")
+    names = (*AXES, "swing") if swing else AXES
+    if axes is not None and (bad := [a for a in axes if a not in names]):
+        raise ConfigurationError(
+            f"axes {', '.join(bad)}: the rig has {', '.join(names)}"
+        )
     rng = random.Random(seed)
     chosen = list(RULES) if kinds is None else list(kinds)
-    wanted = set(AXES if axes is None else axes)
+    if swing:
+        asked = [k.label for k in chosen if k in PLANNER_KINDS and kinds is not None]
+        if asked:
+            raise ConfigurationError(
+                f"{', '.join(asked)}: a rig with swing runs taught jobs, which have no planner "
+                "process to strike"
+            )
+        chosen = [k for k in chosen if k not in PLANNER_KINDS]
+    wanted = set(names if axes is None else axes)
     cases: list[Case] = []
     for s in range(seeds):
         for kind in chosen:
-            for target in kind.targets:
-                if target in AXES and target not in wanted:
+            for target in kind.swing_targets if swing else kind.targets:
+                if target in names and target not in wanted:
                     continue
                 at = round(rng.uniform(*AT_RANGE_S), 3)
                 cases.append(Case(len(cases), kind, target, at, seed * 1000 + s, digs=digs))
@@ -383,6 +412,13 @@ def matrix(
 
 
 # -- one case -----------------------------------------------------------------------------------
+
+
+def _axis_nodes(rig: Rig) -> list[int]:
+    """The drives' node ids in axis order (boom, stick, bucket, then the swing: the order of
+    the stroke limits and the truth; the profile's ``can.node_ids`` may list the swing first)."""
+    ids = dict(rig.can.node_ids)
+    return [ids[name] for name in rig_axes.names(rig)]
 
 
 def _target_um(data: bytes) -> int:
@@ -491,7 +527,8 @@ class _CaseClock:
                 self.undo = _change_model(self.model_dir)
                 wait_for(lambda: _dead(watched), "the planner seeing its model changed", 10.0)
             else:
-                axis = AXES.index(case.target) if case.target in AXES else -1
+                names = rig_axes.names(self.hil.core.rig)
+                axis = names.index(case.target) if case.target in names else -1
                 self.hil.inject(kind, axis, case.param)
                 if kind is FaultKind.ROCK:
                     self.rock_direction = self.hil.core.nodes[axis].faults.rock_direction
@@ -552,27 +589,40 @@ def wait_for(pred: Callable[[], bool], what: str, limit_s: float = PHASE_WALL_S)
         time.sleep(0.002)
 
 
-def run_case(case: Case, rig_name: str = "scale_model") -> tuple[CaseResult, dict[str, Any]]:
-    """Run one case (see the module docstring).
+def run_case(
+    case: Case, rig_name: str = "scale_model", taught: str | None = None
+) -> tuple[CaseResult, dict[str, Any]]:
+    """Run one case (see the module docstring). On a rig with swing the job is the taught
+    trench ``taught`` (:func:`taught_case_job`), its cycles the digs.
 
     Returns:
         The result and its trace (``frames``: ``(t, cob, data)`` the master sent; ``truth``:
         SYNC times and true strokes) for the record of a failing case.
+
+    Raises:
+        ConfigurationError: A rig with swing and no taught job.
     """
     wall0 = time.monotonic()
     result = CaseResult(case)
     trace: dict[str, Any] = {}
     rig = load_rig(rig_name)
+    if rig.swing is not None and taught is None:
+        raise ConfigurationError(f"rig {rig.name} has a swing: its cases run a taught job")
     with tempfile.TemporaryDirectory(prefix="excavator-campaign-") as tmp:
         model_dir = None
         if case.kind is FaultKind.MODEL_CHANGED:  # the shipped models stay as they are
             model_dir = Path(tmp) / "models"
             shutil.copytree(DEFAULT_MODEL_DIR, model_dir)
-        planner = TrenchPlanner(rig, model_dir=model_dir)
+        planner: TrenchPlanner | None = None
+        if taught is None:
+            planner = TrenchPlanner(rig, model_dir=model_dir)
+            q0 = planner.home_pose_rad
+        else:
+            q0 = rig_axes.from_joint_order(rig, load_taught(taught, rig).q0_rad)
         cfg = lockstep_config(Path(tmp), rig_name, model_dir)
         rule = RULES[case.kind]
         result.bound_s = rule.bound(rig, cfg) if rule.bound is not None else math.nan
-        hil = LockstepHil(rig, planner.home_pose_rad, vcu=False, fault_seed=case.seed)
+        hil = LockstepHil(rig, q0, vcu=False, fault_seed=case.seed)
         monitor = ChannelBus(hil.channel, clock=hil.clock.now)
         clock = _CaseClock(hil, case, monitor)
         clock.model_dir = model_dir
@@ -593,7 +643,7 @@ def run_case(case: Case, rig_name: str = "scale_model") -> tuple[CaseResult, dic
             return new, again
 
         try:
-            _drive_case(case, result, runner, store, hil, clock, restart)
+            _drive_case(case, result, runner, store, hil, clock, restart, taught)
         except (TimeoutError, ConfigurationError) as exc:
             now = restarted[-1][0] if restarted else runner
             result.error = f"{type(exc).__name__}: {exc}; runner: {now.state()}"
@@ -617,8 +667,11 @@ def run_case(case: Case, rig_name: str = "scale_model") -> tuple[CaseResult, dic
                 clock.undo()
             store.close()
             truth = hil.core.truth()
-            trace = {"frames": clock.frames, "t_s": truth.t_s, "stroke_m": truth.stroke_m}
-            _check_stop(result, rig, cfg, clock, truth.t_s, truth.stroke_m)
+            stroke = truth.stroke_m
+            if truth.swing_rad is not None:  # the swing drive's position: the angle (rad)
+                stroke = np.column_stack((stroke, truth.swing_rad))
+            trace = {"frames": clock.frames, "t_s": truth.t_s, "stroke_m": stroke}
+            _check_stop(result, rig, cfg, clock, truth.t_s, stroke)
             result.wire = dict(hil.bus_faults.affected)
             monitor.shutdown()
             hil.close()
@@ -634,10 +687,14 @@ def _drive_case(
     hil: LockstepHil,
     clock: _CaseClock,
     restart: Callable[[], tuple[RigRunner, JobStore]],
+    taught: str | None = None,
 ) -> None:
     runner.start()
     wait_for(lambda: runner.health()[0], "the runner holding")
-    job = store.submit(dict(CASE_TASK), "pinn", max_digs=case.digs)
+    if taught is None:
+        job = store.submit(dict(CASE_TASK), "pinn", max_digs=case.digs)
+    else:
+        job = store.submit({}, "pinn", taught=taught)
     store.changed.set()
 
     def settled() -> bool:
@@ -735,7 +792,10 @@ def _crash_and_restart(
         ):
             result.detection_s = clock.now() - clock.injected_at
         if not math.isnan(result.detection_s):
-            peak = max(peak, float(np.max(np.abs(plant.stroke_rate_m_s) / rate_limit)))
+            rate = plant.stroke_rate_m_s
+            if hil.core.swing is not None:  # the swing's rate (rad/s) is its axis's
+                rate = np.append(rate, hil.core.swing.omega_rad_s)
+            peak = max(peak, float(np.max(np.abs(rate) / rate_limit)))
     result.plant_peak_v = peak
     if peak > 1.0 + PLANT_RATE_MARGIN:
         result.violations.append(f"the plant's stroke rate {peak:.3f} of the limit")
@@ -776,10 +836,12 @@ def _check_stop(
     period = cfg.loop.period_s
     t_detect = clock.injected_at + result.detection_s
     if result.case.kind in _SEEN_IN_MOTION:
-        window = ExecutorConfig(stale_cycles=cfg.stale_cycles).limits(rig).following_error_m
+        limits = ExecutorConfig(stale_cycles=cfg.stale_cycles).limits(rig)
+        swing = result.case.target == "swing"  # its own window, in rad
+        window = limits.swing_following_error_rad if swing else limits.following_error_m
         exposed = _exposed(clock, rig, result.case, clock.injected_at, window)
         result.detection_s = t_detect - max(clock.injected_at, min(exposed, t_detect))
-    nodes = [n for _, n in rig.can.node_ids]
+    nodes = _axis_nodes(rig)
     rpdo1 = {RPDO1.cob_id(n): i for i, n in enumerate(nodes)}
     rpdo2 = {RPDO2.cob_id(n): i for i, n in enumerate(nodes)}
     limits = StrokeLimits.from_rig(rig)
@@ -864,10 +926,11 @@ def _check_stop(
 
 def _exposed(clock: _CaseClock, rig: Rig, case: Case, t_s: float, window_m: float) -> float:
     """When a stuck axis could first show: the commanded stroke of the case's axis first more
-    than ``window_m`` (the following-error monitor's window) from where it was commanded at
-    ``t_s`` (for a rock: that far on into the rock); inf: never before the reset."""
-    nodes = [n for _, n in rig.can.node_ids]
-    axis = AXES.index(case.target)
+    than ``window_m`` (the following-error monitor's window, m; the swing's rad) from where it
+    was commanded at ``t_s`` (for a rock: that far on into the rock); inf: never before the
+    reset."""
+    nodes = _axis_nodes(rig)
+    axis = rig_axes.names(rig).index(case.target)
     cob_of_axis = RPDO1.cob_id(nodes[axis])
     way = clock.rock_direction
     first = math.nan
@@ -888,10 +951,37 @@ def _exposed(clock: _CaseClock, rig: Rig, case: Case, t_s: float, window_m: floa
 # -- the campaign -------------------------------------------------------------------------------
 
 
-def _run_one(args: tuple[Case, str, str | None]) -> dict[str, Any]:
-    case, rig_name, out = args
+def taught_case_job(rig: Rig, out_dir: Path, cycles: int) -> Path:
+    """The case job of a rig with swing: a taught trench of ``cycles`` cycles, taught from the
+    simulated operator's demonstrations (:data:`TAUGHT_SEEDS`, the pipeline's default
+    settings), written as ``teach --out`` writes it; returns its ``taught.json``.
+
+    Raises:
+        ConfigurationError, PlanningError: As ``teach`` (no swing, no plan).
+    """
+    from hil_sim.operator import demonstrate, write_csv
+    from rt_runtime.teach import pipeline
+    from rt_runtime.teach.command import teach_report
+    from rt_runtime.teach.demos import read_demo
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    records = []
+    for seed in TAUGHT_SEEDS:
+        path = out_dir / f"demo_{seed}.csv"
+        write_csv(demonstrate(rig, seed=seed), path)
+        records.append(read_demo(rig, path))
+    taught = pipeline.teach(rig, records, pipeline.TeachSettings(cycles=cycles))
+    report = teach_report(rig, records, taught, timing_ms={})
+    file = out_dir / "taught.json"
+    file.write_text(json.dumps(report, indent=1))
+    load_taught(file, rig)  # verified as the runner will load it
+    return file
+
+
+def _run_one(args: tuple[Case, str, str | None, str | None]) -> dict[str, Any]:
+    case, rig_name, out, taught = args
     try:
-        result, trace = run_case(case, rig_name)
+        result, trace = run_case(case, rig_name, taught)
     except Exception as exc:  # a bug in a case must not end the campaign: it is reported
         result, trace = CaseResult(case, error=f"{type(exc).__name__}: {exc}"), {}
     # The runner freezes the heap (gc.freeze) at its boots and jobs: what this case froze is
@@ -924,7 +1014,15 @@ def run_campaign(
     wall0 = time.monotonic()
     if out is not None:
         Path(out).mkdir(parents=True, exist_ok=True)
-    work = [(c, rig_name, out) for c in cases]
+    rig = load_rig(rig_name)
+    taught_dir = None
+    taught: dict[int, str] = {}
+    if rig.swing is not None:  # its cases run a taught trench, one per cycle count
+        taught_dir = tempfile.TemporaryDirectory(prefix="excavator-campaign-taught-")
+        for digs in sorted({c.digs for c in cases}):
+            where = Path(taught_dir.name) / f"cycles-{digs}"
+            taught[digs] = str(taught_case_job(rig, where, digs))
+    work = [(c, rig_name, out, taught.get(c.digs)) for c in cases]
     workers = max(1, min(jobs or os.cpu_count() or 1, len(work)))
     rows: list[dict[str, Any]] = []
     log = None if out is None else (Path(out) / "cases.jsonl").open("w")
@@ -959,6 +1057,8 @@ def run_campaign(
     finally:
         if log is not None:
             log.close()
+        if taught_dir is not None:
+            taught_dir.cleanup()
     kinds = sorted({c.kind.label for c in cases})
     stopped = [r for r in rows if r["outcome"] == "stopped"]
     detection: dict[str, dict[str, float | None]] = {}
@@ -1015,9 +1115,12 @@ def _kinds(text: str) -> list[FaultKind]:
 
 def _axes(text: str) -> list[str]:
     out = [w.strip() for w in text.split(",") if w.strip()]
-    bad = [a for a in out if a not in AXES]
+    allowed = (*AXES, "swing")
+    bad = [a for a in out if a not in allowed]
     if bad or not out:
-        raise argparse.ArgumentTypeError(f"--axes {text!r}; allowed: {', '.join(AXES)}")
+        raise argparse.ArgumentTypeError(
+            f"--axes {text!r}; allowed: {', '.join(allowed)} (swing on a rig with swing)"
+        )
     return out
 
 
@@ -1033,7 +1136,12 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--axes", type=_axes, default=None, help="comma-separated axes")
     p.add_argument("--seeds", type=int, default=10, help="times drawn per kind and target")
     p.add_argument("--seed", type=int, default=0, help="seed of the times and the wire")
-    p.add_argument("--digs", type=int, default=2, help="digs of each case's job")
+    p.add_argument(
+        "--digs",
+        type=int,
+        default=2,
+        help="digs of each case's job (on a rig with swing: cycles of its taught trench)",
+    )
     p.add_argument("--rig", default="scale_model", help="rig profile name or TOML file")
     p.add_argument("--jobs", type=int, default=None, help="worker processes (default: CPUs)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
@@ -1082,7 +1190,9 @@ def main(args: argparse.Namespace) -> int:
         rig = load_rig(args.rig)
         if args.digs < 1:
             raise ConfigurationError(f"--digs {args.digs} must be >= 1")
-        cases = matrix(args.kinds, args.axes, args.seeds, args.seed, args.digs)
+        cases = matrix(
+            args.kinds, args.axes, args.seeds, args.seed, args.digs, rig.swing is not None
+        )
     except ConfigurationError as exc:
         print(f"excavator-rt hil campaign: {exc}", file=sys.stderr)
         return 2

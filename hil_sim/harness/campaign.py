@@ -836,9 +836,9 @@ def _check_stop(
     period = cfg.loop.period_s
     t_detect = clock.injected_at + result.detection_s
     if result.case.kind in _SEEN_IN_MOTION:
-        limits = ExecutorConfig(stale_cycles=cfg.stale_cycles).limits(rig)
+        job_limits = ExecutorConfig(stale_cycles=cfg.stale_cycles).limits(rig)
         swing = result.case.target == "swing"  # its own window, in rad
-        window = limits.swing_following_error_rad if swing else limits.following_error_m
+        window = job_limits.swing_following_error_rad if swing else job_limits.following_error_m
         exposed = _exposed(clock, rig, result.case, clock.injected_at, window)
         result.detection_s = t_detect - max(clock.injected_at, min(exposed, t_detect))
     nodes = _axis_nodes(rig)

@@ -261,8 +261,9 @@ def test_a_taught_job_stopped_by_a_fault_resumes_at_its_cycle(
         assert final.status is JobStatus.DONE, final.fault
         assert [d["index"] for d in final.digs] == [0, 1, 2]
         # Out of the trench first: while the tip rose to the cycle's start height it kept its
-        # distance from the swing axis within 1 cm and the swing stood still (a joint move
-        # there strays 13 cm).
+        # distance from the swing axis within 5 cm and the swing stood still. The tip tracks
+        # the commanded vertical within this rig's tracking (tip error up to 37 mm on the
+        # taught trench); a joint move there strays 13 cm, no lift 1.5 m.
         truth = hil.core.truth()
         after = truth.t_s > truth.t_s[held]
         tip = kinematics.forward(rig, truth.q_rad[after])
@@ -270,12 +271,13 @@ def test_a_taught_job_stopped_by_a_fault_resumes_at_its_cycle(
         assert tip_held[1] < start_height - 0.5  # the stop left the bucket in the trench
         top = np.flatnonzero(tip[:, 1] >= start_height - 0.05)
         assert top.size
-        # The lift: from 2 cm above where the tip stood after the reset (the arm first settles
-        # on the commanded hold) to 5 cm below the cycle's start height.
-        base = int(np.flatnonzero(tip[: top[0], 1] < tip[0, 1] + 0.02)[-1]) + 1
+        # The lift: from 0.2 m above where the tip stood after the reset (past the pull onto
+        # the commanded hold, which the arm on its hydraulic hold may be a few cm off) to 5 cm
+        # below the cycle's start height.
+        base = int(np.flatnonzero(tip[: top[0], 1] < tip[0, 1] + 0.2)[-1]) + 1
         up = slice(base, int(top[0]) + 1)
-        assert tip[top[0], 1] - tip[base, 1] > 1.0
-        assert np.abs(tip[up, 0] - tip[base, 0]).max() < 0.01
+        assert tip[top[0], 1] - tip[base, 1] > 0.8
+        assert np.abs(tip[up, 0] - tip[top[0], 0]).max() < 0.05
         swing = truth.swing_rad
         assert swing is not None
         assert np.abs(swing[after][up] - swing[after][base]).max() < 0.01

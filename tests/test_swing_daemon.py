@@ -281,3 +281,57 @@ def test_a_taught_job_stopped_by_a_fault_resumes_at_its_cycle(
         swing = truth.swing_rad
         assert swing is not None
         assert np.abs(swing[after][up] - swing[after][base]).max() < 0.01
+
+
+def test_a_taught_job_shut_down_mid_cycle_resumes_there_after_a_restart(
+    tmp_path: Path, taught3_dir: Path
+) -> None:
+    """The daemon stopped (SIGTERM) in the second cycle and started again on its store: the
+    job resumes at the second cycle, the first kept and not dug again."""
+    cfg = lockstep_config(tmp_path, "field_excavator")
+    rig, _ = load_planning(cfg)
+    q0 = axes.from_joint_order(rig, load_taught(taught3_dir, rig).q0_rad)
+    with LockstepHil(rig, q0, vcu=False) as hil:
+        store = JobStore(cfg.paths.state_dir)
+        store.start()
+        clock = _Clock(hil)
+        runner = RigRunner(cfg, rig, None, hil.master_bus, store, clock)
+        svc = Service(cfg, rig, store, ControlServer(cfg.paths.socket, {}), runner)
+        runner.start()
+        _wait(lambda: runner.health()[0], "the runner holding")
+        job_id = svc.cmd_submit({"cmd": "submit", "teach": str(taught3_dir)})["job"]["id"]
+        marks: dict[str, float] = {}
+
+        def hook(now: float) -> None:
+            if "cycle1" not in marks and len(store.get(job_id).digs) >= 1:
+                marks["cycle1"] = now
+            elif "stop" not in marks and now >= marks.get("cycle1", np.inf) + 1.5:
+                marks["stop"] = now
+
+        clock.hook = hook
+        store.changed.set()
+        _wait(lambda: "stop" in marks, "the second cycle", 240.0)
+        clock.hook = None
+        assert runner.shutdown(30.0)
+        store.close()
+        stopped = JobStore(cfg.paths.state_dir)  # the store as the restarted daemon reads it
+        stopped.start()
+        job = stopped.get(job_id)
+        assert job.status is JobStatus.QUEUED and [d["index"] for d in job.digs] == [0]
+        again = RigRunner(cfg, rig, None, hil.master_bus, stopped, clock)
+        try:
+            again.start()
+            _wait(lambda: again.health()[0], "the restarted runner holding")
+            stopped.changed.set()
+            _wait(
+                lambda: stopped.get(job_id).status in (JobStatus.DONE, JobStatus.FAILED),
+                "the resumed job ending",
+                240.0,
+            )
+            final = stopped.get(job_id)
+            assert final.status is JobStatus.DONE, final.fault
+            assert [d["index"] for d in final.digs] == [0, 1, 2]
+            assert final.digs[0] == job.digs[0]  # the first cycle's record kept as it was
+        finally:
+            again.shutdown(30.0)
+            stopped.close()

@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -89,6 +90,27 @@ def taught_dir(tmp_path_factory: pytest.TempPathFactory, demo_files: list[str]) 
 @pytest.fixture(scope="module")
 def taught3_dir(tmp_path_factory: pytest.TempPathFactory, demo_files: list[str]) -> Path:
     return _teach(tmp_path_factory.mktemp("taught3"), demo_files, 3)
+
+
+def _into_second_cycle(
+    store: JobStore, job_id: int, into_s: float, act: Callable[[], None]
+) -> Callable[[float], None]:
+    """A clock hook that calls ``act`` once, ``into_s`` simulated seconds after the job's first
+    cycle was recorded (the second cycle under way)."""
+    marks: dict[str, float] = {}
+
+    def hook(now: float) -> None:
+        if "cycle1" not in marks and len(store.get(job_id).digs) >= 1:
+            marks["cycle1"] = now
+        elif "acted" not in marks and now >= marks.get("cycle1", np.inf) + into_s:
+            marks["acted"] = now
+            act()
+
+    return hook
+
+
+def _wait_job_end(store: JobStore, job_id: int, what: str) -> None:
+    _wait(lambda: store.get(job_id).status in (JobStatus.DONE, JobStatus.FAILED), what, 240.0)
 
 
 @contextlib.contextmanager
@@ -224,16 +246,9 @@ def test_a_taught_job_stopped_by_a_fault_resumes_at_its_cycle(
     with _service(tmp_path, taught3_dir) as (svc, store, hil, clock):
         runner = svc.runner
         job_id = svc.cmd_submit({"cmd": "submit", "teach": str(taught3_dir)})["job"]["id"]
-        marks: dict[str, float] = {}
-
-        def hook(now: float) -> None:
-            if "cycle1" not in marks and len(store.get(job_id).digs) >= 1:
-                marks["cycle1"] = now
-            elif "fault" not in marks and now >= marks.get("cycle1", np.inf) + into_cycle_s:
-                marks["fault"] = now
-                hil.inject(FaultKind.OVERCURRENT, 0)
-
-        clock.hook = hook
+        clock.hook = _into_second_cycle(
+            store, job_id, into_cycle_s, lambda: hil.inject(FaultKind.OVERCURRENT, 0)
+        )
         store.changed.set()
         _wait(lambda: bool(runner.fault()), "the fault", 240.0)
         _wait(lambda: runner.state().endswith("waiting for reset-fault"), "the latch")
@@ -252,11 +267,7 @@ def test_a_taught_job_stopped_by_a_fault_resumes_at_its_cycle(
         _wait(lambda: runner.resets_done >= number, "the reset")
         assert not runner.fault()
         store.changed.set()
-        _wait(
-            lambda: store.get(job_id).status in (JobStatus.DONE, JobStatus.FAILED),
-            "the resumed job ending",
-            240.0,
-        )
+        _wait_job_end(store, job_id, "the resumed job ending")
         final = store.get(job_id)
         assert final.status is JobStatus.DONE, final.fault
         assert [d["index"] for d in final.digs] == [0, 1, 2]
@@ -300,17 +311,10 @@ def test_a_taught_job_shut_down_mid_cycle_resumes_there_after_a_restart(
         runner.start()
         _wait(lambda: runner.health()[0], "the runner holding")
         job_id = svc.cmd_submit({"cmd": "submit", "teach": str(taught3_dir)})["job"]["id"]
-        marks: dict[str, float] = {}
-
-        def hook(now: float) -> None:
-            if "cycle1" not in marks and len(store.get(job_id).digs) >= 1:
-                marks["cycle1"] = now
-            elif "stop" not in marks and now >= marks.get("cycle1", np.inf) + 1.5:
-                marks["stop"] = now
-
-        clock.hook = hook
+        in_second = threading.Event()
+        clock.hook = _into_second_cycle(store, job_id, 1.5, in_second.set)
         store.changed.set()
-        _wait(lambda: "stop" in marks, "the second cycle", 240.0)
+        _wait(in_second.is_set, "the second cycle", 240.0)
         clock.hook = None
         assert runner.shutdown(30.0)
         store.close()
@@ -323,11 +327,7 @@ def test_a_taught_job_shut_down_mid_cycle_resumes_there_after_a_restart(
             again.start()
             _wait(lambda: again.health()[0], "the restarted runner holding")
             stopped.changed.set()
-            _wait(
-                lambda: stopped.get(job_id).status in (JobStatus.DONE, JobStatus.FAILED),
-                "the resumed job ending",
-                240.0,
-            )
+            _wait_job_end(stopped, job_id, "the resumed job ending")
             final = stopped.get(job_id)
             assert final.status is JobStatus.DONE, final.fault
             assert [d["index"] for d in final.digs] == [0, 1, 2]

@@ -390,11 +390,7 @@ class _Preparation:
             job_id, rec = self.records.get()
             try:
                 # A taught cycle has no material accounting: its volumes are null.
-                fields = {
-                    k: None if isinstance(v, float) and math.isnan(v) else v
-                    for k in DIG_KEYS
-                    for v in (getattr(rec, k),)
-                }
+                fields = {k: _null_if_nan(getattr(rec, k)) for k in DIG_KEYS}
                 fields["planned_ahead"] = rec.planned_ahead
                 store.record_dig(job_id, fields, rec.session_state)
             except Exception:  # a bug must not end the thread silently
@@ -413,6 +409,11 @@ class _Preparation:
                 rec.plan_us / 1e3,
                 ", ahead" if rec.planned_ahead else "",
             )
+
+
+def _null_if_nan(value: Any) -> Any:
+    """A record's value for the store (JSON has no NaN): None for a NaN float."""
+    return None if isinstance(value, float) and math.isnan(value) else value
 
 
 class RigRunner:

@@ -414,13 +414,6 @@ def matrix(
 # -- one case -----------------------------------------------------------------------------------
 
 
-def _axis_nodes(rig: Rig) -> list[int]:
-    """The drives' node ids in axis order (boom, stick, bucket, then the swing: the order of
-    the stroke limits and the truth; the profile's ``can.node_ids`` may list the swing first)."""
-    ids = dict(rig.can.node_ids)
-    return [ids[name] for name in rig_axes.names(rig)]
-
-
 def _target_um(data: bytes) -> int:
     """An RPDO1's target stroke (um)."""
     return int.from_bytes(data[:4], "little", signed=True)
@@ -841,7 +834,7 @@ def _check_stop(
         window = job_limits.swing_following_error_rad if swing else job_limits.following_error_m
         exposed = _exposed(clock, rig, result.case, clock.injected_at, window)
         result.detection_s = t_detect - max(clock.injected_at, min(exposed, t_detect))
-    nodes = _axis_nodes(rig)
+    nodes = [n.node_id for n in clock.hil.core.nodes]  # axis order, as the limits
     rpdo1 = {RPDO1.cob_id(n): i for i, n in enumerate(nodes)}
     rpdo2 = {RPDO2.cob_id(n): i for i, n in enumerate(nodes)}
     limits = StrokeLimits.from_rig(rig)
@@ -929,7 +922,7 @@ def _exposed(clock: _CaseClock, rig: Rig, case: Case, t_s: float, window_m: floa
     than ``window_m`` (the following-error monitor's window, m; the swing's rad) from where it
     was commanded at ``t_s`` (for a rock: that far on into the rock); inf: never before the
     reset."""
-    nodes = _axis_nodes(rig)
+    nodes = [n.node_id for n in clock.hil.core.nodes]  # axis order, as the limits
     axis = rig_axes.names(rig).index(case.target)
     cob_of_axis = RPDO1.cob_id(nodes[axis])
     way = clock.rock_direction

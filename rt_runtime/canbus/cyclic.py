@@ -297,9 +297,10 @@ class CyclicExchange:
         rebooted = any(e.kind is HeartbeatEventKind.BOOT_UP for e in fb.heartbeat_events)
         states = fb.state.tolist()
         status = CycleStatus.OK
-        if fb.stale.any():
+        missed = fb.stale.tolist().count(True)
+        if missed:
             status = CycleStatus.STALE
-            fb.counts.missed_tpdo1 += int(fb.stale.sum())
+            fb.counts.missed_tpdo1 += missed
         if any(not e.is_reset for e in fb.emcys):
             status = CycleStatus.EMCY
         if self.expect_enabled and any(x != _ENABLED for x in states):

@@ -238,8 +238,12 @@ class HoldController:
             what = self._describe(status) if self._describe is not None else status.name
             self.fault = f"while holding: {what}"
             cmd.quick_stop = True
-        self.settled = feedback.fresh and bool(
-            (np.abs(feedback.stroke_m - cmd.stroke_m) <= self.settled_m).all()
+        # Plain Python over the handful of axes (numpy's reductions cost more per call); a
+        # NaN stroke (a stale axis) is not settled.
+        tol = self.settled_m
+        self.settled = feedback.fresh and all(
+            abs(x - c) <= tol
+            for x, c in zip(feedback.stroke_m.tolist(), cmd.stroke_m.tolist(), strict=True)
         )
         return cmd, ControllerStatus.RUNNING
 

@@ -268,9 +268,10 @@ class DriveInterface:
         raw = cycle.read_feedback(t0, self.read_timeout_s)
         t1 = clock.now()
         out = self.feedback
-        fresh = not raw.stale.any()
+        # Plain Python over the handful of axes: numpy's reductions cost more per call.
+        fresh = True not in raw.stale.tolist()
         out.fresh = fresh
-        rtt = float(raw.rx_timestamp_s.max()) - cycle.sync_stamp_s if fresh else math.nan
+        rtt = max(raw.rx_timestamp_s.tolist()) - cycle.sync_stamp_s if fresh else math.nan
         out.rtt_s = rtt if rtt >= 0.0 else math.nan
         cycle.heartbeat(clock.now())
         out.sync_count = raw.sync_count

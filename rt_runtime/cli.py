@@ -21,6 +21,7 @@ import numpy as np
 from rt_runtime import __version__
 from rt_runtime.errors import ConfigurationError, ExcavatorRtError
 from rt_runtime.rig import DEFAULT_RIG, Rig, load_rig, profile_names
+from rt_runtime.service.config import PLANNERS
 
 if TYPE_CHECKING:
     from rt_runtime.bench import LongTrenches, RandomSuite, TaskPlanBench, TrenchBench
@@ -1269,7 +1270,7 @@ def build_parser() -> argparse.ArgumentParser:
     pl = sub.add_parser("plan", help="plan a trench task dig by dig (Yao Fig. 5, Table 3); exit 1 when the plan is incomplete")
     pl.add_argument("--task", required=True, help="A, B, C, D (Yao Table 3) or a TOML file")
     pl.add_argument("--rig", default=DEFAULT_RIG)
-    pl.add_argument("--planner", choices=("pinn", "pso", "min_torque"), default="pinn")
+    pl.add_argument("--planner", choices=PLANNERS, default="pinn")
     pl.add_argument("--models", help="model directory (default: the shipped onnx/)")
     pl.add_argument("--plot", metavar="FILE.png", help="design contour, tip paths, dug profile (Yao Fig. 14)")
     pl.add_argument("--json", action="store_true")

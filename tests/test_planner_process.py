@@ -173,3 +173,26 @@ def test_a_blend_made_ahead_beyond_the_bound_is_checked_again_on_the_measured_ma
     assert pa.cycle.penetration_m == checked[0] <= TRANSITION_PENETRATION_M
     cycles = [st for st in ahead.session.steps if isinstance(st, Cycle)]
     assert cycles[-1] is pa.cycle  # the session's record of it too
+
+
+@pytest.mark.parametrize("name", ["pso", "min_torque"])
+def test_the_planner_process_rebuilds_every_built_in_one_shot_planner(name: str) -> None:
+    # The daemon plans in a planner process: a job with the PSO or the minimum-torque planner
+    # is planned there by that planner, rebuilt from its name.
+    planner = TrenchPlanner(RIG, name)
+    spec = PlannerSpec.of(planner.start(load_task("A", RIG)), PERIOD_S)
+    assert spec.planner == name
+    ours, theirs = multiprocessing.Pipe()
+    worker = threading.Thread(target=_worker_main, args=(theirs, spec), daemon=True)
+    worker.start()
+    try:
+        ours.send(("init", None))
+        ours.send(("plan", np.asarray(planner.home_pose_rad)))
+        first = ours.recv()
+        assert isinstance(first, DigPlan) and first.dig is not None
+        assert first.dig.planner == name
+        ours.send(("stop",))
+    finally:
+        ours.close()
+        worker.join(120.0)
+    assert not worker.is_alive()

@@ -269,3 +269,18 @@ def test_unopenable_bus_names_interface_and_channel(
     assert daemon.main(["--config", str(path)]) == daemon.EXIT_BUS
     err = capsys.readouterr().err
     assert "bus.interface = 'socketcan', bus.channel = 'nosuchcan7'" in err, err
+
+
+def test_every_one_shot_planner_the_trench_planner_builds_is_a_job_planner() -> None:
+    # The daemon's list is a literal (the client starts without the planning stack): the
+    # same names as the trench planner's, min_torque included.
+    from rt_runtime.planning.trench import ONESHOT_PLANNERS
+    from rt_runtime.service.config import PLANNERS
+
+    assert PLANNERS == ONESHOT_PLANNERS
+    cfg = parse_config(_raw(executor={"planner": "min_torque"}))
+    assert cfg.planner == "min_torque"
+    _rig, planner = load_planning(cfg)
+    assert planner is not None and planner.oneshot.name == "min_torque"
+    err = _key_error(_raw(executor={"planner": "mintorque"}))
+    assert err.key == "executor.planner" and "pinn, pso, min_torque" in str(err)

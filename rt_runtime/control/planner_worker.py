@@ -77,6 +77,7 @@ from rt_runtime.control.setpoints import (
 from rt_runtime.errors import ConfigurationError, ExcavatorRtError, PlanningError
 from rt_runtime.planning.filewatch import WATCH_PERIOD_S, FileWatch
 from rt_runtime.planning.trench import (
+    ONESHOT_PLANNERS,
     TRANSITION_PENETRATION_M,
     Cycle,
     PlannedDig,
@@ -463,14 +464,16 @@ class PlannerSpec:
 
         Raises:
             ConfigurationError: The session uses a one-shot planner object other than the
-                built-in ``pinn``/``pso`` (it cannot be rebuilt in another process).
+                built-in ones (:data:`~rt_runtime.planning.trench.ONESHOT_PLANNERS`: it cannot
+                be rebuilt in another process).
         """
         planner = session.planner
         name = planner.oneshot.name
-        if name not in ("pinn", "pso"):
+        if name not in ONESHOT_PLANNERS:
             raise ConfigurationError(
-                f"one-shot planner {name!r} cannot run in a planner process; allowed: pinn, "
-                "pso (or plan in-process: ExecutorConfig(plan_in_worker=False))"
+                f"one-shot planner {name!r} cannot run in a planner process; allowed: "
+                f"{', '.join(ONESHOT_PLANNERS)} (or plan in-process: "
+                "ExecutorConfig(plan_in_worker=False))"
             )
         return cls(
             rig=session.rig,

@@ -62,7 +62,9 @@ PERIOD_RANGE_S = (0.0005, 0.01)
 DEFAULT_STATE_DIR = Path("/var/lib/excavator-rtd")
 DEFAULT_SOCKET = Path("/run/excavator-rtd/control.sock")
 LOG_LEVELS = ("debug", "info", "warning", "error")
-PLANNERS = ("pinn", "pso")
+#: The one-shot planners a job may name (the trench planner's ``ONESHOT_PLANNERS``, kept
+#: here as a literal so that the client starts without the planning stack).
+PLANNERS = ("pinn", "pso", "min_torque")
 #: Keys a SIGHUP applies (the executor's for the next job; the trace at once).
 RELOADABLE_KEYS = (
     "log.level",

@@ -51,7 +51,7 @@ from rt_runtime.planning.trench.plan import (
     iter_moves,
     plan_goals,
 )
-from rt_runtime.planning.trench.planner import TrenchPlanner, plan_task
+from rt_runtime.planning.trench.planner import ONESHOT_PLANNERS, TrenchPlanner, plan_task
 from rt_runtime.planning.trench.planners import (
     OneShotPlanner,
     OneShotResult,
@@ -80,6 +80,7 @@ __all__ = [
     "CYCLE_W_JERK",
     "GRID_STEP_M",
     "MAX_FINISHING_PER_SECTION",
+    "ONESHOT_PLANNERS",
     "OVERDIG_GOAL_M",
     "OVERDIG_LIMIT_M",
     "TASK_KEYS",

@@ -25,6 +25,10 @@ from rt_runtime.planning.trench.session import TrenchSession
 from rt_runtime.planning.trench.task import _ENTRY_X_M, TrenchTask, _reach_scale, load_task
 from rt_runtime.rig import Rig
 
+#: The one-shot planners a :class:`TrenchPlanner` builds by name (and a planner process
+#: rebuilds from its name).
+ONESHOT_PLANNERS = ("pinn", "pso", "min_torque")
+
 
 class TrenchPlanner:
     """Plans trench tasks dig by dig (Yao Fig. 5).
@@ -87,7 +91,7 @@ class TrenchPlanner:
                 self.oneshot = MinTorqueOneShot(rig, self.verifier)
             else:
                 raise ConfigurationError(
-                    f"unknown planner {planner!r}; allowed: pinn, pso, min_torque"
+                    f"unknown planner {planner!r}; allowed: {', '.join(ONESHOT_PLANNERS)}"
                 )
         else:
             self.oneshot = planner

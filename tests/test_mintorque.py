@@ -163,6 +163,28 @@ def test_constraints_against_independent_geometry() -> None:
     assert len(got) == len(mt.CONSTRAINT_NAMES) == len(set(mt.CONSTRAINT_NAMES))
 
 
+@pytest.mark.parametrize("soil", ["soft", "hard"])
+def test_a_row_alone_evaluates_as_it_does_in_a_batch(soil: str) -> None:
+    # Up to _PLATE_AXIS_ROWS rows the soil's plates are one array axis, beyond it a loop:
+    # the same cost and constraints either way, and the derivatives from a given point's
+    # values equal those of one batched pass.
+    p = mt.make_problem(RIG, soil)
+    x = _start_point(p)
+    rng = np.random.default_rng(3)
+    X = x[None, :] + 1e-3 * rng.standard_normal((mt._PLATE_AXIS_ROWS + 2, x.size))
+    ev = mt.Evaluator(RIG, p)
+    batch = ev.evaluate(X)
+    for i in range(X.shape[0]):
+        row = ev.evaluate(X[i : i + 1])
+        np.testing.assert_allclose(row.cost, batch.cost[i : i + 1], rtol=1e-12)
+        np.testing.assert_allclose(row.split, batch.split[i : i + 1], rtol=1e-12, atol=1e-13)
+    one = ev.evaluate(x[None, :])
+    whole = ev.gradients(x)
+    split = ev.gradients(x, (float(one.cost[0]), one.split[0]))
+    for a, b in zip(whole, split, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9)
+
+
 @pytest.mark.parametrize("fixed", [False, True])
 def test_batched_gradients_against_central_differences(fixed: bool) -> None:
     p = mt.make_problem(RIG, "hard", fixed_time=fixed, samples_per_interval=8)

@@ -90,6 +90,8 @@ LIMIT_MARGIN = 0.02
 CONSTRAINT_OFFSET = 1e-4
 #: Sharpness of the smooth maximum over an interval's samples (normalised units).
 KS_RHO = 1000.0
+#: Up to this many rows the soil's plates are one axis of the arrays (:meth:`_Model._soil`).
+_PLATE_AXIS_ROWS = 2
 #: Re-check step on the exact model (s).
 RECHECK_DT_S = 1e-3
 #: Forward-difference step of the batched gradients (rad for keypoints, s for intervals).
@@ -429,6 +431,11 @@ class _Model:
         self.basis = _hermite_basis(problem.samples_per_interval)
         self.chain = _Chain.of(rig)
         self.plates = _plates(rig, problem.n_elements)
+        #: The plates' fields as ``(P, 1, 1)`` arrays (the plate axis of few rows' soil).
+        self.plate_axis = {
+            f: np.array([getattr(pl, f) for pl in self.plates])[:, None, None]
+            for f in ("cx", "cy", "nx", "ny", "tx", "ty", "area")
+        }
         self.tau_max = [float(v) for v in rig.tau_max_nm]
 
     def samples(self, keys: list[list[Any]], h: Sequence[Any]) -> _Samples:
@@ -520,10 +527,32 @@ class _Model:
         ops, fs = self.ops, self.p.soil
         eps, r = SMOOTH_DEPTH_M, SMOOTH_SPEED_M_S
         rho_g = fs.kp * fs.density_kg_m3 * self.rig.gravity_m_s2
-        # A loop over the plates on (B, S) arrays: measured faster than one pass with a plate
-        # axis (B, S, P), whose temporaries leave the cache; CasADi needs the loop anyway.
         u = c * vx + s * vy
         w = c * vy - s * vx
+        if ops is _NumpyOps and np.ndim(x) == 2 and x.shape[0] <= _PLATE_AXIS_ROWS:
+            # Few rows (a line-search point): one pass with a plate axis, (P, B, S), costs
+            # fewer numpy calls than the loop, whose calls then cost more than their work.
+            pa = self.plate_axis
+            cx, cy, nx, ny, tx, ty = (pa[f] for f in ("cx", "cy", "nx", "ny", "tx", "ty"))
+            depth = self.p.surface_y_m - (y + cx * s + cy * c)
+            root = np.sqrt(depth * depth + eps * eps)
+            arm_n = cx * ny - cy * nx
+            arm_t = cx * ty - cy * tx
+            vn = u * nx + w * ny + om * arm_n
+            vt = u * tx + w * ty + om * arm_t
+            rn = np.sqrt(vn * vn + r * r)
+            rt = np.sqrt(vt * vt + r * r)
+            mag = (rho_g * 0.5 * (depth + root) + fs.kv * (rn - r)) * (
+                pa["area"] * 0.5 * (1.0 + depth / root)
+            )
+            un = mag * (vn / rn)
+            ut = mag * (fs.ks * vt / rt)
+            fxp = -np.sum(un * nx + ut * tx, axis=0)
+            fyp = -np.sum(un * ny + ut * ty, axis=0)
+            mzp = -np.sum(un * arm_n + ut * arm_t, axis=0)
+            return c * fxp - s * fyp, s * fxp + c * fyp, mzp
+        # Many rows: a loop over the plates on (B, S) arrays, measured faster than one pass
+        # with a plate axis (P, B, S), whose temporaries leave the cache; CasADi needs the loop.
         fxb: Any = 0.0
         fyb: Any = 0.0
         mz: Any = 0.0
@@ -723,21 +752,26 @@ class Evaluator:
         )
         return Evaluation(np.asarray(m.cost(smp)), named, split)
 
-    def gradients(self, x: ArrayLike) -> tuple[float, FloatArray, FloatArray, FloatArray]:
+    def gradients(
+        self, x: ArrayLike, at_x: tuple[float, FloatArray] | None = None
+    ) -> tuple[float, FloatArray, FloatArray, FloatArray]:
         """Cost, its gradient ``(n,)``, the optimiser's constraints ``(m,)`` and their Jacobian
         ``(m, n)`` at one point, by forward differences of step :data:`FD_STEP` evaluated in
-        one batched pass (the point and its ``n`` perturbations)."""
+        one batched pass (the point and its ``n`` perturbations; only the perturbations where
+        ``at_x``, the cost and constraints at ``x`` already evaluated, is given)."""
         xa = np.asarray(x, dtype=np.float64)
         n = xa.size
-        X = np.repeat(xa[None, :], n + 1, axis=0)
-        X[1:] += FD_STEP * np.eye(n)
-        e = self.evaluate(X)
-        return (
-            float(e.cost[0]),
-            (e.cost[1:] - e.cost[0]) / FD_STEP,
-            e.split[0],
-            ((e.split[1:] - e.split[0]) / FD_STEP).T,
-        )
+        if at_x is None:
+            X = np.repeat(xa[None, :], n + 1, axis=0)
+            X[1:] += FD_STEP * np.eye(n)
+            e = self.evaluate(X)
+            f0, c0 = float(e.cost[0]), e.split[0]
+            cost, split = e.cost[1:], e.split[1:]
+        else:
+            f0, c0 = at_x
+            e = self.evaluate(xa[None, :] + FD_STEP * np.eye(n))
+            cost, split = e.cost, e.split
+        return f0, (cost - f0) / FD_STEP, c0, ((split - c0) / FD_STEP).T
 
 
 # --------------------------------------------------------------------------------------------
@@ -979,28 +1013,41 @@ def _slsqp(
     """SLSQP with the batched forward-difference gradients of ``ev`` (one pass per point)."""
     from scipy.optimize import minimize
 
-    cache: dict[bytes, tuple[float, FloatArray, FloatArray, FloatArray]] = {}
+    # The point SLSQP asked about last: its cost and constraints (one row), and their
+    # derivatives once asked for. About half the points are line-search trials whose
+    # derivatives are never asked for: a row costs a quarter of the batch of n + 1.
+    last: dict[str, Any] = {"key": None, "value": None, "grad": None}
     # The cost is scaled to 1 at the start, so that SLSQP's ftol is a relative tolerance.
     f_scale = 1.0 / max(float(ev.evaluate(x0[None, :]).cost[0]), 1e-12)
 
-    def at(x: FloatArray) -> tuple[float, FloatArray, FloatArray, FloatArray]:
+    def value(x: FloatArray) -> tuple[float, FloatArray]:
         key = x.tobytes()
-        hit = cache.get(key)
-        if hit is None:
-            f, df, c, dc = ev.gradients(x)
-            # SLSQP: fun(x) >= 0 holds.
-            hit = (f_scale * f, f_scale * df, -(c + CONSTRAINT_OFFSET), -dc)
-            cache.clear()
-            cache[key] = hit
-        return hit
+        if last["key"] != key:
+            e = ev.evaluate(x[None, :])
+            last.update(key=key, value=(float(e.cost[0]), e.split[0]), grad=None)
+        return last["value"]  # type: ignore[no-any-return]
 
+    def grad(x: FloatArray) -> tuple[FloatArray, FloatArray]:
+        at_x = value(x)
+        if last["grad"] is None:
+            _, df, _, dc = ev.gradients(x, at_x)
+            last["grad"] = (df, dc)
+        return last["grad"]  # type: ignore[no-any-return]
+
+    # SLSQP: fun(x) >= 0 holds.
     return minimize(
-        lambda x: at(x)[0],
+        lambda x: f_scale * value(x)[0],
         x0,
-        jac=lambda x: at(x)[1],
+        jac=lambda x: f_scale * grad(x)[0],
         method="SLSQP",
         bounds=bounds,
-        constraints=[{"type": "ineq", "fun": lambda x: at(x)[2], "jac": lambda x: at(x)[3]}],
+        constraints=[
+            {
+                "type": "ineq",
+                "fun": lambda x: -(value(x)[1] + CONSTRAINT_OFFSET),
+                "jac": lambda x: -grad(x)[1],
+            }
+        ],
         options={"maxiter": max_iterations, "ftol": ftol},
     )
 

@@ -255,7 +255,13 @@ def test_load_taught_gives_the_executor_a_verified_trench(
     np.testing.assert_allclose(job.q0_rad, np.radians(report["waypoints_deg"][0]), atol=1e-7)
     np.testing.assert_allclose(v[[0, -1]], 0.0, atol=1e-9)
     chk = job.limit_check(rig)
-    assert chk.within_limits and chk.velocity_ratio.max() == pytest.approx(1.0, abs=1e-6)
+    # Minimum time to the planned share of the limits: some joint at exactly that share.
+    share = report["settings"]["limit_fraction"]
+    assert share == pipeline.TeachSettings().limit_fraction < 1.0
+    assert chk.within_limits and chk.velocity_ratio.max() == pytest.approx(share, abs=1e-6)
+    # The report's peaks are against the rig's limits too.
+    peak = max(pk["velocity_ratio"] for pk in report["peaks"].values())
+    assert peak == pytest.approx(share, abs=1e-6)
 
 
 def test_a_tampered_taught_job_is_refused(

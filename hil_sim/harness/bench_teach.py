@@ -92,12 +92,10 @@ def bench_teach(
     linear_frechet = frechet_m(pipeline.tip_path(rig, ref_learned[1]), intended)
     durations = pipeline.cycle_times_s(records)
     op_mean = float(durations.mean())
-    checks = [c.trajectory.limit_check() for c in trench.cycles]
-    exact = all(c.within_limits for c in checks)
+    v_ratio, a_ratio, exact = pipeline.peak_ratios(trench, settings)
     names = list(rig.joint_names)
     peaks = {
-        n: {"velocity_ratio": float(max(c.velocity_ratio[j] for c in checks)),
-            "acceleration_ratio": float(max(c.acceleration_ratio[j] for c in checks))}
+        n: {"velocity_ratio": float(v_ratio[j]), "acceleration_ratio": float(a_ratio[j])}
         for j, n in enumerate(names)
     }
     wp = _pct(wall)

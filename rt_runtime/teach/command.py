@@ -85,14 +85,7 @@ def teach_report(
     total = taught.trench.total_s
     # Exact peaks over the whole trench, against the rig's limits.
     joints = ((rig.swing.joint,) if rig.swing is not None else ()) + rig.joints
-    v_ratio = np.zeros(len(names))
-    a_ratio = np.zeros(len(names))
-    exact_ok = True
-    for c in taught.trench.cycles:
-        chk = c.trajectory.limit_check()
-        v_ratio = np.maximum(v_ratio, chk.velocity_ratio)
-        a_ratio = np.maximum(a_ratio, chk.acceleration_ratio)
-        exact_ok = exact_ok and chk.within_limits
+    v_ratio, a_ratio, exact_ok = pipeline.peak_ratios(taught.trench, taught.settings)
     mean_tip = pipeline.tip_path(rig, taught.mean_q_rad)
     planned = planned_tip_path(rig, cyc)
     op_mean = taught.operator_mean_cycle_s
@@ -147,6 +140,7 @@ def teach_report(
             "epsilon_mm": s.epsilon_m * 1e3, "window_s": s.window_s, "w_jerk": s.w_jerk,
             "w_time": s.w_time, "cycles": s.cycles, "step_m": s.step_m,
             "dtw_rate_hz": s.dtw_rate_hz, "dba_passes": s.dba_passes, "refine": s.refine,
+            "limit_fraction": s.limit_fraction,
         },
         "timing_ms": timing_ms,
     }
@@ -232,6 +226,8 @@ def _settings(args: argparse.Namespace) -> pipeline.TeachSettings:
          "time the jerk integral falls without bound as T grows)"),
         ("--window-ms", args.window_ms, args.window_ms >= 0.0, "a number >= 0"),
         ("--step-mm", args.step_mm, abs(args.step_mm) <= 5000.0, "within +-5000"),
+        ("--limit-fraction", args.limit_fraction, 0.0 < args.limit_fraction <= 1.0,
+         "a number in (0, 1]"),
     )
     for flag, value, ok, allowed in checks:
         if not (math.isfinite(value) and ok):
@@ -245,6 +241,7 @@ def _settings(args: argparse.Namespace) -> pipeline.TeachSettings:
         w_time=args.w_time,
         cycles=args.cycles,
         step_m=args.step_mm / 1e3,
+        limit_fraction=args.limit_fraction,
     )
 
 
@@ -339,6 +336,10 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
                    help="shift of each cycle along the trench axis, towards the machine [mm]")
     p.add_argument("--window-ms", type=float, default=150.0,
                    help="width of the centred moving average [ms] (0: none)")
+    p.add_argument("--limit-fraction", type=float, default=0.9, metavar="F",
+                   help="share of the joints' velocity and acceleration limits the cycles are "
+                   "planned to, in (0, 1] (default 0.9: the rest is the drives' tracking "
+                   "headroom)")
     p.add_argument("--out", metavar="DIR", help="write DIR/taught.json (the taught job)")
     p.add_argument("--plot", metavar="DIR", help="figures like Zhao Fig. 4-5 (needs matplotlib)")
     p.add_argument("--json", action="store_true")

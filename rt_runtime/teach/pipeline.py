@@ -104,6 +104,10 @@ class TeachSettings:
             scaled uniformly onto the reference's: the phase alignment DTW is checked against).
         refine: Most waypoints added where the planned tip strays from the mean path by more
             than ``epsilon_m`` (>= 0; 0: Douglas-Peucker's waypoints only).
+        limit_fraction: Share of the joints' velocity and acceleration limits the cycles are
+            planned to, in (0, 1]: the rest is headroom for the drives' tracking (a hydraulic
+            axis planned onto its limit runs a few percent over it, and a valve that closes on
+            a fault jolts its neighbours further).
     """
 
     epsilon_m: float = 0.05
@@ -117,6 +121,7 @@ class TeachSettings:
     step_m: float = 0.15
     refine: int = 12
     alignment: str = "dtw"
+    limit_fraction: float = 0.9
 
     def __post_init__(self) -> None:
         checks = (
@@ -127,6 +132,7 @@ class TeachSettings:
             ("w_jerk", self.w_jerk >= 0.0, ">= 0"),
             ("w_time", self.w_time > 0.0, "> 0"),
             ("step_m", abs(self.step_m) <= 5.0, "within +-5 m"),
+            ("limit_fraction", 0.0 < self.limit_fraction <= 1.0, "in (0, 1]"),
         )
         for name, ok, allowed in checks:
             value = float(getattr(self, name))
@@ -501,6 +507,18 @@ def _scaled_from(problem: TimeJerkProblem, base: TimeJerkTrajectory) -> TimeJerk
     return traj if traj.limit_check().within_limits else None
 
 
+def peak_ratios(trench: Trench, settings: TeachSettings) -> tuple[FloatArray, FloatArray, bool]:
+    """Each joint's peak velocity and acceleration over a planned trench as fractions of the
+    rig's limits (exact, per cubic piece), and whether every cycle is within its planned
+    limits. The cycles are planned to ``settings.limit_fraction`` of the rig's limits, which
+    is what their own checks compare with."""
+    share = settings.limit_fraction
+    checks = [c.trajectory.limit_check() for c in trench.cycles]
+    v = share * np.max([c.velocity_ratio for c in checks], axis=0)
+    a = share * np.max([c.acceleration_ratio for c in checks], axis=0)
+    return v, a, all(c.within_limits for c in checks)
+
+
 def plan_trench(
     rig: Rig,
     waypoints_rad: ArrayLike,
@@ -536,7 +554,10 @@ def plan_trench(
         if k + 1 < n and not dig[0]:
             shift[-1] = 0.0
         wk = _shift(rig, wk, shift, axis)
-        problem = TimeJerkProblem.for_rig(rig, wk, w_jerk=settings.w_jerk, w_time=settings.w_time)
+        problem = TimeJerkProblem.for_rig(
+            rig, wk, w_jerk=settings.w_jerk, w_time=settings.w_time,
+            limit_fraction=settings.limit_fraction,
+        )
         try:
             traj = plan_cycle(rig, wk, settings)
         except PlanningError as e:
@@ -650,13 +671,17 @@ def plan_cycle(rig: Rig, waypoints: FloatArray, s: TeachSettings) -> TimeJerkTra
         PlanningError: No weight gives a trajectory within the limits.
     """
     try:
-        return plan(TimeJerkProblem.for_rig(rig, waypoints, w_jerk=s.w_jerk, w_time=s.w_time))
+        return plan(TimeJerkProblem.for_rig(
+            rig, waypoints, w_jerk=s.w_jerk, w_time=s.w_time, limit_fraction=s.limit_fraction
+        ))
     except PlanningError as first:
         if s.w_jerk != 0.0:
             raise
         for w in JERK_REGULARISATION:
             try:
-                return plan(TimeJerkProblem.for_rig(rig, waypoints, w_jerk=w, w_time=s.w_time))
+                return plan(TimeJerkProblem.for_rig(
+                    rig, waypoints, w_jerk=w, w_time=s.w_time, limit_fraction=s.limit_fraction
+                ))
             except PlanningError:
                 continue
         raise first from None

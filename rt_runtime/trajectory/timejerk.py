@@ -312,6 +312,7 @@ class TimeJerkProblem:
         *,
         position_bounds: bool = True,
         jerk_limits: bool = False,
+        limit_fraction: float = 1.0,
         **kwargs: Any,
     ) -> TimeJerkProblem:
         """A problem over a rig's joints (swing first where the rig has one, then boom, stick,
@@ -324,12 +325,16 @@ class TimeJerkProblem:
             waypoints_rad: ``(n + 1, rig.dof)`` joint angles, rad.
             position_bounds: Keep the whole trajectory inside the joint ranges.
             jerk_limits: Keep every joint's jerk within its limit.
+            limit_fraction: Share of the velocity and acceleration limits planned to, in
+                (0, 1] (the rest is the tracking loop's headroom).
             **kwargs: Weights and end states, as :meth:`create`.
 
         Raises:
-            ConfigurationError: The waypoints do not have ``rig.dof`` joints, or as
-                :class:`TimeJerkProblem`.
+            ConfigurationError: The waypoints do not have ``rig.dof`` joints, a limit fraction
+                outside (0, 1], or as :class:`TimeJerkProblem`.
         """
+        if not 0.0 < limit_fraction <= 1.0:
+            raise ConfigurationError(f"limit_fraction {limit_fraction!r}: allowed (0, 1]")
         joints = ((rig.swing.joint,) if rig.swing is not None else ()) + rig.joints
         q = np.asarray(waypoints_rad, dtype=np.float64)
         if q.ndim != 2 or q.shape[1] != len(joints):
@@ -347,8 +352,8 @@ class TimeJerkProblem:
             bounds["jerk_max_rad_s3"] = [j.jerk_max_rad_s3 for j in joints]
         return cls.create(
             q,
-            [j.velocity_max_rad_s for j in joints],
-            [j.acceleration_max_rad_s2 for j in joints],
+            [limit_fraction * j.velocity_max_rad_s for j in joints],
+            [limit_fraction * j.acceleration_max_rad_s2 for j in joints],
             **bounds,
             **kwargs,
         )

@@ -4,8 +4,11 @@ next dig planned ahead while one runs (``SessionDriver.lookahead``)."""
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import threading
+from collections.abc import Iterator
+from multiprocessing.connection import Connection
 
 import numpy as np
 import pytest
@@ -128,8 +131,11 @@ def test_a_plan_made_ahead_is_dropped_where_the_measured_material_differs() -> N
     assert not pa.planned_ahead and _same_dig(pa, pb)
 
 
-def test_the_planner_process_plans_ahead_while_a_dig_runs() -> None:
-    planner = TrenchPlanner(RIG)
+@contextlib.contextmanager
+def _serving(planner: TrenchPlanner) -> Iterator[Connection]:
+    """The planner process's serving loop on task A in a thread: the job side's end of its
+    pipe, initialised and asked for the first plan from the home pose; stopped and joined
+    after."""
     spec = PlannerSpec.of(planner.start(load_task("A", RIG)), PERIOD_S)
     ours, theirs = multiprocessing.Pipe()
     worker = threading.Thread(target=_worker_main, args=(theirs, spec), daemon=True)
@@ -137,6 +143,16 @@ def test_the_planner_process_plans_ahead_while_a_dig_runs() -> None:
     try:
         ours.send(("init", None))
         ours.send(("plan", np.asarray(planner.home_pose_rad)))
+        yield ours
+        ours.send(("stop",))
+    finally:
+        ours.close()
+        worker.join(120.0)
+    assert not worker.is_alive()
+
+
+def test_the_planner_process_plans_ahead_while_a_dig_runs() -> None:
+    with _serving(TrenchPlanner(RIG)) as ours:
         first = ours.recv()
         assert isinstance(first, DigPlan) and first.dig is not None
         assert not first.planned_ahead
@@ -144,11 +160,6 @@ def test_the_planner_process_plans_ahead_while_a_dig_runs() -> None:
         assert isinstance(ours.recv(), Recorded)
         second = ours.recv()
         assert isinstance(second, DigPlan) and second.planned_ahead
-        ours.send(("stop",))
-    finally:
-        ours.close()
-        worker.join(120.0)
-    assert not worker.is_alive()
 
 
 def test_a_blend_made_ahead_beyond_the_bound_is_checked_again_on_the_measured_material(
@@ -179,20 +190,7 @@ def test_a_blend_made_ahead_beyond_the_bound_is_checked_again_on_the_measured_ma
 def test_the_planner_process_rebuilds_every_built_in_one_shot_planner(name: str) -> None:
     # The daemon plans in a planner process: a job with the PSO or the minimum-torque planner
     # is planned there by that planner, rebuilt from its name.
-    planner = TrenchPlanner(RIG, name)
-    spec = PlannerSpec.of(planner.start(load_task("A", RIG)), PERIOD_S)
-    assert spec.planner == name
-    ours, theirs = multiprocessing.Pipe()
-    worker = threading.Thread(target=_worker_main, args=(theirs, spec), daemon=True)
-    worker.start()
-    try:
-        ours.send(("init", None))
-        ours.send(("plan", np.asarray(planner.home_pose_rad)))
+    with _serving(TrenchPlanner(RIG, name)) as ours:
         first = ours.recv()
         assert isinstance(first, DigPlan) and first.dig is not None
         assert first.dig.planner == name
-        ours.send(("stop",))
-    finally:
-        ours.close()
-        worker.join(120.0)
-    assert not worker.is_alive()

@@ -828,13 +828,14 @@ def _check_stop(
         return
     period = cfg.loop.period_s
     t_detect = clock.injected_at + result.detection_s
+    nodes = [n.node_id for n in clock.hil.core.nodes]  # axis order, as the limits
     if result.case.kind in _SEEN_IN_MOTION:
         job_limits = ExecutorConfig(stale_cycles=cfg.stale_cycles).limits(rig)
         swing = result.case.target == "swing"  # its own window, in rad
         window = job_limits.swing_following_error_rad if swing else job_limits.following_error_m
-        exposed = _exposed(clock, rig, result.case, clock.injected_at, window)
+        axis = rig_axes.names(rig).index(result.case.target)
+        exposed = _exposed(clock, RPDO1.cob_id(nodes[axis]), clock.injected_at, window)
         result.detection_s = t_detect - max(clock.injected_at, min(exposed, t_detect))
-    nodes = [n.node_id for n in clock.hil.core.nodes]  # axis order, as the limits
     rpdo1 = {RPDO1.cob_id(n): i for i, n in enumerate(nodes)}
     rpdo2 = {RPDO2.cob_id(n): i for i, n in enumerate(nodes)}
     limits = StrokeLimits.from_rig(rig)
@@ -917,14 +918,11 @@ def _check_stop(
         )
 
 
-def _exposed(clock: _CaseClock, rig: Rig, case: Case, t_s: float, window_m: float) -> float:
-    """When a stuck axis could first show: the commanded stroke of the case's axis first more
-    than ``window_m`` (the following-error monitor's window, m; the swing's rad) from where it
-    was commanded at ``t_s`` (for a rock: that far on into the rock); inf: never before the
-    reset."""
-    nodes = [n.node_id for n in clock.hil.core.nodes]  # axis order, as the limits
-    axis = rig_axes.names(rig).index(case.target)
-    cob_of_axis = RPDO1.cob_id(nodes[axis])
+def _exposed(clock: _CaseClock, cob_of_axis: int, t_s: float, window_m: float) -> float:
+    """When a stuck axis could first show: the stroke commanded in the case's axis's RPDO1
+    (``cob_of_axis``) first more than ``window_m`` (the following-error monitor's window, m;
+    the swing's rad) from where it was commanded at ``t_s`` (for a rock: that far on into the
+    rock); inf: never before the reset."""
     way = clock.rock_direction
     first = math.nan
     window_um = window_m * 1e6

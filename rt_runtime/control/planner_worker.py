@@ -906,15 +906,16 @@ class PathLink(_AnsweredLink):
     def _record(self) -> Recorded | PlannerError:
         """The next step's record (see :attr:`PathJob.steps`)."""
         job = self.job
-        i = self._next_step - job.first_step
+        step = self._next_step
+        i = step - job.first_step
         if not job.steps or not 0 <= i < len(job.motions):
-            return PlannerError(f"path job {job.name!r} has no step {self._next_step} to record")
+            return PlannerError(f"path job {job.name!r} has no step {step} to record")
         self._next_step += 1
         return Recorded(
-            index=job.first_step + i,
+            index=step,
             measured_volume_m3=math.nan,
             tip_path_m=np.zeros((0, 2)),
-            state={"steps_done": job.first_step + i + 1},
+            state={"steps_done": step + 1},
             step=job.step_name,
             duration_s=float(job.motions[i].duration_s),
         )

@@ -36,6 +36,7 @@ from rt_runtime.rig import Rig
 from rt_runtime.teach import TaughtJob, load_taught
 
 __all__ = [
+    "CYCLE_STEP",
     "LIFT_TOLERANCE_M",
     "TaughtMotion",
     "VerticalLift",
@@ -45,6 +46,9 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
+
+#: The kind of a taught trench's steps (its cycles) in their records (a dig's ``dig_type``).
+CYCLE_STEP = "cycle"
 
 #: A held bucket tip more than this below the height the next cycle starts at is lifted to it
 #: before the move to the cycle's start (m).
@@ -248,7 +252,7 @@ def taught_path(job: TaughtJob, rig: Rig, first_cycle: int = 0) -> PathJob:
         jerk_by_guard=True,
         steps=True,
         first_step=first_cycle,
-        step_name="cycle",
+        step_name=CYCLE_STEP,
         retreat=lift_out(rig, motions[0].sample(0.0)[0]),
     )
 

@@ -75,7 +75,7 @@ from rt_runtime.control.manager import ControllerManager, executor_telemetry
 from rt_runtime.control.planner_worker import MODELS_CHANGED_EXIT, PathLink, ProcessPlanner
 from rt_runtime.control.rt import RtSettings, apply_rt, restore_rt
 from rt_runtime.control.setpoints import Phase
-from rt_runtime.control.taught_path import taught_path
+from rt_runtime.control.taught_path import CYCLE_STEP, taught_path
 from rt_runtime.control.telemetry import Telemetry
 from rt_runtime.errors import CommunicationError, ConfigurationError, ExcavatorRtError
 from rt_runtime.planning.trench import TrenchPlanner, TrenchSession, make_task
@@ -396,7 +396,7 @@ class _Preparation:
             except Exception:  # a bug must not end the thread silently
                 log.exception("job %d: dig %d not recorded", job_id, rec.index)
                 continue
-            if rec.dig_type == "cycle":
+            if rec.dig_type == CYCLE_STEP:
                 log.info("job %d: taught cycle %d done (%.1f s)", job_id, rec.index + 1, rec.T_s)
                 continue
             log.info(

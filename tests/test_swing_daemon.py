@@ -26,8 +26,8 @@ from rt_runtime.cli import main
 from rt_runtime.control.planner_worker import PathLink, PlannerError, Recorded
 from rt_runtime.control.taught_path import VerticalLift, taught_path
 from rt_runtime.errors import ConfigurationError
-from rt_runtime.rig import load_rig
-from rt_runtime.service.config import load_planning
+from rt_runtime.rig import Rig, load_rig
+from rt_runtime.service.config import DaemonConfig, load_planning
 from rt_runtime.service.control import ControlServer
 from rt_runtime.service.daemon import Service
 from rt_runtime.service.jobstore import JobStatus, JobStore
@@ -114,25 +114,51 @@ def _wait_job_end(store: JobStore, job_id: int, what: str) -> None:
 
 
 @contextlib.contextmanager
-def _service(state: Path, taught: Path) -> Iterator[tuple[Service, JobStore, Any, _Clock]]:
+def _taught_hil(state: Path, taught: Path) -> Iterator[tuple[DaemonConfig, Rig, Any, _Clock]]:
+    """The lockstep daemon's configuration on the field excavator with its state in ``state``,
+    the rig, and the lockstep HIL started at the taught trench's first pose, with its clock."""
     cfg = lockstep_config(state, "field_excavator")
     rig, planner = load_planning(cfg)
     assert planner is None  # a rig with swing: no trench planner, taught jobs only
     q0 = axes.from_joint_order(rig, load_taught(taught, rig).q0_rad)
     with LockstepHil(rig, q0, vcu=False) as hil:
-        store = JobStore(cfg.paths.state_dir)
-        store.start()
-        clock = _Clock(hil)
-        runner = RigRunner(cfg, rig, planner, hil.master_bus, store, clock)
-        server = ControlServer(cfg.paths.socket, {})
-        svc = Service(cfg, rig, store, server, runner)
-        try:
-            runner.start()
-            _wait(lambda: runner.health()[0], "the runner holding")
-            yield svc, store, hil, clock
-        finally:
-            runner.shutdown(30.0)
-            store.close()
+        yield cfg, rig, hil, _Clock(hil)
+
+
+def _open_store(cfg: DaemonConfig) -> JobStore:
+    store = JobStore(cfg.paths.state_dir)
+    store.start()
+    return store
+
+
+def _start(runner: RigRunner) -> None:
+    runner.start()
+    _wait(lambda: runner.health()[0], "the runner holding")
+
+
+@contextlib.contextmanager
+def _daemon(
+    cfg: DaemonConfig, rig: Rig, hil: Any, clock: _Clock
+) -> Iterator[tuple[Service, JobStore, RigRunner]]:
+    """The daemon's service, store and runner on the HIL's bus, holding; shut down after."""
+    store = _open_store(cfg)
+    runner = RigRunner(cfg, rig, None, hil.master_bus, store, clock)
+    svc = Service(cfg, rig, store, ControlServer(cfg.paths.socket, {}), runner)
+    try:
+        _start(runner)
+        yield svc, store, runner
+    finally:
+        runner.shutdown(30.0)
+        store.close()
+
+
+@contextlib.contextmanager
+def _service(state: Path, taught: Path) -> Iterator[tuple[Service, JobStore, Any, _Clock]]:
+    with (
+        _taught_hil(state, taught) as (cfg, rig, hil, clock),
+        _daemon(cfg, rig, hil, clock) as (svc, store, _),
+    ):
+        yield svc, store, hil, clock
 
 
 @pytest.fixture
@@ -299,33 +325,21 @@ def test_a_taught_job_shut_down_mid_cycle_resumes_there_after_a_restart(
 ) -> None:
     """The daemon stopped (SIGTERM) in the second cycle and started again on its store: the
     job resumes at the second cycle, the first kept and not dug again."""
-    cfg = lockstep_config(tmp_path, "field_excavator")
-    rig, _ = load_planning(cfg)
-    q0 = axes.from_joint_order(rig, load_taught(taught3_dir, rig).q0_rad)
-    with LockstepHil(rig, q0, vcu=False) as hil:
-        store = JobStore(cfg.paths.state_dir)
-        store.start()
-        clock = _Clock(hil)
-        runner = RigRunner(cfg, rig, None, hil.master_bus, store, clock)
-        svc = Service(cfg, rig, store, ControlServer(cfg.paths.socket, {}), runner)
-        runner.start()
-        _wait(lambda: runner.health()[0], "the runner holding")
-        job_id = svc.cmd_submit({"cmd": "submit", "teach": str(taught3_dir)})["job"]["id"]
-        in_second = threading.Event()
-        clock.hook = _into_second_cycle(store, job_id, 1.5, in_second.set)
-        store.changed.set()
-        _wait(in_second.is_set, "the second cycle", 240.0)
-        clock.hook = None
-        assert runner.shutdown(30.0)
-        store.close()
-        stopped = JobStore(cfg.paths.state_dir)  # the store as the restarted daemon reads it
-        stopped.start()
+    with _taught_hil(tmp_path, taught3_dir) as (cfg, rig, hil, clock):
+        with _daemon(cfg, rig, hil, clock) as (svc, store, runner):
+            job_id = svc.cmd_submit({"cmd": "submit", "teach": str(taught3_dir)})["job"]["id"]
+            in_second = threading.Event()
+            clock.hook = _into_second_cycle(store, job_id, 1.5, in_second.set)
+            store.changed.set()
+            _wait(in_second.is_set, "the second cycle", 240.0)
+            clock.hook = None
+            assert runner.shutdown(30.0)
+        stopped = _open_store(cfg)  # the store as the restarted daemon reads it
         job = stopped.get(job_id)
         assert job.status is JobStatus.QUEUED and [d["index"] for d in job.digs] == [0]
         again = RigRunner(cfg, rig, None, hil.master_bus, stopped, clock)
         try:
-            again.start()
-            _wait(lambda: again.health()[0], "the restarted runner holding")
+            _start(again)
             stopped.changed.set()
             _wait_job_end(stopped, job_id, "the resumed job ending")
             final = stopped.get(job_id)

@@ -25,6 +25,14 @@ terrain here: its terrain is cut only on explicit commands of a scenario runner,
 (like a rig) does not send, so a terrain would push back on every later dig as virgin soil; the
 daemon's own material model follows the measured tip path either way. Timing figures (SYNC gaps,
 round trips) are printed, not asserted. Skipped, with the reason, only if the HIL cannot start.
+
+Host stalls. The drives' watchdog is right to stop the arm when the master falls silent for longer
+than it, and a shared build machine can stop any process for tens of milliseconds. A latched
+fault is therefore judged on the daemon's own bus trace: if the master sent no SYNC for longer
+than the drives' watchdog and the fault is that watchdog's EMCY, the host stalled the master and
+the daemon did what it must (fault latched, daemon up and answering, the job marked failed
+with the fault); that attempt is printed and the scenario runs again with a new HIL, up to
+``STALL_ATTEMPTS`` times. Any other fault fails the test at once.
 """
 
 from __future__ import annotations
@@ -40,6 +48,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -72,6 +81,8 @@ EXAMPLE_CONFIG = (
 )
 #: How many times the end-to-end scenario runs (``EXCAVATOR_E2E_RUNS``; default once).
 E2E_RUNS = int(os.environ.get("EXCAVATOR_E2E_RUNS", "1"))
+#: Scenario attempts when the host stalls the master beyond the drives' watchdog.
+STALL_ATTEMPTS = 3
 #: The keys :func:`stock_config` changes: the bus and the paths.
 CHANGED_KEYS = ("bus.interface", "bus.channel", "paths.state_dir", "paths.socket", "paths.trace")
 
@@ -326,8 +337,55 @@ def stock_config(path: Path, port: int, state: Path, sock: Path, trace: Path) ->
     return load_config(path)
 
 
-@pytest.fixture
-def hil() -> Iterator[RealtimeHilProcess]:
+class HostStall(Exception):
+    """The master itself was silent on the bus for longer than the drives' watchdog."""
+
+
+def _max_sync_gap_s(trace_dir: Path) -> float:
+    """The largest gap between SYNCs the daemon sent, over its closed trace files (s)."""
+    gap = 0.0
+    for path in sorted(trace_dir.glob("*.blf")):
+        stamps = np.array(
+            [m.timestamp for m in can.BLFReader(str(path)) if m.arbitration_id == 0x080]
+        )
+        if stamps.size > 1:
+            gap = max(gap, float(np.diff(stamps).max()))
+    return gap
+
+
+def _judge_failure(daemon: Daemon, sock: Path, trace_dir: Path, rig: Rig, fault: str) -> None:
+    """A latched fault: raise :class:`HostStall` if the daemon's trace shows the master silent
+    for longer than the drives' SYNC watchdog and the fault is that watchdog's EMCY; fail
+    otherwise.
+
+    The daemon has stayed up and answered on its socket with the fault; the job is marked
+    ``failed`` with the fault's text (a ``reset-fault`` would queue it again).
+    """
+    _until(
+        lambda: request(sock, {"cmd": "status", "id": 1})["job"]["status"] != "running",
+        30.0,
+        "the faulted job to stop",
+        daemon,
+    )
+    job = request(sock, {"cmd": "status", "id": 1})["job"]
+    assert job["status"] == "failed" and job["fault"] and job["fault"] in fault, (job, fault)
+    assert daemon.stop() == 0, daemon.log()  # closes the trace
+    gap_s = _max_sync_gap_s(trace_dir)
+    watchdog_s = rig.drives.sync_timeout_s
+    if gap_s > watchdog_s and "RPDO_TIMEOUT (0x8250)" in fault:
+        lateness = re.findall(r"loop overrun at cycle \d+: ([\d.]+) us late", daemon.log())
+        raise HostStall(
+            f"the master sent no SYNC for {gap_s * 1e3:.1f} ms (drives' watchdog "
+            f"{watchdog_s * 1e3:.0f} ms; its loop's largest lateness "
+            f"{max(map(float, lateness), default=0.0):.0f} us): {fault[:160]}"
+        )
+    pytest.fail(f"fault (largest SYNC gap {gap_s * 1e3:.1f} ms): {fault}\n{daemon.log()}")
+
+
+@contextmanager
+def _hil_process() -> Iterator[RealtimeHilProcess]:
+    """The real-time HIL process at the planner's home pose, no terrain; skips if it cannot
+    start."""
     rig = load_rig(RIG)
     q_home = TrenchPlanner(rig).home_pose_rad
     try:
@@ -341,12 +399,38 @@ def hil() -> Iterator[RealtimeHilProcess]:
     except (CommunicationError, OSError) as exc:
         pytest.skip(f"the real-time HIL process cannot start here: {exc}")
     proc.master_bus.shutdown()  # the daemon is the master; this end would only queue frames
-    yield proc
-    proc.close()
+    try:
+        yield proc
+    finally:
+        proc.close()
 
 
 @pytest.mark.parametrize("attempt", range(E2E_RUNS))
-def test_daemon_end_to_end(hil: RealtimeHilProcess, tmp_path: Path, attempt: int) -> None:
+def test_daemon_end_to_end(tmp_path: Path, attempt: int) -> None:
+    stalls: list[str] = []
+    for k in range(STALL_ATTEMPTS):
+        with _hil_process() as hil:
+            try:
+                summary = _scenario(hil, tmp_path / f"try-{k}")
+            except HostStall as stall:
+                stalls.append(str(stall))
+                print(f"\ndaemon e2e #{attempt + 1}, try {k + 1}: host stall: {stall}")
+                continue
+        print(f"\ndaemon e2e #{attempt + 1}, try {k + 1}: {summary}")
+        return
+    pytest.fail(f"the host stalled the master in all {STALL_ATTEMPTS} tries: {stalls}")
+
+
+def _scenario(hil: RealtimeHilProcess, tmp_path: Path) -> str:
+    """Run 1, SIGTERM mid-dig, run 2 to the end; every check of the module docstring.
+
+    Returns:
+        The printed figures.
+
+    Raises:
+        HostStall: The job failed because the host stalled the master (:func:`_judge_failure`).
+    """
+    tmp_path.mkdir()
     rig = load_rig(RIG)
     state = tmp_path / "state"
     sock = tmp_path / "run" / "c.sock"
@@ -369,8 +453,8 @@ def test_daemon_end_to_end(hil: RealtimeHilProcess, tmp_path: Path, attempt: int
 
         def in_second_dig() -> bool:
             st = request(sock, {"cmd": "status"})
-            if st["job"] is not None and st["job"]["status"] == "failed":
-                pytest.fail(f"job 1 failed: {st['job']['fault']}\n{first.log()}")
+            if st["daemon"]["fault"]:
+                _judge_failure(first, sock, trace.parent, rig, st["daemon"]["fault"])
             progress = st.get("progress") or {}
             return progress.get("phase") == "dig" and progress.get("dig") == 1
 
@@ -391,7 +475,15 @@ def test_daemon_end_to_end(hil: RealtimeHilProcess, tmp_path: Path, attempt: int
         # -- run 2: the restarted daemon resumes at the interrupted dig and finishes the job
         second = Daemon(config, tmp_path, 2)
         second.wait_for("READY=1", 120.0)
-        _until(lambda: _job(store)["status"] == "done", 200.0, "job 1 done", second)
+
+        def finished() -> bool:
+            fault = request(sock, {"cmd": "status"})["daemon"]["fault"]
+            if fault:
+                assert second is not None
+                _judge_failure(second, sock, trace.parent, rig, fault)
+            return bool(_job(store)["status"] == "done")
+
+        _until(finished, 200.0, "job 1 done", second)
         job = _job(store)
         assert [d["index"] for d in job["digs"]] == list(range(MAX_DIGS)), job["digs"]
         assert "job 1: running (task A, 1 dig(s) done)" in second.log()
@@ -415,9 +507,8 @@ def test_daemon_end_to_end(hil: RealtimeHilProcess, tmp_path: Path, attempt: int
         for d in (first, second)
         for m in re.finditer(r"loop: (\d+ overrun\(s\) in \d{4,} cycles.*)", d.log())
     ]
-    print(
-        f"\ndaemon e2e #{attempt + 1}: READY after {t_ready:.1f} s; run 1 {figures1}; "
-        f"run 2 {figures2}; "
+    return (
+        f"READY after {t_ready:.1f} s; run 1 {figures1}; run 2 {figures2}; "
         f"{'; '.join(runs)}; "
         f"store parsed {poller.reads} times; total {time.monotonic() - t0:.1f} s; "
         f"{extra['hil_process']}"

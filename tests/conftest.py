@@ -224,3 +224,38 @@ def front_state(planner: PinnPlanner) -> np.ndarray:
     """A PINN planner's front buffers (row, out, retimed, scale) in one vector: what the C
     kernel's front and the Python path must leave bit for bit equal."""
     return np.concatenate([planner._row[0], planner._out[0], planner._retimed[0], planner._scale])
+
+
+def max_sync_gap_s(trace_dir: Path) -> float:
+    """The largest gap between the SYNCs a master sent, over the closed BLF traces in
+    ``trace_dir`` (s)."""
+    gap = 0.0
+    for path in sorted(trace_dir.glob("*.blf")):
+        stamps = np.array(
+            [m.timestamp for m in can.BLFReader(str(path)) if m.arbitration_id == 0x080]
+        )
+        if stamps.size > 1:
+            gap = max(gap, float(np.diff(stamps).max()))
+    return gap
+
+
+def host_stall(fault: str, trace_dir: Path, rig: Rig) -> str | None:
+    """Why a daemon's latched ``fault`` is the host's doing, from the daemon's own evidence;
+    None where it is not.
+
+    The host's doing: the drives' SYNC watchdog EMCY while the daemon's trace (closed, in
+    ``trace_dir``) shows the master sent no SYNC for longer than that watchdog, or the loop's
+    own overrun stop (it measured that many cycles in a row started late). A shared build
+    machine stops processes for tens of milliseconds at times; the daemon is right to stop the
+    arm then, and a test that runs it against the real-time HIL runs its scenario again.
+    """
+    gap_s = max_sync_gap_s(trace_dir)
+    watchdog_s = rig.drives.sync_timeout_s
+    if "RPDO_TIMEOUT (0x8250)" in fault and gap_s > watchdog_s:
+        return (
+            f"the master sent no SYNC for {gap_s * 1e3:.1f} ms (the drives' watchdog "
+            f"{watchdog_s * 1e3:.0f} ms): {fault[:200]}"
+        )
+    if "overrun_stop" in fault:
+        return f"the loop's overrun stop (largest SYNC gap {gap_s * 1e3:.1f} ms): {fault[:200]}"
+    return None

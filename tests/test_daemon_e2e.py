@@ -28,8 +28,9 @@ round trips) are printed, not asserted. Skipped, with the reason, only if the HI
 
 Host stalls. The drives' watchdog is right to stop the arm when the master falls silent for longer
 than it, and a shared build machine can stop any process for tens of milliseconds. A latched
-fault is therefore judged on the daemon's own bus trace: if the master sent no SYNC for longer
-than the drives' watchdog and the fault is that watchdog's EMCY, the host stalled the master and
+fault is therefore judged on the daemon's own evidence (:func:`conftest.host_stall`): if its
+trace shows the master sent no SYNC for longer than the drives' watchdog and the fault is that
+watchdog's EMCY, or the fault is the loop's own overrun stop, the host stalled the master and
 the daemon did what it must (fault latched, daemon up and answering, the job marked failed
 with the fault); that attempt is printed and the scenario runs again with a new HIL, up to
 ``STALL_ATTEMPTS`` times. Any other fault fails the test at once.
@@ -55,6 +56,7 @@ from typing import Any
 import can
 import numpy as np
 import pytest
+from conftest import host_stall, max_sync_gap_s
 
 from hil_sim.harness.realtime import RealtimeHilProcess
 from rt_runtime.canbus.cia402 import DriveState, decode_state
@@ -338,25 +340,12 @@ def stock_config(path: Path, port: int, state: Path, sock: Path, trace: Path) ->
 
 
 class HostStall(Exception):
-    """The master itself was silent on the bus for longer than the drives' watchdog."""
-
-
-def _max_sync_gap_s(trace_dir: Path) -> float:
-    """The largest gap between SYNCs the daemon sent, over its closed trace files (s)."""
-    gap = 0.0
-    for path in sorted(trace_dir.glob("*.blf")):
-        stamps = np.array(
-            [m.timestamp for m in can.BLFReader(str(path)) if m.arbitration_id == 0x080]
-        )
-        if stamps.size > 1:
-            gap = max(gap, float(np.diff(stamps).max()))
-    return gap
+    """A fault that is the host's doing (:func:`conftest.host_stall`)."""
 
 
 def _judge_failure(daemon: Daemon, sock: Path, trace_dir: Path, rig: Rig, fault: str) -> None:
-    """A latched fault: raise :class:`HostStall` if the daemon's trace shows the master silent
-    for longer than the drives' SYNC watchdog and the fault is that watchdog's EMCY; fail
-    otherwise.
+    """A latched fault: raise :class:`HostStall` where it is the host's doing
+    (:func:`conftest.host_stall`); fail otherwise.
 
     The daemon has stayed up and answered on its socket with the fault; the job is marked
     ``failed`` with the fault's text (a ``reset-fault`` would queue it again).
@@ -370,16 +359,11 @@ def _judge_failure(daemon: Daemon, sock: Path, trace_dir: Path, rig: Rig, fault:
     job = request(sock, {"cmd": "status", "id": 1})["job"]
     assert job["status"] == "failed" and job["fault"] and job["fault"] in fault, (job, fault)
     assert daemon.stop() == 0, daemon.log()  # closes the trace
-    gap_s = _max_sync_gap_s(trace_dir)
-    watchdog_s = rig.drives.sync_timeout_s
-    if gap_s > watchdog_s and "RPDO_TIMEOUT (0x8250)" in fault:
-        lateness = re.findall(r"loop overrun at cycle \d+: ([\d.]+) us late", daemon.log())
-        raise HostStall(
-            f"the master sent no SYNC for {gap_s * 1e3:.1f} ms (drives' watchdog "
-            f"{watchdog_s * 1e3:.0f} ms; its loop's largest lateness "
-            f"{max(map(float, lateness), default=0.0):.0f} us): {fault[:160]}"
-        )
-    pytest.fail(f"fault (largest SYNC gap {gap_s * 1e3:.1f} ms): {fault}\n{daemon.log()}")
+    why = host_stall(fault, trace_dir, rig)
+    if why is not None:
+        raise HostStall(why)
+    pytest.fail(f"fault (largest SYNC gap {max_sync_gap_s(trace_dir) * 1e3:.1f} ms): {fault}\n"
+                f"{daemon.log()}")  # fmt: skip
 
 
 @contextmanager

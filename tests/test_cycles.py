@@ -96,6 +96,25 @@ def test_a_blended_cycle_holds_every_limit_and_passes_its_corners(plan_a: Trench
         assert all(k is TransitionKind.LIFT_OUT for k in c.kinds[:b])
 
 
+def test_a_blend_made_clear_only_without_shape_knots_does_not_end_the_search(
+    planner: TrenchPlanner,
+) -> None:
+    """Two seeded random tasks (the bench's suite, seed 7) where the first corner set's blend
+    with shape knots goes into the material and the one without is 1.29 and 1.32 times its
+    bound: the planner goes on to the next corner sets and takes a clear blend with shape knots.
+    Every cycle of both stays within issue 26's worst case, 1.2 times its bound."""
+    from rt_runtime.bench import random_tasks
+
+    tasks = {t.name: t for t in random_tasks(RIG, 18, 7)}
+    for name in ("random-7-10", "random-7-17"):
+        plan = planner.plan(tasks[name])
+        cycles = _cycles(plan)
+        assert cycles, name
+        ratios = [c.duration_s / c.bound_s for c in cycles]
+        assert max(ratios) <= 1.2, (name, [round(r, 3) for r in ratios])
+        assert all(0.0 <= c.penetration_m <= TRANSITION_PENETRATION_M for c in cycles), name
+
+
 def test_every_dump_lies_in_the_spoil_zone_beside_the_trench(
     planner: TrenchPlanner, plan_a: TrenchPlan
 ) -> None:

@@ -32,7 +32,7 @@ EXAMPLE = ROOT / "rt_runtime" / "service" / "excavator-rtd.example.toml"
 BEGIN = "<!-- begin scripts/daemon-on-hil.sh -->"
 END = "<!-- end scripts/daemon-on-hil.sh -->"
 #: Runs of the walk-through when the host stalls the daemon (:func:`conftest.host_stall`).
-STALL_ATTEMPTS = 3
+STALL_ATTEMPTS = 5
 
 
 def test_the_document_quotes_the_script_whole() -> None:

@@ -84,7 +84,7 @@ EXAMPLE_CONFIG = (
 #: How many times the end-to-end scenario runs (``EXCAVATOR_E2E_RUNS``; default once).
 E2E_RUNS = int(os.environ.get("EXCAVATOR_E2E_RUNS", "1"))
 #: Scenario attempts when the host stalls the master beyond the drives' watchdog.
-STALL_ATTEMPTS = 3
+STALL_ATTEMPTS = 5
 #: The keys :func:`stock_config` changes: the bus and the paths.
 CHANGED_KEYS = ("bus.interface", "bus.channel", "paths.state_dir", "paths.socket", "paths.trace")
 

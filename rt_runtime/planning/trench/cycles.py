@@ -18,7 +18,10 @@ Rules (arm frame, m, rad, s):
   (:meth:`~MovesMixin.exit_transitions`, :meth:`~MovesMixin.entry_transitions`): the lowest
   clear lift, the first clear approach pose; where the cycle through them goes into the
   material, the next lift (a lift in pieces with its intermediate poses as corners, then the
-  next height) or the next approach pose (higher), by where it went in (:meth:`cycle`).
+  next height) or the next approach pose (higher), by where it went in (:meth:`cycle`). A
+  clear blend that only its version without shape knots made clear, more than
+  :data:`_NEAR_BOUND` times its bound, does not end that search: the next corner sets are
+  tried for one with shape knots, and the shortest clear cycle is taken.
 * Gain. A blend no shorter than the rest-to-rest moves through its own corners is not used
   (many close corners, a lift in pieces, can make it so).
 * Dump. Candidates on a grid over the spoil zone (:class:`~rt_runtime.rig.SpoilZone`:
@@ -109,6 +112,11 @@ _N_ABOVE = 3
 #: The parts of a cycle (:meth:`CyclesMixin._cycle_depth`) up to which a cycle that goes into
 #: the material tries a higher lift rather than a higher approach pose.
 _EARLY = 1
+
+#: A clear blend within this factor of its bound (each joint stopping only where it reverses)
+#: ends the search over corner sets; a slower one (without shape knots: those with them went
+#: into the material) is kept while the next corner sets are tried for a shorter clear one.
+_NEAR_BOUND = 1.15
 
 #: SLSQP's tolerance on the scaled objective for a cycle with shape knots: 1e-6 of a cycle is
 #: ~10 us.
@@ -239,6 +247,7 @@ class CyclesMixin(MovesMixin):
                 if len(tops) > 1:
                     lift_sets.append(tops)
             li = aj = 0
+            found: Cycle | None = None
             for attempt in range(_ATTEMPTS):
                 best, part = self._blend(
                     q0,
@@ -251,7 +260,12 @@ class CyclesMixin(MovesMixin):
                     _N_PLANNED if attempt == 0 else 1,
                 )
                 if best is not None:
-                    return best[0]
+                    if found is None or best[0].duration_s < found.duration_s:
+                        found = best[0]
+                    if found.duration_s <= _NEAR_BOUND * found.bound_s:
+                        return found
+                if best is not None and part < 0:
+                    break  # the blend is as planned with shape knots: no corner set to move
                 if part <= _EARLY and li + 1 < len(lift_sets):
                     li += 1
                 elif aj + 1 < len(aboves):
@@ -260,6 +274,8 @@ class CyclesMixin(MovesMixin):
                     li += 1
                 else:
                     break
+            if found is not None:
+                return found
             # The lift straight, at rest at its top, and the blend from there.
             for lift in lifts[:1] if lifts[0] else ():
                 for above in aboves[:2]:
@@ -309,9 +325,10 @@ class CyclesMixin(MovesMixin):
     ) -> tuple[tuple[Cycle, TimeJerkTrajectory] | None, int]:
         """The shortest clear blended cycle through ``q0``, ``lift_poses``, one of ``dumps``
         (the best ``n_planned`` by the bound), ``q_above`` and ``qe``, or None; and where the
-        best candidate went deepest into the material when none is clear (a part of
-        :meth:`_cycle_depth`). With ``lead`` (a clear lift from ``q0``) the blend starts at
-        rest at the lift's top, after its rest-to-rest moves."""
+        best candidate's first trajectory went deepest into the material (a part of
+        :meth:`_cycle_depth`; -1 where that one is clear: :meth:`_clear_trajectory`). With
+        ``lead`` (a clear lift from ``q0``) the blend starts at rest at the lift's top, after
+        its rest-to-rest moves."""
         rig = self.rig
         limits = (rig.qd_max_rad_s, rig.qdd_max_rad_s2, rig.qddd_max_rad_s3)
         lead_poses = [np.asarray(m.q_to_rad) for m in lead]
@@ -383,8 +400,8 @@ class CyclesMixin(MovesMixin):
     ) -> tuple[TimeJerkTrajectory | None, float, int]:
         """The blended trajectory through ``waypoints``, with shape knots in its long
         intervals, else without, the first that is clear (None where neither is), its depth
-        and, where none is clear, the part of the first where it went deepest
-        (:meth:`_cycle_depth`)."""
+        and the part where the first went deepest (:meth:`_cycle_depth`), -1 where the first
+        is clear or could not be planned."""
         rig = self.rig
         step = np.abs(np.diff(waypoints, axis=0))
         r2r = np.max(
@@ -393,8 +410,11 @@ class CyclesMixin(MovesMixin):
         )
         long = r2r >= _LONG_SHARE * float(np.sum(r2r))
         knots = tuple(_SHAPE_KNOTS if x else 0 for x in long.tolist())
+        # Shape knots where an interval is long, then in every interval, then none.
+        every = (_SHAPE_KNOTS,) * len(knots)
+        shapes: list[tuple[int, ...]] = [knots, every] if knots != every else [knots]
         first_part = -1
-        for shape in (knots, 0) if any(knots) else (0,):
+        for shape in [*shapes, ()] if any(knots) else [()]:
             try:
                 traj = plan(
                     cycle_problem(rig, waypoints, CYCLE_W_JERK, shape),
@@ -405,7 +425,7 @@ class CyclesMixin(MovesMixin):
                 continue
             depth, part = self._cycle_depth(traj, q0, qe, n_lift)
             if depth <= TRANSITION_PENETRATION_M - _BLEND_MARGIN_M:
-                return traj, depth, part
+                return traj, depth, first_part
             if first_part < 0:
                 first_part = part
         return None, math.inf, first_part

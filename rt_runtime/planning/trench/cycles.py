@@ -410,11 +410,8 @@ class CyclesMixin(MovesMixin):
         )
         long = r2r >= _LONG_SHARE * float(np.sum(r2r))
         knots = tuple(_SHAPE_KNOTS if x else 0 for x in long.tolist())
-        # Shape knots where an interval is long, then in every interval, then none.
-        every = (_SHAPE_KNOTS,) * len(knots)
-        shapes: list[tuple[int, ...]] = [knots, every] if knots != every else [knots]
         first_part = -1
-        for shape in [*shapes, ()] if any(knots) else [()]:
+        for shape in (knots, 0) if any(knots) else (0,):
             try:
                 traj = plan(
                     cycle_problem(rig, waypoints, CYCLE_W_JERK, shape),

@@ -697,6 +697,10 @@ def _drive_case(
         return bool(runner.fault()) or status in (JobStatus.DONE, JobStatus.FAILED)
 
     wait_for(settled, "the job ending or a fault")
+    if not clock.crashed.is_set() and not runner.fault() and not store.sync() and store.write_error:
+        # The job's last change is written on the store's own thread after the job ends, and
+        # the runner reads a failed write every PLANNER_CHECK_CYCLES cycles: it latches then.
+        wait_for(lambda: bool(runner.fault()), "the runner latching the store's failed write")
     if clock.crashed.is_set():
         _crash_and_restart(result, store, hil, clock, job.id, restart)
         return

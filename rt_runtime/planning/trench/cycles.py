@@ -264,8 +264,6 @@ class CyclesMixin(MovesMixin):
                         found = best[0]
                     if found.duration_s <= _NEAR_BOUND * found.bound_s:
                         return found
-                if best is not None and part < 0:
-                    break  # the blend is as planned with shape knots: no corner set to move
                 if part <= _EARLY and li + 1 < len(lift_sets):
                     li += 1
                 elif aj + 1 < len(aboves):
@@ -325,8 +323,8 @@ class CyclesMixin(MovesMixin):
     ) -> tuple[tuple[Cycle, TimeJerkTrajectory] | None, int]:
         """The shortest clear blended cycle through ``q0``, ``lift_poses``, one of ``dumps``
         (the best ``n_planned`` by the bound), ``q_above`` and ``qe``, or None; and where the
-        best candidate's first trajectory went deepest into the material (a part of
-        :meth:`_cycle_depth`; -1 where that one is clear: :meth:`_clear_trajectory`). With
+        first candidate's first trajectory went deepest into the material (a part of
+        :meth:`_cycle_depth`, as :meth:`_clear_trajectory` gives it). With
         ``lead`` (a clear lift from ``q0``) the blend starts at rest at the lift's top, after
         its rest-to-rest moves."""
         rig = self.rig
@@ -400,8 +398,8 @@ class CyclesMixin(MovesMixin):
     ) -> tuple[TimeJerkTrajectory | None, float, int]:
         """The blended trajectory through ``waypoints``, with shape knots in its long
         intervals, else without, the first that is clear (None where neither is), its depth
-        and the part where the first went deepest (:meth:`_cycle_depth`), -1 where the first
-        is clear or could not be planned."""
+        and the part where the first trajectory planned went deepest (:meth:`_cycle_depth`; -1
+        where none could be planned)."""
         rig = self.rig
         step = np.abs(np.diff(waypoints, axis=0))
         r2r = np.max(
@@ -422,7 +420,7 @@ class CyclesMixin(MovesMixin):
                 continue
             depth, part = self._cycle_depth(traj, q0, qe, n_lift)
             if depth <= TRANSITION_PENETRATION_M - _BLEND_MARGIN_M:
-                return traj, depth, first_part
+                return traj, depth, first_part if first_part >= 0 else part
             if first_part < 0:
                 first_part = part
         return None, math.inf, first_part

@@ -19,9 +19,9 @@ Rules (arm frame, m, rad, s):
   clear lift, the first clear approach pose; where the cycle through them goes into the
   material, the next lift (a lift in pieces with its intermediate poses as corners, then the
   next height) or the next approach pose (higher), by where it went in (:meth:`cycle`). A
-  clear blend that only its version without shape knots made clear, more than
-  :data:`_NEAR_BOUND` times its bound, does not end that search: the next corner sets are
-  tried for one with shape knots, and the shortest clear cycle is taken.
+  clear blend more than :data:`_NEAR_BOUND` times its bound (mostly one made clear only
+  without shape knots) does not end that search: the next corner sets are tried, and the
+  shortest clear cycle is taken.
 * Gain. A blend no shorter than the rest-to-rest moves through its own corners is not used
   (many close corners, a lift in pieces, can make it so).
 * Dump. Candidates on a grid over the spoil zone (:class:`~rt_runtime.rig.SpoilZone`:
@@ -114,8 +114,8 @@ _N_ABOVE = 3
 _EARLY = 1
 
 #: A clear blend within this factor of its bound (each joint stopping only where it reverses)
-#: ends the search over corner sets; a slower one (without shape knots: those with them went
-#: into the material) is kept while the next corner sets are tried for a shorter clear one.
+#: ends the search over corner sets; a slower one (mostly without shape knots, those with them
+#: having gone into the material) is kept while the next corner sets are tried for a shorter.
 _NEAR_BOUND = 1.15
 
 #: SLSQP's tolerance on the scaled objective for a cycle with shape knots: 1e-6 of a cycle is

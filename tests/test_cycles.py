@@ -115,6 +115,27 @@ def test_a_blend_made_clear_only_without_shape_knots_does_not_end_the_search(
         assert all(0.0 <= c.penetration_m <= TRANSITION_PENETRATION_M for c in cycles), name
 
 
+def test_a_slow_or_refused_search_goes_on_with_more_shape_knots_and_a_lift_split_on_its_vertical(
+    planner: TrenchPlanner,
+) -> None:
+    """Seeded random tasks (the bench's suite, seed 7) where every corner set's blend with
+    shape knots in its long intervals went into the material: random-7-15's and random-7-26's
+    cycles took a clear one without knots at 1.30 times their bound, random-7-111's a straight
+    lift and a blend from its top at 1.26 times. Shape knots in every interval (15, 26) and the
+    lift's vertical split into two rises as corners (111) give clear blends within 1.2 times."""
+    from rt_runtime.bench import random_tasks
+
+    tasks = {t.name: t for t in random_tasks(RIG, 112, 7)}
+    for name in ("random-7-15", "random-7-26", "random-7-111"):
+        plan = planner.plan(tasks[name])
+        cycles = _cycles(plan)
+        assert cycles, name
+        ratios = [c.duration_s / c.bound_s for c in cycles]
+        assert max(ratios) <= 1.2, (name, [round(r, 3) for r in ratios])
+        assert all(0.0 <= c.penetration_m <= TRANSITION_PENETRATION_M for c in cycles), name
+        assert all(c.blended for c in cycles), name
+
+
 def test_every_dump_lies_in_the_spoil_zone_beside_the_trench(
     planner: TrenchPlanner, plan_a: TrenchPlan
 ) -> None:

@@ -22,6 +22,12 @@ Rules (arm frame, m, rad, s):
   clear blend more than :data:`_NEAR_BOUND` times its bound (mostly one made clear only
   without shape knots) does not end that search: the next corner sets are tried, and the
   shortest clear cycle is taken.
+* Further blends. Where the corner sets give no clear blend, or only one over
+  :data:`_NEAR_BOUND` times its bound, the search goes on (:meth:`_further_blends`) until
+  one is within that: the same sets with shape knots in every interval, then the lowest
+  clear lift split into 2 and 3 equal rises on its vertical as corners (a blend that leaves
+  the vertical early goes into the material beside the bucket), then the straight lift
+  below; the shortest clear cycle is taken.
 * Gain. A blend no shorter than the rest-to-rest moves through its own corners is not used
   (many close corners, a lift in pieces, can make it so).
 * Dump. Candidates on a grid over the spoil zone (:class:`~rt_runtime.rig.SpoilZone`:
@@ -40,8 +46,8 @@ Rules (arm frame, m, rad, s):
   above the entry on, each point of the bucket may be as deep as at the entry. Between those,
   the tip stays :data:`_GROUND_CLEAR_M` above the ground where it is outside the trench's top
   edges.
-* Straight lift. Where no corner set gives a clear blend (deep corners: a blend through the
-  lift's top leaves the vertical while still in the material), the lowest clear lift is made
+* Straight lift. The last of the further blends (deep corners: a blend through the lift's
+  top leaves the vertical while still in the material): the lowest clear lift is made
   rest-to-rest, straight up, and the blend starts at rest at its top (the cycle's
   :attr:`~rt_runtime.planning.trench.Cycle.moves` before its blend), with the first two
   approach poses.
@@ -57,6 +63,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -115,7 +122,8 @@ _EARLY = 1
 
 #: A clear blend within this factor of its bound (each joint stopping only where it reverses)
 #: ends the search over corner sets; a slower one (mostly without shape knots, those with them
-#: having gone into the material) is kept while the next corner sets are tried for a shorter.
+#: having gone into the material) is kept while the next corner sets, then the further blends
+#: (:meth:`CyclesMixin._further_blends`), are tried for a shorter.
 _NEAR_BOUND = 1.15
 
 #: SLSQP's tolerance on the scaled objective for a cycle with shape knots: 1e-6 of a cycle is
@@ -137,6 +145,10 @@ _GROUND_CLEAR_M = 0.01
 #: blends above 4 mm: the exact one 0.03-0.54 mm lower; a lead-in from a measured pose 0.005 mm
 #: higher, at 5.002 mm); a rest-to-rest fallback keeps the limit itself.
 _BLEND_MARGIN_M = 0.1e-3
+
+#: The further blends a cycle tries, in order, where its corner sets give none clear or only
+#: one slower than :data:`_NEAR_BOUND` times its bound (:meth:`CyclesMixin._further_blends`).
+_FURTHER_BLENDS = ("more_knots", "vertical", "straight")
 
 # Two corners closer than this in every joint are one (rad): the generator refuses repeats.
 _SAME_POSE_RAD = 1e-9
@@ -217,8 +229,10 @@ class CyclesMixin(MovesMixin):
         The corners tried, at most :data:`_ATTEMPTS` sets: the lowest clear lift and the first
         clear approach pose first; where the best dump's cycle goes into the material in its
         first half the next lift (its intermediate poses as corners, then the next height),
-        in its second half the next approach pose (higher above the entry); then the lowest
-        lift made straight with the blend from its top.
+        in its second half the next approach pose (higher above the entry). Where none is
+        clear, or the shortest is over :data:`_NEAR_BOUND` times its bound, the further blends
+        (:meth:`_further_blends`), the last of them the lowest lift made straight with the
+        blend from its top.
 
         Args:
             q_from_rad: Start pose ``(3,)``: a dig's exit, the home pose or a measured pose.
@@ -248,7 +262,9 @@ class CyclesMixin(MovesMixin):
                     lift_sets.append(tops)
             li = aj = 0
             found: Cycle | None = None
+            tried: list[tuple[int, int]] = []
             for attempt in range(_ATTEMPTS):
+                tried.append((li, aj))
                 best, part = self._blend(
                     q0,
                     lift_sets[li],
@@ -260,8 +276,8 @@ class CyclesMixin(MovesMixin):
                     _N_PLANNED if attempt == 0 else 1,
                 )
                 if best is not None:
-                    if found is None or best[0].duration_s < found.duration_s:
-                        found = best[0]
+                    if found is None or best.duration_s < found.duration_s:
+                        found = best
                     if found.duration_s <= _NEAR_BOUND * found.bound_s:
                         return found
                 if part <= _EARLY and li + 1 < len(lift_sets):
@@ -272,16 +288,24 @@ class CyclesMixin(MovesMixin):
                     li += 1
                 else:
                     break
+            if found is None or found.duration_s > _NEAR_BOUND * found.bound_s:
+                further = self._further_blends(
+                    q0,
+                    qe,
+                    lifts[0],
+                    [(lift_sets[i], aboves[j][0]) for i, j in tried],
+                    [a[0] for a in aboves[:2]],
+                    dumps,
+                    dump,
+                    after_dig,
+                )
+                for best in further:
+                    if best is not None and (found is None or best.duration_s < found.duration_s):
+                        found = best
+                        if found.duration_s <= _NEAR_BOUND * found.bound_s:
+                            break
             if found is not None:
                 return found
-            # The lift straight, at rest at its top, and the blend from there.
-            for lift in lifts[:1] if lifts[0] else ():
-                for above in aboves[:2]:
-                    best, _ = self._blend(
-                        q0, [], dumps, above[0], qe, dump, after_dig, _N_PLANNED, lead=lift
-                    )
-                    if best is not None:
-                        return best[0]
         return self._fallback(
             q0,
             qe,
@@ -291,6 +315,68 @@ class CyclesMixin(MovesMixin):
             dump,
             after_dig,
         )
+
+    def _further_blends(
+        self,
+        q0: FloatArray,
+        qe: FloatArray,
+        lift: tuple[Transition, ...],
+        tried: list[tuple[list[FloatArray], FloatArray]],
+        aboves: list[FloatArray],
+        dumps: FloatArray,
+        dump: bool,
+        after_dig: bool,
+    ) -> Iterator[Cycle | None]:
+        """The blends :meth:`cycle` tries where the corner sets ``tried`` (lift corners, pose
+        above the entry) gave none clear or only a slow one, by the steps of
+        :data:`_FURTHER_BLENDS` in order: ``more_knots``, those sets again with shape knots in
+        every interval; ``vertical``, the lowest clear lift ``lift`` split into 2, then 3,
+        equal rises on its vertical (as corners: the blend keeps nearer the vertical);
+        ``straight``, the lift straight, at rest at its top, and the blend from there
+        (``aboves``: the approach poses to try). Each is the best clear cycle of its corners,
+        or None."""
+        for step in _FURTHER_BLENDS:
+            if step == "more_knots":
+                for attempt, (lift_poses, above) in enumerate(tried):
+                    yield self._blend(
+                        q0,
+                        lift_poses,
+                        dumps,
+                        above,
+                        qe,
+                        dump,
+                        after_dig,
+                        _N_PLANNED if attempt == 0 else 1,
+                        knots_everywhere=True,
+                    )[0]
+            elif step == "vertical" and lift:
+                top = np.asarray(lift[-1].q_to_rad)
+                for pieces in (2, 3):
+                    poses = self._vertical(q0, top, pieces) if pieces > len(lift) else None
+                    if poses is not None:
+                        yield self._blend(
+                            q0, poses, dumps, tried[0][1], qe, dump, after_dig, _N_PLANNED
+                        )[0]
+            elif step == "straight" and lift:
+                for above in aboves:
+                    yield self._blend(
+                        q0, [], dumps, above, qe, dump, after_dig, _N_PLANNED, lead=lift
+                    )[0]
+
+    def _vertical(self, q0: FloatArray, top: FloatArray, pieces: int) -> list[FloatArray] | None:
+        """Poses on the vertical from ``q0``'s tip up to ``top``'s, at the start attitude, that
+        split it in ``pieces`` equal rises (the last is ``top``); None where one is out of
+        reach."""
+        arm = self.planner.mover.arm
+        x0, y0, z0 = arm.tip(q0)
+        y1 = arm.tip(top)[1]
+        out: list[FloatArray] = []
+        for y in np.linspace(y0, y1, pieces + 1)[1:-1].tolist():
+            q = arm.ik(x0, y, z0)
+            if q is None:
+                return None
+            out.append(np.asarray(q, dtype=np.float64))
+        return [*out, top]
 
     def _dump_candidates(self, surface: FloatArray) -> FloatArray:
         """The spoil zone's dump poses for the section being dug (see the module): ``(k, 3)``."""
@@ -320,7 +406,8 @@ class CyclesMixin(MovesMixin):
         after_dig: bool,
         n_planned: int,
         lead: tuple[Transition, ...] = (),
-    ) -> tuple[tuple[Cycle, TimeJerkTrajectory] | None, int]:
+        knots_everywhere: bool = False,
+    ) -> tuple[Cycle | None, int]:
         """The shortest clear blended cycle through ``q0``, ``lift_poses``, one of ``dumps``
         (the best ``n_planned`` by the bound), ``q_above`` and ``qe``, or None; and where the
         first candidate's first trajectory went deepest into the material (a part of
@@ -343,19 +430,21 @@ class CyclesMixin(MovesMixin):
             corners = np.array([[*head, *tail]])
             kinds = [*kinds_head, *kinds_tail]
         bounds = reversal_bound_s(corners, *limits)
-        best: tuple[Cycle, TimeJerkTrajectory] | None = None
+        best: Cycle | None = None
         first_part = -1
         for i in np.argsort(bounds, kind="stable")[:n_planned].tolist():
-            if best is not None and bounds[i] >= best[0].duration_s:
+            if best is not None and bounds[i] >= best.duration_s:
                 break
             waypoints, wp_kinds = _distinct(corners[i], kinds)
             n_lift = sum(1 for _ in itertools.takewhile(_is_lift, wp_kinds))
-            traj, depth, part = self._clear_trajectory(waypoints, q_blend, qe, n_lift)
+            traj, depth, part = self._clear_trajectory(
+                waypoints, q_blend, qe, n_lift, knots_everywhere
+            )
             if first_part < 0:
                 first_part = part
             if traj is None or traj.duration_s >= self._stopping_s(waypoints):
                 continue
-            if best is None or lead_s + traj.duration_s < best[0].duration_s:
+            if best is None or lead_s + traj.duration_s < best.duration_s:
                 every = np.array([q0, *lead_poses, *waypoints[1:]])
                 cycle = Cycle(
                     waypoints_rad=tuple(_triple(q) for q in every),
@@ -371,7 +460,7 @@ class CyclesMixin(MovesMixin):
                     penetration_m=max([depth, *(m.penetration_m for m in lead)]),
                     after_dig=after_dig,
                 )
-                best = (cycle, traj)
+                best = cycle
         return best, first_part
 
     def blend_clear(self, cycle: Cycle) -> float | None:
@@ -394,7 +483,12 @@ class CyclesMixin(MovesMixin):
         return sum(float(mover.move(a, b).duration) for a, b in itertools.pairwise(waypoints))
 
     def _clear_trajectory(
-        self, waypoints: FloatArray, q0: FloatArray, qe: FloatArray, n_lift: int
+        self,
+        waypoints: FloatArray,
+        q0: FloatArray,
+        qe: FloatArray,
+        n_lift: int,
+        knots_everywhere: bool = False,
     ) -> tuple[TimeJerkTrajectory | None, float, int]:
         """The blended trajectory through ``waypoints``, with shape knots in its long
         intervals, else without, the first that is clear (None where neither is), its depth
@@ -407,9 +501,10 @@ class CyclesMixin(MovesMixin):
             axis=1,
         )
         long = r2r >= _LONG_SHARE * float(np.sum(r2r))
-        knots = tuple(_SHAPE_KNOTS if x else 0 for x in long.tolist())
+        knots = tuple(_SHAPE_KNOTS if x or knots_everywhere else 0 for x in long.tolist())
         first_part = -1
-        for shape in (knots, 0) if any(knots) else (0,):
+        shapes = (knots,) if knots_everywhere else (knots, 0) if any(knots) else (0,)
+        for shape in shapes:
             try:
                 traj = plan(
                     cycle_problem(rig, waypoints, CYCLE_W_JERK, shape),

@@ -96,6 +96,17 @@ def test_a_blended_cycle_holds_every_limit_and_passes_its_corners(plan_a: Trench
         assert all(k is TransitionKind.LIFT_OUT for k in c.kinds[:b])
 
 
+def _clear_cycles_within_bound(planner: TrenchPlanner, task: Any, most: float) -> list[Cycle]:
+    """``task``'s cycles, each asserted clear of the material and at most ``most`` times its
+    bound (each joint stopping only where it reverses)."""
+    cycles = _cycles(planner.plan(task))
+    assert cycles, task.name
+    ratios = [c.duration_s / c.bound_s for c in cycles]
+    assert max(ratios) <= most, (task.name, [round(r, 3) for r in ratios])
+    assert all(0.0 <= c.penetration_m <= TRANSITION_PENETRATION_M for c in cycles), task.name
+    return cycles
+
+
 def test_a_blend_made_clear_only_without_shape_knots_does_not_end_the_search(
     planner: TrenchPlanner,
 ) -> None:
@@ -107,12 +118,7 @@ def test_a_blend_made_clear_only_without_shape_knots_does_not_end_the_search(
 
     tasks = {t.name: t for t in random_tasks(RIG, 32, 7)}
     for name in ("random-7-17", "random-7-31"):
-        plan = planner.plan(tasks[name])
-        cycles = _cycles(plan)
-        assert cycles, name
-        ratios = [c.duration_s / c.bound_s for c in cycles]
-        assert max(ratios) <= 1.2, (name, [round(r, 3) for r in ratios])
-        assert all(0.0 <= c.penetration_m <= TRANSITION_PENETRATION_M for c in cycles), name
+        _clear_cycles_within_bound(planner, tasks[name], 1.2)
 
 
 def test_a_slow_or_refused_search_goes_on_with_more_shape_knots_and_a_lift_split_on_its_vertical(
@@ -127,12 +133,7 @@ def test_a_slow_or_refused_search_goes_on_with_more_shape_knots_and_a_lift_split
 
     tasks = {t.name: t for t in random_tasks(RIG, 112, 7)}
     for name in ("random-7-15", "random-7-26", "random-7-111"):
-        plan = planner.plan(tasks[name])
-        cycles = _cycles(plan)
-        assert cycles, name
-        ratios = [c.duration_s / c.bound_s for c in cycles]
-        assert max(ratios) <= 1.2, (name, [round(r, 3) for r in ratios])
-        assert all(0.0 <= c.penetration_m <= TRANSITION_PENETRATION_M for c in cycles), name
+        cycles = _clear_cycles_within_bound(planner, tasks[name], 1.2)
         assert all(c.blended for c in cycles), name
 
 

@@ -148,7 +148,7 @@ _BLEND_MARGIN_M = 0.1e-3
 
 #: The further blends a cycle tries, in order, where its corner sets give none clear or only
 #: one slower than :data:`_NEAR_BOUND` times its bound (:meth:`CyclesMixin._further_blends`).
-_FURTHER_BLENDS = ("more_knots", "vertical", "straight")
+_FURTHER_BLENDS = ("more_knots", "vertical", "enter", "straight")
 
 # Two corners closer than this in every joint are one (rad): the generator refuses repeats.
 _SAME_POSE_RAD = 1e-9
@@ -352,31 +352,47 @@ class CyclesMixin(MovesMixin):
             elif step == "vertical" and lift:
                 top = np.asarray(lift[-1].q_to_rad)
                 for pieces in (2, 3):
-                    poses = self._vertical(q0, top, pieces) if pieces > len(lift) else None
+                    poses = self._line_poses(q0, top, pieces) if pieces > len(lift) else None
                     if poses is not None:
                         yield self._blend(
-                            q0, poses, dumps, tried[0][1], qe, dump, after_dig, _N_PLANNED
+                            q0, [*poses, top], dumps, tried[0][1], qe, dump, after_dig, _N_PLANNED
                         )[0]
+            elif step == "enter":
+                for pieces in (2, 3):
+                    for attempt, (lift_poses, above) in enumerate(tried):
+                        poses = self._line_poses(above, qe, pieces)
+                        if poses is not None:
+                            yield self._blend(
+                                q0,
+                                lift_poses,
+                                dumps,
+                                above,
+                                qe,
+                                dump,
+                                after_dig,
+                                _N_PLANNED if attempt == 0 else 1,
+                                enter_poses=tuple(poses),
+                            )[0]
             elif step == "straight" and lift:
                 for above in aboves:
                     yield self._blend(
                         q0, [], dumps, above, qe, dump, after_dig, _N_PLANNED, lead=lift
                     )[0]
 
-    def _vertical(self, q0: FloatArray, top: FloatArray, pieces: int) -> list[FloatArray] | None:
-        """Poses on the vertical from ``q0``'s tip up to ``top``'s, at the start attitude, that
-        split it in ``pieces`` equal rises (the last is ``top``); None where one is out of
-        reach."""
+    def _line_poses(self, qa: FloatArray, qb: FloatArray, pieces: int) -> list[FloatArray] | None:
+        """The poses that split the tip's straight line from ``qa``'s tip to ``qb``'s into
+        ``pieces`` equal parts (ends excluded), at ``qa``'s attitude (the lift's and the
+        enter's lines keep it); None where one is out of reach."""
         arm = self.planner.mover.arm
-        x0, y0, z0 = arm.tip(q0)
-        y1 = arm.tip(top)[1]
+        xa, ya, za = arm.tip(qa)
+        xb, yb, _ = arm.tip(qb)
         out: list[FloatArray] = []
-        for y in np.linspace(y0, y1, pieces + 1)[1:-1].tolist():
-            q = arm.ik(x0, y, z0)
+        for f in np.linspace(0.0, 1.0, pieces + 1)[1:-1].tolist():
+            q = arm.ik(xa + f * (xb - xa), ya + f * (yb - ya), za)
             if q is None:
                 return None
             out.append(np.asarray(q, dtype=np.float64))
-        return [*out, top]
+        return out
 
     def _dump_candidates(self, surface: FloatArray) -> FloatArray:
         """The spoil zone's dump poses for the section being dug (see the module): ``(k, 3)``."""
@@ -407,6 +423,7 @@ class CyclesMixin(MovesMixin):
         n_planned: int,
         lead: tuple[Transition, ...] = (),
         knots_everywhere: bool = False,
+        enter_poses: tuple[FloatArray, ...] = (),
     ) -> tuple[Cycle | None, int]:
         """The shortest clear blended cycle through ``q0``, ``lift_poses``, one of ``dumps``
         (the best ``n_planned`` by the bound), ``q_above`` and ``qe``, or None; and where the
@@ -421,8 +438,8 @@ class CyclesMixin(MovesMixin):
         lead_s = sum(m.duration_s for m in lead)
         head = [q_blend, *lift_poses]
         kinds_head = [TransitionKind.LIFT_OUT] * len(lift_poses)
-        tail = [q_above, qe]
-        kinds_tail = [TransitionKind.APPROACH, TransitionKind.ENTER]
+        tail = [q_above, *enter_poses, qe]
+        kinds_tail = [TransitionKind.APPROACH, *[TransitionKind.ENTER] * (len(enter_poses) + 1)]
         if dump:
             corners = np.array([[*head, d, *tail] for d in dumps])
             kinds = [*kinds_head, TransitionKind.DUMP, *kinds_tail]
@@ -437,8 +454,9 @@ class CyclesMixin(MovesMixin):
                 break
             waypoints, wp_kinds = _distinct(corners[i], kinds)
             n_lift = sum(1 for _ in itertools.takewhile(_is_lift, wp_kinds))
+            n_enter = sum(1 for _ in itertools.takewhile(_is_enter, reversed(wp_kinds)))
             traj, depth, part = self._clear_trajectory(
-                waypoints, q_blend, qe, n_lift, knots_everywhere
+                waypoints, q_blend, qe, n_lift, n_enter, knots_everywhere
             )
             if first_part < 0:
                 first_part = part
@@ -472,8 +490,9 @@ class CyclesMixin(MovesMixin):
             return None
         waypoints = np.asarray(cycle.waypoints_rad, dtype=np.float64)
         n_lift = sum(1 for _ in itertools.takewhile(_is_lift, cycle.kinds))
+        n_enter = sum(1 for _ in itertools.takewhile(_is_enter, reversed(cycle.kinds)))
         traj = cycle.trajectory(self.rig)
-        depth, _ = self._cycle_depth(traj, waypoints[0], waypoints[-1], n_lift)
+        depth, _ = self._cycle_depth(traj, waypoints[0], waypoints[-1], n_lift, n_enter)
         return depth if depth <= TRANSITION_PENETRATION_M - _BLEND_MARGIN_M else None
 
     def _stopping_s(self, waypoints: FloatArray) -> float:
@@ -488,6 +507,7 @@ class CyclesMixin(MovesMixin):
         q0: FloatArray,
         qe: FloatArray,
         n_lift: int,
+        n_enter: int,
         knots_everywhere: bool = False,
     ) -> tuple[TimeJerkTrajectory | None, float, int]:
         """The blended trajectory through ``waypoints``, with shape knots in its long
@@ -513,7 +533,7 @@ class CyclesMixin(MovesMixin):
                 )
             except PlanningError:
                 continue
-            depth, part = self._cycle_depth(traj, q0, qe, n_lift)
+            depth, part = self._cycle_depth(traj, q0, qe, n_lift, n_enter)
             if depth <= TRANSITION_PENETRATION_M - _BLEND_MARGIN_M:
                 return traj, depth, first_part if first_part >= 0 else part
             if first_part < 0:
@@ -521,18 +541,23 @@ class CyclesMixin(MovesMixin):
         return None, math.inf, first_part
 
     def _cycle_depth(
-        self, traj: TimeJerkTrajectory, q0: FloatArray, qe: FloatArray, n_lift: int
+        self,
+        traj: TimeJerkTrajectory,
+        q0: FloatArray,
+        qe: FloatArray,
+        n_lift: int,
+        n_enter: int,
     ) -> tuple[float, int]:
         """How deep the blended ``traj`` takes the bucket into the material left beyond its
         allowances (m; see the module), ``inf`` where the tip comes nearer the ground than
         :data:`_GROUND_CLEAR_M` outside the trench; and the part where it is deepest: 0 up to
         the lift's top (its ``n_lift``-th corner; the first corner where it has none), 1 the
         first half from there to the pose above the entry (:data:`_EARLY`), 2 the second
-        half, 3 the enter."""
+        half, 3 the enter (the last ``n_enter`` moves, from the pose above the entry)."""
         surface = self.surface
         mover = self.planner.mover
         t_wp = traj.waypoint_times_s
-        t2, t_end = float(t_wp[-2]), traj.duration_s
+        t2, t_end = float(t_wp[-1 - n_enter]), traj.duration_s
         t1 = min(float(t_wp[max(n_lift, 1)]), t2)
         # No point of the bucket moves faster than the joints' peak speeds allow.
         speed = float(traj.limit_check().velocity_peak_rad_s @ mover.radius_m)
@@ -626,6 +651,10 @@ class CyclesMixin(MovesMixin):
 
 def _is_lift(kind: TransitionKind) -> bool:
     return kind is TransitionKind.LIFT_OUT
+
+
+def _is_enter(kind: TransitionKind) -> bool:
+    return kind is TransitionKind.ENTER
 
 
 def _clear(moves: tuple[Transition, ...]) -> bool:

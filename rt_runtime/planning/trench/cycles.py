@@ -26,8 +26,9 @@ Rules (arm frame, m, rad, s):
   :data:`_NEAR_BOUND` times its bound, the search goes on (:meth:`_further_blends`) until
   one is within that: the same sets with shape knots in every interval, then the lowest
   clear lift split into 2 and 3 equal rises on its vertical as corners (a blend that leaves
-  the vertical early goes into the material beside the bucket), then the straight lift
-  below; the shortest clear cycle is taken.
+  the vertical early goes into the material beside the bucket), then the enter's straight
+  line split likewise (a blend that reaches the line late goes in beside the entry), then
+  the straight lift below; the shortest clear cycle is taken.
 * Gain. A blend no shorter than the rest-to-rest moves through its own corners is not used
   (many close corners, a lift in pieces, can make it so).
 * Dump. Candidates on a grid over the spoil zone (:class:`~rt_runtime.rig.SpoilZone`:
@@ -332,9 +333,10 @@ class CyclesMixin(MovesMixin):
         :data:`_FURTHER_BLENDS` in order: ``more_knots``, those sets again with shape knots in
         every interval; ``vertical``, the lowest clear lift ``lift`` split into 2, then 3,
         equal rises on its vertical (as corners: the blend keeps nearer the vertical);
-        ``straight``, the lift straight, at rest at its top, and the blend from there
-        (``aboves``: the approach poses to try). Each is the best clear cycle of its corners,
-        or None."""
+        ``enter``, the sets again with the enter's straight line from the pose above the entry
+        split into 2, then 3, equal parts (as corners, each move an enter); ``straight``, the
+        lift straight, at rest at its top, and the blend from there (``aboves``: the approach
+        poses to try). Each is the best clear cycle of its corners, or None."""
         for step in _FURTHER_BLENDS:
             if step == "more_knots":
                 for attempt, (lift_poses, above) in enumerate(tried):

@@ -163,7 +163,7 @@ class Cycle:
     Attributes:
         waypoints_rad: The corners in order, ``(n + 1)`` poses (arm frame): the start (a dig's
             exit, the home pose or a measured pose), the lift's poses, the dump, the pose above
-            the entry, the dig's entry.
+            the entry, poses on the enter's line (where a blend needs them), the dig's entry.
         kinds: ``(n,)`` the phase of the move between waypoint ``i`` and ``i + 1``.
         piece_durations_s: The blended trajectory's cubic pieces (empty when not blended).
         shape_knots: ``(n,)`` the blended trajectory's shape knots in each waypoint interval.

@@ -337,9 +337,12 @@ class CyclesMixin(MovesMixin):
         split into 2, then 3, equal parts (as corners, each move an enter); ``straight``, the
         lift straight, at rest at its top, and the blend from there (``aboves``: the approach
         poses to try). Each is the best clear cycle of its corners, or None."""
-        for step in _FURTHER_BLENDS:
-            if step == "more_knots":
-                for attempt, (lift_poses, above) in enumerate(tried):
+
+        def again(enter_pieces: int, knots_everywhere: bool) -> Iterator[Cycle | None]:
+            """The tried sets again, the enter's line split into ``enter_pieces`` (0: not)."""
+            for attempt, (lift_poses, above) in enumerate(tried):
+                poses = self._line_poses(above, qe, enter_pieces) if enter_pieces else []
+                if poses is not None:
                     yield self._blend(
                         q0,
                         lift_poses,
@@ -349,8 +352,13 @@ class CyclesMixin(MovesMixin):
                         dump,
                         after_dig,
                         _N_PLANNED if attempt == 0 else 1,
-                        knots_everywhere=True,
+                        knots_everywhere=knots_everywhere,
+                        enter_poses=tuple(poses),
                     )[0]
+
+        for step in _FURTHER_BLENDS:
+            if step == "more_knots":
+                yield from again(0, True)
             elif step == "vertical" and lift:
                 top = np.asarray(lift[-1].q_to_rad)
                 for pieces in (2, 3):
@@ -361,20 +369,7 @@ class CyclesMixin(MovesMixin):
                         )[0]
             elif step == "enter":
                 for pieces in (2, 3):
-                    for attempt, (lift_poses, above) in enumerate(tried):
-                        poses = self._line_poses(above, qe, pieces)
-                        if poses is not None:
-                            yield self._blend(
-                                q0,
-                                lift_poses,
-                                dumps,
-                                above,
-                                qe,
-                                dump,
-                                after_dig,
-                                _N_PLANNED if attempt == 0 else 1,
-                                enter_poses=tuple(poses),
-                            )[0]
+                    yield from again(pieces, False)
             elif step == "straight" and lift:
                 for above in aboves:
                     yield self._blend(

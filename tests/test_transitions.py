@@ -140,21 +140,24 @@ def _check_moves(
 CYCLE_STEP_S = 0.005
 
 
+def _enter_moves(kinds: tuple[TransitionKind, ...]) -> int:
+    """The moves of a cycle's enter, from the pose above the entry: those after its last move
+    that is not an enter (more than one where the blend passes poses on the enter's line)."""
+    return next(i for i, k in enumerate(reversed(kinds)) if k is not TransitionKind.ENTER)
+
+
 def _check_cycle(cycle: Cycle, material: Any) -> float:
     """A blended cycle's independent penetration (m), with its allowances: up to its lift's
     top (its first corner without a lift) the material carried out from its start pose, from
-    the pose above the entry (the corner before its enter moves) on each outline point's depth
-    at the entry; a straight lift
-    before the blend as rest-to-rest moves (:func:`_check_moves`), the blend from its top."""
+    the pose above the entry (the corner before its enter moves, :func:`_enter_moves`) on each
+    outline point's depth at the entry; a straight lift before the blend as rest-to-rest moves
+    (:func:`_check_moves`), the blend from its top."""
     lead = max(_check_moves(cycle.moves, material, cycle.waypoints_rad[0])) if cycle.moves else 0.0
     traj = cycle.trajectory(RIG)
     t_wp = traj.waypoint_times_s
     kinds = cycle.kinds[cycle.blend_from :]
     n_lift = next((i for i, k in enumerate(kinds) if k is not TransitionKind.LIFT_OUT), 0)
-    # The enter: its moves from the pose above the entry (more than one where the blend
-    # passes poses on the enter's line).
-    n_enter = next(i for i, k in enumerate(reversed(kinds)) if k is not TransitionKind.ENTER)
-    t2, t_end = float(t_wp[-1 - n_enter]), traj.duration_s
+    t2, t_end = float(t_wp[-1 - _enter_moves(kinds)]), traj.duration_s
     t1 = min(float(t_wp[max(n_lift, 1)]), t2)
     q0 = np.asarray(cycle.waypoints_rad[cycle.blend_from])
     x = cycle.machine_x_m
@@ -199,9 +202,7 @@ def _dig_checking_every_move(planner: TrenchPlanner, s: TrenchSession) -> list[C
         cycle = new[0]
         cycles.append(cycle)
         assert cycle.waypoints_rad[-1] == dig.problem.q_start_rad
-        n_enter = next(
-            i for i, k in enumerate(reversed(cycle.kinds)) if k is not TransitionKind.ENTER
-        )
+        n_enter = _enter_moves(cycle.kinds)
         assert n_enter >= 1 and cycle.kinds[-1 - n_enter] is TransitionKind.APPROACH
         if cycle.after_dig:  # the moves out of the previous dig, on the material it left
             assert cycle.waypoints_rad[0] == s.digs[-1].problem.q_end_rad

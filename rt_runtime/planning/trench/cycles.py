@@ -64,7 +64,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -263,9 +263,9 @@ class CyclesMixin(MovesMixin):
                     lift_sets.append(tops)
             li = aj = 0
             found: Cycle | None = None
-            tried: list[tuple[int, int]] = []
+            tried: list[tuple[list[FloatArray], FloatArray]] = []
             for attempt in range(_ATTEMPTS):
-                tried.append((li, aj))
+                tried.append((lift_sets[li], aboves[aj][0]))
                 best, part = self._blend(
                     q0,
                     lift_sets[li],
@@ -294,7 +294,7 @@ class CyclesMixin(MovesMixin):
                     q0,
                     qe,
                     lifts[0],
-                    [(lift_sets[i], aboves[j][0]) for i, j in tried],
+                    tried,
                     [a[0] for a in aboves[:2]],
                     dumps,
                     dump,
@@ -450,8 +450,7 @@ class CyclesMixin(MovesMixin):
             if best is not None and bounds[i] >= best.duration_s:
                 break
             waypoints, wp_kinds = _distinct(corners[i], kinds)
-            n_lift = sum(1 for _ in itertools.takewhile(_is_lift, wp_kinds))
-            n_enter = sum(1 for _ in itertools.takewhile(_is_enter, reversed(wp_kinds)))
+            n_lift, n_enter = _lift_and_enter(wp_kinds)
             traj, depth, part = self._clear_trajectory(
                 waypoints, q_blend, qe, n_lift, n_enter, knots_everywhere
             )
@@ -486,8 +485,7 @@ class CyclesMixin(MovesMixin):
         if not cycle.blended or cycle.moves:
             return None
         waypoints = np.asarray(cycle.waypoints_rad, dtype=np.float64)
-        n_lift = sum(1 for _ in itertools.takewhile(_is_lift, cycle.kinds))
-        n_enter = sum(1 for _ in itertools.takewhile(_is_enter, reversed(cycle.kinds)))
+        n_lift, n_enter = _lift_and_enter(cycle.kinds)
         traj = cycle.trajectory(self.rig)
         depth, _ = self._cycle_depth(traj, waypoints[0], waypoints[-1], n_lift, n_enter)
         return depth if depth <= TRANSITION_PENETRATION_M - _BLEND_MARGIN_M else None
@@ -646,12 +644,14 @@ class CyclesMixin(MovesMixin):
         )
 
 
-def _is_lift(kind: TransitionKind) -> bool:
-    return kind is TransitionKind.LIFT_OUT
-
-
-def _is_enter(kind: TransitionKind) -> bool:
-    return kind is TransitionKind.ENTER
+def _lift_and_enter(kinds: Sequence[TransitionKind]) -> tuple[int, int]:
+    """The moves a cycle's lift takes (those of ``kinds`` before the first that is not a
+    lift) and its enter takes (those after the last that is not an enter)."""
+    n_lift = sum(1 for _ in itertools.takewhile(lambda k: k is TransitionKind.LIFT_OUT, kinds))
+    n_enter = sum(
+        1 for _ in itertools.takewhile(lambda k: k is TransitionKind.ENTER, reversed(kinds))
+    )
+    return n_lift, n_enter
 
 
 def _clear(moves: tuple[Transition, ...]) -> bool:

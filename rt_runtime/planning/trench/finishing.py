@@ -47,7 +47,9 @@ class FinishingMixin(WallsMixin):
         (:meth:`_finishing_lines`); None when the section's design is dug (within half a
         percent), no pass removes a useful amount, or :data:`MAX_FINISHING_HARD` passes are
         spent. Passes beyond :data:`MAX_FINISHING_PER_SECTION` are taken only where the
-        section would otherwise miss the coverage goal: a finished trench comes first."""
+        section would otherwise miss the coverage goal (the design material left plus what
+        was dug outside the design, over the section's design), and only passes that lower
+        that sum, the one that lowers it most first: a finished trench comes first."""
         if self.finishing_used >= MAX_FINISHING_HARD:
             return None
         box = shapely.box(self.section_lo, self.bottom_y - 1.0, self.section_hi, self.top_y)
@@ -55,10 +57,15 @@ class FinishingMixin(WallsMixin):
         left = float(part.intersection(self.material).area)
         if left <= 0.005 * float(part.area):
             return None
-        if self.finishing_used >= MAX_FINISHING_PER_SECTION and left <= COVERAGE_GOAL * float(
-            part.area
-        ):
-            return None
+        least = _FINISH_MIN_USEFUL * float(part.area)
+        beyond = self.finishing_used >= MAX_FINISHING_PER_SECTION
+        if beyond:
+            # The coverage goal counts the design material left and what was dug outside
+            # the design alike (the symmetric difference): the section's share of both.
+            dug = box.intersection(self.initial).difference(self.material)
+            over = float(dug.difference(self.design).area)
+            if left + over <= COVERAGE_GOAL * float(part.area):
+                return None
         found: list[Candidate] = []
         for kind, line, atts in self._finishing_lines():
             fit = self._fit_pass(kind, line, atts)
@@ -66,8 +73,13 @@ class FinishingMixin(WallsMixin):
                 found.append(dataclasses.replace(fit, may_underfill=True))
         # A pass that removes next to nothing is no pass (a thousandth of the section's
         # design: what is left there is within the coverage budget's rounding).
-        found = [c for c in found if c.useful_m2 >= _FINISH_MIN_USEFUL * float(part.area)]
+        found = [c for c in found if c.useful_m2 >= least]
         found.sort(key=lambda c: -c.useful_m2)
+        if beyond:
+            # A pass taken for the coverage goal must lower the symmetric difference: the
+            # design material it removes, less what it cuts outside the design.
+            found = [c for c in found if 2.0 * c.useful_m2 - c.total_m2 >= least]
+            found.sort(key=lambda c: -(2.0 * c.useful_m2 - c.total_m2))
         dig = self._first_plannable(found, remaining, t0)
         if dig is not None and dig.finishing:
             self.finishing_used += 1

@@ -1004,6 +1004,36 @@ def test_long_trench_is_dug_in_sections_with_one_way_travel(planner: TrenchPlann
         assert all(d.machine_x_m == pytest.approx(session.stands[k]) for d in digs)
 
 
+def test_last_section_is_done_on_its_own_design_not_the_whole_trench(
+    planner: TrenchPlanner,
+) -> None:
+    # Material a scanner sees back on the last section's floor after the trench is dug: under
+    # half a percent of the whole trench's design (done, by the whole) but over a percent of
+    # the section's. The section is not done: the next dig takes it, from the last stand.
+    task = make_task(RIG, 8.0, 0.10, 60.0, 60.0, name="long")
+    session = planner.start(task)
+    while (dig := session.next_dig()) is not None:
+        session.record(dig, dig.tip_path_m)
+    lo, hi = session.sections[-1]
+    last = session.design.intersection(shapely.box(lo, -10.0, hi, 10.0))
+    x = session.grid
+    heap = (x > 0.65 * lo + 0.35 * hi) & (x < 0.35 * lo + 0.65 * hi)
+    # As tall as takes the whole trench's design left to 0.45 %.
+    extra = 0.0045 * session.design_area - session.remaining_design().area
+    top = session.bottom_y + extra / (float(np.count_nonzero(heap)) * float(x[1] - x[0]))
+    surface = np.where(heap, np.maximum(session.surface, top), session.surface)
+    session.observe_surface(x, surface)
+    left = session.remaining_design()
+    assert left.area <= 0.005 * session.design_area
+    assert left.intersection(last).area > 0.01 * last.area
+    dig = session.next_dig()
+    assert dig is not None
+    assert dig.section == len(session.sections) - 1
+    assert dig.machine_x_m == pytest.approx(session.stands[-1])
+    session.record(dig, dig.tip_path_m)
+    assert session.remaining_design().intersection(last).area < 0.005 * last.area
+
+
 def test_resumed_session_plans_the_same_next_dig_at_every_dig(planner: TrenchPlanner) -> None:
     import json
 

@@ -8,6 +8,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import shapely
 from numpy.typing import ArrayLike
 from shapely.geometry import Polygon
 
@@ -139,7 +140,12 @@ class TrenchSession(PersistMixin):
             raise PlanningError("record() the executed path of the previous dig first")
         remaining = self.remaining_design()
         left = float(remaining.area)
-        if left <= 0.005 * self.design_area:
+        # Done when the design of the sections still ahead (this one and those nearer the
+        # machine) is dug within half a percent: of each section's own design, for the last.
+        ahead = shapely.box(self.sections[-1][0], self.bottom_y - 1.0, self.section_hi, self.top_y)
+        if float(remaining.intersection(ahead).area) <= 0.005 * float(
+            self.design.intersection(ahead).area
+        ):
             return None
         bound = self.planner.max_digs or _MAX_DIGS_PER_SECTION * len(self.sections)
         if len(self.digs) >= bound:

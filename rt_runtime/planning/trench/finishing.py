@@ -44,12 +44,14 @@ class FinishingMixin(WallsMixin):
 
     def _next_finishing(self, remaining: Any, t0: float) -> PlannedDig | None:
         """The finishing pass that removes the most design material of the section's
-        (:meth:`_finishing_lines`); None when the section's design is dug (within half a
-        percent), no pass removes a useful amount, or :data:`MAX_FINISHING_HARD` passes are
-        spent. Passes beyond :data:`MAX_FINISHING_PER_SECTION` are taken only where the
-        section would otherwise miss the coverage goal (the design material left plus what
-        was dug outside the design, over the section's design), and only passes that lower
-        that sum, the one that lowers it most first: a finished trench comes first."""
+        (:meth:`_finishing_lines`) among those that lower the symmetric difference of dug
+        and design (design material removed less what is cut outside the design); None when
+        the section's design is dug (within half a percent), no pass lowers it by a useful
+        amount, or :data:`MAX_FINISHING_HARD` passes are spent. Passes beyond
+        :data:`MAX_FINISHING_PER_SECTION` are taken only where the section would otherwise
+        miss the coverage goal (the design material left plus what was dug outside the
+        design, over the section's design), the one that lowers the difference most first:
+        a finished trench comes first."""
         if self.finishing_used >= MAX_FINISHING_HARD:
             return None
         box = shapely.box(self.section_lo, self.bottom_y - 1.0, self.section_hi, self.top_y)
@@ -71,14 +73,13 @@ class FinishingMixin(WallsMixin):
             fit = self._fit_pass(kind, line, atts)
             if fit is not None:
                 found.append(dataclasses.replace(fit, may_underfill=True))
-        # A pass that removes next to nothing is no pass (a thousandth of the section's
-        # design: what is left there is within the coverage budget's rounding).
-        found = [c for c in found if c.useful_m2 >= least]
+        # A pass is one that lowers the symmetric difference (the design material it removes
+        # less what it cuts outside the design) by more than next to nothing (a thousandth of
+        # the section's design: what is left there is within the coverage budget's rounding).
+        found = [c for c in found if 2.0 * c.useful_m2 - c.total_m2 >= least]
         found.sort(key=lambda c: -c.useful_m2)
         if beyond:
-            # A pass taken for the coverage goal must lower the symmetric difference: the
-            # design material it removes, less what it cuts outside the design.
-            found = [c for c in found if 2.0 * c.useful_m2 - c.total_m2 >= least]
+            # Taken for the coverage goal: the one that lowers the difference most first.
             found.sort(key=lambda c: -(2.0 * c.useful_m2 - c.total_m2))
         dig = self._first_plannable(found, remaining, t0)
         if dig is not None and dig.finishing:

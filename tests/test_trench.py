@@ -957,20 +957,22 @@ def test_finishing_passes_go_on_while_what_is_left_and_what_is_dug_outside_miss_
     L, D, b1, b2, x0 = values
     task = make_task(RIG, L, D, b1, b2, start_x_m=x0, name="over-cut")
     session = planner.start(task)
+
+    def difference() -> float:
+        dug = session.initial.difference(session.material)
+        return float(dug.symmetric_difference(session.design).area)
+
     per_section: dict[int, int] = {}
     extra = 0
     while (dig := session.next_dig()) is not None:
-        before = session.initial.difference(session.material).symmetric_difference(session.design)
+        per_section[dig.section] = per_section.get(dig.section, 0) + dig.finishing
+        beyond = dig.finishing and per_section[dig.section] > 2
+        before = difference() if beyond else 0.0
         session.record(dig, dig.tip_path_m)
-        if not dig.finishing:
-            continue
-        per_section[dig.section] = per_section.get(dig.section, 0) + 1
-        if per_section[dig.section] > 2:
+        if beyond:
             extra += 1
-            after = session.initial.difference(session.material).symmetric_difference(
-                session.design
-            )
-            assert after.area < before.area, (dig.index, before.area, after.area)
+            after = difference()
+            assert after < before, (dig.index, before, after)
     plan = session.finish(plan_total_us=0.0)
     assert extra >= 1
     _check_fill_and_sections(plan)

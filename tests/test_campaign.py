@@ -18,6 +18,7 @@ import argparse
 import math
 import random
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 from unittest import mock
 
@@ -32,13 +33,14 @@ from hil_sim.harness.campaign import (
     PLANNER_KINDS,
     RULES,
     Case,
+    _exposed,
     matrix,
     run_campaign,
 )
 from hil_sim.harness.cli import parse_fault
 from hil_sim.harness.lockstep import LockstepHil
 from hil_sim.sim import FaultKind, HilCore
-from rt_runtime.canbus import TPDO1, CanMaster
+from rt_runtime.canbus import RPDO1, TPDO1, CanMaster
 from rt_runtime.canbus.inprocess import ChannelBus
 from rt_runtime.control.hardware import DriveInterface
 from rt_runtime.errors import ConfigurationError
@@ -86,7 +88,7 @@ def test_one_shot_kinds_act_on_the_targets_next_frame_only() -> None:
     assert wire.to_hil((0x201, bytes(8)), 0.0) == [(0x201, bytes(8))]  # device frames only
     assert wire.to_master(TPDO1_BOOM, 0.0) == [(0x181, bytes(7))]
     wire.inject(FaultKind.FRAME_GARBAGE, None, None, 0.0)
-    (cob, data), = wire.to_master(TPDO1_BOOM, 0.0)
+    ((cob, data),) = wire.to_master(TPDO1_BOOM, 0.0)
     assert cob == 0x181 and len(data) == 8 and data != bytes(8)
     wire.inject(FaultKind.FRAME_DELAY, 1, 5.0, 1.0)
     assert wire.to_master(TPDO1_BOOM, 1.0) == []
@@ -245,9 +247,7 @@ def test_the_matrix_covers_every_kind_on_every_target() -> None:
 def test_on_a_rig_with_swing_the_swing_is_a_target_and_the_planner_kinds_are_left_out() -> None:
     cases = matrix(seeds=1, swing=True)
     cells = {(c.kind, c.target) for c in cases}
-    assert cells == {
-        (k, t) for k in FaultKind if k not in PLANNER_KINDS for t in k.swing_targets
-    }
+    assert cells == {(k, t) for k in FaultKind if k not in PLANNER_KINDS for t in k.swing_targets}
     assert (FaultKind.OVERCURRENT, "swing") in cells
     assert {c.target for c in matrix(axes=["swing"], seeds=1, swing=True)} <= {
         "swing",
@@ -279,6 +279,48 @@ def test_a_swing_campaign_stops_every_fault_on_the_swing_drive_safely_and_resume
     # The three stops the master commanded (the crashed daemon commands none) within limits.
     peaks = [r["stop_peak"] for r in report["cases"] if r["stop_peak"].get("v") is not None]
     assert len(peaks) == 3 and all(p[k] <= 1.0 for p in peaks for k in ("v", "a", "j"))
+
+
+def test_a_stuck_axis_shows_when_its_command_outruns_where_it_truly_is() -> None:
+    """The moment a jam can first show is measured against the axis's true stroke: a jammed
+    hydraulic axis creeps on its oil column, and its error only grows as fast as the command
+    outruns the creep; an electric axis stands where it stuck, and both measures agree."""
+    period, window, v_cmd = 0.002, 0.024, 0.10  # s, m, m/s
+    t_inj = 1.0
+    cob = RPDO1.cob_id(1)
+    t = np.arange(0.0, 3.0, period)
+    command = v_cmd * t
+    frames = [
+        (float(ti), cob, RPDO1.codec.pack(round(c * 1e6), round(v_cmd * 1e6)))
+        for ti, c in zip(t, command, strict=True)
+    ]
+    clock = SimpleNamespace(frames=frames, rock_direction=0.0)
+    creep = 0.06  # m/s: the oil column giving way under the jam
+    stuck = v_cmd * t_inj
+    hydraulic = np.where(t <= t_inj, command, stuck + creep * (t - t_inj))
+    electric = np.where(t <= t_inj, command, stuck)
+    shown_h = _exposed(clock, cob, t_inj, window, t, hydraulic)  # type: ignore[arg-type]
+    shown_e = _exposed(clock, cob, t_inj, window, t, electric)  # type: ignore[arg-type]
+    assert shown_e - t_inj == pytest.approx(window / v_cmd, abs=2 * period)
+    assert shown_h - t_inj == pytest.approx(window / (v_cmd - creep), abs=2 * period)
+    # Without a truth: from where the command was at the injection (the electric measure).
+    assert _exposed(clock, cob, t_inj, window, np.empty(0), np.empty(0)) == shown_e  # type: ignore[arg-type]
+    # A rock: only the way into it counts.
+    clock.rock_direction = -1.0
+    assert _exposed(clock, cob, t_inj, window, t, electric) == math.inf  # type: ignore[arg-type]
+
+
+def test_a_jammed_hydraulic_boom_is_detected_within_the_monitors_bound() -> None:
+    """The field excavator's boom jammed in its taught cycle: it creeps on its oil column, the
+    monitor latches within its cycles of the command outrunning it, the stop holds the limits,
+    and the job resumes."""
+    report = run_campaign(
+        [Case(0, FaultKind.FOLLOWING_ERROR, "boom", 3.5, 0, digs=1)], "field_excavator", jobs=1
+    )
+    (row,) = report["cases"]
+    assert not row["error"] and row["violations"] == [], row
+    assert row["outcome"] == "stopped" and row["resumed"] and row["safe"], row
+    assert row["shown_s"] > 0.0 and row["detection_s"] <= row["bound_s"], row
 
 
 # -- the campaign, one case of every kind -----------------------------------------------------
@@ -337,7 +379,6 @@ def test_the_json_holds_every_documented_key(short_campaign: dict[str, Any]) -> 
     keys = contract_keys(_list_of(_paragraph(README, "`hil campaign --json`:")))
     assert ("cases", "stop_peak", "j") in keys and ("summary", "lost_jobs") in keys
     assert missing(short_campaign, keys) == []
-
 
 
 # -- the soak, on a reduced size ---------------------------------------------------------------

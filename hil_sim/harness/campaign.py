@@ -19,8 +19,9 @@ runner's own thread between two cycles (:class:`_CaseClock`), so nothing races t
 
 * a fault that latches is *detected*: ``detection_s`` is the runner's latch time
   (:attr:`~rt_runtime.service.runner.RigRunner.fault_at_s`) minus the injection's (for a jam
-  or a rock, minus the moment the axis's command first ran a following-error window on from
-  where it stuck, if later: a held axis shows neither); the cause is
+  or a rock, minus the moment the axis's command first ran a following-error window ahead of
+  where the axis truly is, if later: a held axis shows neither, and a hydraulic one creeps on
+  its oil column after it stuck); the cause is
   cleared (:meth:`~hil_sim.harness.lockstep.LockstepHil.clear_faults`; a bus-off adapter is
   reopened by the runner's ``reopen``), ``reset-fault`` is requested and the job must end
   ``done`` at its two digs: ``resumed``;
@@ -267,8 +268,9 @@ RESTART_S = 2.0
 #: store that cannot be written counts from its next write.
 STORE_WRITE_S = 20.0
 #: Faults seen only once their axis is commanded away: detection counts from when the command
-#: is a following-error window away from where the axis stuck (a jam of a held axis, or a rock
-#: the axis is not pushing into, harm nothing and show nothing).
+#: is a following-error window ahead of where the axis truly is (a jam of a held axis, or a rock
+#: the axis is not pushing into, harm nothing and show nothing; a jammed hydraulic axis creeps
+#: on its oil column, so its error grows only as the command outruns the creep).
 _SEEN_IN_MOTION = (FaultKind.FOLLOWING_ERROR, FaultKind.ROCK)
 
 
@@ -302,6 +304,7 @@ class CaseResult:
     case: Case
     outcome: str = "none"
     detection_s: float = math.nan
+    shown_s: float = math.nan
     bound_s: float = math.nan
     stop_peak: dict[str, float] = field(default_factory=dict)
     plant_peak_v: float = math.nan
@@ -341,6 +344,7 @@ class CaseResult:
             "expected": RULES[c.kind].outcome,
             "outcome": self.outcome,
             "detection_s": _num(self.detection_s),
+            "shown_s": _num(self.shown_s),
             "bound_s": _num(self.bound_s),
             "stop_peak": {k: _num(self.stop_peak.get(k, math.nan)) for k in ("v", "a", "j")},
             "plant_peak_v": _num(self.plant_peak_v),
@@ -384,9 +388,7 @@ def matrix(
         raise ConfigurationError(f"--seeds {seeds} must be >= 1")
     names = (*AXES, "swing") if swing else AXES
     if axes is not None and (bad := [a for a in axes if a not in names]):
-        raise ConfigurationError(
-            f"axes {', '.join(bad)}: the rig has {', '.join(names)}"
-        )
+        raise ConfigurationError(f"axes {', '.join(bad)}: the rig has {', '.join(names)}")
     rng = random.Random(seed)
     chosen = list(RULES) if kinds is None else list(kinds)
     if swing:
@@ -838,8 +840,17 @@ def _check_stop(
         swing = result.case.target == "swing"  # its own window, in rad
         window = job_limits.swing_following_error_rad if swing else job_limits.following_error_m
         axis = rig_axes.names(rig).index(result.case.target)
-        exposed = _exposed(clock, RPDO1.cob_id(nodes[axis]), clock.injected_at, window)
-        result.detection_s = t_detect - max(clock.injected_at, min(exposed, t_detect))
+        exposed = _exposed(
+            clock,
+            RPDO1.cob_id(nodes[axis]),
+            clock.injected_at,
+            window,
+            t_truth,
+            stroke_truth[:, axis] if stroke_truth.ndim == 2 else np.empty(0),
+        )
+        shown = max(clock.injected_at, min(exposed, t_detect))
+        result.shown_s = shown - clock.injected_at
+        result.detection_s = t_detect - shown
     rpdo1 = {RPDO1.cob_id(n): i for i, n in enumerate(nodes)}
     rpdo2 = {RPDO2.cob_id(n): i for i, n in enumerate(nodes)}
     limits = StrokeLimits.from_rig(rig)
@@ -922,14 +933,28 @@ def _check_stop(
         )
 
 
-def _exposed(clock: _CaseClock, cob_of_axis: int, t_s: float, window_m: float) -> float:
+def _exposed(
+    clock: _CaseClock,
+    cob_of_axis: int,
+    t_s: float,
+    window_m: float,
+    t_truth: np.ndarray,
+    truth: np.ndarray,
+) -> float:
     """When a stuck axis could first show: the stroke commanded in the case's axis's RPDO1
     (``cob_of_axis``) first more than ``window_m`` (the following-error monitor's window, m;
-    the swing's rad) from where it was commanded at ``t_s`` (for a rock: that far on into the
-    rock); inf: never before the reset."""
+    the swing's rad) from where the axis truly is (``truth`` at ``t_truth``: its plant's
+    stroke, m, or angle, rad), after ``t_s``; for a rock, that far on into the rock.
+
+    Measured against the true stroke, not against where the axis was at ``t_s``: a jammed or
+    rock-stopped hydraulic axis creeps on on its oil column, and its error grows only as fast
+    as the command outruns that creep; an electric axis stops where it stuck, and the two
+    are the same. Without a truth (none recorded), from the stroke commanded at ``t_s``.
+    inf: never before the reset."""
     way = clock.rock_direction
     first = math.nan
     window_um = window_m * 1e6
+    with_truth = t_truth.shape[0] >= 2 and truth.shape[0] == t_truth.shape[0]
     for t, cob, data in clock.frames:
         if cob != cob_of_axis or len(data) != RPDO1.size:
             continue
@@ -937,7 +962,8 @@ def _exposed(clock: _CaseClock, cob_of_axis: int, t_s: float, window_m: float) -
         if t <= t_s or math.isnan(first):
             first = target
             continue
-        ahead = (target - first) * way if way else abs(target - first)
+        where = float(np.interp(t, t_truth, truth)) * 1e6 if with_truth else first
+        ahead = (target - where) * way if way else abs(target - where)
         if ahead > window_um:
             return t
     return math.inf

@@ -15,8 +15,12 @@ resumed and done, not lost. The full matrix (>= 500 cases) is the command's.
 from __future__ import annotations
 
 import argparse
+import errno
 import math
+import os
 import random
+import shutil
+import subprocess
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -445,6 +449,95 @@ def test_an_unwritable_store_latches_and_a_reset_says_why_until_it_is_back(
         assert runner.shutdown(30.0)
         store.close()
         hil.close()
+
+
+def _fill(directory: Path) -> Path:
+    """Fill the filesystem of ``directory`` to its last block; the filler file."""
+    filler = directory / "filler"
+    fd = os.open(filler, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    block = bytes(4096)
+    try:
+        while True:
+            os.write(fd, block)
+    except OSError as exc:
+        assert exc.errno == errno.ENOSPC, exc
+    finally:
+        os.close(fd)
+    return filler
+
+
+def test_a_full_disk_latches_keeps_the_store_whole_and_resumes_once_space_is_freed(
+    rig: Rig, tmp_path: Path
+) -> None:
+    """A real ENOSPC: the state directory on a small tmpfs of its own, filled to the last block
+    after a first job is done. The second job's submission cannot be written: a fault naming
+    the store and the full disk latches, the store on disk is still the one before (the first
+    job done, no temporary file left taking space), a reset fails while the disk is full; with
+    the filler removed the reset succeeds and the second job runs to its end."""
+    from hil_sim.harness.campaign import lockstep_config, wait_for
+    from rt_runtime.service.jobstore import JobStatus, JobStore, read_store
+    from rt_runtime.service.runner import RigRunner
+
+    cfg = lockstep_config(tmp_path / "state", "scale_model")
+    state = cfg.paths.state_dir
+    state.mkdir(parents=True, exist_ok=True)
+    mount = shutil.which("mount")
+    done = (
+        subprocess.run(
+            [mount, "-t", "tmpfs", "-o", "size=16m,mode=0700", "tmpfs", str(state)],
+            capture_output=True,
+            check=False,
+        )
+        if mount
+        else None
+    )
+    if done is None or done.returncode != 0:
+        why = "no mount command" if done is None else done.stderr.decode().strip()
+        pytest.skip(f"a real ENOSPC needs a tmpfs of its own, and none mounts here: {why}")
+    try:
+        planner = TrenchPlanner(rig)
+        hil = LockstepHil(rig, planner.home_pose_rad, vcu=False)
+        store = JobStore(state)
+        store.start()
+        runner = RigRunner(
+            cfg, rig, planner, hil.master_bus, store, hil.clock, hil.reopen_master_bus
+        )
+        try:
+            runner.start()
+            wait_for(lambda: runner.health()[0], "holding")
+            first = store.submit(dict(CASE_TASK), "pinn", max_digs=1)
+            store.changed.set()
+            wait_for(lambda: store.get(first.id).status is JobStatus.DONE, "the first job")
+            assert store.sync()
+            filler = _fill(state)
+            second = store.submit(dict(CASE_TASK), "pinn", max_digs=1)
+            store.changed.set()
+            wait_for(lambda: runner.state().endswith("waiting for reset-fault"), "the latch")
+            assert "the job store is not written" in runner.fault(), runner.fault()
+            assert "No space left on device" in runner.fault(), runner.fault()
+            _, on_disk = read_store(store.path)
+            assert [(j.id, j.status) for j in on_disk] == [(first.id, JobStatus.DONE)]
+            assert not list(state.glob(".*.tmp"))
+            number = runner.reset_fault()
+            wait_for(lambda: runner.resets_done >= number, "the first reset")
+            assert "the latest reset failed: the job store is still not written" in runner.fault()
+            filler.unlink()
+            number = runner.reset_fault()
+            wait_for(lambda: runner.resets_done >= number, "the second reset")
+            assert runner.fault() == ""
+            wait_for(lambda: store.get(second.id).status is JobStatus.DONE, "the second job")
+            assert store.sync()
+            _, on_disk = read_store(store.path)
+            assert [(j.id, j.status, len(j.digs)) for j in on_disk] == [
+                (first.id, JobStatus.DONE, 1),
+                (second.id, JobStatus.DONE, 1),
+            ]
+        finally:
+            assert runner.shutdown(30.0)
+            store.close()
+            hil.close()
+    finally:
+        subprocess.run(["umount", "-l", str(state)], capture_output=True, check=False)
 
 
 def test_a_changed_model_latches_and_a_reset_says_why_until_it_is_back(

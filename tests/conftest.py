@@ -50,14 +50,20 @@ def restore_pending(
 
 
 class _Injectable(Protocol):
-    def inject(self, kind: FaultKind, axis: int) -> None: ...
+    def inject(self, kind: FaultKind, axis: int, param: float | None = None) -> None: ...
+
+
+#: A fault to inject: kind, axis (-1: the bus), seconds after the first cycle, and optionally
+#: its parameter.
+Fault = tuple["FaultKind", int, float] | tuple["FaultKind", int, float, float]
 
 
 def fault_on_cycle(
-    hil: _Injectable, fault: tuple[FaultKind, int, float] | None
+    hil: _Injectable, fault: Fault | None
 ) -> tuple[Callable[[int, float], None], list[float]]:
     """The executor's per-cycle hook injecting ``fault`` (kind, axis, seconds after the first
-    cycle) into ``hil`` once, and the list it appends the injection time to."""
+    cycle, optionally its parameter) into ``hil`` once, and the list it appends the injection
+    time to."""
     start: list[float] = []
     injected: list[float] = []
 
@@ -65,7 +71,7 @@ def fault_on_cycle(
         if not start:
             start.append(now_s)
         if fault is not None and not injected and now_s - start[0] >= fault[2]:
-            hil.inject(fault[0], fault[1])
+            hil.inject(fault[0], fault[1], fault[3] if len(fault) > 3 else None)
             injected.append(now_s)
 
     return on_cycle, injected
@@ -107,7 +113,7 @@ BRIDGE_PATIENCE_S = 0.5
 def run_on_lockstep(
     rig: Rig,
     pending: tuple[TrenchPlanner, Any, dict[str, Any]],
-    fault: tuple[FaultKind, int, float] | None = None,
+    fault: Fault | None = None,
     trace: Path | None = None,
 ) -> FaultRun:
     """The pending dig from its entry on the lockstep HIL, ``fault`` injected at a time after
@@ -145,7 +151,7 @@ def patient(rig: Rig) -> Rig:
 def run_on_bridge(
     rig: Rig,
     pending: tuple[TrenchPlanner, Any, dict[str, Any]],
-    fault: tuple[FaultKind, int, float] | None = None,
+    fault: Fault | None = None,
     trace: Path | None = None,
     *,
     rig_name: str = "scale_model",

@@ -21,6 +21,7 @@ import os
 import random
 import shutil
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -466,18 +467,36 @@ def _fill(directory: Path) -> Path:
     return filler
 
 
-def test_a_full_disk_latches_keeps_the_store_whole_and_resumes_once_space_is_freed(
-    rig: Rig, tmp_path: Path
+def _remount(directory: Path, option: str) -> None:
+    subprocess.run(["mount", "-o", f"remount,{option}", str(directory)], check=True)
+
+
+#: The disk faults of a real filesystem: (what breaks it, the OS's words, what mends it).
+_DISK_FAULTS: dict[str, tuple[Callable[[Path], Any], str, Callable[[Path, Any], None]]] = {
+    "full": (_fill, "No space left on device", lambda d, filler: filler.unlink()),
+    "read-only": (
+        lambda d: _remount(d, "ro"),
+        "Read-only file system",
+        lambda d, _: _remount(d, "rw"),
+    ),
+}
+
+
+@pytest.mark.parametrize("disk", sorted(_DISK_FAULTS))
+def test_a_real_disk_fault_latches_keeps_the_store_whole_and_resumes_once_mended(
+    rig: Rig, tmp_path: Path, disk: str
 ) -> None:
-    """A real ENOSPC: the state directory on a small tmpfs of its own, filled to the last block
-    after a first job is done. The second job's submission cannot be written: a fault naming
-    the store and the full disk latches, the store on disk is still the one before (the first
-    job done, no temporary file left taking space), a reset fails while the disk is full; with
-    the filler removed the reset succeeds and the second job runs to its end."""
+    """The state directory on a small tmpfs of its own, which after a first job is done is
+    filled to its last block (a real ENOSPC) or remounted read-only (a real EROFS). The second
+    job's submission cannot be written: a fault naming the store and the OS's error latches,
+    the store on disk is still the one before (the first job done, no temporary file left), a
+    reset fails while the cause stays; once the disk is mended the reset succeeds and the second
+    job runs to its end."""
     from hil_sim.harness.campaign import lockstep_config, wait_for
     from rt_runtime.service.jobstore import JobStatus, JobStore, read_store
     from rt_runtime.service.runner import RigRunner
 
+    breaks, words, mends = _DISK_FAULTS[disk]
     cfg = lockstep_config(tmp_path / "state", "scale_model")
     state = cfg.paths.state_dir
     state.mkdir(parents=True, exist_ok=True)
@@ -493,7 +512,7 @@ def test_a_full_disk_latches_keeps_the_store_whole_and_resumes_once_space_is_fre
     )
     if done is None or done.returncode != 0:
         why = "no mount command" if done is None else done.stderr.decode().strip()
-        pytest.skip(f"a real ENOSPC needs a tmpfs of its own, and none mounts here: {why}")
+        pytest.skip(f"a real disk fault needs a tmpfs of its own, and none mounts here: {why}")
     try:
         planner = TrenchPlanner(rig)
         hil = LockstepHil(rig, planner.home_pose_rad, vcu=False)
@@ -509,19 +528,19 @@ def test_a_full_disk_latches_keeps_the_store_whole_and_resumes_once_space_is_fre
             store.changed.set()
             wait_for(lambda: store.get(first.id).status is JobStatus.DONE, "the first job")
             assert store.sync()
-            filler = _fill(state)
+            cause = breaks(state)
             second = store.submit(dict(CASE_TASK), "pinn", max_digs=1)
             store.changed.set()
             wait_for(lambda: runner.state().endswith("waiting for reset-fault"), "the latch")
             assert "the job store is not written" in runner.fault(), runner.fault()
-            assert "No space left on device" in runner.fault(), runner.fault()
+            assert words in runner.fault(), runner.fault()
             _, on_disk = read_store(store.path)
             assert [(j.id, j.status) for j in on_disk] == [(first.id, JobStatus.DONE)]
             assert not list(state.glob(".*.tmp"))
             number = runner.reset_fault()
             wait_for(lambda: runner.resets_done >= number, "the first reset")
             assert "the latest reset failed: the job store is still not written" in runner.fault()
-            filler.unlink()
+            mends(state, cause)
             number = runner.reset_fault()
             wait_for(lambda: runner.resets_done >= number, "the second reset")
             assert runner.fault() == ""

@@ -17,6 +17,7 @@ within the limits) and on the plant's true rates at the end.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from typing import Any
 
@@ -24,6 +25,7 @@ import numpy as np
 import pytest
 from conftest import (
     BRIDGE_PATIENCE_S,
+    Fault,
     FaultRun,
     rpdo1_limit_check,
     run_on_bridge,
@@ -38,7 +40,7 @@ from rt_runtime.planning.trench import TrenchPlanner
 from rt_runtime.rig import Rig, load_rig
 
 Pending = tuple[TrenchPlanner, Any, dict[str, Any]]
-Runner = Callable[[Rig, Pending, tuple[FaultKind, int, float]], FaultRun]
+Runner = Callable[[Rig, Pending, Fault], FaultRun]
 
 
 @pytest.fixture(scope="module")
@@ -62,8 +64,8 @@ class Transport:
         self.name = name
         self.exact = name == "lockstep"
         self.run: Runner = run_on_lockstep if self.exact else run_on_bridge
-        self.heartbeat_timeout_s = rig.drives.heartbeat_timeout_s if self.exact else (
-            BRIDGE_PATIENCE_S
+        self.heartbeat_timeout_s = (
+            rig.drives.heartbeat_timeout_s if self.exact else (BRIDGE_PATIENCE_S)
         )
         self.slack_s = 0.01 if self.exact else 0.1
 
@@ -150,3 +152,57 @@ def test_a_silent_drive_is_lost_by_the_master_and_the_others_stop(
     assert run.master.feedback.heartbeat_lost[boom]
     assert np.isnan(tel["stroke_fb_m"][-1, boom])
     _assert_others_stopped(run, rig, boom)
+
+
+# -- the wire's faults, on both transports (the bridge's HIL process passes every frame through
+# the same fault model as the lockstep transport) -------------------------------------------------
+
+
+def test_a_lossy_wire_to_a_drive_is_ridden_through_and_counted(
+    transport: Transport, rig: Rig, pending: Any
+) -> None:
+    """Two percent of the frames to and from the boom's drive lost from 0.3 s on (no run of
+    losses as long as a heartbeat timeout, at these odds): the dig runs to its end, the master
+    counting the TPDO1s it missed."""
+    run = transport.run(rig, pending, (FaultKind.FRAME_LOSS, 0, 0.3, 0.02))
+    assert run.injected
+    assert run.result.status is ExecStatus.DONE, run.result.fault
+    # (The trace is the wire past the losses, where a lost setpoint shows as a double step: its
+    # limits are the commanded stream's, checked by the other tests.)
+    assert run.master.feedback.counts.missed_tpdo1 > 0, run.master.feedback.counts.to_json()
+
+
+def test_an_unplugged_bus_stops_the_dig_and_every_axis_comes_to_rest(
+    transport: Transport, rig: Rig, pending: Any
+) -> None:
+    """The whole bus unplugged for longer than the stale-feedback limit and the drives' SYNC
+    watchdog (with the bridge's patience): the master loses its feedback and stops with the
+    guard's jerk-limited stop, nothing commanded leaving the limits. (The plant's rest is not
+    asserted: its truth is sampled at the SYNCs that reach the HIL, and none does while the
+    bus is unplugged; the drives' own stop on their watchdog is ``test_campaign.py``'s.)"""
+    unplugged_s = 0.8 if transport.exact else 1.5
+    run = transport.run(rig, pending, (FaultKind.BUS_UNPLUGGED, -1, 0.5, unplugged_s))
+    assert run.injected
+    res = run.result
+    assert res.status is ExecStatus.FAULT, res.fault
+    statuses = set(res.telemetry["cycle_status"].tolist())
+    assert statuses & {CycleStatus.STALE, CycleStatus.HEARTBEAT_LOST}, statuses
+    check = rpdo1_limit_check(rig, run.frames)
+    assert max(check.velocity) <= 1.0 and max(check.acceleration) <= 1.0, check
+    assert max(check.jerk) <= 1.0, check
+    assert "stale feedback" in res.fault or "heartbeat" in res.fault, res.fault
+
+
+@pytest.mark.parametrize("fault", ["bus_off:bus:1.0", "loop_stall:host:1.0"])
+def test_the_real_time_hil_refuses_the_faults_of_the_rig_pcs_side(
+    fault: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The adapter's bus-off and the host's faults act in the master's process: the real-time
+    HIL refuses them by name before anything moves, pointing to lockstep."""
+    from rt_runtime.entry import main
+
+    argv = ["hil", "--realtime", "--inject", fault, "--max-digs", "1", "--json"]
+    assert main(argv) == 2
+    out = json.loads(capsys.readouterr().out)
+    assert out["status"] == "error" and fault.split(":")[0] in out["error"], out
+    assert "lockstep" in out["error"], out

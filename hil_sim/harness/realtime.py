@@ -25,6 +25,13 @@ SYNCs for percentiles (:class:`SyncStats`). Nothing else grows per frame: the br
 to a client that does not read is capped (:data:`hil_sim.harness.bridge.MAX_PENDING_BYTES`),
 and the trace (``--trace``) goes to its file.
 
+Faults: ``inject`` switches a drive fault on in a node, or a wire fault (the kinds of
+:class:`~hil_sim.busfaults.BusFaults` but the master adapter's bus-off) on the frames to and
+from a node or the whole bus: every frame the master sends passes the fault model before the
+nodes see it, every frame the nodes send before it goes on the bridge, frames held back leave
+when due, and an error frame goes to the master with each SYNC while some are owed. An inject
+the process cannot take is refused on stderr; the process runs on.
+
 Control of the process (:class:`RealtimeHilProcess`): one line commands on stdin
 (``inject <kind> <axis> [<param>]``, ``cut <sync_from> <sync_to>``, ``stop``), answers on stdout
 (``READY <port>``, ``CUT <m3>``). On ``stop``, on end of stdin (the parent died) or after
@@ -62,6 +69,7 @@ import can
 import numpy as np
 
 from hil_sim.bridge import FLAG_ERROR, FLAG_EXTENDED, FLAG_REMOTE
+from hil_sim.busfaults import BusFaults
 from hil_sim.harness.bridge import Bridge, RxFrame
 from hil_sim.sim import COB_SYNC, FaultKind, HilCore, Truth, open_trace
 from hil_sim.terrain import Terrain
@@ -137,7 +145,9 @@ def serve(args: argparse.Namespace) -> int:
     threading.Thread(target=read_stdin, name="stdin", daemon=True).start()
     print(f"READY {bridge.port}", flush=True)
 
-    loop = _HilLoop(core, bridge, rig.drives.servo_period_s, args.period)
+    loop = _HilLoop(
+        core, bridge, rig.drives.servo_period_s, args.period, BusFaults(args.fault_seed)
+    )
     gc.freeze()
     running = True
     poll_s = args.poll
@@ -148,9 +158,10 @@ def serve(args: argparse.Namespace) -> int:
             if not words:
                 continue
             if words[0] == "inject":
-                param = float(words[3]) if len(words) > 3 else None
-                now = loop.now()
-                loop.send(core.inject(FaultKind[words[1]], int(words[2]), param, now), now)
+                try:
+                    loop.inject(words[1:])
+                except (KeyError, IndexError, ValueError) as exc:
+                    print(f"HIL: inject {' '.join(words[1:])} refused: {exc}", file=sys.stderr)
             elif words[0] == "cut":
                 volume = core.cut(int(words[1]), int(words[2]))
                 print(f"CUT {volume!r}", flush=True)
@@ -275,9 +286,17 @@ class _HilLoop:
         frames_sent: Frames the HIL put on the bus.
     """
 
-    def __init__(self, core: HilCore, bridge: Bridge, servo_s: float, period_s: float) -> None:
+    def __init__(
+        self,
+        core: HilCore,
+        bridge: Bridge,
+        servo_s: float,
+        period_s: float,
+        faults: BusFaults | None = None,
+    ) -> None:
         self.core = core
         self.bridge = bridge
+        self.faults = BusFaults() if faults is None else faults
         self.servo_s = servo_s
         self.period_s = period_s
         self.t0 = time.monotonic()
@@ -300,7 +319,38 @@ class _HilLoop:
         self._send(frames, now_s)
         self.bridge.flush()
 
+    def inject(self, words: list[str]) -> None:
+        """``<KIND> <axis> [<param>]``: a drive fault in the axis's node, or a bus fault on
+        the wire to and from it (axis -1: the whole bus), from now on.
+
+        Raises:
+            KeyError: An unknown kind.
+            IndexError: No axis.
+            ValueError: A host fault, the master adapter's bus-off (the master's process owns
+                the adapter), a bad axis or parameter.
+        """
+        kind = FaultKind[words[0]]
+        axis = int(words[1])
+        param = float(words[2]) if len(words) > 2 else None
+        now = self.now()
+        if kind is FaultKind.BUS_OFF:
+            raise ValueError("bus_off is the master's adapter's, not the HIL's wire")
+        if kind.layer == "bus":
+            nodes = self.core.nodes
+            if not -1 <= axis < len(nodes):
+                raise ValueError(f"axis must be -1 (the bus) or 0..{len(nodes) - 1}; got {axis}")
+            self.faults.inject(kind, None if axis < 0 else nodes[axis].node_id, param, now)
+            return
+        self.send(self.core.inject(kind, axis, param, now), now)
+
     def _send(self, frames: list[tuple[int, bytes]], now_s: float) -> None:
+        faults = self.faults
+        if faults.active:
+            frames = [out for frame in frames for out in faults.to_master(frame, now_s)]
+        self._put(frames, now_s)
+
+    def _put(self, frames: list[tuple[int, bytes]], now_s: float) -> None:
+        """Frames onto the wire as they reach the master (past the bus faults)."""
         core = self.core
         bridge = self.bridge
         for arbitration_id, data in frames:
@@ -327,6 +377,18 @@ class _HilLoop:
         self._advance_to(arrival)
         if flags & _NOT_FOR_NODES:
             return
+        faults = self.faults
+        if faults.active:
+            if arbitration_id == COB_SYNC and faults.error_frames_due():
+                self.bridge.send(0, b"", FLAG_ERROR)
+            for arrived in faults.to_hil((arbitration_id, data), arrival):
+                self._handle(arrived[0], arrived[1], arrival, started)
+            return
+        self._handle(arbitration_id, data, arrival, started)
+
+    def _handle(self, arbitration_id: int, data: bytes, arrival: float, started: float) -> None:
+        """One frame reaches the nodes at ``arrival`` (HIL clock); after a SYNC the nodes' time
+        supervision runs and the answers leave."""
         core = self.core
         core.log(arbitration_id, data, arrival, is_rx=True)
         self._send(core.on_frame(arbitration_id, data, arrival), arrival)
@@ -347,6 +409,11 @@ class _HilLoop:
             self.bridge.receive(self.on_frame)
         now = self.now()
         self._advance_to(now)
+        if self.faults.active:  # frames the wire held back, now due
+            to_hil, to_master = self.faults.due(now)
+            for arbitration_id, data in to_hil:
+                self._handle(arbitration_id, data, now, time.monotonic())
+            self._put(to_master, now)
         self._send(self.core.pending_frames(now), now)
         self.bridge.flush()
 
@@ -380,6 +447,9 @@ def _parser() -> argparse.ArgumentParser:
         help="SCHED_FIFO priority for the process (1..99; default: none)",
     )
     p.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (0: any free)")
+    p.add_argument(
+        "--fault-seed", type=int, default=0, help="seed of the wire's random faults (bus kinds)"
+    )
     p.add_argument("--poll", type=float, default=5e-4, help="longest wait for a frame (s)")
     p.add_argument("--max-wall-s", type=float, default=600.0, help="stop after this long")
     p.add_argument(
@@ -508,7 +578,22 @@ class RealtimeHilProcess:
         self.proc.stdin.flush()
 
     def inject(self, kind: FaultKind, axis: int, param: float | None = None) -> None:
-        """Inject a drive fault in the HIL process now (:meth:`HilCore.inject`)."""
+        """Inject a fault in the HIL process now: a drive fault in the axis's node
+        (:meth:`HilCore.inject`) or a bus fault on the wire to and from it, axis -1 the whole
+        bus (:meth:`BusFaults.inject`, in the process's frame path both ways).
+
+        Raises:
+            ValueError: A host fault, or ``bus_off`` (the master's adapter goes bus-off, which
+                the HIL's process cannot make: lockstep only), or a bus fault's parameter out
+                of its range (checked here, where the caller sees it).
+        """
+        if kind.layer == "host" or kind is FaultKind.BUS_OFF:
+            raise ValueError(
+                f"{kind.label} acts on the rig PC's side (the master's adapter, loop, planner or "
+                "store): the real-time HIL injects drive and wire faults; run it in lockstep"
+            )
+        if kind.layer == "bus":
+            BusFaults().inject(kind, None, param, 0.0)  # the parameter's range, said here
         self._command(f"inject {kind.name} {axis}" + ("" if param is None else f" {param!r}"))
 
     def cut(self, sync_from: int, sync_to: int) -> float:

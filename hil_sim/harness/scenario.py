@@ -355,8 +355,8 @@ def _checked_faults(sc: Scenario | PathScenario) -> list[tuple[FaultSpec, int]]:
 
     Raises:
         ConfigurationError: A target the kind does not take, a kind this transport cannot
-            inject (the real-time HIL takes the drive faults; bus faults, a loop stall and a
-            killed planner process run in lockstep or in ``hil campaign``).
+            inject (the real-time HIL takes the drive and wire faults; the adapter's bus-off,
+            a loop stall and a killed planner process run in lockstep or in ``hil campaign``).
     """
     out = []
     for f in sc.faults:
@@ -371,10 +371,11 @@ def _checked_faults(sc: Scenario | PathScenario) -> list[tuple[FaultSpec, int]]:
                 f"{f.kind.label} needs the daemon's runner (its planner process, its job "
                 f"store): run it with `excavator-rt hil campaign --kinds {f.kind.label}`"
             )
-        if sc.realtime and f.kind.layer != "drive":
+        if sc.realtime and (f.kind.layer == "host" or f.kind is FaultKind.BUS_OFF):
             raise ConfigurationError(
-                f"{f.kind.label} is a {f.kind.layer} fault: the real-time HIL injects drive "
-                "faults only; run it in lockstep (without --realtime) or in `hil campaign`"
+                f"{f.kind.label} acts on the rig PC's side (the master's adapter or loop): the "
+                "real-time HIL injects drive and wire faults; run it in lockstep (without "
+                "--realtime) or in `hil campaign`"
             )
         out.append((f, index))
     return out

@@ -20,7 +20,9 @@ import math
 import os
 import random
 import shutil
+import signal
 import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
@@ -313,6 +315,38 @@ def test_a_stuck_axis_shows_when_its_command_outruns_where_it_truly_is() -> None
     # A rock: only the way into it counts.
     clock.rock_direction = -1.0
     assert _exposed(clock, cob, t_inj, window, t, electric) == math.inf  # type: ignore[arg-type]
+
+
+def test_a_killed_process_counts_as_ended_only_once_its_parent_can_reap_it() -> None:
+    """A killed process with threads shows its main thread as a zombie while the others still
+    exit, and its parent's ``waitpid`` does not yet find it ended; the campaign holds its clock
+    until the process has ended (a killed planner), so ended must mean reapable."""
+    from hil_sim.harness.campaign import _dead
+
+    code = (
+        "import threading, time\n"
+        "for _ in range(256):\n"
+        "    threading.Thread(target=time.sleep, args=(60,), daemon=True).start()\n"
+        "print('up', flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    for _ in range(3):
+        proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+        try:
+            assert proc.stdout is not None and proc.stdout.readline().strip() == "up"
+            os.kill(proc.pid, signal.SIGKILL)
+            for _ in range(200_000):
+                if _dead(proc.pid):
+                    break
+            else:
+                pytest.fail("the killed process never ended")
+            pid, status = os.waitpid(proc.pid, os.WNOHANG)
+            assert pid == proc.pid and os.WIFSIGNALED(status), (pid, status)
+            proc.returncode = -signal.SIGKILL
+        finally:
+            if proc.returncode is None:
+                proc.kill()
+                proc.wait()
 
 
 def test_a_jammed_hydraulic_boom_is_detected_within_the_monitors_bound() -> None:

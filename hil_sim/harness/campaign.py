@@ -551,12 +551,18 @@ def _change_model(model_dir: Path | None) -> Callable[[], None]:
 
 
 def _dead(pid: int) -> bool:
-    """The process has ended (a zombie its parent has not reaped yet, or gone)."""
+    """The process has ended: gone, or a zombie its parent can reap. A killed process's main
+    thread shows as a zombie while its other threads are still exiting, and until they have
+    it cannot be reaped (its parent's ``waitpid`` still finds it running): its last thread
+    counts."""
     try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
+        status = Path(f"/proc/{pid}/status").read_text()
     except OSError:
         return True
-    return stat[stat.rindex(")") + 2] in "ZX"
+    fields = dict(line.split(":", 1) for line in status.splitlines() if ":" in line)
+    state = fields.get("State", "").strip()[:1]
+    threads = int(fields.get("Threads", "1").strip() or 1)
+    return state in ("Z", "X") and threads <= 1
 
 
 def lockstep_config(state_dir: Path, rig_name: str, model_dir: Path | None = None) -> DaemonConfig:

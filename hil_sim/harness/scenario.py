@@ -26,10 +26,11 @@ truth by SYNC count; ``tracking`` counts the cycles that streamed a motion.
 
 Faults (:class:`FaultSpec`, ``docs/faults.md``) are switched on ``at_s`` seconds after the
 executor's first cycle, from its per-cycle hook: a drive fault on the HIL's drive node
-(:mod:`hil_sim.drives`), a bus fault on the lockstep transport's wire
-(:mod:`hil_sim.busfaults`), a loop stall by moving the lockstep clock on with the executor's
-thread held. The real-time HIL takes the drive faults; a killed planner process and an
-unwritable job store are the campaign's (:mod:`hil_sim.harness.campaign`, on the daemon's
+(:mod:`hil_sim.drives`), a bus fault on the transport's wire (:mod:`hil_sim.busfaults`: in
+the lockstep transport, or in the real-time HIL's process), a loop stall by moving the lockstep
+clock on with the executor's thread held. The real-time HIL takes the drive and wire faults but
+the adapter's bus-off (the master's); a killed planner process and an unwritable job store are
+the campaign's (:mod:`hil_sim.harness.campaign`, on the daemon's
 runner).
 
 Prescribed paths (:class:`PathScenario`, :func:`run_path_scenario`). A joint

@@ -157,6 +157,12 @@ class FaultKind(IntEnum):
         return (*_AXES, "swing", *targets[3:]) if targets[:3] == _AXES else targets
 
     @property
+    def on_rig_pc(self) -> bool:
+        """The kind acts on the rig PC's side: the host's kinds and the master adapter's
+        bus-off. A HIL in its own process cannot make them (the real-time HIL refuses them)."""
+        return self.layer == "host" or self is FaultKind.BUS_OFF
+
+    @property
     def layer(self) -> str:
         """``drive``, ``bus`` or ``host``."""
         if self.value <= FaultKind.ROCK:

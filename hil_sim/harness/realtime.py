@@ -292,11 +292,11 @@ class _HilLoop:
         bridge: Bridge,
         servo_s: float,
         period_s: float,
-        faults: BusFaults | None = None,
+        faults: BusFaults,
     ) -> None:
         self.core = core
         self.bridge = bridge
-        self.faults = BusFaults() if faults is None else faults
+        self.faults = faults
         self.servo_s = servo_s
         self.period_s = period_s
         self.t0 = time.monotonic()
@@ -326,15 +326,15 @@ class _HilLoop:
         Raises:
             KeyError: An unknown kind.
             IndexError: No axis.
-            ValueError: A host fault, the master adapter's bus-off (the master's process owns
-                the adapter), a bad axis or parameter.
+            ValueError: A kind of the rig PC's side (:attr:`FaultKind.on_rig_pc`), a bad
+                axis or parameter.
         """
         kind = FaultKind[words[0]]
         axis = int(words[1])
         param = float(words[2]) if len(words) > 2 else None
         now = self.now()
-        if kind is FaultKind.BUS_OFF:
-            raise ValueError("bus_off is the master's adapter's, not the HIL's wire")
+        if kind.on_rig_pc:
+            raise ValueError(f"{kind.label} acts on the rig PC's side, not in the HIL")
         if kind.layer == "bus":
             nodes = self.core.nodes
             if not -1 <= axis < len(nodes):
@@ -587,7 +587,7 @@ class RealtimeHilProcess:
                 the HIL's process cannot make: lockstep only), or a bus fault's parameter out
                 of its range (checked here, where the caller sees it).
         """
-        if kind.layer == "host" or kind is FaultKind.BUS_OFF:
+        if kind.on_rig_pc:
             raise ValueError(
                 f"{kind.label} acts on the rig PC's side (the master's adapter, loop, planner or "
                 "store): the real-time HIL injects drive and wire faults; run it in lockstep"

@@ -372,7 +372,7 @@ def _checked_faults(sc: Scenario | PathScenario) -> list[tuple[FaultSpec, int]]:
                 f"{f.kind.label} needs the daemon's runner (its planner process, its job "
                 f"store): run it with `excavator-rt hil campaign --kinds {f.kind.label}`"
             )
-        if sc.realtime and (f.kind.layer == "host" or f.kind is FaultKind.BUS_OFF):
+        if sc.realtime and f.kind.on_rig_pc:
             raise ConfigurationError(
                 f"{f.kind.label} acts on the rig PC's side (the master's adapter or loop): the "
                 "real-time HIL injects drive and wire faults; run it in lockstep (without "

@@ -65,7 +65,11 @@ Servo cascade (:meth:`servo_step`, sub-step ``dt_s``, 250 us by default):
   of the orifice law under that force, ``sqrt(1 - F / (p_s A_A))`` extending and
   ``sqrt(1 + F / (p_s A_B))`` retracting (:func:`load_gain_ratio`); a boom held up by its
   weight then extends slower and lowers faster than without load, and the drive opens the
-  valve that much more or less;
+  valve that much more or less. With dynamic pressure feedback (a per-cylinder
+  ``pressure_feedback_gain`` > 0) the opening is then lessened by
+  ``gain (F - LP(F)) / (p_s A_A)``, ``LP`` a first-order low-pass of
+  ``pressure_feedback_filter_s``: a leakage across the piston for changes of the load faster
+  than the filter, which damps the oil column's mode, and nothing for a held load;
 * following error: ``|p_demand - p| > 0x6065`` continuously for longer than 0x6066 -> EMCY
   0x8611, statusword bit 13, fault reaction; 0x6065 = 0xFFFFFFFF switches it off;
 * disabled states put out 0 (motor free or valve centred) and the demand follows the measured
@@ -481,6 +485,10 @@ class DrivesLike(Protocol):
     def quick_stop_deceleration_m_s2(self) -> float: ...
     @property
     def load_compensation_filter_s(self) -> float: ...
+    @property
+    def pressure_feedback_gain(self) -> tuple[float, ...]: ...
+    @property
+    def pressure_feedback_filter_s(self) -> float: ...
 
 
 class HydraulicLike(Protocol):
@@ -535,6 +543,11 @@ class DriveParameters:
         stall_force_extend_n: Hydraulic: ``p_s A_A``, the force at which extending stalls.
         stall_force_retract_n: Hydraulic: ``p_s A_B``, the pulling force at which retracting
             stalls.
+        pressure_feedback_gain: Hydraulic: valve opening taken off per unit of the high-passed
+            cylinder force over ``stall_force_extend_n`` (dynamic pressure feedback, which damps
+            the oil column's mode); 0 for none.
+        pressure_feedback_filter_s: Hydraulic: time constant of that high-pass (the force less
+            its low-pass of this time constant); > 0 when the gain is.
     """
 
     kind: DriveKind
@@ -551,6 +564,8 @@ class DriveParameters:
     load_filter_s: float = 0.0
     stall_force_extend_n: float = 0.0
     stall_force_retract_n: float = 0.0
+    pressure_feedback_gain: float = 0.0
+    pressure_feedback_filter_s: float = 0.0
 
     def __post_init__(self) -> None:
         positive = (
@@ -569,6 +584,8 @@ class DriveParameters:
             "velocity_integral_gain_1_s",
             "velocity_filter_s",
             "load_filter_s",
+            "pressure_feedback_gain",
+            "pressure_feedback_filter_s",
         )
         for name in non_negative:
             value = getattr(self, name)
@@ -596,6 +613,16 @@ class DriveParameters:
                 f"{self.kind.value} with {self.stall_force_extend_n!r} / "
                 f"{self.stall_force_retract_n!r} N"
             )
+        if self.pressure_feedback_gain > 0.0 and not (
+            self.kind is DriveKind.HYDRAULIC
+            and self.stall_force_extend_n > 0.0
+            and self.pressure_feedback_filter_s > 0.0
+        ):
+            raise FirmwareConfigurationError(
+                "pressure feedback needs a hydraulic drive with a stall force > 0 and a "
+                f"high-pass time constant > 0, got {self.kind.value} with "
+                f"{self.stall_force_extend_n!r} N and {self.pressure_feedback_filter_s!r} s"
+            )
 
     @classmethod
     def from_rig(
@@ -603,6 +630,7 @@ class DriveParameters:
         rig: RigLike,
         kind: DriveKind | str | None = None,
         velocity_filter_s: float | None = None,
+        joint: str = "",
     ) -> DriveParameters:
         """Parameters from ``rig.drives`` and ``rig.actuators``.
 
@@ -611,6 +639,8 @@ class DriveParameters:
             kind: ``"electric"``, ``"hydraulic"``, or None: hydraulic when the rig has
                 ``actuators.hydraulic``, electric otherwise.
             velocity_filter_s: Velocity low-pass time constant; None for one servo period.
+            joint: The axis (``boom``, ``stick``, ``bucket``) whose entry of the per-cylinder
+                ``drives.pressure_feedback_gain`` applies; any other name: no pressure feedback.
 
         Returns:
             The validated parameters.
@@ -658,7 +688,17 @@ class DriveParameters:
             load_filter_s=load_filter_s,
             stall_force_extend_n=stall_extend_n,
             stall_force_retract_n=stall_retract_n,
+            pressure_feedback_gain=(
+                float(drives.pressure_feedback_gain[CYLINDER_AXES.index(joint)])
+                if joint in CYLINDER_AXES
+                else 0.0
+            ),
+            pressure_feedback_filter_s=float(drives.pressure_feedback_filter_s),
         )
+
+
+#: The cylinders in the order of the rig's per-cylinder drive values.
+CYLINDER_AXES = ("boom", "stick", "bucket")
 
 
 #: Smallest flow-gain ratio the load compensation divides by: near stall the orifice law's
@@ -807,7 +847,7 @@ class DriveFirmware:
         self._tpdo_at_start = tpdo_at_start
         self.joint = joint
         self.od = load_object_dictionary(node_id, eds)
-        self._params = DriveParameters.from_rig(rig, kind, velocity_filter_s)
+        self._params = DriveParameters.from_rig(rig, kind, velocity_filter_s, joint)
         # The cascade's constants as plain attributes (read every servo sub-step).
         p = self._params
         self._res_m = p.encoder_resolution_m
@@ -824,6 +864,9 @@ class DriveFirmware:
         self._stall_extend_n = p.stall_force_extend_n
         self._stall_retract_n = p.stall_force_retract_n
         self._load_n: float | None = None  # the filtered cylinder force; None before a reading
+        self._pf_gain = p.pressure_feedback_gain
+        self._pf_filter_s = p.pressure_feedback_filter_s
+        self._pf_low_n: float | None = None  # the force's low-pass of the pressure feedback
         # Anti-windup bound of the integral (what the output can use), formed once.
         self._integral_bound_m = (
             1.0 / (p.velocity_gain_s_m * p.velocity_integral_gain_1_s)
@@ -1677,6 +1720,13 @@ class DriveFirmware:
         :meth:`servo_step`) to scale its flow gain to the load."""
         return self._load_filter_s > 0.0
 
+    @property
+    def reads_load(self) -> bool:
+        """True for a valve drive that reads the cylinder force from its chamber-pressure
+        transducers (``load_force_n`` of :meth:`servo_step`): for load compensation, pressure
+        feedback or both."""
+        return self._load_filter_s > 0.0 or self._pf_gain > 0.0
+
     def servo_step(
         self, dt_s: float, position_m: float, velocity_m_s: float, load_force_n: float = 0.0
     ) -> float:
@@ -1717,6 +1767,16 @@ class DriveFirmware:
                 else load + (load_force_n - load) * (dt_s / (tau + dt_s))
             )
             self._load_n = load
+        damping = 0.0
+        if self._pf_gain > 0.0:  # dynamic pressure feedback: the force less its low-pass
+            low = self._pf_low_n
+            low = (
+                load_force_n
+                if low is None
+                else low + (load_force_n - low) * (dt_s / (self._pf_filter_s + dt_s))
+            )
+            self._pf_low_n = low
+            damping = self._pf_gain * (load_force_n - low) / self._stall_extend_n
         state = self._state
         if state is _OPERATION_ENABLED:
             if self._mode == _MODE_CSP:
@@ -1757,6 +1817,7 @@ class DriveFirmware:
                 u /= load_gain_ratio(
                     load, v_cmd >= 0.0, self._stall_extend_n, self._stall_retract_n
                 )
+            u -= damping
         else:
             error = v_cmd - self._v_est_m_s
             ki = self._ki_1_s

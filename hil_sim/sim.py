@@ -535,8 +535,9 @@ class HilCore:
         full = servo * (1.0 + 1e-9)
         # What the drives' sensors read: the true strokes on an ideal plant.
         sense = plant.stroke_state if plant.imperfections is None else plant.sensed_stroke_state
-        # Valve drives with load compensation read the cylinder forces (chamber pressures).
-        pressures = fw0.load_compensated or fw1.load_compensated or fw2.load_compensated
+        # Valve drives with load compensation or pressure feedback read the cylinder forces
+        # (chamber pressures).
+        pressures = fw0.reads_load or fw1.reads_load or fw2.reads_load
         while remaining > 1e-12:
             h = servo if remaining > full else remaining
             (s0, s1, s2), (v0, v1, v2) = sense()
@@ -573,8 +574,9 @@ class HilCore:
         full = servo * (1.0 + 1e-9)
         # What the arm drives' sensors read (as in advance()).
         sense = plant.stroke_state if plant.imperfections is None else plant.sensed_stroke_state
-        # Valve drives with load compensation read the cylinder forces (chamber pressures).
-        pressures = fw0.load_compensated or fw1.load_compensated or fw2.load_compensated
+        # Valve drives with load compensation or pressure feedback read the cylinder forces
+        # (chamber pressures).
+        pressures = fw0.reads_load or fw1.reads_load or fw2.reads_load
         while remaining > 1e-12:
             h = servo if remaining > full else remaining
             (s0, s1, s2), (v0, v1, v2) = sense()

@@ -15,6 +15,7 @@ import random
 import struct
 from dataclasses import dataclass, field, replace
 
+import numpy as np
 import pytest
 from canopen.objectdictionary import import_od
 from canopen.sdo import SdoClient
@@ -85,6 +86,8 @@ class Drives:
     sync_timeout_s: float = 0.02
     quick_stop_deceleration_m_s2: float = 1.0
     load_compensation_filter_s: float = 0.0
+    pressure_feedback_gain: tuple[float, ...] = (0.0, 0.0, 0.0)
+    pressure_feedback_filter_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -965,14 +968,63 @@ def test_load_compensation_divides_the_valve_command_by_the_filtered_ratio() -> 
         DriveParameters.from_rig(Rig(drives=Drives(load_compensation_filter_s=tau)))
 
 
-def test_only_the_field_excavators_valve_drives_compensate_the_load() -> None:
+def test_pressure_feedback_takes_off_the_high_passed_force_and_keeps_the_static_stiffness() -> (
+    None
+):
+    """Dynamic pressure feedback against its definition: the valve opening less
+    ``gain (F - low-pass(F)) / (p_s A_A)``. A force step acts at once and fades with the
+    high-pass, so a held load leaves the opening as it is without the feedback."""
+    hyd = Hydraulic()
+    actuators = Actuators(velocity_max_m_s=0.28, hydraulic=hyd)
+    tau, gain = 0.1, 0.5
+    drives = Drives(pressure_feedback_gain=(0.0, gain, 0.0), pressure_feedback_filter_s=tau)
+    plain = Harness(Rig(actuators=actuators))
+    damped = Harness(Rig(drives=drives, actuators=actuators))  # the harness's axis: stick
+    assert damped.fw.reads_load and not damped.fw.load_compensated
+    assert not plain.fw.reads_load
+    # Per cylinder: the boom's entry is 0, and an axis that is no cylinder gets none.
+    for joint in ("boom", "swing"):
+        assert not DriveFirmware(NODE, Rig(drives=drives, actuators=actuators), joint).reads_load
+    stall_out = hyd.supply_pressure_pa * hyd.piston_area_m2
+    for h in (plain, damped):
+        h.boot()
+        h.enable()  # one servo step with no load: the low-pass starts from an unloaded reading
+    force = 30e3
+    n = 20 * round(tau / DT_S)
+    efforts: dict[str, list[float]] = {"plain": [], "damped": []}
+    for name, h in (("plain", plain), ("damped", damped)):
+        fw = h.fw
+        fw.on_frame(RPDO1, struct.pack("<ii", 100_050, 20_000), 0.0)  # 50 um ahead, 20 mm/s
+        fw.on_frame(SYNC, b"", 0.0)
+        for _ in range(n):  # the position is held: same error, same feed-forward
+            efforts[name].append(fw.servo_step(DT_S, 0.1, 0.0, force))
+    taken = np.asarray(efforts["plain"]) - np.asarray(efforts["damped"])
+    a = DT_S / (tau + DT_S)
+    expected = gain * force / stall_out * (1.0 - a) ** np.arange(1, n + 1)
+    np.testing.assert_allclose(taken, expected, rtol=1e-9, atol=1e-12)
+    assert taken[0] > 0.1  # a step: taken off at once ...
+    assert taken[-1] < 1e-8  # ... and nothing of a held load after 20 time constants
+    with pytest.raises(FirmwareConfigurationError, match="pressure feedback"):
+        DriveParameters.from_rig(Rig(drives=drives), joint="stick")  # electric
+    with pytest.raises(FirmwareConfigurationError, match="pressure feedback"):
+        no_filter = replace(drives, pressure_feedback_filter_s=0.0)
+        DriveParameters.from_rig(Rig(drives=no_filter, actuators=actuators), joint="stick")
+
+
+def test_the_excavators_valve_drives_read_the_load() -> None:
+    """Load compensation on both excavators' valve drives, pressure feedback on Yang/Pan's
+    boom only (its oil column is the one that rings under a hard soil's load)."""
     from rt_runtime.rig import load_rig
     from rt_runtime.rig.loader import profile_names
 
+    excavators = {"field_excavator", "yang_pan_excavator"}
     for name in profile_names():
         rig = load_rig(name)
-        fw = DriveFirmware(1, rig, "boom")
-        assert fw.load_compensated is (name == "field_excavator"), name
+        for joint in ("boom", "stick", "bucket"):
+            fw = DriveFirmware(1, rig, joint)
+            assert fw.load_compensated is (name in excavators), (name, joint)
+            damped = fw.params.pressure_feedback_gain > 0.0
+            assert damped is (name == "yang_pan_excavator" and joint == "boom"), (name, joint)
 
 
 def test_parameters_from_the_shipped_rigs_and_their_errors() -> None:

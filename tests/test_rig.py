@@ -287,6 +287,36 @@ def test_servo_period_defaults_to_250_us() -> None:
         ),
         (
             "scale_model",
+            "drives.pressure_feedback_gain",
+            [0.5, 0.0, 0.0],
+            r"drives\.pressure_feedback_gain: only for valve drives",
+        ),
+        (
+            "yang_pan_excavator",
+            "drives.pressure_feedback_gain",
+            0.5,
+            r"drives\.pressure_feedback_gain: must be a list of numbers",
+        ),
+        (
+            "yang_pan_excavator",
+            "drives.pressure_feedback_gain",
+            [0.5, 0.0],
+            r"drives\.pressure_feedback_gain: must have exactly 3 numbers",
+        ),
+        (
+            "yang_pan_excavator",
+            "drives.pressure_feedback_gain",
+            [0.5, -1.0, 0.0],
+            r"drives\.pressure_feedback_gain\[1\]: must be >= 0",
+        ),
+        (
+            "yang_pan_excavator",
+            "drives.pressure_feedback_filter_ms",
+            0.0,
+            r"drives\.pressure_feedback_filter_ms: must be > 0 when pressure_feedback_gain is",
+        ),
+        (
+            "scale_model",
             "actuators.force_max_n",
             0.0,
             r"actuators\.force_max_n: must be > 0",

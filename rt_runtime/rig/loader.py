@@ -362,6 +362,7 @@ def _drives(t: Table, kind: str) -> Drives:
             f"must be > heartbeat_period_ms ({period_ms}) so that one late heartbeat is not a "
             f"loss (got {timeout_ms})",
         )
+    gain = t.numbers("pressure_feedback_gain", 3, ge=0.0, le=100.0, default=[0.0, 0.0, 0.0])
     drives = Drives(
         encoder_resolution_m=t.number("encoder_resolution_um", gt=0.0, le=1000.0) * 1e-6,
         position_gain_1_s=t.number("position_gain_1_s", gt=0.0, le=10000.0),
@@ -379,12 +380,30 @@ def _drives(t: Table, kind: str) -> Drives:
             "load_compensation_filter_ms", ge=0.0, le=10_000.0, default=0.0
         )
         * 1e-3,
+        pressure_feedback_gain=(gain[0], gain[1], gain[2]),
+        pressure_feedback_filter_s=t.number(
+            "pressure_feedback_filter_ms", ge=0.0, le=10_000.0, default=0.0
+        )
+        * 1e-3,
     )
     if drives.load_compensation_filter_s > 0.0 and kind != "hydraulic":
         raise t.error(
             "load_compensation_filter_ms",
             f"only for valve drives (cylinders.kind = 'hydraulic'), not {kind!r}; "
             "0 or leave it out",
+        )
+    feedback = max(drives.pressure_feedback_gain) > 0.0
+    if feedback and kind != "hydraulic":
+        raise t.error(
+            "pressure_feedback_gain",
+            f"only for valve drives (cylinders.kind = 'hydraulic'), not {kind!r}; "
+            "0 or leave it out",
+        )
+    if feedback and drives.pressure_feedback_filter_s <= 0.0:
+        raise t.error(
+            "pressure_feedback_filter_ms",
+            "must be > 0 when pressure_feedback_gain is (the high-pass that keeps the static "
+            f"stiffness), got {drives.pressure_feedback_filter_s * 1e3!r}",
         )
     t.finish()
     return drives

@@ -300,6 +300,10 @@ class Drives:
             cylinder force the drive reads from its two chamber-pressure transducers, with
             which it scales the valve's flow gain to the load (see
             :class:`firmware_models.drive.DriveParameters`); 0 for none (the no-load gain).
+        pressure_feedback_gain: Valve drives, per cylinder (boom, stick, bucket): dynamic
+            pressure feedback, the valve opening taken off per unit of the high-passed cylinder
+            force over the extending stall force ``p_s A_A``; 0 for none.
+        pressure_feedback_filter_s: Valve drives: time constant of that high-pass.
     """
 
     encoder_resolution_m: float
@@ -314,6 +318,8 @@ class Drives:
     sync_timeout_s: float
     quick_stop_deceleration_m_s2: float
     load_compensation_filter_s: float = 0.0
+    pressure_feedback_gain: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    pressure_feedback_filter_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)

@@ -88,6 +88,10 @@ LIMIT_MARGIN = 0.02
 #: Every normalised constraint is held to ``<= -CONSTRAINT_OFFSET`` in the optimiser, so that
 #: SLSQP's answer, which sits on its active constraints up to ~1e-8, keeps margins >= 0.
 CONSTRAINT_OFFSET = 1e-4
+#: Summed violation of the offset constraints up to which an answer counts as feasible when
+#: the starts' answers are ranked: SLSQP's answers sit on their active constraints to ~1e-8,
+#: and ranking those raw prefers a dearer answer at 0 to a cheaper one at 1e-9.
+FEASIBLE_VIOLATION = 1e-6
 #: Sharpness of the smooth maximum over an interval's samples (normalised units).
 KS_RHO = 1000.0
 #: Up to this many rows the soil's plates are one axis of the arrays (:meth:`_Model._soil`).
@@ -1085,7 +1089,8 @@ def solve(
     """Optimise one dig (module docstring) and re-check it on the exact model at 1 ms.
 
     Each start is solved by SLSQP; the best by Deb's rule (feasible on the smoothed model
-    first, then cost) is re-checked on the exact model. Where a sampled velocity, acceleration,
+    first, a summed violation up to :data:`FEASIBLE_VIOLATION` counting as feasible, then
+    cost) is re-checked on the exact model. Where a sampled velocity, acceleration,
     jerk or torque margin is negative there, that limit is tightened by the excess (plus 0.5 %) and
     the solve repeated from the answer, at most ``rechecks`` times.
 
@@ -1130,7 +1135,7 @@ def solve(
         res = _slsqp(ev, x0, bounds, max_iterations)
         e = ev.evaluate(res.x[None, :])
         viol = float(np.sum(np.maximum(e.split[0] + CONSTRAINT_OFFSET, 0.0)))
-        key = (viol, float(e.cost[0]))
+        key = (viol if viol > FEASIBLE_VIOLATION else 0.0, float(e.cost[0]))
         if best is None or key < best[0]:
             best = (key, res.x, x0, res)
     assert best is not None

@@ -459,6 +459,9 @@ class HilCore:
         self.frames: list[tuple[int, bytes]] = []
         self.trace: can.Listener | None = None
         self._servo_dt_s = rig.drives.servo_period_s
+        # Valve drives with load compensation or pressure feedback read the cylinder forces
+        # (chamber pressures); read from the plant each sub-step only then.
+        self._reads_load = any(n.firmware.reads_load for n in self.nodes[:3])
         self.truth_ring = TruthRing(
             truth_rows, preallocate=preallocate_truth, columns=10 if self.swing is None else 12
         )
@@ -535,9 +538,7 @@ class HilCore:
         full = servo * (1.0 + 1e-9)
         # What the drives' sensors read: the true strokes on an ideal plant.
         sense = plant.stroke_state if plant.imperfections is None else plant.sensed_stroke_state
-        # Valve drives with load compensation or pressure feedback read the cylinder forces
-        # (chamber pressures).
-        pressures = fw0.reads_load or fw1.reads_load or fw2.reads_load
+        pressures = self._reads_load
         while remaining > 1e-12:
             h = servo if remaining > full else remaining
             (s0, s1, s2), (v0, v1, v2) = sense()
@@ -574,9 +575,7 @@ class HilCore:
         full = servo * (1.0 + 1e-9)
         # What the arm drives' sensors read (as in advance()).
         sense = plant.stroke_state if plant.imperfections is None else plant.sensed_stroke_state
-        # Valve drives with load compensation or pressure feedback read the cylinder forces
-        # (chamber pressures).
-        pressures = fw0.reads_load or fw1.reads_load or fw2.reads_load
+        pressures = self._reads_load
         while remaining > 1e-12:
             h = servo if remaining > full else remaining
             (s0, s1, s2), (v0, v1, v2) = sense()

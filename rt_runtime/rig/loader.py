@@ -386,19 +386,18 @@ def _drives(t: Table, kind: str) -> Drives:
         )
         * 1e-3,
     )
-    if drives.load_compensation_filter_s > 0.0 and kind != "hydraulic":
-        raise t.error(
-            "load_compensation_filter_ms",
-            f"only for valve drives (cylinders.kind = 'hydraulic'), not {kind!r}; "
-            "0 or leave it out",
-        )
     feedback = max(drives.pressure_feedback_gain) > 0.0
-    if feedback and kind != "hydraulic":
-        raise t.error(
-            "pressure_feedback_gain",
-            f"only for valve drives (cylinders.kind = 'hydraulic'), not {kind!r}; "
-            "0 or leave it out",
-        )
+    valve_only = (
+        ("load_compensation_filter_ms", drives.load_compensation_filter_s > 0.0),
+        ("pressure_feedback_gain", feedback),
+    )
+    for key, used in valve_only:
+        if used and kind != "hydraulic":
+            raise t.error(
+                key,
+                f"only for valve drives (cylinders.kind = 'hydraulic'), not {kind!r}; "
+                "0 or leave it out",
+            )
     if feedback and drives.pressure_feedback_filter_s <= 0.0:
         raise t.error(
             "pressure_feedback_filter_ms",

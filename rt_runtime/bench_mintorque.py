@@ -37,6 +37,10 @@ RIG = "yang_pan_excavator"
 SOILS = ("soft", "hard")
 
 
+#: Problems solved again by the numpy model (the solve time's same-run reference).
+TWIN_PROBLEMS = 4
+
+
 def random_problems(rig: Rig, n: int, seed: int = 0) -> list[mt.MinTorqueProblem]:
     """Seeded problems around Yang/Pan Experiment I: soils in turn, the surface within
     +-0.3 m of the ground, the entry window shifted by up to +-0.3 m, the band's lower edge
@@ -94,6 +98,7 @@ def bench_mintorque(
         for p, s in zip(problems, solutions, strict=True)
     ]
     model_gap = [abs(s.cost_model - s.cost) / s.cost for s in solutions]
+    twin = _numpy_twin(rig, problems[:TWIN_PROBLEMS], solutions[:TWIN_PROBLEMS], n_starts)
 
     # Yang/Pan's comparisons on Experiment I, from the same kinematic starts.
     comp: dict[str, mt.Solution] = {}
@@ -115,6 +120,7 @@ def bench_mintorque(
             "max": float(np.max(model_gap)),
         },
         "gap_to_reference": None,
+        "twin": twin,
         "soil": {
             name: {
                 "max_depth_m": comp[name].max_depth_m,
@@ -167,6 +173,27 @@ def bench_mintorque(
         "volume_in_band": out["volume_in_band"] >= 1.0,
     }
     return out
+
+
+def _numpy_twin(
+    rig: Rig, problems: list[mt.MinTorqueProblem], ours: list[mt.Solution], n_starts: int
+) -> dict[str, Any]:
+    """The first problems solved again with the numpy model in place of the compiled kernel:
+    the same-run reference of the solve time, and the cost difference (rounding only)."""
+    backend = mt.Evaluator(rig, problems[0]).backend
+    twin = [mt.solve(rig, p, n_starts=n_starts, backend="numpy") for p in problems]
+    ours_p50 = float(np.median([s.solve_s for s in ours]))
+    twin_p50 = float(np.median([s.solve_s for s in twin]))
+    return {
+        "backend": backend,
+        "problems": len(problems),
+        "solve_s_p50": twin_p50,
+        "ours_solve_s_p50": ours_p50,
+        "twin_over_ours_solve_p50": twin_p50 / ours_p50,
+        "cost_difference_max": float(
+            max(abs(a.cost - b.cost) / b.cost for a, b in zip(ours, twin, strict=True))
+        ),
+    }
 
 
 def _reference(
@@ -354,6 +381,10 @@ def cmd_bench_mintorque(args: argparse.Namespace) -> int:
     )
     print(
         f"  solve p50 {sv['p50']:.2f} s, p99 {sv['p99']:.2f} s, max {sv['max']:.2f} s (goals 1 / 5 s; paper ~150 s); load average {r['load_average'][0]:.2f}"
+    )
+    tw = r["twin"]
+    print(
+        f"  model evaluated by {tw['backend']}; the numpy model on the first {tw['problems']} problems: solve p50 {tw['solve_s_p50']:.2f} s against {tw['ours_solve_s_p50']:.2f} s ({tw['twin_over_ours_solve_p50']:.1f}x), costs within {tw['cost_difference_max']:.1e}"
     )
     print(
         f"  feasible on the exact model at 1 ms {r['feasible']:.0%}; volume in band {r['volume_in_band']:.0%}"

@@ -163,16 +163,17 @@ def test_constraints_against_independent_geometry() -> None:
     assert len(got) == len(mt.CONSTRAINT_NAMES) == len(set(mt.CONSTRAINT_NAMES))
 
 
+@pytest.mark.parametrize("backend", ["numpy", "c"])
 @pytest.mark.parametrize("soil", ["soft", "hard"])
-def test_a_row_alone_evaluates_as_it_does_in_a_batch(soil: str) -> None:
-    # Up to _PLATE_AXIS_ROWS rows the soil's plates are one array axis, beyond it a loop:
-    # the same cost and constraints either way, and the derivatives from a given point's
-    # values equal those of one batched pass.
+def test_a_row_alone_evaluates_as_it_does_in_a_batch(soil: str, backend: str) -> None:
+    # numpy: up to _PLATE_AXIS_ROWS rows the soil's plates are one array axis, beyond it a
+    # loop; C: a row at a time either way. The same cost and constraints, and the derivatives
+    # from a given point's values equal those of one batched pass.
     p = mt.make_problem(RIG, soil)
     x = _start_point(p)
     rng = np.random.default_rng(3)
     X = x[None, :] + 1e-3 * rng.standard_normal((mt._PLATE_AXIS_ROWS + 2, x.size))
-    ev = mt.Evaluator(RIG, p)
+    ev = _evaluator(p, backend)
     batch = ev.evaluate(X)
     for i in range(X.shape[0]):
         row = ev.evaluate(X[i : i + 1])
@@ -185,11 +186,12 @@ def test_a_row_alone_evaluates_as_it_does_in_a_batch(soil: str) -> None:
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9)
 
 
+@pytest.mark.parametrize("backend", ["numpy", "c"])
 @pytest.mark.parametrize("fixed", [False, True])
-def test_batched_gradients_against_central_differences(fixed: bool) -> None:
+def test_batched_gradients_against_central_differences(fixed: bool, backend: str) -> None:
     p = mt.make_problem(RIG, "hard", fixed_time=fixed, samples_per_interval=8)
     x = _start_point(p)
-    ev = mt.Evaluator(RIG, p)
+    ev = _evaluator(p, backend)
     f, df, c, dc = ev.gradients(x)
     step = 1e-5
     n = x.size
@@ -204,6 +206,89 @@ def test_batched_gradients_against_central_differences(fixed: bool) -> None:
     assert f == pytest.approx(ev.evaluate(x[None, :]).cost[0])
     np.testing.assert_allclose(df, num_f, rtol=2e-3, atol=1e-4 * np.abs(num_f).max())
     np.testing.assert_allclose(dc, num_c, rtol=2e-3, atol=1e-4 * np.abs(num_c).max())
+
+
+def _evaluator(p: mt.MinTorqueProblem, backend: str, **kw: object) -> mt.Evaluator:
+    if backend == "c" and mt._kernel_module() is None:
+        pytest.skip("the compiled kernel is not built")
+    return mt.Evaluator(RIG, p, backend=backend, **kw)  # type: ignore[arg-type]
+
+
+def _random_problem(rng: np.random.Generator) -> tuple[mt.MinTorqueProblem, np.ndarray]:
+    """A problem with every number the kernel takes drawn at random (soil, surface, bands,
+    time mode, samples, plates, limit scales) and a point anywhere within the variable bounds."""
+    reach = float(np.sum(RIG.lengths_m))
+    lo_v = rng.uniform(0.2, 0.7)
+    p = mt.make_problem(
+        RIG,
+        str(rng.choice(["soft", "hard"])),
+        volume_m3=(lo_v, lo_v + rng.uniform(0.05, 0.3)),
+        fixed_time=bool(rng.integers(2)),
+        entry_x_m=(rng.uniform(0.5, 0.6) * reach, rng.uniform(0.65, 0.8) * reach),
+        surface_y_m=RIG.ground_y_m + rng.uniform(-0.5, 0.5),
+        samples_per_interval=int(rng.choice([2, 5, 16, 32, 48])),
+    )
+    p = dataclasses.replace(
+        p,
+        n_elements=int(rng.integers(1, 13)),
+        intervals_s=tuple(rng.uniform(0.4, 2.5, 4)),
+        entry_heading_deg=rng.uniform(20.0, 70.0),
+        lift_heading_deg=rng.uniform(20.0, 70.0),
+    )
+    bounds = mt.variable_bounds(RIG, p)
+    x = np.array([rng.uniform(a, b) for a, b in bounds])
+    return p, x
+
+
+def test_the_compiled_model_equals_the_numpy_model_over_the_domain() -> None:
+    # 40 seeded problems and points over the whole domain, plus a batch near each point: the
+    # cost, every named constraint and every smooth maximum agree to rounding, and so do the
+    # forward-difference derivatives (the kernel recomputes only the intervals a variable
+    # moves; numpy recomputes every interval).
+    rng = np.random.default_rng(20261128)
+    for _ in range(40):
+        p, x = _random_problem(rng)
+        scale = rng.uniform(0.8, 1.0, (4, 3))
+        c = _evaluator(p, "c", limit_scale=scale)
+        n = mt.Evaluator(RIG, p, limit_scale=scale, backend="numpy")
+        assert c.backend == "c" and n.backend == "numpy"
+        X = x[None, :] + 1e-2 * rng.standard_normal((5, x.size))
+        a, b = c.evaluate(X), n.evaluate(X)
+        np.testing.assert_allclose(a.cost, b.cost, rtol=1e-11)
+        np.testing.assert_allclose(a.constraints, b.constraints, rtol=1e-11, atol=1e-12)
+        np.testing.assert_allclose(a.split, b.split, rtol=1e-11, atol=1e-12)
+        fa, dfa, ca, dca = c.gradients(x)
+        fb, dfb, cb, dcb = n.gradients(x)
+        assert fa == pytest.approx(fb, rel=1e-11)
+        np.testing.assert_allclose(ca, cb, rtol=1e-11, atol=1e-12)
+        # Differences of step 1e-6: a rounding of the cost (1e-16 relative) is 1e-10 of it.
+        np.testing.assert_allclose(dfa, dfb, rtol=1e-6, atol=1e-9 * max(1.0, abs(fb)) / 1e-6)
+        np.testing.assert_allclose(dca, dcb, rtol=1e-6, atol=1e-6)
+
+
+def test_the_compiled_model_refuses_bad_arrays_and_an_unbuilt_kernel(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    p = mt.make_problem(RIG, "soft")
+    ev = _evaluator(p, "c")
+    params, basis, plates = ev._packed
+    x = _start_point(p)
+    cost, named, split = np.empty(1), np.empty((1, 44)), np.empty((1, mt.N_SPLIT))
+    with pytest.raises(ValueError, match="15 or 19 columns"):
+        ev.module.mintorque(np.zeros((1, 7)), params, basis, plates, cost, named, split)
+    with pytest.raises(ValueError, match="params must have shape"):
+        ev.module.mintorque(x[None, :], params[:10], basis, plates, cost, named, split)
+    with pytest.raises(ValueError, match="plates must have at most"):
+        big = np.zeros((300, 7))
+        ev.module.mintorque(x[None, :], params, basis, big, cost, named, split)
+    with pytest.raises(ValueError, match="one row per value of x"):
+        ev.module.mintorque_perturbed(x, 1e-6, params, basis, plates, cost, split)
+    with pytest.raises(ConfigurationError, match="unknown backend 'gpu'; allowed: auto, c, numpy"):
+        mt.Evaluator(RIG, p, backend="gpu")
+    monkeypatch.setattr(mt, "_kernel_module", lambda: None)
+    with pytest.raises(ConfigurationError, match="not built"):
+        mt.Evaluator(RIG, p, backend="c")
+    assert mt.Evaluator(RIG, p).backend == "numpy"
 
 
 @pytest.mark.parametrize("key", ["soft", "hard", "soft_fixed"])

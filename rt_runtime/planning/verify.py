@@ -136,7 +136,7 @@ BUILD_HINT = (
 )
 
 # Layout of the kernel's constants; kernel.h's enum vk_param must list the same offsets.
-_ABI = 7
+_ABI = 8
 _PARAM_FIELDS: tuple[tuple[str, int], ...] = (
     ("lengths", 3),
     ("chain_h", 3),

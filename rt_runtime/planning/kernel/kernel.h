@@ -11,6 +11,8 @@
  *   trench.c    the screening geometry of rt_runtime.planning.trench (over-dig, envelope,
  *               screen rows, the bucket's depth in the material) and the iterations of its
  *               profile fits (numpy's operations in numpy's order);
+ *   mintorque.c mt_evaluate: the smoothed minimum-torque model of
+ *               rt_runtime.planning.mintorque (Yang/Pan) for a batch of points;
  *   module.c    the extension module and its Kernel type; front.c its Front type (the single-dig
  *               path of PinnPlanner.plan in one call).
  *
@@ -42,7 +44,7 @@
 /* ---------------------------------------------------------------------------------------------
  * Layouts shared with verify.py (bump VK_ABI on any change: verify.py refuses a stale build).
  * ------------------------------------------------------------------------------------------- */
-#define VK_ABI 7
+#define VK_ABI 8
 
 enum vk_param {
     P_LEN = 0,           /* link lengths l0, l1, l2 (m) */
@@ -378,6 +380,48 @@ typedef struct {
 /* TrenchSession._on_grid: linear interpolation on the uniform grid, clamped at the ends. */
 
 /* ---------------------------------------------------------------------------------------------
+ * The minimum-torque model's constants (mintorque.c), packed by
+ * rt_runtime.planning.mintorque._pack_kernel in this order.
+ * ------------------------------------------------------------------------------------------- */
+#define MT_N_KEY 5
+#define MT_N_INTERVALS 4
+#define MT_N_KP 26                                /* keypoint constraints */
+#define MT_N_SPLIT (30 * MT_N_INTERVALS + MT_N_KP) /* smooth maxima, then keypoints */
+#define MT_N_NAMED (18 + MT_N_KP)                 /* sampled peaks, then keypoints */
+#define MT_MAX_PLATES 256                         /* bucket plates of the soil model */
+
+enum mt_param {
+    MT_LEN = 0,        /* link lengths (m) */
+    MT_CH_H = 3,       /* mintorque._Chain h, b, d */
+    MT_CH_B = 6,
+    MT_CH_D = 9,
+    MT_GRAVITY = 12,
+    MT_RHO_G = 13,     /* kp * density * g (N/m^3) */
+    MT_KV = 14,        /* fluid soil kv, ks */
+    MT_KS = 15,
+    MT_EPS = 16,       /* depth smoothing (m) */
+    MT_SPEED_REG = 17, /* speed smoothing (m/s) */
+    MT_SURFACE = 18,   /* H (m) */
+    MT_Q_MIN = 19,     /* joint limits (rad) and their span */
+    MT_Q_MAX = 22,
+    MT_Q_SPAN = 25,
+    MT_V_LIM = 28,     /* scaled velocity, acceleration, jerk and torque limits */
+    MT_A_LIM = 31,
+    MT_J_LIM = 34,
+    MT_T_LIM = 37,
+    MT_TAU_MAX = 40,   /* the cost's torque normalisation (N m) */
+    MT_KS_RHO = 43,
+    MT_VOLUME = 44,    /* volume band (m^3) */
+    MT_DEPTH = 46,     /* depth band of b and c (m) */
+    MT_ENTRY_X = 48,   /* entry window (m) */
+    MT_BAND = 50,      /* surface band (m) */
+    MT_WIDTH = 51,     /* bucket width (m) */
+    MT_HEADING = 52,   /* entry cone's two normals, then the lift cone's (x, y each) */
+    MT_INTERVALS = 60, /* a fixed-time problem's intervals (s) */
+    MT_N_PARAMS = 64
+};
+
+/* ---------------------------------------------------------------------------------------------
  * The units' entry points.
  * ------------------------------------------------------------------------------------------- */
 
@@ -401,6 +445,18 @@ void vk_plan(const double *p, const double *s, const double *basis, int m,
              const double *basis_c, int m_c, const double *in, double c_lo, double c_hi,
              double *out, double *planned, double *path, double *scale, double *cache,
              double *sc, double *sc_c);
+
+/* mintorque.c: X (B, n_var) points, n_var 19 (variable time) or 15; out cost (B,), named
+ * (B, MT_N_NAMED), split (B, MT_N_SPLIT). -1 when the scratch cannot be allocated, -2 for more
+ * than MT_MAX_PLATES plates. */
+int mt_evaluate(const double *p, const double *basis, int Q, const double *plates, int P,
+                const double *X, ptrdiff_t B, int n_var, double *cost, double *named,
+                double *split);
+/* mintorque.c: the n_var points x + step e_v (v = 0 .. n_var - 1) of one point x (forward
+ * differences), recomputing only the intervals each variable moves; out cost (n_var,), split
+ * (n_var, MT_N_SPLIT). */
+int mt_perturbed(const double *p, const double *basis, int Q, const double *plates, int P,
+                 const double *x, int n_var, double step, double *cost, double *split);
 
 /* trench.c */
 double vk_overdig_path(const vk_field *f, const double *path, ptrdiff_t n);

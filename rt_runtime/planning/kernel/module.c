@@ -3,7 +3,7 @@
  * type: the packed rig constants, the time grid and the scratch of one verifier, and the
  * per-call entry points run (vk_evaluate), retime (vk_retime), plan (vk_plan), screen
  * (vk_screen_row) and front (front.c); the module functions overdig, envelope, fit_iterate,
- * move_poses and bucket_depth (trench.c).
+ * move_poses and bucket_depth (trench.c), mintorque (mintorque.c).
  *
  * The entry points are METH_FASTCALL and take numpy arrays by the buffer protocol: it measured
  * 0.1 us per call against 0.4 us for ctypes with cached pointers and 2.6 us for ctypes taking
@@ -524,6 +524,10 @@ static PyObject *vk_py_bucket_depth(PyObject *module, PyObject *const *args, Py_
                                    (const double *)a[3].view.buf, (const double *)a[4].view.buf,
                                    M, (const double *)a[5].view.buf, (double *)a[6].view.buf);
     release_rows(a, 7);
+    if (rc == -2) {
+        PyErr_Format(PyExc_ValueError, "plates must have at most %d rows", MT_MAX_PLATES);
+        return NULL;
+    }
     if (rc != 0) return PyErr_NoMemory();
     Py_RETURN_NONE;
 }
@@ -613,6 +617,92 @@ static PyTypeObject KernelType = {
 };
 
 /* The trench planner's geometry (no rig constants: module functions). */
+static PyObject *vk_py_mintorque(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    if (nargs != 7) {
+        PyErr_SetString(PyExc_TypeError,
+                        "mintorque(X, params, basis, plates, cost, named, split) takes 7 arguments");
+        return NULL;
+    }
+    vk_arg a[7] = {
+        {args[0], "X", 0, 2, {-1, -1}},
+        {args[1], "params", 0, 1, {MT_N_PARAMS}},
+        {args[2], "basis", 0, 2, {14, -1}},
+        {args[3], "plates", 0, 2, {-1, 7}},
+        {args[4], "cost", 1, 1, {-1}},
+        {args[5], "named", 1, 2, {-1, MT_N_NAMED}},
+        {args[6], "split", 1, 2, {-1, MT_N_SPLIT}},
+    };
+    if (get_args(a, 7) != 0) return NULL;
+    const Py_ssize_t B = a[0].view.shape[0], n_var = a[0].view.shape[1];
+    const Py_ssize_t Q = a[2].view.shape[1] - 1;
+    if ((n_var != 3 * MT_N_KEY && n_var != 3 * MT_N_KEY + MT_N_INTERVALS) || Q < 1 ||
+        a[4].view.shape[0] != B || a[5].view.shape[0] != B || a[6].view.shape[0] != B) {
+        release_rows(a, 7);
+        PyErr_Format(PyExc_ValueError,
+                     "X must have 15 or 19 columns, basis 2 or more samples, and cost, named and "
+                     "split one row per point of X (%zd)", B);
+        return NULL;
+    }
+    const int rc = mt_evaluate((const double *)a[1].view.buf, (const double *)a[2].view.buf,
+                               (int)Q, (const double *)a[3].view.buf, (int)a[3].view.shape[0],
+                               (const double *)a[0].view.buf, B, (int)n_var,
+                               (double *)a[4].view.buf, (double *)a[5].view.buf,
+                               (double *)a[6].view.buf);
+    release_rows(a, 7);
+    if (rc == -2) {
+        PyErr_Format(PyExc_ValueError, "plates must have at most %d rows", MT_MAX_PLATES);
+        return NULL;
+    }
+    if (rc != 0) return PyErr_NoMemory();
+    Py_RETURN_NONE;
+}
+
+static PyObject *vk_py_mintorque_perturbed(PyObject *module, PyObject *const *args,
+                                           Py_ssize_t nargs)
+{
+    (void)module;
+    if (nargs != 7) {
+        PyErr_SetString(PyExc_TypeError,
+                        "mintorque_perturbed(x, step, params, basis, plates, cost, split) takes 7 "
+                        "arguments");
+        return NULL;
+    }
+    double step;
+    if (get_double(args[1], &step, "step") != 0) return NULL;
+    vk_arg a[6] = {
+        {args[0], "x", 0, 1, {-1}},
+        {args[2], "params", 0, 1, {MT_N_PARAMS}},
+        {args[3], "basis", 0, 2, {14, -1}},
+        {args[4], "plates", 0, 2, {-1, 7}},
+        {args[5], "cost", 1, 1, {-1}},
+        {args[6], "split", 1, 2, {-1, MT_N_SPLIT}},
+    };
+    if (get_args(a, 6) != 0) return NULL;
+    const Py_ssize_t n_var = a[0].view.shape[0];
+    const Py_ssize_t Q = a[2].view.shape[1] - 1;
+    if ((n_var != 3 * MT_N_KEY && n_var != 3 * MT_N_KEY + MT_N_INTERVALS) || Q < 1 ||
+        a[4].view.shape[0] != n_var || a[5].view.shape[0] != n_var) {
+        release_rows(a, 6);
+        PyErr_Format(PyExc_ValueError,
+                     "x must have 15 or 19 values, basis 2 or more samples, and cost and split "
+                     "one row per value of x (%zd)", n_var);
+        return NULL;
+    }
+    const int rc = mt_perturbed((const double *)a[1].view.buf, (const double *)a[2].view.buf,
+                                (int)Q, (const double *)a[3].view.buf, (int)a[3].view.shape[0],
+                                (const double *)a[0].view.buf, (int)n_var, step,
+                                (double *)a[4].view.buf, (double *)a[5].view.buf);
+    release_rows(a, 6);
+    if (rc == -2) {
+        PyErr_Format(PyExc_ValueError, "plates must have at most %d rows", MT_MAX_PLATES);
+        return NULL;
+    }
+    if (rc != 0) return PyErr_NoMemory();
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef verify_functions[] = {
     {"overdig", (PyCFunction)(void (*)(void))vk_py_overdig, METH_FASTCALL,
      "overdig(paths (N, n, 2), field (2, M), frame (6,), walls (3, 3), edges (E, 5), out (N,)) "
@@ -630,6 +720,15 @@ static PyMethodDef verify_functions[] = {
      "d_ent (P, 2), par (5,): machine x, offset, theta_p lo, hi, iteration; state K (P, 3), "
      "step (P, 3), mu (P,), cost (P,), best (P, 3), active (P,), go (P,); system (P, 3, 4) "
      "out: the damped normal equations [A | rhs]) -> the number of active pairs"},
+    {"mintorque", (PyCFunction)(void (*)(void))vk_py_mintorque, METH_FASTCALL,
+     "mintorque(X (B, 15 or 19), params (64,), basis (14, Q + 1), plates (P, 7), cost (B,) "
+     "out, named (B, 44) out, split (B, 146) out) -> None: the smoothed minimum-torque model "
+     "(mintorque.c)"},
+    {"mintorque_perturbed", (PyCFunction)(void (*)(void))vk_py_mintorque_perturbed,
+     METH_FASTCALL,
+     "mintorque_perturbed(x (n,), step, params (64,), basis (14, Q + 1), plates (P, 7), cost "
+     "(n,) out, split (n, 146) out) -> None: the model at x + step e_v for every v, each "
+     "recomputing only the intervals that variable moves"},
     {NULL, NULL, 0, NULL},
 };
 

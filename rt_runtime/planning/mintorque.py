@@ -7,8 +7,11 @@ between the keypoints, with the joint torques from the arm's inverse dynamics (e
 soil's wrench of the fluid model (eq 13-18, Table 2 soils); the constraints are those of
 eq 8-12, each named, signed and normalised as :mod:`rt_runtime.planning.oneshot` does with
 Yao's eq 12: a value ``<= 0`` holds. SciPy's SLSQP solves it from a few kinematic starts with
-batched forward-difference gradients (one numpy pass evaluates the point and every
-perturbation); the answer is then re-checked on the exact soil model at 1 ms.
+forward-difference gradients; the answer is then re-checked on the exact soil model at 1 ms.
+The model is written once (:class:`_Model`) for numpy, batched over points, and CasADi (the
+benchmark's reference); the compiled kernel (``kernel/mintorque.c``) evaluates the same
+formulas where it is built, each forward difference only on the intervals its variable moves,
+and the numpy model is its reference (``Evaluator(backend=...)``).
 
 Choices where the paper is silent or wrong (design note Y1 gives the numbers):
 
@@ -49,7 +52,8 @@ Choices where the paper is silent or wrong (design note Y1 gives the numbers):
   resample); sampled limits are tightened by ``LIMIT_MARGIN`` in the optimiser to cover the
   difference, and further where the exact re-check still finds a violation.
 
-Everything here runs outside the fixed-rate loop: it allocates, and a solve takes about a second.
+Everything here runs outside the fixed-rate loop: it allocates, and a solve takes about half a
+second.
 """
 
 from __future__ import annotations
@@ -802,9 +806,10 @@ class Evaluator:
         self, x: ArrayLike, at_x: tuple[float, FloatArray] | None = None
     ) -> tuple[float, FloatArray, FloatArray, FloatArray]:
         """Cost, its gradient ``(n,)``, the optimiser's constraints ``(m,)`` and their Jacobian
-        ``(m, n)`` at one point, by forward differences of step :data:`FD_STEP` evaluated in
-        one batched pass (the point and its ``n`` perturbations; only the perturbations where
-        ``at_x``, the cost and constraints at ``x`` already evaluated, is given)."""
+        ``(m, n)`` at one point, by forward differences of step :data:`FD_STEP`: numpy
+        evaluates the point and its ``n`` perturbations in one batched pass (only the
+        perturbations where ``at_x``, the cost and constraints at ``x`` already evaluated, is
+        given); the kernel evaluates each perturbation on the intervals its variable moves."""
         xa = np.asarray(x, dtype=np.float64)
         n = xa.size
         if self.module is not None:
@@ -1116,7 +1121,7 @@ def _slsqp(
     max_iterations: int,
     ftol: float = 1e-7,
 ) -> Any:
-    """SLSQP with the batched forward-difference gradients of ``ev`` (one pass per point)."""
+    """SLSQP with the forward-difference gradients of ``ev`` (:meth:`Evaluator.gradients`)."""
     from scipy.optimize import minimize
 
     # The point SLSQP asked about last: its cost and constraints (one row), and their

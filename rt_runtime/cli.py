@@ -917,7 +917,9 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
     rig = load_rig(args.rig)
     task = load_task(args.task, rig)
-    plan = TrenchPlanner(rig, args.planner, model_dir=args.models).plan(task)
+    plan = TrenchPlanner(
+        rig, args.planner, model_dir=args.models, screening=args.screening
+    ).plan(task)
     code = 0 if plan.status is PlanStatus.DONE else 1
     report = plan.to_json()
     if args.plot:
@@ -927,7 +929,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
         _print_json(report)
         return code
     t = report["task"]
-    print(f"Trench task {t['name']} on {rig.name}: L {t['length_m']:.3g} m, D {t['depth_m']:.3g} m, beta1 {t['beta1_deg']:.0f} deg, beta2 {t['beta2_deg']:.0f} deg, far edge at x {t['start_x_m']:.3g} m ({args.planner})")
+    print(f"Trench task {t['name']} on {rig.name}: L {t['length_m']:.3g} m, D {t['depth_m']:.3g} m, beta1 {t['beta1_deg']:.0f} deg, beta2 {t['beta2_deg']:.0f} deg, far edge at x {t['start_x_m']:.3g} m ({args.planner}, {report['screening']} screening)")
     print("   #  type       T [s]  V real [L]  V_p [L]  W_E [Wh]  theta_p [deg]  over [mm]  plan [us]  how")
     for i, d in enumerate(report["digs"], 1):
         print(f"  {i:2d}  {d['type']:<9} {d['T_s']:6.2f}  {d['volume_L']:10.2f}  {d['predicted_volume_L']:7.2f}  {d['energy_Wh']:8.4f}  {d['theta_p_deg']:13.1f}  {d['overdig_mm']:9.1f}  {d['plan_us']:9.0f}  {d['status']}")
@@ -1272,6 +1274,12 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--rig", default=DEFAULT_RIG)
     pl.add_argument("--planner", choices=PLANNERS, default="pinn")
     pl.add_argument("--models", help="model directory (default: the shipped onnx/)")
+    pl.add_argument(
+        "--screening",
+        choices=("auto", "network", "geometric"),
+        default="auto",
+        help="the rough stage's candidate bulges: the PINN's answers (network), a closed form per dig type needing no network (geometric), or auto (the network where its models load for the rig; pso and min_torque then plan without one)",
+    )
     pl.add_argument("--plot", metavar="FILE.png", help="design contour, tip paths, dug profile (Yao Fig. 14)")
     pl.add_argument("--json", action="store_true")
     pl.set_defaults(handler=cmd_plan)

@@ -517,6 +517,83 @@ def test_min_torque_one_shot_planner_in_the_trench_planner() -> None:
         MinTorqueOneShot(rig, planner.verifier, "clay")
 
 
+@pytest.mark.parametrize("name", ["min_torque", "pso"])
+def test_a_trench_is_planned_without_a_trained_network(name: str, tmp_path: Path) -> None:
+    """On a rig whose model directory holds no network the min-torque and PSO planners still
+    plan a trench: the rough stage screens with the closed-form bulge, the one-shot planner
+    plans the chosen poses, and the plan meets the goals with a dig of its own."""
+    from rt_runtime.planning.trench import TrenchPlanner, load_task
+
+    rig = load_rig("scale_model")
+    planner = TrenchPlanner(rig, name, model_dir=tmp_path)
+    assert planner.pinn is None and planner.screening == "geometric"
+    plan = planner.plan(load_task("D", rig))
+    report = plan.to_json()
+    assert report["status"] == "done", report["reason"]
+    assert report["screening"] == "geometric" and report["planner"] == name
+    assert report["coverage_error"] <= 0.02 and report["overdig_max_mm"] <= 5.0
+    own = [d for d in report["digs"] if d["status"] == name]
+    assert own, [d["status"] for d in report["digs"]]
+    lo, hi = (v * 1e3 for v in oneshot_volume_band(rig))
+    for d in report["digs"]:
+        assert d["finishing"] or lo - 1e-9 <= d["volume_L"] <= hi + 1e-9, d
+
+
+def oneshot_volume_band(rig: object) -> tuple[float, float]:
+    from rt_runtime.planning import oneshot
+
+    planning = oneshot.require_planning(rig)  # type: ignore[arg-type]
+    return planning.volume_min_m3, planning.volume_max_m3
+
+
+def test_the_geometric_bulge_moves_the_mid_path_tip_by_its_target(tmp_path: Path) -> None:
+    # Its definition: for poses across the candidate grid, a small scale c of K moves the tip
+    # at mid-path by c times the dig type's target (to first order), and turns the bucket by c
+    # times the attitude target.
+    from rt_runtime.planning.oneshot import DigType
+    from rt_runtime.planning.trench import TrenchPlanner, load_task
+
+    rig = load_rig("scale_model")
+    planner = TrenchPlanner(rig, "pso", model_dir=tmp_path)
+    session = planner.start(load_task("D", rig))
+    rng = np.random.default_rng(5)
+    X = np.empty((50, 7))
+    X[:, 0:6] = np.tile(planner.home_pose_rad, 2) + rng.uniform(-0.3, 0.3, (50, 6))
+    X[:, 6] = rig.ground_y_m
+    from rt_runtime.planning.trench.geometry import _sextic_shapes
+
+    assert _sextic_shapes(3)[1][1] == pytest.approx(1.0 / 64.0)  # the bulge's shape at s = 1/2
+    c = 1e-4
+    for kind in DigType:
+        K, T = session._geometric_bulge(X, kind)
+        assert np.all(np.isfinite(K)) and np.all(T > 0.0)
+        mid = 0.5 * (X[:, 0:3] + X[:, 3:6])
+        moved = kinematics.forward(rig, mid + c * K / 64.0) - kinematics.forward(rig, mid)
+        np.testing.assert_allclose(
+            moved / c, np.broadcast_to(planner.geometric_bulge[kind], moved.shape), rtol=2e-3,
+            atol=1e-4,
+        )
+
+
+def test_the_network_screening_and_the_pinn_planner_need_the_models(tmp_path: Path) -> None:
+    from rt_runtime.control.planner_worker import PlannerSpec
+    from rt_runtime.planning.trench import TrenchPlanner, load_task
+
+    rig = load_rig("scale_model")
+    for kwargs in ({"planner": "pinn"}, {"planner": "min_torque", "screening": "network"}):
+        with pytest.raises(ConfigurationError, match="need the rig's trained models"):
+            TrenchPlanner(rig, model_dir=tmp_path, **kwargs)  # type: ignore[arg-type]
+    with pytest.raises(ConfigurationError, match="unknown screening 'pinn'; allowed: auto"):
+        TrenchPlanner(rig, "pso", screening="pinn")
+    # With the shipped models the auto screening takes the network, and a planner process
+    # rebuilds the planner with the screening its parent had.
+    assert TrenchPlanner(rig, "pso").screening == "network"
+    geometric = TrenchPlanner(rig, "pso", screening="geometric")
+    assert geometric.pinn is None
+    spec = PlannerSpec.of(geometric.start(load_task("A", rig)))
+    assert spec.screening == "geometric"
+
+
 def test_cli_exit_1_when_the_answer_is_not_feasible(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -442,12 +442,14 @@ class PlannerSpec:
 
     Attributes:
         rig: The rig.
-        planner: One-shot planner name (``pinn`` or ``pso``).
+        planner: One-shot planner name (:data:`~rt_runtime.planning.trench.ONESHOT_PLANNERS`).
         model_dir: PINN model directory.
         pso_options: Options of the PSO planner.
         max_digs: The planner's bound on digs per task.
         task: The task.
         period_s: The loop's period: the replies' motions are sampled on its grid.
+        screening: The planner's screening (``network`` or ``geometric``), so that the
+            process plans with the same candidates as the planner it rebuilds.
     """
 
     rig: Rig
@@ -457,6 +459,7 @@ class PlannerSpec:
     max_digs: int | None = 40
     task: TrenchTask | None = None
     period_s: float | None = None
+    screening: str = "auto"
 
     @classmethod
     def of(cls, session: TrenchSession, period_s: float | None = None) -> PlannerSpec:
@@ -483,6 +486,7 @@ class PlannerSpec:
             max_digs=planner.max_digs,
             task=session.task,
             period_s=period_s,
+            screening=planner.screening,
         )
 
 
@@ -949,6 +953,7 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
             model_dir=spec.model_dir,
             pso_options=spec.pso_options or None,
             max_digs=spec.max_digs,
+            screening=spec.screening,
         )
         assert spec.task is not None
         trench = (
@@ -982,7 +987,8 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
             return False, done
         return True, done
 
-    watch = FileWatch(planner.pinn.verified_files())
+    # A planner screening geometrically loaded no network: no model files to watch.
+    watch = FileWatch(planner.pinn.verified_files() if planner.pinn is not None else ())
     while True:
         try:
             ready = conn.poll(WATCH_PERIOD_S)

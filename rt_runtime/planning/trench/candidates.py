@@ -77,6 +77,16 @@ _N_ENTRY_X = 4
 # them is interpolated.
 _SCREEN_C = (0.3, 0.6, 1.0, 2.0)
 
+# The geometric screening's bulge per dig type (no network): the bulge K that moves the tip at
+# mid-path by (dx, dy) m on the scale model (scaled by reach) and turns the bucket by the
+# attitude (deg), all at scale c = 1. The means of the network's own answers over task D's
+# rough stage (162-979 candidates a screening: downward (-0.10, -0.10) m, -17 deg; backward
+# (-0.12, -0.06) m, -26 deg): a dig that sinks towards the machine and curls the bucket.
+_GEOMETRIC_BULGE = {
+    DigType.DOWNWARD: (-0.10, -0.10, -17.0),
+    DigType.BACKWARD: (-0.12, -0.06, -26.0),
+}
+
 # Samples per path in the screening (the plan is checked on the verifier's full grid).
 _SCREEN_SAMPLES = 17
 

@@ -318,6 +318,8 @@ class TrenchPlan:
         planning_error: What stopped the planning before the planner found the task finished
             (the message of the PlanningError: no dig removes the rest, the bound on the digs),
             or None when it ran to its end; the plan then holds the digs before it.
+        screening: ``network`` or ``geometric``: what gave the rough stage's candidates their
+            bulge (:class:`~rt_runtime.planning.trench.planner.TrenchPlanner`).
     """
 
     task: TrenchTask
@@ -335,6 +337,7 @@ class TrenchPlan:
     plan_total_us: float
     stage_us: dict[str, float] = field(default_factory=dict)
     planning_error: str | None = None
+    screening: str = "network"
 
     @property
     def status(self) -> PlanStatus:
@@ -389,6 +392,7 @@ class TrenchPlan:
             },
             "rig": self.rig,
             "planner": self.planner,
+            "screening": self.screening,
             "status": self.status.name.lower(),
             "reason": self.reason,
             "volume_left_L": self.volume_left_m3 * 1e3,

@@ -14,7 +14,12 @@ from rt_runtime import kinematics
 from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR, PinnPlanner
-from rt_runtime.planning.trench.candidates import _CANDIDATES, _SCREEN_C, _SCREEN_SAMPLES
+from rt_runtime.planning.trench.candidates import (
+    _CANDIDATES,
+    _GEOMETRIC_BULGE,
+    _SCREEN_C,
+    _SCREEN_SAMPLES,
+)
 from rt_runtime.planning.trench.cycles import home_pose
 from rt_runtime.planning.trench.fit import _FIT_SAMPLES
 from rt_runtime.planning.trench.geometry import _sextic_shapes
@@ -23,11 +28,14 @@ from rt_runtime.planning.trench.plan import PlannedDig, TrenchPlan
 from rt_runtime.planning.trench.planners import OneShotPlanner, PinnOneShot, PsoOneShot
 from rt_runtime.planning.trench.session import TrenchSession
 from rt_runtime.planning.trench.task import _ENTRY_X_M, TrenchTask, _reach_scale, load_task
+from rt_runtime.planning.verify import Verifier
 from rt_runtime.rig import Rig
 
 #: The one-shot planners a :class:`TrenchPlanner` builds by name (and a planner process
 #: rebuilds from its name).
 ONESHOT_PLANNERS = ("pinn", "pso", "min_torque")
+#: How the rough stage's candidates get their bulge (:class:`TrenchPlanner`, ``screening``).
+SCREENINGS = ("auto", "network", "geometric")
 
 
 class TrenchPlanner:
@@ -41,14 +49,21 @@ class TrenchPlanner:
         model_dir: PINN model directory (default: the shipped ``onnx/``).
         pso_options: Keyword arguments for :func:`rt_runtime.planning.oneshot.solve_pso`.
         max_digs: Safety bound on the number of digs of one task (None: 20 a section).
+        screening: How the rough stage's candidate digs get their bulge before the fill
+            scales it: ``"network"`` (the PINN's answer for each candidate's poses),
+            ``"geometric"`` (a closed-form bulge per dig type, :data:`~rt_runtime.planning.
+            trench.candidates._GEOMETRIC_BULGE`, so that the PSO and the minimum-torque planner
+            run on a rig with no trained network), or ``"auto"`` (the network where its models
+            load for the rig, else geometric; the PINN planner always needs the network).
         geometry: Who computes the screening geometry, the over-dig of sampled paths and the
             envelopes: ``"c"`` (the verifier's compiled kernel, ``kernel/trench.c``), ``"numpy"``
             (the reference) or ``"auto"`` (C where the verifier runs on C). The plans are the
             same (tests/test_trench.py compares them); C is ~2x faster on a whole plan.
 
     Raises:
-        ConfigurationError: Unknown planner name or geometry; models that do not load for the
-            rig; ``geometry="c"`` where the verifier has no compiled kernel.
+        ConfigurationError: Unknown planner name, geometry or screening; models that do not
+            load for the rig where the network is needed (the PINN planner, ``screening=
+            "network"``); ``geometry="c"`` where the verifier has no compiled kernel.
     """
 
     def __init__(
@@ -60,15 +75,38 @@ class TrenchPlanner:
         pso_options: dict[str, Any] | None = None,
         max_digs: int | None = None,
         geometry: str = "auto",
+        screening: str = "auto",
     ) -> None:
 
         oneshot.require_planning(rig)
+        if screening not in SCREENINGS:
+            raise ConfigurationError(
+                f"unknown screening {screening!r}; allowed: {', '.join(SCREENINGS)}"
+            )
         self.rig = rig
         #: What built this planner (a planner process rebuilds it from these).
         self.model_dir = Path(model_dir or DEFAULT_MODEL_DIR)
         self.pso_options = dict(pso_options or {})
-        self.pinn = PinnPlanner(rig, self.model_dir, refine=True)
-        self.verifier = self.pinn.verifier
+        needs_network = planner == "pinn" or screening == "network"
+        #: The PINN (None where the screening is geometric: no network is loaded).
+        self.pinn: PinnPlanner | None = None
+        if needs_network or screening == "auto":
+            try:
+                self.pinn = PinnPlanner(rig, self.model_dir, refine=True)
+            except ConfigurationError as e:
+                if needs_network:
+                    raise ConfigurationError(
+                        f"{e}; the pinn planner and the network screening need the rig's "
+                        "trained models (the pso and min_torque planners plan without them, "
+                        "screening geometrically)"
+                    ) from None
+        #: ``"network"`` or ``"geometric"``: what gives the rough stage's candidates a bulge.
+        self.screening = "network" if self.pinn is not None else "geometric"
+        self.verifier = (
+            self.pinn.verifier
+            if self.pinn is not None
+            else Verifier(rig, oneshot.DEFAULT_SAMPLES, backend="c")
+        )
         if geometry not in ("auto", "c", "numpy"):
             raise ConfigurationError(f"unknown geometry {geometry!r}; allowed: auto, c, numpy")
         if geometry == "c" and self.verifier.module is None:
@@ -82,6 +120,7 @@ class TrenchPlanner:
         self.geo_module: Any = self.verifier.module if use_c else None
         if isinstance(planner, str):
             if planner == "pinn":
+                assert self.pinn is not None
                 self.oneshot: OneShotPlanner = PinnOneShot(self.pinn)
             elif planner == "pso":
                 self.oneshot = PsoOneShot(rig, self.verifier, **(pso_options or {}))
@@ -125,9 +164,20 @@ class TrenchPlanner:
             )
             for kind, cand in _CANDIDATES.items()
         }
-        self.domain = {
-            k: (np.asarray(c.domain_min), np.asarray(c.domain_max))
-            for k, c in self.pinn.cards.items()
+        #: Per dig type the network's input domain (None with the geometric screening).
+        self.domain = (
+            None
+            if self.pinn is None
+            else {
+                k: (np.asarray(c.domain_min), np.asarray(c.domain_max))
+                for k, c in self.pinn.cards.items()
+            }
+        )
+        #: Per dig type the geometric screening's bulge target at mid-path: tip x and y
+        #: (scaled by reach) and the attitude (rad).
+        self.geometric_bulge = {
+            kind: np.array([b[0] * s, b[1] * s, np.radians(b[2])])
+            for kind, b in _GEOMETRIC_BULGE.items()
         }
         #: Where the arm starts a task and where the moves after its last dig end: the spoil
         #: zone's point nearest the machine (joint angles; :func:`cycles.home_pose`).

@@ -1,6 +1,7 @@
 """The network's digs (Yao Fig. 5: downward until the layer's floor, then backward): the
-candidate grid through the PINN in one batch, screened on geometry with the fill on the material
-left, and chosen with a look-ahead over what the layer still takes."""
+candidate grid through the PINN in one batch (or, with no network, a closed-form bulge per dig
+type), screened on geometry with the fill on the material left, and chosen with a look-ahead
+over what the layer still takes."""
 
 from __future__ import annotations
 
@@ -35,6 +36,9 @@ from rt_runtime.planning.trench.geometry import (
 )
 from rt_runtime.planning.trench.plan import PlannedDig
 from rt_runtime.planning.trench.state import Stage, _stage
+
+# The sextic's bulge shape at mid-path: q(1/2) = q1 + (q2 - q1) / 2 + K / 64.
+_SEXTIC_PF_MID = 1.0 / 64.0
 
 
 class RoughMixin(DigsMixin):
@@ -115,7 +119,6 @@ class RoughMixin(DigsMixin):
         arm = self.planner.arm
         cand = _CANDIDATES[kind]
         m = self.machine_x
-        lo, hi = self.planner.domain[kind]
         # Every (entry, exit) pose of the grid at once: entries (x, attitude) x exits
         # (length, rise, attitude); poses out of reach or limits are dropped.
         ea = np.radians(cand.entry_attitude_deg)
@@ -131,12 +134,22 @@ class RoughMixin(DigsMixin):
         X[:, 3:6] = qe
         X[:, 6] = np.repeat(np.repeat(H, n_a), n_x)
         ok = np.repeat(ok_s, n_x) & ok_e
-        ok &= np.all((lo <= X) & (hi >= X), axis=1)
+        if self.planner.domain is not None:
+            lo, hi = self.planner.domain[kind]
+            ok &= np.all((lo <= X) & (hi >= X), axis=1)
         X = X[ok]
         if X.shape[0] == 0:
             return []
-        Y = self.planner.pinn.infer(kind, X)
-        K = -Y[:, 0:3] * Y[:, 3:4] ** 6
+        if self.planner.pinn is not None:
+            Y = self.planner.pinn.infer(kind, X)
+            K = -Y[:, 0:3] * Y[:, 3:4] ** 6
+            T = Y[:, 3]
+        else:
+            K, T = self._geometric_bulge(X, kind)
+            keep = np.all(np.isfinite(K), axis=1)
+            X, K, T = X[keep], K[keep], T[keep]
+            if X.shape[0] == 0:
+                return []
         G = self.planner.screen_c
         _, over, total, useful = self._screen_paths(X, K)
         # The fill on the material left: the largest bulge scale whose real cut stays inside
@@ -184,10 +197,26 @@ class RoughMixin(DigsMixin):
                 score=float(score[b]),
                 K_rad=K[good[b]],
                 c=float(cs[b]),
-                T_s=float(Y[good[b], 3]),
+                T_s=float(T[good[b]]),
             )
             for b in best
         ]
+
+    def _geometric_bulge(self, X: FloatArray, kind: DigType) -> tuple[FloatArray, FloatArray]:
+        """The geometric screening's bulge of candidates ``X`` ``(N, 7)``: ``K`` ``(N, 3)``
+        moving the tip at mid-path by the dig type's target (``TrenchPlanner.geometric_bulge``)
+        through the arm's Jacobian at the chord's mid pose (NaN where it is singular), and the
+        middle of the time range as ``T`` ``(N,)`` (the fill retimes the path)."""
+        q1, q2 = X[:, 0:3], X[:, 3:6]
+        jac = kinematics.jacobian(self.rig, 0.5 * (q1 + q2))
+        target = self.planner.geometric_bulge[kind] / _SEXTIC_PF_MID
+        K = np.full(q1.shape, np.nan)
+        ok = np.abs(np.linalg.det(jac)) > 1e-9
+        K[ok] = np.linalg.solve(jac[ok], np.broadcast_to(target, (int(ok.sum()), 3))[..., None])[
+            ..., 0
+        ]
+        t_lo, t_hi = self.planning.t_min_s, self.planning.t_max_s
+        return K, np.full(X.shape[0], 0.5 * (t_lo + t_hi))
 
     def _path_feasible_scale(
         self, X: FloatArray, K: FloatArray, c_top: FloatArray, kind: DigType

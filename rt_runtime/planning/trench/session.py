@@ -283,4 +283,5 @@ class TrenchSession(PersistMixin):
             removed_m3=removed,
             design_m3=self.design_area * self.width_m,
             plan_total_us=plan_total_us,
+            screening=self.planner.screening,
         )

@@ -918,7 +918,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     rig = load_rig(args.rig)
     task = load_task(args.task, rig)
     plan = TrenchPlanner(
-        rig, args.planner, model_dir=args.models, screening=args.screening
+        rig, args.planner, model_dir=args.models, screening=args.screening, soil=args.soil
     ).plan(task)
     code = 0 if plan.status is PlanStatus.DONE else 1
     report = plan.to_json()
@@ -1280,6 +1280,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         help="the rough stage's candidate bulges: the PINN's answers (network), a closed form per dig type needing no network (geometric), or auto (the network where its models load for the rig; pso and min_torque then plan without one)",
     )
+    pl.add_argument("--soil", help="the min_torque planner's fluid soil, one of the rig's (Yang/Pan Table 2: soft, hard; default soft)")
     pl.add_argument("--plot", metavar="FILE.png", help="design contour, tip paths, dug profile (Yao Fig. 14)")
     pl.add_argument("--json", action="store_true")
     pl.set_defaults(handler=cmd_plan)

@@ -575,6 +575,62 @@ def test_the_geometric_bulge_moves_the_mid_path_tip_by_its_target(tmp_path: Path
         )
 
 
+@pytest.mark.parametrize("rig_name", ["scale_model", "yang_pan_excavator"])
+def test_the_one_shot_cost_by_the_kernel_equals_the_numpy_model(rig_name: str) -> None:
+    # The min-torque one-shot planner's cost (the compiled model on the sextic's samples) and
+    # its constraints (the verifier's kernel) against the numpy model and oneshot.evaluate, on
+    # seeded problems of both dig types and particles anywhere in the search box, both soils.
+    from rt_runtime.planning import oneshot
+    from rt_runtime.planning.mintorque_oneshot import MinTorqueOneShot
+    from rt_runtime.planning.verify import Verifier
+
+    rig = load_rig(rig_name)
+    verifier = Verifier(rig, oneshot.DEFAULT_SAMPLES, backend="c")
+    rng = np.random.default_rng(11)
+    for soil_name in ("soft", "hard"):
+        c = MinTorqueOneShot(rig, verifier, soil_name)
+        n = MinTorqueOneShot(rig, verifier, soil_name, backend="numpy")
+        if c.backend != "c":
+            pytest.skip("the compiled kernel is not built")
+        problems = oneshot.sample_problems(rig, 5, oneshot.DigType.DOWNWARD, seed=2)
+        problems += oneshot.sample_problems(rig, 5, oneshot.DigType.BACKWARD, seed=3)
+        for p in problems:
+            X = c.lo + rng.uniform(size=(6, 4)) * (c.hi - c.lo)
+            a, av = c.cost(p, X)
+            b, bv = n.cost(p, X)
+            np.testing.assert_allclose(a, b, rtol=1e-12)
+            np.testing.assert_allclose(av, bv, rtol=1e-10, atol=1e-12)
+    with pytest.raises(ConfigurationError, match="unknown backend"):
+        MinTorqueOneShot(rig, verifier, backend="gpu")
+    with pytest.raises(ConfigurationError, match="compiled verifier on 101 samples"):
+        MinTorqueOneShot(rig, Verifier(rig, 51, backend="c"), backend="c")
+
+
+def test_yang_pans_excavator_trench_planned_by_the_min_torque_planner(tmp_path: Path) -> None:
+    # The rig has no trained network: the geometric screening picks the poses and the
+    # minimum-torque planner plans the first dig of an 8 m x 1.5 m trench in each soil's cost:
+    # verified on Yao's eq 12 and carrying 0.8-1.2 m^3 of real material (its planning table).
+    from rt_runtime.planning.trench import TrenchPlanner, load_task
+    from rt_runtime.planning.verify import COL_TOTAL
+
+    rig = load_rig("yang_pan_excavator")
+    path = tmp_path / "long.toml"
+    path.write_text("length_m = 8.0\ndepth_m = 1.5\nbeta1_deg = 70.0\nbeta2_deg = 50.0\n")
+    task = load_task(str(path), rig)
+    planner = TrenchPlanner(rig, "min_torque")
+    assert planner.screening == "geometric" and planner.soil == "soft"
+    session = planner.start(task)
+    dig = session.next_dig()
+    assert dig is not None and dig.status == "min_torque" and not dig.finishing
+    assert 0.8 - 1e-9 <= dig.volume_m3 <= 1.2 + 1e-9
+    assert dig.evaluation[COL_TOTAL] <= 0.0
+    with pytest.raises(ConfigurationError, match="applies to the min_torque planner only"):
+        TrenchPlanner(rig, "pso", soil="hard")
+    with pytest.raises(ConfigurationError, match="no fluid soil 'clay'"):
+        TrenchPlanner(rig, "min_torque", soil="clay")
+    assert TrenchPlanner(rig, "min_torque", soil="hard").oneshot.soil.name == "hard"
+
+
 def test_the_network_screening_and_the_pinn_planner_need_the_models(tmp_path: Path) -> None:
     from rt_runtime.control.planner_worker import PlannerSpec
     from rt_runtime.planning.trench import TrenchPlanner, load_task

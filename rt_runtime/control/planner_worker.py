@@ -450,6 +450,7 @@ class PlannerSpec:
         period_s: The loop's period: the replies' motions are sampled on its grid.
         screening: The planner's screening (``network`` or ``geometric``), so that the
             process plans with the same candidates as the planner it rebuilds.
+        soil: The minimum-torque planner's soil (None with another planner).
     """
 
     rig: Rig
@@ -460,6 +461,7 @@ class PlannerSpec:
     task: TrenchTask | None = None
     period_s: float | None = None
     screening: str = "auto"
+    soil: str | None = None
 
     @classmethod
     def of(cls, session: TrenchSession, period_s: float | None = None) -> PlannerSpec:
@@ -487,6 +489,7 @@ class PlannerSpec:
             task=session.task,
             period_s=period_s,
             screening=planner.screening,
+            soil=planner.soil,
         )
 
 
@@ -954,6 +957,7 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
             pso_options=spec.pso_options or None,
             max_digs=spec.max_digs,
             screening=spec.screening,
+            soil=spec.soil,
         )
         assert spec.task is not None
         trench = (

@@ -36,6 +36,8 @@ FloatArray = np.typing.NDArray[np.float64]
 N_SAMPLES = 101
 #: Starts: no bulge, at these fractions of the time range.
 START_TIMES = (0.2, 0.5, 0.8)
+#: The surface height's place in the compiled model's constants (``kernel.h``, ``MT_SURFACE``).
+_SURFACE_PARAM = 18
 
 
 class MinTorqueOneShot:
@@ -52,13 +54,49 @@ class MinTorqueOneShot:
 
     name = "min_torque"
 
-    def __init__(self, rig: Rig, verifier: Any, soil: str = "soft") -> None:
+    def __init__(
+        self, rig: Rig, verifier: Any, soil: str = "soft", *, backend: str = "auto"
+    ) -> None:
         oneshot.require_planning(rig)
+        if backend not in mt.BACKENDS:
+            raise ConfigurationError(
+                f"unknown backend {backend!r}; allowed: {', '.join(mt.BACKENDS)}"
+            )
         self.rig = rig
         self.verifier = verifier
         check_soil(rig, soil)
         self.soil = rig.soil.fluid_named(soil)
         self.lo, self.hi = oneshot.search_bounds(rig)
+        module = None if backend == "numpy" else mt._kernel_module()
+        if backend == "c" and module is None:
+            raise ConfigurationError("the compiled kernel is not built (backend 'c')")
+        # The compiled path needs the verifier's own kernel on this grid for the constraints.
+        c_verifier = getattr(verifier, "module", None) is not None
+        c_verifier = c_verifier and getattr(verifier, "n_samples", None) == N_SAMPLES
+        #: The compiled kernel's module (the cost, ``kernel/mintorque.c``; the constraints by
+        #: the verifier's kernel), or None for numpy (the reference).
+        self.module = module if c_verifier else None
+        if backend == "c" and self.module is None:
+            raise ConfigurationError(
+                f"backend 'c' needs a compiled verifier on {N_SAMPLES} samples"
+            )
+        #: ``"c"`` or ``"numpy"``: who evaluates the cost and the constraints.
+        self.backend = "numpy" if self.module is None else "c"
+        self._model = self._model_at(0.0)
+        self._params, _, self._plates = mt._pack_kernel(self._model, np.ones((4, 3)))
+
+    def _model_at(self, surface_y_m: float) -> Any:
+        return mt._Model(
+            self.rig,
+            mt.MinTorqueProblem(
+                soil=self.soil,
+                surface_y_m=surface_y_m,
+                volume_m3=(0.0, 1.0),
+                depth_m=(0.0, 1.0),
+                entry_x_m=(0.0, 1.0),
+            ),
+            mt._NumpyOps,
+        )
 
     def cost(self, problem: Problem, X: Any) -> tuple[FloatArray, FloatArray]:
         """Cost ``(B,)`` and Yao's eq 12 violations ``(B, 22)`` of particles ``X`` ``(B, 4)``."""
@@ -66,24 +104,33 @@ class MinTorqueOneShot:
         a6, T = oneshot.a6_from_particle(x)
         qs = np.asarray(problem.q_start_rad)[None, :]
         qe = np.asarray(problem.q_end_rad)[None, :]
+        coef = sextic.sextic_coefficients(qs[:, None, :], qe[:, None, :], a6[None], T[None])
+        t, q, qd, qdd, _ = sextic.evaluate(coef, T[None], N_SAMPLES)
+        if self.module is not None:
+            from rt_runtime.planning.verify import N_OUT, pack_inputs
+
+            rows = pack_inputs(
+                qs[0], qe[0], problem.surface_y_m, int(problem.dig_type), a6, T
+            )
+            out = np.zeros((x.shape[0], N_OUT))
+            self.verifier.evaluate_into(rows, out)
+            dt = np.diff(t[0], axis=-1)
+            w = np.zeros(t[0].shape)
+            w[:, :-1] += 0.5 * dt
+            w[:, 1:] += 0.5 * dt
+            params = self._params.copy()
+            params[_SURFACE_PARAM] = problem.surface_y_m
+            cost = np.empty(x.shape[0])
+            self.module.mintorque_path_cost(
+                np.ascontiguousarray(q[0]), np.ascontiguousarray(qd[0]),
+                np.ascontiguousarray(qdd[0]), w, params, self._plates, cost,
+            )  # fmt: skip
+            return cost, out[:, : len(oneshot.CONSTRAINT_NAMES)].copy()
         ev = oneshot.evaluate(
             self.rig, qs, qe, np.array([problem.surface_y_m]), int(problem.dig_type),
             a6[None], T[None], N_SAMPLES,
         )  # fmt: skip
-        coef = sextic.sextic_coefficients(qs[:, None, :], qe[:, None, :], a6[None], T[None])
-        t, q, qd, qdd, _ = sextic.evaluate(coef, T[None], N_SAMPLES)
-        model = mt._Model(
-            self.rig,
-            mt.MinTorqueProblem(
-                soil=self.soil,
-                surface_y_m=problem.surface_y_m,
-                volume_m3=(0.0, 1.0),
-                depth_m=(0.0, 1.0),
-                entry_x_m=(0.0, 1.0),
-            ),
-            mt._NumpyOps,
-        )
-        tau, _ = model._torques(
+        tau, _ = self._model_at(problem.surface_y_m)._torques(
             [q[0, ..., j] for j in range(3)],
             [qd[0, ..., j] for j in range(3)],
             [qdd[0, ..., j] for j in range(3)],

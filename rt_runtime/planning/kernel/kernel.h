@@ -457,6 +457,11 @@ int mt_evaluate(const double *p, const double *basis, int Q, const double *plate
  * (n_var, MT_N_SPLIT). */
 int mt_perturbed(const double *p, const double *basis, int Q, const double *plates, int P,
                  const double *x, int n_var, double step, double *cost, double *split);
+/* mintorque.c: sum_k w_k sum_j (tau_j / tau_max_j)^2 of B sampled paths, q, qd, qdd (B, n, 3)
+ * and weights w (B, n) (the cost of mintorque_oneshot on any path). */
+int mt_path_cost(const double *p, const double *plates, int P, const double *q,
+                 const double *qd, const double *qdd, const double *w, ptrdiff_t B, ptrdiff_t n,
+                 double *cost);
 
 /* trench.c */
 double vk_overdig_path(const vk_field *f, const double *path, ptrdiff_t n);

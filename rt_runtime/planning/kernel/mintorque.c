@@ -127,6 +127,85 @@ static void mt_velocities(const double *x, const double *h, double vel[MT_N_KEY]
     }
 }
 
+/* Joint torques (N m) at one sample of joint angles, rates and accelerations, the smoothed
+ * fluid soil's wrench at the tip included (mintorque._Model._torques and _soil). */
+static void mt_sample_tau(const double *p, const mt_plates *pls, const double *q,
+                          const double *qd, const double *qdd, double *tau)
+{
+    const double l0 = p[MT_LEN], l1 = p[MT_LEN + 1], l2 = p[MT_LEN + 2];
+    const double *ch = p + MT_CH_H, *cb = p + MT_CH_B, *cd = p + MT_CH_D;
+    const double grav = p[MT_GRAVITY];
+    const double rho_g = p[MT_RHO_G], kv = p[MT_KV], kss = p[MT_KS];
+    const double eps = p[MT_EPS], r = p[MT_SPEED_REG], H = p[MT_SURFACE];
+    const int P = pls->P;
+    const double *pl_cx = pls->cx, *pl_cy = pls->cy, *pl_nx = pls->nx, *pl_ny = pls->ny;
+    const double *pl_tx = pls->tx, *pl_ty = pls->ty, *pl_area = pls->area;
+    /* Absolute angles, rates and accelerations; tip pose and twist. */
+    const double phi0 = q[0], phi1 = phi0 + q[1], phi2 = phi1 + q[2];
+    const double cp0 = cos(phi0), sp0 = sin(phi0), cp1 = cos(phi1), sp1 = sin(phi1);
+    const double cp2 = cos(phi2), sp2 = sin(phi2);
+    const double w0 = qd[0], w1 = w0 + qd[1], w2 = w1 + qd[2];
+    const double a0 = qdd[0], a1 = a0 + qdd[1], a2 = a1 + qdd[2];
+    const double ty = l0 * sp0 + l1 * sp1 + l2 * sp2;
+    const double vx = -(l0 * sp0 * w0 + l1 * sp1 * w1 + l2 * sp2 * w2);
+    const double vy = l0 * cp0 * w0 + l1 * cp1 * w1 + l2 * cp2 * w2;
+    /* The smoothed fluid soil, summed over the plates (bucket frame). */
+    const double u = cp2 * vx + sp2 * vy;
+    const double w = cp2 * vy - sp2 * vx;
+    /* Each plate's share first (a loop the compiler vectorises: no value carried
+     * between plates), then the sums in plate order, as the numpy loop adds them. */
+    double sfx[MT_MAX_PLATES], sfy[MT_MAX_PLATES], smz[MT_MAX_PLATES];
+    for (int pi = 0; pi < P; pi++) {
+        const double pcx = pl_cx[pi], pcy = pl_cy[pi], pnx = pl_nx[pi], pny = pl_ny[pi];
+        const double ptx = pl_tx[pi], pty = pl_ty[pi];
+        const double depth = H - (ty + pcx * sp2 + pcy * cp2);
+        const double root = sqrt(depth * depth + eps * eps);
+        const double arm_n = pcx * pny - pcy * pnx;
+        const double arm_t = pcx * pty - pcy * ptx;
+        const double vn = u * pnx + w * pny + w2 * arm_n;
+        const double vt = u * ptx + w * pty + w2 * arm_t;
+        const double rn = sqrt(vn * vn + r * r);
+        const double rt = sqrt(vt * vt + r * r);
+        const double mag = (rho_g * 0.5 * (depth + root) + kv * (rn - r)) *
+                           (pl_area[pi] * 0.5 * (1.0 + depth / root));
+        const double un = vn / rn;
+        const double ut = kss * vt / rt;
+        sfx[pi] = mag * (un * pnx + ut * ptx);
+        sfy[pi] = mag * (un * pny + ut * pty);
+        smz[pi] = mag * (un * arm_n + ut * arm_t);
+    }
+    double fxb = 0.0, fyb = 0.0, mz = 0.0;
+    for (int pi = 0; pi < P; pi++) {
+        fxb = fxb - sfx[pi];
+        fyb = fyb - sfy[pi];
+        mz = mz - smz[pi];
+    }
+    const double fx = cp2 * fxb - sp2 * fyb;
+    const double fy = sp2 * fxb + cp2 * fyb;
+    /* Closed-form inverse dynamics in absolute angles. */
+    const double cq1 = cos(q[1]), sq1 = sin(q[1]);
+    const double cq2 = cos(q[2]), sq2 = sin(q[2]);
+    const double c12 = cos(q[1] + q[2]), s12 = sin(q[1] + q[2]);
+    const double d01 = l0 * (ch[1] * cq1 - cb[1] * sq1);
+    const double w01 = l0 * (cb[1] * cq1 + ch[1] * sq1);
+    const double d02 = l0 * (ch[2] * c12 - cb[2] * s12);
+    const double w02 = l0 * (cb[2] * c12 + ch[2] * s12);
+    const double d12 = l1 * (ch[2] * cq2 - cb[2] * sq2);
+    const double w12 = l1 * (cb[2] * cq2 + ch[2] * sq2);
+    const double ww0 = w0 * w0, ww1 = w1 * w1, ww2 = w2 * w2;
+    double t0 = cd[0] * a0 + d01 * a1 + d02 * a2 - w01 * ww1 - w02 * ww2;
+    t0 = t0 + grav * (ch[0] * cp0 - cb[0] * sp0) - l0 * (cp0 * fy - sp0 * fx);
+    double t1 = d01 * a0 + cd[1] * a1 + d12 * a2 + w01 * ww0 - w12 * ww2;
+    t1 = t1 + grav * (ch[1] * cp1 - cb[1] * sp1) - l1 * (cp1 * fy - sp1 * fx);
+    double t2 = d02 * a0 + d12 * a1 + cd[2] * a2 + w02 * ww0 + w12 * ww1;
+    t2 = t2 + grav * (ch[2] * cp2 - cb[2] * sp2) - l2 * (cp2 * fy - sp2 * fx) - mz;
+    t1 = t1 + t2;
+    t0 = t0 + t1;
+    tau[0] = t0;
+    tau[1] = t1;
+    tau[2] = t2;
+}
+
 /* What one interval adds: its cost (trapezoid sum), and per constraint column its peak and
  * smooth maximum. g is scratch of (Q + 1) x 30. */
 typedef struct {
@@ -145,14 +224,6 @@ static void mt_interval(const double *p, const double *basis, int Q, const mt_pl
     const double *B_a0 = basis + 7 * n, *B_a1 = basis + 8 * n, *B_a4 = basis + 9 * n;
     const double *B_j0 = basis + 10 * n, *B_j1 = basis + 11 * n, *B_j4 = basis + 12 * n;
     const double *B_w = basis + 13 * n;
-    const double l0 = p[MT_LEN], l1 = p[MT_LEN + 1], l2 = p[MT_LEN + 2];
-    const double *ch = p + MT_CH_H, *cb = p + MT_CH_B, *cd = p + MT_CH_D;
-    const double grav = p[MT_GRAVITY];
-    const double rho_g = p[MT_RHO_G], kv = p[MT_KV], kss = p[MT_KS];
-    const double eps = p[MT_EPS], r = p[MT_SPEED_REG], H = p[MT_SURFACE];
-    const int P = pls->P;
-    const double *pl_cx = pls->cx, *pl_cy = pls->cy, *pl_nx = pls->nx, *pl_ny = pls->ny;
-    const double *pl_tx = pls->tx, *pl_ty = pls->ty, *pl_area = pls->area;
     double cost = 0.0;
     const double hi = h[i];
     double c0[3], c2[3], c3[3], e0[3], e1[3], f0[3], f1[3], f2[3];
@@ -182,68 +253,8 @@ static void mt_interval(const double *p, const double *basis, int Q, const mt_pl
             qdd[j] = f0[j] * B_a0[k] + f1[j] * B_a1[k] + f2[j] * B_a4[k];
             jk[j] = g0[j] * B_j0[k] + g1[j] * B_j1[k] + g2[j] * B_j4[k];
         }
-        /* Absolute angles, rates and accelerations; tip pose and twist. */
-        const double phi0 = q[0], phi1 = phi0 + q[1], phi2 = phi1 + q[2];
-        const double cp0 = cos(phi0), sp0 = sin(phi0), cp1 = cos(phi1), sp1 = sin(phi1);
-        const double cp2 = cos(phi2), sp2 = sin(phi2);
-        const double w0 = qd[0], w1 = w0 + qd[1], w2 = w1 + qd[2];
-        const double a0 = qdd[0], a1 = a0 + qdd[1], a2 = a1 + qdd[2];
-        const double ty = l0 * sp0 + l1 * sp1 + l2 * sp2;
-        const double vx = -(l0 * sp0 * w0 + l1 * sp1 * w1 + l2 * sp2 * w2);
-        const double vy = l0 * cp0 * w0 + l1 * cp1 * w1 + l2 * cp2 * w2;
-        /* The smoothed fluid soil, summed over the plates (bucket frame). */
-        const double u = cp2 * vx + sp2 * vy;
-        const double w = cp2 * vy - sp2 * vx;
-        /* Each plate's share first (a loop the compiler vectorises: no value carried
-         * between plates), then the sums in plate order, as the numpy loop adds them. */
-        double sfx[MT_MAX_PLATES], sfy[MT_MAX_PLATES], smz[MT_MAX_PLATES];
-        for (int pi = 0; pi < P; pi++) {
-            const double pcx = pl_cx[pi], pcy = pl_cy[pi], pnx = pl_nx[pi], pny = pl_ny[pi];
-            const double ptx = pl_tx[pi], pty = pl_ty[pi];
-            const double depth = H - (ty + pcx * sp2 + pcy * cp2);
-            const double root = sqrt(depth * depth + eps * eps);
-            const double arm_n = pcx * pny - pcy * pnx;
-            const double arm_t = pcx * pty - pcy * ptx;
-            const double vn = u * pnx + w * pny + w2 * arm_n;
-            const double vt = u * ptx + w * pty + w2 * arm_t;
-            const double rn = sqrt(vn * vn + r * r);
-            const double rt = sqrt(vt * vt + r * r);
-            const double mag = (rho_g * 0.5 * (depth + root) + kv * (rn - r)) *
-                               (pl_area[pi] * 0.5 * (1.0 + depth / root));
-            const double un = vn / rn;
-            const double ut = kss * vt / rt;
-            sfx[pi] = mag * (un * pnx + ut * ptx);
-            sfy[pi] = mag * (un * pny + ut * pty);
-            smz[pi] = mag * (un * arm_n + ut * arm_t);
-        }
-        double fxb = 0.0, fyb = 0.0, mz = 0.0;
-        for (int pi = 0; pi < P; pi++) {
-            fxb = fxb - sfx[pi];
-            fyb = fyb - sfy[pi];
-            mz = mz - smz[pi];
-        }
-        const double fx = cp2 * fxb - sp2 * fyb;
-        const double fy = sp2 * fxb + cp2 * fyb;
-        /* Closed-form inverse dynamics in absolute angles. */
-        const double cq1 = cos(q[1]), sq1 = sin(q[1]);
-        const double cq2 = cos(q[2]), sq2 = sin(q[2]);
-        const double c12 = cos(q[1] + q[2]), s12 = sin(q[1] + q[2]);
-        const double d01 = l0 * (ch[1] * cq1 - cb[1] * sq1);
-        const double w01 = l0 * (cb[1] * cq1 + ch[1] * sq1);
-        const double d02 = l0 * (ch[2] * c12 - cb[2] * s12);
-        const double w02 = l0 * (cb[2] * c12 + ch[2] * s12);
-        const double d12 = l1 * (ch[2] * cq2 - cb[2] * sq2);
-        const double w12 = l1 * (cb[2] * cq2 + ch[2] * sq2);
-        const double ww0 = w0 * w0, ww1 = w1 * w1, ww2 = w2 * w2;
-        double t0 = cd[0] * a0 + d01 * a1 + d02 * a2 - w01 * ww1 - w02 * ww2;
-        t0 = t0 + grav * (ch[0] * cp0 - cb[0] * sp0) - l0 * (cp0 * fy - sp0 * fx);
-        double t1 = d01 * a0 + cd[1] * a1 + d12 * a2 + w01 * ww0 - w12 * ww2;
-        t1 = t1 + grav * (ch[1] * cp1 - cb[1] * sp1) - l1 * (cp1 * fy - sp1 * fx);
-        double t2 = d02 * a0 + d12 * a1 + cd[2] * a2 + w02 * ww0 + w12 * ww1;
-        t2 = t2 + grav * (ch[2] * cp2 - cb[2] * sp2) - l2 * (cp2 * fy - sp2 * fx) - mz;
-        t1 = t1 + t2;
-        t0 = t0 + t1;
-        const double tau[3] = {t0, t1, t2};
+        double tau[3];
+        mt_sample_tau(p, pls, q, qd, qdd, tau);
         double sq = 0.0;
         for (int j = 0; j < 3; j++) {
             const double z = tau[j] / p[MT_TAU_MAX + j];
@@ -397,6 +408,33 @@ int mt_perturbed(const double *p, const double *basis, int Q, const double *plat
         cost[v] = mt_assemble(parts, kp, NULL, split + (ptrdiff_t)MT_N_SPLIT * v);
     }
     free(g);
+    free(pls);
+    return 0;
+}
+
+int mt_path_cost(const double *p, const double *plates, int P, const double *q,
+                 const double *qd, const double *qdd, const double *w, ptrdiff_t B, ptrdiff_t n,
+                 double *cost)
+{
+    if (P > MT_MAX_PLATES) return -2;
+    mt_plates *pls = malloc(sizeof(mt_plates));
+    if (pls == NULL) return -1;
+    mt_plates_of(plates, P, pls);
+    for (ptrdiff_t b = 0; b < B; b++) {
+        double c = 0.0;
+        for (ptrdiff_t k = 0; k < n; k++) {
+            const ptrdiff_t at = 3 * (n * b + k);
+            double tau[3];
+            mt_sample_tau(p, pls, q + at, qd + at, qdd + at, tau);
+            double sq = 0.0;
+            for (int j = 0; j < 3; j++) {
+                const double z = tau[j] / p[MT_TAU_MAX + j];
+                sq = sq + z * z;
+            }
+            c = c + w[n * b + k] * sq;
+        }
+        cost[b] = c;
+    }
     free(pls);
     return 0;
 }

@@ -703,6 +703,50 @@ static PyObject *vk_py_mintorque_perturbed(PyObject *module, PyObject *const *ar
     Py_RETURN_NONE;
 }
 
+static PyObject *vk_py_mintorque_path_cost(PyObject *module, PyObject *const *args,
+                                           Py_ssize_t nargs)
+{
+    (void)module;
+    if (nargs != 7) {
+        PyErr_SetString(PyExc_TypeError,
+                        "mintorque_path_cost(q, qd, qdd, w, params, plates, cost) takes 7 "
+                        "arguments");
+        return NULL;
+    }
+    vk_arg a[7] = {
+        {args[0], "q", 0, 3, {-1, -1, 3}},
+        {args[1], "qd", 0, 3, {-1, -1, 3}},
+        {args[2], "qdd", 0, 3, {-1, -1, 3}},
+        {args[3], "w", 0, 2, {-1, -1}},
+        {args[4], "params", 0, 1, {MT_N_PARAMS}},
+        {args[5], "plates", 0, 2, {-1, 7}},
+        {args[6], "cost", 1, 1, {-1}},
+    };
+    if (get_args(a, 7) != 0) return NULL;
+    const Py_ssize_t B = a[0].view.shape[0], n = a[0].view.shape[1];
+    int same = a[6].view.shape[0] == B;
+    for (int k = 1; k < 4; k++)
+        same = same && a[k].view.shape[0] == B && a[k].view.shape[1] == n;
+    if (!same) {
+        release_rows(a, 7);
+        PyErr_Format(PyExc_ValueError,
+                     "q, qd, qdd and w must have the same (paths, samples) and cost one row per "
+                     "path (%zd)", B);
+        return NULL;
+    }
+    const int rc = mt_path_cost((const double *)a[4].view.buf, (const double *)a[5].view.buf,
+                                (int)a[5].view.shape[0], (const double *)a[0].view.buf,
+                                (const double *)a[1].view.buf, (const double *)a[2].view.buf,
+                                (const double *)a[3].view.buf, B, n, (double *)a[6].view.buf);
+    release_rows(a, 7);
+    if (rc == -2) {
+        PyErr_Format(PyExc_ValueError, "plates must have at most %d rows", MT_MAX_PLATES);
+        return NULL;
+    }
+    if (rc != 0) return PyErr_NoMemory();
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef verify_functions[] = {
     {"overdig", (PyCFunction)(void (*)(void))vk_py_overdig, METH_FASTCALL,
      "overdig(paths (N, n, 2), field (2, M), frame (6,), walls (3, 3), edges (E, 5), out (N,)) "
@@ -729,6 +773,10 @@ static PyMethodDef verify_functions[] = {
      "mintorque_perturbed(x (n,), step, params (64,), basis (14, Q + 1), plates (P, 7), cost "
      "(n,) out, split (n, 146) out) -> None: the model at x + step e_v for every v, each "
      "recomputing only the intervals that variable moves"},
+    {"mintorque_path_cost", (PyCFunction)(void (*)(void))vk_py_mintorque_path_cost,
+     METH_FASTCALL,
+     "mintorque_path_cost(q (B, n, 3), qd, qdd, w (B, n), params (64,), plates (P, 7), cost "
+     "(B,) out) -> None: sum_k w_k sum_j (tau_j / tau_max_j)^2 with the smoothed fluid soil"},
     {NULL, NULL, 0, NULL},
 };
 

@@ -320,6 +320,7 @@ class TrenchPlan:
             or None when it ran to its end; the plan then holds the digs before it.
         screening: ``network`` or ``geometric``: what gave the rough stage's candidates their
             bulge (:class:`~rt_runtime.planning.trench.planner.TrenchPlanner`).
+        soil: The minimum-torque planner's fluid soil (None with another planner).
     """
 
     task: TrenchTask
@@ -338,6 +339,7 @@ class TrenchPlan:
     stage_us: dict[str, float] = field(default_factory=dict)
     planning_error: str | None = None
     screening: str = "network"
+    soil: str | None = None
 
     @property
     def status(self) -> PlanStatus:
@@ -393,6 +395,7 @@ class TrenchPlan:
             "rig": self.rig,
             "planner": self.planner,
             "screening": self.screening,
+            "soil": self.soil,
             "status": self.status.name.lower(),
             "reason": self.reason,
             "volume_left_L": self.volume_left_m3 * 1e3,

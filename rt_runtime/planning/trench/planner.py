@@ -49,6 +49,8 @@ class TrenchPlanner:
         model_dir: PINN model directory (default: the shipped ``onnx/``).
         pso_options: Keyword arguments for :func:`rt_runtime.planning.oneshot.solve_pso`.
         max_digs: Safety bound on the number of digs of one task (None: 20 a section).
+        soil: The fluid soil (Yang/Pan Table 2) of the minimum-torque planner's cost: one of
+            the rig's (``soft`` by default); refused with another planner.
         screening: How the rough stage's candidate digs get their bulge before the fill
             scales it: ``"network"`` (the PINN's answer for each candidate's poses),
             ``"geometric"`` (a closed-form bulge per dig type, :data:`~rt_runtime.planning.
@@ -76,6 +78,7 @@ class TrenchPlanner:
         max_digs: int | None = None,
         geometry: str = "auto",
         screening: str = "auto",
+        soil: str | None = None,
     ) -> None:
 
         oneshot.require_planning(rig)
@@ -127,13 +130,20 @@ class TrenchPlanner:
             elif planner == "min_torque":
                 from rt_runtime.planning.mintorque_oneshot import MinTorqueOneShot
 
-                self.oneshot = MinTorqueOneShot(rig, self.verifier)
+                self.oneshot = MinTorqueOneShot(rig, self.verifier, soil or "soft")
             else:
                 raise ConfigurationError(
                     f"unknown planner {planner!r}; allowed: {', '.join(ONESHOT_PLANNERS)}"
                 )
         else:
             self.oneshot = planner
+        if soil is not None and self.oneshot.name != "min_torque":
+            raise ConfigurationError(
+                f"a soil ({soil!r}) applies to the min_torque planner only, not to "
+                f"{self.oneshot.name!r}"
+            )
+        #: The minimum-torque planner's soil (None with another planner).
+        self.soil = (soil or "soft") if self.oneshot.name == "min_torque" else None
         self.max_digs = max_digs
         s = _reach_scale(rig)
         self.scale = s

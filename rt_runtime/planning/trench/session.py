@@ -284,4 +284,5 @@ class TrenchSession(PersistMixin):
             design_m3=self.design_area * self.width_m,
             plan_total_us=plan_total_us,
             screening=self.planner.screening,
+            soil=self.planner.soil,
         )

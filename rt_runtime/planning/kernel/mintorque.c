@@ -113,6 +113,23 @@ static void mt_plates_of(const double *plates, int P, mt_plates *pl)
     }
 }
 
+/* A call's scratch: the constraint rows of one interval (Q + 1 x 30; NULL where Q < 0) and the
+ * plates as columns. 0, -1 when it cannot be allocated (nothing held), -2 for more than
+ * MT_MAX_PLATES plates. */
+static int mt_scratch(int Q, const double *plates, int P, double **g, mt_plates **pls)
+{
+    if (P > MT_MAX_PLATES) return -2;
+    *g = Q < 0 ? NULL : malloc(sizeof(double) * MT_COLS * (size_t)(Q + 1));
+    *pls = malloc(sizeof(mt_plates));
+    if ((Q >= 0 && *g == NULL) || *pls == NULL) {
+        free(*g);
+        free(*pls);
+        return -1;
+    }
+    mt_plates_of(plates, P, *pls);
+    return 0;
+}
+
 /* Knot velocities: zero at both ends, the three-point slope estimate inside. */
 static void mt_velocities(const double *x, const double *h, double vel[MT_N_KEY][3])
 {
@@ -322,15 +339,10 @@ int mt_evaluate(const double *p, const double *basis, int Q, const double *plate
                 const double *X, ptrdiff_t B, int n_var, double *cost, double *named,
                 double *split)
 {
-    if (P > MT_MAX_PLATES) return -2;
-    double *g = malloc(sizeof(double) * MT_COLS * (size_t)(Q + 1));
-    mt_plates *pls = malloc(sizeof(mt_plates));
-    if (g == NULL || pls == NULL) {
-        free(g);
-        free(pls);
-        return -1;
-    }
-    mt_plates_of(plates, P, pls);
+    double *g;
+    mt_plates *pls;
+    const int rc = mt_scratch(Q, plates, P, &g, &pls);
+    if (rc != 0) return rc;
     for (ptrdiff_t b = 0; b < B; b++) {
         const double *x = X + (ptrdiff_t)n_var * b;
         const double *h = mt_intervals_of(p, x, n_var);
@@ -370,15 +382,10 @@ static void mt_reach(int v, int *lo, int *hi)
 int mt_perturbed(const double *p, const double *basis, int Q, const double *plates, int P,
                  const double *x, int n_var, double step, double *cost, double *split)
 {
-    if (P > MT_MAX_PLATES) return -2;
-    double *g = malloc(sizeof(double) * MT_COLS * (size_t)(Q + 1));
-    mt_plates *pls = malloc(sizeof(mt_plates));
-    if (g == NULL || pls == NULL) {
-        free(g);
-        free(pls);
-        return -1;
-    }
-    mt_plates_of(plates, P, pls);
+    double *g;
+    mt_plates *pls;
+    const int rc = mt_scratch(Q, plates, P, &g, &pls);
+    if (rc != 0) return rc;
     double vel[MT_N_KEY][3], kp0[MT_N_KP], xp[3 * MT_N_KEY + MT_N_INTERVALS];
     mt_part base[MT_N_INTERVALS];
     const double *h0 = mt_intervals_of(p, x, n_var);
@@ -416,10 +423,10 @@ int mt_path_cost(const double *p, const double *plates, int P, const double *q,
                  const double *qd, const double *qdd, const double *w, ptrdiff_t B, ptrdiff_t n,
                  double *cost)
 {
-    if (P > MT_MAX_PLATES) return -2;
-    mt_plates *pls = malloc(sizeof(mt_plates));
-    if (pls == NULL) return -1;
-    mt_plates_of(plates, P, pls);
+    double *g;
+    mt_plates *pls;
+    const int rc = mt_scratch(-1, plates, P, &g, &pls);
+    if (rc != 0) return rc;
     for (ptrdiff_t b = 0; b < B; b++) {
         double c = 0.0;
         for (ptrdiff_t k = 0; k < n; k++) {

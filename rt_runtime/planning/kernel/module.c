@@ -524,10 +524,6 @@ static PyObject *vk_py_bucket_depth(PyObject *module, PyObject *const *args, Py_
                                    (const double *)a[3].view.buf, (const double *)a[4].view.buf,
                                    M, (const double *)a[5].view.buf, (double *)a[6].view.buf);
     release_rows(a, 7);
-    if (rc == -2) {
-        PyErr_Format(PyExc_ValueError, "plates must have at most %d rows", MT_MAX_PLATES);
-        return NULL;
-    }
     if (rc != 0) return PyErr_NoMemory();
     Py_RETURN_NONE;
 }
@@ -617,6 +613,18 @@ static PyTypeObject KernelType = {
 };
 
 /* The trench planner's geometry (no rig constants: module functions). */
+/* What a minimum-torque entry point returns for its C unit's code: None on 0, else NULL with
+ * the error set (-2: too many plates, -1: no memory). */
+static PyObject *mt_result(int rc)
+{
+    if (rc == -2) {
+        PyErr_Format(PyExc_ValueError, "plates must have at most %d rows", MT_MAX_PLATES);
+        return NULL;
+    }
+    if (rc != 0) return PyErr_NoMemory();
+    Py_RETURN_NONE;
+}
+
 static PyObject *vk_py_mintorque(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)module;
@@ -651,12 +659,7 @@ static PyObject *vk_py_mintorque(PyObject *module, PyObject *const *args, Py_ssi
                                (double *)a[4].view.buf, (double *)a[5].view.buf,
                                (double *)a[6].view.buf);
     release_rows(a, 7);
-    if (rc == -2) {
-        PyErr_Format(PyExc_ValueError, "plates must have at most %d rows", MT_MAX_PLATES);
-        return NULL;
-    }
-    if (rc != 0) return PyErr_NoMemory();
-    Py_RETURN_NONE;
+    return mt_result(rc);
 }
 
 static PyObject *vk_py_mintorque_perturbed(PyObject *module, PyObject *const *args,
@@ -695,12 +698,7 @@ static PyObject *vk_py_mintorque_perturbed(PyObject *module, PyObject *const *ar
                                 (const double *)a[0].view.buf, (int)n_var, step,
                                 (double *)a[4].view.buf, (double *)a[5].view.buf);
     release_rows(a, 6);
-    if (rc == -2) {
-        PyErr_Format(PyExc_ValueError, "plates must have at most %d rows", MT_MAX_PLATES);
-        return NULL;
-    }
-    if (rc != 0) return PyErr_NoMemory();
-    Py_RETURN_NONE;
+    return mt_result(rc);
 }
 
 static PyObject *vk_py_mintorque_path_cost(PyObject *module, PyObject *const *args,
@@ -739,12 +737,7 @@ static PyObject *vk_py_mintorque_path_cost(PyObject *module, PyObject *const *ar
                                 (const double *)a[1].view.buf, (const double *)a[2].view.buf,
                                 (const double *)a[3].view.buf, B, n, (double *)a[6].view.buf);
     release_rows(a, 7);
-    if (rc == -2) {
-        PyErr_Format(PyExc_ValueError, "plates must have at most %d rows", MT_MAX_PLATES);
-        return NULL;
-    }
-    if (rc != 0) return PyErr_NoMemory();
-    Py_RETURN_NONE;
+    return mt_result(rc);
 }
 
 static PyMethodDef verify_functions[] = {

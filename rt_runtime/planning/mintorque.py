@@ -146,6 +146,8 @@ N_SPLIT = N_INTERVALS * 30 + len(KEYPOINT_CONSTRAINTS)
 #: built), ``c`` or ``numpy`` (the reference).
 BACKENDS: tuple[str, ...] = ("auto", "c", "numpy")
 _N_KERNEL_PARAMS = 64
+#: The surface height H's place in the kernel's constants (``kernel.h``, ``MT_SURFACE``).
+KERNEL_SURFACE = 18
 _BASIS_ORDER = ("h0", "h5", "h1", "h4", "d0", "d1", "d4", "a0", "a1", "a4", "j0", "j1", "j4", "w")
 
 
@@ -706,10 +708,7 @@ class Evaluator:
         backend: str = "auto",
     ) -> None:
         validate_problem(problem)
-        if backend not in BACKENDS:
-            raise ConfigurationError(
-                f"unknown backend {backend!r}; allowed: {', '.join(BACKENDS)}"
-            )
+        module = kernel_for(backend)
         self.rig = rig
         self.problem = problem
         self.model = _Model(rig, problem, _NumpyOps)
@@ -718,11 +717,6 @@ class Evaluator:
         self.limit_scale = (
             np.ones((4, 3)) if limit_scale is None else np.asarray(limit_scale, np.float64)
         )
-        module = None if backend == "numpy" else _kernel_module()
-        if backend == "c" and module is None:
-            from rt_runtime.planning.verify import BUILD_HINT
-
-            raise ConfigurationError(f"the compiled kernel is not built; {BUILD_HINT}")
         #: The compiled kernel's module (``mintorque``), None for the numpy model.
         self.module = module
         #: ``"c"`` or ``"numpy"``: who evaluates.
@@ -847,6 +841,23 @@ def _kernel_module() -> Any:
     return module if module is not None and hasattr(module, "mintorque") else None
 
 
+def kernel_for(backend: str) -> Any:
+    """The compiled kernel's module for ``backend`` (:data:`BACKENDS`): the module for ``c``,
+    the module or None (not built) for ``auto``, None for ``numpy``.
+
+    Raises:
+        ConfigurationError: An unknown backend; ``c`` where the kernel is not built.
+    """
+    if backend not in BACKENDS:
+        raise ConfigurationError(f"unknown backend {backend!r}; allowed: {', '.join(BACKENDS)}")
+    module = None if backend == "numpy" else _kernel_module()
+    if backend == "c" and module is None:
+        from rt_runtime.planning.verify import BUILD_HINT
+
+        raise ConfigurationError(f"the compiled kernel is not built; {BUILD_HINT}")
+    return module
+
+
 def _pack_kernel(model: _Model, limit_scale: FloatArray) -> tuple[FloatArray, ...]:
     """The compiled model's constants ``(64,)`` (``kernel/kernel.h``, ``enum mt_param``), shape
     functions ``(14, Q + 1)`` and plates ``(P, 7)``."""
@@ -875,7 +886,7 @@ def _pack_kernel(model: _Model, limit_scale: FloatArray) -> tuple[FloatArray, ..
         heading, p.intervals_s,
     ]  # fmt: skip
     params = np.concatenate([np.asarray(f, dtype=np.float64) for f in fields])
-    assert params.shape == (_N_KERNEL_PARAMS,)
+    assert params.shape == (_N_KERNEL_PARAMS,) and params[KERNEL_SURFACE] == p.surface_y_m
     basis = np.ascontiguousarray(np.stack([model.basis[k] for k in _BASIS_ORDER]))
     plates = np.array(
         [[pl.cx, pl.cy, pl.nx, pl.ny, pl.tx, pl.ty, pl.area] for pl in model.plates],

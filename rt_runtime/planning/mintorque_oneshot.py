@@ -36,8 +36,6 @@ FloatArray = np.typing.NDArray[np.float64]
 N_SAMPLES = 101
 #: Starts: no bulge, at these fractions of the time range.
 START_TIMES = (0.2, 0.5, 0.8)
-#: The surface height's place in the compiled model's constants (``kernel.h``, ``MT_SURFACE``).
-_SURFACE_PARAM = 18
 
 
 class MinTorqueOneShot:
@@ -58,18 +56,12 @@ class MinTorqueOneShot:
         self, rig: Rig, verifier: Any, soil: str = "soft", *, backend: str = "auto"
     ) -> None:
         oneshot.require_planning(rig)
-        if backend not in mt.BACKENDS:
-            raise ConfigurationError(
-                f"unknown backend {backend!r}; allowed: {', '.join(mt.BACKENDS)}"
-            )
+        module = mt.kernel_for(backend)
         self.rig = rig
         self.verifier = verifier
         check_soil(rig, soil)
         self.soil = rig.soil.fluid_named(soil)
         self.lo, self.hi = oneshot.search_bounds(rig)
-        module = None if backend == "numpy" else mt._kernel_module()
-        if backend == "c" and module is None:
-            raise ConfigurationError("the compiled kernel is not built (backend 'c')")
         # The compiled path needs the verifier's own kernel on this grid for the constraints.
         c_verifier = getattr(verifier, "module", None) is not None
         c_verifier = c_verifier and getattr(verifier, "n_samples", None) == N_SAMPLES
@@ -82,8 +74,7 @@ class MinTorqueOneShot:
             )
         #: ``"c"`` or ``"numpy"``: who evaluates the cost and the constraints.
         self.backend = "numpy" if self.module is None else "c"
-        self._model = self._model_at(0.0)
-        self._params, _, self._plates = mt._pack_kernel(self._model, np.ones((4, 3)))
+        self._params, _, self._plates = mt._pack_kernel(self._model_at(0.0), np.ones((4, 3)))
 
     def _model_at(self, surface_y_m: float) -> Any:
         return mt._Model(
@@ -119,7 +110,7 @@ class MinTorqueOneShot:
             w[:, :-1] += 0.5 * dt
             w[:, 1:] += 0.5 * dt
             params = self._params.copy()
-            params[_SURFACE_PARAM] = problem.surface_y_m
+            params[mt.KERNEL_SURFACE] = problem.surface_y_m
             cost = np.empty(x.shape[0])
             self.module.mintorque_path_cost(
                 np.ascontiguousarray(q[0]), np.ascontiguousarray(qd[0]),

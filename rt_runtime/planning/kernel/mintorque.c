@@ -223,6 +223,17 @@ static void mt_sample_tau(const double *p, const mt_plates *pls, const double *q
     tau[2] = t2;
 }
 
+/* sum_j (tau_j / tau_max_j)^2, the cost's integrand at one sample. */
+static inline double mt_sq(const double *p, const double *tau)
+{
+    double sq = 0.0;
+    for (int j = 0; j < 3; j++) {
+        const double z = tau[j] / p[MT_TAU_MAX + j];
+        sq = sq + z * z;
+    }
+    return sq;
+}
+
 /* What one interval adds: its cost (trapezoid sum), and per constraint column its peak and
  * smooth maximum. g is scratch of (Q + 1) x 30. */
 typedef struct {
@@ -272,11 +283,7 @@ static void mt_interval(const double *p, const double *basis, int Q, const mt_pl
         }
         double tau[3];
         mt_sample_tau(p, pls, q, qd, qdd, tau);
-        double sq = 0.0;
-        for (int j = 0; j < 3; j++) {
-            const double z = tau[j] / p[MT_TAU_MAX + j];
-            sq = sq + z * z;
-        }
+        const double sq = mt_sq(p, tau);
         cost = cost + hi * B_w[k] * sq;
         double *row = g + MT_COLS * k;
         for (int j = 0; j < 3; j++) {
@@ -433,12 +440,7 @@ int mt_path_cost(const double *p, const double *plates, int P, const double *q,
             const ptrdiff_t at = 3 * (n * b + k);
             double tau[3];
             mt_sample_tau(p, pls, q + at, qd + at, qdd + at, tau);
-            double sq = 0.0;
-            for (int j = 0; j < 3; j++) {
-                const double z = tau[j] / p[MT_TAU_MAX + j];
-                sq = sq + z * z;
-            }
-            c = c + w[n * b + k] * sq;
+            c = c + w[n * b + k] * mt_sq(p, tau);
         }
         cost[b] = c;
     }

@@ -32,13 +32,14 @@ from rt_runtime.planning.trench.geometry import (
     OVERDIG_LIMIT_M,
     FloatArray,
     _largest_scale_below,
+    _sextic_shapes,
     runs,
 )
 from rt_runtime.planning.trench.plan import PlannedDig
 from rt_runtime.planning.trench.state import Stage, _stage
 
-# The sextic's bulge shape at mid-path: q(1/2) = q1 + (q2 - q1) / 2 + K / 64.
-_SEXTIC_PF_MID = 1.0 / 64.0
+# The sextic's bulge shape at mid-path: q(1/2) = q1 + (q2 - q1) / 2 + K pf(1/2), pf(1/2) = 1/64.
+_SEXTIC_PF_MID = float(_sextic_shapes(3)[1][1])
 
 
 class RoughMixin(DigsMixin):

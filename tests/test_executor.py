@@ -20,6 +20,7 @@ from conftest import restore_pending, rpdo1_limit_check
 
 from hil_sim.harness.lockstep import LockstepHil
 from hil_sim.harness.scenario import NO_RT
+from hil_sim.scanner import ProfileScanner
 from hil_sim.sim import FaultKind
 from hil_sim.terrain import Terrain
 from rt_runtime.canbus import CanMaster
@@ -77,9 +78,11 @@ class _Run:
         loop_config: LoopConfig | None = None,
         terrain: bool = True,
         cut: bool = True,
+        surface_source: Callable[[_Run], Any] | None = None,
     ) -> None:
         self.session = session
         ground = Terrain(rig.ground_y_m, (session.x_lo, session.x_hi), rig.bucket.width_m)
+        self.ground = ground
         self.hil = LockstepHil(rig, q0, ground if terrain else None, keep_frames=True)
         self.master = CanMaster(self.hil.master_bus, rig, period_s=PERIOD_S)
         self.master.boot(self.hil.clock.now, 1.0)
@@ -110,6 +113,7 @@ class _Run:
             config or ExecutorConfig(max_digs=1),
             on_dig_done=dig_done,
             on_cycle=cycle,
+            surface_source=None if surface_source is None else lambda: surface_source(self),
         )
         self.result: ExecutorResult = self.executor.run()
         self.hil.close()
@@ -436,6 +440,52 @@ def test_a_stalling_clock_leads_to_an_overrun_safe_stop(
 
 
 # -- the planner process -------------------------------------------------------------------------
+
+
+def test_the_planner_process_plans_on_the_profile_scanners_surface(
+    rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
+) -> None:
+    # The real-time path (the daemon's): the scanner's surface after each dig goes with the
+    # record to the planner process, which plans the next dig on it, not on the tip path.
+    session, q0 = _restore_pending(planner, task, pending_state)
+    assert rig.hil is not None and rig.hil.scanner is not None
+    scans: list[tuple[np.ndarray, np.ndarray]] = []
+    looked = [0]
+    scanner: list[ProfileScanner] = []
+
+    def scan(run: _Run) -> tuple[np.ndarray, np.ndarray]:
+        # On the loop's thread as the record is queued: the terrain cut by the true tip path
+        # since the last look, then scanned (as the lockstep HIL's scanner does).
+        if not scanner:
+            scanner.append(ProfileScanner(run.ground, rig.hil.scanner, seed=3))
+        now = run.hil.core.sync_count
+        run.hil.core.cut(looked[0] + 1, now)
+        looked[0] = now
+        scans.append(scanner[0].scan())
+        return scans[-1]
+
+    run = _Run(
+        rig,
+        session,
+        q0,
+        config=ExecutorConfig(max_digs=2),
+        wrap_clock=lambda clock: _WrappedClock(clock, realtime=True),
+        cut=False,
+        surface_source=scan,
+    )
+    res = run.result
+    assert run.executor.plan_in_worker
+    assert res.status is ExecStatus.DONE, res.fault
+    assert [r.index for r in res.digs] == [0, 1] and len(scans) == 2
+    # Each record's state (the process's session) holds the material below that record's
+    # scan; the next dig was planned on it, not ahead on the predicted material.
+    for record, (x, y) in zip(res.digs, scans, strict=True):
+        g = session.ground_y
+        want = np.minimum(np.interp(session.grid, x, y, left=g, right=g), g)
+        np.testing.assert_allclose(record.session_state["surface_m"], want, atol=1e-12)
+    assert not res.digs[1].planned_ahead
+    # The parent's session caught up with the process's, scanned surface included.
+    np.testing.assert_allclose(session.surface, res.digs[1].session_state["surface_m"])
 
 
 def test_the_next_dig_is_planned_in_the_planner_process(

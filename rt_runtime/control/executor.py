@@ -257,13 +257,13 @@ class Executor:
             thread (fault injection in tests); must be cheap and must not raise.
         surface_source: A profile scanner's measured surface, asked after each dig is
             recorded, on which the next dig is planned (see
-            :class:`~rt_runtime.control.planner_worker.SessionDriver`); in-process planning
-            only. None: the trench is planned from the measured tip paths.
+            :class:`~rt_runtime.control.planner_worker.SessionDriver`); asked on the loop's
+            thread (it returns the scan it holds), in-process or in the planner process. None:
+            the trench is planned from the measured tip paths.
 
     Raises:
         ConfigurationError: A bad configuration, a loop period other than the master's, a
-            trench planner that cannot run in a planner process when one is asked for, or a
-            surface source with a planner process.
+            trench planner that cannot run in a planner process when one is asked for.
         JointLimitError: A path leaves a joint's range (nothing was sent).
         PlanningError: A path is faster than the rig's joint limits or does not start and end
             at rest (nothing was sent).
@@ -336,13 +336,8 @@ class Executor:
         link: PlannerLink
         if isinstance(work, PathJob):
             link = PathLink(work, rig, period)
-        elif self.plan_in_worker and surface_source is not None:
-            raise ConfigurationError(
-                "a profile scanner's surface reaches an in-process planner only; set "
-                "ExecutorConfig.plan_in_worker = False"
-            )
         elif self.plan_in_worker:
-            link = ProcessPlanner(work, period_s=period)
+            link = ProcessPlanner(work, period_s=period, surface_source=surface_source)
         else:
             link = InlinePlanner(work, period, surface_source)
         self._callbacks: queue.SimpleQueue[DigRecord | None] | None = None

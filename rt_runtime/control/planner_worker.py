@@ -493,7 +493,9 @@ class PlannerSpec:
         )
 
 
-#: A profile scanner's latest surface, ``(x_m, y_m)`` (work-site frame), or None.
+#: A profile scanner's surface measured after the dig just recorded ended, ``(x_m, y_m)``
+#: (work-site frame), or None where it has none that recent (the next dig is then planned on
+#: the tip paths): a scan from before the dig ended would put back what the dig removed.
 SurfaceSource = Callable[[], "tuple[FloatArray, FloatArray] | None"]
 
 
@@ -723,6 +725,9 @@ class SessionDriver:
             measured = self.surface_source()
             if measured is not None:
                 s.observe_surface(*measured)
+                # A plan made ahead chose its dig's fill on the predicted material; what the
+                # scanner saw (slumped, fallen back) can hold more or less: planned again.
+                self._ahead = None
         return Recorded(dig.index, volume, tip, s.state())
 
 
@@ -965,7 +970,9 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
             if state is None
             else TrenchSession.restore(planner, spec.task, state)
         )
-        driver = SessionDriver(trench, spec.period_s)
+        # The scanner's surface of each record comes with it (ProcessPlanner.request_record).
+        scans: list[tuple[FloatArray, FloatArray]] = []
+        driver = SessionDriver(trench, spec.period_s, lambda: scans.pop() if scans else None)
     except ExcavatorRtError as exc:
         # Its files (a model that fails its card's digest, say) or the state it was handed:
         # the job cannot go on until the cause is cleared, and the process says why.
@@ -1014,6 +1021,8 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
         if kind == "plan":
             open_, planned = reply(driver.plan, message[1])
         elif kind == "record":
+            scan = message[3] if len(message) > 3 else None
+            scans[:] = [] if scan is None else [scan]
             open_, recorded = reply(driver.record, message[1])
             planned = False
             if open_ and recorded and message[2]:
@@ -1046,6 +1055,9 @@ class ProcessPlanner:
         spec: How to rebuild the planner; default :meth:`PlannerSpec.of` the trench.
         period_s: The loop's period (replies carry their motions sampled on its grid), when
             ``spec`` is not given.
+        surface_source: A profile scanner (see :class:`SessionDriver`), or None. It is asked
+            on the caller's thread as each record is queued (it must return the scan it holds,
+            never wait for one), and its surface goes to the process with the record.
 
     Raises:
         ConfigurationError: The trench's planner cannot be rebuilt in another process.
@@ -1056,8 +1068,10 @@ class ProcessPlanner:
         trench: TrenchSession,
         spec: PlannerSpec | None = None,
         period_s: float | None = None,
+        surface_source: SurfaceSource | None = None,
     ) -> None:
         self.spec = spec if spec is not None else PlannerSpec.of(trench, period_s)
+        self._surface_source = surface_source
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=True)
         self._outbox: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
@@ -1118,8 +1132,13 @@ class ProcessPlanner:
         self._outbox.put(("plan", q))
 
     def request_record(self, strokes_m: FloatArray, plan_next: bool) -> None:
-        """Queue a record request (loop safe: a copy of the strokes and a queue put)."""
-        self._outbox.put(("record", np.array(strokes_m, dtype=np.float64), plan_next))
+        """Queue a record request (loop safe: a copy of the strokes and a queue put), with the
+        profile scanner's surface where there is one."""
+        surface = self._surface_source() if self._surface_source is not None else None
+        if surface is not None:
+            x, y = surface
+            surface = (np.array(x, dtype=np.float64), np.array(y, dtype=np.float64))
+        self._outbox.put(("record", np.array(strokes_m, dtype=np.float64), plan_next, surface))
 
     def poll(self) -> Reply | None:
         """One reply if the receiver has one (never waits); a PlannerError once the process

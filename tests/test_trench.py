@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from typing import Any
@@ -31,7 +32,8 @@ from rt_runtime.planning.trench import (
     plan_goals,
     task_limits,
 )
-from rt_runtime.planning.verify import COL_VIOLATIONS
+from rt_runtime.planning.trench.candidates import PASS_T_MIN_FRACTION, Candidate
+from rt_runtime.planning.verify import COL_VIOLATIONS, N_OUT, Verifier, pack_inputs
 from rt_runtime.rig import load_rig
 from rt_runtime.trajectory.sextic import evaluate as sextic_evaluate
 from rt_runtime.trajectory.sextic import sextic_coefficients
@@ -540,6 +542,11 @@ def test_every_dig_satisfies_every_hard_limit_at_every_sample(plans: dict, name:
             # (the fill band on the real cut, test_every_dig_fills_the_bucket).
             v[VOLUME_COLS] = 0.0
         assert np.all(v <= 1e-9), (d.index, d.status, v)
+        # The time window: Yao's for a dig, its lower end lowered for a finishing pass.
+        planning = RIG.planning
+        assert planning is not None
+        t_min = planning.t_min_s * (PASS_T_MIN_FRACTION if d.finishing else 1.0)
+        assert t_min - 1e-9 <= d.T_s <= planning.t_max_s + 1e-9, (d.index, d.finishing, d.T_s)
         # Independent check on the verifier's grid (exact) and on a grid 10x finer: retimed
         # plans sit on the acceleration limit at the grid samples, and between them a peak
         # may exceed it by a few 1e-4 (measured 5.3e-4 at most on A-D).
@@ -552,6 +559,56 @@ def test_every_dig_satisfies_every_hard_limit_at_every_sample(plans: dict, name:
             assert np.all(smp.q_rad <= RIG.q_max_rad + 1e-9)
             assert np.all(np.abs(smp.qd_rad_s) <= RIG.qd_max_rad_s * (1 + tol))
             assert np.all(np.abs(smp.qdd_rad_s2) <= RIG.qdd_max_rad_s2 * (1 + tol))
+
+
+def test_finishing_passes_are_timed_by_the_joint_limits(plans: dict) -> None:
+    """A finishing pass is not a one-shot dig: it is timed below Yao's window where the joint
+    limits allow, and the one-shot verifier finds nothing else wrong with it."""
+    planning = RIG.planning
+    assert planning is not None
+    verifier = Verifier(RIG, oneshot.DEFAULT_SAMPLES)
+    faster = 0
+    for name in "ABCD":
+        for d in plans[name].digs:
+            if not d.finishing:
+                continue
+            p = d.problem
+            row = pack_inputs(p.q_start_rad, p.q_end_rad, p.surface_y_m, p.dig_type, d.a6, d.T_s)
+            out = np.zeros((1, N_OUT))
+            verifier.evaluate_into(row, out)
+            v = out[0, COL_VIOLATIONS : COL_VIOLATIONS + len(oneshot.CONSTRAINT_NAMES)].copy()
+            v[VOLUME_COLS] = 0.0
+            broken = {oneshot.CONSTRAINT_NAMES[i] for i in np.flatnonzero(v > 1e-9)}
+            assert broken <= {"time_min"}, (name, d.index, broken)
+            assert ("time_min" in broken) == (d.T_s < planning.t_min_s - 1e-9)
+            faster += d.T_s < planning.t_min_s
+    assert faster >= 4  # all 8 passes of A-D today, at 1.70-4.99 s against 5 s
+
+
+def test_a_dig_timed_as_a_pass_that_fills_the_bucket_keeps_the_time_window(
+    planner: TrenchPlanner, plans: dict
+) -> None:
+    # D's first dig fills the bucket at Yao's shortest time; timed as a pass (the passes'
+    # window) the same path is faster, and planned as a dig it is refused, naming the window.
+    planning = RIG.planning
+    assert planning is not None
+    dig = plans["D"].digs[0]
+    assert not dig.finishing and dig.T_s == pytest.approx(planning.t_min_s)
+    p = dig.problem
+    row = pack_inputs(p.q_start_rad, p.q_end_rad, p.surface_y_m, p.dig_type, dig.a6, dig.T_s)
+    out, retimed = np.zeros((1, N_OUT)), np.zeros((1, 4))
+    planner.pass_verifier.retime_into(row, out, retimed)
+    T_fast = float(retimed[0, 3])
+    assert T_fast < planning.t_min_s
+    session = planner.start(load_task("D", RIG))
+    x7 = np.array([*p.q_start_rad, *p.q_end_rad, p.surface_y_m])
+    a6 = (float(retimed[0, 0]), float(retimed[0, 1]), float(retimed[0, 2]))
+    fast = Candidate(dig.problem.dig_type, x7, 0.0, 0.0, 0.0, T_s=T_fast, a6=a6, pass_window=True)
+    with pytest.raises(PlanningError, match="keeps the time window"):
+        session._plan_chosen(fast, session.remaining_design(), 0.0)
+    # Timed in the dig's own window it plans.
+    slow = dataclasses.replace(fast, T_s=dig.T_s, a6=dig.a6, pass_window=False)
+    assert session._plan_chosen(slow, session.remaining_design(), 0.0).T_s == dig.T_s
 
 
 def test_moves_are_within_the_joint_limits(plans: dict) -> None:

@@ -30,6 +30,8 @@ class Candidate:
         fit_rms_m: RMS distance of a fitted dig's path from its outline (m).
         may_underfill: Planned even where its real cut is below the fill band (then it is a
             finishing pass); a dig without it is refused outside the band.
+        pass_window: A fitted dig whose real cut is below the fill band, timed and verified
+            in the finishing passes' time window (:data:`PASS_T_MIN_FRACTION`).
     """
 
     kind: DigType
@@ -43,6 +45,15 @@ class Candidate:
     a6: tuple[float, float, float] | None = None
     fit_rms_m: float = math.nan
     may_underfill: bool = False
+    pass_window: bool = False
+
+
+#: A finishing pass's shortest time as a fraction of the one-shot window's (Yao Table 2's
+#: T >= 5 s on ``scale_model``: 1 s). A pass is not a one-shot dig: the window is the one-shot
+#: problem's (the network's training domain, eq 11's normalisation), and a pass that trims a
+#: few millimetres to centimetres is timed by the joint limits alone (velocity, acceleration,
+#: torque with the soil's resistance, power), down to this floor.
+PASS_T_MIN_FRACTION = 0.2
 
 
 @dataclass(frozen=True, slots=True)

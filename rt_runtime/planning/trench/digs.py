@@ -106,14 +106,15 @@ class DigsMixin(FitMixin):
         pb = problem
         row = pack_inputs(pb.q_start_rad, pb.q_end_rad, pb.surface_y_m, pb.dig_type, a6, T_s)
         out = np.zeros((1, N_OUT))
-        path = np.zeros((1, self.planner.verifier.n_samples, 2))
-        self.planner.verifier.evaluate_into(row, out, path=path)
+        verifier = self.planner.pass_verifier if best.pass_window else self.planner.verifier
+        path = np.zeros((1, verifier.n_samples, 2))
+        verifier.evaluate_into(row, out, path=path)
         violation = _total_without_volume(out[0]) if real_fill else out[0, COL_TOTAL]
         if violation > 0.0 and T_s != res.T_s:  # the slower plan fails: keep the verified one
             a6, T_s = res.a6, res.T_s
             row[0, 8:11] = a6
             row[0, 11] = T_s
-            self.planner.verifier.evaluate_into(row, out, path=path)
+            verifier.evaluate_into(row, out, path=path)
             violation = _total_without_volume(out[0]) if real_fill else out[0, COL_TOTAL]
         if violation > 0.0:
             raise PlanningError("one-shot plan fails verification; nothing was planned")
@@ -160,6 +161,16 @@ class DigsMixin(FitMixin):
                 f"{total * self.width_m * 1e3:.2f} L of material, outside the fill band "
                 f"{lo_a * self.width_m * 1e3:.2f}-{hi_a * self.width_m * 1e3:.2f} L"
             )
+        if best.pass_window and not finishing_pass:
+            # Timed as a pass but carrying a full bucket on the polygon: a dig, in the
+            # one-shot time window.
+            self.planner.verifier.evaluate_into(row, out)
+            if _total_without_volume(out[0]) > 0.0:
+                raise PlanningError(
+                    f"dig {len(self.digs) + 1} was timed as a finishing pass ({T_s:.2f} s) but "
+                    f"carries a full bucket; a dig keeps the time window "
+                    f"{self.planning.t_min_s:g}-{self.planning.t_max_s:g} s"
+                )
         return PlannedDig(
             index=len(self.digs),
             problem=problem,

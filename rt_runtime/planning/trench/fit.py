@@ -487,7 +487,10 @@ class FitMixin(CyclesMixin):
         )
         out = np.zeros((1, N_OUT))
         retimed = np.zeros((1, 4))
-        self.planner.verifier.retime_into(row, out, retimed)
+        # Below the fill band it can only be a finishing pass: timed in the passes' window.
+        under = total < self._fill_band()[0]
+        verifier = self.planner.pass_verifier if under else self.planner.verifier
+        verifier.retime_into(row, out, retimed)
         if not np.isfinite(retimed[0, 3]) or _total_without_volume(out[0]) > 0.0:
             return None
         x7 = np.concatenate([qs, qe, [H]])
@@ -500,4 +503,5 @@ class FitMixin(CyclesMixin):
             score=useful,
             T_s=float(r[3]),
             a6=(float(r[0]), float(r[1]), float(r[2])),
+            pass_window=under,
         )

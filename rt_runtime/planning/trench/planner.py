@@ -19,6 +19,7 @@ from rt_runtime.planning.trench.candidates import (
     _GEOMETRIC_BULGE,
     _SCREEN_C,
     _SCREEN_SAMPLES,
+    PASS_T_MIN_FRACTION,
 )
 from rt_runtime.planning.trench.cycles import home_pose
 from rt_runtime.planning.trench.fit import _FIT_SAMPLES
@@ -109,6 +110,20 @@ class TrenchPlanner:
             self.pinn.verifier
             if self.pinn is not None
             else Verifier(rig, oneshot.DEFAULT_SAMPLES, backend="c")
+        )
+        planning = rig.planning
+        assert planning is not None  # the verifier refuses a rig without one
+        #: The finishing passes' verifier: every limit of :attr:`verifier`, the time window's
+        #: lower end at :data:`PASS_T_MIN_FRACTION` of Yao's (a pass is not a one-shot dig).
+        self.pass_verifier = Verifier(
+            dataclasses.replace(
+                rig,
+                planning=dataclasses.replace(
+                    planning, t_min_s=PASS_T_MIN_FRACTION * planning.t_min_s
+                ),
+            ),
+            self.verifier.n_samples,
+            backend=self.verifier.backend,
         )
         if geometry not in ("auto", "c", "numpy"):
             raise ConfigurationError(f"unknown geometry {geometry!r}; allowed: auto, c, numpy")

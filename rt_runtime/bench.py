@@ -836,6 +836,8 @@ class TaskPlanBench:
         pinn: The PINN planner's plan (the last timed pass; the plans are deterministic).
         plan_us: Whole-plan time over the passes (us; p50, p99).
         plan_per_dig_ms: The same per dig (ms).
+        dig_plan_per_dig_ms: The same without the dig cycles' planning (stage ``transitions``):
+            each dig's choice, plan and checks (ms).
         fill_L: Real volume of each dig (L).
         finishing: Finishing passes.
         travel_moves: Travel moves.
@@ -857,6 +859,7 @@ class TaskPlanBench:
     pinn: TrenchPlan
     plan_us: Distribution
     plan_per_dig_ms: Distribution
+    dig_plan_per_dig_ms: Distribution
     fill_L: tuple[float, ...]
     finishing: int
     travel_moves: int
@@ -895,6 +898,7 @@ class TaskPlanBench:
             "cycle_figures": CycleFigures.of(plan["cycles"]).to_json(),
             "plan_us": self.plan_us.to_json(),
             "plan_per_dig_ms": self.plan_per_dig_ms.to_json(),
+            "dig_plan_per_dig_ms": self.dig_plan_per_dig_ms.to_json(),
             "fill_L": list(self.fill_L),
             "finishing": self.finishing,
             "travel_moves": self.travel_moves,
@@ -973,6 +977,8 @@ class TrenchBench:
         plan_per_dig_over_pinn_plan: Median plan time per dig over the reference's median,
             None without either.
         cycles: The dig cycles of every task's plan.
+        dig_plan_per_dig_ms: ``plan_per_dig_ms`` without the dig cycles' planning (the tasks'
+            ``dig_plan_per_dig_ms`` medians), None without a task.
     """
 
     geometry: str
@@ -982,10 +988,14 @@ class TrenchBench:
     reference: PinnReference | None
     plan_per_dig_over_pinn_plan: float | None
     cycles: CycleFigures | None = None
+    dig_plan_per_dig_ms: Distribution | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The block's keys (README ``bench plan``)."""
         return {
+            "dig_plan_per_dig_ms": (
+                self.dig_plan_per_dig_ms.to_json() if self.dig_plan_per_dig_ms is not None else None
+            ),
             "cycles": self.cycles.to_json() if self.cycles is not None else None,
             "geometry": self.geometry,
             "plan_us": self.plan_us.to_json(),
@@ -1109,6 +1119,12 @@ def bench_plan(
             pinn=plan,
             plan_us=Distribution.of(times),
             plan_per_dig_ms=Distribution.of([t / 1e3 / max(len(plan.digs), 1) for t in times]),
+            dig_plan_per_dig_ms=Distribution.of(
+                [
+                    (t - st["transitions"]) / 1e3 / max(len(plan.digs), 1)
+                    for t, st in zip(times, stages, strict=True)
+                ]
+            ),
             fill_L=tuple(d.volume_m3 * 1e3 for d in plan.digs),
             finishing=sum(d.finishing for d in plan.digs),
             travel_moves=len(report["travel"]),
@@ -1123,6 +1139,7 @@ def bench_plan(
             pso=versus,
         )
     per_dig = [e.plan_per_dig_ms.p50 for e in out.values()]
+    dig_per_dig = [e.dig_plan_per_dig_ms.p50 for e in out.values()]
     first = next(
         (
             (name, d.index, d.problem)
@@ -1148,6 +1165,7 @@ def bench_plan(
                 else None
             ),
             cycles=CycleFigures.of([c for e in out.values() for c in e.pinn.to_json()["cycles"]]),
+            dig_plan_per_dig_ms=Distribution.of(dig_per_dig) if dig_per_dig else None,
         ),
     )
 
@@ -1408,6 +1426,8 @@ class RandomTaskPlan:
         transition_penetration_max_mm: Deepest move into the material (mm).
         plan_ms: Plan time (ms).
         task_time_s: Digs and moves (s).
+        cycles_plan_ms: Of ``plan_ms``, the dig cycles' planning (stage ``transitions``; ms).
+        finishing_per_section: Finishing passes of each section, in order.
         moves_per_cycle_s: Mean move time of a dig cycle (s), None without one.
         moves_vs_bound_max: The largest move time of a dig cycle over its bound, None likewise.
         cycle_fallbacks: Dig cycles of rest-to-rest moves.
@@ -1422,6 +1442,8 @@ class RandomTaskPlan:
     transition_penetration_max_mm: float
     plan_ms: float
     task_time_s: float = 0.0
+    cycles_plan_ms: float = 0.0
+    finishing_per_section: tuple[int, ...] = ()
     moves_per_cycle_s: float | None = None
     moves_vs_bound_max: float | None = None
     cycle_fallbacks: int = 0
@@ -1517,9 +1539,14 @@ class RandomSuite:
         digs: Digs per task (p50, max).
         fill: Real volume of the roughing digs.
         finishing_per_section_max: Most finishing passes of one section over the tasks.
+        sections_within_finishing_goal: Fraction of the planned tasks' sections with at most
+            the finishing passes a section may take (``MAX_FINISHING_PER_SECTION``), None
+            without a planned task.
         transition_penetration_max_mm: Deepest move into the material per task (mm; p50, max).
         plan_ms: Plan time per task (ms; p50, p99).
         plan_per_dig_ms: Plan time per dig (ms; p50, p99).
+        dig_plan_per_dig_ms: The same without the dig cycles' planning (stage ``transitions``):
+            each dig's choice, plan and checks (ms; p50, p99).
         status_done: Fraction of the tasks done.
         reference: One PINN plan call of the same run, None without a roughing dig.
         plan_per_dig_over_pinn_plan: Median plan time per dig over the reference's median.
@@ -1545,6 +1572,8 @@ class RandomSuite:
     plan_per_dig_over_pinn_plan: float | None
     per_task: tuple[RandomTask, ...]
     cycles: CycleFigures | None = None
+    sections_within_finishing_goal: float | None = None
+    dig_plan_per_dig_ms: Distribution | None = None
 
     @property
     def error_tasks(self) -> tuple[RandomTask, ...]:
@@ -1579,9 +1608,11 @@ class RandomSuite:
             "digs": opt(self.digs),
             "fill": self.fill.to_json(),
             "finishing_per_section_max": self.finishing_per_section_max,
+            "sections_within_finishing_goal": self.sections_within_finishing_goal,
             "transition_penetration_max_mm": opt(self.transition_penetration_max_mm),
             "plan_ms": opt(self.plan_ms),
             "plan_per_dig_ms": opt(self.plan_per_dig_ms),
+            "dig_plan_per_dig_ms": opt(self.dig_plan_per_dig_ms),
             "status_done": self.status_done,
             "errors": self.errors,
             "error_tasks": [t.to_json() for t in self.error_tasks],
@@ -1620,7 +1651,7 @@ def bench_plan_random(
             planner built for ``rig``).
     """
     from rt_runtime.planning import oneshot
-    from rt_runtime.planning.trench import TrenchPlanner
+    from rt_runtime.planning.trench import MAX_FINISHING_PER_SECTION, TrenchPlanner
 
     if planner is None:
         planner = TrenchPlanner(rig, "pinn", model_dir=model_dir)
@@ -1651,8 +1682,9 @@ def bench_plan_random(
         fills += [d.volume_m3 * 1e3 for d in plan.digs if not d.finishing]
         per_section: dict[int, int] = {}
         for d in plan.digs:
+            per_section.setdefault(d.section, 0)
             if d.finishing:
-                per_section[d.section] = per_section.get(d.section, 0) + 1
+                per_section[d.section] += 1
         finishing_max = max(finishing_max, *per_section.values(), 0)
         if first_problem is None:
             first = next((d for d in plan.digs if d.status == "filled"), None)
@@ -1670,6 +1702,8 @@ def bench_plan_random(
             transition_penetration_max_mm=report["transition_penetration_max_mm"],
             plan_ms=plan.plan_total_us / 1e3,
             task_time_s=report["dig_time_s"] + report["transition_time_s"],
+            cycles_plan_ms=plan.stage_us["transitions"] / 1e3,
+            finishing_per_section=tuple(per_section[k] for k in sorted(per_section)),
             moves_per_cycle_s=cycles.moves_per_cycle_s,
             moves_vs_bound_max=cycles.moves_vs_bound_max,
             cycle_fallbacks=cycles.fallbacks,
@@ -1678,6 +1712,8 @@ def bench_plan_random(
     planned_tasks = [r.planned for r in records if r.planned is not None]
     coverage = [r.coverage_error for r in planned_tasks]
     per_dig = [r.plan_ms / r.digs for r in planned_tasks if r.digs]
+    dig_per_dig = [(r.plan_ms - r.cycles_plan_ms) / r.digs for r in planned_tasks if r.digs]
+    sections = [k for r in planned_tasks for k in r.finishing_per_section]
     reference = _pinn_reference(planner, first_problem)
     within = {
         k: sum(c <= v for c in coverage) / max(n, 1) for k, v in RANDOM_COVERAGE_BANDS.items()
@@ -1711,6 +1747,12 @@ def bench_plan_random(
         ),
         plan_ms=Distribution.of([r.plan_ms for r in planned_tasks]) if planned_tasks else None,
         plan_per_dig_ms=Distribution.of(per_dig) if per_dig else None,
+        dig_plan_per_dig_ms=Distribution.of(dig_per_dig) if dig_per_dig else None,
+        sections_within_finishing_goal=(
+            sum(k <= MAX_FINISHING_PER_SECTION for k in sections) / len(sections)
+            if sections
+            else None
+        ),
         status_done=sum(r.status == "done" for r in planned_tasks) / max(n, 1),
         reference=reference,
         plan_per_dig_over_pinn_plan=(

@@ -1029,7 +1029,8 @@ def _print_bench_random(q: RandomSuite) -> None:
     if c is None or o is None or d is None or tp is None or q.plan_ms is None:
         return
     print(f"  done {q.status_done:.0%}; coverage error within 2 % {q.within_2pct:.0%}, within 4 % {q.within_4pct:.0%}; p50 {c.p50:.2%}, p99 {c.p99:.2%}, max {c.max:.2%}")
-    print(f"  over-dig p50 {o.p50:.2f} mm, max {o.max:.2f} mm; digs p50 {d.p50:.0f}, max {d.max:.0f}; finishing passes per section max {q.finishing_per_section_max}")
+    within_goal = "-" if q.sections_within_finishing_goal is None else f"{q.sections_within_finishing_goal:.0%}"
+    print(f"  over-dig p50 {o.p50:.2f} mm, max {o.max:.2f} mm; digs p50 {d.p50:.0f}, max {d.max:.0f}; finishing passes per section max {q.finishing_per_section_max}, sections within the goal {within_goal}")
     f = q.fill
     if f.n:
         print(f"  roughing fill {f.min:.2f} / {f.p50:.2f} / {f.max:.2f} L (min / p50 / max), {f.within_band:.0%} of {f.n} digs within {f.band_L[0]:.2f}-{f.band_L[1]:.2f} L")
@@ -1040,7 +1041,9 @@ def _print_bench_random(q: RandomSuite) -> None:
     ref = q.reference
     ref_text = f"; PINN plan of one dig p50 {ref.pinn_plan_ms.p50:.2f} ms, plan per dig / PINN plan {q.plan_per_dig_over_pinn_plan:.1f}x" if ref is not None and q.plan_per_dig_over_pinn_plan is not None else ""
     per_dig = f"{q.plan_per_dig_ms.p50:.2f} ms" if q.plan_per_dig_ms is not None else "-"
-    print(f"  plan per task p50 {q.plan_ms.p50:.1f} ms, p99 {q.plan_ms.p99:.1f} ms; per dig p50 {per_dig}{ref_text}")
+    dig_part = q.dig_plan_per_dig_ms
+    dig_text = f" (without the dig cycles {dig_part.p50:.2f} ms, p99 {dig_part.p99:.2f} ms)" if dig_part is not None else ""
+    print(f"  plan per task p50 {q.plan_ms.p50:.1f} ms, p99 {q.plan_ms.p99:.1f} ms; per dig p50 {per_dig}{dig_text}{ref_text}")
     print("  worst:  task              L [m]  D [m]  beta1  beta2  x [m]  coverage  over [mm]  digs  status")
     for w in q.worst:
         if w.planned is not None:
@@ -1081,6 +1084,9 @@ def _print_bench_plan(
     pd = tr.plan_per_dig_ms
     if pd is not None:
         print(f"  planning per dig p50 {pd.p50:.1f} ms, p99 {pd.p99:.1f} ms (goal {PLAN_PER_DIG_GOAL_MS.p50:.0f} / {PLAN_PER_DIG_GOAL_MS.p99:.0f} ms){ratio}")
+    dd = tr.dig_plan_per_dig_ms
+    if dd is not None:
+        print(f"  of it the dig's choice, plan and checks (without the dig cycles): p50 {dd.p50:.1f} ms, p99 {dd.p99:.1f} ms")
     print("  task  fill of each dig [L] (* finishing)                      finishing  travels  digs+moves  vs first design (goal <= 60 %)")
     for name, e in tasks.items():
         fills = " ".join(f"{v:.2f}{'*' if d.finishing else ''}" for v, d in zip(e.fill_L, e.pinn.digs, strict=True))

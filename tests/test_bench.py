@@ -70,6 +70,10 @@ def test_bench_plan_compares_pinn_and_pso_on_the_same_dig_problems() -> None:
     assert e.numpy_geometry_same_plan is True
     assert e.numpy_geometry_plan_us.p50 > 0.0 and e.speedup_vs_numpy_geometry > 0.0
     assert sum(e.stage_us.values()) == pytest.approx(e.plan_us.p50, rel=1e-9)
+    # Without the dig cycles' planning (stage transitions): the dig's choice, plan and checks.
+    assert 0.0 < e.dig_plan_per_dig_ms.p50 < e.plan_per_dig_ms.p50
+    assert j["dig_plan_per_dig_ms"] == e.dig_plan_per_dig_ms.to_json()
+    assert r.to_json()["trench"]["dig_plan_per_dig_ms"] is not None
     assert r.trench.geometry == "c"
     # The dig cycles, per task as the plan reports them and over the tasks.
     cycles = j["cycles"]
@@ -100,6 +104,7 @@ def test_random_suite_is_seeded_and_has_every_key() -> None:
         "digs", "fill", "finishing_per_section_max", "transition_penetration_max_mm",
         "plan_ms", "plan_per_dig_ms", "status_done", "errors", "error_tasks", "worst",
         "reference", "plan_per_dig_over_pinn_plan", "per_task", "cycles",
+        "dig_plan_per_dig_ms", "sections_within_finishing_goal",
     }  # fmt: skip
     assert keys <= set(r)
     assert set(r["cycles"]) == {"cycles", "moves_per_cycle_s", "moves_vs_bound", "fallbacks"}
@@ -109,8 +114,18 @@ def test_random_suite_is_seeded_and_has_every_key() -> None:
     assert set(r["coverage_error"]) == {"p50", "p99", "max"}
     for key in ("overdig_max_mm", "digs", "transition_penetration_max_mm"):
         assert set(r[key]) == {"p50", "max"}
-    for key in ("plan_ms", "plan_per_dig_ms"):
+    for key in ("plan_ms", "plan_per_dig_ms", "dig_plan_per_dig_ms"):
         assert set(r[key]) == {"p50", "p99"} and r[key]["p50"] > 0.0
+    # The dig's own planning is the whole plan less the dig cycles' (stage transitions).
+    tasks_json = r["per_task"]
+    assert all(0.0 < t["cycles_plan_ms"] < t["plan_ms"] for t in tasks_json)
+    want = [(t["plan_ms"] - t["cycles_plan_ms"]) / t["digs"] for t in tasks_json]
+    assert r["dig_plan_per_dig_ms"]["p50"] == pytest.approx(float(np.percentile(want, 50)))
+    sections = [k for t in tasks_json for k in t["finishing_per_section"]]
+    assert max(sections) == r["finishing_per_section_max"]
+    assert r["sections_within_finishing_goal"] == pytest.approx(
+        sum(k <= 2 for k in sections) / len(sections)
+    )
     assert set(r["fill"]) == {"min", "p50", "max", "band_L", "within_band", "n"}
     assert r["fill"]["band_L"] == pytest.approx([3.74, 5.72])
     assert 0.0 <= r["within_2pct"] <= r["within_4pct"] <= 1.0

@@ -442,6 +442,23 @@ def test_a_stalling_clock_leads_to_an_overrun_safe_stop(
 # -- the planner process -------------------------------------------------------------------------
 
 
+def _two_digs_in_the_planner_process(
+    rig: Rig, session: TrenchSession, q0: np.ndarray, **kwargs: Any
+) -> _Run:
+    """Two digs with the planner process (the lockstep clock marked real time). The HIL's
+    terrain is not cut in on_dig_done: it runs on the callback thread, and the lockstep HIL is
+    single-threaded."""
+    return _Run(
+        rig,
+        session,
+        q0,
+        config=ExecutorConfig(max_digs=2),
+        wrap_clock=lambda clock: _WrappedClock(clock, realtime=True),
+        cut=False,
+        **kwargs,
+    )
+
+
 def test_the_planner_process_plans_on_the_profile_scanners_surface(
     rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
 ) -> None:
@@ -464,15 +481,7 @@ def test_the_planner_process_plans_on_the_profile_scanners_surface(
         scans.append(scanner[0].scan())
         return scans[-1]
 
-    run = _Run(
-        rig,
-        session,
-        q0,
-        config=ExecutorConfig(max_digs=2),
-        wrap_clock=lambda clock: _WrappedClock(clock, realtime=True),
-        cut=False,
-        surface_source=scan,
-    )
+    run = _two_digs_in_the_planner_process(rig, session, q0, surface_source=scan)
     res = run.result
     assert run.executor.plan_in_worker
     assert res.status is ExecStatus.DONE, res.fault
@@ -492,14 +501,7 @@ def test_the_next_dig_is_planned_in_the_planner_process(
     rig: Rig, planner: TrenchPlanner, task: TrenchTask, pending_state: dict[str, Any]
 ) -> None:
     session, q0 = _restore_pending(planner, task, pending_state)
-    run = _Run(
-        rig,
-        session,
-        q0,
-        config=ExecutorConfig(max_digs=2),
-        wrap_clock=lambda clock: _WrappedClock(clock, realtime=True),
-        cut=False,  # on_dig_done runs on the callback thread; the lockstep HIL is single-threaded
-    )
+    run = _two_digs_in_the_planner_process(rig, session, q0)
     res = run.result
     assert run.executor.plan_in_worker
     assert res.status is ExecStatus.DONE, res.fault

@@ -1093,6 +1093,33 @@ def test_last_section_is_done_on_its_own_design_not_the_whole_trench(
     assert session.remaining_design().intersection(last).area < 0.005 * last.area
 
 
+def test_passes_beyond_two_stop_where_the_material_comes_back(planner: TrenchPlanner) -> None:
+    # A scanner shows material back on A's bottom after every pass beyond the two (as a face
+    # steeper than its angle of repose slumps into the trench): the pass that did not lower
+    # the section's difference of dug and design is the last; a restored session agrees.
+    import json
+
+    session = planner.start(load_task("A", RIG))
+    while (dig := session.next_dig()) is not None:
+        session.record(dig, dig.tip_path_m)
+    assert session.finishing_used == 2 and session.finishing_difference is None
+    x = session.grid
+    heap = np.abs(x - float(np.mean(x[session.design_floor <= session.bottom_y + 1e-9]))) < 0.1
+    slumped = np.where(heap, np.maximum(session.surface, session.bottom_y + 0.012), session.surface)
+    session.observe_surface(x, slumped)
+    first = session.next_dig()
+    assert first is not None and first.finishing and session.finishing_difference is not None
+    session.record(first, first.tip_path_m)
+    state = json.loads(json.dumps(session.state()))
+    assert state["finishing_difference_m2"] == session.finishing_difference
+    # The same material again after the pass: nothing more is chased, here or restored.
+    session.observe_surface(x, slumped)
+    assert session.next_dig() is None
+    again = TrenchSession.restore(planner, load_task("A", RIG), state)
+    again.observe_surface(x, slumped)
+    assert again.next_dig() is None
+
+
 def test_resumed_session_plans_the_same_next_dig_at_every_dig(planner: TrenchPlanner) -> None:
     import json
 

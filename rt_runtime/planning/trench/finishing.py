@@ -29,6 +29,12 @@ _FINISH_MIN_M = 0.002
 
 #: Least design material a finishing pass removes, as a fraction of its section's design.
 _FINISH_MIN_USEFUL = 0.001
+
+#: Share of that least amount by which a pass beyond the two must have lowered the section's
+#: difference of dug and design, measured after it, for another to be taken (the planned
+#: pass lowers it by the least amount or more; half of it allows for the polygon's measure
+#: against the height field's).
+_REALISED_SHARE = 0.5
 #: Attitude tables of the walls' finishing passes (deg; first and last of each end).
 _FAR_WALL_ATTS = ((-80.0, -100.0), (-95.0, -120.0))
 
@@ -61,12 +67,20 @@ class FinishingMixin(WallsMixin):
             return None
         least = _FINISH_MIN_USEFUL * float(part.area)
         beyond = self.finishing_used >= MAX_FINISHING_PER_SECTION
+        difference = math.nan
         if beyond:
             # The coverage goal counts the design material left and what was dug outside
             # the design alike (the symmetric difference): the section's share of both.
             dug = box.intersection(self.initial).difference(self.material)
             over = float(dug.difference(self.design).area)
-            if left + over <= COVERAGE_GOAL * float(part.area):
+            difference = left + over
+            if difference <= COVERAGE_GOAL * float(part.area):
+                return None
+            last = self.finishing_difference
+            if last is not None and last - difference < _REALISED_SHARE * least:
+                # The last such pass did not lower the difference on the measured material
+                # (what it took slumped back and the face eroded, as a profile scanner
+                # shows): more passes would chase the material's angle of repose.
                 return None
         found: list[Candidate] = []
         for kind, line, atts in self._finishing_lines():
@@ -84,6 +98,8 @@ class FinishingMixin(WallsMixin):
         dig = self._first_plannable(found, remaining, t0)
         if dig is not None and dig.finishing:
             self.finishing_used += 1
+        if dig is not None and beyond:
+            self.finishing_difference = difference
         return dig
 
     def _finishing_lines(self) -> list[_Pass]:

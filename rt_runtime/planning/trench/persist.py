@@ -180,7 +180,8 @@ class PersistMixin(SectionsMixin):
         (the material polygon as WKT, full precision), ``surface_m`` (height field on the 1 mm
         grid), ``machine_x_m``, ``q_now_rad`` (the last dig's exit or None), ``phase``
         (``downward``/``backward``), ``section``, ``stage``, ``layer``, ``layer_floors_m``,
-        ``wall_piece``, ``finishing_used`` (where the section's digging is), ``digs_done``,
+        ``wall_piece``, ``finishing_used``, ``finishing_difference_m2`` (where the section's
+        digging is), ``digs_done``,
         ``steps`` (every recorded dig, cycle, transition and travel move, each a dict with
         ``type``),
         and ``pending`` (the dig :meth:`next_dig` returned and :meth:`record` has not taken yet,
@@ -210,6 +211,7 @@ class PersistMixin(SectionsMixin):
             "layer_floors_m": [float(v) for v in self.layer_floors],
             "wall_piece": int(self._wall_piece),
             "finishing_used": int(self.finishing_used),
+            "finishing_difference_m2": self.finishing_difference,
             "digs_done": len(self.digs),
             "steps": [_step_to_json(step) for step in self.steps],
             "pending": None if self.pending is None else _step_to_json(self.pending),
@@ -263,6 +265,9 @@ class PersistMixin(SectionsMixin):
             layer = int(state["layer"])
             wall_piece = int(state["wall_piece"])
             finishing_used = int(state["finishing_used"])
+            # Not in the states written before it (none taken beyond the two then).
+            raw = state.get("finishing_difference_m2")
+            finishing_difference = None if raw is None else float(raw)
             pending = state.get("pending")
             pending_dig = None if pending is None else _step_from_json(pending)
             if pending_dig is not None and not isinstance(pending_dig, PlannedDig):
@@ -287,3 +292,4 @@ class PersistMixin(SectionsMixin):
         self.stage = stage
         self._wall_piece = wall_piece
         self.finishing_used = finishing_used
+        self.finishing_difference = finishing_difference

@@ -55,6 +55,7 @@ class SectionsMixin(FinishingMixin):
         if abs(move) > 1e-9:
             self._travel(move)
         self.finishing_used = 0
+        self.finishing_difference = None
         self.layer_floors = self._choose_layers()
         self.layer = 0
         self.stage = Stage.ROUGH if self.layer_floors else Stage.FAR_WALL

@@ -970,9 +970,7 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
             if state is None
             else TrenchSession.restore(planner, spec.task, state)
         )
-        # The scanner's surface of each record comes with it (ProcessPlanner.request_record).
-        scans: list[tuple[FloatArray, FloatArray]] = []
-        driver = SessionDriver(trench, spec.period_s, lambda: scans.pop() if scans else None)
+        driver = SessionDriver(trench, spec.period_s)
     except ExcavatorRtError as exc:
         # Its files (a model that fails its card's digest, say) or the state it was handed:
         # the job cannot go on until the cause is cleared, and the process says why.
@@ -1021,8 +1019,9 @@ def _worker_main(conn: Any, spec: PlannerSpec) -> None:
         if kind == "plan":
             open_, planned = reply(driver.plan, message[1])
         elif kind == "record":
+            # The scanner's surface of the record comes with it (ProcessPlanner.request_record).
             scan = message[3] if len(message) > 3 else None
-            scans[:] = [] if scan is None else [scan]
+            driver.surface_source = None if scan is None else lambda scan=scan: scan
             open_, recorded = reply(driver.record, message[1])
             planned = False
             if open_ and recorded and message[2]:

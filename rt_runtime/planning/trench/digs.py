@@ -106,7 +106,7 @@ class DigsMixin(FitMixin):
         pb = problem
         row = pack_inputs(pb.q_start_rad, pb.q_end_rad, pb.surface_y_m, pb.dig_type, a6, T_s)
         out = np.zeros((1, N_OUT))
-        verifier = self.planner.pass_verifier if best.pass_window else self.planner.verifier
+        verifier = self.planner.verifier_for(best.pass_window)
         path = np.zeros((1, verifier.n_samples, 2))
         verifier.evaluate_into(row, out, path=path)
         violation = _total_without_volume(out[0]) if real_fill else out[0, COL_TOTAL]

@@ -489,8 +489,7 @@ class FitMixin(CyclesMixin):
         retimed = np.zeros((1, 4))
         # Below the fill band it can only be a finishing pass: timed in the passes' window.
         under = total < self._fill_band()[0]
-        verifier = self.planner.pass_verifier if under else self.planner.verifier
-        verifier.retime_into(row, out, retimed)
+        self.planner.verifier_for(under).retime_into(row, out, retimed)
         if not np.isfinite(retimed[0, 3]) or _total_without_volume(out[0]) > 0.0:
             return None
         x7 = np.concatenate([qs, qe, [H]])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -268,6 +269,11 @@ class PersistMixin(SectionsMixin):
             # Not in the states written before it (none taken beyond the two then).
             raw = state.get("finishing_difference_m2")
             finishing_difference = None if raw is None else float(raw)
+            if finishing_difference is not None and not math.isfinite(finishing_difference):
+                raise ConfigurationError(
+                    f"session state key 'finishing_difference_m2' is {raw!r}; allowed: a "
+                    "finite area (m^2) or null"
+                )
             pending = state.get("pending")
             pending_dig = None if pending is None else _step_from_json(pending)
             if pending_dig is not None and not isinstance(pending_dig, PlannedDig):

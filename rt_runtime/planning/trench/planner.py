@@ -208,6 +208,11 @@ class TrenchPlanner:
         #: zone's point nearest the machine (joint angles; :func:`cycles.home_pose`).
         self.home_pose_rad = home_pose(rig, self.arm)
 
+    def verifier_for(self, pass_window: bool) -> Verifier:
+        """:attr:`pass_verifier` for a dig timed in the finishing passes' window, else
+        :attr:`verifier`."""
+        return self.pass_verifier if pass_window else self.verifier
+
     def start(self, task: TrenchTask) -> TrenchSession:
         """A closed-loop session for ``task`` (plan a dig, execute it, record its path)."""
         return TrenchSession(self, task)

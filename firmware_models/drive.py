@@ -69,7 +69,11 @@ Servo cascade (:meth:`servo_step`, sub-step ``dt_s``, 250 us by default):
   ``pressure_feedback_gain`` > 0) the opening is then lessened by
   ``gain (F - LP(F)) / (p_s A_A)``, ``LP`` a first-order low-pass of
   ``pressure_feedback_filter_s``: a leakage across the piston for changes of the load faster
-  than the filter, which damps the oil column's mode, and nothing for a held load;
+  than the filter, which damps the oil column's mode, and nothing for a held load. With overlap
+  compensation (0x2100 > 0, in 0.01 % of full opening) the command finally jumps out of the
+  valve's dead band: ``sign(u) (j + (1 - j) |u|)`` for ``|u| >= OVERLAP_JUMP_RAMP`` and a
+  straight line through zero inside it (:func:`overlap_jump`), as a valve amplifier's jump
+  function does;
 * following error: ``|p_demand - p| > 0x6065`` continuously for longer than 0x6066 -> EMCY
   0x8611, statusword bit 13, fault reaction; 0x6065 = 0xFFFFFFFF switches it off;
 * disabled states put out 0 (motor free or valve centred) and the demand follows the measured
@@ -123,6 +127,7 @@ __all__ = [
     "SdoAbort",
     "load_gain_ratio",
     "load_object_dictionary",
+    "overlap_jump",
     "valve_velocity_gains_m_s",
 ]
 
@@ -290,7 +295,9 @@ _ALLOWED_VALUES: Mapping[int, frozenset[int]] = MappingProxyType(
     {0x605A: _QUICK_STOP_CODES, 0x605E: _FAULT_REACTION_CODES, 0x6060: _MODES}
 )
 #: Objects the servo loop caches in SI units (see DriveFirmware._refresh).
-_PARAMETER_OBJECTS = frozenset({0x1006, 0x605A, 0x605E, 0x6065, 0x6066, 0x607D, 0x6085, 0x60C2})
+_PARAMETER_OBJECTS = frozenset(
+    {0x1006, 0x2100, 0x605A, 0x605E, 0x6065, 0x6066, 0x607D, 0x6085, 0x60C2}
+)
 
 _ERR_GENERIC = 0x01
 _ERR_CURRENT = 0x02
@@ -489,6 +496,8 @@ class DrivesLike(Protocol):
     def pressure_feedback_gain(self) -> tuple[float, ...]: ...
     @property
     def pressure_feedback_filter_s(self) -> float: ...
+    @property
+    def valve_overlap_compensation(self) -> float: ...
 
 
 class HydraulicLike(Protocol):
@@ -706,6 +715,29 @@ CYLINDER_AXES = ("boom", "stick", "bucket")
 LOAD_GAIN_RATIO_MIN = 0.2
 
 
+#: Half-width of the straight line through zero of the overlap compensation (fraction of
+#: full command): a command this small passes without the full jump, so a drive at rest does
+#: not throw the spool across the dead band on every sign change of its error.
+OVERLAP_JUMP_RAMP = 0.005
+
+
+def overlap_jump(u: float, jump: float) -> float:
+    """Spool command after a valve amplifier's overlap compensation (jump function).
+
+    ``sign(u) (jump + (1 - jump) |u|)`` for ``|u| >= OVERLAP_JUMP_RAMP``, so that a command just
+    past zero already opens a valve whose overlap is ``jump`` and full command stays full
+    opening; inside the ramp a straight line through zero that meets it at its ends.
+
+    Args:
+        u: Spool command, fraction of full opening in [-1, 1].
+        jump: The compensation, fraction of full opening in [0, 1).
+    """
+    a = abs(u)
+    if a >= OVERLAP_JUMP_RAMP:
+        return math.copysign(jump + (1.0 - jump) * a, u)
+    return u * (jump + (1.0 - jump) * OVERLAP_JUMP_RAMP) / OVERLAP_JUMP_RAMP
+
+
 def load_gain_ratio(
     force_n: float, extending: bool, stall_extend_n: float, stall_retract_n: float
 ) -> float:
@@ -885,6 +917,7 @@ class DriveFirmware:
             (0x6065, 0): _clip(round(drives.following_error_window_m * 1e6), 0, _WINDOW_OFF),
             (0x6066, 0): _ms(drives.following_error_timeout_s, 0xFFFF),
             (0x6085, 0): _clip(round(drives.quick_stop_deceleration_m_s2 * 1e6), 1, _WINDOW_OFF),
+            (0x2100, 0): _clip(round(drives.valve_overlap_compensation * 1e4), 0, 5000),
         }
         for key, value in commissioned.items():
             if key in self._stored:
@@ -1434,6 +1467,8 @@ class DriveFirmware:
             self._interp_T_s = 0.0
         self._qs_option = int(v[(0x605A, 0)])
         self._fr_option = int(v[(0x605E, 0)])
+        jump = v.get((0x2100, 0), 0)
+        self._jump = int(jump) * 1e-4 if self._valve_output else 0.0
 
     def _rebuild_communication(self) -> None:
         """COB-IDs, PDO layouts and the frame dispatch table from the current values."""
@@ -1818,6 +1853,8 @@ class DriveFirmware:
                     load, v_cmd >= 0.0, self._stall_extend_n, self._stall_retract_n
                 )
             u -= damping
+            if self._jump > 0.0:
+                u = overlap_jump(u, self._jump)
         else:
             error = v_cmd - self._v_est_m_s
             ki = self._ki_1_s

@@ -216,6 +216,35 @@ def test_configuration_writes_match_the_standard(rig: Rig) -> None:
         assert got == want
 
 
+def test_valve_drives_get_their_overlap_compensation_before_the_mode() -> None:
+    """0x2100 goes to the three valve drives of a hydraulic rig (0.01 % of full opening), to
+    no drive of an electric rig; Gao's loop and the ideal HIL are commissioned without it."""
+    from hil_sim.harness.scenario import PathScenario, _master_rig, scenario_rig
+
+    bench = load_rig("test_bench")
+    config = MasterConfig.from_rig(bench, 0x7E, 0.002)
+    assert config.valve_overlap_compensation == (1900, 1900, 1900)
+    for axis, node in enumerate(config.node_ids):
+        od = import_od(str(DEFAULT_EDS), node)
+        got = [(w.index, w.subindex, w.value) for w in configuration_writes(config, od, axis)]
+        assert got[-2:] == [(0x2100, 0, 1900), (0x6060, 0, 8)]
+    scale = MasterConfig.from_rig(load_rig("scale_model"), 0x7E, 0.002)
+    assert scale.valve_overlap_compensation == ()
+    od = import_od(str(DEFAULT_EDS), 1)
+    assert all(w.index != 0x2100 for w in configuration_writes(scale, od, 0))
+    compensation = {
+        (controller, imperfect): _master_rig(
+            sc, scenario_rig(sc)
+        ).drives.valve_overlap_compensation
+        for controller in ("csp", "p")
+        for imperfect in (True, False)
+        for sc in [PathScenario(rig="test_bench", imperfect=imperfect, controller=controller)]
+    }
+    assert compensation == {
+        ("csp", True): 0.19, ("csp", False): 0.0, ("p", True): 0.0, ("p", False): 0.0
+    }
+
+
 def test_master_refuses_a_bad_setup(rig: Rig, tmp_path: Path) -> None:
     bus = ScriptedBus()
     with pytest.raises(ConfigurationError, match="does not exist"):

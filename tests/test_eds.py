@@ -51,6 +51,7 @@ CONTRACT: dict[tuple[int, int], tuple[int, str, int | str | None, bool]] = {
     (0x1A01, 1): (U32, "rw", 0x60410010, False),
     (0x1A01, 2): (U32, "rw", 0x60610008, False),
     (0x1A01, 3): (U32, "rw", 0x603F0010, False),
+    (0x2100, 0): (U16, "rw", 0, False),  # valve overlap compensation, 0.01 % of opening
     (0x603F, 0): (U16, "ro", None, True),
     (0x6040, 0): (U16, "rw", None, True),
     (0x6041, 0): (U16, "ro", None, True),

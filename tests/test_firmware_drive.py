@@ -32,6 +32,7 @@ from firmware_models.drive import (
     NmtState,
     SdoAbort,
     load_gain_ratio,
+    overlap_jump,
     valve_velocity_gains_m_s,
 )
 from firmware_models.errors import FirmwareConfigurationError
@@ -88,6 +89,7 @@ class Drives:
     load_compensation_filter_s: float = 0.0
     pressure_feedback_gain: tuple[float, ...] = (0.0, 0.0, 0.0)
     pressure_feedback_filter_s: float = 0.0
+    valve_overlap_compensation: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -966,6 +968,50 @@ def test_load_compensation_divides_the_valve_command_by_the_filtered_ratio() -> 
     assert efforts["comp"][k] == pytest.approx(at_tau, rel=5e-3)
     with pytest.raises(FirmwareConfigurationError, match="load compensation"):
         DriveParameters.from_rig(Rig(drives=Drives(load_compensation_filter_s=tau)))
+
+
+def test_overlap_compensation_jumps_the_spool_command_out_of_the_dead_band() -> None:
+    """The valve amplifier's jump function against its definition, and in the drive: 0x2100
+    (0.01 % of full opening) is commissioned from the rig, written over SDO, checked against its
+    range, applied to a valve drive's command and ignored by an electric drive."""
+    j = 0.19
+    assert overlap_jump(0.0, j) == 0.0
+    for u in (0.005, 0.02, 0.3, 1.0):
+        assert overlap_jump(u, j) == pytest.approx(j + (1.0 - j) * u, rel=1e-12)
+        assert overlap_jump(-u, j) == pytest.approx(-(j + (1.0 - j) * u), rel=1e-12)
+    commands = np.linspace(-1.0, 1.0, 4001)
+    out = np.array([overlap_jump(float(u), j) for u in commands])
+    assert np.all(np.diff(out) > 0.0)  # monotonic, and continuous at the ramp's ends:
+    for end in (0.005, -0.005):
+        assert overlap_jump(end * (1.0 - 1e-12), j) == pytest.approx(overlap_jump(end, j))
+    assert overlap_jump(0.0025, j) == pytest.approx(0.5 * (j + (1.0 - j) * 0.005))
+
+    actuators = Actuators(velocity_max_m_s=0.28, hydraulic=Hydraulic())
+    plain = Harness(Rig(actuators=actuators))
+    jumped = Harness(Rig(actuators=actuators))
+    commissioned = Harness(
+        Rig(drives=Drives(valve_overlap_compensation=j), actuators=actuators)
+    )
+    electric, electric_jumped = Harness(), Harness()
+    for h in (plain, jumped, commissioned, electric, electric_jumped):
+        h.boot()
+    write = ("TX", SDO_RX, "2B002100" + struct.pack("<H", 1900).hex() + "0000")
+    for h in (jumped, electric_jumped):
+        exchange(h, [write, ("RX", SDO_TX, "6000210000000000")])
+    # Beyond the object's range (0..5000): refused, the value kept.
+    exchange(jumped, [("TX", SDO_RX, "2B00210089130000"), ("RX", SDO_TX, "8000210030000906")])
+    efforts = {}
+    for name, h in (("plain", plain), ("jumped", jumped), ("commissioned", commissioned),
+                    ("electric", electric), ("electric_jumped", electric_jumped)):  # fmt: skip
+        h.enable()
+        fw = h.fw
+        fw.on_frame(RPDO1, struct.pack("<ii", 100_050, 2_000), 0.0)  # 50 um ahead, 2 mm/s
+        fw.on_frame(SYNC, b"", 0.0)
+        efforts[name] = fw.servo_step(DT_S, 0.1, 0.0)
+    assert 0.005 < efforts["plain"] < 0.1
+    assert efforts["jumped"] == pytest.approx(overlap_jump(efforts["plain"], j), rel=1e-12)
+    assert efforts["commissioned"] == efforts["jumped"]
+    assert efforts["electric_jumped"] == efforts["electric"]
 
 
 def test_pressure_feedback_takes_off_the_high_passed_force_and_keeps_the_static_stiffness() -> (

@@ -292,6 +292,18 @@ def test_servo_period_defaults_to_250_us() -> None:
             r"drives\.pressure_feedback_gain: only for valve drives",
         ),
         (
+            "scale_model",
+            "drives.valve_overlap_compensation",
+            0.1,
+            r"drives\.valve_overlap_compensation: only for valve drives",
+        ),
+        (
+            "test_bench",
+            "drives.valve_overlap_compensation",
+            0.6,
+            r"drives\.valve_overlap_compensation: must be >= 0 and <= 0\.5",
+        ),
+        (
             "yang_pan_excavator",
             "drives.pressure_feedback_gain",
             0.5,

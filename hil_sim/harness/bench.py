@@ -218,20 +218,23 @@ class GaoCalibration:
     Attributes:
         p: Per axis ``max_mm`` (and ``rms_mm``) with Gao's proportional loop (``--controller
             p``); the paper measured +-3 mm (Fig. 12).
-        csp: The same with ours, CSP with velocity feed-forward and the host's loop.
-        host_gain_1_s: The host loop's gain in both runs (1/s).
+        csp: The same with ours: CSP with velocity feed-forward, the valve drives' overlap
+            compensation and the host's loop.
+        host_gain_1_s: The host loop's gain with Gao's loop (1/s).
         path: ``gao`` (Table 2, 3 s segments) or the reduced path's name.
+        host_gain_csp_1_s: The host loop's gain with ours (1/s).
     """
 
     p: dict[str, dict[str, float]]
     csp: dict[str, dict[str, float]]
     host_gain_1_s: float
     path: str
+    host_gain_csp_1_s: float = 0.0
 
     def to_json(self) -> dict[str, Any]:
         """The keys of README ``bench hil --json`` ``gao``."""
         return {"p": self.p, "csp": self.csp, "host_gain_1_s": self.host_gain_1_s,
-                "path": self.path}  # fmt: skip
+                "host_gain_csp_1_s": self.host_gain_csp_1_s, "path": self.path}  # fmt: skip
 
 
 @dataclass(frozen=True, slots=True)
@@ -312,19 +315,30 @@ class BenchHilReport:
 def calibrate_gao(
     joints_deg: tuple[tuple[float, float, float], ...] = (),
     host_gain_1_s: float | None = None,
+    host_gain_csp_1_s: float | None = None,
 ) -> GaoCalibration:
     """Gao's path (or the key points ``joints_deg``, a reduced path) on the imperfect test
-    bench with Gao's proportional loop and with ours.
+    bench with Gao's proportional loop and with ours, each with its own host loop gain (None:
+    :data:`~hil_sim.harness.scenario.GAO_HOST_GAIN_1_S` for Gao's,
+    :data:`~hil_sim.harness.scenario.CSP_HOST_GAIN_1_S` for ours).
 
     Raises:
         ConfigurationError: Bad key points.
     """
-    from hil_sim.harness.scenario import GAO_HOST_GAIN_1_S, PathScenario, run_path_scenario
+    from hil_sim.harness.scenario import (
+        CSP_HOST_GAIN_1_S,
+        GAO_HOST_GAIN_1_S,
+        PathScenario,
+        run_path_scenario,
+    )
 
-    gain = GAO_HOST_GAIN_1_S if host_gain_1_s is None else host_gain_1_s
+    gains = {
+        "p": GAO_HOST_GAIN_1_S if host_gain_1_s is None else host_gain_1_s,
+        "csp": CSP_HOST_GAIN_1_S if host_gain_csp_1_s is None else host_gain_csp_1_s,
+    }
     path = "joints" if joints_deg else "gao"
     out: dict[str, dict[str, dict[str, float]]] = {}
-    for controller in ("p", "csp"):
+    for controller, gain in gains.items():
         sc = PathScenario(
             path=path,
             joints_deg=joints_deg,
@@ -337,7 +351,7 @@ def calibrate_gao(
             axis: {"max_mm": fig.max_mm, "rms_mm": fig.rms_mm}
             for axis, fig in report.tracking.items()
         }
-    return GaoCalibration(out["p"], out["csp"], gain, path)
+    return GaoCalibration(out["p"], out["csp"], gains["p"], path, gains["csp"])
 
 
 def calibrate_task(task: str = "A", max_digs: int | None = None) -> TaskCalibration:
@@ -519,9 +533,12 @@ def format_report(report: BenchHilReport) -> str:
         )
     gao = report.gao
     if gao is not None:
-        for name, figs in (("p (Gao)", gao.p), ("csp (ours)", gao.csp)):
+        for name, figs, gain in (
+            ("p (Gao)", gao.p, gao.host_gain_1_s),
+            ("csp (ours)", gao.csp, gao.host_gain_csp_1_s),
+        ):
             lines.append(
-                f"  Gao path, imperfect bench, {name}: max "
+                f"  Gao path, imperfect bench, {name}, host loop {gain:g} 1/s: max "
                 + ", ".join(f"{axis} {f['max_mm']:.2f}" for axis, f in figs.items())
                 + " mm (paper +-3 mm)"
             )

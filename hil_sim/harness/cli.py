@@ -198,8 +198,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "--controller",
         default="csp",
         choices=CONTROLLERS,
-        help="csp: target stroke with velocity feed-forward (ours); p: Gao's plain proportional "
-        "displacement loop (no feed-forward), the paper's reference",
+        help="csp: target stroke with velocity feed-forward and the valve drives' overlap "
+        "compensation (ours); p: Gao's plain proportional displacement loop (no feed-forward, "
+        "no overlap compensation), the paper's reference",
     )
     p.add_argument(
         "--host-gain",

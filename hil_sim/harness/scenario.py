@@ -419,7 +419,9 @@ def _execute(
         The executor's result and the master's bus load.
     """
     clock: Clock = hil.clock
-    master = CanMaster(hil.master_bus, rig, period_s=sc.period_s, react_to_faults=False)
+    master = CanMaster(
+        hil.master_bus, _master_rig(sc, rig), period_s=sc.period_s, react_to_faults=False
+    )
     loop = FixedRateLoop(
         clock,
         LoopConfig(period_s=sc.period_s, rt=RtSettings() if sc.realtime else NO_RT),
@@ -860,10 +862,15 @@ class PathScenario:
 
 #: The controllers a scenario can run: ours (CSP with velocity feed-forward) and Gao's.
 CONTROLLERS = ("csp", "p")
-#: Gain of Gao's proportional displacement loop in the PC (1/s). Gao gives none; with the
-#: drive's own 10 1/s it makes a 20 1/s loop, the highest below the test bench's hydraulic
-#: ringing (design notes, H30), and it reproduces his +-3 mm (Fig. 12) on the imperfect bench.
-GAO_HOST_GAIN_1_S = 10.0
+#: Gain of Gao's proportional displacement loop in the PC (1/s). Gao gives none, nor his
+#: valves' overlap; with the drive's own 10 1/s (a 25 1/s loop) on valves of 20 % overlap it
+#: reproduces his +-3 mm (Fig. 12) on the imperfect bench, whose dead band keeps the loop from
+#: ringing (the ideal bench rings from ~20 1/s; design notes, H8).
+GAO_HOST_GAIN_1_S = 15.0
+#: Gain of the host loop beside our CSP and feed-forward on the imperfect bench (1/s): with the
+#: drive's 10 1/s the 20 1/s loop that stays below the ideal bench's ringing (design notes,
+#: H8).
+CSP_HOST_GAIN_1_S = 10.0
 
 
 def scenario_rig(sc: Scenario | PathScenario) -> Rig:
@@ -884,7 +891,7 @@ def scenario_rig(sc: Scenario | PathScenario) -> Rig:
             raise ConfigurationError(f"rig {rig.name} has no [hil] table: no materials")
         rig = dataclasses.replace(rig, hil=rig.hil.with_material(material))
     if sc.imperfect is None:
-        return rig
+        return rig if rig.hil is None or rig.hil.enabled else _uncompensated(rig)
     if rig.hil is None:
         if sc.imperfect:
             raise ConfigurationError(
@@ -896,7 +903,25 @@ def scenario_rig(sc: Scenario | PathScenario) -> Rig:
             "the real-time HIL process loads the profile by name and applies its own "
             f"hil.enabled ({str(rig.hil.enabled).lower()}); switch it in the profile"
         )
-    return dataclasses.replace(rig, hil=dataclasses.replace(rig.hil, enabled=sc.imperfect))
+    rig = dataclasses.replace(rig, hil=dataclasses.replace(rig.hil, enabled=sc.imperfect))
+    return rig if sc.imperfect else _uncompensated(rig)
+
+
+def _uncompensated(rig: Rig) -> Rig:
+    """``rig`` with its valve drives' overlap compensation (``drives.valve_overlap_
+    compensation``) off: for the ideal HIL, whose valves have no overlap (the compensation
+    would throw their spools past zero flow), and for Gao's plain proportional loop."""
+    if rig.drives.valve_overlap_compensation == 0.0:
+        return rig
+    return dataclasses.replace(
+        rig, drives=dataclasses.replace(rig.drives, valve_overlap_compensation=0.0)
+    )
+
+
+def _master_rig(sc: Scenario | PathScenario, rig: Rig) -> Rig:
+    """The rig as the master configures its drives: Gao's plain proportional loop has no
+    overlap compensation, so under ``p`` the master writes 0 to the valve drives' 0x2100."""
+    return rig if sc.controller == "csp" else _uncompensated(rig)
 
 
 def _feedforward(sc: Scenario | PathScenario) -> bool:

@@ -67,6 +67,9 @@ class MasterConfig:
         quick_stop_deceleration_um_s2: 0x6085 per axis (the swing's: its acceleration limit in
             urad/s^2).
         bitrate: Bus bitrate (bit/s).
+        valve_overlap_compensation: 0x2100 (0.01 % of full opening) of the valve drives, one
+            per cylinder in axis order; empty on a rig whose cylinders are electric (nothing is
+            written then).
     """
 
     axes: tuple[str, ...]
@@ -81,6 +84,7 @@ class MasterConfig:
     stroke_max_um: tuple[int, ...]
     quick_stop_deceleration_um_s2: tuple[int, ...]
     bitrate: int
+    valve_overlap_compensation: tuple[int, ...] = ()
 
     @classmethod
     def from_rig(cls, rig: Rig, master_node_id: int, period_s: float) -> MasterConfig:
@@ -130,6 +134,11 @@ class MasterConfig:
             stroke_max_um=tuple(round(float(v) * 1e6) for v in hi_m),
             quick_stop_deceleration_um_s2=tuple(round(d * 1e6) for d in quick_stop),
             bitrate=rig.can.bitrate,
+            valve_overlap_compensation=(
+                (round(drives.valve_overlap_compensation * 1e4),) * 3
+                if rig.actuators.hydraulic is not None
+                else ()
+            ),
         )
         hb_ms = round(config.heartbeat_period_s * 1e3)
         timeout_ms = round(config.heartbeat_timeout_s * 1e3)
@@ -250,6 +259,16 @@ def configuration_writes(
         SdoWrite(0x1016, 1, config.master_node_id << 16 | timeout_ms, "consume master heartbeat"),
         SdoWrite(0x6060, 0, MODE_CSP, "modes of operation: cyclic synchronous position"),
     ]
+    if axis < len(config.valve_overlap_compensation):
+        writes.insert(
+            len(writes) - 1,
+            SdoWrite(
+                0x2100,
+                0,
+                config.valve_overlap_compensation[axis],
+                "valve overlap compensation (0.01 % of full opening)",
+            ),
+        )
     return tuple(writes)
 
 

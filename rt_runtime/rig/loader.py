@@ -385,11 +385,15 @@ def _drives(t: Table, kind: str) -> Drives:
             "pressure_feedback_filter_ms", ge=0.0, le=10_000.0, default=0.0
         )
         * 1e-3,
+        valve_overlap_compensation=t.number(
+            "valve_overlap_compensation", ge=0.0, le=0.5, default=0.0
+        ),
     )
     feedback = max(drives.pressure_feedback_gain) > 0.0
     valve_only = (
         ("load_compensation_filter_ms", drives.load_compensation_filter_s > 0.0),
         ("pressure_feedback_gain", feedback),
+        ("valve_overlap_compensation", drives.valve_overlap_compensation > 0.0),
     )
     for key, used in valve_only:
         if used and kind != "hydraulic":

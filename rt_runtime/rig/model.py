@@ -304,6 +304,9 @@ class Drives:
             pressure feedback, the valve opening taken off per unit of the high-passed cylinder
             force over the extending stall force ``p_s A_A``; 0 for none.
         pressure_feedback_filter_s: Valve drives: time constant of that high-pass.
+        valve_overlap_compensation: Valve drives: the amplifier's overlap compensation, a jump
+            of the spool command out of the valve's dead band (fraction of full opening; object
+            0x2100, written by the master at boot); 0 for none.
     """
 
     encoder_resolution_m: float
@@ -320,6 +323,7 @@ class Drives:
     load_compensation_filter_s: float = 0.0
     pressure_feedback_gain: tuple[float, float, float] = (0.0, 0.0, 0.0)
     pressure_feedback_filter_s: float = 0.0
+    valve_overlap_compensation: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)

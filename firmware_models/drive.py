@@ -1750,6 +1750,12 @@ class DriveFirmware:
         self._seg_T_s = period_s
 
     @property
+    def overlap_compensation(self) -> float:
+        """The jump out of the valve's dead band this drive applies (0x2100; fraction of full
+        opening; 0 on an electric drive)."""
+        return self._jump
+
+    @property
     def load_compensated(self) -> bool:
         """True for a valve drive that reads the cylinder force (``load_force_n`` of
         :meth:`servo_step`) to scale its flow gain to the load."""

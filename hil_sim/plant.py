@@ -412,6 +412,11 @@ class ArmPlant:
         electric = imp.electric if imp is not None and not self._hydraulic else None
         sensor = imp.sensor if imp is not None else None
         self._valve_imp = valve
+        #: The ideal valves' overlap per cylinder: what each valve drive compensates (0x2100),
+        #: so that an ideal plant's valve is the one its drive was commissioned for and the
+        #: compensation neither helps nor harms there; the HIL sets it from the drives. The
+        #: profile's valve imperfections, when they apply, carry the valves' own overlap.
+        self.compensated_overlap = (0.0, 0.0, 0.0)
         self._electric_imp = electric
         self._sensor_imp = sensor
         # Valve: the spool command's dead time as a ring of sub-steps, the hysteresis output.
@@ -805,10 +810,13 @@ class ArmPlant:
             u = self._valve_command(u, valve.hysteresis)
             slew = valve.slew_1_s * h
             overlap = valve.overlap
+        ideal = self.compensated_overlap
         for i in range(3):
             x = spool[i]
             if valve is not None:
                 x = valve_opening(x, overlap)
+            elif ideal[i] > 0.0:
+                x = valve_opening(x, ideal[i])
             pa, pb = pa_all[i], pb_all[i]
             if x >= 0.0:
                 ra, dra = _reg_sqrt(ps - pa)

@@ -538,6 +538,12 @@ class HilCore:
         full = servo * (1.0 + 1e-9)
         # What the drives' sensors read: the true strokes on an ideal plant.
         sense = plant.stroke_state if plant.imperfections is None else plant.sensed_stroke_state
+        if plant.imperfections is None:  # ideal valves: what the drives compensate
+            plant.compensated_overlap = (
+                fw0.overlap_compensation,
+                fw1.overlap_compensation,
+                fw2.overlap_compensation,
+            )
         pressures = self._reads_load
         while remaining > 1e-12:
             h = servo if remaining > full else remaining
@@ -573,8 +579,14 @@ class HilCore:
         vcu = self.vcu
         servo = self._servo_dt_s
         full = servo * (1.0 + 1e-9)
-        # What the arm drives' sensors read (as in advance()).
+        # What the arm drives' sensors read, and the ideal valves (as in advance()).
         sense = plant.stroke_state if plant.imperfections is None else plant.sensed_stroke_state
+        if plant.imperfections is None:
+            plant.compensated_overlap = (
+                fw0.overlap_compensation,
+                fw1.overlap_compensation,
+                fw2.overlap_compensation,
+            )
         pressures = self._reads_load
         while remaining > 1e-12:
             h = servo if remaining > full else remaining

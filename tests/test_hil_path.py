@@ -39,6 +39,8 @@ from rt_runtime.trajectory.mixed_order import interpolate
 PERIOD_S = 0.002
 #: Start pose away from the path's first key point (34.83, -40.32, -56.16): a real CONNECT move.
 START_DEG = (30.0, -45.0, -52.0)
+#: Three of Gao's key points: a reduced path.
+REDUCED_GAO = tuple((float(b), float(s), float(k)) for b, s, k in GAO_TABLE2_JOINTS_DEG[2:5])
 
 
 @pytest.fixture(scope="module")
@@ -100,6 +102,24 @@ def test_feedforward_off_tracks_worse(gao_ff_on: HilReport, gao_ff_off: HilRepor
     for axis in AXES:
         assert off[axis].max_mm > 2.0 * on[axis].max_mm, (axis, on[axis], off[axis])
         assert off[axis].rms_mm > 2.0 * on[axis].rms_mm, (axis, on[axis], off[axis])
+
+
+def test_a_drive_commissioned_for_the_real_valves_tracks_on_the_ideal_hil(
+    gao_ff_on: HilReport, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The master writes the profile's overlap compensation (0x2100) whatever HIL it boots, as
+    the daemon does; the ideal HIL's valves then have exactly the overlap their drives
+    compensate, so the path tracks as on uncompensated ideal valves (a compensated valve
+    without overlap would throw its spool across zero flow at every sign change)."""
+    monkeypatch.setattr(scenario_mod, "_uncompensated", lambda rig: rig)
+    sc = PathScenario(path="joints", joints_deg=REDUCED_GAO, rig="test_bench")
+    compensated = run_path_scenario(sc).report
+    monkeypatch.undo()
+    plain = run_path_scenario(sc).report
+    assert compensated.status == plain.status == "done"
+    for axis, fig in compensated.tracking.items():
+        assert fig.max_mm <= max(0.3, 2.0 * plain.tracking[axis].max_mm), (axis, fig)
+        assert fig.max_mm <= 1.5 * gao_ff_on.tracking[axis].max_mm + 0.1, (axis, fig)
 
 
 def test_unreachable_path_is_refused_before_the_hil_starts(

@@ -304,6 +304,12 @@ def test_servo_period_defaults_to_250_us() -> None:
             r"drives\.valve_overlap_compensation: must be >= 0 and <= 0\.5",
         ),
         (
+            "test_bench",
+            "drives.valve_overlap_compensation",
+            0.21,
+            r"drives\.valve_overlap_compensation: must be <= hil\.valve\.overlap \(0\.2\)",
+        ),
+        (
             "yang_pan_excavator",
             "drives.pressure_feedback_gain",
             0.5,

@@ -128,6 +128,15 @@ def parse_rig(raw: dict[str, Any], source: str = "") -> Rig:
         if hil_t is not None
         else None
     )
+    valve = hil.valve if hil is not None else None
+    if valve is not None and drives.valve_overlap_compensation > valve.overlap:
+        raise RigProfileError(
+            "drives.valve_overlap_compensation",
+            f"must be <= hil.valve.overlap ({valve.overlap:g}), the valves' own overlap: a "
+            "compensation above it opens them past zero flow at every sign change (got "
+            f"{drives.valve_overlap_compensation:g})",
+            source,
+        )
     assumed = _assumed(root.table("assumed"), raw)
     root.finish()
 

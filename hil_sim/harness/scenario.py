@@ -909,8 +909,9 @@ def scenario_rig(sc: Scenario | PathScenario) -> Rig:
 
 def _uncompensated(rig: Rig) -> Rig:
     """``rig`` with its valve drives' overlap compensation (``drives.valve_overlap_
-    compensation``) off: for the ideal HIL, whose valves have no overlap (the compensation
-    would throw their spools past zero flow), and for Gao's plain proportional loop."""
+    compensation``) off: for the ideal HIL, so that it runs the floats of an ideal valve
+    without a jump (with one, its valves take the overlap their drives compensate; design
+    notes, H8), and for Gao's plain proportional loop."""
     if rig.drives.valve_overlap_compensation == 0.0:
         return rig
     return dataclasses.replace(

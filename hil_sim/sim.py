@@ -61,6 +61,9 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 
 COB_SYNC = 0x080
+COB_NMT = 0x000
+#: SDO requests to the drives (0x600 + node id): what may write their 0x2100.
+COB_SDO_RX = 0x600
 #: The master's heartbeat COB-ID (node 0x7E), which drives consume.
 COB_MASTER_HEARTBEAT = 0x700 + 0x7E
 _AXES = ("boom", "stick", "bucket")
@@ -462,6 +465,7 @@ class HilCore:
         # Valve drives with load compensation or pressure feedback read the cylinder forces
         # (chamber pressures); read from the plant each sub-step only then.
         self._reads_load = any(n.firmware.reads_load for n in self.nodes[:3])
+        self._ideal_valves()
         self.truth_ring = TruthRing(
             truth_rows, preallocate=preallocate_truth, columns=10 if self.swing is None else 12
         )
@@ -504,7 +508,21 @@ class HilCore:
             out.extend(node.on_frame(arbitration_id, data, now_s))
         if self.vcu is not None:
             out.extend(self.vcu.on_frame(arbitration_id, data, now_s))
+        if arbitration_id == COB_NMT or COB_SDO_RX < arbitration_id <= COB_SDO_RX + 127:
+            self._ideal_valves()  # a drive's 0x2100 may have changed (SDO, NMT reset)
         return out
+
+    def _ideal_valves(self) -> None:
+        """An ideal plant's valves take the overlap their drives compensate (0x2100; see
+        :attr:`~hil_sim.plant.ArmPlant.compensated_overlap`)."""
+        plant = self.plant
+        if plant.imperfections is None:
+            n0, n1, n2 = self.nodes[:3]
+            plant.compensated_overlap = (
+                n0.firmware.overlap_compensation,
+                n1.firmware.overlap_compensation,
+                n2.firmware.overlap_compensation,
+            )
 
     def pending_frames(self, now_s: float) -> list[Frame]:
         """Time supervision of every node at ``now_s``; their due heartbeats and emergencies."""
@@ -538,12 +556,6 @@ class HilCore:
         full = servo * (1.0 + 1e-9)
         # What the drives' sensors read: the true strokes on an ideal plant.
         sense = plant.stroke_state if plant.imperfections is None else plant.sensed_stroke_state
-        if plant.imperfections is None:  # ideal valves: what the drives compensate
-            plant.compensated_overlap = (
-                fw0.overlap_compensation,
-                fw1.overlap_compensation,
-                fw2.overlap_compensation,
-            )
         pressures = self._reads_load
         while remaining > 1e-12:
             h = servo if remaining > full else remaining
@@ -579,14 +591,8 @@ class HilCore:
         vcu = self.vcu
         servo = self._servo_dt_s
         full = servo * (1.0 + 1e-9)
-        # What the arm drives' sensors read, and the ideal valves (as in advance()).
+        # What the arm drives' sensors read (as in advance()).
         sense = plant.stroke_state if plant.imperfections is None else plant.sensed_stroke_state
-        if plant.imperfections is None:
-            plant.compensated_overlap = (
-                fw0.overlap_compensation,
-                fw1.overlap_compensation,
-                fw2.overlap_compensation,
-            )
         pressures = self._reads_load
         while remaining > 1e-12:
             h = servo if remaining > full else remaining
@@ -673,7 +679,11 @@ class HilCore:
             code, reaction = _DRIVE_EMCY[kind]
             node.firmware.inject_fault(code, reaction)
         elif kind is FaultKind.DRIVE_REBOOT:
-            return [] if faults.silent else node.firmware.power_cycle(now_s)
+            if faults.silent:
+                return []
+            frames = node.firmware.power_cycle(now_s)
+            self._ideal_valves()  # its stored 0x2100 again
+            return frames
         elif kind is FaultKind.ENCODER_GLITCH:
             default = GLITCH_SWING_MRAD if axis == 3 else GLITCH_MM
             faults.report_offset_m = (default if param is None else float(param)) * 1e-3

@@ -257,18 +257,11 @@ def configuration_writes(
         ),
         SdoWrite(0x1017, 0, hb_ms, "producer heartbeat time (ms)"),
         SdoWrite(0x1016, 1, config.master_node_id << 16 | timeout_ms, "consume master heartbeat"),
-        SdoWrite(0x6060, 0, MODE_CSP, "modes of operation: cyclic synchronous position"),
     ]
     if axis < len(config.valve_overlap_compensation):
-        writes.insert(
-            len(writes) - 1,
-            SdoWrite(
-                0x2100,
-                0,
-                config.valve_overlap_compensation[axis],
-                "valve overlap compensation (0.01 % of full opening)",
-            ),
-        )
+        compensation = config.valve_overlap_compensation[axis]
+        writes.append(SdoWrite(0x2100, 0, compensation, "valve overlap compensation (0.01 %)"))
+    writes.append(SdoWrite(0x6060, 0, MODE_CSP, "modes of operation: cyclic synchronous position"))
     return tuple(writes)
 
 

@@ -30,7 +30,7 @@ import json
 import math
 import struct
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +66,9 @@ PERIOD_S = 2e-3
 #: The held-out digs replayed by the step measurement (planned for the scale model).
 HELDOUT = Path(__file__).resolve().parents[2] / "onnx" / "pinn_downward_heldout.npz"
 _STEP_RIG = "scale_model"
+#: Seeds of the test bench's stroke sensors over which ``bench hil`` runs Gao's path again:
+#: the calibration holds for a sensor, not for one draw of its linearity phase and noise.
+GAO_SEEDS = tuple(range(1, 11))
 _COB_NMT = 0x000
 _RPDO1 = struct.Struct("<ii")
 _CONTROLWORD_MODE = struct.Struct("<Hb")
@@ -220,9 +223,13 @@ class GaoCalibration:
             p``); the paper measured +-3 mm (Fig. 12).
         csp: The same with ours: CSP with velocity feed-forward, the valve drives' overlap
             compensation and the host's loop.
-        host_gain_1_s: The host loop's gain with Gao's loop (1/s).
+        host_gain_1_s: The host loop's gain with Gao's loop (1/s), the highest over the axes.
         path: ``gao`` (Table 2, 3 s segments) or the reduced path's name.
-        host_gain_csp_1_s: The host loop's gain with ours (1/s).
+        host_gain_csp_1_s: The host loop's gain with ours (1/s), the highest over the axes.
+        host_gains_1_s: Per controller (``p``, ``csp``) the host loop's gain per axis (1/s).
+        seeds: Over other seeds of the stroke sensors (``seeds``: the list), per controller
+            and axis the smallest and largest ``max_mm`` (``min_mm``, ``max_mm``); empty when
+            none were run.
     """
 
     p: dict[str, dict[str, float]]
@@ -230,11 +237,14 @@ class GaoCalibration:
     host_gain_1_s: float
     path: str
     host_gain_csp_1_s: float = 0.0
+    host_gains_1_s: dict[str, dict[str, float]] = field(default_factory=dict)
+    seeds: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """The keys of README ``bench hil --json`` ``gao``."""
         return {"p": self.p, "csp": self.csp, "host_gain_1_s": self.host_gain_1_s,
-                "host_gain_csp_1_s": self.host_gain_csp_1_s, "path": self.path}  # fmt: skip
+                "host_gain_csp_1_s": self.host_gain_csp_1_s, "path": self.path,
+                "host_gains_1_s": self.host_gains_1_s, "seeds": self.seeds}  # fmt: skip
 
 
 @dataclass(frozen=True, slots=True)
@@ -314,16 +324,20 @@ class BenchHilReport:
 
 def calibrate_gao(
     joints_deg: tuple[tuple[float, float, float], ...] = (),
-    host_gain_1_s: float | None = None,
-    host_gain_csp_1_s: float | None = None,
+    host_gain_1_s: float | tuple[float, ...] | None = None,
+    host_gain_csp_1_s: float | tuple[float, ...] | None = None,
+    seeds: tuple[int, ...] = (),
 ) -> GaoCalibration:
     """Gao's path (or the key points ``joints_deg``, a reduced path) on the imperfect test
-    bench with Gao's proportional loop and with ours, each with its own host loop gain (None:
+    bench with Gao's proportional loop and with ours, each with its own host loop gains (one
+    for every axis or one per axis; None:
     :data:`~hil_sim.harness.scenario.GAO_HOST_GAIN_1_S` for Gao's,
-    :data:`~hil_sim.harness.scenario.CSP_HOST_GAIN_1_S` for ours).
+    :data:`~hil_sim.harness.scenario.CSP_HOST_GAIN_1_S` for ours); with ``seeds`` both
+    again with each of those seeds of the stroke sensors (``hil.seed``: linearity phase and
+    noise), their spread in :attr:`GaoCalibration.seeds`.
 
     Raises:
-        ConfigurationError: Bad key points.
+        ConfigurationError: Bad key points or seed.
     """
     from hil_sim.harness.scenario import (
         CSP_HOST_GAIN_1_S,
@@ -338,20 +352,40 @@ def calibrate_gao(
     }
     path = "joints" if joints_deg else "gao"
     out: dict[str, dict[str, dict[str, float]]] = {}
+    per_axis: dict[str, dict[str, float]] = {}
+    spread: dict[str, Any] = {"seeds": list(seeds)} if seeds else {}
     for controller, gain in gains.items():
-        sc = PathScenario(
-            path=path,
-            joints_deg=joints_deg,
-            imperfect=True,
-            controller=controller,
-            host_gain_1_s=gain,
-        )
-        report = run_path_scenario(sc).report
-        out[controller] = {
-            axis: {"max_mm": fig.max_mm, "rms_mm": fig.rms_mm}
-            for axis, fig in report.tracking.items()
-        }
-    return GaoCalibration(out["p"], out["csp"], gains["p"], path, gains["csp"])
+        for seed in (None, *seeds):
+            sc = PathScenario(
+                path=path,
+                joints_deg=joints_deg,
+                imperfect=True,
+                controller=controller,
+                host_gain_1_s=gain,
+                hil_seed=seed,
+            )
+            report = run_path_scenario(sc).report
+            if seed is None:
+                per_axis[controller] = dict(report.host_gain_per_axis_1_s)
+                out[controller] = {
+                    axis: {"max_mm": fig.max_mm, "rms_mm": fig.rms_mm}
+                    for axis, fig in report.tracking.items()
+                }
+                continue
+            figs = spread.setdefault(controller, {})
+            for axis, fig in report.tracking.items():
+                lo_hi = figs.setdefault(axis, {"min_mm": math.inf, "max_mm": -math.inf})
+                lo_hi["min_mm"] = min(lo_hi["min_mm"], fig.max_mm)
+                lo_hi["max_mm"] = max(lo_hi["max_mm"], fig.max_mm)
+    return GaoCalibration(
+        out["p"],
+        out["csp"],
+        max(per_axis["p"].values()),
+        path,
+        max(per_axis["csp"].values()),
+        per_axis,
+        spread,
+    )
 
 
 def calibrate_task(task: str = "A", max_digs: int | None = None) -> TaskCalibration:
@@ -432,7 +466,7 @@ def bench_hil(
     step = bench_step(load_rig(_STEP_RIG), step_seconds, cpu=cpu) if step_seconds > 0.0 else None
     if not calibration:
         return BenchHilReport(speed, step)
-    return BenchHilReport(speed, step, calibrate_gao(), calibrate_task())
+    return BenchHilReport(speed, step, calibrate_gao(seeds=GAO_SEEDS), calibrate_task())
 
 
 def _reference(rig: Rig, dig: int) -> tuple[NDArray[np.float64], NDArray[np.float64],
@@ -533,15 +567,26 @@ def format_report(report: BenchHilReport) -> str:
         )
     gao = report.gao
     if gao is not None:
-        for name, figs, gain in (
-            ("p (Gao)", gao.p, gao.host_gain_1_s),
-            ("csp (ours)", gao.csp, gao.host_gain_csp_1_s),
+        for name, figs, controller in (
+            ("p (Gao)", gao.p, "p"),
+            ("csp (ours)", gao.csp, "csp"),
         ):
+            gains = gao.host_gains_1_s.get(controller, {})
+            gain_text = ", ".join(f"{axis} {g:g}" for axis, g in gains.items())
             lines.append(
-                f"  Gao path, imperfect bench, {name}, host loop {gain:g} 1/s: max "
+                f"  Gao path, imperfect bench, {name}, host loop ({gain_text}) 1/s: max "
                 + ", ".join(f"{axis} {f['max_mm']:.2f}" for axis, f in figs.items())
                 + " mm (paper +-3 mm)"
             )
+            spread = gao.seeds.get(controller)
+            if spread:
+                lines.append(
+                    f"    over sensor seeds {gao.seeds['seeds'][0]}-{gao.seeds['seeds'][-1]}: "
+                    + ", ".join(
+                        f"{axis} {f['min_mm']:.2f}-{f['max_mm']:.2f}" for axis, f in spread.items()
+                    )
+                    + " mm"
+                )
     ta = report.task_a
     if ta is not None:
         lines.append(

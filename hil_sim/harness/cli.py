@@ -204,11 +204,12 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--host-gain",
-        type=float,
         default=None,
-        metavar="1/S",
+        metavar="1/S[,1/S,...]",
         help="gain of the host's proportional displacement loop over the bus, added to the "
-        f"velocity offset (default {GAO_HOST_GAIN_1_S:g} with --controller p, 0 with csp)",
+        "velocity offset: one for every axis, or one per axis comma-separated (boom,stick,"
+        "bucket[,swing]; a swing left out takes the arm's lowest); default "
+        f"{','.join(f'{g:g}' for g in GAO_HOST_GAIN_1_S)} with --controller p, 0 with csp",
     )
     p.add_argument(
         "--scanner",
@@ -222,6 +223,14 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         metavar="NAME",
         help="the pit's granular material, one of the profile's [hil.materials] (with "
         "--imperfect; default the profile's hil.material)",
+    )
+    p.add_argument(
+        "--hil-seed",
+        type=int,
+        default=None,
+        metavar="N",
+        help="seed of the HIL's stroke sensors (linearity phase and noise; lockstep; default "
+        "the profile's hil.seed)",
     )
     real = p.add_mutually_exclusive_group()
     real.add_argument(
@@ -292,10 +301,13 @@ def format_report(report: HilReport) -> str:
                     for axis, fig in report.tracking_path.tracking.items()
                 )
             )
+    host = (
+        f" (host loop {_gains_text(report.host_gain_per_axis_1_s)})" if report.host_gain_1_s else ""
+    )
     lines = [
         f"HIL {report.transport}: task {report.task} on {report.rig}"
         f"{' (imperfect)' if report.imperfect else ''}, controller {report.controller}"
-        f"{f' (host loop {report.host_gain_1_s:g} 1/s)' if report.host_gain_1_s else ''}, "
+        f"{host}, "
         f"feed-forward {'on' if report.feedforward else 'off'}: {report.status}"
         + (f" ({report.fault})" if report.fault else ""),
         f"  digs {len(report.digs)}, simulated {report.sim_s:.1f} s, wall "
@@ -341,18 +353,34 @@ def format_report(report: HilReport) -> str:
     return "\n".join(lines)
 
 
-def _host_gain(args: argparse.Namespace) -> float:
+def _gains_text(gains: dict[str, float]) -> str:
+    """The host loop's gains for a report line: one number, or one per axis."""
+    values = set(gains.values())
+    if len(values) == 1:
+        return f"{values.pop():g} 1/s"
+    return ", ".join(f"{axis} {g:g}" for axis, g in gains.items()) + " 1/s"
+
+
+def _host_gain(args: argparse.Namespace) -> float | tuple[float, ...]:
     """``--host-gain``, or the controller's default: Gao's PC loop for ``p``, none for csp.
 
     Raises:
-        ConfigurationError: A gain that is negative or not finite.
+        ConfigurationError: A gain that is negative, not finite or not a number (the count
+            per axis is checked against the rig by the scenario).
     """
-    gain = args.host_gain
-    if gain is None:
+    text = args.host_gain
+    if text is None:
         return GAO_HOST_GAIN_1_S if args.controller == "p" else 0.0
-    if not (math.isfinite(gain) and gain >= 0.0):
-        raise ConfigurationError(f"--host-gain {gain}: allowed a finite gain >= 0 (1/s)")
-    return float(gain)
+    try:
+        gains = tuple(float(part) for part in str(text).split(","))
+    except ValueError:
+        gains = ()
+    if not gains or not all(math.isfinite(g) and g >= 0.0 for g in gains):
+        raise ConfigurationError(
+            f"--host-gain {text}: allowed a finite gain >= 0 (1/s), or one per axis "
+            "comma-separated (boom,stick,bucket[,swing])"
+        )
+    return gains[0] if len(gains) == 1 else gains
 
 
 def run(args: argparse.Namespace) -> int:
@@ -385,6 +413,7 @@ def run(args: argparse.Namespace) -> int:
         host_gain_1_s=_host_gain(args),
         scanner=args.scanner,
         material=args.material,
+        hil_seed=args.hil_seed,
     )
     return _print_run(args, lambda: run_scenario(scenario))
 
@@ -478,5 +507,6 @@ def _run_path(
         imperfect=args.imperfect,
         controller=args.controller,
         host_gain_1_s=_host_gain(args),
+        hil_seed=args.hil_seed,
     )
     return _print_run(args, lambda: run_path_scenario(scenario))

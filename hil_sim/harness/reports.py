@@ -409,7 +409,9 @@ class HilReport:
         imperfect: The profile's ``[hil]`` imperfections were applied.
         material: Granular figures of a task's run on imperfect material, else None.
         scanner: The trench planner planned on a profile scanner's measured surface.
-        host_gain_1_s: Gain of the host's proportional loop over the bus (1/s; 0: none).
+        host_gain_1_s: Gain of the host's proportional loop over the bus (1/s; 0: none), the
+            highest over the axes.
+        host_gain_per_axis_1_s: That loop's gain per axis (1/s).
     """
 
     task: str
@@ -448,6 +450,7 @@ class HilReport:
     material: MaterialFigures | None = None
     scanner: bool = False
     host_gain_1_s: float = 0.0
+    host_gain_per_axis_1_s: dict[str, float] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """The report as one JSON object (``json.dumps`` takes it as it is)."""
@@ -503,4 +506,5 @@ class HilReport:
             out["material"] = self.material.to_json()
         out["scanner"] = self.scanner
         out["host_gain_1_s"] = self.host_gain_1_s
+        out["host_gain_per_axis_1_s"] = dict(self.host_gain_per_axis_1_s)
         return out

@@ -88,6 +88,7 @@ from hil_sim.scanner import ProfileScanner
 from hil_sim.sim import FaultKind, Truth
 from hil_sim.terrain import Terrain
 from rt_runtime import actuation
+from rt_runtime import axes as rig_axes
 from rt_runtime.canbus import BusLoad, CanMaster
 from rt_runtime.control import Clock, FixedRateLoop, LoopConfig, RtSettings
 from rt_runtime.control.executor import (
@@ -196,12 +197,15 @@ class Scenario:
         controller: ``csp`` (target stroke with velocity feed-forward when ``feedforward``)
             or ``p`` (Gao's plain proportional displacement loop: no feed-forward).
         host_gain_1_s: Gain of the host's proportional displacement loop over the bus, added
-            to the velocity offset (1/s; 0: none; see ``ExecutorConfig.correction_gain_1_s``).
+            to the velocity offset (1/s; 0: none; see ``ExecutorConfig.correction_gain_1_s``):
+            one for every axis, or a tuple as :func:`host_gains` takes it.
         scanner: Emulate the rig's profile scanner (``[hil.scanner]``) and plan each dig on
             the surface it measured after the last (lockstep); False: plan on the measured tip
             paths alone.
         material: The granular material in the pit, one of the profile's
             ``[hil.materials]``; None: the profile's ``hil.material``.
+        hil_seed: Seed of the HIL's stroke sensors (linearity phase and noise, ``hil.seed``);
+            None: the profile's.
     """
 
     task: str = "A"
@@ -219,9 +223,10 @@ class Scenario:
     vcu: bool = True
     imperfect: bool | None = None
     controller: str = "csp"
-    host_gain_1_s: float = 0.0
+    host_gain_1_s: float | tuple[float, ...] = 0.0
     scanner: bool = False
     material: str | None = None
+    hil_seed: int | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -503,6 +508,7 @@ def run_scenario(sc: Scenario) -> HilRun:
 
     wall0 = time.perf_counter()
     rig = scenario_rig(sc)
+    host_gains(sc.host_gain_1_s, rig)  # a wrong count is refused before the HIL starts
     task = load_task(sc.task, rig)
     plan_t0 = time.perf_counter()
     planner = TrenchPlanner(rig, sc.planner)
@@ -557,7 +563,7 @@ def run_scenario(sc: Scenario) -> HilRun:
                 trench,
                 ExecutorConfig(
                     feedforward=_feedforward(sc),
-                    correction_gain_1_s=sc.host_gain_1_s,
+                    correction_gain_1_s=host_gains(sc.host_gain_1_s, rig),
                     max_digs=sc.max_digs,
                 ),
                 on_dig_done=on_dig_done,
@@ -603,13 +609,15 @@ def run_scenario(sc: Scenario) -> HilRun:
             segments, sc.plot_dir, design=design, surface_m=surface, title=f"task {task.name}:"
         )
         plots = tuple(str(p) for p in files)
+    gains = host_gains(sc.host_gain_1_s, rig)
     report = HilReport(
         task=task.name,
         rig=rig.name,
         transport=_transport(sc),
         feedforward=_feedforward(sc),
         controller=sc.controller,
-        host_gain_1_s=sc.host_gain_1_s,
+        host_gain_1_s=max(gains),
+        host_gain_per_axis_1_s=dict(zip(rig_axes.names(rig), gains, strict=True)),
         imperfect=rig.hil is not None and rig.hil.enabled,
         period_s=sc.period_s,
         status=result.status.name.lower() if result is not None else "planning_error",
@@ -839,6 +847,7 @@ class PathScenario:
         imperfect: As :class:`Scenario`.
         controller: As :class:`Scenario`.
         host_gain_1_s: As :class:`Scenario`.
+        hil_seed: As :class:`Scenario`.
     """
 
     path: str = "gao"
@@ -857,16 +866,49 @@ class PathScenario:
     faults: tuple[FaultSpec, ...] = field(default_factory=tuple)
     imperfect: bool | None = None
     controller: str = "csp"
-    host_gain_1_s: float = 0.0
+    host_gain_1_s: float | tuple[float, ...] = 0.0
+    hil_seed: int | None = None
+
+
+def host_gains(gain_1_s: float | tuple[float, ...], rig: Rig) -> tuple[float, ...]:
+    """The host loop's gain per driven axis of ``rig`` (1/s).
+
+    Args:
+        gain_1_s: One gain for every axis (a number or a 1-tuple); a tuple of one per arm
+            axis (boom, stick, bucket: a swing takes the lowest of them); or one per driven
+            axis.
+
+    Raises:
+        ConfigurationError: A gain that is negative or not finite, or a count that is none of
+            these (the message names them).
+    """
+    names = rig_axes.names(rig)
+    if isinstance(gain_1_s, (int, float)):
+        values: tuple[float, ...] = (float(gain_1_s),) * len(names)
+    else:
+        values = tuple(float(g) for g in gain_1_s)
+        if len(values) == 1:
+            values *= len(names)
+        elif len(values) == 3 < len(names):
+            values += (min(values),) * (len(names) - 3)
+    if len(values) != len(names) or not all(math.isfinite(g) and g >= 0.0 for g in values):
+        raise ConfigurationError(
+            f"host loop gain {gain_1_s!r}: allowed one finite gain >= 0 (1/s) for every axis, "
+            f"or one per axis ({', '.join(names)}; a swing may take the arm's lowest)"
+        )
+    return values
 
 
 #: The controllers a scenario can run: ours (CSP with velocity feed-forward) and Gao's.
 CONTROLLERS = ("csp", "p")
-#: Gain of Gao's proportional displacement loop in the PC (1/s). Gao gives none, nor his
-#: valves' overlap; with the drive's own 10 1/s (a 25 1/s loop) on valves of 20 % overlap it
-#: reproduces his +-3 mm (Fig. 12) on the imperfect bench, whose dead band keeps the loop from
-#: ringing (the ideal bench rings from ~20 1/s; design notes, H8).
-GAO_HOST_GAIN_1_S = 15.0
+#: Gains of Gao's proportional displacement loop in the PC per cylinder (boom, stick, bucket;
+#: 1/s), each on top of the drive's own 10 1/s. Gao gives neither gain nor his valves'
+#: overlap; on valves of 20 % overlap these put each cylinder in the middle of his +-3 mm
+#: (Fig. 12) on the imperfect bench over the stroke sensors' seeds: the boom's error is its lag
+#: plus the dead band's and takes the highest gain, the bucket's is the dead band's alone
+#: (design notes, H8). The dead band keeps the loop from ringing (the ideal bench rings from
+#: ~20 1/s).
+GAO_HOST_GAIN_1_S: tuple[float, float, float] = (22.0, 17.0, 12.0)
 #: Gain of the host loop beside our CSP and feed-forward on the imperfect bench (1/s): with the
 #: drive's 10 1/s the 20 1/s loop that stays below the ideal bench's ringing (design notes,
 #: H8).
@@ -877,19 +919,28 @@ def scenario_rig(sc: Scenario | PathScenario) -> Rig:
     """The scenario's rig with its ``[hil]`` imperfections switched as the scenario asks.
 
     Raises:
-        ConfigurationError: Unknown rig or controller, or imperfections asked of a rig whose
-            profile has no ``[hil]`` table.
+        ConfigurationError: Unknown rig or controller, imperfections or a HIL seed asked of a
+            rig whose profile has no ``[hil]`` table, or a seed out of range.
     """
     if sc.controller not in CONTROLLERS:
-        raise ConfigurationError(
-            f"controller {sc.controller!r}; allowed: {', '.join(CONTROLLERS)}"
-        )
+        raise ConfigurationError(f"controller {sc.controller!r}; allowed: {', '.join(CONTROLLERS)}")
     rig = load_rig(sc.rig)
     material = getattr(sc, "material", None)
     if material is not None:
         if rig.hil is None:
             raise ConfigurationError(f"rig {rig.name} has no [hil] table: no materials")
         rig = dataclasses.replace(rig, hil=rig.hil.with_material(material))
+    if sc.hil_seed is not None:
+        if rig.hil is None:
+            raise ConfigurationError(f"rig {rig.name} has no [hil] table: no HIL seed to set")
+        if sc.realtime:
+            raise ConfigurationError(
+                "the real-time HIL process loads the profile by name and takes its own "
+                f"hil.seed ({rig.hil.seed}); set it in the profile"
+            )
+        if not 0 <= sc.hil_seed <= 2**31 - 1:
+            raise ConfigurationError(f"HIL seed {sc.hil_seed}; allowed: 0 .. 2^31 - 1")
+        rig = dataclasses.replace(rig, hil=dataclasses.replace(rig.hil, seed=sc.hil_seed))
     if sc.imperfect is None:
         return rig if rig.hil is None or rig.hil.enabled else _uncompensated(rig)
     if rig.hil is None:
@@ -1111,6 +1162,7 @@ def run_path_scenario(sc: PathScenario) -> HilRun:
     """
     wall0 = time.perf_counter()
     rig = scenario_rig(sc)
+    host_gains(sc.host_gain_1_s, rig)  # a wrong count is refused before the HIL starts
     kp = _scenario_path(sc, rig)
     q0 = kp.q_key_rad[0] if sc.start_deg is None else np.radians(np.asarray(sc.start_deg))
     q0 = np.asarray(q0, dtype=np.float64)
@@ -1127,7 +1179,7 @@ def run_path_scenario(sc: PathScenario) -> HilRun:
                 kp.job,
                 ExecutorConfig(
                     feedforward=_feedforward(sc),
-                    correction_gain_1_s=sc.host_gain_1_s,
+                    correction_gain_1_s=host_gains(sc.host_gain_1_s, rig),
                 ),
                 on_cycle=on_cycle,
             )
@@ -1147,13 +1199,15 @@ def run_path_scenario(sc: PathScenario) -> HilRun:
         files = plot_report(segments, sc.plot_dir, title=f"path {kp.job.name} ({kp.orders}):")
         files += _plot_path(rig, segments, kp, sc.plot_dir)
         plots = tuple(str(p) for p in files)
+    gains = host_gains(sc.host_gain_1_s, rig)
     report = HilReport(
         task=f"path {kp.job.name}",
         rig=rig.name,
         transport=_transport(sc),
         feedforward=_feedforward(sc),
         controller=sc.controller,
-        host_gain_1_s=sc.host_gain_1_s,
+        host_gain_1_s=max(gains),
+        host_gain_per_axis_1_s=dict(zip(rig_axes.names(rig), gains, strict=True)),
         imperfect=rig.hil is not None and rig.hil.enabled,
         period_s=sc.period_s,
         status=result.status.name.lower(),

@@ -50,7 +50,7 @@ from rt_runtime import axes
 from rt_runtime.canbus import CanMaster, Emcy
 from rt_runtime.control.controllers import GuardFilter
 from rt_runtime.control.guard import DEFAULT_MARGIN, LimitGuard, StrokeLimits
-from rt_runtime.control.hardware import DriveInterface
+from rt_runtime.control.hardware import DriveInterface, per_axis_gain
 from rt_runtime.control.job import (
     DigRecord,
     ExecStatus,
@@ -98,8 +98,8 @@ class ExecutorConfig:
     Attributes:
         feedforward: Send the stroke rate as velocity offset 0x60B1 (else 0).
         correction_gain_1_s: Gain of the host's proportional displacement loop added to the
-            velocity offset (1/s; see :class:`~rt_runtime.control.hardware.DriveInterface`);
-            0: none.
+            velocity offset (1/s; see :class:`~rt_runtime.control.hardware.DriveInterface`),
+            one for every axis or a tuple of one per axis (axis order); 0: none.
         plan_in_worker: Plan in a separate process; None: when the loop's clock is real time.
         following_error_m: Largest |demand - reported stroke| (m); None: 0.8 of the drives'
             following-error window (the executor stops the job before the drive faults). The
@@ -127,7 +127,7 @@ class ExecutorConfig:
     """
 
     feedforward: bool = True
-    correction_gain_1_s: float = 0.0
+    correction_gain_1_s: float | tuple[float, ...] = 0.0
     plan_in_worker: bool | None = None
     following_error_m: float | None = None
     following_error_cycles: int = 3
@@ -156,11 +156,12 @@ class ExecutorConfig:
             ("read_timeout_s", self.read_timeout_s),
             ("settle_s", self.settle_s),
             ("guard_margin", self.guard_margin),
-            ("correction_gain_1_s", self.correction_gain_1_s),
         )
         for key, opt in optional:
             if opt is not None and not (math.isfinite(opt) and opt >= 0.0):
                 raise ConfigurationError(f"executor {key} = {opt}; allowed: a finite value >= 0")
+        gains = self.correction_gain_1_s
+        per_axis_gain(gains, 1 if isinstance(gains, (int, float)) else max(len(gains), 1))
         for key, count in (
             ("following_error_cycles", self.following_error_cycles),
             ("stale_cycles", self.stale_cycles),
@@ -202,7 +203,6 @@ class ExecutorConfig:
         )
 
 
-
 @dataclass(frozen=True, slots=True)
 class ExecutorResult:
     """What :meth:`Executor.run` did.
@@ -227,7 +227,6 @@ class ExecutorResult:
     telemetry: dict[str, NDArray[Any]]
     emcys: tuple[Emcy, ...] = field(default_factory=tuple)
     plan_us: float = 0.0
-
 
 
 class Executor:
@@ -362,9 +361,7 @@ class Executor:
             self._record,
             int(2.0 * t_max / period) + 16,
         )
-        self.manager = ControllerManager(
-            self.drives, self.job.guard, loop, on_cycle=on_cycle
-        )
+        self.manager = ControllerManager(self.drives, self.job.guard, loop, on_cycle=on_cycle)
         self._ran = False
         self._link_closed = False
 

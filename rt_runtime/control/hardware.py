@@ -31,6 +31,7 @@ latest answer's receive stamp minus the SYNC's send stamp.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -104,6 +105,24 @@ class DriveFeedback:
         self.wait_s = 0.0
 
 
+def per_axis_gain(gain_1_s: float | Sequence[float], n: int) -> tuple[float, ...]:
+    """The host loop's gain per axis (1/s) from one value for every axis or one per axis.
+
+    Raises:
+        ConfigurationError: A gain that is negative or not finite, or a count other than 1
+            or ``n`` (the message names what is allowed).
+    """
+    values = (gain_1_s,) if isinstance(gain_1_s, (int, float)) else tuple(gain_1_s)
+    if len(values) not in (1, n) or not all(
+        isinstance(g, (int, float)) and math.isfinite(g) and g >= 0.0 for g in values
+    ):
+        raise ConfigurationError(
+            f"correction_gain_1_s = {gain_1_s!r}; allowed: one finite value >= 0 (1/s) for "
+            f"every axis or one per axis ({n})"
+        )
+    return tuple(float(g) for g in values) * (n if len(values) == 1 else 1)
+
+
 class DriveInterface:
     """The drives in SI units (see the module docstring).
 
@@ -112,11 +131,12 @@ class DriveInterface:
         clock: The loop's clock (times of SYNC, answers, heartbeat).
         read_timeout_s: Longest wait for one missing answer (s); 0: take what arrived.
         feedforward: Send the stroke rate as velocity offset 0x60B1 (else 0).
-        correction_gain_1_s: Gain of the host's proportional displacement loop (1/s): each
-            cycle adds ``gain * (last target - reported stroke)`` to the velocity offset, on a
-            fresh report (0: none). It closes a second loop over the bus around the drive's
-            own, as a PC controller does (Gao 4.1), and takes out the part of the following
-            error that the drive's loop leaves (a valve's dead band, a screw's friction).
+        correction_gain_1_s: Gain of the host's proportional displacement loop (1/s), one for
+            every axis or one per axis (axis order): each cycle adds ``gain * (last target -
+            reported stroke)`` to the velocity offset, on a fresh report (0: none). It closes
+            a second loop over the bus around the drive's own, as a PC controller does (Gao
+            4.1), and takes out the part of the following error that the drive's loop leaves
+            (a valve's dead band, a screw's friction).
         lead_s: Per axis, a lead (s) added to the velocity offset as ``lead * acceleration``:
             the velocity demand of a first-order lag ``1 / (lead s + 1)`` between the offset
             and the axis's motion (a valve's spool, a motor's hydraulic spring) made good ahead
@@ -133,7 +153,7 @@ class DriveInterface:
         clock: Clock,
         read_timeout_s: float,
         feedforward: bool = True,
-        correction_gain_1_s: float = 0.0,
+        correction_gain_1_s: float | Sequence[float] = 0.0,
         lead_s: NDArray[np.float64] | None = None,
         lead2_s2: NDArray[np.float64] | None = None,
     ) -> None:
@@ -144,13 +164,10 @@ class DriveInterface:
         self.clock = clock
         self.read_timeout_s = float(read_timeout_s)
         self.feedforward = feedforward
-        if not (math.isfinite(correction_gain_1_s) and correction_gain_1_s >= 0.0):
-            raise ConfigurationError(
-                f"correction_gain_1_s = {correction_gain_1_s}; allowed: a finite value >= 0"
-            )
-        self.correction_gain_1_s = float(correction_gain_1_s)
-        self._last_target_m: list[float] | None = None
         self.n = master.n
+        self.correction_gain_1_s = per_axis_gain(correction_gain_1_s, self.n)
+        self._correcting = any(g > 0.0 for g in self.correction_gain_1_s)
+        self._last_target_m: list[float] | None = None
         self.axes: tuple[str, ...] = tuple(master.config.axes)
         self.feedback = DriveFeedback(self.n)
         self._zero_um = [0] * self.n
@@ -159,8 +176,7 @@ class DriveInterface:
             lead = np.asarray(lead_s, dtype=np.float64)
             if lead.shape != (self.n,) or not bool(np.all(np.isfinite(lead) & (lead >= 0.0))):
                 raise ValueError(
-                    f"velocity lead {lead_s!r}: allowed one finite value >= 0 s per axis "
-                    f"({self.n})"
+                    f"velocity lead {lead_s!r}: allowed one finite value >= 0 s per axis ({self.n})"
                 )
             self.lead_s = lead
         self.lead2_s2: NDArray[np.float64] | None = None
@@ -240,14 +256,19 @@ class DriveInterface:
                 if self.feedforward
                 else self._zero_um
             )
-            gain = self.correction_gain_1_s
-            if gain > 0.0:
+            if self._correcting:
                 last = self._last_target_m
                 fb = self.feedback
                 if last is not None and fb.fresh:
                     velocity = [
-                        v + round(gain * (t - x) * 1e6)
-                        for v, t, x in zip(velocity, last, fb.stroke_m.tolist(), strict=True)
+                        v + round(g * (t - x) * 1e6)
+                        for v, g, t, x in zip(
+                            velocity,
+                            self.correction_gain_1_s,
+                            last,
+                            fb.stroke_m.tolist(),
+                            strict=True,
+                        )
                     ]
                 self._last_target_m = stroke_m.tolist()
         except (ValueError, OverflowError):  # NaN or infinite: nothing is sent

@@ -52,9 +52,10 @@ class ProfileScanner:
         self._rng = np.random.default_rng(seed)
         self.scans = 0
 
-    def scan(self) -> tuple[FloatArray, FloatArray]:
-        """One profile: abscissae ``(n,)`` and measured heights ``(n,)`` (work-site frame)."""
-        y = self.terrain.surface_y(self._x)
+    def scan(self, terrain: Terrain | None = None) -> tuple[FloatArray, FloatArray]:
+        """One profile: abscissae ``(n,)`` and measured heights ``(n,)`` (work-site frame), of
+        its terrain or of ``terrain`` (a copy of it cut elsewhere, the same x range)."""
+        y = (self.terrain if terrain is None else terrain).surface_y(self._x)
         if self.spec.noise_m > 0.0:
             y = y + self._rng.normal(0.0, self.spec.noise_m, y.shape)
         self.scans += 1

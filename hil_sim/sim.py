@@ -741,10 +741,22 @@ class HilCore:
         Returns:
             The volume removed (m^3); 0 without a terrain or with fewer than two samples.
         """
-        if self.terrain is None:
+        tip = self.tip_path(sync_from, sync_to)
+        if self.terrain is None or tip is None:
             return 0.0
+        return self.terrain.cut(tip).volume_m3
+
+    def tip_path(self, sync_from: int, sync_to: int) -> FloatArray | None:
+        """The true tip path between two SYNCs (inclusive, 1-based; work-site frame, ``(m,
+        2)``), or None with fewer than two samples kept."""
         rows = self.truth_ring.rows(sync_from - 1, sync_to - 1)
         if len(rows) < 2:
-            return 0.0
-        tip = self._tip_m(np.ascontiguousarray(rows[:, 5:8]), rows[:, 8])
-        return self.terrain.cut(tip).volume_m3
+            return None
+        return self._tip_m(np.ascontiguousarray(rows[:, 5:8]), rows[:, 8])
+
+    def adopt_terrain(self, terrain: Terrain) -> None:
+        """Put ``terrain`` in the place of the one the arm digs (a copy cut off the servo's
+        thread: :class:`hil_sim.harness.realtime`); the soil law follows it."""
+        self.terrain = terrain
+        if self._load is not None:
+            self._load.inner = terrain.soil_model(self.rig)

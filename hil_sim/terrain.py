@@ -40,6 +40,7 @@ Not for the fixed-rate control loop: cuts allocate and call shapely; the sub-ste
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -226,6 +227,14 @@ class Terrain:
         # Totals over the cuts (m^3): swept, kept in the bucket, fallen back, slumped.
         self._totals = [0.0, 0.0, 0.0, 0.0]
 
+    def copy(self) -> Terrain:
+        """An independent copy (cutting one leaves the other as it was)."""
+        out = copy.copy(self)
+        out._y = self._y.copy()
+        out._y_list = list(self._y_list)
+        out._totals = list(self._totals)
+        return out
+
     @property
     def material(self) -> BaseGeometry:
         """The remaining material as a shapely geometry (a Polygon unless a cut split it)."""
@@ -408,7 +417,10 @@ class Terrain:
             path = shapely.get_coordinates(line)
         x0, y0 = path[:-1, 0], path[:-1, 1]
         x1, y1 = path[1:, 0], path[1:, 1]
-        keep = x0 != x1  # a vertical segment sweeps no area; its neighbours carry its depth
+        # A vertical segment sweeps no area (its neighbours carry its depth), nor does one
+        # wholly above the material (the arm's moves in the air: most of a cycle's path).
+        above = max(float(self._y.max()), float(self._material.bounds[3]))
+        keep = (x0 != x1) & (np.minimum(y0, y1) <= above)
         top = max(float(self._y.max()), float(path[:, 1].max())) + 1.0
         if not keep.any():
             return CutResult(0.0, 0.0)

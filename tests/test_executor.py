@@ -544,3 +544,29 @@ def test_bad_configuration_is_refused(
     with pytest.raises(PlanningError, match="once"):
         executor.run()
     hil.close()
+
+
+def test_a_pending_scan_is_fetched_once_and_a_failed_one_leaves_the_tip_paths(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    from rt_runtime.control.planner_worker import PendingScan, _fetched
+
+    x, y = np.linspace(0.0, 1.0, 5), np.full(5, -0.25)
+    calls: list[int] = []
+
+    def fetch() -> tuple[np.ndarray, np.ndarray]:
+        calls.append(1)
+        return x, y
+
+    got = _fetched(PendingScan(fetch))
+    assert got is not None and calls == [1]
+    np.testing.assert_array_equal(got[0], x)
+    assert got[0] is not x  # a copy goes to the planner process
+    assert _fetched(PendingScan(lambda: None)) is None
+
+    def broken() -> tuple[np.ndarray, np.ndarray]:
+        raise TimeoutError("no scan within 5 s")
+
+    with caplog.at_level("ERROR"):
+        assert _fetched(PendingScan(broken)) is None
+    assert "scanner" in caplog.text and "no scan within 5 s" in caplog.text

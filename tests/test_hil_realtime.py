@@ -66,3 +66,98 @@ def test_a_dig_over_the_bridge_tracks(rig: Rig, pending: Any, tmp_path: Path) ->
     messages = list(can.BLFReader(str(trace)))
     ids = {m.arbitration_id for m in messages}
     assert {0x000, 0x080, 0x181, 0x182, 0x183, 0x201, 0x77E, 0x701} <= ids
+
+
+def test_the_real_time_hils_scanner_reaches_the_planner_process(
+    rig: Rig, pending: Any, tmp_path: Path
+) -> None:
+    # The daemon's path with a scanner: the record is queued at once (a PendingScan on the
+    # loop's thread), the planner link's sender fetches the HIL process's look (its terrain
+    # cut in the process's terrain process, granular material included), and the planner
+    # process plans the next dig on that surface, not ahead on the predicted material.
+    from conftest import BRIDGE_MAX_WALL_S, BRIDGE_PATIENCE_S, patient, restore_pending
+
+    from hil_sim.harness.realtime import RealtimeHilProcess
+    from hil_sim.harness.scenario import NO_RT
+    from hil_sim.terrain import Terrain
+    from rt_runtime.canbus import CanMaster
+    from rt_runtime.control import FixedRateLoop, LoopConfig, OverrunPolicy
+    from rt_runtime.control.executor import Executor, ExecutorConfig, executor_telemetry
+    from rt_runtime.control.planner_worker import PendingScan
+
+    profile = tmp_path / "scale_model_imperfect.toml"
+    text = (Path(__file__).parents[1] / "rt_runtime/rig/profiles/scale_model.toml").read_text()
+    profile.write_text(text.replace("\nenabled = false ", "\nenabled = true ", 1))
+    imperfect = load_rig(str(profile))
+    assert imperfect.hil is not None and imperfect.hil.enabled and imperfect.hil.scanner
+    session, q0 = restore_pending(*pending)
+    material = imperfect.hil.active()
+    assert material is not None and material.material is not None
+    ground = Terrain(
+        rig.ground_y_m, (session.x_lo, session.x_hi), rig.bucket.width_m, material=material.material
+    )
+    hil = RealtimeHilProcess.start(
+        rig_name=str(profile),
+        q0_rad=q0,
+        terrain=ground,
+        max_wall_s=BRIDGE_MAX_WALL_S,
+        sync_timeout_s=BRIDGE_PATIENCE_S,
+        scanner=True,
+    )
+    looked = [0]
+    scans: list[tuple[np.ndarray, np.ndarray]] = []
+    cuts: list[float] = []
+
+    def fetch() -> tuple[np.ndarray, np.ndarray] | None:
+        got = hil.scan(looked[0])
+        assert got is not None
+        looked[0], volume, x, y = got
+        cuts.append(volume)
+        scans.append((x, y))
+        return x, y
+
+    try:
+        master = CanMaster(hil.master_bus, patient(rig), period_s=0.002, react_to_faults=False)
+        loop = FixedRateLoop(
+            hil.clock,
+            LoopConfig(rt=NO_RT, overrun=OverrunPolicy(max_consecutive=50)),
+            executor_telemetry(60_000),
+        )
+        executor = Executor(
+            master,
+            rig,
+            loop,
+            session,
+            ExecutorConfig(max_digs=2, plan_in_worker=True, stale_cycles=100),
+            surface_source=lambda: PendingScan(fetch),
+        )
+        try:
+            master.boot(hil.clock.now, 2.0)
+            master.enable(hil.clock.now, 2.0)
+            res = executor.run()
+        finally:
+            executor.close()
+        _, material_end, _, extra = hil.finish()
+    finally:
+        hil.close()
+    assert res.status is ExecStatus.DONE, res.fault
+    assert [r.index for r in res.digs] == [0, 1] and len(scans) == 2
+    spacing = imperfect.hil.scanner.spacing_m
+    for record, (x, y) in zip(res.digs, scans, strict=True):
+        assert x[0] == pytest.approx(session.x_lo) and x[-1] <= session.x_hi + 1e-9
+        np.testing.assert_allclose(np.diff(x), spacing)
+        g = session.ground_y
+        want = np.minimum(np.interp(session.grid, x, y, left=g, right=g), g)
+        np.testing.assert_allclose(record.session_state["surface_m"], want, atol=1e-12)
+    assert not res.digs[1].planned_ahead
+    # Each look cut what the dig removed (the process's own terrain; the granular bucket
+    # keeps less than it swept), and the terrain the process ends with is the cut one.
+    assert all(v > 0.0 for v in cuts), cuts
+    terrain = extra["terrain"]
+    assert terrain["swept_m3"] == pytest.approx(sum(cuts))
+    assert terrain["load_m3"] < terrain["swept_m3"]
+    assert material_end is not None and material_end.area < ground.material.area
+    # Its last look saw the surface the process ended with, to the scanner's noise.
+    x, y = scans[-1]
+    end = np.interp(x, terrain["x_m"], terrain["y_m"])
+    assert float(np.std(y - end)) < 3.0 * imperfect.hil.scanner.noise_m

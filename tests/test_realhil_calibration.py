@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -155,7 +156,6 @@ def test_observe_surface_makes_the_material_what_lies_below_it() -> None:
         (["hil", "--path", "gao", "--hil-seed", "3", "--realtime"], "hil.seed"),
         (["hil", "--rig", "field_excavator", "--imperfect", "--max-digs", "1"], "no [hil]"),
         (["hil", "--imperfect", "--material", "gravel", "--max-digs", "1"], "gravel"),
-        (["hil", "--scanner", "--realtime", "--max-digs", "1"], "lockstep"),
         (["hil", "--path", "gao", "--realtime", "--imperfect"], "real-time HIL process"),
     ],
 )
@@ -165,6 +165,22 @@ def test_the_cli_refuses_what_it_cannot_run(
     assert main([*argv, "--json"]) == 2
     out = json.loads(capsys.readouterr().out)
     assert out["status"] == "error" and says in out["error"], out
+
+
+def test_the_cli_refuses_a_scanner_the_profile_has_not(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    text = (Path(__file__).parents[1] / "rt_runtime/rig/profiles/scale_model.toml").read_text()
+    head, tail = text.split("[hil.scanner]", 1)
+    tail = tail.split("\n\n", 1)[1]
+    profile = tmp_path / "no_scanner.toml"
+    kept = [line for line in tail.splitlines() if not line.startswith('"hil.scanner.')]
+    profile.write_text(head + "\n".join(kept) + "\n")
+    for transport in ([], ["--realtime"]):
+        argv = ["hil", "--scanner", "--rig", str(profile), "--max-digs", "1", *transport]
+        assert main([*argv, "--json"]) == 2
+        out = json.loads(capsys.readouterr().out)
+        assert "no [hil.scanner]" in out["error"], out
 
 
 def test_the_cli_refuses_a_scanner_on_a_path(capsys: pytest.CaptureFixture[str]) -> None:

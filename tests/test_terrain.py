@@ -181,3 +181,32 @@ def test_bad_arguments_are_named() -> None:
         t.cut([(0.1, 0.2), (math.nan, 0.0)])
     with pytest.raises(ConfigurationError, match="speed_reg_m_s"):
         t.soil_model(RIG, speed_reg_m_s=0.0)
+
+
+def test_the_path_in_the_air_cuts_nothing_and_is_left_out() -> None:
+    # A cycle's tip path: high over the pit (dump, swing back), then the dig. The moves above
+    # the material sweep nothing: the cut, the surface and the polygon are the dig's alone.
+    dig = [(0.75, -0.20), (0.6, -0.35), (0.4, -0.35), (0.25, -0.20)]
+    arc = [(1.4 - 0.01 * i, 0.3 + 0.2 * math.sin(0.1 * i)) for i in range(60)]
+    alone, cycle = _terrain(), _terrain()
+    a = alone.cut(dig, simplify_m=0.0)
+    b = cycle.cut([*arc, (0.9, -0.1), *dig, (0.1, 0.2), (-0.3, 0.5)], simplify_m=0.0)
+    assert b.area_m2 == pytest.approx(a.area_m2, rel=1e-12)
+    np.testing.assert_array_equal(cycle.surface_y_m, alone.surface_y_m)
+    assert cycle.material.symmetric_difference(alone.material).area < 1e-12
+    # A path wholly in the air removes nothing.
+    assert _terrain().cut(arc).area_m2 == 0.0
+
+
+def test_a_copy_cuts_on_its_own() -> None:
+    material = load_rig("scale_model").hil
+    assert material is not None
+    t = _terrain(material=material.materials[0])
+    t.cut([(0.75, -0.20), (0.6, -0.35), (0.4, -0.35), (0.25, -0.20)])
+    before = (t.surface_y_m.copy(), t.material, t.swept_m3, t.slumped_m3)
+    copy = t.copy()
+    cut = copy.cut([(1.2, -0.2), (1.1, -0.4), (0.9, -0.4), (0.85, -0.2)])
+    assert cut.area_m2 > 0.0 and copy.swept_m3 > before[2]
+    np.testing.assert_array_equal(t.surface_y_m, before[0])
+    assert t.material is before[1] and t.swept_m3 == before[2] and t.slumped_m3 == before[3]
+    assert t.surface_at(1.0) == pytest.approx(GROUND) and copy.surface_at(1.0) < GROUND - 0.1

@@ -215,7 +215,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "--scanner",
         action="store_true",
         help="emulate the rig's profile scanner ([hil.scanner]) and plan each dig on the "
-        "surface it measured (a task's lockstep run)",
+        "surface it measured (a task run, lockstep or real time)",
     )
     p.add_argument(
         "--material",

@@ -33,10 +33,15 @@ when due, and an error frame goes to the master with each SYNC while some are ow
 the process cannot take is refused on stderr; the process runs on.
 
 Control of the process (:class:`RealtimeHilProcess`): one line commands on stdin
-(``inject <kind> <axis> [<param>]``, ``cut <sync_from> <sync_to>``, ``stop``), answers on stdout
-(``READY <port>``, ``CUT <m3>``). On ``stop``, on end of stdin (the parent died) or after
-``--max-wall-s`` it writes its truth (``numpy.savez``: :class:`~hil_sim.sim.Truth` arrays, the
-terrain's material as WKB, its loop statistics, its resident memory) and exits, so a test can
+(``inject <kind> <axis> [<param>]``, ``cut <sync_from> <sync_to>``, ``scan <sync_from>``,
+``stop``), answers on stdout (``READY <port>``, ``CUT <m3>``, ``SCAN <sync> <m3> <x> <y>``).
+``scan`` is the rig's profile scanner (``--scanner``: ``[hil.scanner]`` of the profile, seeded
+with ``hil.seed``, as the lockstep HIL's): the terrain is cut with the true tip path from
+``sync_from + 1`` to the last SYNC received, then sampled; the answer carries that SYNC, the
+volume cut and the samples (float64, base64). On ``stop``, on end of stdin (the parent died)
+or after ``--max-wall-s`` it writes its truth (``numpy.savez``: :class:`~hil_sim.sim.Truth`
+arrays, the terrain's material as WKB and its surface and volumes, its loop statistics, its
+resident memory) and exits, so a test can
 never leave it running.
 
 Scheduling: the process stands in for drive firmware, which a loaded rig PC never stalls, so it
@@ -52,9 +57,15 @@ Run by hand:
 from __future__ import annotations
 
 import argparse
+import base64
+import collections
+import concurrent.futures
+import contextlib
 import dataclasses
 import gc
 import math
+import multiprocessing
+import os
 import queue
 import select
 import subprocess
@@ -71,6 +82,7 @@ import numpy as np
 from hil_sim.bridge import FLAG_ERROR, FLAG_EXTENDED, FLAG_REMOTE
 from hil_sim.busfaults import BusFaults
 from hil_sim.harness.bridge import Bridge, RxFrame
+from hil_sim.scanner import ProfileScanner
 from hil_sim.sim import COB_SYNC, FaultKind, HilCore, Truth, open_trace
 from hil_sim.terrain import Terrain
 from rt_runtime.control import MonotonicClock
@@ -132,6 +144,13 @@ def serve(args: argparse.Namespace) -> int:
         truth_rows=max(2, math.ceil(args.truth_s / args.period) + 1),
         preallocate_truth=True,
     )
+    scanner = None
+    if args.scanner:
+        spec = rig.hil.scanner if rig.hil is not None else None
+        if terrain is None or spec is None or rig.hil is None:
+            print("HIL: --scanner needs --terrain and the profile's [hil.scanner]", file=sys.stderr)
+            return 2
+        scanner = ProfileScanner(terrain, spec, seed=rig.hil.seed)
     if args.trace:
         core.trace = open_trace(args.trace)
     bridge = Bridge(args.port, channel_info=f"excavator-rt HIL ({rig.name})")
@@ -148,6 +167,20 @@ def serve(args: argparse.Namespace) -> int:
     loop = _HilLoop(
         core, bridge, rig.drives.servo_period_s, args.period, BusFaults(args.fault_seed)
     )
+    # Cuts and scans cut a copy of the terrain in a process of their own, one at a time, and
+    # the copy takes the terrain's place between servo ticks: the drives answer every SYNC
+    # meanwhile (a cut with its slump takes tens of ms, beyond the master's stale limit).
+    terrain_commands: collections.deque[list[str]] = collections.deque()
+    work: list[_TerrainWork] = []
+    pool = (
+        concurrent.futures.ProcessPoolExecutor(
+            1,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_terrain_process_init,
+        )
+        if terrain is not None
+        else None
+    )
     gc.freeze()
     running = True
     poll_s = args.poll
@@ -162,20 +195,35 @@ def serve(args: argparse.Namespace) -> int:
                     loop.inject(words[1:])
                 except (KeyError, IndexError, ValueError) as exc:
                     print(f"HIL: inject {' '.join(words[1:])} refused: {exc}", file=sys.stderr)
-            elif words[0] == "cut":
-                volume = core.cut(int(words[1]), int(words[2]))
-                print(f"CUT {volume!r}", flush=True)
+            elif words[0] in ("cut", "scan"):
+                terrain_commands.append(words)
             elif words[0] == "stop":
                 running = False
+        if work and work[0].done():
+            print(work.pop().adopt(core, scanner), flush=True)
+        if not work and terrain_commands:
+            work.append(_TerrainWork.start(core, pool, scanner, terrain_commands.popleft()))
         if loop.now() > args.max_wall_s:
             running = False
+    for pending in work:
+        print(pending.adopt(core, scanner), flush=True)
+    if pool is not None:
+        pool.shutdown(wait=True, cancel_futures=True)
     bridge.close()
     if core.trace is not None:
         core.trace.stop()
     truth = core.truth()
     stats = loop.stats
     rss_mb, rss_max_mb = process_memory_mb()
+    ground = core.terrain
     extra = {
+        "terrain_x": ground.surface_x_m if ground is not None else np.zeros(0),
+        "terrain_y": ground.surface_y_m if ground is not None else np.zeros(0),
+        "terrain_m3": np.array(
+            [ground.swept_m3, ground.load_m3, ground.fallback_m3, ground.slumped_m3]
+            if ground is not None
+            else []
+        ),
         "material_wkb": np.frombuffer(
             core.terrain.material.wkb if core.terrain is not None else b"", dtype=np.uint8
         ),
@@ -418,6 +466,87 @@ class _HilLoop:
         self.bridge.flush()
 
 
+class _TerrainWork:
+    """One ``cut`` or ``scan`` command: the true tip path taken on the servo's thread, the cut
+    of a copy of the terrain in the terrain process (``pool``; no GIL shared with the servo),
+    then :meth:`adopt` on the servo's thread puts the cut copy in the terrain's place, lets
+    the scanner look at it and gives the answer line."""
+
+    def __init__(self, words: list[str], future: concurrent.futures.Future[Any] | None) -> None:
+        self.words = words
+        self.future = future
+        self.last_sync = -1
+        self.error = ""
+
+    def done(self) -> bool:
+        return self.future is None or self.future.done()
+
+    @classmethod
+    def start(
+        cls,
+        core: HilCore,
+        pool: concurrent.futures.Executor | None,
+        scanner: ProfileScanner | None,
+        words: list[str],
+    ) -> _TerrainWork:
+        try:
+            if words[0] == "cut":
+                lo, hi = int(words[1]), int(words[2])
+            else:
+                lo, hi = int(words[1]) + 1, core.sync_count
+        except (IndexError, ValueError) as exc:
+            work = cls(words, None)
+            work.error = f"{' '.join(words)}: {exc}"
+            return work
+        tip = core.tip_path(lo, hi)
+        if pool is None or core.terrain is None or (words[0] == "scan" and scanner is None):
+            return cls(words, None)
+        work = cls(words, pool.submit(_cut_copy, core.terrain.copy(), tip))
+        work.last_sync = hi
+        return work
+
+    def adopt(self, core: HilCore, scanner: ProfileScanner | None) -> str:
+        """Put the cut copy in place (the scanner looks at it); the command's answer line."""
+        volume = 0.0
+        if self.future is not None:
+            try:
+                terrain, volume = self.future.result()
+            except Exception as exc:  # the process goes on; the command says why
+                self.error = f"{' '.join(self.words)}: {type(exc).__name__}: {exc}"
+            else:
+                core.adopt_terrain(terrain)
+        if self.error:
+            print(f"HIL: {self.error}", file=sys.stderr)
+        if self.words[0] == "cut":
+            return f"CUT {volume!r}"
+        if scanner is None or core.terrain is None or self.error:
+            return "SCAN -1"
+        x, y = scanner.scan(core.terrain)
+        return f"SCAN {self.last_sync} {volume!r} {_b64(x)} {_b64(y)}"
+
+
+def _cut_copy(terrain: Terrain, tip: np.ndarray | None) -> tuple[Terrain, float]:
+    """In the terrain process: ``terrain`` cut with ``tip`` (None: not cut) and the volume."""
+    volume = terrain.cut(tip).volume_m3 if tip is not None else 0.0
+    return terrain, volume
+
+
+def _terrain_process_init() -> None:
+    """The terrain process runs below the servo's thread: the default scheduler, niced."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(OSError):
+        os.nice(5)
+
+
+def _b64(values: np.ndarray) -> str:
+    return base64.b64encode(np.ascontiguousarray(values, dtype="<f8").tobytes()).decode("ascii")
+
+
+def _from_b64(text: str) -> np.ndarray:
+    return np.frombuffer(base64.b64decode(text), dtype="<f8").astype(np.float64)
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         "python -m hil_sim.harness.realtime", description=__doc__.split("\n")[0]
@@ -433,6 +562,11 @@ def _parser() -> argparse.ArgumentParser:
         metavar=("GROUND_Y", "X_MIN", "X_MAX", "WIDTH"),
     )
     p.add_argument("--no-vcu", action="store_true")
+    p.add_argument(
+        "--scanner",
+        action="store_true",
+        help="emulate the profile's [hil.scanner] over the terrain (the scan command)",
+    )
     p.add_argument(
         "--sync-timeout-ms",
         type=float,
@@ -489,6 +623,9 @@ class RealtimeHilProcess:
         self.clock = MonotonicClock()
         # python-can-remote's own RemoteBus connects as well; this end sends without a thread.
         self.master_bus: can.BusABC = BridgeBus(port)
+        # Commands come from several threads (fault injection, the dig-done callback, the
+        # planner link's sender): one line and its answer at a time.
+        self._lock = threading.Lock()
         self._finished: tuple[Truth, Any, list[tuple[int, bytes]], dict[str, Any]] | None = None
 
     @classmethod
@@ -506,6 +643,7 @@ class RealtimeHilProcess:
         sync_timeout_s: float | None = None,
         rt_priority: int | None = HIL_RT_PRIORITY,
         truth_s: float | None = None,
+        scanner: bool = False,
     ) -> RealtimeHilProcess:
         """Start the HIL process and connect to it.
 
@@ -524,6 +662,7 @@ class RealtimeHilProcess:
                 None for the default scheduler.
             truth_s: Seconds of truth the process keeps (the last ones), or None for
                 :data:`TRUTH_S`.
+            scanner: Emulate the profile's scanner over ``terrain`` (:meth:`scan`).
 
         Raises:
             CommunicationError: The process did not report ready in time.
@@ -549,6 +688,8 @@ class RealtimeHilProcess:
             ]
         if not vcu:
             cmd.append("--no-vcu")
+        if scanner:
+            cmd.append("--scanner")
         if sync_timeout_s is not None:
             cmd += ["--sync-timeout-ms", repr(sync_timeout_s * 1e3)]
         if trace_path is not None:
@@ -573,9 +714,34 @@ class RealtimeHilProcess:
         return cls(proc, int(line.split()[1]), out, tmp, period_s)
 
     def _command(self, line: str) -> None:
+        with self._lock:
+            self._write(line)
+
+    def _write(self, line: str) -> None:
         assert self.proc.stdin is not None
         self.proc.stdin.write(line + "\n")
         self.proc.stdin.flush()
+
+    def _ask(self, line: str, answer: str, timeout_s: float) -> list[str] | None:
+        """Send ``line``, and the words of the next stdout line that starts with ``answer``
+        (None when none came within ``timeout_s`` or the process is gone)."""
+        assert self.proc.stdout is not None
+        with self._lock:
+            try:
+                self._write(line)
+            except (BrokenPipeError, ValueError):
+                return None
+            deadline = time.monotonic() + timeout_s
+            while (left := deadline - time.monotonic()) > 0.0:
+                ready, _, _ = select.select([self.proc.stdout], [], [], left)
+                if not ready:
+                    break
+                reply = self.proc.stdout.readline()
+                if not reply:
+                    break
+                if reply.startswith(answer + " "):
+                    return reply.split()
+        return None
 
     def inject(self, kind: FaultKind, axis: int, param: float | None = None) -> None:
         """Inject a fault in the HIL process now: a drive fault in the axis's node
@@ -596,12 +762,27 @@ class RealtimeHilProcess:
             BusFaults().inject(kind, None, param, 0.0)  # the parameter's range, said here
         self._command(f"inject {kind.name} {axis}" + ("" if param is None else f" {param!r}"))
 
-    def cut(self, sync_from: int, sync_to: int) -> float:
-        """Cut the HIL's terrain with the true tip path between two SYNCs; the volume (m^3)."""
-        self._command(f"cut {sync_from} {sync_to}")
-        assert self.proc.stdout is not None
-        line = self.proc.stdout.readline()
-        return float(line.split()[1]) if line.startswith("CUT ") else 0.0
+    def cut(self, sync_from: int, sync_to: int, timeout_s: float = 30.0) -> float:
+        """Cut the HIL's terrain with the true tip path between two SYNCs; the volume (m^3),
+        0 where no answer came within ``timeout_s``."""
+        words = self._ask(f"cut {sync_from} {sync_to}", "CUT", timeout_s)
+        return float(words[1]) if words is not None else 0.0
+
+    def scan(
+        self, sync_from: int, timeout_s: float = 5.0
+    ) -> tuple[int, float, np.ndarray, np.ndarray] | None:
+        """The profile scanner's look (started with ``scanner``): the terrain cut with the
+        true tip path after SYNC ``sync_from`` up to the last SYNC the process received, then
+        scanned. Waits at most ``timeout_s`` (not on the loop's thread).
+
+        Returns:
+            ``(last SYNC, volume cut (m^3), x_m, y_m)``, or None without a scanner or an
+            answer in time.
+        """
+        words = self._ask(f"scan {sync_from}", "SCAN", timeout_s)
+        if words is None or len(words) != 5:
+            return None
+        return int(words[1]), float(words[2]), _from_b64(words[3]), _from_b64(words[4])
 
     def finish(self) -> tuple[Truth, Any, list[tuple[int, bytes]], dict[str, Any]]:
         """Disconnect, stop the process and load its truth (idempotent).
@@ -637,6 +818,16 @@ class RealtimeHilProcess:
                 "rss_max_mb": round(float(data["rss_max_mb"]), 1),
             }
         }
+        if "terrain_m3" in data and len(data["terrain_m3"]) == 4:
+            swept, load, fallback, slumped = (float(v) for v in data["terrain_m3"])
+            extra["terrain"] = {
+                "x_m": np.asarray(data["terrain_x"], dtype=np.float64),
+                "y_m": np.asarray(data["terrain_y"], dtype=np.float64),
+                "swept_m3": swept,
+                "load_m3": load,
+                "fallback_m3": fallback,
+                "slumped_m3": slumped,
+            }
         self._finished = (truth, material, [], extra)
         return self._finished
 

@@ -52,6 +52,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import queue
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -99,7 +100,7 @@ from rt_runtime.control.executor import (
     Phase,
     executor_telemetry,
 )
-from rt_runtime.control.planner_worker import PathJob, PolynomialMotion
+from rt_runtime.control.planner_worker import PathJob, PendingScan, PolynomialMotion
 from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.reports import BusLoadFigures, Distribution
 from rt_runtime.rig import Rig, load_rig
@@ -200,8 +201,9 @@ class Scenario:
             to the velocity offset (1/s; 0: none; see ``ExecutorConfig.correction_gain_1_s``):
             one for every axis, or a tuple as :func:`host_gains` takes it.
         scanner: Emulate the rig's profile scanner (``[hil.scanner]``) and plan each dig on
-            the surface it measured after the last (lockstep); False: plan on the measured tip
-            paths alone.
+            the surface it measured after the last (lockstep: over the HIL's terrain at the
+            record; real time: the HIL process's look, fetched off the loop's thread while the
+            arm holds at the exit); False: plan on the measured tip paths alone.
         material: The granular material in the pit, one of the profile's
             ``[hil.materials]``; None: the profile's ``hil.material``.
         hil_seed: Seed of the HIL's stroke sensors (linearity phase and noise, ``hil.seed``);
@@ -238,6 +240,31 @@ class _HilEnd:
     frames: list[tuple[int, bytes]]
     hil_lockstep: LockstepCost | None = None
     hil_process: HilProcessFigures | None = None
+    terrain: _TerrainEnd | None = None
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _TerrainEnd:
+    """The HIL's terrain at the end of a run: its sampled surface (m) and what its cuts swept,
+    kept, let fall back and slumped (m^3)."""
+
+    x_m: FloatArray
+    y_m: FloatArray
+    swept_m3: float
+    load_m3: float
+    fallback_m3: float
+    slumped_m3: float
+
+    @classmethod
+    def of(cls, terrain: Terrain) -> _TerrainEnd:
+        return cls(
+            terrain.surface_x_m,
+            terrain.surface_y_m,
+            terrain.swept_m3,
+            terrain.load_m3,
+            terrain.fallback_m3,
+            terrain.slumped_m3,
+        )
 
 
 class _Hil(Protocol):
@@ -275,7 +302,11 @@ class _LockstepAdapter:
         core = self.hil.core
         material = core.terrain.material if core.terrain is not None else None
         return _HilEnd(
-            core.truth(), material, list(core.frames), hil_lockstep=self.hil.cost.summary()
+            core.truth(),
+            material,
+            list(core.frames),
+            hil_lockstep=self.hil.cost.summary(),
+            terrain=_TerrainEnd.of(core.terrain) if core.terrain is not None else None,
         )
 
     def close(self) -> None:
@@ -299,11 +330,13 @@ class _RealtimeAdapter:
     def finish(self) -> _HilEnd:
         truth, material, frames, extra = self.hil.finish()
         process = extra.get("hil_process")
+        ground = extra.get("terrain")
         return _HilEnd(
             truth,
             material,
             frames,
             hil_process=HilProcessFigures.from_json(process) if process is not None else None,
+            terrain=_TerrainEnd(**ground) if ground is not None else None,
         )
 
     def close(self) -> None:
@@ -324,6 +357,7 @@ def _open_hil(
                 period_s=sc.period_s,
                 vcu=sc.vcu,
                 trace_path=sc.trace_path,
+                scanner=bool(getattr(sc, "scanner", False)),
             )
         )
     hil = LockstepHil(
@@ -536,6 +570,7 @@ def run_scenario(sc: Scenario) -> HilRun:
     error = ""
     bus_load = None
     scanned = [0, 0.0]  # the last SYNC the terrain was cut to, the volume of that cut
+    scan_volumes: queue.SimpleQueue[float] = queue.SimpleQueue()  # real time: each look's cut
     try:
 
         def on_dig_done(record: DigRecord) -> None:
@@ -544,16 +579,36 @@ def run_scenario(sc: Scenario) -> HilRun:
             if scanner is not None:
                 cut_m3[record.index] = float(scanned[1])
                 return
+            if sc.scanner:  # the real-time HIL's scanner: its look precedes the record
+                try:
+                    cut_m3[record.index] = scan_volumes.get(timeout=2.0 * SCAN_WAIT_S)
+                except queue.Empty:
+                    cut_m3[record.index] = math.nan
+                return
             cut_m3[record.index] = hil.cut(record.sync_first, record.sync_last)
 
-        def scan_surface() -> tuple[FloatArray, FloatArray]:
+        def scan_surface() -> tuple[FloatArray, FloatArray] | PendingScan:
             # After a dig is recorded: the terrain cut by the true tip path since the last
-            # look, then scanned; the planner plans the next dig on it.
-            assert scanner is not None and isinstance(hil, _LockstepAdapter)
+            # look, then scanned; the planner plans the next dig on it. On the loop's thread:
+            # the real-time HIL's look is fetched later, on the planner link's sender thread.
+            if not isinstance(hil, _LockstepAdapter):
+                return PendingScan(fetch_scan)
+            assert scanner is not None
             last = hil.hil.core.sync_count
             scanned[1] = hil.cut(int(scanned[0]) + 1, last)
             scanned[0] = last
             return scanner.scan()
+
+        def fetch_scan() -> tuple[FloatArray, FloatArray] | None:
+            assert isinstance(hil, _RealtimeAdapter)
+            got = hil.hil.scan(int(scanned[0]), timeout_s=SCAN_WAIT_S)
+            if got is None:
+                scan_volumes.put(math.nan)
+                return None
+            last, volume, x, y = got
+            scanned[0] = last
+            scan_volumes.put(volume)
+            return x, y
 
         def make_executor(master: CanMaster, loop: FixedRateLoop, on_cycle: _OnCycle) -> Executor:
             return Executor(
@@ -568,7 +623,7 @@ def run_scenario(sc: Scenario) -> HilRun:
                 ),
                 on_dig_done=on_dig_done,
                 on_cycle=on_cycle,
-                surface_source=scan_surface if scanner is not None else None,
+                surface_source=scan_surface if sc.scanner else None,
             )
 
         result, bus_load = _execute(sc, rig, hil, faults, _MAX_RUN_S, make_executor)
@@ -595,8 +650,8 @@ def run_scenario(sc: Scenario) -> HilRun:
         design = trench.design
     dig_energy_j = _dig_energy_j(segments, sc.period_s)
     material_figures = (
-        _material_figures(rig, task, result, dig_energy_j, terrain)
-        if result is not None and terrain.granular is not None and not sc.realtime
+        _material_figures(rig, task, result, dig_energy_j, terrain.granular.name, end.terrain)
+        if result is not None and terrain.granular is not None and end.terrain is not None
         else None
     )
     plots: tuple[str, ...] | None = None
@@ -665,22 +720,20 @@ def run_scenario(sc: Scenario) -> HilRun:
 
 
 def _scanner(sc: Scenario, rig: Rig, terrain: Terrain) -> ProfileScanner | None:
-    """The scenario's profile scanner, or None.
+    """The scenario's profile scanner over the lockstep HIL's terrain, or None (none asked,
+    or a real-time run: the HIL process emulates it over its own terrain).
 
     Raises:
-        ConfigurationError: A scanner asked of a real-time run or of a rig whose profile has
-            no ``[hil.scanner]``.
+        ConfigurationError: A scanner asked of a rig whose profile has no ``[hil.scanner]``.
     """
     if not sc.scanner:
         return None
-    if sc.realtime:
-        raise ConfigurationError(
-            "the profile scanner runs in the lockstep HIL only (drop --realtime or --scanner)"
-        )
     spec = rig.hil.scanner if rig.hil is not None else None
-    if spec is None:
+    if spec is None or rig.hil is None:
         raise ConfigurationError(f"rig {rig.name} has no [hil.scanner] in its profile")
-    return ProfileScanner(terrain, spec, seed=rig.hil.seed if rig.hil is not None else 0)
+    if sc.realtime:
+        return None
+    return ProfileScanner(terrain, spec, seed=rig.hil.seed)
 
 
 def _dig_energy_j(segments: list[Segment], period_s: float) -> dict[int, float]:
@@ -697,10 +750,12 @@ def _material_figures(
     task: Any,
     result: ExecutorResult,
     dig_energy_j: dict[int, float],
-    terrain: Terrain,
+    material: str,
+    terrain: _TerrainEnd,
 ) -> MaterialFigures:
-    """Yao's material-flow figures of a lockstep task run on granular material: bucket load
-    against V_p, executed against planned energy per dig, the finished trench (Table 6)."""
+    """Yao's material-flow figures of a task run on granular material ``material``: bucket
+    load against V_p, executed against planned energy per dig, the finished trench (Table 6)
+    from the HIL's terrain at the end."""
     from hil_sim.report import trench_shape
 
     digs = result.digs
@@ -713,19 +768,15 @@ def _material_figures(
     )
     planned_e = sum(r.planned_energy_j for r in digs)
     executed_e = sum(dig_energy_j.get(r.index, math.nan) for r in digs)
-    length, depth, b_far, b_near = trench_shape(
-        terrain.surface_x_m, terrain.surface_y_m, rig.ground_y_m
-    )
+    length, depth, b_far, b_near = trench_shape(terrain.x_m, terrain.y_m, rig.ground_y_m)
     table6 = Table6(
         L=abs(length - task.length_m) / task.length_m,
         D=abs(depth - task.depth_m) / task.depth_m,
         beta1=abs(b_far - task.beta1_rad) / task.beta1_rad,
         beta2=abs(b_near - task.beta2_rad) / task.beta2_rad,
     )
-    mat = terrain.granular
-    assert mat is not None
     return MaterialFigures(
-        name=mat.name,
+        name=material,
         swept_L=terrain.swept_m3 * 1e3,
         load_L=terrain.load_m3 * 1e3,
         planned_L=planned_l,
@@ -899,6 +950,9 @@ def host_gains(gain_1_s: float | tuple[float, ...], rig: Rig) -> tuple[float, ..
     return values
 
 
+#: Longest wait for the real-time HIL's scanner to answer a look (s): the planner plans the
+#: next dig on the tip paths where none came (the arm holds at the exit meanwhile).
+SCAN_WAIT_S = 5.0
 #: The controllers a scenario can run: ours (CSP with velocity feed-forward) and Gao's.
 CONTROLLERS = ("csp", "p")
 #: Gains of Gao's proportional displacement loop in the PC per cylinder (boom, stick, bucket;

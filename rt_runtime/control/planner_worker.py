@@ -99,6 +99,7 @@ __all__ = [
     "PathJob",
     "PathLink",
     "PathPlan",
+    "PendingScan",
     "PlannerError",
     "PlannerGone",
     "PlannerLink",
@@ -493,10 +494,44 @@ class PlannerSpec:
         )
 
 
+@dataclass(frozen=True, slots=True)
+class PendingScan:
+    """A scan that a scanner takes after the dig ended and hands over later, off the loop's
+    thread (a real-time HIL's scanner in another process, a scanner on its own link).
+
+    Attributes:
+        fetch: Waits for the scan (its own bound on the wait) and returns ``(x_m, y_m)``, or
+            None where none came in time (the next dig is then planned on the tip paths).
+            :class:`ProcessPlanner` calls it on its sender thread before the record leaves
+            for the planner process, which plans the next dig once the scan is there (the
+            arm holds at the exit meanwhile); an in-process link calls it as it records.
+    """
+
+    fetch: Callable[[], tuple[FloatArray, FloatArray] | None]
+
+
 #: A profile scanner's surface measured after the dig just recorded ended, ``(x_m, y_m)``
-#: (work-site frame), or None where it has none that recent (the next dig is then planned on
-#: the tip paths): a scan from before the dig ended would put back what the dig removed.
-SurfaceSource = Callable[[], "tuple[FloatArray, FloatArray] | None"]
+#: (work-site frame), a :class:`PendingScan` for one still to come, or None where it has none
+#: that recent (the next dig is then planned on the tip paths): a scan from before the dig
+#: ended would put back what the dig removed. Asked as each record is queued, on the caller's
+#: thread (the loop's): it must return at once.
+SurfaceSource = Callable[[], "tuple[FloatArray, FloatArray] | PendingScan | None"]
+
+
+def _surface_arrays(surface: tuple[FloatArray, FloatArray]) -> tuple[FloatArray, FloatArray]:
+    x, y = surface
+    return np.array(x, dtype=np.float64), np.array(y, dtype=np.float64)
+
+
+def _fetched(pending: PendingScan) -> tuple[FloatArray, FloatArray] | None:
+    """The pending scan's surface, or None where it raised (logged: the next dig is then
+    planned on the tip paths, as without a scanner)."""
+    try:
+        surface = pending.fetch()
+    except Exception:
+        log.exception("the profile scanner's surface could not be fetched")
+        return None
+    return None if surface is None else _surface_arrays(surface)
 
 
 class SessionDriver:
@@ -508,9 +543,10 @@ class SessionDriver:
             grid (:attr:`DigPlan.sampled`), chained from the pose of the first request; None:
             not sampled.
         surface_source: A profile scanner's latest measured surface, ``(x_m, y_m)`` in the
-            work-site frame or None when it has none, asked after each :meth:`record`: the
-            next dig is planned on it (:meth:`TrenchSession.observe_surface`). None: no
-            scanner, the trench is planned from the measured tip paths alone.
+            work-site frame, a :class:`PendingScan` (fetched here) or None when it has none,
+            asked after each :meth:`record`: the next dig is planned on it
+            (:meth:`TrenchSession.observe_surface`). None: no scanner, the trench is planned
+            from the measured tip paths alone.
     """
 
     def __init__(
@@ -723,6 +759,8 @@ class SessionDriver:
         volume = s.record(dig, tip)
         if self.surface_source is not None:
             measured = self.surface_source()
+            if isinstance(measured, PendingScan):
+                measured = _fetched(measured)
             if measured is not None:
                 s.observe_surface(*measured)
                 # A plan made ahead chose its dig's fill on the predicted material; what the
@@ -1055,8 +1093,9 @@ class ProcessPlanner:
         period_s: The loop's period (replies carry their motions sampled on its grid), when
             ``spec`` is not given.
         surface_source: A profile scanner (see :class:`SessionDriver`), or None. It is asked
-            on the caller's thread as each record is queued (it must return the scan it holds,
-            never wait for one), and its surface goes to the process with the record.
+            on the caller's thread as each record is queued (it must return the scan it holds
+            or a :class:`PendingScan`, never wait for one), and its surface goes to the
+            process with the record (a pending one once the sender thread has fetched it).
 
     Raises:
         ConfigurationError: The trench's planner cannot be rebuilt in another process.
@@ -1106,6 +1145,8 @@ class ProcessPlanner:
             item = self._outbox.get()
             if item is None:
                 break
+            if item[0] == "record" and isinstance(item[3], PendingScan):
+                item = (*item[:3], _fetched(item[3]))
             try:
                 self._conn.send(item)
             except (OSError, ValueError):
@@ -1132,11 +1173,11 @@ class ProcessPlanner:
 
     def request_record(self, strokes_m: FloatArray, plan_next: bool) -> None:
         """Queue a record request (loop safe: a copy of the strokes and a queue put), with the
-        profile scanner's surface where there is one."""
+        profile scanner's surface where there is one (a :class:`PendingScan` is fetched on
+        the sender thread, and the record leaves once it is there)."""
         surface = self._surface_source() if self._surface_source is not None else None
-        if surface is not None:
-            x, y = surface
-            surface = (np.array(x, dtype=np.float64), np.array(y, dtype=np.float64))
+        if surface is not None and not isinstance(surface, PendingScan):
+            surface = _surface_arrays(surface)
         self._outbox.put(("record", np.array(strokes_m, dtype=np.float64), plan_next, surface))
 
     def poll(self) -> Reply | None:

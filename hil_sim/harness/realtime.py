@@ -61,6 +61,7 @@ import base64
 import collections
 import concurrent.futures
 import contextlib
+import ctypes
 import dataclasses
 import gc
 import math
@@ -68,6 +69,7 @@ import multiprocessing
 import os
 import queue
 import select
+import signal
 import subprocess
 import sys
 import tempfile
@@ -107,6 +109,8 @@ HOST = Bridge.HOST
 HIL_RT_PRIORITY = 30
 #: Seconds of truth the process keeps by default (the last ones; at the SYNC period given).
 TRUTH_S = 300.0
+#: <linux/prctl.h>: the signal a process gets when its parent ends.
+_PR_SET_PDEATHSIG = 1
 #: SYNCs whose timing the percentiles of :class:`SyncStats` are taken over (the last ones).
 SYNC_STATS_ROWS = 1 << 17
 _NOT_FOR_NODES = FLAG_EXTENDED | FLAG_REMOTE | FLAG_ERROR
@@ -532,11 +536,15 @@ def _cut_copy(terrain: Terrain, tip: np.ndarray | None) -> tuple[Terrain, float]
 
 
 def _terrain_process_init() -> None:
-    """The terrain process runs below the servo's thread: the default scheduler, niced."""
+    """The terrain process runs below the servo's thread (the default scheduler, niced) and
+    ends with the HIL process, however that ends (``PR_SET_PDEATHSIG``)."""
     with contextlib.suppress(OSError, AttributeError):
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     with contextlib.suppress(OSError):
         os.nice(5)
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(ctypes.c_int(_PR_SET_PDEATHSIG), ctypes.c_ulong(signal.SIGTERM))
 
 
 def _b64(values: np.ndarray) -> str:

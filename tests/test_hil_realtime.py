@@ -109,7 +109,7 @@ def test_the_real_time_hils_scanner_reaches_the_planner_process(
     cuts: list[float] = []
 
     def fetch() -> tuple[np.ndarray, np.ndarray] | None:
-        got = hil.scan(looked[0])
+        got = hil.scan(looked[0], timeout_s=30.0)
         assert got is not None
         looked[0], volume, x, y = got
         cuts.append(volume)

@@ -165,12 +165,6 @@ def serve(args: argparse.Namespace) -> int:
             commands.put(line.strip())
         commands.put("stop")
 
-    threading.Thread(target=read_stdin, name="stdin", daemon=True).start()
-    print(f"READY {bridge.port}", flush=True)
-
-    loop = _HilLoop(
-        core, bridge, rig.drives.servo_period_s, args.period, BusFaults(args.fault_seed)
-    )
     # Cuts and scans cut a copy of the terrain in a process of their own, one at a time, and
     # the copy takes the terrain's place between servo ticks: the drives answer every SYNC
     # meanwhile (a cut with its slump takes tens of ms, beyond the master's stale limit).
@@ -184,6 +178,15 @@ def serve(args: argparse.Namespace) -> int:
         )
         if terrain is not None
         else None
+    )
+    if pool is not None:
+        # Spawned and imported now, before READY: the first cut must not wait for it.
+        pool.submit(_cut_copy, Terrain(0.0, (0.0, 1.0), 0.1), None).result()
+    threading.Thread(target=read_stdin, name="stdin", daemon=True).start()
+    print(f"READY {bridge.port}", flush=True)
+
+    loop = _HilLoop(
+        core, bridge, rig.drives.servo_period_s, args.period, BusFaults(args.fault_seed)
     )
     gc.freeze()
     running = True

@@ -415,8 +415,8 @@ class ArmPlant:
         #: The ideal valves' overlap per cylinder: what each valve drive compensates (0x2100),
         #: so that an ideal plant's valve is the one its drive was commissioned for and the
         #: compensation neither helps nor harms there; the HIL sets it from the drives as the
-        #: master configures them (HilCore.on_frame). The
-        #: profile's valve imperfections, when they apply, carry the valves' own overlap.
+        #: master configures them (HilCore.on_frame). The profile's valve imperfections, when
+        #: they apply, carry the valves' own overlap.
         self.compensated_overlap = (0.0, 0.0, 0.0)
         self._electric_imp = electric
         self._sensor_imp = sensor

@@ -419,9 +419,10 @@ class Terrain:
         x1, y1 = path[1:, 0], path[1:, 1]
         # A vertical segment sweeps no area (its neighbours carry its depth), nor does one
         # wholly above the material (the arm's moves in the air: most of a cycle's path).
-        above = max(float(self._y.max()), float(self._material.bounds[3]))
+        surface_top = float(self._y.max())
+        above = max(surface_top, float(self._material.bounds[3]))
         keep = (x0 != x1) & (np.minimum(y0, y1) <= above)
-        top = max(float(self._y.max()), float(path[:, 1].max())) + 1.0
+        top = max(surface_top, float(path[:, 1].max())) + 1.0
         if not keep.any():
             return CutResult(0.0, 0.0)
         x0, y0, x1, y1 = x0[keep], y0[keep], x1[keep], y1[keep]

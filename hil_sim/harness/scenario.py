@@ -100,6 +100,7 @@ from rt_runtime.control.executor import (
     Phase,
     executor_telemetry,
 )
+from rt_runtime.control.hardware import per_axis_gain
 from rt_runtime.control.planner_worker import PathJob, PendingScan, PolynomialMotion
 from rt_runtime.errors import ConfigurationError, PlanningError
 from rt_runtime.reports import BusLoadFigures, Distribution
@@ -542,7 +543,7 @@ def run_scenario(sc: Scenario) -> HilRun:
 
     wall0 = time.perf_counter()
     rig = scenario_rig(sc)
-    host_gains(sc.host_gain_1_s, rig)  # a wrong count is refused before the HIL starts
+    gains = host_gains(sc.host_gain_1_s, rig)  # refused here, before the HIL starts
     task = load_task(sc.task, rig)
     plan_t0 = time.perf_counter()
     planner = TrenchPlanner(rig, sc.planner)
@@ -618,7 +619,7 @@ def run_scenario(sc: Scenario) -> HilRun:
                 trench,
                 ExecutorConfig(
                     feedforward=_feedforward(sc),
-                    correction_gain_1_s=host_gains(sc.host_gain_1_s, rig),
+                    correction_gain_1_s=gains,
                     max_digs=sc.max_digs,
                 ),
                 on_dig_done=on_dig_done,
@@ -664,7 +665,6 @@ def run_scenario(sc: Scenario) -> HilRun:
             segments, sc.plot_dir, design=design, surface_m=surface, title=f"task {task.name}:"
         )
         plots = tuple(str(p) for p in files)
-    gains = host_gains(sc.host_gain_1_s, rig)
     report = HilReport(
         task=task.name,
         rig=rig.name,
@@ -934,20 +934,16 @@ def host_gains(gain_1_s: float | tuple[float, ...], rig: Rig) -> tuple[float, ..
             these (the message names them).
     """
     names = rig_axes.names(rig)
-    if isinstance(gain_1_s, (int, float)):
-        values: tuple[float, ...] = (float(gain_1_s),) * len(names)
-    else:
-        values = tuple(float(g) for g in gain_1_s)
-        if len(values) == 1:
-            values *= len(names)
-        elif len(values) == 3 < len(names):
-            values += (min(values),) * (len(names) - 3)
-    if len(values) != len(names) or not all(math.isfinite(g) and g >= 0.0 for g in values):
+    values = (gain_1_s,) if isinstance(gain_1_s, (int, float)) else tuple(gain_1_s)
+    if len(values) == 3 < len(names):
+        values = (*values, *(min(values),) * (len(names) - 3))
+    try:
+        return per_axis_gain(values, len(names))
+    except ConfigurationError:
         raise ConfigurationError(
             f"host loop gain {gain_1_s!r}: allowed one finite gain >= 0 (1/s) for every axis, "
             f"or one per axis ({', '.join(names)}; a swing may take the arm's lowest)"
-        )
-    return values
+        ) from None
 
 
 #: Longest wait for the real-time HIL's scanner to answer a look (s): the planner plans the
@@ -1216,7 +1212,7 @@ def run_path_scenario(sc: PathScenario) -> HilRun:
     """
     wall0 = time.perf_counter()
     rig = scenario_rig(sc)
-    host_gains(sc.host_gain_1_s, rig)  # a wrong count is refused before the HIL starts
+    gains = host_gains(sc.host_gain_1_s, rig)  # refused here, before the HIL starts
     kp = _scenario_path(sc, rig)
     q0 = kp.q_key_rad[0] if sc.start_deg is None else np.radians(np.asarray(sc.start_deg))
     q0 = np.asarray(q0, dtype=np.float64)
@@ -1233,7 +1229,7 @@ def run_path_scenario(sc: PathScenario) -> HilRun:
                 kp.job,
                 ExecutorConfig(
                     feedforward=_feedforward(sc),
-                    correction_gain_1_s=host_gains(sc.host_gain_1_s, rig),
+                    correction_gain_1_s=gains,
                 ),
                 on_cycle=on_cycle,
             )
@@ -1253,7 +1249,6 @@ def run_path_scenario(sc: PathScenario) -> HilRun:
         files = plot_report(segments, sc.plot_dir, title=f"path {kp.job.name} ({kp.orders}):")
         files += _plot_path(rig, segments, kp, sc.plot_dir)
         plots = tuple(str(p) for p in files)
-    gains = host_gains(sc.host_gain_1_s, rig)
     report = HilReport(
         task=f"path {kp.job.name}",
         rig=rig.name,

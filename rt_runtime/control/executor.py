@@ -160,8 +160,7 @@ class ExecutorConfig:
         for key, opt in optional:
             if opt is not None and not (math.isfinite(opt) and opt >= 0.0):
                 raise ConfigurationError(f"executor {key} = {opt}; allowed: a finite value >= 0")
-        gains = self.correction_gain_1_s
-        per_axis_gain(gains, 1 if isinstance(gains, (int, float)) else max(len(gains), 1))
+        per_axis_gain(self.correction_gain_1_s)
         for key, count in (
             ("following_error_cycles", self.following_error_cycles),
             ("stale_cycles", self.stale_cycles),

@@ -105,22 +105,28 @@ class DriveFeedback:
         self.wait_s = 0.0
 
 
-def per_axis_gain(gain_1_s: float | Sequence[float], n: int) -> tuple[float, ...]:
-    """The host loop's gain per axis (1/s) from one value for every axis or one per axis.
+def per_axis_gain(gain_1_s: float | Sequence[float], n: int | None = None) -> tuple[float, ...]:
+    """The host loop's gain per axis (1/s) from one value for every axis or one per axis of
+    ``n`` (None: the values as given, checked only).
 
     Raises:
-        ConfigurationError: A gain that is negative or not finite, or a count other than 1
-            or ``n`` (the message names what is allowed).
+        ConfigurationError: A gain that is negative or not finite, no gain, or a count other
+            than 1 or ``n`` (the message names what is allowed).
     """
     values = (gain_1_s,) if isinstance(gain_1_s, (int, float)) else tuple(gain_1_s)
-    if len(values) not in (1, n) or not all(
-        isinstance(g, (int, float)) and math.isfinite(g) and g >= 0.0 for g in values
+    counts = (1, n) if n is not None else (len(values),)
+    if (
+        not values
+        or len(values) not in counts
+        or not all(isinstance(g, (int, float)) and math.isfinite(g) and g >= 0.0 for g in values)
     ):
+        axes = f" ({n})" if n is not None else ""
         raise ConfigurationError(
             f"correction_gain_1_s = {gain_1_s!r}; allowed: one finite value >= 0 (1/s) for "
-            f"every axis or one per axis ({n})"
+            f"every axis or one per axis{axes}"
         )
-    return tuple(float(g) for g in values) * (n if len(values) == 1 else 1)
+    out = tuple(float(g) for g in values)
+    return out * n if n is not None and len(out) == 1 else out
 
 
 class DriveInterface:

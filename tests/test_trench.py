@@ -804,6 +804,34 @@ def test_thick_rest_that_no_dig_fits_is_taken_in_layers(planner: TrenchPlanner) 
     assert plan.removed_m3 == pytest.approx(sum(d.volume_m3 for d in plan.digs), rel=1e-9)
 
 
+def test_an_upper_layers_rest_takes_the_top_of_the_layer_below_to_fill_the_bucket(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rt_runtime.bench import random_tasks
+    from rt_runtime.planning.trench import layers
+
+    # 0.59 m x 0.12 m (random suite, seed 11): the upper layer's second column fills no
+    # bucket (3.69 L along the layer's floor) and the layer below cannot take it (it would
+    # grow thicker than a dig cuts through), so it was a finishing pass, the section's third.
+    # Along the floor lowered a little it takes the rest and the top of the layer below: a
+    # full bucket, and two finishing passes in the section.
+    task = random_tasks(RIG, 21, 11)[20]
+    session = planner.start(task)
+    (floor,) = session.layer_floors
+    lo, hi = _fill_band_l(RIG)
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    column = plan.digs[1]
+    assert not column.finishing and lo <= column.volume_m3 * 1e3 <= hi
+    assert float(np.min(column.tip_path_m[:, 1])) < floor - 0.002
+    assert sum(d.finishing for d in plan.digs) <= 2
+    assert plan.status is PlanStatus.DONE
+    # Without the lowered floor the same column is under-filled: a third finishing pass.
+    monkeypatch.setattr(layers, "_DEEPEN_M", ())
+    before = planner.plan(task)
+    assert before.digs[1].finishing and sum(d.finishing for d in before.digs) == 3
+
+
 def test_rest_within_reach_is_layered_before_a_travel(planner: TrenchPlanner) -> None:
     from rt_runtime.planning.trench import TravelMove
 

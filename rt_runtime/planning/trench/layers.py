@@ -51,6 +51,15 @@ _COLUMN_EDGE_M = 0.012
 #: Longest profile dig (scale model, m).
 _COLUMN_MAX_M = 0.45
 
+#: Longest column of a layer above the bottom one (scale model, m): its floor is not the
+#: design's (the layer below takes what a longer fit leaves), and a layer 3-4 cm thick fills
+#: the bucket only over about half a metre.
+_UPPER_COLUMN_MAX_M = 0.55
+
+#: How far below an upper layer's floor a column may go to take a rest of the layer that
+#: fills no bucket with the top of the layer below (scale model, m; tried in this order).
+_DEEPEN_M = (0.005, 0.01, 0.015, 0.02, 0.025, 0.03)
+
 #: Longest piece of a rest taken under-filled (scale model, m).
 _PARTIAL_MAX_M = 0.25
 #: Fraction of V_max a column aims at.
@@ -229,7 +238,8 @@ class LayersMixin(RoughMixin):
         i_start = min(int(idx[-1]) + 2 + int(_FACE_GAP_M * s / GRID_STEP_M), i_hi)
         cum = np.cumsum(t[i_lo : i_start + 1][::-1]) * GRID_STEP_M  # from the far edge
         total = float(cum[-1])
-        w_max = round(_COLUMN_MAX_M * s / GRID_STEP_M)
+        upper = self.layer < len(self.layer_floors)
+        w_max = round((_UPPER_COLUMN_MAX_M if upper else _COLUMN_MAX_M) * s / GRID_STEP_M)
         if partial:
             # The rest in as few pieces as the bucket and the longest dig allow; where such a
             # piece fails (a long fit along a corner, a thick rest), shorter ones.
@@ -268,39 +278,72 @@ class LayersMixin(RoughMixin):
     def _next_layer_column(self, remaining: Any, t0: float) -> PlannedDig | None:
         """The next column of the current layer (above the bottom one): a dig along the
         layer's floor, and down the far wall or up the near wall where the column reaches
-        them (:meth:`_fit_profile` on the layer's outline), carrying a full bucket; where
+        them (:meth:`_fit_profile` on the layer's outline), carrying a full bucket. Where
         what is left fills none but is too much to leave to the next layer (a quarter of
-        V_min), the rest under-filled. None when the layer is done."""
+        V_min), a full column along the floor lowered by :data:`_DEEPEN_M` (scaled, the
+        least first: the rest and the top of the layer below), else the rest under-filled.
+        None when the layer is done."""
         floor = self._layer_floor
         y_floor = self.layer_y
         walls = self._layer_walls
+        dig = self._layer_column(floor, y_floor, walls, False, remaining, t0)
+        if dig is not None:
+            return dig
+        upper = self.layer < len(self.layer_floors)
+        if upper:
+            rest = self._column_ends(floor, self.section_lo, self._reach_hi(), True)
+            if not rest or not self._layer_must_be_taken():
+                return None
+            s = self.planner.scale
+            for deeper in _DEEPEN_M:
+                y = y_floor - deeper * s
+                lowered = walls.copy()
+                lowered[2, 2] = -y
+                floor_y = np.maximum(self.design_floor, min(y, self.ground_y))
+                dig = self._layer_column(floor_y, y, lowered, False, remaining, t0)
+                if dig is not None:
+                    return dig
+        return self._layer_column(floor, y_floor, walls, True, remaining, t0)
+
+    def _layer_column(
+        self,
+        floor: FloatArray,
+        y_floor: float,
+        walls: FloatArray,
+        partial: bool,
+        remaining: Any,
+        t0: float,
+    ) -> PlannedDig | None:
+        """A column of the material above ``floor`` (on the grid; ``y_floor`` its level
+        and ``walls`` the outline's half-planes with the floor's row at it): a full bucket,
+        or with ``partial`` the rest under-filled where it must be taken
+        (:meth:`_layer_must_be_taken`); None where none plans."""
         lo_d, hi_d = oneshot.theta_p_range(self.planning, int(DigType.DOWNWARD))
         steep = float(lo_d) + 0.02 <= self.task.beta1_rad <= float(hi_d)
         rise = 0.005 * self.planner.scale
-        for partial in (False, True):
-            ends = self._column_ends(floor, self.section_lo, self._reach_hi(), partial)
-            if not ends:
-                continue
-            if partial and not self._layer_must_be_taken():
-                return None
-            x_start = ends[0]
-            a = np.array([x_start, float(np.interp(x_start, self.grid, floor))])
-            on_wall = a[1] > y_floor + rise
-            kind = DigType.DOWNWARD if on_wall and steep else DigType.BACKWARD
-            if not on_wall:
-                a[1] += 0.002  # enters descending (theta_p >= 0)
-            for x_end in ends[1:]:
-                b = np.array([x_end, float(np.interp(x_end, self.grid, floor))])
-                rows = [0] if on_wall else []
-                rows.append(2)
-                if b[1] > y_floor + rise:
-                    rows.append(1)
-                found = self._fit_profile(
-                    kind, a, b, walls[rows], _LAYER_ATTITUDES_DEG[kind], _PASS_OFFSETS_M
-                )
-                dig = self._plan_column(found, partial, remaining, t0)
-                if dig is not None:
-                    return dig
+        ends = self._column_ends(floor, self.section_lo, self._reach_hi(), partial)
+        if not ends:
+            return None
+        if partial and not self._layer_must_be_taken():
+            return None
+        x_start = ends[0]
+        a = np.array([x_start, float(np.interp(x_start, self.grid, floor))])
+        on_wall = a[1] > y_floor + rise
+        kind = DigType.DOWNWARD if on_wall and steep else DigType.BACKWARD
+        if not on_wall:
+            a[1] += 0.002  # enters descending (theta_p >= 0)
+        for x_end in ends[1:]:
+            b = np.array([x_end, float(np.interp(x_end, self.grid, floor))])
+            rows = [0] if on_wall else []
+            rows.append(2)
+            if b[1] > y_floor + rise:
+                rows.append(1)
+            found = self._fit_profile(
+                kind, a, b, walls[rows], _LAYER_ATTITUDES_DEG[kind], _PASS_OFFSETS_M
+            )
+            dig = self._plan_column(found, partial, remaining, t0)
+            if dig is not None:
+                return dig
         return None
 
     def _too_thick_below(self) -> NDArray[np.bool_]:

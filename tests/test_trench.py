@@ -832,6 +832,32 @@ def test_an_upper_layers_rest_takes_the_top_of_the_layer_below_to_fill_the_bucke
     assert before.digs[1].finishing and sum(d.finishing for d in before.digs) == 3
 
 
+def test_an_upper_layers_column_that_would_leave_a_rest_goes_deeper(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rt_runtime.bench import random_tasks
+    from rt_runtime.planning.trench import layers
+
+    # 0.49 m x 0.16 m (random suite, seed 11): the upper layer's full column (4.51 L) left a
+    # rest of the layer (0.61 L) that had to be taken under-filled: 5 digs, 3 finishing
+    # passes. Along the floor lowered a little the column takes the rest with it (a full
+    # bucket): 4 digs, 2 passes.
+    task = random_tasks(RIG, 22, 11)[21]
+    (floor,) = planner.start(task).layer_floors
+    lo, hi = _fill_band_l(RIG)
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    first = plan.digs[0]
+    assert not first.finishing and lo <= first.volume_m3 * 1e3 <= hi
+    assert float(np.min(first.tip_path_m[:, 1])) < floor - 0.002
+    assert len(plan.digs) == 4 and sum(d.finishing for d in plan.digs) == 2
+    assert plan.status is PlanStatus.DONE
+    monkeypatch.setattr(layers.LayersMixin, "_leaves_rest", lambda self, floor: False)
+    before = planner.plan(task)
+    assert len(before.digs) == 5 and sum(d.finishing for d in before.digs) == 3
+    assert before.digs[1].finishing
+
+
 def test_rest_within_reach_is_layered_before_a_travel(planner: TrenchPlanner) -> None:
     from rt_runtime.planning.trench import TravelMove
 

@@ -282,28 +282,51 @@ class LayersMixin(RoughMixin):
         what is left fills none but is too much to leave to the next layer (a quarter of
         V_min), a full column along the floor lowered by :data:`_DEEPEN_M` (scaled, the
         least first: the rest and the top of the layer below), else the rest under-filled.
-        None when the layer is done."""
+        A full column of an upper layer that would leave such a rest behind it gives way
+        to the first full column along a lowered floor that leaves none. None when the
+        layer is done."""
         floor = self._layer_floor
         y_floor = self.layer_y
         walls = self._layer_walls
-        dig = self._layer_column(floor, y_floor, walls, False, remaining, t0)
-        if dig is not None:
-            return dig
         upper = self.layer < len(self.layer_floors)
-        if upper:
+        dig = self._layer_column(floor, y_floor, walls, False, remaining, t0)
+        if dig is not None and not (upper and self._leaves_rest(floor)):
+            return dig
+        if dig is None and upper:
             rest = self._column_ends(floor, self.section_lo, self._reach_hi(), True)
             if not rest or not self._layer_must_be_taken():
                 return None
+        if upper:
+            planned = self._planned_region
             s = self.planner.scale
             for deeper in _DEEPEN_M:
                 y = y_floor - deeper * s
                 lowered = walls.copy()
                 lowered[2, 2] = -y
                 floor_y = np.maximum(self.design_floor, min(y, self.ground_y))
-                dig = self._layer_column(floor_y, y, lowered, False, remaining, t0)
-                if dig is not None:
-                    return dig
+                other = self._layer_column(floor_y, y, lowered, False, remaining, t0)
+                if other is not None and (dig is None or not self._leaves_rest(floor)):
+                    return other
+            if dig is not None:
+                self._planned_region = planned  # record() reuses the dig's region
+                return dig
         return self._layer_column(floor, y_floor, walls, True, remaining, t0)
+
+    def _leaves_rest(self, floor: FloatArray) -> bool:
+        """Whether the dig planned last (its envelope, :attr:`_planned_region`) leaves above
+        ``floor`` a rest of the current layer that fills no bucket but must be taken
+        (:meth:`_layer_must_be_taken`)."""
+        if self._planned_region is None:
+            return False
+        surface = self.surface
+        self.surface = np.minimum(surface, self._planned_region[1])
+        try:
+            if self._column_ends(floor, self.section_lo, self._reach_hi(), False):
+                return False
+            rest = self._column_ends(floor, self.section_lo, self._reach_hi(), True)
+            return bool(rest) and self._layer_must_be_taken()
+        finally:
+            self.surface = surface
 
     def _layer_column(
         self,
@@ -349,7 +372,9 @@ class LayersMixin(RoughMixin):
     def _too_thick_below(self) -> NDArray[np.bool_]:
         """Where, on the grid, the material left above the current layer's floor would make
         the layer below thicker than a dig cuts through (:data:`_CUT_MAX_M`, scaled); nowhere
-        in the bottom layer (nothing below takes it)."""
+        in the bottom layer (nothing below takes it). Above the walls' slopes the bottom
+        layer's material is the walls' digs' (top edge to foot, in pieces and halves where it
+        is thick, ``walls``), not its columns': there, over the bottom layer, nowhere."""
         x = self.grid
         if self.layer >= len(self.layer_floors):
             return np.zeros(x.shape[0], dtype=bool)
@@ -357,6 +382,8 @@ class LayersMixin(RoughMixin):
         below = self.layer_floors[nxt] if nxt < len(self.layer_floors) else self.bottom_y
         floor = np.maximum(self.design_floor, below)
         inside = (x >= self.section_lo) & (x <= self.section_hi)
+        if nxt == len(self.layer_floors):
+            inside &= self.design_floor <= self.bottom_y + 1e-9
         mask: NDArray[np.bool_] = inside & (self.surface - floor > _CUT_MAX_M * self.planner.scale)
         return mask
 

@@ -858,6 +858,30 @@ def test_an_upper_layers_column_that_would_leave_a_rest_goes_deeper(
     assert before.digs[1].finishing
 
 
+def test_a_thin_bottom_layer_fills_the_bucket_with_longer_columns(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rt_runtime.bench import random_tasks
+    from rt_runtime.planning.trench import layers
+
+    # 0.98 m x 0.038 m in two sections of about half a metre (random suite, seed 11): each
+    # section's bottom (3.9-4.0 L) went in two under-filled halves of 0.45 m at most, three
+    # finishing passes in each section. A column of the thin bottom layer runs its whole length.
+    task = random_tasks(RIG, 37, 11)[36]
+    lo, hi = _fill_band_l(RIG)
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    full = [d for d in plan.digs if not d.finishing]
+    assert sorted(d.section for d in full) == [0, 1]
+    assert all(lo <= d.volume_m3 * 1e3 <= hi for d in full)
+    for k in (0, 1):
+        assert sum(d.finishing for d in plan.digs if d.section == k) <= 2
+    assert plan.status is PlanStatus.DONE
+    monkeypatch.setattr(layers, "_THIN_COLUMN_MAX_M", layers._COLUMN_MAX_M)
+    before = planner.plan(task)
+    assert all(d.finishing for d in before.digs) and len(before.digs) == 6
+
+
 def test_rest_within_reach_is_layered_before_a_travel(planner: TrenchPlanner) -> None:
     from rt_runtime.planning.trench import TravelMove
 

@@ -56,6 +56,12 @@ _COLUMN_MAX_M = 0.45
 #: the bucket only over about half a metre.
 _UPPER_COLUMN_MAX_M = 0.55
 
+#: A bottom layer at most this thick (scale model, m) fills the bucket only over more than
+#: :data:`_COLUMN_MAX_M`: its columns may be :data:`_THIN_COLUMN_MAX_M` long (a 3-5 cm
+#: trench's section of half a metre or more went in two under-filled halves).
+_THIN_BOTTOM_M = 0.05
+_THIN_COLUMN_MAX_M = 0.75
+
 #: How far below an upper layer's floor a column may go to take a rest of the layer that
 #: fills no bucket with the top of the layer below (scale model, m; tried in this order).
 _DEEPEN_M = (0.005, 0.01, 0.015, 0.02, 0.025, 0.03)
@@ -238,8 +244,7 @@ class LayersMixin(RoughMixin):
         i_start = min(int(idx[-1]) + 2 + int(_FACE_GAP_M * s / GRID_STEP_M), i_hi)
         cum = np.cumsum(t[i_lo : i_start + 1][::-1]) * GRID_STEP_M  # from the far edge
         total = float(cum[-1])
-        upper = self.layer < len(self.layer_floors)
-        w_max = round((_UPPER_COLUMN_MAX_M if upper else _COLUMN_MAX_M) * s / GRID_STEP_M)
+        w_max = round(self._column_max() / GRID_STEP_M)
         if partial:
             # The rest in as few pieces as the bucket and the longest dig allow; where such a
             # piece fails (a long fit along a corner, a thick rest), shorter ones.
@@ -274,6 +279,18 @@ class LayersMixin(RoughMixin):
             if all(abs(x_end - e) > 2.0 * GRID_STEP_M for e in ends):
                 ends.append(x_end)
         return [float(x[i_start]), *ends]
+
+    def _column_max(self) -> float:
+        """The longest column of the current layer (m): :data:`_UPPER_COLUMN_MAX_M` above the
+        bottom layer, :data:`_THIN_COLUMN_MAX_M` in a bottom layer no thicker than
+        :data:`_THIN_BOTTOM_M`, else :data:`_COLUMN_MAX_M` (all scaled)."""
+        s = self.planner.scale
+        if self.layer < len(self.layer_floors):
+            return _UPPER_COLUMN_MAX_M * s
+        top = self.layer_floors[-1] if self.layer_floors else self.ground_y
+        if top - self.bottom_y <= _THIN_BOTTOM_M * s + 1e-12:
+            return _THIN_COLUMN_MAX_M * s
+        return _COLUMN_MAX_M * s
 
     def _next_layer_column(self, remaining: Any, t0: float) -> PlannedDig | None:
         """The next column of the current layer (above the bottom one): a dig along the

@@ -852,7 +852,7 @@ def test_an_upper_layers_column_that_would_leave_a_rest_goes_deeper(
     assert float(np.min(first.tip_path_m[:, 1])) < floor - 0.002
     assert len(plan.digs) == 4 and sum(d.finishing for d in plan.digs) == 2
     assert plan.status is PlanStatus.DONE
-    monkeypatch.setattr(layers.LayersMixin, "_leaves_rest", lambda self, floor: False)
+    monkeypatch.setattr(layers.LayersMixin, "_leaves_rest", lambda self, floor, envelope: False)
     before = planner.plan(task)
     assert len(before.digs) == 5 and sum(d.finishing for d in before.digs) == 3
     assert before.digs[1].finishing

@@ -5,7 +5,7 @@ settings."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from rt_runtime.planning.oneshot import DigType
 from rt_runtime.planning.trench.geometry import OVERDIG_LIMIT_M, FloatArray
@@ -32,6 +32,9 @@ class Candidate:
             finishing pass); a dig without it is refused outside the band.
         pass_window: A fitted dig whose real cut is below the fill band, timed and verified
             in the finishing passes' time window (:data:`PASS_T_MIN_FRACTION`).
+        envelope: A fitted dig's lowest reach on the height field's grid (m, work-site
+            frame: the surface it leaves is the minimum of this and the material's); None
+            for network digs.
     """
 
     kind: DigType
@@ -46,6 +49,7 @@ class Candidate:
     fit_rms_m: float = math.nan
     may_underfill: bool = False
     pass_window: bool = False
+    envelope: FloatArray | None = field(default=None, repr=False, compare=False)
 
 
 #: A finishing pass's shortest time as a fraction of the one-shot window's (Yao Table 2's

@@ -465,7 +465,8 @@ class FitMixin(CyclesMixin):
     ) -> Candidate | None:
         """A fitted profile pass retimed and checked, as a ranked candidate (None: refused)."""
         # The real cut first: it refuses most fits, and needs no retiming.
-        total, useful = self._cut_areas(self._envelope(tip, self.grid))
+        envelope = self._envelope(tip, self.grid)
+        total, useful = self._cut_areas(envelope)
         if (
             total > self.v_max_m3 / self.width_m
             or useful < 0.1 * MIN_USEFUL_FRACTION * self.design_area
@@ -503,4 +504,5 @@ class FitMixin(CyclesMixin):
             T_s=float(r[3]),
             a6=(float(r[0]), float(r[1]), float(r[2])),
             pass_window=under,
+            envelope=envelope,
         )

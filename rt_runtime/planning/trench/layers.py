@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -300,43 +301,46 @@ class LayersMixin(RoughMixin):
         V_min), a full column along the floor lowered by :data:`_DEEPEN_M` (scaled, the
         least first: the rest and the top of the layer below), else the rest under-filled.
         A full column of an upper layer that would leave such a rest behind it gives way
-        to the first full column along a lowered floor that leaves none. None when the
+        to the first full column along a lowered floor whose fit leaves none. None when the
         layer is done."""
         floor = self._layer_floor
         y_floor = self.layer_y
         walls = self._layer_walls
         upper = self.layer < len(self.layer_floors)
         dig = self._layer_column(floor, y_floor, walls, False, remaining, t0)
-        if dig is not None and not (upper and self._leaves_rest(floor)):
+        planned = self._planned_region
+        if dig is not None and not (upper and planned and self._leaves_rest(floor, planned[1])):
             return dig
         if dig is None and upper:
             rest = self._column_ends(floor, self.section_lo, self._reach_hi(), True)
             if not rest or not self._layer_must_be_taken():
                 return None
         if upper:
-            planned = self._planned_region
+
+            def leaves_none(c: Candidate) -> bool:
+                return c.envelope is None or not self._leaves_rest(floor, c.envelope)
+
+            keep = None if dig is None else leaves_none
             s = self.planner.scale
             for deeper in _DEEPEN_M:
                 y = y_floor - deeper * s
                 lowered = walls.copy()
                 lowered[2, 2] = -y
                 floor_y = np.maximum(self.design_floor, min(y, self.ground_y))
-                other = self._layer_column(floor_y, y, lowered, False, remaining, t0)
-                if other is not None and (dig is None or not self._leaves_rest(floor)):
+                other = self._layer_column(floor_y, y, lowered, False, remaining, t0, keep)
+                if other is not None:
                     return other
             if dig is not None:
                 self._planned_region = planned  # record() reuses the dig's region
                 return dig
         return self._layer_column(floor, y_floor, walls, True, remaining, t0)
 
-    def _leaves_rest(self, floor: FloatArray) -> bool:
-        """Whether the dig planned last (its envelope, :attr:`_planned_region`) leaves above
-        ``floor`` a rest of the current layer that fills no bucket but must be taken
+    def _leaves_rest(self, floor: FloatArray, envelope: FloatArray) -> bool:
+        """Whether a dig reaching down to ``envelope`` (on the grid) leaves above ``floor``
+        a rest of the current layer that fills no bucket but must be taken
         (:meth:`_layer_must_be_taken`)."""
-        if self._planned_region is None:
-            return False
         surface = self.surface
-        self.surface = np.minimum(surface, self._planned_region[1])
+        self.surface = np.minimum(surface, envelope)
         try:
             if self._column_ends(floor, self.section_lo, self._reach_hi(), False):
                 return False
@@ -353,11 +357,13 @@ class LayersMixin(RoughMixin):
         partial: bool,
         remaining: Any,
         t0: float,
+        keep: Callable[[Candidate], bool] | None = None,
     ) -> PlannedDig | None:
         """A column of the material above ``floor`` (on the grid; ``y_floor`` its level
         and ``walls`` the outline's half-planes with the floor's row at it): a full bucket,
         or with ``partial`` the rest under-filled where it must be taken
-        (:meth:`_layer_must_be_taken`); None where none plans."""
+        (:meth:`_layer_must_be_taken`); None where none plans. ``keep``: where given, only
+        fits it keeps are planned."""
         lo_d, hi_d = oneshot.theta_p_range(self.planning, int(DigType.DOWNWARD))
         steep = float(lo_d) + 0.02 <= self.task.beta1_rad <= float(hi_d)
         rise = 0.005 * self.planner.scale
@@ -381,6 +387,8 @@ class LayersMixin(RoughMixin):
             found = self._fit_profile(
                 kind, a, b, walls[rows], _LAYER_ATTITUDES_DEG[kind], _PASS_OFFSETS_M
             )
+            if found is not None and keep is not None and not keep(found):
+                continue
             dig = self._plan_column(found, partial, remaining, t0)
             if dig is not None:
                 return dig

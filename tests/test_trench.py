@@ -1211,6 +1211,36 @@ def test_passes_beyond_two_stop_where_the_material_comes_back(planner: TrenchPla
             )
 
 
+def test_the_finishing_stages_bound_counts_its_own_passes(planner: TrenchPlanner) -> None:
+    import json
+
+    from rt_runtime.bench import random_tasks
+    from rt_runtime.planning.trench.finishing import MAX_FINISHING_HARD
+
+    # 0.61 m x 0.29 m with an 82 deg far wall (random suite, seed 11): the layers' columns
+    # along the steep wall take nine under-filled digs, and with those counted against the
+    # finishing stage's bound it took no pass and ended at 3.4 % ("incomplete"). The bound
+    # counts the stage's own passes: one pass, and the trench is done.
+    task = random_tasks(RIG, 16, 11)[15]
+    session = planner.start(task)
+    while (dig := session.next_dig()) is not None:
+        session.record(dig, dig.tip_path_m)
+        state = json.loads(json.dumps(session.state()))
+        assert state["finish_passes"] == session.finish_passes <= session.finishing_used
+    plan = session.finish(plan_total_us=0.0)
+    assert session.finishing_used > MAX_FINISHING_HARD
+    assert 1 <= session.finish_passes <= MAX_FINISHING_HARD
+    assert plan.status is PlanStatus.DONE
+    # A state written before the key counts every pass (as then); a count above the passes
+    # taken is refused by its key.
+    old = {k: v for k, v in state.items() if k != "finish_passes"}
+    assert TrenchSession.restore(planner, task, old).finish_passes == state["finishing_used"]
+    with pytest.raises(ConfigurationError, match="finish_passes"):
+        TrenchSession.restore(
+            planner, task, {**state, "finish_passes": state["finishing_used"] + 1}
+        )
+
+
 def test_resumed_session_plans_the_same_next_dig_at_every_dig(planner: TrenchPlanner) -> None:
     import json
 

@@ -21,7 +21,9 @@ from rt_runtime.planning.trench.walls import WallsMixin
 #: Finishing passes a section may take (they need not fill the bucket).
 MAX_FINISHING_PER_SECTION = 2
 
-#: Finishing passes a section takes at most where its design is not dug otherwise.
+#: Finishing passes the section's last stage (``FINISH``) takes at most where its design is
+#: not dug otherwise (the under-filled digs of the stages before it not counted: a deep
+#: trench's steep wall can spend eight of them before its finishing passes begin).
 MAX_FINISHING_HARD = 8
 
 #: Least material on a finishing pass's line for the pass to be tried (scale model, m).
@@ -53,12 +55,12 @@ class FinishingMixin(WallsMixin):
         (:meth:`_finishing_lines`) among those that lower the symmetric difference of dug
         and design (design material removed less what is cut outside the design); None when
         the section's design is dug (within half a percent), no pass lowers it by a useful
-        amount, or :data:`MAX_FINISHING_HARD` passes are spent. Passes beyond
+        amount, or :data:`MAX_FINISHING_HARD` passes of this stage are spent. Passes beyond
         :data:`MAX_FINISHING_PER_SECTION` are taken only where the section would otherwise
         miss the coverage goal (the design material left plus what was dug outside the
         design, over the section's design), the one that lowers the difference most first:
         a finished trench comes first."""
-        if self.finishing_used >= MAX_FINISHING_HARD:
+        if self.finish_passes >= MAX_FINISHING_HARD:
             return None
         box = shapely.box(self.section_lo, self.bottom_y - 1.0, self.section_hi, self.top_y)
         part = self.design.intersection(box)
@@ -98,6 +100,7 @@ class FinishingMixin(WallsMixin):
         dig = self._first_plannable(found, remaining, t0)
         if dig is not None and dig.finishing:
             self.finishing_used += 1
+            self.finish_passes += 1
         if dig is not None and beyond:
             self.finishing_difference = difference
         return dig

@@ -181,8 +181,8 @@ class PersistMixin(SectionsMixin):
         (the material polygon as WKT, full precision), ``surface_m`` (height field on the 1 mm
         grid), ``machine_x_m``, ``q_now_rad`` (the last dig's exit or None), ``phase``
         (``downward``/``backward``), ``section``, ``stage``, ``layer``, ``layer_floors_m``,
-        ``wall_piece``, ``finishing_used``, ``finishing_difference_m2`` (where the section's
-        digging is), ``digs_done``,
+        ``wall_piece``, ``finishing_used``, ``finish_passes``, ``finishing_difference_m2``
+        (where the section's digging is), ``digs_done``,
         ``steps`` (every recorded dig, cycle, transition and travel move, each a dict with
         ``type``),
         and ``pending`` (the dig :meth:`next_dig` returned and :meth:`record` has not taken yet,
@@ -212,6 +212,7 @@ class PersistMixin(SectionsMixin):
             "layer_floors_m": [float(v) for v in self.layer_floors],
             "wall_piece": int(self._wall_piece),
             "finishing_used": int(self.finishing_used),
+            "finish_passes": int(self.finish_passes),
             "finishing_difference_m2": self.finishing_difference,
             "digs_done": len(self.digs),
             "steps": [_step_to_json(step) for step in self.steps],
@@ -266,6 +267,13 @@ class PersistMixin(SectionsMixin):
             layer = int(state["layer"])
             wall_piece = int(state["wall_piece"])
             finishing_used = int(state["finishing_used"])
+            # Not in the states written before it: every pass counted, as then.
+            finish_passes = int(state.get("finish_passes", finishing_used))
+            if not 0 <= finish_passes <= finishing_used:
+                raise ConfigurationError(
+                    f"session state key 'finish_passes' is {finish_passes}; allowed: "
+                    f"0..{finishing_used} (finishing_used)"
+                )
             # Not in the states written before it (none taken beyond the two then).
             raw = state.get("finishing_difference_m2")
             finishing_difference = None if raw is None else float(raw)
@@ -298,4 +306,5 @@ class PersistMixin(SectionsMixin):
         self.stage = stage
         self._wall_piece = wall_piece
         self.finishing_used = finishing_used
+        self.finish_passes = finish_passes
         self.finishing_difference = finishing_difference

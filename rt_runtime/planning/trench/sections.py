@@ -55,6 +55,7 @@ class SectionsMixin(FinishingMixin):
         if abs(move) > 1e-9:
             self._travel(move)
         self.finishing_used = 0
+        self.finish_passes = 0
         self.finishing_difference = None
         self.layer_floors = self._choose_layers()
         self.layer = 0

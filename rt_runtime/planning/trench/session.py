@@ -91,6 +91,7 @@ class TrenchSession(PersistMixin):
         self.design_area = float(self.design.area)
         self.phase = DigType.DOWNWARD
         self.finishing_used = 0
+        self.finish_passes = 0
         #: The sections (work-site x ranges, far first) and where the machine stands for each.
         self.sections, self.stands = self._plan_sections()
         self.section = 0

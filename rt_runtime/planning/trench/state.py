@@ -103,6 +103,8 @@ class SessionState:
     pending: PlannedDig | None
     phase: DigType
     finishing_used: int
+    #: The finishing passes the section's ``FINISH`` stage took (of :attr:`finishing_used`).
+    finish_passes: int
     #: The section's design left plus its over-cut (m^2) when its last finishing pass beyond
     #: the two a section may take was chosen; None before one.
     finishing_difference: float | None

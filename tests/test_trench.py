@@ -1241,12 +1241,18 @@ def test_the_finishing_stages_bound_counts_its_own_passes(planner: TrenchPlanner
         )
 
 
-def test_resumed_session_plans_the_same_next_dig_at_every_dig(planner: TrenchPlanner) -> None:
+@pytest.mark.parametrize("name", ["D", "random-11-21"])
+def test_resumed_session_plans_the_same_next_dig_at_every_dig(
+    planner: TrenchPlanner, name: str
+) -> None:
     import json
 
-    # D takes layers, walls and columns: a session restored from its state after any dig
-    # (a daemon restart) plans the same next dig as the one that went on.
-    task = load_task("D", RIG)
+    from rt_runtime.bench import random_tasks
+
+    # D takes layers, walls and columns, random-11-21 a column along a lowered floor that
+    # leaves no rest: a session restored from its state after any dig (a daemon restart)
+    # plans the same next dig as the one that went on.
+    task = load_task(name, RIG) if len(name) == 1 else random_tasks(RIG, 22, 11)[21]
     a = planner.start(task)
     while True:
         state = json.loads(json.dumps(a.state()))

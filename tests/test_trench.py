@@ -804,6 +804,20 @@ def test_thick_rest_that_no_dig_fits_is_taken_in_layers(planner: TrenchPlanner) 
     assert plan.removed_m3 == pytest.approx(sum(d.volume_m3 for d in plan.digs), rel=1e-9)
 
 
+def _full_column_below_the_layers_floor(planner: TrenchPlanner, task, index: int):
+    """``task``'s plan (one upper layer), checked: done, the fill rule, and its dig ``index``
+    a full bucket whose path goes below the upper layer's floor."""
+    (floor,) = planner.start(task).layer_floors
+    lo, hi = _fill_band_l(RIG)
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    column = plan.digs[index]
+    assert not column.finishing and lo <= column.volume_m3 * 1e3 <= hi
+    assert float(np.min(column.tip_path_m[:, 1])) < floor - 0.002
+    assert plan.status is PlanStatus.DONE
+    return plan
+
+
 def test_an_upper_layers_rest_takes_the_top_of_the_layer_below_to_fill_the_bucket(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -816,16 +830,8 @@ def test_an_upper_layers_rest_takes_the_top_of_the_layer_below_to_fill_the_bucke
     # Along the floor lowered a little it takes the rest and the top of the layer below: a
     # full bucket, and two finishing passes in the section.
     task = random_tasks(RIG, 21, 11)[20]
-    session = planner.start(task)
-    (floor,) = session.layer_floors
-    lo, hi = _fill_band_l(RIG)
-    plan = planner.plan(task)
-    _check_fill_and_sections(plan)
-    column = plan.digs[1]
-    assert not column.finishing and lo <= column.volume_m3 * 1e3 <= hi
-    assert float(np.min(column.tip_path_m[:, 1])) < floor - 0.002
+    plan = _full_column_below_the_layers_floor(planner, task, 1)
     assert sum(d.finishing for d in plan.digs) <= 2
-    assert plan.status is PlanStatus.DONE
     # Without the lowered floor the same column is under-filled: a third finishing pass.
     monkeypatch.setattr(layers, "_DEEPEN_M", ())
     before = planner.plan(task)
@@ -843,15 +849,8 @@ def test_an_upper_layers_column_that_would_leave_a_rest_goes_deeper(
     # passes. Along the floor lowered a little the column takes the rest with it (a full
     # bucket): 4 digs, 2 passes.
     task = random_tasks(RIG, 22, 11)[21]
-    (floor,) = planner.start(task).layer_floors
-    lo, hi = _fill_band_l(RIG)
-    plan = planner.plan(task)
-    _check_fill_and_sections(plan)
-    first = plan.digs[0]
-    assert not first.finishing and lo <= first.volume_m3 * 1e3 <= hi
-    assert float(np.min(first.tip_path_m[:, 1])) < floor - 0.002
+    plan = _full_column_below_the_layers_floor(planner, task, 0)
     assert len(plan.digs) == 4 and sum(d.finishing for d in plan.digs) == 2
-    assert plan.status is PlanStatus.DONE
     monkeypatch.setattr(layers.LayersMixin, "_leaves_rest", lambda self, floor, envelope: False)
     before = planner.plan(task)
     assert len(before.digs) == 5 and sum(d.finishing for d in before.digs) == 3

@@ -857,6 +857,23 @@ def test_an_upper_layers_column_that_would_leave_a_rest_goes_deeper(
     assert before.digs[1].finishing
 
 
+def test_rests_over_a_walls_slope_are_left_to_the_walls_digs(planner: TrenchPlanner) -> None:
+    from rt_runtime.bench import random_tasks
+
+    # 1.13 m x 0.23 m, walls 61/73 deg, two sections under two upper layers (random suite,
+    # seed 11): what each layer's columns left on the steep walls counted as too thick for
+    # the layer below, and was taken under-filled (four and three finishing passes in the
+    # sections). The walls' digs take it from the top edge to the foot.
+    task = random_tasks(RIG, 36, 11)[35]
+    assert len(planner.start(task).layer_floors) == 2
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    assert {d.section for d in plan.digs} == {0, 1}
+    for k in (0, 1):
+        assert sum(d.finishing for d in plan.digs if d.section == k) <= 2
+    assert plan.status is PlanStatus.DONE
+
+
 def test_a_thin_bottom_layer_fills_the_bucket_with_longer_columns(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:

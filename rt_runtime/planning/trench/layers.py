@@ -397,9 +397,9 @@ class LayersMixin(RoughMixin):
     def _too_thick_below(self) -> NDArray[np.bool_]:
         """Where, on the grid, the material left above the current layer's floor would make
         the layer below thicker than a dig cuts through (:data:`_CUT_MAX_M`, scaled); nowhere
-        in the bottom layer (nothing below takes it). Above the walls' slopes the bottom
-        layer's material is the walls' digs' (top edge to foot, in pieces and halves where it
-        is thick, ``walls``), not its columns': there, over the bottom layer, nowhere."""
+        in the bottom layer (nothing below takes it). Above the walls' slopes, nowhere: what
+        the layers leave there is the walls' digs' (top edge to foot, in pieces and halves
+        where it is thick, ``walls``), not the columns' of the layers below."""
         x = self.grid
         if self.layer >= len(self.layer_floors):
             return np.zeros(x.shape[0], dtype=bool)
@@ -407,8 +407,7 @@ class LayersMixin(RoughMixin):
         below = self.layer_floors[nxt] if nxt < len(self.layer_floors) else self.bottom_y
         floor = np.maximum(self.design_floor, below)
         inside = (x >= self.section_lo) & (x <= self.section_hi)
-        if nxt == len(self.layer_floors):
-            inside &= self.design_floor <= self.bottom_y + 1e-9
+        inside &= self.design_floor <= self.bottom_y + 1e-9
         mask: NDArray[np.bool_] = inside & (self.surface - floor > _CUT_MAX_M * self.planner.scale)
         return mask
 

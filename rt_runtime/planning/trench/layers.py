@@ -161,9 +161,7 @@ class LayersMixin(RoughMixin):
         upper = self.layer < len(self.layer_floors)
         y = self.layer_floors[self.layer] if upper else self.bottom_y
         self.layer_y = y
-        self._layer_floor = np.maximum(self.design_floor, min(y, self.ground_y))
-        self._layer_walls = self._walls.copy()
-        self._layer_walls[2, 2] = -y
+        self._layer_floor, self._layer_walls = self._floor_at(y)
         top = shapely.box(self.x_lo, y, self.x_hi, self.top_y)
         part = self.design.intersection(top)
         self.layer_design: Any = part if not part.is_empty else self.design
@@ -171,13 +169,22 @@ class LayersMixin(RoughMixin):
         edge = ring[1:] - ring[:-1]
         self._layer_edges = np.column_stack([ring[:-1], edge, np.sum(edge * edge, axis=1)])
 
-    def _reach_hi(self) -> float:
+    def _floor_at(self, y: float) -> tuple[FloatArray, FloatArray]:
+        """A layer's floor at level ``y`` (work-site m): the design's outline raised to it on
+        the grid, and the outline's half-planes with the floor's row at it."""
+        walls = self._walls.copy()
+        walls[2, 2] = -y
+        return np.maximum(self.design_floor, min(y, self.ground_y)), walls
+
+    def _reach_hi(self, surface: FloatArray | None = None) -> float:
         """The far end (work-site x) of what the current section's columns take: the
         section's far edge; in a later section just beyond it (a column enters the near face
         of the section before from the dug ground beyond it, :data:`_FACE_GAP_M`), and where
         the section before left material thicker than :data:`_COLUMN_EDGE_M` within
         :data:`_CARRY_M` (scaled) of that face, beyond the first such run (at most that far
-        beyond the edge)."""
+        beyond the edge). ``surface``: the material's surface on the grid (default the
+        current one)."""
+        surface = self.surface if surface is None else surface
         hi = self.section_hi
         if self.section == 0:
             return hi
@@ -186,7 +193,7 @@ class LayersMixin(RoughMixin):
         gap = _FACE_GAP_M * s + 3.0 * GRID_STEP_M
         i0 = int(np.searchsorted(x, hi - 1e-9))
         i_cap = int(np.searchsorted(x, hi + _CARRY_M * s + 1e-9))
-        thick = self.surface[i0:i_cap] - self.design_floor[i0:i_cap] > _COLUMN_EDGE_M * s
+        thick = surface[i0:i_cap] - self.design_floor[i0:i_cap] > _COLUMN_EDGE_M * s
         if not thick.any():
             return hi + gap
         first = int(np.argmax(thick))
@@ -208,7 +215,12 @@ class LayersMixin(RoughMixin):
         return max(cx, self.section_lo), min(bx, self._reach_hi())
 
     def _column_ends(
-        self, floor: FloatArray, x_lo: float, x_hi: float, partial: bool = False
+        self,
+        floor: FloatArray,
+        x_lo: float,
+        x_hi: float,
+        partial: bool = False,
+        surface: FloatArray | None = None,
     ) -> list[float]:
         """The next column of the material above ``floor`` (on the grid) within ``[x_lo,
         x_hi]``: its start (just beyond the far edge of that material, at most ``x_hi``) and
@@ -217,11 +229,13 @@ class LayersMixin(RoughMixin):
         allows, equal in area, and the column is the far one; what no bucket would fill is
         taken with the last. Empty when what is left cannot fill one bucket, unless
         ``partial``: then the rest in as few columns as the bucket and the longest dig allow
-        (under-filled: finishing passes)."""
+        (under-filled: finishing passes). ``surface``: the material's surface on the grid
+        (default the current one)."""
+        surface = self.surface if surface is None else surface
         lo_a, hi_a = self._fill_band()
         s = self.planner.scale
         x = self.grid
-        t = np.clip(self.surface - floor - _COLUMN_SKIN_M * s, 0.0, None)
+        t = np.clip(surface - floor - _COLUMN_SKIN_M * s, 0.0, None)
         t[(x < x_lo - 1e-9) | (x > x_hi + 1e-9)] = 0.0
         # The far edge of the material a dig along the floor leaves (its fit and offset leave
         # a few mm on the outline: the finishing passes' part), thick over a few mm (the grid
@@ -230,7 +244,7 @@ class LayersMixin(RoughMixin):
         # Runs too small to count (a quarter of V_min) are left to the walls' digs and the
         # finishing passes: a column that starts at one would carry little else. Not so for
         # the rest taken under-filled: that is taken because it must be (too thick to leave).
-        too_thick = self._too_thick_below() if partial else None
+        too_thick = self._too_thick_below(surface) if partial else None
         for i0, i1 in runs(thick):
             small = float(np.sum(t[i0:i1])) * GRID_STEP_M < 0.25 * lo_a
             if small and not (too_thick is not None and np.any(too_thick[i0:i1])):
@@ -324,9 +338,7 @@ class LayersMixin(RoughMixin):
             s = self.planner.scale
             for deeper in _DEEPEN_M:
                 y = y_floor - deeper * s
-                lowered = walls.copy()
-                lowered[2, 2] = -y
-                floor_y = np.maximum(self.design_floor, min(y, self.ground_y))
+                floor_y, lowered = self._floor_at(y)
                 other = self._layer_column(floor_y, y, lowered, False, remaining, t0, keep)
                 if other is not None:
                     return other
@@ -339,15 +351,12 @@ class LayersMixin(RoughMixin):
         """Whether a dig reaching down to ``envelope`` (on the grid) leaves above ``floor``
         a rest of the current layer that fills no bucket but must be taken
         (:meth:`_layer_must_be_taken`)."""
-        surface = self.surface
-        self.surface = np.minimum(surface, envelope)
-        try:
-            if self._column_ends(floor, self.section_lo, self._reach_hi(), False):
-                return False
-            rest = self._column_ends(floor, self.section_lo, self._reach_hi(), True)
-            return bool(rest) and self._layer_must_be_taken()
-        finally:
-            self.surface = surface
+        after = np.minimum(self.surface, envelope)
+        reach = self._reach_hi(after)
+        if self._column_ends(floor, self.section_lo, reach, False, after):
+            return False
+        rest = self._column_ends(floor, self.section_lo, reach, True, after)
+        return bool(rest) and self._layer_must_be_taken(after)
 
     def _layer_column(
         self,
@@ -394,12 +403,14 @@ class LayersMixin(RoughMixin):
                 return dig
         return None
 
-    def _too_thick_below(self) -> NDArray[np.bool_]:
+    def _too_thick_below(self, surface: FloatArray | None = None) -> NDArray[np.bool_]:
         """Where, on the grid, the material left above the current layer's floor would make
         the layer below thicker than a dig cuts through (:data:`_CUT_MAX_M`, scaled); nowhere
         in the bottom layer (nothing below takes it). Above the walls' slopes, nowhere: what
         the layers leave there is the walls' digs' (top edge to foot, in pieces and halves
-        where it is thick, ``walls``), not the columns' of the layers below."""
+        where it is thick, ``walls``), not the columns' of the layers below. ``surface``: the
+        material's surface on the grid (default the current one)."""
+        surface = self.surface if surface is None else surface
         x = self.grid
         if self.layer >= len(self.layer_floors):
             return np.zeros(x.shape[0], dtype=bool)
@@ -408,16 +419,17 @@ class LayersMixin(RoughMixin):
         floor = np.maximum(self.design_floor, below)
         inside = (x >= self.section_lo) & (x <= self.section_hi)
         inside &= self.design_floor <= self.bottom_y + 1e-9
-        mask: NDArray[np.bool_] = inside & (self.surface - floor > _CUT_MAX_M * self.planner.scale)
+        mask: NDArray[np.bool_] = inside & (surface - floor > _CUT_MAX_M * self.planner.scale)
         return mask
 
-    def _layer_must_be_taken(self) -> bool:
-        """Whether what is left above the current layer's floor must be taken under-filled:
-        left to the layer below, it would make that layer thicker anywhere than the boom's
-        torque cuts through (:data:`_CUT_MAX_M`, scaled)."""
+    def _layer_must_be_taken(self, surface: FloatArray | None = None) -> bool:
+        """Whether what is left above the current layer's floor (``surface``, default the
+        current one) must be taken under-filled: left to the layer below, it would make that
+        layer thicker anywhere than the boom's torque cuts through (:data:`_CUT_MAX_M`,
+        scaled)."""
         if self.layer >= len(self.layer_floors):
             return True  # the bottom layer: nothing below takes it
-        return bool(np.any(self._too_thick_below()))
+        return bool(np.any(self._too_thick_below(surface)))
 
     def _next_column(self, remaining: Any, t0: float) -> PlannedDig | None:
         """The next bottom column (:meth:`_column_ends`): a straight backward dig along the

@@ -49,6 +49,9 @@ _FIT_SAMPLES = 41
 # Longest straight profile pass (scale model, m).
 _PASS_LENGTH_M = 0.30
 
+# A fitted profile dig to check: end poses, bulge (rad) and the fit's cost (m^2).
+_Try = tuple[FloatArray, FloatArray, FloatArray, float]
+
 
 class FitMixin(CyclesMixin):
     """A session's digs fitted along the design's outline (see the module)."""
@@ -127,12 +130,10 @@ class FitMixin(CyclesMixin):
         of :meth:`_pass_candidate` with the fit's RMS distance (``fit_rms_m``), or None.
         """
         arm = self.planner.arm
-        m = self.machine_x
         qf, pf = self.planner.fit_qf, self.planner.fit_pf
         margin = math.radians(0.5)
         lo_q, hi_q = arm.q_min + margin, arm.q_max - margin
         tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
-        qf_full, pf_full = self.planner.full_qf, self.planner.full_pf
         good = (_GOOD_FIT_COST if good_cost is None else good_cost) * qf.shape[0] / 101.0
 
         def inward(p: FloatArray) -> FloatArray:
@@ -145,24 +146,25 @@ class FitMixin(CyclesMixin):
         fits_seen: dict[bytes, list[tuple[float, FloatArray] | None]] = {}
         candidates_seen: dict[bytes, Candidate | None] = {}
 
-        def candidate(
-            q1: FloatArray, q2: FloatArray, K: FloatArray, cost: float
-        ) -> Candidate | None:
-            key = b"".join((q1.tobytes(), q2.tobytes(), K.tobytes(), np.float64(cost).tobytes()))
-            if key not in candidates_seen:
-                candidates_seen[key] = checked(q1, q2, K, cost)
-            return candidates_seen[key]
-
-        def checked(q1: FloatArray, q2: FloatArray, K: FloatArray, cost: float) -> Candidate | None:
-            qp = q1 + qf_full[:, None] * (q2 - q1) + pf_full[:, None] * K
-            px, py = arm.tip_xy(qp)
-            tip = np.stack([px + m, py], axis=1)
-            if self.overdig_of(tip) > OVERDIG_LIMIT_M:
-                return None
-            found = self._pass_candidate(kind, q1, q2, K, tip)
-            if found is not None:
-                found = dataclasses.replace(found, fit_rms_m=math.sqrt(cost / qf.shape[0]))
-            return found
+        def first_planned(tries: list[_Try]) -> Candidate | None:
+            """The first of ``tries`` that plans, in their order: the first alone (it most
+            often does), the rest checked at once (:meth:`_checked_fits`)."""
+            for chunk in (tries[:1], tries[1:]):
+                keys = [
+                    b"".join((q1.tobytes(), q2.tobytes(), K.tobytes(), np.float64(c).tobytes()))
+                    for q1, q2, K, c in chunk
+                ]
+                new: dict[bytes, _Try] = {}
+                for key, t in zip(keys, chunk, strict=True):
+                    if key not in candidates_seen:
+                        new.setdefault(key, t)
+                if new:
+                    got = self._checked_fits(kind, list(new.values()), qf.shape[0])
+                    candidates_seen.update(zip(new, got, strict=True))
+                for key in keys:
+                    if candidates_seen[key] is not None:
+                        return candidates_seen[key]
+            return None
 
         def fitted(
             q1s: list[FloatArray], q2s: list[FloatArray], offset: float
@@ -195,7 +197,7 @@ class FitMixin(CyclesMixin):
         # enough that the path's farthest sample outside the outline is _FIT_OUTSIDE_M out
         # (a least-squares path crosses the outline both ways), and refitted.
         mid = [(v[0], v[-1], *np.linspace(v[0], v[-1], 5)[1:-1].tolist()) for v in atts]
-        found = self._fit_shifted(kind, a, b, n_a, n_b, mid, edges, fitted, candidate)
+        found = self._fit_shifted(kind, a, b, n_a, n_b, mid, edges, fitted, first_planned)
         if found is not None:
             return found
         # Fixed shifts as before where the adaptive one found nothing.
@@ -203,23 +205,18 @@ class FitMixin(CyclesMixin):
             a_s = a + offset * n_a
             b_s = b + offset * n_b
             starts = [self._pass_pose(a_s, mid[0]), self._pass_pose(b_s, mid[1])]
-            fits = []
             pairs = [(qs, qe) for qs in starts[0] for qe in starts[1]]
             results = fitted([p[0] for p in pairs], [p[1] for p in pairs], offset)
-            # Table pairs first; a good fit is tried at once, the others by cost at the end.
+            # Table pairs that fit well first, in their order; the others by cost.
+            good_fits: list[_Try] = []
+            fits: list[_Try] = []
             for (q1, q2), got in zip(pairs, results, strict=True):
                 if got is not None:
                     cost, K = got
-                    if cost < good:
-                        found = candidate(q1, q2, K, cost)
-                        if found is not None:
-                            return found
-                    else:
-                        fits.append((cost, q1, q2, K))
-            for cost, q1, q2, K in sorted(fits, key=lambda f: f[0]):
-                found = candidate(q1, q2, K, cost)
-                if found is not None:
-                    return found
+                    (good_fits if cost < good else fits).append((q1, q2, K, cost))
+            found = first_planned(good_fits + sorted(fits, key=lambda f: f[3]))
+            if found is not None:
+                return found
         return None
 
     def _fit_shifted(
@@ -234,13 +231,13 @@ class FitMixin(CyclesMixin):
         fitted: Callable[
             [list[FloatArray], list[FloatArray], float], list[tuple[float, FloatArray] | None]
         ],
-        candidate: Callable[..., Candidate | None],
+        first_planned: Callable[[list[_Try]], Candidate | None],
     ) -> Candidate | None:
         """:meth:`_fit_profile`'s adaptive shift on one attitude table: every pair fitted on
         the outline itself (``fitted`` at offset 0), the best :data:`_N_FIT_SHIFTS` by cost
         shifted inwards (the ends along their inward normals ``n_a``, ``n_b``) just enough
         that the path's farthest sample outside the outline is :data:`_FIT_OUTSIDE_M` out,
-        refitted there, and the first that ``candidate`` plans returned."""
+        refitted there, and the first that plans returned (``first_planned``)."""
         arm = self.planner.arm
         m = self.machine_x
         qf_full, pf_full = self.planner.full_qf, self.planner.full_pf
@@ -253,6 +250,7 @@ class FitMixin(CyclesMixin):
             if got is not None
         ]
         fits.sort(key=lambda f: f[0])
+        tries: list[_Try] = []
         for cost, q1, q2, K in fits[:_N_FIT_SHIFTS]:
             qp = q1 + qf_full[:, None] * (q2 - q1) + pf_full[:, None] * K
             px, py = arm.tip_xy(qp)
@@ -284,10 +282,13 @@ class FitMixin(CyclesMixin):
                 if got is None:
                     continue
                 cost, K = got
-            found = candidate(q1, q2, K, cost)
-            if found is not None:
-                return found
-        return None
+            tries.append((q1, q2, K, cost))
+            if len(tries) == 1:
+                # The best fit alone first: it most often plans, and the others need refits.
+                found = first_planned(tries)
+                if found is not None:
+                    return found
+        return first_planned(tries[1:])
 
     def _pass_pose(self, point: FloatArray, attitudes_deg: tuple[float, ...]) -> list[FloatArray]:
         """Joint poses of a pass end at the table's attitudes; where one is out of reach or
@@ -460,49 +461,91 @@ class FitMixin(CyclesMixin):
             np.add(K, sol, out=K, where=take)
         return best_K, cost
 
-    def _pass_candidate(
-        self, kind: DigType, qs: FloatArray, qe: FloatArray, K: FloatArray, tip: FloatArray
-    ) -> Candidate | None:
-        """A fitted profile pass retimed and checked, as a ranked candidate (None: refused)."""
+    def _checked_fits(self, kind: DigType, tries: list[_Try], n_fit: int) -> list[Candidate | None]:
+        """Fitted profile digs ``tries`` (``(q1, q2, K, cost)``: end poses, bulge and the
+        fit's cost on ``n_fit`` samples) sampled on the full grid, refused over the over-dig
+        limit and otherwise checked by :meth:`_pass_candidates` (all at once), each with the
+        fit's RMS distance (``fit_rms_m``); None where refused."""
+        arm = self.planner.arm
+        qf_full, pf_full = self.planner.full_qf, self.planner.full_pf
+        q1 = np.array([t[0] for t in tries])
+        q2 = np.array([t[1] for t in tries])
+        K = np.array([t[2] for t in tries])
+        qp = (
+            q1[:, None, :]
+            + qf_full[None, :, None] * (q2 - q1)[:, None, :]
+            + pf_full[None, :, None] * K[:, None, :]
+        )
+        px, py = arm.tip_xy(qp)
+        tips = np.stack([px + self.machine_x, py], axis=2)
+        out: list[Candidate | None] = [None] * len(tries)
+        keep = np.flatnonzero(self._overdig_many(tips) <= OVERDIG_LIMIT_M)
+        if keep.size == 0:
+            return out
+        found = self._pass_candidates(kind, q1[keep], q2[keep], K[keep], tips[keep])
+        for i, c in zip(keep.tolist(), found, strict=True):
+            if c is not None:
+                rms = math.sqrt(tries[i][3] / n_fit)
+                out[i] = dataclasses.replace(c, fit_rms_m=rms)
+        return out
+
+    def _pass_candidates(
+        self, kind: DigType, qs: FloatArray, qe: FloatArray, K: FloatArray, tips: FloatArray
+    ) -> list[Candidate | None]:
+        """Fitted profile passes (``qs``, ``qe``, ``K`` ``(P, 3)``; their tips' paths ``tips``
+        ``(P, n, 2)``, work-site frame) retimed and checked, as ranked candidates (None:
+        refused); each row on its own, the verifier's rows at once."""
+        out: list[Candidate | None] = [None] * qs.shape[0]
         # The real cut first: it refuses most fits, and needs no retiming.
-        envelope = self._envelope(tip, self.grid)
-        total, useful = self._cut_areas(envelope)
-        if (
-            total > self.v_max_m3 / self.width_m
-            or useful < 0.1 * MIN_USEFUL_FRACTION * self.design_area
-        ):
-            return None
+        envelopes = [self._envelope(tip, self.grid) for tip in tips]
+        areas = [self._cut_areas(env) for env in envelopes]
+        floor = 0.1 * MIN_USEFUL_FRACTION * self.design_area
+        cap = self.v_max_m3 / self.width_m
+        rows = [i for i, (total, useful) in enumerate(areas) if total <= cap and useful >= floor]
+        if not rows:
+            return out
         # The verifier's soil model takes depth below a flat H; here the material over the
         # path is a layer along it, so H is set for the thickest chip the path cuts: the
         # material's thickness across the path's direction (its depth above the path times
         # the cosine of the path's slope: a wall's pass cuts the wedge beside the wall, not
         # the wedge's height), above the path's lowest point.
-        depth = np.clip(np.interp(tip[:, 0], self.grid, self.surface) - tip[:, 1], 0.0, None)
-        step = np.gradient(tip, axis=0)
-        across = np.abs(step[:, 0]) / np.maximum(np.hypot(step[:, 0], step[:, 1]), 1e-12)
-        H = float(np.min(tip[:, 1]) + float(np.max(depth * across)))
+        tip = tips[rows]
+        depth = np.clip(np.interp(tip[..., 0], self.grid, self.surface) - tip[..., 1], 0.0, None)
+        step = np.gradient(tip, axis=1)
+        across = np.abs(step[..., 0]) / np.maximum(np.hypot(step[..., 0], step[..., 1]), 1e-12)
+        H = np.min(tip[..., 1], axis=1) + np.max(depth * across, axis=1)
         T0 = 0.5 * (self.planning.t_min_s + self.planning.t_max_s)
-        a6 = -K / T0**6
-        row = pack_inputs(
-            qs[None], qe[None], np.array([H]), np.array([int(kind)]), a6[None], np.array([T0])
-        )
-        out = np.zeros((1, N_OUT))
-        retimed = np.zeros((1, 4))
         # Below the fill band it can only be a finishing pass: timed in the passes' window.
-        under = total < self._fill_band()[0]
-        self.planner.verifier_for(under).retime_into(row, out, retimed)
-        if not np.isfinite(retimed[0, 3]) or _total_without_volume(out[0]) > 0.0:
-            return None
-        x7 = np.concatenate([qs, qe, [H]])
-        r = retimed[0]
-        return Candidate(
-            kind=kind,
-            x7=x7,
-            useful_m2=useful,
-            total_m2=total,
-            score=useful,
-            T_s=float(r[3]),
-            a6=(float(r[0]), float(r[1]), float(r[2])),
-            pass_window=under,
-            envelope=envelope,
+        low = self._fill_band()[0]
+        under = np.array([areas[i][0] < low for i in rows])
+        table = pack_inputs(
+            qs[rows], qe[rows], H, np.full(len(rows), int(kind)), -K[rows] / T0**6, T0
         )
+        result = np.zeros((len(rows), N_OUT))
+        retimed = np.zeros((len(rows), 4))
+        for window in (False, True):
+            sel = np.flatnonzero(under == window)
+            if sel.size:
+                r_out = np.zeros((sel.size, N_OUT))
+                r_time = np.zeros((sel.size, 4))
+                self.planner.verifier_for(window).retime_into(
+                    np.ascontiguousarray(table[sel]), r_out, r_time
+                )
+                result[sel] = r_out
+                retimed[sel] = r_time
+        for j, i in enumerate(rows):
+            if not np.isfinite(retimed[j, 3]) or _total_without_volume(result[j]) > 0.0:
+                continue
+            r = retimed[j]
+            out[i] = Candidate(
+                kind=kind,
+                x7=np.concatenate([qs[i], qe[i], [H[j]]]),
+                useful_m2=areas[i][1],
+                total_m2=areas[i][0],
+                score=areas[i][1],
+                T_s=float(r[3]),
+                a6=(float(r[0]), float(r[1]), float(r[2])),
+                pass_window=bool(under[j]),
+                envelope=envelopes[i],
+            )
+        return out

@@ -394,8 +394,8 @@ def _plan_with_each_fit(monkeypatch, check) -> None:
 
 
 def test_c_profile_fits_equal_the_numpy_reference_bit_for_bit(monkeypatch) -> None:
-    # The C iterations (fit_iterate, then np.linalg.solve as the numpy loop calls it) against
-    # the numpy loop on the same inputs, bit for bit.
+    # The C fits (fit_bulges: the iterations and their Cholesky steps) against the numpy loop
+    # on the same inputs, bit for bit.
     fit = TrenchSession._fit_bulges
     calls: list[int] = []
 
@@ -413,6 +413,25 @@ def test_c_profile_fits_equal_the_numpy_reference_bit_for_bit(monkeypatch) -> No
     _plan_with_each_fit(monkeypatch, compare)
     # Batched fits (the attitude table's pairs) and single refits both ran.
     assert len(calls) > 10 and max(calls) > 1 and min(calls) == 1
+
+
+def test_the_fits_step_solver_solves_damped_normal_equations() -> None:
+    from rt_runtime.planning.trench.fit import _solve_spd3
+
+    # Seeded damped normal equations J^T J + mu I over many scales (a fit's, ill-conditioned
+    # ones included): the written-out Cholesky agrees with LAPACK's solve to rounding.
+    rng = np.random.default_rng(7)
+    J = rng.normal(size=(500, 41, 3)) * 10.0 ** rng.uniform(-3, 2, size=(500, 1, 3))
+    mu = 10.0 ** rng.uniform(-7, 1, size=500)
+    A = np.einsum("pni,pnj->pij", J, J) + mu[:, None, None] * np.eye(3)
+    b = rng.normal(size=(500, 3))
+    want = np.linalg.solve(A, b[..., None])[..., 0]
+    got = _solve_spd3(A, b)
+    np.testing.assert_allclose(A @ got[..., None], b[..., None], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9 * np.abs(want).max())
+    # Not positive definite (a zero or negative pivot, NaN): no step, never NaN.
+    bad = np.array([np.zeros((3, 3)), -np.eye(3), np.full((3, 3), np.nan), np.ones((3, 3))])
+    np.testing.assert_array_equal(_solve_spd3(bad, np.ones((4, 3))), np.zeros((4, 3)))
 
 
 def _fit_cost(
@@ -1234,19 +1253,30 @@ def test_the_finishing_stages_bound_counts_its_own_passes(planner: TrenchPlanner
     from rt_runtime.planning.trench.finishing import MAX_FINISHING_HARD
 
     # 0.61 m x 0.29 m with an 82 deg far wall (random suite, seed 11): the layers' columns
-    # along the steep wall take nine under-filled digs, and with those counted against the
-    # finishing stage's bound it took no pass and ended at 3.4 % ("incomplete"). The bound
-    # counts the stage's own passes: one pass, and the trench is done.
+    # along the steep wall take more under-filled digs than the finishing stage's bound. The
+    # bound counts the stage's own passes: when material slumps back onto the bottom after the
+    # last dig, the stage still takes a pass for it (counting every pass, it would take none
+    # and leave the slump).
     task = random_tasks(RIG, 16, 11)[15]
     session = planner.start(task)
     while (dig := session.next_dig()) is not None:
         session.record(dig, dig.tip_path_m)
         state = json.loads(json.dumps(session.state()))
         assert state["finish_passes"] == session.finish_passes <= session.finishing_used
-    plan = session.finish(plan_total_us=0.0)
-    assert session.finishing_used > MAX_FINISHING_HARD
-    assert 1 <= session.finish_passes <= MAX_FINISHING_HARD
-    assert plan.status is PlanStatus.DONE
+    assert session.finish(plan_total_us=0.0).status is PlanStatus.DONE
+    used = session.finishing_used
+    assert used > MAX_FINISHING_HARD
+    x = session.grid
+    heap = np.abs(x - float(np.mean(x[session.design_floor <= session.bottom_y + 1e-9]))) < 0.1
+    slumped = np.where(heap, np.maximum(session.surface, session.bottom_y + 0.012), session.surface)
+    session.observe_surface(x, slumped)
+    before = session.finish_passes
+    dig = session.next_dig()
+    assert dig is not None and dig.finishing and session.stage is Stage.FINISH
+    session.record(dig, dig.tip_path_m)
+    assert session.finish_passes == before + 1 <= MAX_FINISHING_HARD
+    assert session.finishing_used == used + 1
+    state = json.loads(json.dumps(session.state()))
     # A state written before the key counts every pass (as then); a count above the passes
     # taken is refused by its key.
     old = {k: v for k, v in state.items() if k != "finish_passes"}

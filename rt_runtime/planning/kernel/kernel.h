@@ -482,5 +482,9 @@ int vk_fit_iterate(const double *base, const double *pf, ptrdiff_t n, const doub
                    const double *edges, ptrdiff_t E, const double *jac0, const double *d_ent,
                    const double *par, double *K, double *step, double *mu, double *cost,
                    double *best, double *active, double *go, double *A, double *rhs);
+#define VK_FIT_ITERATIONS 9 /* a profile fit's Gauss-Newton iterations */
+void vk_fit_bulges(const double *base, const double *pf, ptrdiff_t n, const double *lengths,
+                   const double *edges, ptrdiff_t E, const double *jac0, const double *d_ent,
+                   const double *par, double *best, double *cost);
 
 #endif

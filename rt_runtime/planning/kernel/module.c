@@ -2,7 +2,7 @@
  * The extension module (rt_runtime.planning._verify, or _verify_avx2: module.h) and its Kernel
  * type: the packed rig constants, the time grid and the scratch of one verifier, and the
  * per-call entry points run (vk_evaluate), retime (vk_retime), plan (vk_plan), screen
- * (vk_screen_row) and front (front.c); the module functions overdig, envelope, fit_iterate,
+ * (vk_screen_row) and front (front.c); the module functions overdig, envelope, fit_bulges,
  * move_poses and bucket_depth (trench.c), mintorque (mintorque.c).
  *
  * The entry points are METH_FASTCALL and take numpy arrays by the buffer protocol: it measured
@@ -407,63 +407,46 @@ static PyObject *vk_py_envelope(PyObject *module, PyObject *const *args, Py_ssiz
     Py_RETURN_NONE;
 }
 
-static PyObject *vk_py_fit_iterate(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+static PyObject *vk_py_fit_bulges(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)module;
-    if (nargs != 15) {
+    if (nargs != 9) {
         PyErr_SetString(PyExc_TypeError,
-                        "fit_iterate(base, pf, lengths, edges, jac0, d_ent, par, K, step, mu, cost, "
-                        "best, active, go, system) takes 15 arguments");
+                        "fit_bulges(base, pf, lengths, edges, jac0, d_ent, par, K, cost) takes 9 "
+                        "arguments");
         return NULL;
     }
-    vk_arg a[15] = {
+    vk_arg a[9] = {
         {args[0], "base", 0, 3, {-1, -1, 3}}, {args[1], "pf", 0, 1, {-1}},
         {args[2], "lengths", 0, 1, {3}},      {args[3], "edges", 0, 2, {-1, 3}},
         {args[4], "jac0", 0, 3, {-1, 2, 3}},  {args[5], "d_ent", 0, 2, {-1, 2}},
-        {args[6], "par", 0, 1, {5}},          {args[7], "K", 1, 2, {-1, 3}},
-        {args[8], "step", 1, 2, {-1, 3}},     {args[9], "mu", 1, 1, {-1}},
-        {args[10], "cost", 1, 1, {-1}},       {args[11], "best", 1, 2, {-1, 3}},
-        {args[12], "active", 1, 1, {-1}},     {args[13], "go", 1, 1, {-1}},
-        {args[14], "system", 1, 3, {-1, 3, 4}},
+        {args[6], "par", 0, 1, {4}},          {args[7], "K", 1, 2, {-1, 3}},
+        {args[8], "cost", 1, 1, {-1}},
     };
-    if (get_args(a, 15) != 0) return NULL;
+    if (get_args(a, 9) != 0) return NULL;
     const Py_ssize_t P = a[0].view.shape[0], n = a[0].view.shape[1], E = a[3].view.shape[0];
     const char *bad = NULL;
     if (a[1].view.shape[0] != n) bad = "pf must have one value per sample (n,)";
     else if (n > VK_FIT_MAX_SAMPLES) bad = "base has more samples than the fit takes (1024)";
     else if (E < 1) bad = "edges must hold 1 or more half-planes";
-    for (int k = 4; k < 15 && bad == NULL; k++)
+    for (int k = 4; k < 9 && bad == NULL; k++)
         if (k != 6 && a[k].view.shape[0] != P)
-            bad = "base, jac0, d_ent and the state must have the same number of rows P";
+            bad = "base, jac0, d_ent, K and cost must have the same number of rows P";
     if (bad != NULL) {
-        release_rows(a, 15);
+        release_rows(a, 9);
         PyErr_SetString(PyExc_ValueError, bad);
         return NULL;
     }
     const double *base = (const double *)a[0].view.buf, *jac0 = (const double *)a[4].view.buf;
     const double *d_ent = (const double *)a[5].view.buf;
-    double *K = (double *)a[7].view.buf, *step = (double *)a[8].view.buf;
-    double *mu = (double *)a[9].view.buf, *cost = (double *)a[10].view.buf;
-    double *best = (double *)a[11].view.buf, *active = (double *)a[12].view.buf;
-    double *go = (double *)a[13].view.buf, *sys = (double *)a[14].view.buf;
-    long n_active = 0;
-    for (Py_ssize_t p = 0; p < P; p++) {
-        /* An inactive pair's K and mu no longer change (every pair is active at the first
-         * iteration): its system stays as last written, the same as written again. */
-        if (active[p] == 0.0) continue;
-        double A[9], rhs[3];
-        n_active += vk_fit_iterate(base + 3 * n * p, (const double *)a[1].view.buf, n,
-                                   (const double *)a[2].view.buf, (const double *)a[3].view.buf,
-                                   E, jac0 + 6 * p, d_ent + 2 * p, (const double *)a[6].view.buf,
-                                   K + 3 * p, step + 3 * p, mu + p, cost + p, best + 3 * p,
-                                   active + p, go + p, A, rhs);
-        for (int i = 0; i < 3; i++) {
-            for (int j = 0; j < 3; j++) sys[12 * p + 4 * i + j] = A[3 * i + j];
-            sys[12 * p + 4 * i + 3] = rhs[i];
-        }
-    }
-    release_rows(a, 15);
-    return PyLong_FromLong(n_active);
+    double *K = (double *)a[7].view.buf, *cost = (double *)a[8].view.buf;
+    for (Py_ssize_t p = 0; p < P; p++)
+        vk_fit_bulges(base + 3 * n * p, (const double *)a[1].view.buf, n,
+                      (const double *)a[2].view.buf, (const double *)a[3].view.buf, E,
+                      jac0 + 6 * p, d_ent + 2 * p, (const double *)a[6].view.buf, K + 3 * p,
+                      cost + p);
+    release_rows(a, 9);
+    Py_RETURN_NONE;
 }
 
 static PyObject *vk_py_move_poses(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
@@ -752,11 +735,10 @@ static PyMethodDef verify_functions[] = {
     {"bucket_depth", (PyCFunction)(void (*)(void))vk_py_bucket_depth, METH_FASTCALL,
      "bucket_depth(q (n, 3), lengths (3,), outline (m, 2), machine_x, grid (M,) uniform, "
      "surface (M,), cap (m,), out (n, m)) -> None"},
-    {"fit_iterate", (PyCFunction)(void (*)(void))vk_py_fit_iterate, METH_FASTCALL,
-     "fit_iterate(base (P, n, 3), pf (n,), lengths (3,), edges (E, 3), jac0 (P, 2, 3), "
-     "d_ent (P, 2), par (5,): machine x, offset, theta_p lo, hi, iteration; state K (P, 3), "
-     "step (P, 3), mu (P,), cost (P,), best (P, 3), active (P,), go (P,); system (P, 3, 4) "
-     "out: the damped normal equations [A | rhs]) -> the number of active pairs"},
+    {"fit_bulges", (PyCFunction)(void (*)(void))vk_py_fit_bulges, METH_FASTCALL,
+     "fit_bulges(base (P, n, 3), pf (n,), lengths (3,), edges (E, 3), jac0 (P, 2, 3), "
+     "d_ent (P, 2), par (4,): machine x, offset, theta_p lo, hi; K (P, 3) out, cost (P,) out) "
+     "-> None: each pair's damped Gauss-Newton fit of its bulge"},
     {"mintorque", (PyCFunction)(void (*)(void))vk_py_mintorque, METH_FASTCALL,
      "mintorque(X (B, 15 or 19), params (64,), basis (14, Q + 1), plates (P, 7), cost (B,) "
      "out, named (B, 44) out, split (B, 146) out) -> None: the smoothed minimum-torque model "

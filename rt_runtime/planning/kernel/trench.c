@@ -279,6 +279,63 @@ int vk_fit_iterate(const double *base, const double *pf, ptrdiff_t n, const doub
     return still;
 }
 
+/* The damped 3 x 3 system A x = rhs of a fit's step (A (3, 3) row-major, symmetric positive
+ * definite: the normal equations plus mu I) by Cholesky, trench.fit._solve_spd3's operations
+ * in its order; x = 0 where a pivot is not positive or the answer is not finite. */
+static void vk_solve_spd3(const double *A, const double *rhs, double *x)
+{
+    x[0] = x[1] = x[2] = 0.0;
+    const double d0 = A[0];
+    if (!(d0 > 0.0)) return;
+    const double l00 = sqrt(d0);
+    const double l10 = A[3] / l00, l20 = A[6] / l00;
+    const double d1 = A[4] - l10 * l10;
+    if (!(d1 > 0.0)) return;
+    const double l11 = sqrt(d1);
+    const double l21 = (A[7] - l20 * l10) / l11;
+    const double d2 = (A[8] - l20 * l20) - l21 * l21;
+    if (!(d2 > 0.0)) return;
+    const double l22 = sqrt(d2);
+    const double y0 = rhs[0] / l00;
+    const double y1 = (rhs[1] - l10 * y0) / l11;
+    const double y2 = ((rhs[2] - l20 * y0) - l21 * y1) / l22;
+    const double x2 = y2 / l22;
+    const double x1 = (y1 - l21 * x2) / l11;
+    const double x0 = ((y0 - l10 * x1) - l20 * x2) / l00;
+    if (!(isfinite(x0) && isfinite(x1) && isfinite(x2))) return;
+    x[0] = x0;
+    x[1] = x1;
+    x[2] = x2;
+}
+
+/* trench.fit.FitMixin._fit_bulges on one pair of end poses: up to VK_FIT_ITERATIONS damped
+ * Gauss-Newton iterations (vk_fit_iterate, each step solved by vk_solve_spd3) from K = 0, the
+ * numpy loop's operations in its order; par (4,): machine x, offset, theta_p's range lo and hi.
+ * Writes the best K evaluated (3,) and its cost. */
+void vk_fit_bulges(const double *base, const double *pf, ptrdiff_t n, const double *lengths,
+                   const double *edges, ptrdiff_t E, const double *jac0, const double *d_ent,
+                   const double *par, double *best, double *cost)
+{
+    double K[3] = {0.0, 0.0, 0.0}, step[3] = {0.0, 0.0, 0.0}, mu = 1e-7, active = 1.0, go = 0.0;
+    double A[9], rhs[3], sol[3];
+    double par_it[5] = {par[0], par[1], par[2], par[3], 0.0};
+    *cost = INFINITY;
+    best[0] = best[1] = best[2] = 0.0;
+    for (int it = 0; it < VK_FIT_ITERATIONS; it++) {
+        par_it[4] = it;
+        if (!vk_fit_iterate(base, pf, n, lengths, edges, E, jac0, d_ent, par_it, K, step, &mu,
+                            cost, best, &active, &go, A, rhs))
+            break;
+        vk_solve_spd3(A, rhs, sol);
+        if (go != 0.0) {
+            for (int j = 0; j < 3; j++) {
+                step[j] = sol[j];
+                K[j] = K[j] + sol[j];
+            }
+        }
+    }
+}
+
 /* trench.motion._Mover.poses of a rest-to-rest ruckig move: joint poses (n, 3) at n times from
  * each joint's seven constant-jerk pieces (tables (3, 5, 7): durations, jerk, and the
  * acceleration, velocity and position where each piece starts); the same formulas. */

@@ -49,8 +49,36 @@ _FIT_SAMPLES = 41
 # Longest straight profile pass (scale model, m).
 _PASS_LENGTH_M = 0.30
 
+# Damped Gauss-Newton iterations of a profile fit (the C kernel's VK_FIT_ITERATIONS).
+_FIT_ITERATIONS = 9
+
 # A fitted profile dig to check: end poses, bulge (rad) and the fit's cost (m^2).
 _Try = tuple[FloatArray, FloatArray, FloatArray, float]
+
+
+def _solve_spd3(A: FloatArray, rhs: FloatArray) -> FloatArray:
+    """``x`` ``(P, 3)`` of the damped 3 x 3 systems ``A x = rhs`` (``A`` ``(P, 3, 3)``
+    symmetric positive definite: a fit's normal equations plus mu I) by Cholesky, written out
+    so that the C kernel's ``vk_solve_spd3`` does the same operations in the same order; 0
+    where a pivot is not positive or the answer is not finite."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d0 = A[:, 0, 0]
+        l00 = np.sqrt(d0)
+        l10, l20 = A[:, 1, 0] / l00, A[:, 2, 0] / l00
+        d1 = A[:, 1, 1] - l10 * l10
+        l11 = np.sqrt(d1)
+        l21 = (A[:, 2, 1] - l20 * l10) / l11
+        d2 = (A[:, 2, 2] - l20 * l20) - l21 * l21
+        l22 = np.sqrt(d2)
+        y0 = rhs[:, 0] / l00
+        y1 = (rhs[:, 1] - l10 * y0) / l11
+        y2 = ((rhs[:, 2] - l20 * y0) - l21 * y1) / l22
+        x2 = y2 / l22
+        x1 = (y1 - l21 * x2) / l11
+        x0 = ((y0 - l10 * x1) - l20 * x2) / l00
+    x = np.stack([x0, x1, x2], axis=1)
+    ok = (d0 > 0.0) & (d1 > 0.0) & (d2 > 0.0) & np.all(np.isfinite(x), axis=1)
+    return np.where(ok[:, None], x, 0.0)
 
 
 class FitMixin(CyclesMixin):
@@ -348,7 +376,7 @@ class FitMixin(CyclesMixin):
         best_K = K.copy()
         active = np.ones(P, dtype=bool)
         eye = np.eye(3)
-        for it in range(9):
+        for it in range(_FIT_ITERATIONS):
             q = base + pf[None, :, None] * K[:, None, :]
             phi = np.cumsum(q, axis=2)
             cs, sn = np.cos(phi) * lengths, np.sin(phi) * lengths
@@ -398,9 +426,7 @@ class FitMixin(CyclesMixin):
             go = better & active
             if not np.any(active):
                 break
-            sol = np.linalg.solve(
-                AtA + mu[:, None, None] * eye, (Atb - mu[:, None] * K)[..., None]
-            )[..., 0]
+            sol = _solve_spd3(AtA + mu[:, None, None] * eye, Atb - mu[:, None] * K)
             step = np.where(go[:, None], sol, step)
             K = np.where(go[:, None], K + sol, K)
         return best_K, cost
@@ -414,52 +440,24 @@ class FitMixin(CyclesMixin):
         edges: FloatArray,
         par: tuple[float, float, float, float],
     ) -> tuple[FloatArray, FloatArray]:
-        """:meth:`_fit_bulges` with each iteration's residuals, normal equations and step
-        control in C (``fit_iterate``: numpy's operations in numpy's order) and the damped
-        3 x 3 systems solved by ``np.linalg.solve`` as in the numpy loop; the same K and costs
-        bit for bit."""
+        """:meth:`_fit_bulges` in C (``fit_bulges``: each pair's iterations, the numpy loop's
+        operations in its order, its steps solved as :func:`_solve_spd3` solves them); the
+        same K and costs bit for bit."""
         P = base.shape[0]
-        base = np.ascontiguousarray(base, dtype=np.float64)
-        pf = np.ascontiguousarray(self.planner.fit_pf, dtype=np.float64)
-        lengths = np.ascontiguousarray(self.planner.arm.lengths, dtype=np.float64)
-        edges = np.ascontiguousarray(edges, dtype=np.float64)
-        jac0 = np.ascontiguousarray(jac0, dtype=np.float64)
-        d_ent = np.ascontiguousarray(d_ent, dtype=np.float64)
         K = np.zeros((P, 3))
-        step = np.zeros((P, 3))
-        mu = np.full(P, 1e-7)
-        cost = np.full(P, np.inf)
-        best_K = np.zeros((P, 3))
-        active = np.ones(P)
-        go = np.zeros(P)
-        system = np.empty((P, 3, 4))
-        par_it = np.array([*par, 0.0])
-        for it in range(9):
-            par_it[4] = it
-            n_active = geo.fit_iterate(
-                base,
-                pf,
-                lengths,
-                edges,
-                jac0,
-                d_ent,
-                par_it,
-                K,
-                step,
-                mu,
-                cost,
-                best_K,
-                active,
-                go,
-                system,
-            )
-            if n_active == 0:
-                break
-            sol = np.linalg.solve(system[..., :3], system[..., 3:])[..., 0]
-            take = (go != 0.0)[:, None]
-            np.copyto(step, sol, where=take)
-            np.add(K, sol, out=K, where=take)
-        return best_K, cost
+        cost = np.zeros(P)
+        geo.fit_bulges(
+            np.ascontiguousarray(base, dtype=np.float64),
+            np.ascontiguousarray(self.planner.fit_pf, dtype=np.float64),
+            np.ascontiguousarray(self.planner.arm.lengths, dtype=np.float64),
+            np.ascontiguousarray(edges, dtype=np.float64),
+            np.ascontiguousarray(jac0, dtype=np.float64),
+            np.ascontiguousarray(d_ent, dtype=np.float64),
+            np.array(par, dtype=np.float64),
+            K,
+            cost,
+        )
+        return K, cost
 
     def _checked_fits(self, kind: DigType, tries: list[_Try], n_fit: int) -> list[Candidate | None]:
         """Fitted profile digs ``tries`` (``(q1, q2, K, cost)``: end poses, bulge and the

@@ -917,6 +917,30 @@ def test_a_thin_bottom_layer_fills_the_bucket_with_longer_columns(
     assert all(d.finishing for d in before.digs) and len(before.digs) == 6
 
 
+def test_a_layers_rest_too_long_for_one_dig_takes_a_shorter_full_column(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rt_runtime.bench import random_tasks
+    from rt_runtime.planning.trench import layers
+
+    # 0.47 m x 0.15 m, walls 33/74 deg, one upper layer (random suite, seed 11): the upper
+    # layer's whole rest in one column does not plan, and the column that took its place
+    # (5.7 L) left the bottom layer under a bucket (3.5 L: three finishing passes). A shorter
+    # full column leaves the bottom a full one: two passes, the walls'.
+    task = random_tasks(RIG, 27, 11)[26]
+    assert len(planner.start(task).layer_floors) == 1
+    lo, hi = _fill_band_l(RIG)
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    full = [d for d in plan.digs if not d.finishing]
+    assert len(full) == 2 and all(lo <= d.volume_m3 * 1e3 <= hi for d in full)
+    assert sum(d.finishing for d in plan.digs) == 2
+    assert plan.status is PlanStatus.DONE
+    monkeypatch.setattr(layers, "_SHORT_COLUMN_FILLS", ())
+    before = planner.plan(task)
+    assert sum(d.finishing for d in before.digs) == 3
+
+
 def test_rest_within_reach_is_layered_before_a_travel(planner: TrenchPlanner) -> None:
     from rt_runtime.planning.trench import TravelMove
 
@@ -1249,38 +1273,38 @@ def test_passes_beyond_two_stop_where_the_material_comes_back(planner: TrenchPla
 def test_the_finishing_stages_bound_counts_its_own_passes(planner: TrenchPlanner) -> None:
     import json
 
-    from rt_runtime.bench import random_tasks
     from rt_runtime.planning.trench.finishing import MAX_FINISHING_HARD
 
-    # 0.61 m x 0.29 m with an 82 deg far wall (random suite, seed 11): the layers' columns
-    # along the steep wall take more under-filled digs than the finishing stage's bound. The
-    # bound counts the stage's own passes: when material slumps back onto the bottom after the
-    # last dig, the stage still takes a pass for it (counting every pass, it would take none
-    # and leave the slump).
-    task = random_tasks(RIG, 16, 11)[15]
+    # A deep trench with a steep wall can take more under-filled digs in its layers and walls
+    # than the finishing stage's bound (a task of the random suite took nine and ended at
+    # 3.4 % with no pass). The bound counts the stage's own passes: material that slumps
+    # back onto the bottom after the last dig still gets a pass, however many under-filled
+    # digs came before; a state written before the count existed counts every pass, as then.
+    task = load_task("A", RIG)
     session = planner.start(task)
     while (dig := session.next_dig()) is not None:
         session.record(dig, dig.tip_path_m)
         state = json.loads(json.dumps(session.state()))
         assert state["finish_passes"] == session.finish_passes <= session.finishing_used
-    assert session.finish(plan_total_us=0.0).status is PlanStatus.DONE
-    used = session.finishing_used
-    assert used > MAX_FINISHING_HARD
+    # The same session as if its layers had taken the bound's worth of passes more.
+    many = {**state, "finishing_used": state["finishing_used"] + MAX_FINISHING_HARD}
     x = session.grid
     heap = np.abs(x - float(np.mean(x[session.design_floor <= session.bottom_y + 1e-9]))) < 0.1
     slumped = np.where(heap, np.maximum(session.surface, session.bottom_y + 0.012), session.surface)
-    session.observe_surface(x, slumped)
-    before = session.finish_passes
-    dig = session.next_dig()
-    assert dig is not None and dig.finishing and session.stage is Stage.FINISH
-    session.record(dig, dig.tip_path_m)
-    assert session.finish_passes == before + 1 <= MAX_FINISHING_HARD
-    assert session.finishing_used == used + 1
-    state = json.loads(json.dumps(session.state()))
-    # A state written before the key counts every pass (as then); a count above the passes
-    # taken is refused by its key.
-    old = {k: v for k, v in state.items() if k != "finish_passes"}
-    assert TrenchSession.restore(planner, task, old).finish_passes == state["finishing_used"]
+    busy = TrenchSession.restore(planner, task, many)
+    busy.observe_surface(x, slumped)
+    dig = busy.next_dig()
+    assert dig is not None and dig.finishing and busy.stage is Stage.FINISH
+    busy.record(dig, dig.tip_path_m)
+    assert busy.finish_passes == state["finish_passes"] + 1 <= MAX_FINISHING_HARD
+    assert busy.finishing_used == many["finishing_used"] + 1
+    # Without the key every pass counts: the bound is spent and the slump is left.
+    old = {k: v for k, v in many.items() if k != "finish_passes"}
+    spent = TrenchSession.restore(planner, task, old)
+    assert spent.finish_passes == many["finishing_used"] >= MAX_FINISHING_HARD
+    spent.observe_surface(x, slumped)
+    assert spent.next_dig() is None
+    # A count above the passes taken is refused by its key.
     with pytest.raises(ConfigurationError, match="finish_passes"):
         TrenchSession.restore(
             planner, task, {**state, "finish_passes": state["finishing_used"] + 1}

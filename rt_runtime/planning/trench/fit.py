@@ -101,21 +101,24 @@ class FitMixin(CyclesMixin):
         kind: DigType,
         poly: FloatArray,
         atts: tuple[tuple[float, ...], tuple[float, ...]],
+        offsets: tuple[float, ...] | None = None,
     ) -> Candidate | None:
         """Fit one straight profile pass ``poly`` (2 points, work-site frame): the line as a
-        half-plane, inwards towards the design's centroid (:meth:`_fit_profile`)."""
+        half-plane, inwards towards the design's centroid (:meth:`_fit_profile`; ``offsets``
+        its fixed shifts, :data:`_PASS_OFFSETS_M` by default)."""
         a, b = np.asarray(poly[0], dtype=np.float64), np.asarray(poly[-1], dtype=np.float64)
         on_bottom = abs(b[1] - self.bottom_y) < 1e-9 and abs(a[1] - self.bottom_y) <= 0.0025
         normal = self._inward_normal(a, b)
         # Outward normal and offset: inside is -normal . p <= -normal . a.
         edge = np.array([[-normal[0], -normal[1], -float(normal @ a)]])
-        found = self._fit_profile(kind, a, b, edge, atts, _PASS_OFFSETS_M)
+        shifts = _PASS_OFFSETS_M if offsets is None else offsets
+        found = self._fit_profile(kind, a, b, edge, atts, shifts)
         if on_bottom:
             # Along the bottom with the start lifted to enter descending, the tilted line
             # through the lifted start leaves up to 2 mm (4 % of a 0.024 m trench's design):
             # fitted to the bottom itself as well, the one that removes more design material
             # is kept.
-            flat = self._fit_profile(kind, a, b, self._walls[[2]], atts, _PASS_OFFSETS_M)
+            flat = self._fit_profile(kind, a, b, self._walls[[2]], atts, shifts)
             if flat is not None and (found is None or flat.useful_m2 > found.useful_m2):
                 found = flat
         return found

@@ -72,11 +72,12 @@ _PARTIAL_MAX_M = 0.25
 #: Fraction of V_max a column aims at.
 _FILL_AIM = 0.93
 
-#: Shorter full columns offered after the whole rest of a layer in one bucket (multiples of
-#: V_min with the fill margin, tried in this order), in upper layers and thin bottom layers:
-#: a whole rest too long for one sextic was split into under-filled passes. Not in a thick
-#: bottom layer, where the rest such a column leaves is next to the machine and the near
-#: wall, and finishing passes did not take it (one task of seed 7 ended at 5 %).
+#: Shorter full columns tried where the whole rest of a layer in one bucket does not plan
+#: (multiples of V_min with the fill margin, in this order; :meth:`_column_ends` with
+#: ``shorter``), in upper layers and thin bottom layers: such a rest was split into
+#: under-filled passes. Not in a thick bottom layer, where the rest such a column leaves is
+#: next to the machine and the near wall, and finishing passes did not take it (one task of
+#: seed 7 ended at 5 %).
 _SHORT_COLUMN_FILLS = (1.3, 1.15, 1.05)
 
 #: How far beyond a later section's far edge its columns may take what the section before
@@ -228,6 +229,7 @@ class LayersMixin(RoughMixin):
         x_hi: float,
         partial: bool = False,
         surface: FloatArray | None = None,
+        shorter: bool = False,
     ) -> list[float]:
         """The next column of the material above ``floor`` (on the grid) within ``[x_lo,
         x_hi]``: its start (just beyond the far edge of that material, at most ``x_hi``) and
@@ -236,8 +238,11 @@ class LayersMixin(RoughMixin):
         allows, equal in area, and the column is the far one; what no bucket would fill is
         taken with the last. Empty when what is left cannot fill one bucket, unless
         ``partial``: then the rest in as few columns as the bucket and the longest dig allow
-        (under-filled: finishing passes). ``surface``: the material's surface on the grid
-        (default the current one)."""
+        (under-filled: finishing passes). With ``shorter`` (and not ``partial``), where the
+        whole rest fits one bucket: shorter full columns instead, the far part of the rest at
+        each of :data:`_SHORT_COLUMN_FILLS` times V_min, the rest left for a pass (empty
+        otherwise). ``surface``: the material's surface on the grid (default the current
+        one)."""
         surface = self.surface if surface is None else surface
         lo_a, hi_a = self._fill_band()
         s = self.planner.scale
@@ -301,18 +306,17 @@ class LayersMixin(RoughMixin):
             x_end = float(x[i_start - k])
             if all(abs(x_end - e) > 2.0 * GRID_STEP_M for e in ends):
                 ends.append(x_end)
-        if whole and (self.layer < len(self.layer_floors) or self._thin_bottom()):
-            # Where the whole rest does not plan as one dig (longer than a sextic follows):
-            # a shorter full column, the rest left for a pass, before splitting it all into
-            # passes.
-            for f in _SHORT_COLUMN_FILLS:
+        if shorter:
+            short: list[float] = []
+            for f in _SHORT_COLUMN_FILLS if whole else ():
                 area = lo_a * (1.0 + _FILL_MARGIN) * f
                 if area >= total:
                     continue
                 k = min(int(np.searchsorted(cum, area)), last)
                 x_end = float(x[i_start - k])
-                if all(abs(x_end - e) > 2.0 * GRID_STEP_M for e in ends):
-                    ends.append(x_end)
+                if all(abs(x_end - e) > 2.0 * GRID_STEP_M for e in [*ends, *short]):
+                    short.append(x_end)
+            return [float(x[i_start]), *short] if short else []
         return [float(x[i_start]), *ends]
 
     def _thin_bottom(self) -> bool:
@@ -428,6 +432,23 @@ class LayersMixin(RoughMixin):
             dig = self._plan_column(found, partial, remaining, t0)
             if dig is not None:
                 return dig
+        if partial or keep is not None or self.layer >= len(self.layer_floors):
+            return None
+        # The whole rest did not plan as one column: a shorter full one (adaptive fits only,
+        # :meth:`_fit_profile` with no fixed shifts: a fit that fails costs ~10 ms with them).
+        short = self._column_ends(floor, self.section_lo, self._reach_hi(), shorter=True)
+        for x_end in short[1:]:
+            b = np.array([x_end, float(np.interp(x_end, self.grid, floor))])
+            rows = [0] if on_wall else []
+            rows.append(2)
+            if b[1] > y_floor + rise:
+                rows.append(1)
+            found = self._fit_profile(kind, a, b, walls[rows], _LAYER_ATTITUDES_DEG[kind], ())
+            if found is not None and keep is not None and not keep(found):
+                continue
+            dig = self._plan_column(found, False, remaining, t0)
+            if dig is not None:
+                return dig
         return None
 
     def _too_thick_below(self, surface: FloatArray | None = None) -> NDArray[np.bool_]:
@@ -465,14 +486,18 @@ class LayersMixin(RoughMixin):
         nothing thicker than the skin is left on the bottom."""
         x_lo, x_hi = self._bottom_span()
         atts = _COLUMN_ATTITUDES_DEG[DigType.BACKWARD]
-        for partial in (False, True):
-            ends = self._column_ends(self.design_floor, x_lo, x_hi, partial)
+        # Full columns; in a thin bottom layer then shorter full ones where the whole rest does
+        # not plan (adaptive fits only, as in :meth:`_layer_column`); then the rest in passes.
+        tries = [(False, False), (False, True)] if self._thin_bottom() else [(False, False)]
+        for partial, shorter in [*tries, (True, False)]:
+            ends = self._column_ends(self.design_floor, x_lo, x_hi, partial, shorter=shorter)
             if not ends:
                 continue
             a = (ends[0], self.bottom_y + 0.002)  # enters descending (theta_p >= 0)
+            offsets = () if shorter else None
             for x_end in ends[1:]:
                 line = np.array([a, (x_end, self.bottom_y)])
-                found = self._fit_pass(DigType.BACKWARD, line, atts)
+                found = self._fit_pass(DigType.BACKWARD, line, atts, offsets)
                 dig = self._plan_column(found, partial, remaining, t0)
                 if dig is not None:
                     return dig

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -402,8 +402,10 @@ class LayersMixin(RoughMixin):
         """A column of the material above ``floor`` (on the grid; ``y_floor`` its level
         and ``walls`` the outline's half-planes with the floor's row at it): a full bucket,
         or with ``partial`` the rest under-filled where it must be taken
-        (:meth:`_layer_must_be_taken`); None where none plans. ``keep``: where given, only
-        fits it keeps are planned."""
+        (:meth:`_layer_must_be_taken`); None where none plans. Where an upper layer's whole
+        rest does not plan as one full column, shorter full ones (:meth:`_column_ends` with
+        ``shorter``). ``keep``: where given, only fits it keeps are planned (and no shorter
+        columns are tried)."""
         lo_d, hi_d = oneshot.theta_p_range(self.planning, int(DigType.DOWNWARD))
         steep = float(lo_d) + 0.02 <= self.task.beta1_rad <= float(hi_d)
         rise = 0.005 * self.planner.scale
@@ -418,35 +420,28 @@ class LayersMixin(RoughMixin):
         kind = DigType.DOWNWARD if on_wall and steep else DigType.BACKWARD
         if not on_wall:
             a[1] += 0.002  # enters descending (theta_p >= 0)
-        for x_end in ends[1:]:
+
+        def tries() -> Iterator[tuple[float, tuple[float, ...]]]:
+            """The column's ends with their fits' fixed shifts; after the full ends of an
+            upper layer's whole rest, shorter full columns (adaptive fits only: with the
+            fixed shifts a fit that finds nothing costs ~10 ms)."""
+            for x_end in ends[1:]:
+                yield x_end, _PASS_OFFSETS_M
+            if not partial and keep is None and self.layer < len(self.layer_floors):
+                short = self._column_ends(floor, self.section_lo, self._reach_hi(), shorter=True)
+                for x_end in short[1:]:
+                    yield x_end, ()
+
+        for x_end, offsets in tries():
             b = np.array([x_end, float(np.interp(x_end, self.grid, floor))])
             rows = [0] if on_wall else []
             rows.append(2)
             if b[1] > y_floor + rise:
                 rows.append(1)
-            found = self._fit_profile(
-                kind, a, b, walls[rows], _LAYER_ATTITUDES_DEG[kind], _PASS_OFFSETS_M
-            )
+            found = self._fit_profile(kind, a, b, walls[rows], _LAYER_ATTITUDES_DEG[kind], offsets)
             if found is not None and keep is not None and not keep(found):
                 continue
             dig = self._plan_column(found, partial, remaining, t0)
-            if dig is not None:
-                return dig
-        if partial or keep is not None or self.layer >= len(self.layer_floors):
-            return None
-        # The whole rest did not plan as one column: a shorter full one (adaptive fits only,
-        # :meth:`_fit_profile` with no fixed shifts: a fit that fails costs ~10 ms with them).
-        short = self._column_ends(floor, self.section_lo, self._reach_hi(), shorter=True)
-        for x_end in short[1:]:
-            b = np.array([x_end, float(np.interp(x_end, self.grid, floor))])
-            rows = [0] if on_wall else []
-            rows.append(2)
-            if b[1] > y_floor + rise:
-                rows.append(1)
-            found = self._fit_profile(kind, a, b, walls[rows], _LAYER_ATTITUDES_DEG[kind], ())
-            if found is not None and keep is not None and not keep(found):
-                continue
-            dig = self._plan_column(found, False, remaining, t0)
             if dig is not None:
                 return dig
         return None

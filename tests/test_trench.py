@@ -943,6 +943,29 @@ def test_a_layers_rest_too_long_for_one_dig_takes_a_shorter_full_column(
     assert (len(before.digs), sum(d.finishing for d in before.digs)) == (10, 4)
 
 
+def test_a_deep_trenchs_far_corner_is_entered_from_high_enough(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rt_runtime.bench import random_tasks
+    from rt_runtime.planning.trench import moves
+
+    # 0.46 m x 0.27 m, far wall 77 deg (random suite, seed 17): a bucket entering the bottom
+    # at the far wall's foot overhangs the wall's slope, and no approach pose up to 0.25 m
+    # above the entry was clear, so every bottom column from the far corner was refused and
+    # the bottom went in passes that left 3.9 %. From higher, one full column.
+    task = random_tasks(RIG, 32, 17)[31]
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    foot = task.start_x_m - task.depth_m / math.tan(task.beta1_rad)
+    assert any(
+        not d.finishing and abs(float(d.tip_path_m[0, 0]) - foot) < 0.01 for d in plan.digs
+    )
+    assert plan.coverage_error <= 0.02 and plan.status is PlanStatus.DONE
+    monkeypatch.setattr(moves, "_APPROACH_M", moves._APPROACH_M[:6])
+    before = planner.plan(task)
+    assert before.coverage_error > 0.03 and before.status is PlanStatus.INCOMPLETE
+
+
 def test_rest_within_reach_is_layered_before_a_travel(planner: TrenchPlanner) -> None:
     from rt_runtime.planning.trench import TravelMove
 

@@ -33,7 +33,10 @@ from rt_runtime.planning.trench.state import _stage
 # first of _APPROACH_M that puts the bucket _LIFT_CLEAR_M above the material.
 _LIFT_CLEAR_M = 0.02
 
-_APPROACH_M = (0.03, 0.05, 0.08, 0.12, 0.18, 0.25)
+# The last two for the domain's deepest trenches (0.25-0.3 m): a bucket entering the bottom at
+# a steep far wall's foot overhangs the wall's slope and clears the ground only ~0.29 m above
+# its entry, so no approach was clear and the far corner's columns were refused.
+_APPROACH_M = (0.03, 0.05, 0.08, 0.12, 0.18, 0.25, 0.35, 0.45)
 
 #: Deepest a transition may take the bucket into the material left (m): every move is checked
 #: on its samples and refused beyond it (:meth:`TrenchSession.exit_transitions`).

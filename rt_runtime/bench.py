@@ -707,7 +707,7 @@ class Totals:
         """The totals of a trench plan's digs."""
         digs = plan.digs
         return cls(
-            digs=float(len(digs)),
+            digs=float(len(plan.buckets)),
             T_s=float(sum(d.T_s for d in digs)),
             volume_L=float(sum(d.volume_m3 * 1e3 for d in digs)),
             energy_Wh=float(sum(d.energy_j / 3600.0 for d in digs)),
@@ -1125,8 +1125,8 @@ def bench_plan(
                     for t, st in zip(times, stages, strict=True)
                 ]
             ),
-            fill_L=tuple(d.volume_m3 * 1e3 for d in plan.digs),
-            finishing=sum(d.finishing for d in plan.digs),
+            fill_L=tuple(sum(d.volume_m3 for d in b) * 1e3 for b in plan.buckets),
+            finishing=sum(b[0].finishing for b in plan.buckets),
             travel_moves=len(report["travel"]),
             task_time_s=task_time,
             task_time_vs_first_design=task_time / before if before else None,
@@ -1336,8 +1336,10 @@ def bench_plan_long(
             section_coverage.append(
                 float(dug.symmetric_difference(design).area) / float(design.area)
             )
-            section_finishing.append(sum(d.finishing for d in plan.digs if d.section == k))
-        full = [d.volume_m3 for d in plan.digs if not d.finishing]
+            section_finishing.append(
+                sum(b[0].finishing for b in plan.buckets if b[0].section == k)
+            )
+        full = [sum(d.volume_m3 for d in b) for b in plan.buckets if not b[0].finishing]
         per_m.append(wall / task.length_m)
         out[f"{length:g}m"] = LongTrench(
             length_m=task.length_m,
@@ -1348,7 +1350,7 @@ def bench_plan_long(
             coverage_error=plan.coverage_error,
             section_coverage_max=max(section_coverage),
             overdig_max_mm=plan.overdig_max_m * 1e3,
-            digs=len(plan.digs),
+            digs=len(plan.buckets),
             finishing_per_section_max=max(section_finishing),
             fill_within_band=(
                 sum(lo - 1e-12 <= v <= hi + 1e-12 for v in full) / len(full) if full else None
@@ -1419,7 +1421,7 @@ class RandomTaskPlan:
     Attributes:
         coverage_error: Coverage error.
         overdig_max_mm: Deepest over-dig (mm).
-        digs: Digs.
+        digs: Digs (buckets: a dig with the digs joined to it is one).
         status: ``done`` or ``incomplete``.
         reason: The unmet goals, None when done.
         volume_left_L: Design material left (L).
@@ -1431,6 +1433,7 @@ class RandomTaskPlan:
         moves_per_cycle_s: Mean move time of a dig cycle (s), None without one.
         moves_vs_bound_max: The largest move time of a dig cycle over its bound, None likewise.
         cycle_fallbacks: Dig cycles of rest-to-rest moves.
+        pieces: Digs planned, each piece of a joined dig one (one sextic each).
     """
 
     coverage_error: float
@@ -1447,6 +1450,7 @@ class RandomTaskPlan:
     moves_per_cycle_s: float | None = None
     moves_vs_bound_max: float | None = None
     cycle_fallbacks: int = 0
+    pieces: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -1679,12 +1683,13 @@ def bench_plan_random(
         except Exception as e:  # every failure is a result of the suite, kept with its task
             records.append(RandomTask(**values, error=f"{type(e).__name__}: {e}"))
             continue
-        fills += [d.volume_m3 * 1e3 for d in plan.digs if not d.finishing]
+        buckets = plan.buckets
+        fills += [sum(d.volume_m3 for d in b) * 1e3 for b in buckets if not b[0].finishing]
         per_section: dict[int, int] = {}
-        for d in plan.digs:
-            per_section.setdefault(d.section, 0)
-            if d.finishing:
-                per_section[d.section] += 1
+        for b in buckets:
+            per_section.setdefault(b[0].section, 0)
+            if b[0].finishing:
+                per_section[b[0].section] += 1
         finishing_max = max(finishing_max, *per_section.values(), 0)
         if first_problem is None:
             first = next((d for d in plan.digs if d.status == "filled"), None)
@@ -1695,7 +1700,8 @@ def bench_plan_random(
         planned = RandomTaskPlan(
             coverage_error=plan.coverage_error,
             overdig_max_mm=plan.overdig_max_m * 1e3,
-            digs=len(plan.digs),
+            digs=len(buckets),
+            pieces=len(plan.digs),
             status=plan.status.name.lower(),
             reason=plan.reason,
             volume_left_L=report["volume_left_L"],
@@ -1711,8 +1717,9 @@ def bench_plan_random(
         records.append(RandomTask(**values, planned=planned))
     planned_tasks = [r.planned for r in records if r.planned is not None]
     coverage = [r.coverage_error for r in planned_tasks]
-    per_dig = [r.plan_ms / r.digs for r in planned_tasks if r.digs]
-    dig_per_dig = [(r.plan_ms - r.cycles_plan_ms) / r.digs for r in planned_tasks if r.digs]
+    # Per dig planned: each piece of a joined dig is one (one next_dig()).
+    per_dig = [r.plan_ms / r.pieces for r in planned_tasks if r.pieces]
+    dig_per_dig = [(r.plan_ms - r.cycles_plan_ms) / r.pieces for r in planned_tasks if r.pieces]
     sections = [k for r in planned_tasks for k in r.finishing_per_section]
     reference = _pinn_reference(planner, first_problem)
     within = {

@@ -930,9 +930,11 @@ def cmd_plan(args: argparse.Namespace) -> int:
         return code
     t = report["task"]
     print(f"Trench task {t['name']} on {rig.name}: L {t['length_m']:.3g} m, D {t['depth_m']:.3g} m, beta1 {t['beta1_deg']:.0f} deg, beta2 {t['beta2_deg']:.0f} deg, far edge at x {t['start_x_m']:.3g} m ({args.planner}, {report['screening']} screening)")
+    print(f"  {report['n_digs']} digs ({report['n_pieces']} pieces; + marks a piece joined to the one before it, the same bucket)")
     print("   #  type       T [s]  V real [L]  V_p [L]  W_E [Wh]  theta_p [deg]  over [mm]  plan [us]  how")
-    for i, d in enumerate(report["digs"], 1):
-        print(f"  {i:2d}  {d['type']:<9} {d['T_s']:6.2f}  {d['volume_L']:10.2f}  {d['predicted_volume_L']:7.2f}  {d['energy_Wh']:8.4f}  {d['theta_p_deg']:13.1f}  {d['overdig_mm']:9.1f}  {d['plan_us']:9.0f}  {d['status']}")
+    for d in report["digs"]:
+        mark = "+" if d["joined"] else " "
+        print(f"  {d['bucket'] + 1:2d}{mark} {d['type']:<9} {d['T_s']:6.2f}  {d['volume_L']:10.2f}  {d['predicted_volume_L']:7.2f}  {d['energy_Wh']:8.4f}  {d['theta_p_deg']:13.1f}  {d['overdig_mm']:9.1f}  {d['plan_us']:9.0f}  {d['status']}")
     yao = report.get("yao_fig14")
     yao_text = f"; Yao {yao['coverage_error']:.1%}" if yao else ""
     print(f"  coverage error {report['coverage_error']:.2%} (goal <= {COVERAGE_GOAL:.0%}{yao_text}), over-dig max {report['overdig_max_mm']:.1f} mm (goal <= {OVERDIG_GOAL_M * 1e3:g} mm)")
@@ -1089,7 +1091,7 @@ def _print_bench_plan(
         print(f"  of it the dig's choice, plan and checks (without the dig cycles): p50 {dd.p50:.1f} ms, p99 {dd.p99:.1f} ms")
     print("  task  fill of each dig [L] (* finishing)                      finishing  travels  digs+moves  vs first design (goal <= 60 %)")
     for name, e in tasks.items():
-        fills = " ".join(f"{v:.2f}{'*' if d.finishing else ''}" for v, d in zip(e.fill_L, e.pinn.digs, strict=True))
+        fills = " ".join(f"{v:.2f}{'*' if d[0].finishing else ''}" for v, d in zip(e.fill_L, e.pinn.buckets, strict=True))
         vs_first = e.task_time_vs_first_design
         print(f"  {name:<4}  {fills:<55} {e.finishing:9d}  {e.travel_moves:7d}  {e.task_time_s:8.1f} s  {'-' if vs_first is None else f'{vs_first:.0%}'}")
     print("  task  dig cycles  moves a cycle  moves / bound mean  max    rest-to-rest (goal: mean <= 1.10, max <= 1.20)")

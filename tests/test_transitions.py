@@ -198,6 +198,11 @@ def _dig_checking_every_move(planner: TrenchPlanner, s: TrenchSession) -> list[C
         if dig is None:
             break
         new = [st for st in s.steps[n0:] if not isinstance(st, TravelMove)]
+        if dig.joined:
+            # No moves: it starts where the dig before it ended.
+            assert new == [] and dig.problem.q_start_rad == s.digs[-1].problem.q_end_rad
+            s.record(dig, dig.tip_path_m)
+            continue
         assert len(new) == 1 and isinstance(new[0], Cycle)
         cycle = new[0]
         cycles.append(cycle)

@@ -568,7 +568,7 @@ def test_every_dig_satisfies_every_hard_limit_at_every_sample(
         # (Yao's for a dig, the lowered one for a finishing pass): no time constraint broken.
         row = pack_inputs(p.q_start_rad, p.q_end_rad, p.surface_y_m, p.dig_type, d.a6, d.T_s)
         out = np.zeros((1, N_OUT))
-        planner.verifier_for(d.finishing).evaluate_into(row, out)
+        planner.verifier_for(d.pass_window).evaluate_into(row, out)
         again = out[0, COL_VIOLATIONS : COL_VIOLATIONS + len(oneshot.CONSTRAINT_NAMES)]
         assert np.all(again[TIME_COLS] <= 1e-9), (d.index, d.finishing, again[TIME_COLS])
         # Independent check on the verifier's grid (exact) and on a grid 10x finer: retimed
@@ -848,13 +848,16 @@ def test_an_upper_layers_rest_takes_the_top_of_the_layer_below_to_fill_the_bucke
     # grow thicker than a dig cuts through), so it was a finishing pass, the section's third.
     # Along the floor lowered a little it takes the rest and the top of the layer below: a
     # full bucket, and two finishing passes in the section.
+    # The rule alone, before and after it: no dig continues another (joined digs save
+    # passes of their own).
+    _no_joins(monkeypatch)
     task = random_tasks(RIG, 21, 11)[20]
     plan = _full_column_below_the_layers_floor(planner, task, 1)
-    assert sum(d.finishing for d in plan.digs) <= 2
+    assert _passes(plan) <= 2
     # Without the lowered floor the same column is under-filled: a third finishing pass.
     monkeypatch.setattr(layers, "_DEEPEN_M", ())
     before = planner.plan(task)
-    assert before.digs[1].finishing and sum(d.finishing for d in before.digs) == 3
+    assert before.digs[1].finishing and _passes(before) == 3
 
 
 def test_an_upper_layers_column_that_would_leave_a_rest_goes_deeper(
@@ -867,12 +870,15 @@ def test_an_upper_layers_column_that_would_leave_a_rest_goes_deeper(
     # rest of the layer (0.61 L) that had to be taken under-filled: 5 digs, 3 finishing
     # passes. Along the floor lowered a little the column takes the rest with it (a full
     # bucket): 4 digs, 2 passes.
+    # The rule alone, before and after it: no dig continues another (joined digs save
+    # passes of their own).
+    _no_joins(monkeypatch)
     task = random_tasks(RIG, 22, 11)[21]
     plan = _full_column_below_the_layers_floor(planner, task, 0)
-    assert len(plan.digs) == 4 and sum(d.finishing for d in plan.digs) == 2
+    assert len(plan.buckets) == 4 and _passes(plan) == 2
     monkeypatch.setattr(layers.LayersMixin, "_leaves_rest", lambda self, floor, envelope: False)
     before = planner.plan(task)
-    assert len(before.digs) == 5 and sum(d.finishing for d in before.digs) == 3
+    assert len(before.buckets) == 5 and _passes(before) == 3
     assert before.digs[1].finishing
 
 
@@ -889,7 +895,7 @@ def test_rests_over_a_walls_slope_are_left_to_the_walls_digs(planner: TrenchPlan
     _check_fill_and_sections(plan)
     assert {d.section for d in plan.digs} == {0, 1}
     for k in (0, 1):
-        assert sum(d.finishing for d in plan.digs if d.section == k) <= 2
+        assert _passes(plan, k) <= 2
     assert plan.status is PlanStatus.DONE
 
 
@@ -902,19 +908,20 @@ def test_a_thin_bottom_layer_fills_the_bucket_with_longer_columns(
     # 0.98 m x 0.038 m in two sections of about half a metre (random suite, seed 11): each
     # section's bottom (3.9-4.0 L) went in two under-filled halves of 0.45 m at most, three
     # finishing passes in each section. A column of the thin bottom layer runs its whole length.
+    # The rule alone, before and after it: no dig continues another (joined digs save
+    # passes of their own).
+    _no_joins(monkeypatch)
     task = random_tasks(RIG, 37, 11)[36]
-    lo, hi = _fill_band_l(RIG)
     plan = planner.plan(task)
     _check_fill_and_sections(plan)
-    full = [d for d in plan.digs if not d.finishing]
-    assert sorted(d.section for d in full) == [0, 1]
-    assert all(lo <= d.volume_m3 * 1e3 <= hi for d in full)
+    full = [b for b in plan.buckets if not b[0].finishing]
+    assert sorted(b[0].section for b in full) == [0, 1]
     for k in (0, 1):
-        assert sum(d.finishing for d in plan.digs if d.section == k) <= 2
+        assert _passes(plan, k) <= 2
     assert plan.status is PlanStatus.DONE
     monkeypatch.setattr(layers, "_THIN_COLUMN_MAX_M", layers._COLUMN_MAX_M)
     before = planner.plan(task)
-    assert all(d.finishing for d in before.digs) and len(before.digs) == 6
+    assert all(d.finishing for d in before.digs) and len(before.buckets) == 6
 
 
 def test_a_layers_rest_too_long_for_one_dig_takes_a_shorter_full_column(
@@ -929,18 +936,15 @@ def test_a_layers_rest_too_long_for_one_dig_takes_a_shorter_full_column(
     # passes: 9 digs with 3 passes, against 10 with 4.
     task = random_tasks(RIG, 68, 11)[67]
     assert len(planner.start(task).layer_floors) == 2
-    lo, hi = _fill_band_l(RIG)
     plan = planner.plan(task)
     _check_fill_and_sections(plan)
-    full = [d for d in plan.digs if not d.finishing]
-    assert all(lo <= d.volume_m3 * 1e3 <= hi for d in full)
-    assert (len(plan.digs), sum(d.finishing for d in plan.digs)) == (9, 3)
+    assert (len(plan.buckets), _passes(plan)) == (9, 3)
     for k in (0, 1):
-        assert sum(d.finishing for d in plan.digs if d.section == k) <= 2
+        assert _passes(plan, k) <= 2
     assert plan.status is PlanStatus.DONE
     monkeypatch.setattr(layers, "_SHORT_COLUMN_FILLS", ())
     before = planner.plan(task)
-    assert (len(before.digs), sum(d.finishing for d in before.digs)) == (10, 4)
+    assert (len(before.buckets), _passes(before)) == (10, 4)
 
 
 def test_a_deep_trenchs_far_corner_is_entered_from_high_enough(
@@ -1016,26 +1020,53 @@ def _fill_band_l(rig) -> tuple[float, float]:
     return p.volume_min_m3 * 1e3, p.volume_max_m3 * 1e3
 
 
+def _no_joins(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Plan with no dig joined to the one before it."""
+    from rt_runtime.planning.trench import fit
+
+    monkeypatch.setattr(fit, "_JOIN_REACH_M", -1.0)
+
+
+def _passes(plan, section: int | None = None) -> int:
+    """Finishing passes of ``plan`` (of ``section`` alone): buckets, a dig and the digs
+    joined to it one."""
+    return sum(b[0].finishing for b in plan.buckets if section in (None, b[0].section))
+
+
 def _check_fill_and_sections(plan) -> None:
-    """Every dig that is not a finishing pass carries V_min..V_max of real material; the
-    finishing passes are reported as such, with their section."""
+    """Every dig that is not a finishing pass carries V_min..V_max of real material (a dig
+    and the digs joined to it together: one bucket); the finishing passes are reported as
+    such, with their section; a joined dig starts where the dig before it ended, in the
+    same section, with no move between them."""
     lo, hi = _fill_band_l(RIG)
     report = plan.to_json()
     for d, row in zip(plan.digs, report["digs"], strict=True):
         assert row["finishing"] is d.finishing and row["section"] == d.section
-        if not d.finishing:
-            assert lo - 1e-9 <= d.volume_m3 * 1e3 <= hi + 1e-9, (d.index, d.status, d.volume_m3)
+        assert row["joined"] is d.joined
+    assert report["n_digs"] == len(plan.buckets) and report["n_pieces"] == len(plan.digs)
+    for k, bucket in enumerate(plan.buckets):
+        volume = sum(d.volume_m3 for d in bucket) * 1e3
+        assert report["bucket_L"][k] == pytest.approx(volume)
+        assert len({d.finishing for d in bucket}) == 1, [d.index for d in bucket]
+        assert len({d.section for d in bucket}) == 1
+        if not bucket[0].finishing:
+            assert lo - 1e-9 <= volume <= hi + 1e-9, (bucket[0].index, volume)
+        for before, after in itertools.pairwise(bucket):
+            assert after.problem.q_start_rad == before.problem.q_end_rad
+            at = next(i for i, st in enumerate(plan.steps) if st is before)
+            assert plan.steps[at + 1] is after
 
 
 @pytest.mark.parametrize("name", ["A", "B", "C", "D"])
 def test_every_dig_fills_the_bucket_or_is_a_finishing_pass(plans: dict, name: str) -> None:
     plan = plans[name]
     _check_fill_and_sections(plan)
-    fin = [d for d in plan.digs if d.finishing]
+    fin = [b for b in plan.buckets if b[0].finishing]
     assert len(fin) <= 2
     assert plan.status is PlanStatus.DONE
-    # Fewer, fuller digs than the first design (8 / 6 / 7 / 11 on A-D).
-    assert len(plan.digs) <= {"A": 5, "B": 5, "C": 5, "D": 7}[name]
+    # Fewer, fuller digs than the first design (8 / 6 / 7 / 11 on A-D); B and D join a
+    # wall's light dig to a column, one bucket.
+    assert len(plan.buckets) <= {"A": 5, "B": 3, "C": 5, "D": 6}[name]
     # The moves between digs keep the bucket out of the material left.
     assert plan.to_json()["transition_penetration_max_mm"] <= 5.0
 
@@ -1226,7 +1257,7 @@ def test_long_trench_is_dug_in_sections_with_one_way_travel(planner: TrenchPlann
     _check_fill_and_sections(plan)
     for k, (lo, hi) in enumerate(session.sections):
         digs = [d for d in plan.digs if d.section == k]
-        assert digs and sum(d.finishing for d in digs) <= 2
+        assert digs and _passes(plan, k) <= 2
         assert _section_coverage(plan, lo, hi) <= COVERAGE_GOAL, k
         # Every dig of a section runs from its stand.
         assert all(d.machine_x_m == pytest.approx(session.stands[k]) for d in digs)
@@ -1336,7 +1367,7 @@ def test_the_finishing_stages_bound_counts_its_own_passes(planner: TrenchPlanner
         )
 
 
-@pytest.mark.parametrize("name", ["D", "random-11-21"])
+@pytest.mark.parametrize("name", ["B", "D", "random-11-21"])
 def test_resumed_session_plans_the_same_next_dig_at_every_dig(
     planner: TrenchPlanner, name: str
 ) -> None:
@@ -1359,9 +1390,90 @@ def test_resumed_session_plans_the_same_next_dig_at_every_dig(
             break
         assert other is not None
         np.testing.assert_allclose(other.tip_path_m, dig.tip_path_m, rtol=0, atol=1e-12)
-        assert (other.finishing, other.section, other.status) == (
+        assert (other.finishing, other.section, other.status, other.joined) == (
             dig.finishing,
             dig.section,
             dig.status,
+            dig.joined,
         )
         a.record(dig, dig.tip_path_m)
+
+
+def test_a_light_dig_and_the_dig_after_it_fill_one_bucket(
+    planner: TrenchPlanner, plans: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # B's walls fill no bucket alone (0.47 L at the far wall, 1.24 L at the near one): each
+    # was a finishing pass with a cycle of its own. The first bottom column starts where the
+    # far wall's dig ends, in the corner, and the near wall's dig where the last column ends:
+    # two digs of two pieces each (0.47 + 3.95, 3.93 + 1.24 L), no moves between the pieces.
+    plan = plans["B"]
+    joined = [d for d in plan.digs if d.joined]
+    assert joined
+    lo, hi = _fill_band_l(RIG)
+    for d in joined:
+        before = plan.digs[d.index - 1]
+        assert d.problem.q_start_rad == before.problem.q_end_rad
+        bucket = next(b for b in plan.buckets if d in b)
+        assert lo <= sum(p.volume_m3 for p in bucket) * 1e3 <= hi
+    cycles = [s for s in plan.steps if isinstance(s, Cycle) and s.after_dig]
+    assert len(cycles) == len(plan.buckets) - 1
+    report = plan.to_json()
+    assert report["n_digs"] == 3 and report["n_pieces"] == 5
+    assert [r["bucket"] for r in report["digs"]] == [0, 0, 1, 2, 2]
+    # Without joined digs: five digs, two of them finishing passes, and a longer task.
+    _no_joins(monkeypatch)
+    alone = planner.plan(load_task("B", RIG))
+    assert len(alone.buckets) == 5 and _passes(alone) == 2 and _passes(plan) == 0
+    after = alone.to_json()
+    assert (
+        report["dig_time_s"] + report["transition_time_s"]
+        < after["dig_time_s"] + after["transition_time_s"]
+    )
+
+
+def test_a_dig_that_stopped_short_of_its_exit_is_not_continued(planner: TrenchPlanner) -> None:
+    # The closed loop: a dig continues the one before only where the measured path ended at
+    # that dig's planned exit (the arm is there, the bucket holds what it measured). Cut
+    # short, the next dig starts on its own, after the moves out, the dump and back in.
+    task = load_task("B", RIG)
+    s = planner.start(task)
+    while (dig := s.next_dig()) is not None and not dig.joined:
+        s.record(dig, dig.tip_path_m)
+    assert dig is not None and dig.joined
+    k = dig.index
+    short = planner.start(task)
+    for _ in range(k):
+        d = short.next_dig()
+        assert d is not None
+        n = d.tip_path_m.shape[0]
+        path = d.tip_path_m if d.index < k - 1 else d.tip_path_m[: (4 * n) // 5]
+        short.record(d, path)
+    assert short.joinable is None
+    n0 = len(short.steps)
+    after = short.next_dig()
+    assert after is not None and not after.joined
+    assert isinstance(short.steps[n0], Cycle)
+
+
+def test_the_executor_streams_a_joined_dig_straight_after_the_dig_before_it(
+    planner: TrenchPlanner,
+) -> None:
+    from rt_runtime.control.planner_worker import SessionDriver
+
+    # The planner side hands a joined dig out with no cycle: its first setpoint is one period
+    # along from where the dig before it ended; the exit moves are still planned (they stream
+    # if the job stops after it).
+    s = planner.start(load_task("B", RIG))
+    driver = SessionDriver(s, 0.01)
+    plan = driver.plan(np.asarray(planner.home_pose_rad))
+    end = None
+    while plan.dig is not None and not plan.dig.joined:
+        s.record(plan.dig, plan.dig.tip_path_m)
+        end = np.asarray(plan.dig.problem.q_end_rad)
+        plan = driver.plan(None)
+    assert plan.dig is not None and end is not None
+    assert plan.cycle is None and plan.travel == ()
+    assert len(plan.sampled) == 1 and plan.sampled[0].dig_index == plan.dig.index
+    first = plan.sampled[0].q_rad[0]
+    assert float(np.max(np.abs(first - end))) < 0.01
+    assert plan.exit and plan.exit[-1].kind.label == "dump"

@@ -667,6 +667,15 @@ class SessionDriver:
                 return ahead
         self._ahead = None
         s = self.session
+        if (
+            q_from_rad is not None
+            and s.pending is None
+            and s.joinable is not None
+            and not self._at(np.asarray(q_from_rad, dtype=np.float64), s.joinable[0])
+        ):
+            # The arm left the last dig's exit (a job that ended there dumped its bucket):
+            # the next dig starts a bucket of its own.
+            s.joinable = None
         dig = s.pending if s.pending is not None else s.next_dig()
         tail: list[Any] = []
         for step in reversed(s.steps):

@@ -35,6 +35,10 @@ class Candidate:
         envelope: A fitted dig's lowest reach on the height field's grid (m, work-site
             frame: the surface it leaves is the minimum of this and the material's); None
             for network digs.
+        joined: A fitted dig that continues the dig before it: it starts at that dig's
+            exit, at rest, with no moves between.
+        bucket_m3: Material already in a joined dig's bucket (m^3), which counts toward its
+            fill; 0 otherwise.
     """
 
     kind: DigType
@@ -50,6 +54,14 @@ class Candidate:
     may_underfill: bool = False
     pass_window: bool = False
     envelope: FloatArray | None = field(default=None, repr=False, compare=False)
+    joined: bool = False
+    bucket_m3: float = 0.0
+
+
+def difference_lowered(c: Candidate) -> float:
+    """How much a dig lowers the symmetric difference of dug and design (m^2, on the height
+    field): the design material it removes less what it cuts outside the design."""
+    return 2.0 * c.useful_m2 - c.total_m2
 
 
 #: A finishing pass's shortest time as a fraction of the one-shot window's (Yao Table 2's

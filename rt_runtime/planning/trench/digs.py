@@ -55,6 +55,22 @@ class DigsMixin(FitMixin):
             return dig
         return None
 
+    def _count_pass(self, dig: PlannedDig | None) -> bool:
+        """Count ``dig`` against the section's finishing passes: a finishing pass that starts
+        a bucket counts one, a joined dig none (its bucket was counted when it began); a
+        joined dig that fills a bucket a pass began takes that pass back. Returns whether
+        ``dig`` counted one."""
+        if dig is None:
+            return False
+        if not dig.joined:
+            if dig.finishing:
+                self.finishing_used += 1
+            return dig.finishing
+        if not dig.finishing and self.digs and self.digs[-1].finishing:
+            self.finishing_used = max(0, self.finishing_used - 1)
+            self.finish_passes = min(self.finish_passes, self.finishing_used)
+        return False
+
     def _fine_grid_time(
         self, problem: Problem, a6: tuple[float, float, float], T_s: float
     ) -> tuple[tuple[float, float, float], float]:
@@ -129,7 +145,9 @@ class DigsMixin(FitMixin):
                 f"{useful * self.width_m * 1e3:.3f} L of the design, less than the screening "
                 "promised"
             )
-        if over > OVERDIG_LIMIT_M or total > self.v_max_m3 / self.width_m:
+        # A joined dig fills the bucket the dig before it began.
+        bucket = best.bucket_m3 / self.width_m
+        if over > OVERDIG_LIMIT_M or total + bucket > self.v_max_m3 / self.width_m:
             raise PlanningError(
                 f"the {self.planner.oneshot.name} plan of dig {len(self.digs) + 1} over-digs "
                 f"{over * 1e3:.1f} mm or exceeds the bucket ({total * self.width_m * 1e3:.2f} L)"
@@ -153,12 +171,13 @@ class DigsMixin(FitMixin):
                     f"over-digs {over * 1e3:.1f} mm (the region it removes)"
                 )
         lo_a, hi_a = self._fill_band()
+        fill = total + bucket
         # A dig allowed out of the fill band is a finishing pass only where it is out of it.
-        finishing_pass = best.may_underfill and not lo_a <= total <= hi_a
-        if not best.may_underfill and not lo_a <= total <= hi_a:
+        finishing_pass = best.may_underfill and not lo_a <= fill <= hi_a
+        if not best.may_underfill and not lo_a <= fill <= hi_a:
             raise PlanningError(
                 f"the {self.planner.oneshot.name} plan of dig {len(self.digs) + 1} carries "
-                f"{total * self.width_m * 1e3:.2f} L of material, outside the fill band "
+                f"{fill * self.width_m * 1e3:.2f} L of material, outside the fill band "
                 f"{lo_a * self.width_m * 1e3:.2f}-{hi_a * self.width_m * 1e3:.2f} L"
             )
         if best.pass_window and not finishing_pass:
@@ -191,4 +210,6 @@ class DigsMixin(FitMixin):
             evaluation=out[0].copy(),
             finishing=finishing_pass,
             section=self.section,
+            joined=best.joined,
+            pass_window=finishing_pass,
         )

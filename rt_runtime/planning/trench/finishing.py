@@ -12,7 +12,7 @@ import numpy as np
 import shapely
 
 from rt_runtime.planning.oneshot import DigType
-from rt_runtime.planning.trench.candidates import Candidate
+from rt_runtime.planning.trench.candidates import Candidate, difference_lowered
 from rt_runtime.planning.trench.geometry import _Pass
 from rt_runtime.planning.trench.layers import _CUT_MAX_M
 from rt_runtime.planning.trench.plan import COVERAGE_GOAL, PlannedDig
@@ -92,14 +92,13 @@ class FinishingMixin(WallsMixin):
         # A pass is one that lowers the symmetric difference (the design material it removes
         # less what it cuts outside the design) by more than next to nothing (a thousandth of
         # the section's design: what is left there is within the coverage budget's rounding).
-        found = [c for c in found if _difference_lowered(c) >= least]
+        found = [c for c in found if difference_lowered(c) >= least]
         found.sort(key=lambda c: -c.useful_m2)
         if beyond:
             # Taken for the coverage goal: the one that lowers the difference most first.
-            found.sort(key=lambda c: -_difference_lowered(c))
+            found.sort(key=lambda c: -difference_lowered(c))
         dig = self._first_plannable(found, remaining, t0)
-        if dig is not None and dig.finishing:
-            self.finishing_used += 1
+        if self._count_pass(dig):
             self.finish_passes += 1
         if dig is not None and beyond:
             self.finishing_difference = difference
@@ -143,9 +142,3 @@ class FinishingMixin(WallsMixin):
                 if far[0] > near[0]:
                     passes += self._bottom_passes(far, near)
         return [p for p in passes if self._material_above(p[1]) > _FINISH_MIN_M * s]
-
-
-def _difference_lowered(c: Candidate) -> float:
-    """How much a pass lowers the symmetric difference of dug and design (m^2, on the height
-    field): the design material it removes less what it cuts outside the design."""
-    return 2.0 * c.useful_m2 - c.total_m2

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -14,7 +15,7 @@ import numpy as np
 from rt_runtime import kinematics
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import DigType
-from rt_runtime.planning.trench.candidates import Candidate
+from rt_runtime.planning.trench.candidates import Candidate, difference_lowered
 from rt_runtime.planning.trench.cycles import CyclesMixin
 from rt_runtime.planning.trench.geometry import (
     MIN_USEFUL_FRACTION,
@@ -55,6 +56,26 @@ _FIT_ITERATIONS = 9
 # A fitted profile dig to check: end poses, bulge (rad) and the fit's cost (m^2).
 _Try = tuple[FloatArray, FloatArray, FloatArray, float]
 
+#: How far the last dig's exit may lie from a profile dig's start for the dig to start there
+#: instead, joined to it (scale model, m; :meth:`FitMixin._join_at`).
+_JOIN_REACH_M = 0.02
+
+
+#: A joined profile dig is taken where it lowers the difference of dug and design (R8l) by no
+#: less than the same dig from its own start, less this fraction of the design's area; where
+#: it fills the bucket a finishing pass began (a dig saved), less the larger fraction.
+_JOIN_DIFFERENCE_SLACK = 0.001
+_JOIN_SAVING_SLACK = 0.003
+
+
+@dataclass(frozen=True, slots=True)
+class _Join:
+    """A profile dig being fitted to continue the last dig: its exit pose ``q_rad`` (arm
+    frame) as the start, and the material ``bucket_m3`` (m^3) already in the bucket."""
+
+    q_rad: FloatArray
+    bucket_m3: float
+
 
 def _solve_spd3(A: FloatArray, rhs: FloatArray) -> FloatArray:
     """``x`` ``(P, 3)`` of the damped 3 x 3 systems ``A x = rhs`` (``A`` ``(P, 3, 3)``
@@ -83,6 +104,12 @@ def _solve_spd3(A: FloatArray, rhs: FloatArray) -> FloatArray:
 
 class FitMixin(CyclesMixin):
     """A session's digs fitted along the design's outline (see the module)."""
+
+    #: The last dig's exit and its bucket's content where the next dig may continue it
+    #: (:meth:`~rt_runtime.planning.trench.session.TrenchSession.record`), else None.
+    joinable: tuple[FloatArray, float] | None = None
+    #: Set while a profile dig is fitted from the joined exit (:meth:`_fit_profile`).
+    _joining: _Join | None = None
 
     def _bottom_passes(self, far: tuple[float, float], near: tuple[float, float]) -> list[_Pass]:
         """Backward passes along the straight line from ``far`` to ``near`` (the bottom, or a
@@ -159,7 +186,62 @@ class FitMixin(CyclesMixin):
         is shifted inwards by ``offsets`` in turn (the ends with it, along the inward normal
         of the half-plane they lie on) until the over-dig limit holds. Returns the candidate
         of :meth:`_pass_candidate` with the fit's RMS distance (``fit_rms_m``), or None.
+
+        Where the last dig may be continued and its exit lies within :data:`_JOIN_REACH_M`
+        (scaled) of ``a`` (:meth:`_join_at`), the dig is also fitted from that exit as its
+        start (joined: the bucket's content counts toward its fill, :class:`Candidate`
+        ``bucket_m3``; adaptive shifts only), and the joined dig is taken where it lowers
+        the difference of dug and design within :data:`_JOIN_DIFFERENCE_SLACK` (or
+        :data:`_JOIN_SAVING_SLACK`) of the design of what the dig from its own start does.
         """
+        join = self._join_at(a)
+        own = None
+        if join is not None:
+            self._joining = join
+            try:
+                # Adaptive shifts only: a joined fit that needs the fixed ones is not worth
+                # their time.
+                joined = self._fit_profile_from(kind, a, b, edges, atts, (), good_cost)
+            finally:
+                self._joining = None
+            if joined is not None:
+                own = self._fit_profile_from(kind, a, b, edges, atts, offsets, good_cost)
+                # A joined dig that fills the bucket a finishing pass began saves a dig.
+                saves = bool(self.digs) and self.digs[-1].finishing and not joined.pass_window
+                slack = (
+                    _JOIN_SAVING_SLACK if saves else _JOIN_DIFFERENCE_SLACK
+                ) * self.design_area
+                if own is None or difference_lowered(joined) >= difference_lowered(own) - slack:
+                    return joined
+                return own
+        return self._fit_profile_from(kind, a, b, edges, atts, offsets, good_cost)
+
+    def _join_at(self, a: FloatArray) -> _Join | None:
+        """The last dig's exit as the start of a dig that begins at ``a`` (work-site frame),
+        where the session allows continuing it (:attr:`joinable`) and the exit's tip lies
+        within :data:`_JOIN_REACH_M` (scaled) of ``a``; else None."""
+        joinable = self.joinable
+        if joinable is None:
+            return None
+        q, bucket = joinable
+        x, y = self.planner.arm.tip_xy(q)
+        gap = math.hypot(float(x) + self.machine_x - float(a[0]), float(y) - float(a[1]))
+        if gap > _JOIN_REACH_M * self.planner.scale:
+            return None
+        return _Join(q, bucket)
+
+    def _fit_profile_from(
+        self,
+        kind: DigType,
+        a: FloatArray,
+        b: FloatArray,
+        edges: FloatArray,
+        atts: tuple[tuple[float, ...], tuple[float, ...]],
+        offsets: tuple[float, ...],
+        good_cost: float | None,
+    ) -> Candidate | None:
+        """:meth:`_fit_profile`'s fit from its own start, or from the joined exit while
+        :attr:`_joining` is set."""
         arm = self.planner.arm
         qf, pf = self.planner.fit_qf, self.planner.fit_pf
         margin = math.radians(0.5)
@@ -235,7 +317,7 @@ class FitMixin(CyclesMixin):
         for offset in offsets:
             a_s = a + offset * n_a
             b_s = b + offset * n_b
-            starts = [self._pass_pose(a_s, mid[0]), self._pass_pose(b_s, mid[1])]
+            starts = [self._starts(a_s, mid[0]), self._pass_pose(b_s, mid[1])]
             pairs = [(qs, qe) for qs in starts[0] for qe in starts[1]]
             results = fitted([p[0] for p in pairs], [p[1] for p in pairs], offset)
             # Table pairs that fit well first, in their order; the others by cost.
@@ -272,7 +354,7 @@ class FitMixin(CyclesMixin):
         arm = self.planner.arm
         m = self.machine_x
         qf_full, pf_full = self.planner.full_qf, self.planner.full_pf
-        starts = [self._pass_pose(a, table[0]), self._pass_pose(b, table[1])]
+        starts = [self._starts(a, table[0]), self._pass_pose(b, table[1])]
         pairs = [(qs, qe) for qs in starts[0] for qe in starts[1]]
         results = fitted([p[0] for p in pairs], [p[1] for p in pairs], 0.0)
         fits = [
@@ -296,7 +378,8 @@ class FitMixin(CyclesMixin):
             if shift > _FIT_SHIFT_MAX_M * self.planner.scale:
                 continue  # a path that far off the outline leaves a layer behind: the next
             if shift > 0.0:
-                q1s = arm.ik(
+                # A joined start stays where the dig before it ended.
+                q1s = q1 if self._joining is not None else arm.ik(
                     float(a[0] + shift * n_a[0] - m),
                     float(a[1] + shift * n_a[1]),
                     float(np.sum(q1)),
@@ -320,6 +403,13 @@ class FitMixin(CyclesMixin):
                 if found is not None:
                     return found
         return first_planned(tries[1:])
+
+    def _starts(self, point: FloatArray, attitudes_deg: tuple[float, ...]) -> list[FloatArray]:
+        """A profile dig's start poses: the joined exit alone while :attr:`_joining` is set,
+        else :meth:`_pass_pose`."""
+        if self._joining is not None:
+            return [np.asarray(self._joining.q_rad, dtype=np.float64)]
+        return self._pass_pose(point, attitudes_deg)
 
     def _pass_pose(self, point: FloatArray, attitudes_deg: tuple[float, ...]) -> list[FloatArray]:
         """Joint poses of a pass end at the table's attitudes; where one is out of reach or
@@ -501,7 +591,9 @@ class FitMixin(CyclesMixin):
         envelopes = [self._envelope(tip, self.grid) for tip in tips]
         areas = [self._cut_areas(env) for env in envelopes]
         floor = 0.1 * MIN_USEFUL_FRACTION * self.design_area
-        cap = self.v_max_m3 / self.width_m
+        # A joined dig's bucket holds the dig before it already.
+        bucket = 0.0 if self._joining is None else self._joining.bucket_m3 / self.width_m
+        cap = self.v_max_m3 / self.width_m - bucket
         rows = [i for i, (total, useful) in enumerate(areas) if total <= cap and useful >= floor]
         if not rows:
             return out
@@ -517,7 +609,7 @@ class FitMixin(CyclesMixin):
         H = np.min(tip[..., 1], axis=1) + np.max(depth * across, axis=1)
         T0 = 0.5 * (self.planning.t_min_s + self.planning.t_max_s)
         # Below the fill band it can only be a finishing pass: timed in the passes' window.
-        low = self._fill_band()[0]
+        low = self._fill_band()[0] - bucket
         under = np.array([areas[i][0] < low for i in rows])
         table = pack_inputs(
             qs[rows], qe[rows], H, np.full(len(rows), int(kind)), -K[rows] / T0**6, T0
@@ -548,5 +640,7 @@ class FitMixin(CyclesMixin):
                 a6=(float(r[0]), float(r[1]), float(r[2])),
                 pass_window=bool(under[j]),
                 envelope=envelopes[i],
+                joined=self._joining is not None,
+                bucket_m3=bucket * self.width_m,
             )
         return out

@@ -548,6 +548,5 @@ class LayersMixin(RoughMixin):
         dig = self._first_plannable(
             [dataclasses.replace(found, may_underfill=partial)], remaining, t0
         )
-        if dig is not None and dig.finishing:
-            self.finishing_used += 1
+        self._count_pass(dig)
         return dig

@@ -61,6 +61,8 @@ def _step_to_json(step: PlannedDig | Cycle | Transition | TravelMove) -> dict[st
             "evaluation": np.asarray(step.evaluation, dtype=np.float64).tolist(),
             "finishing": step.finishing,
             "section": step.section,
+            "joined": step.joined,
+            "pass_window": step.pass_window,
         }
     if isinstance(step, Cycle):
         return {
@@ -133,6 +135,8 @@ def _step_from_json(item: dict[str, Any]) -> PlannedDig | Cycle | Transition | T
             evaluation=np.asarray(item["evaluation"], dtype=np.float64),
             finishing=bool(item.get("finishing", False)),
             section=int(item.get("section", 0)),
+            joined=bool(item.get("joined", False)),
+            pass_window=bool(item.get("pass_window", item.get("finishing", False))),
         )
     if kind == "transition":
         return Transition(
@@ -182,7 +186,9 @@ class PersistMixin(SectionsMixin):
         grid), ``machine_x_m``, ``q_now_rad`` (the last dig's exit or None), ``phase``
         (``downward``/``backward``), ``section``, ``stage``, ``layer``, ``layer_floors_m``,
         ``wall_piece``, ``finishing_used``, ``finish_passes``, ``finishing_difference_m2``
-        (where the section's digging is), ``digs_done``,
+        (where the section's digging is), ``joinable`` (the last dig's exit ``q_rad`` and its
+        bucket's content ``bucket_m3`` where the next dig may continue it, else None),
+        ``digs_done``,
         ``steps`` (every recorded dig, cycle, transition and travel move, each a dict with
         ``type``),
         and ``pending`` (the dig :meth:`next_dig` returned and :meth:`record` has not taken yet,
@@ -214,6 +220,14 @@ class PersistMixin(SectionsMixin):
             "finishing_used": int(self.finishing_used),
             "finish_passes": int(self.finish_passes),
             "finishing_difference_m2": self.finishing_difference,
+            "joinable": (
+                None
+                if self.joinable is None
+                else {
+                    "q_rad": [float(v) for v in self.joinable[0]],
+                    "bucket_m3": float(self.joinable[1]),
+                }
+            ),
             "digs_done": len(self.digs),
             "steps": [_step_to_json(step) for step in self.steps],
             "pending": None if self.pending is None else _step_to_json(self.pending),
@@ -282,6 +296,23 @@ class PersistMixin(SectionsMixin):
                     f"session state key 'finishing_difference_m2' is {raw!r}; allowed: a "
                     "finite area (m^2) or null"
                 )
+            # Not in the states written before it: no dig continues the last.
+            raw_join = state.get("joinable")
+            joinable = (
+                None
+                if raw_join is None
+                else (
+                    np.asarray(_triple(raw_join["q_rad"]), dtype=np.float64),
+                    float(raw_join["bucket_m3"]),
+                )
+            )
+            if joinable is not None and not (
+                np.isfinite(joinable[0]).all() and 0.0 <= joinable[1] < self.v_max_m3
+            ):
+                raise ConfigurationError(
+                    f"session state key 'joinable' is {raw_join!r}; allowed: null or finite "
+                    f"'q_rad' (3 values) and 'bucket_m3' in 0..{self.v_max_m3:g} m^3"
+                )
             pending = state.get("pending")
             pending_dig = None if pending is None else _step_from_json(pending)
             if pending_dig is not None and not isinstance(pending_dig, PlannedDig):
@@ -308,3 +339,4 @@ class PersistMixin(SectionsMixin):
         self.finishing_used = finishing_used
         self.finish_passes = finish_passes
         self.finishing_difference = finishing_difference
+        self.joinable = joinable

@@ -48,6 +48,13 @@ class PlannedDig:
         evaluation: The verifier's row for the plan.
         finishing: Whether the dig is a finishing pass (exempt from the fill rule).
         section: The section of the trench the dig belongs to (0 at the far end).
+        joined: The dig continues the bucket of the dig before it: it starts at that dig's
+            exit, at rest in the material, with no moves between them. A dig and the digs
+            joined to it are one bucket (one fill, one dump): they fill the band together,
+            or are one finishing pass together.
+        pass_window: Timed and verified in the finishing passes' time window: a finishing
+            pass, or a piece of a joined dig planned as one before the dig joined to it
+            filled the bucket.
     """
 
     index: int
@@ -69,6 +76,8 @@ class PlannedDig:
     evaluation: FloatArray = field(repr=False)
     finishing: bool = False
     section: int = 0
+    joined: bool = False
+    pass_window: bool = False
 
     @property
     def dig_type(self) -> DigType:
@@ -342,6 +351,18 @@ class TrenchPlan:
     soil: str | None = None
 
     @property
+    def buckets(self) -> tuple[tuple[PlannedDig, ...], ...]:
+        """The digs by bucket, in order: each a dig and the digs joined to it
+        (:attr:`PlannedDig.joined`), which fill one bucket and are dumped once."""
+        out: list[list[PlannedDig]] = []
+        for d in self.digs:
+            if d.joined and out:
+                out[-1].append(d)
+            else:
+                out.append([d])
+        return tuple(tuple(b) for b in out)
+
+    @property
     def status(self) -> PlanStatus:
         """``DONE`` when :func:`plan_goals` finds no goal unmet, else ``INCOMPLETE``."""
         return PlanStatus.INCOMPLETE if plan_goals(self) else PlanStatus.DONE
@@ -377,8 +398,12 @@ class TrenchPlan:
                 "status": d.status,
                 "finishing": d.finishing,
                 "section": d.section,
+                "joined": d.joined,
+                "bucket": k,
+                "pass_window": d.pass_window,
             }
-            for d in self.digs
+            for k, bucket in enumerate(self.buckets)
+            for d in bucket
         ]
         moves = iter_moves(self.steps)
         travels = [s for s in self.steps if isinstance(s, TravelMove)]
@@ -400,7 +425,9 @@ class TrenchPlan:
             "reason": self.reason,
             "volume_left_L": self.volume_left_m3 * 1e3,
             "digs": digs,
-            "n_digs": len(digs),
+            "n_digs": len(self.buckets),
+            "n_pieces": len(digs),
+            "bucket_L": [sum(d.volume_m3 for d in b) * 1e3 for b in self.buckets],
             "coverage_error": self.coverage_error,
             "overdig_max_mm": self.overdig_max_m * 1e3,
             "removed_L": self.removed_m3 * 1e3,

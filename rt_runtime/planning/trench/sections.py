@@ -70,3 +70,4 @@ class SectionsMixin(FinishingMixin):
         self.steps.append(TravelMove(move, self.machine_x, self.machine_x + move))
         self.machine_x += move
         self.q_now = None
+        self.joinable = None

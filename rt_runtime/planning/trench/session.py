@@ -3,6 +3,7 @@ it, record the measured tip path); the steps of the flow are the modules of this
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from typing import TYPE_CHECKING, Any
@@ -21,6 +22,13 @@ from rt_runtime.planning.trench.plan import Cycle, PlannedDig, Transition, Trave
 from rt_runtime.planning.trench.sections import _MAX_DIGS_PER_SECTION
 from rt_runtime.planning.trench.state import _STAGES, Stage, _stage
 from rt_runtime.planning.trench.task import TrenchTask, design_polygon
+
+#: How near the measured path's end must come to the planned exit for the next dig to
+#: continue the bucket from there (scale model, m).
+_JOIN_END_M = 0.005
+
+#: A bucket this full (of V_max) takes no joined dig.
+_JOIN_BUCKET_MAX = 0.97
 
 if TYPE_CHECKING:
     from rt_runtime.planning.trench.planner import TrenchPlanner
@@ -92,6 +100,7 @@ class TrenchSession(PersistMixin):
         self.phase = DigType.DOWNWARD
         self.finishing_used = 0
         self.finish_passes = 0
+        self.joinable = None
         #: The sections (work-site x ranges, far first) and where the machine stands for each.
         self.sections, self.stands = self._plan_sections()
         self.section = 0
@@ -161,7 +170,8 @@ class TrenchSession(PersistMixin):
             dig = self._next_in_section(remaining, t0)
         if dig is None:
             return None
-        self._append_transitions(dig)
+        if not dig.joined:
+            self._append_transitions(dig)
         self.pending = dig
         return dig
 
@@ -215,11 +225,37 @@ class TrenchSession(PersistMixin):
             self.material = self.material.difference(swept)
         self.surface = np.minimum(self.surface, env)
         removed = (before - float(self.material.area)) * self.width_m
+        held = self.joinable[1] if dig.joined and self.joinable is not None else 0.0
+        if dig.joined and not dig.finishing:
+            self._fill_bucket()
         self.steps.append(dig)
         self.digs.append(dig)
         self.q_now = np.asarray(dig.problem.q_end_rad)
         self.pending = None
+        # The next dig may continue this one where the arm ended where it was planned to
+        # (the bucket not yet full).
+        bucket = held + removed
+        reach = _JOIN_END_M * self.planner.scale
+        ended = float(np.hypot(*(path[-1] - dig.tip_path_m[-1]))) <= reach
+        self.joinable = (
+            (self.q_now, bucket) if ended and bucket < _JOIN_BUCKET_MAX * self.v_max_m3 else None
+        )
         return removed
+
+    def _fill_bucket(self) -> None:
+        """The digs of the bucket a joined full dig completes are no finishing passes: the
+        recorded ones before it (back to the dig that began the bucket) lose the mark."""
+        k = len(self.digs) - 1
+        while k >= 0:
+            d = self.digs[k]
+            if d.finishing:
+                full = dataclasses.replace(d, finishing=False, status="profile")
+                at = next(i for i, st in enumerate(self.steps) if st is d)
+                self.steps[at] = full
+                self.digs[k] = full
+            if not d.joined:
+                break
+            k -= 1
 
     def observe_surface(self, x_m: ArrayLike, y_m: ArrayLike) -> None:
         """Take a measured surface (a profile scanner's, work-site frame) as the material.

@@ -117,7 +117,6 @@ class WallsMixin(LayersMixin):
             dig = self._first_plannable(
                 [dataclasses.replace(found, may_underfill=True)], remaining, t0
             )
-            if dig is not None and dig.finishing:
-                self.finishing_used += 1
+            self._count_pass(dig)
         return dig
 

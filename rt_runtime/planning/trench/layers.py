@@ -230,6 +230,7 @@ class LayersMixin(RoughMixin):
         partial: bool = False,
         surface: FloatArray | None = None,
         shorter: bool = False,
+        bucket: float = 0.0,
     ) -> list[float]:
         """The next column of the material above ``floor`` (on the grid) within ``[x_lo,
         x_hi]``: its start (just beyond the far edge of that material, at most ``x_hi``) and
@@ -242,9 +243,10 @@ class LayersMixin(RoughMixin):
         whole rest fits one bucket: shorter full columns instead, the far part of the rest at
         each of :data:`_SHORT_COLUMN_FILLS` times V_min, the rest left for a pass (empty
         otherwise). ``surface``: the material's surface on the grid (default the current
-        one)."""
+        one). ``bucket``: material already in the bucket (m^2 of cross-section: a column
+        joined to the dig before it), which the fill band's ends count."""
         surface = self.surface if surface is None else surface
-        lo_a, hi_a = self._fill_band()
+        lo_a, hi_a = (v - bucket for v in self._fill_band())
         s = self.planner.scale
         x = self.grid
         t = np.clip(surface - floor - _COLUMN_SKIN_M * s, 0.0, None)
@@ -484,18 +486,31 @@ class LayersMixin(RoughMixin):
         # Full columns; in a thin bottom layer then shorter full ones where the whole rest does
         # not plan (adaptive fits only, as in :meth:`_layer_column`); then the rest in passes.
         tries = [(False, False), (False, True)] if self._thin_bottom() else [(False, False)]
-        for partial, shorter in [*tries, (True, False)]:
-            ends = self._column_ends(self.design_floor, x_lo, x_hi, partial, shorter=shorter)
+        # Where the column may start at the last dig's exit (joined), first the full columns
+        # that fill the bucket it holds.
+        bucket = 0.0
+        first = self._column_ends(self.design_floor, x_lo, x_hi) if self.joinable else []
+        if first and self._join_at(np.array([first[0], self.bottom_y + 0.002])) is not None:
+            assert self.joinable is not None
+            bucket = self.joinable[1] / self.width_m
+        for partial, shorter in [(False, False)] * (bucket > 0.0) + [*tries, (True, False)]:
+            ends = self._column_ends(
+                self.design_floor, x_lo, x_hi, partial, shorter=shorter, bucket=bucket
+            )
             if not ends:
+                bucket = 0.0
                 continue
             a = (ends[0], self.bottom_y + 0.002)  # enters descending (theta_p >= 0)
             offsets = () if shorter else None
             for x_end in ends[1:]:
                 line = np.array([a, (x_end, self.bottom_y)])
                 found = self._fit_pass(DigType.BACKWARD, line, atts, offsets)
+                if bucket > 0.0 and (found is None or not found.joined):
+                    continue  # sized for the bucket it would continue: joined or not at all
                 dig = self._plan_column(found, partial, remaining, t0)
                 if dig is not None:
                     return dig
+            bucket = 0.0
         # The boom's torque refuses a column through the bottom layer's whole thickness
         # (deep and near the machine it needs more than along the rest of the bottom): the
         # material above the layer's mid-height first, as a column along that height.

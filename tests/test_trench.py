@@ -594,7 +594,9 @@ def test_finishing_passes_are_timed_by_the_joint_limits(plans: dict) -> None:
     faster = 0
     for name in "ABCD":
         for d in plans[name].digs:
-            if not d.finishing:
+            # Passes, and the light pieces planned as passes before a joined dig filled
+            # their bucket.
+            if not d.pass_window:
                 continue
             p = d.problem
             row = pack_inputs(p.q_start_rad, p.q_end_rad, p.surface_y_m, p.dig_type, d.a6, d.T_s)
@@ -608,7 +610,7 @@ def test_finishing_passes_are_timed_by_the_joint_limits(plans: dict) -> None:
             below_window = d.T_s < planning.t_min_s - 1e-9
             assert ("time_min" in broken) == below_window
             faster += below_window
-    assert faster >= 4  # all 8 passes of A-D today, at 1.70-4.99 s against 5 s
+    assert faster >= 4  # 5 of the 7 of A-D today, at 1.70-4.38 s against 5 s
 
 
 def test_a_dig_timed_as_a_pass_that_fills_the_bucket_keeps_the_time_window(
@@ -651,10 +653,15 @@ def test_moves_are_within_the_joint_limits(plans: dict) -> None:
                 _, vel, acc = traj.at_time(float(t))
                 assert np.all(np.abs(vel) <= RIG.qd_max_rad_s * (1 + 1e-6))
                 assert np.all(np.abs(acc) <= RIG.qdd_max_rad_s2 * (1 + 1e-6))
-    # steps alternate: a cycle leads into every dig
-    kinds = [type(s) for s in plan.steps]
-    assert kinds.count(PlannedDig) == len(plan.digs) == kinds.count(Cycle)
-    assert all(kinds[i] is Cycle and kinds[i + 1] is PlannedDig for i in range(0, len(kinds), 2))
+    # A cycle leads into every dig; a dig's joined pieces follow it with none between.
+    steps = list(plan.steps)
+    assert sum(isinstance(s, Cycle) for s in steps) == len(plan.buckets)
+    at = 0
+    for bucket in plan.buckets:
+        assert isinstance(steps[at], Cycle)
+        assert steps[at + 1 : at + 1 + len(bucket)] == list(bucket)
+        at += 1 + len(bucket)
+    assert at == len(steps)
 
 
 def test_report_keys(plans: dict) -> None:
@@ -1302,10 +1309,18 @@ def test_passes_beyond_two_stop_where_the_material_comes_back(planner: TrenchPla
     session = planner.start(load_task("A", RIG))
     while (dig := session.next_dig()) is not None:
         session.record(dig, dig.tip_path_m)
-    assert session.finishing_used == 2 and session.finishing_difference is None
     x = session.grid
     heap = np.abs(x - float(np.mean(x[session.design_floor <= session.bottom_y + 1e-9]))) < 0.1
     slumped = np.where(heap, np.maximum(session.surface, session.bottom_y + 0.012), session.surface)
+    # A digs one finishing pass: the slump takes the second the section may take.
+    for _ in range(3):
+        if session.finishing_used >= 2:
+            break
+        session.observe_surface(x, slumped)
+        dig = session.next_dig()
+        assert dig is not None and dig.finishing
+        session.record(dig, dig.tip_path_m)
+    assert session.finishing_used == 2 and session.finishing_difference is None
     session.observe_surface(x, slumped)
     first = session.next_dig()
     assert first is not None and first.finishing and session.finishing_difference is not None
@@ -1477,3 +1492,40 @@ def test_the_executor_streams_a_joined_dig_straight_after_the_dig_before_it(
     first = plan.sampled[0].q_rad[0]
     assert float(np.max(np.abs(first - end))) < 0.01
     assert plan.exit and plan.exit[-1].kind.label == "dump"
+
+
+def test_where_the_next_dig_may_continue_the_last_is_session_state(
+    planner: TrenchPlanner,
+) -> None:
+    import json
+
+    # A daemon restart between the pieces of a dig: the restored session knows the bucket
+    # it continues; a state written before the key had no joined digs; a malformed value is
+    # refused by its key.
+    task = load_task("B", RIG)
+    s = planner.start(task)
+    dig = s.next_dig()
+    assert dig is not None and not dig.joined
+    s.record(dig, dig.tip_path_m)
+    assert s.joinable is not None
+    state = json.loads(json.dumps(s.state()))
+    assert state["joinable"]["bucket_m3"] == pytest.approx(dig.volume_m3)
+    restored = TrenchSession.restore(planner, task, state)
+    assert restored.joinable is not None
+    np.testing.assert_array_equal(restored.joinable[0], s.joinable[0])
+    a, b = s.next_dig(), restored.next_dig()
+    assert a is not None and b is not None and a.joined and b.joined
+    np.testing.assert_array_equal(a.tip_path_m, b.tip_path_m)
+    old = TrenchSession.restore(planner, task, {k: v for k, v in state.items() if k != "joinable"})
+    assert old.joinable is None
+    after = old.next_dig()
+    assert after is not None and not after.joined
+    v_max = oneshot.require_planning(RIG).volume_max_m3
+    for bad in (
+        {"q_rad": [0.1, 0.2], "bucket_m3": 0.001},
+        {"q_rad": [0.1, 0.2, float("nan")], "bucket_m3": 0.001},
+        {"q_rad": [0.1, 0.2, 0.3], "bucket_m3": -0.001},
+        {"q_rad": [0.1, 0.2, 0.3], "bucket_m3": v_max},
+    ):
+        with pytest.raises(ConfigurationError, match="joinable"):
+            TrenchSession.restore(planner, task, {**state, "joinable": bad})

@@ -150,7 +150,8 @@ class DigsMixin(FitMixin):
         if over > OVERDIG_LIMIT_M or total + bucket > self.v_max_m3 / self.width_m:
             raise PlanningError(
                 f"the {self.planner.oneshot.name} plan of dig {len(self.digs) + 1} over-digs "
-                f"{over * 1e3:.1f} mm or exceeds the bucket ({total * self.width_m * 1e3:.2f} L)"
+                f"{over * 1e3:.1f} mm or exceeds the bucket "
+                f"({(total + bucket) * self.width_m * 1e3:.2f} L)"
             )
         # The record: polygon areas (the height field above only screened and checked), and
         # the over-dig of the region the dig removes, as the finished plan measures it. The

@@ -18,6 +18,7 @@ from rt_runtime.planning.oneshot import DigType
 from rt_runtime.planning.trench.candidates import Candidate, difference_lowered
 from rt_runtime.planning.trench.cycles import CyclesMixin
 from rt_runtime.planning.trench.geometry import (
+    GRID_STEP_M,
     MIN_USEFUL_FRACTION,
     OVERDIG_LIMIT_M,
     FloatArray,
@@ -194,18 +195,17 @@ class FitMixin(CyclesMixin):
         the difference of dug and design within :data:`_JOIN_DIFFERENCE_SLACK` (or
         :data:`_JOIN_SAVING_SLACK`) of the design of what the dig from its own start does.
         """
-        join = self._join_at(a)
-        own = None
+        join = self._join_at(a, b)
         if join is not None:
             self._joining = join
             try:
-                # Adaptive shifts only: a joined fit that needs the fixed ones is not worth
-                # their time.
+                # Adaptive shifts only, here and for the comparison: a joined fit that needs
+                # the fixed ones is not worth their time.
                 joined = self._fit_profile_from(kind, a, b, edges, atts, (), good_cost)
             finally:
                 self._joining = None
             if joined is not None:
-                own = self._fit_profile_from(kind, a, b, edges, atts, offsets, good_cost)
+                own = self._fit_profile_from(kind, a, b, edges, atts, (), good_cost)
                 # A joined dig that fills the bucket a finishing pass began saves a dig.
                 saves = bool(self.digs) and self.digs[-1].finishing and not joined.pass_window
                 slack = (
@@ -216,10 +216,12 @@ class FitMixin(CyclesMixin):
                 return own
         return self._fit_profile_from(kind, a, b, edges, atts, offsets, good_cost)
 
-    def _join_at(self, a: FloatArray) -> _Join | None:
-        """The last dig's exit as the start of a dig that begins at ``a`` (work-site frame),
-        where the session allows continuing it (:attr:`joinable`) and the exit's tip lies
-        within :data:`_JOIN_REACH_M` (scaled) of ``a``; else None."""
+    def _join_at(self, a: FloatArray, b: FloatArray | None = None) -> _Join | None:
+        """The last dig's exit as the start of a dig that begins at ``a`` (and ends at ``b``,
+        work-site frame), where the session allows continuing it (:attr:`joinable`), the
+        exit's tip lies within :data:`_JOIN_REACH_M` (scaled) of ``a`` and the material above
+        the segment ``a``-``b`` (on the height field) is not above 1.25 times the bucket's
+        room; else None."""
         joinable = self.joinable
         if joinable is None:
             return None
@@ -228,6 +230,15 @@ class FitMixin(CyclesMixin):
         gap = math.hypot(float(x) + self.machine_x - float(a[0]), float(y) - float(a[1]))
         if gap > _JOIN_REACH_M * self.planner.scale:
             return None
+        if b is not None and abs(float(b[0]) - float(a[0])) > 1e-9:
+            lo, hi = sorted((float(a[0]), float(b[0])))
+            span = (self.grid >= lo) & (self.grid <= hi)
+            line = float(a[1]) + (self.grid[span] - float(a[0])) * (
+                (float(b[1]) - float(a[1])) / (float(b[0]) - float(a[0]))
+            )
+            above = float(np.sum(np.clip(self.surface[span] - line, 0.0, None))) * GRID_STEP_M
+            if above > 1.25 * (self.v_max_m3 - bucket) / self.width_m:
+                return None
         return _Join(q, bucket)
 
     def _fit_profile_from(

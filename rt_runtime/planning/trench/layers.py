@@ -502,7 +502,8 @@ class LayersMixin(RoughMixin):
                 continue
             a = (ends[0], self.bottom_y + 0.002)  # enters descending (theta_p >= 0)
             offsets = () if shorter else None
-            for x_end in ends[1:]:
+            # The bucket's columns: the first two sizes (each is fitted joined and alone).
+            for x_end in ends[1 : 3 if bucket > 0.0 else None]:
                 line = np.array([a, (x_end, self.bottom_y)])
                 found = self._fit_pass(DigType.BACKWARD, line, atts, offsets)
                 if bucket > 0.0 and (found is None or not found.joined):

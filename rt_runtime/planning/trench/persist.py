@@ -298,14 +298,17 @@ class PersistMixin(SectionsMixin):
                 )
             # Not in the states written before it: no dig continues the last.
             raw_join = state.get("joinable")
-            joinable = (
-                None
-                if raw_join is None
-                else (
-                    np.asarray(_triple(raw_join["q_rad"]), dtype=np.float64),
-                    float(raw_join["bucket_m3"]),
+            try:
+                joinable = (
+                    None
+                    if raw_join is None
+                    else (
+                        np.asarray(_triple(raw_join["q_rad"]), dtype=np.float64),
+                        float(raw_join["bucket_m3"]),
+                    )
                 )
-            )
+            except (KeyError, TypeError, ValueError):
+                joinable = (np.full(3, np.nan), math.nan)
             if joinable is not None and not (
                 np.isfinite(joinable[0]).all() and 0.0 <= joinable[1] < self.v_max_m3
             ):

@@ -155,7 +155,7 @@ def test_every_dump_lies_in_the_spoil_zone_beside_the_trench(
             h = y - RIG.ground_y_m
             assert zone.height_m[0] - 1e-9 <= h <= zone.height_m[1] + 1e-9
             assert zone.attitude_rad[0] - 1e-9 <= z <= zone.attitude_rad[1] + 1e-9
-    assert dumps >= 4
+    assert dumps >= len(plan_a.buckets) - 1 >= 3  # a dump after every dig but the last
     # The home pose (where a task starts) is a point of the zone too.
     x, y, z = planner.arm.tip(np.asarray(planner.home_pose_rad))
     assert zone.x_m[0] - 1e-9 <= x <= zone.x_m[1] + 1e-9
@@ -261,7 +261,8 @@ def test_the_plan_reports_its_dig_cycles(plan_a: TrenchPlan) -> None:
     report = plan_a.to_json()
     cycles = report["cycles"]
     dig_cycles = [c for c in _cycles(plan_a) if c.after_dig]
-    assert len(cycles) == len(dig_cycles) == len(plan_a.digs) - 1
+    # One cycle into each dig but the first (a dig's joined pieces have none between them).
+    assert len(cycles) == len(dig_cycles) == len(plan_a.buckets) - 1
     for entry, c in zip(cycles, dig_cycles, strict=True):
         assert set(entry) >= {"waypoints_deg", "moves_s", "bound_s", "blended", "kinds"}
         assert len(entry["waypoints_deg"]) == len(c.waypoints_rad)

@@ -1125,7 +1125,7 @@ def bench_plan(
                     for t, st in zip(times, stages, strict=True)
                 ]
             ),
-            fill_L=tuple(sum(d.volume_m3 for d in b) * 1e3 for b in plan.buckets),
+            fill_L=tuple(v * 1e3 for v in plan.bucket_volumes_m3),
             finishing=sum(b[0].finishing for b in plan.buckets),
             travel_moves=len(report["travel"]),
             task_time_s=task_time,
@@ -1339,7 +1339,11 @@ def bench_plan_long(
             section_finishing.append(
                 sum(b[0].finishing for b in plan.buckets if b[0].section == k)
             )
-        full = [sum(d.volume_m3 for d in b) for b in plan.buckets if not b[0].finishing]
+        full = [
+            v
+            for v, b in zip(plan.bucket_volumes_m3, plan.buckets, strict=True)
+            if not b[0].finishing
+        ]
         per_m.append(wall / task.length_m)
         out[f"{length:g}m"] = LongTrench(
             length_m=task.length_m,
@@ -1684,7 +1688,11 @@ def bench_plan_random(
             records.append(RandomTask(**values, error=f"{type(e).__name__}: {e}"))
             continue
         buckets = plan.buckets
-        fills += [sum(d.volume_m3 for d in b) * 1e3 for b in buckets if not b[0].finishing]
+        fills += [
+            v * 1e3
+            for v, b in zip(plan.bucket_volumes_m3, buckets, strict=True)
+            if not b[0].finishing
+        ]
         per_section: dict[int, int] = {}
         for b in buckets:
             per_section.setdefault(b[0].section, 0)

@@ -482,36 +482,25 @@ class LayersMixin(RoughMixin):
         where what is left fills none, the rest under-filled (finishing passes). None when
         nothing thicker than the skin is left on the bottom."""
         x_lo, x_hi = self._bottom_span()
-        atts = _COLUMN_ATTITUDES_DEG[DigType.BACKWARD]
         # Full columns; in a thin bottom layer then shorter full ones where the whole rest does
         # not plan (adaptive fits only, as in :meth:`_layer_column`); then the rest in passes.
         tries = [(False, False), (False, True)] if self._thin_bottom() else [(False, False)]
         # Where the column may start at the last dig's exit (joined), first the full columns
-        # that fill the bucket it holds.
-        bucket = 0.0
+        # that fill the bucket it holds: the first two sizes (each is fitted joined and
+        # alone), taken only joined.
         first = self._column_ends(self.design_floor, x_lo, x_hi) if self.joinable else []
         if first and self._join_at(np.array([first[0], self.bottom_y + 0.002])) is not None:
             assert self.joinable is not None
             bucket = self.joinable[1] / self.width_m
-        for partial, shorter in [(False, False)] * (bucket > 0.0) + [*tries, (True, False)]:
-            ends = self._column_ends(
-                self.design_floor, x_lo, x_hi, partial, shorter=shorter, bucket=bucket
-            )
-            if not ends:
-                bucket = 0.0
-                continue
-            a = (ends[0], self.bottom_y + 0.002)  # enters descending (theta_p >= 0)
-            offsets = () if shorter else None
-            # The bucket's columns: the first two sizes (each is fitted joined and alone).
-            for x_end in ends[1 : 3 if bucket > 0.0 else None]:
-                line = np.array([a, (x_end, self.bottom_y)])
-                found = self._fit_pass(DigType.BACKWARD, line, atts, offsets)
-                if bucket > 0.0 and (found is None or not found.joined):
-                    continue  # sized for the bucket it would continue: joined or not at all
-                dig = self._plan_column(found, partial, remaining, t0)
-                if dig is not None:
-                    return dig
-            bucket = 0.0
+            ends = self._column_ends(self.design_floor, x_lo, x_hi, bucket=bucket)
+            dig = self._bottom_column(ends[:3], False, False, remaining, t0, joined_only=True)
+            if dig is not None:
+                return dig
+        for partial, shorter in [*tries, (True, False)]:
+            ends = self._column_ends(self.design_floor, x_lo, x_hi, partial, shorter=shorter)
+            dig = self._bottom_column(ends, partial, shorter, remaining, t0)
+            if dig is not None:
+                return dig
         # The boom's torque refuses a column through the bottom layer's whole thickness
         # (deep and near the machine it needs more than along the rest of the bottom): the
         # material above the layer's mid-height first, as a column along that height.
@@ -521,6 +510,33 @@ class LayersMixin(RoughMixin):
         # No straight column enters (a steep far wall whose dig could not open the face, or
         # a column whose moves would plough): one down the wall and along the bottom.
         return self._next_layer_column(remaining, t0)
+
+    def _bottom_column(
+        self,
+        ends: list[float],
+        partial: bool,
+        shorter: bool,
+        remaining: Any,
+        t0: float,
+        joined_only: bool = False,
+    ) -> PlannedDig | None:
+        """The first of the bottom columns ``ends`` (:meth:`_column_ends`: the start, then
+        the ends, best first) that plans (:meth:`_plan_column`); ``shorter``: adaptive fits
+        only; ``joined_only``: only a column joined to the last dig. None where none does."""
+        if not ends:
+            return None
+        atts = _COLUMN_ATTITUDES_DEG[DigType.BACKWARD]
+        a = (ends[0], self.bottom_y + 0.002)  # enters descending (theta_p >= 0)
+        offsets = () if shorter else None
+        for x_end in ends[1:]:
+            line = np.array([a, (x_end, self.bottom_y)])
+            found = self._fit_pass(DigType.BACKWARD, line, atts, offsets)
+            if joined_only and (found is None or not found.joined):
+                continue
+            dig = self._plan_column(found, partial, remaining, t0)
+            if dig is not None:
+                return dig
+        return None
 
     def _next_mid_column(
         self, x_lo: float, x_hi: float, remaining: Any, t0: float

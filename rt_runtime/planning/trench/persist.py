@@ -12,6 +12,7 @@ from shapely.errors import GEOSException
 
 from rt_runtime.errors import ConfigurationError
 from rt_runtime.planning.oneshot import DigType, Problem
+from rt_runtime.planning.trench.geometry import FloatArray
 from rt_runtime.planning.trench.plan import (
     Cycle,
     PlannedDig,
@@ -233,6 +234,28 @@ class PersistMixin(SectionsMixin):
             "pending": None if self.pending is None else _step_to_json(self.pending),
         }
 
+    def _joinable_from(self, raw: Any) -> tuple[FloatArray, float] | None:
+        """The state's ``joinable`` (None or ``{"q_rad", "bucket_m3"}``) as the session keeps
+        it.
+
+        Raises:
+            ConfigurationError: Malformed, not finite, or a bucket outside 0..V_max (the
+                message names the key).
+        """
+        if raw is None:
+            return None
+        try:
+            q = np.asarray(_triple(raw["q_rad"]), dtype=np.float64)
+            bucket = float(raw["bucket_m3"])
+        except (KeyError, TypeError, ValueError):
+            q, bucket = np.full(3, np.nan), math.nan
+        if not (np.isfinite(q).all() and 0.0 <= bucket < self.v_max_m3):
+            raise ConfigurationError(
+                f"session state key 'joinable' is {raw!r}; allowed: null or finite "
+                f"'q_rad' (3 values) and 'bucket_m3' in 0..{self.v_max_m3:g} m^3"
+            )
+        return q, bucket
+
     def apply_state(self, state: dict[str, Any]) -> None:
         """Replace this trench's progress by ``state`` (see :meth:`restore`).
 
@@ -297,25 +320,7 @@ class PersistMixin(SectionsMixin):
                     "finite area (m^2) or null"
                 )
             # Not in the states written before it: no dig continues the last.
-            raw_join = state.get("joinable")
-            try:
-                joinable = (
-                    None
-                    if raw_join is None
-                    else (
-                        np.asarray(_triple(raw_join["q_rad"]), dtype=np.float64),
-                        float(raw_join["bucket_m3"]),
-                    )
-                )
-            except (KeyError, TypeError, ValueError):
-                joinable = (np.full(3, np.nan), math.nan)
-            if joinable is not None and not (
-                np.isfinite(joinable[0]).all() and 0.0 <= joinable[1] < self.v_max_m3
-            ):
-                raise ConfigurationError(
-                    f"session state key 'joinable' is {raw_join!r}; allowed: null or finite "
-                    f"'q_rad' (3 values) and 'bucket_m3' in 0..{self.v_max_m3:g} m^3"
-                )
+            joinable = self._joinable_from(state.get("joinable"))
             pending = state.get("pending")
             pending_dig = None if pending is None else _step_from_json(pending)
             if pending_dig is not None and not isinstance(pending_dig, PlannedDig):

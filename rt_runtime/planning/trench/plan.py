@@ -363,6 +363,11 @@ class TrenchPlan:
         return tuple(tuple(b) for b in out)
 
     @property
+    def bucket_volumes_m3(self) -> tuple[float, ...]:
+        """The real material of each of :attr:`buckets` (m^3): its pieces' together."""
+        return tuple(sum(d.volume_m3 for d in b) for b in self.buckets)
+
+    @property
     def status(self) -> PlanStatus:
         """``DONE`` when :func:`plan_goals` finds no goal unmet, else ``INCOMPLETE``."""
         return PlanStatus.INCOMPLETE if plan_goals(self) else PlanStatus.DONE
@@ -427,7 +432,7 @@ class TrenchPlan:
             "digs": digs,
             "n_digs": len(self.buckets),
             "n_pieces": len(digs),
-            "bucket_L": [sum(d.volume_m3 for d in b) * 1e3 for b in self.buckets],
+            "bucket_L": [v * 1e3 for v in self.bucket_volumes_m3],
             "coverage_error": self.coverage_error,
             "overdig_max_mm": self.overdig_max_m * 1e3,
             "removed_L": self.removed_m3 * 1e3,

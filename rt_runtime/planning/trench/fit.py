@@ -206,8 +206,9 @@ class FitMixin(CyclesMixin):
                 self._joining = None
             if joined is not None:
                 own = self._fit_profile_from(kind, a, b, edges, atts, (), good_cost)
-                # A joined dig that fills the bucket a finishing pass began saves a dig.
-                saves = bool(self.digs) and self.digs[-1].finishing and not joined.pass_window
+                # A joined dig that continues a finishing pass's bucket saves a cycle, and a
+                # pass where the bucket stays light.
+                saves = bool(self.digs) and self.digs[-1].finishing
                 slack = (
                     _JOIN_SAVING_SLACK if saves else _JOIN_DIFFERENCE_SLACK
                 ) * self.design_area

@@ -191,7 +191,9 @@ class FitMixin(CyclesMixin):
         Where the last dig may be continued and its exit lies within :data:`_JOIN_REACH_M`
         (scaled) of ``a`` (:meth:`_join_at`), the dig is also fitted from that exit as its
         start (joined: the bucket's content counts toward its fill, :class:`Candidate`
-        ``bucket_m3``; adaptive shifts only), and the joined dig is taken where it lowers
+        ``bucket_m3``; adaptive shifts only; fitted to ``edges`` and the design's walls and
+        bottom together, since a start it cannot choose may carry the path past its end into
+        a wall), and the joined dig is taken where it lowers
         the difference of dug and design within :data:`_JOIN_DIFFERENCE_SLACK` (or
         :data:`_JOIN_SAVING_SLACK`) of the design of what the dig from its own start does.
         """
@@ -201,7 +203,9 @@ class FitMixin(CyclesMixin):
             try:
                 # Adaptive shifts only, here and for the comparison: a joined fit that needs
                 # the fixed ones is not worth their time.
-                joined = self._fit_profile_from(kind, a, b, edges, atts, (), good_cost)
+                joined = self._fit_profile_from(
+                    kind, a, b, np.vstack([edges, self._walls]), atts, (), good_cost
+                )
             finally:
                 self._joining = None
             if joined is not None:

@@ -1446,6 +1446,33 @@ def test_a_light_dig_and_the_dig_after_it_fill_one_bucket(
     )
 
 
+def test_two_light_pieces_in_one_bucket_are_one_pass(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rt_runtime.bench import random_tasks
+
+    # 0.35 m x 0.20 m, walls 44/66 deg (random suite, seed 41): after one full dig the far
+    # wall's pass (1.7 L), the bottom (1.3 L) and the near wall's pass (0.6 L) fill no bucket,
+    # and were three passes. The bottom piece continues the far wall's bucket: still light,
+    # but one dump and one pass. (Its start is the wall's exit: fitted to the bottom's line
+    # alone, the short piece overshot its end into the near wall by 5.5 mm and was refused.)
+    task = random_tasks(RIG, 40, 41)[39]
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    lo, _ = _fill_band_l(RIG)
+    light = [b for b in plan.buckets if len(b) > 1 and b[0].finishing]
+    assert light, [[d.volume_m3 * 1e3 for d in b] for b in plan.buckets]
+    for b in light:
+        assert sum(d.volume_m3 for d in b) * 1e3 < lo
+        assert all(d.pass_window and d.finishing for d in b)
+    assert _passes(plan) <= 2
+    assert plan.overdig_max_m <= OVERDIG_LIMIT_M
+    _no_joins(monkeypatch)
+    alone = planner.plan(task)
+    assert _passes(alone) > _passes(plan)
+    assert len(alone.buckets) > len(plan.buckets)
+
+
 def test_a_dig_that_stopped_short_of_its_exit_is_not_continued(planner: TrenchPlanner) -> None:
     # The closed loop: a dig continues the one before only where the measured path ended at
     # that dig's planned exit (the arm is there, the bucket holds what it measured). Cut

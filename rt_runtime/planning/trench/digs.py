@@ -125,13 +125,14 @@ class DigsMixin(FitMixin):
         verifier = self.planner.verifier_for(best.pass_window)
         path = np.zeros((1, verifier.n_samples, 2))
         verifier.evaluate_into(row, out, path=path)
-        violation = _total_without_volume(out[0]) if real_fill else out[0, COL_TOTAL]
+        joined = best.joined
+        violation = _total_without_volume(out[0], joined) if real_fill else out[0, COL_TOTAL]
         if violation > 0.0 and T_s != res.T_s:  # the slower plan fails: keep the verified one
             a6, T_s = res.a6, res.T_s
             row[0, 8:11] = a6
             row[0, 11] = T_s
             verifier.evaluate_into(row, out, path=path)
-            violation = _total_without_volume(out[0]) if real_fill else out[0, COL_TOTAL]
+            violation = _total_without_volume(out[0], joined) if real_fill else out[0, COL_TOTAL]
         if violation > 0.0:
             raise PlanningError("one-shot plan fails verification; nothing was planned")
         p = path[0].copy()
@@ -185,7 +186,7 @@ class DigsMixin(FitMixin):
             # Timed as a pass but carrying a full bucket on the polygon: a dig, in the
             # one-shot time window.
             self.planner.verifier.evaluate_into(row, out)
-            if _total_without_volume(out[0]) > 0.0:
+            if _total_without_volume(out[0], best.joined) > 0.0:
                 raise PlanningError(
                     f"dig {len(self.digs) + 1} was timed as a finishing pass ({T_s:.2f} s) but "
                     f"carries a full bucket; a dig keeps the time window "

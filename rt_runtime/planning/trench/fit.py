@@ -5,6 +5,7 @@ shifted inwards just enough for the over-dig limit, retimed and verified like ev
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,6 +20,7 @@ from rt_runtime.planning.trench.candidates import Candidate, difference_lowered
 from rt_runtime.planning.trench.cycles import CyclesMixin
 from rt_runtime.planning.trench.geometry import (
     GRID_STEP_M,
+    JOINED_THETA_P_RAD,
     MIN_USEFUL_FRACTION,
     OVERDIG_LIMIT_M,
     FloatArray,
@@ -131,14 +133,23 @@ class FitMixin(CyclesMixin):
         atts: tuple[tuple[float, ...], tuple[float, ...]],
         offsets: tuple[float, ...] | None = None,
     ) -> Candidate | None:
-        """Fit one straight profile pass ``poly`` (2 points, work-site frame): the line as a
+        """Fit one profile pass along ``poly`` (work-site frame): 2 points, a straight line,
+        or more, a convex polyline (the bottom's end and a wall, say); each segment a
         half-plane, inwards towards the design's centroid (:meth:`_fit_profile`; ``offsets``
         its fixed shifts, :data:`_PASS_OFFSETS_M` by default)."""
-        a, b = np.asarray(poly[0], dtype=np.float64), np.asarray(poly[-1], dtype=np.float64)
-        on_bottom = abs(b[1] - self.bottom_y) < 1e-9 and abs(a[1] - self.bottom_y) <= 0.0025
-        normal = self._inward_normal(a, b)
-        # Outward normal and offset: inside is -normal . p <= -normal . a.
-        edge = np.array([[-normal[0], -normal[1], -float(normal @ a)]])
+        pts = np.asarray(poly, dtype=np.float64)
+        a, b = pts[0], pts[-1]
+        on_bottom = (
+            len(pts) == 2
+            and abs(b[1] - self.bottom_y) < 1e-9
+            and abs(a[1] - self.bottom_y) <= 0.0025
+        )
+        rows = []
+        for p0, p1 in itertools.pairwise(pts):
+            normal = self._inward_normal(p0, p1)
+            # Outward normal and offset: inside is -normal . p <= -normal . p0.
+            rows.append([-normal[0], -normal[1], -float(normal @ p0)])
+        edge = np.array(rows)
         shifts = _PASS_OFFSETS_M if offsets is None else offsets
         found = self._fit_profile(kind, a, b, edge, atts, shifts)
         if on_bottom:
@@ -262,7 +273,7 @@ class FitMixin(CyclesMixin):
         qf, pf = self.planner.fit_qf, self.planner.fit_pf
         margin = math.radians(0.5)
         lo_q, hi_q = arm.q_min + margin, arm.q_max - margin
-        tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
+        tp_lo, tp_hi = self._theta_p_range(kind)
         good = (_GOOD_FIT_COST if good_cost is None else good_cost) * qf.shape[0] / 101.0
 
         def inward(p: FloatArray) -> FloatArray:
@@ -420,6 +431,14 @@ class FitMixin(CyclesMixin):
                     return found
         return first_planned(tries[1:])
 
+    def _theta_p_range(self, kind: DigType) -> tuple[float, float]:
+        """The theta_p range of a fit of ``kind`` (rad): the type's, or
+        :data:`JOINED_THETA_P_RAD` while a joined dig is fitted (:attr:`_joining`)."""
+        if self._joining is not None:
+            return JOINED_THETA_P_RAD
+        lo, hi = oneshot.theta_p_range(self.planning, int(kind))
+        return float(lo), float(hi)
+
     def _starts(self, point: FloatArray, attitudes_deg: tuple[float, ...]) -> list[FloatArray]:
         """A profile dig's start poses: the joined exit alone while :attr:`_joining` is set,
         else :meth:`_pass_pose`."""
@@ -472,7 +491,7 @@ class FitMixin(CyclesMixin):
         lengths = arm.lengths
         m = self.machine_x
         P = base.shape[0]
-        tp_lo, tp_hi = (float(v) for v in oneshot.theta_p_range(self.planning, int(kind)))
+        tp_lo, tp_hi = self._theta_p_range(kind)
         jac0 = kinematics.jacobian(self.rig, q1)[:, :2]  # (P, 2, 3): d(x, y)/dq at q1
         d_ent = np.einsum("pij,pj->pi", jac0, 10.0 * (q2 - q1))
         geo = self.planner.geo_module
@@ -643,7 +662,9 @@ class FitMixin(CyclesMixin):
                 result[sel] = r_out
                 retimed[sel] = r_time
         for j, i in enumerate(rows):
-            if not np.isfinite(retimed[j, 3]) or _total_without_volume(result[j]) > 0.0:
+            if not np.isfinite(retimed[j, 3]) or _total_without_volume(
+                result[j], self._joining is not None
+            ) > 0.0:
                 continue
             r = retimed[j]
             out[i] = Candidate(

@@ -6,6 +6,7 @@ Work-site frame, m. Pure functions; none of them is used inside the control loop
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -130,10 +131,23 @@ _VOLUME_COLUMNS = (
 )
 
 
-def _total_without_volume(row: FloatArray) -> float:
-    """Total violation of a verifier row without the one-shot volume window."""
+_ENTRY_COLUMNS = (
+    oneshot.CONSTRAINT_NAMES.index("theta_p_min"),
+    oneshot.CONSTRAINT_NAMES.index("theta_p_max"),
+)
+
+#: The theta_p range of a joined dig (rad): it starts in the material at the exit of the dig
+#: before it and has no entry, so its first direction is free (up a wall to the top edge, say).
+JOINED_THETA_P_RAD = (-math.pi, math.pi)
+
+
+def _total_without_volume(row: FloatArray, joined: bool = False) -> float:
+    """Total violation of a verifier row without the one-shot volume window (and, for a
+    ``joined`` dig, without the theta_p bounds of an entry: :data:`JOINED_THETA_P_RAD`)."""
     v = row[0 : len(oneshot.CONSTRAINT_NAMES)].copy()
     v[list(_VOLUME_COLUMNS)] = 0.0
+    if joined:
+        v[list(_ENTRY_COLUMNS)] = 0.0
     return float(np.sum(np.maximum(v, 0.0)))
 
 

@@ -38,7 +38,8 @@ class PlannedDig:
         design_volume_m3: Of that, the part inside the design.
         predicted_volume_m3: V_p of the one-shot model (flat surface at H), bounded by the
             verifier.
-        energy_j, theta_p_rad: W_E and the initial digging angle of the verified plan.
+        energy_j, theta_p_rad: W_E and the initial digging angle of the verified plan (of
+            a joined dig, which has no entry, the angle of its first direction, not bounded).
         overdig_m: Deepest cut below the design profile (0 if none).
         plan_us: Time the one-shot planner took for this dig (excluding screening).
         select_us: Time of this dig's candidate screening and selection.
@@ -51,7 +52,9 @@ class PlannedDig:
         joined: The dig continues the bucket of the dig before it: it starts at that dig's
             exit, at rest in the material, with no moves between them. A dig and the digs
             joined to it are one bucket (one fill, one dump): they fill the band together,
-            or are one finishing pass together.
+            or are one finishing pass together. Every hard limit holds on it as on any dig;
+            the dig types' theta_p ranges, which bound an entry into the ground, do not
+            apply.
         pass_window: Timed and verified in the finishing passes' time window: a finishing
             pass, or a piece of a joined dig planned as one before the dig joined to it
             filled the bucket.

@@ -13,6 +13,7 @@ import numpy as np
 from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import DigType
 from rt_runtime.planning.trench.candidates import Candidate
+from rt_runtime.planning.trench.fit import _JOIN_REACH_M
 from rt_runtime.planning.trench.geometry import FloatArray
 from rt_runtime.planning.trench.layers import (
     _COLUMN_EDGE_M,
@@ -21,6 +22,12 @@ from rt_runtime.planning.trench.layers import (
     LayersMixin,
 )
 from rt_runtime.planning.trench.plan import PlannedDig
+
+#: The near corner's joined backward dig (:meth:`WallsMixin._near_corner`): how far along the
+#: bottom from the near wall's foot the exit of the dig it continues may lie (scale model, m),
+#: and its attitude tables (deg; it curls the bucket as it climbs the wall).
+_CORNER_RUN_M = 0.10
+_NEAR_CORNER_ATTS = ((-110.0, -150.0), (-160.0, -200.0))
 
 #: End attitudes of wall digs (deg; the table's first and last of each end).
 _WALL_ATTITUDES_DEG = {
@@ -53,6 +60,9 @@ class WallsMixin(LayersMixin):
             top = np.array([xn, g])
             foot = np.array([xn + t.depth_m / math.tan(t.beta2_rad), self.bottom_y])
             beta = t.beta2_rad
+            corner = self._near_corner(top, foot, remaining, t0)
+            if corner is not None:
+                return corner
         # Pieces no longer along the wall than the longest profile dig; each may be taken in
         # its two halves where it does not plan whole (a long fit along a shallow wall).
         # ``_wall_piece`` counts the halves done.
@@ -86,6 +96,33 @@ class WallsMixin(LayersMixin):
                 if dig is not None:
                     return dig
         return None
+
+    def _near_corner(
+        self, top: FloatArray, foot: FloatArray, remaining: Any, t0: float
+    ) -> PlannedDig | None:
+        """The near wall taken with the bucket the bottom's last column filled: a backward
+        dig joined to that column, from its exit along what is left of the bottom to the
+        wall's foot and up the wall to its top edge (:data:`_NEAR_CORNER_ATTS`); None where
+        the last dig may not be continued, its exit is not on the bottom within
+        :data:`_CORNER_RUN_M` (scaled) of the foot, nothing is left on the wall, or no such
+        dig plans."""
+        if self.joinable is None:
+            return None
+        s = self.planner.scale
+        x, y = self.planner.arm.tip_xy(self.joinable[0])
+        exit_ = np.array([float(x) + self.machine_x, float(y)])
+        run = float(exit_[0] - foot[0])
+        if abs(float(exit_[1]) - self.bottom_y) > _JOIN_REACH_M * s or not (
+            -_JOIN_REACH_M * s <= run <= _CORNER_RUN_M * s
+        ):
+            return None
+        if self._material_above(np.array([foot, top])) < _COLUMN_EDGE_M * s:
+            return None
+        line = np.array([exit_, foot, top]) if run > 0.002 * s else np.array([exit_, top])
+        found = self._fit_pass(DigType.BACKWARD, line, _NEAR_CORNER_ATTS)
+        if found is None or not found.joined:
+            return None
+        return self._plan_profile(found, remaining, t0)
 
     def _wall_inner_pass(
         self,

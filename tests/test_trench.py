@@ -1516,6 +1516,27 @@ def test_the_near_wall_is_taken_with_the_bucket_the_last_column_filled(
     assert _passes(alone, last) > _passes(plan, last)
 
 
+def test_a_joined_dig_with_nothing_to_compare_leaves_no_strip(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rt_runtime.bench import random_tasks
+    from rt_runtime.planning.trench import fit
+
+    # 0.69 m x 0.021 m (random suite, seed 13): the far wall's pass (0.03 L) ends 3.6 mm
+    # above the bottom, and the bottom's fit from its own start does not plan. Joined along
+    # the whole bottom from that exit, it left a strip under its rising start: 3.9 % of so
+    # shallow a design. A joined dig with no unjoined fit to compare is taken only where it
+    # leaves no more of the design along its line than the join's slack.
+    task = random_tasks(RIG, 169, 13)[168]
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    assert plan.coverage_error < 0.03
+    assert _passes(plan) <= 2
+    monkeypatch.setattr(fit.FitMixin, "_design_left_along", lambda self, a, b: 0.0)
+    strip = planner.plan(task)
+    assert strip.coverage_error > plan.coverage_error + 0.005
+
+
 def test_a_dig_that_stopped_short_of_its_exit_is_not_continued(planner: TrenchPlanner) -> None:
     # The closed loop: a dig continues the one before only where the measured path ended at
     # that dig's planned exit (the arm is there, the bucket holds what it measured). Cut

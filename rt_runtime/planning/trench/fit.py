@@ -227,10 +227,24 @@ class FitMixin(CyclesMixin):
                 slack = (
                     _JOIN_SAVING_SLACK if saves else _JOIN_DIFFERENCE_SLACK
                 ) * self.design_area
-                if own is None or difference_lowered(joined) >= difference_lowered(own) - slack:
+                if own is not None:
+                    if difference_lowered(joined) >= difference_lowered(own) - slack:
+                        return joined
+                    return own
+                # Nothing to compare with: the joined dig is taken where it leaves no more of
+                # the design along its line than the slack (a start above the line it cannot
+                # lower leaves a strip along it).
+                if self._design_left_along(a, b) - joined.useful_m2 <= slack:
                     return joined
-                return own
         return self._fit_profile_from(kind, a, b, edges, atts, offsets, good_cost)
+
+    def _design_left_along(self, a: FloatArray, b: FloatArray) -> float:
+        """The design material left (m^2, on the height field) between the abscissae of
+        ``a`` and ``b`` (work-site frame)."""
+        lo, hi = sorted((float(a[0]), float(b[0])))
+        span = (self.grid >= lo) & (self.grid <= hi)
+        left = np.clip(self.surface[span] - self.design_floor[span], 0.0, None)
+        return float(np.sum(left)) * GRID_STEP_M
 
     def _join_at(self, a: FloatArray, b: FloatArray | None = None) -> _Join | None:
         """The last dig's exit as the start of a dig that begins at ``a`` (and ends at ``b``,

@@ -857,7 +857,6 @@ def _full_column_below_the_layers_floor(planner: TrenchPlanner, task, index: int
 def test_an_upper_layers_rest_takes_the_top_of_the_layer_below_to_fill_the_bucket(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from rt_runtime.bench import random_tasks
     from rt_runtime.planning.trench import layers
 
     # 0.59 m x 0.12 m (random suite, seed 11): the upper layer's second column fills no
@@ -868,7 +867,7 @@ def test_an_upper_layers_rest_takes_the_top_of_the_layer_below_to_fill_the_bucke
     # The rule alone, before and after it: no dig continues another (joined digs save
     # passes of their own).
     _no_joins(monkeypatch)
-    task = random_tasks(RIG, 21, 11)[20]
+    task = _random_task(11, 20)
     plan = _full_column_below_the_layers_floor(planner, task, 1)
     assert _passes(plan) <= 2
     # Without the lowered floor the same column is under-filled: a third finishing pass.
@@ -880,7 +879,6 @@ def test_an_upper_layers_rest_takes_the_top_of_the_layer_below_to_fill_the_bucke
 def test_an_upper_layers_column_that_would_leave_a_rest_goes_deeper(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from rt_runtime.bench import random_tasks
     from rt_runtime.planning.trench import layers
 
     # 0.49 m x 0.16 m (random suite, seed 11): the upper layer's full column (4.51 L) left a
@@ -890,7 +888,7 @@ def test_an_upper_layers_column_that_would_leave_a_rest_goes_deeper(
     # The rule alone, before and after it: no dig continues another (joined digs save
     # passes of their own).
     _no_joins(monkeypatch)
-    task = random_tasks(RIG, 22, 11)[21]
+    task = _random_task(11, 21)
     plan = _full_column_below_the_layers_floor(planner, task, 0)
     assert len(plan.buckets) == 4 and _passes(plan) == 2
     monkeypatch.setattr(layers.LayersMixin, "_leaves_rest", lambda self, floor, envelope: False)
@@ -900,13 +898,11 @@ def test_an_upper_layers_column_that_would_leave_a_rest_goes_deeper(
 
 
 def test_rests_over_a_walls_slope_are_left_to_the_walls_digs(planner: TrenchPlanner) -> None:
-    from rt_runtime.bench import random_tasks
-
     # 1.13 m x 0.23 m, walls 61/73 deg, two sections under two upper layers (random suite,
     # seed 11): what each layer's columns left on the steep walls counted as too thick for
     # the layer below, and was taken under-filled (four and three finishing passes in the
     # sections). The walls' digs take it from the top edge to the foot.
-    task = random_tasks(RIG, 36, 11)[35]
+    task = _random_task(11, 35)
     assert len(planner.start(task).layer_floors) == 2
     plan = planner.plan(task)
     _check_fill_and_sections(plan)
@@ -919,7 +915,6 @@ def test_rests_over_a_walls_slope_are_left_to_the_walls_digs(planner: TrenchPlan
 def test_a_thin_bottom_layer_fills_the_bucket_with_longer_columns(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from rt_runtime.bench import random_tasks
     from rt_runtime.planning.trench import layers
 
     # 0.98 m x 0.038 m in two sections of about half a metre (random suite, seed 11): each
@@ -928,7 +923,7 @@ def test_a_thin_bottom_layer_fills_the_bucket_with_longer_columns(
     # The rule alone, before and after it: no dig continues another (joined digs save
     # passes of their own).
     _no_joins(monkeypatch)
-    task = random_tasks(RIG, 37, 11)[36]
+    task = _random_task(11, 36)
     plan = planner.plan(task)
     _check_fill_and_sections(plan)
     full = [b for b in plan.buckets if not b[0].finishing]
@@ -944,7 +939,6 @@ def test_a_thin_bottom_layer_fills_the_bucket_with_longer_columns(
 def test_a_layers_rest_too_long_for_one_dig_takes_a_shorter_full_column(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from rt_runtime.bench import random_tasks
     from rt_runtime.planning.trench import layers, walls
 
     # 0.79 m x 0.21 m, walls 54/58 deg, two upper layers in two sections (random suite, seed
@@ -954,7 +948,7 @@ def test_a_layers_rest_too_long_for_one_dig_takes_a_shorter_full_column(
     # which takes the same near rest with the bucket the last column filled, 9 with 3 either
     # way.)
     monkeypatch.setattr(walls, "_CORNER_RUN_M", -1.0)
-    task = random_tasks(RIG, 68, 11)[67]
+    task = _random_task(11, 67)
     assert len(planner.start(task).layer_floors) == 2
     plan = planner.plan(task)
     _check_fill_and_sections(plan)
@@ -970,14 +964,13 @@ def test_a_layers_rest_too_long_for_one_dig_takes_a_shorter_full_column(
 def test_a_deep_trenchs_far_corner_is_entered_from_high_enough(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from rt_runtime.bench import random_tasks
     from rt_runtime.planning.trench import moves
 
     # 0.46 m x 0.27 m, far wall 77 deg (random suite, seed 17): a bucket entering the bottom
     # at the far wall's foot overhangs the wall's slope, and no approach pose up to 0.25 m
     # above the entry was clear, so every bottom column from the far corner was refused and
     # the bottom went in passes that left 3.9 %. From higher, one full column.
-    task = random_tasks(RIG, 32, 17)[31]
+    task = _random_task(17, 31)
     plan = planner.plan(task)
     _check_fill_and_sections(plan)
     foot = task.start_x_m - task.depth_m / math.tan(task.beta1_rad)
@@ -1033,6 +1026,14 @@ def test_resumed_session_after_a_travel_plans_as_the_uninterrupted_one(
 
 
 # -- the second design: full buckets, sections, honest status (issue 23) -----------------------
+
+
+def _random_task(seed: int, index: int) -> Any:
+    """Task ``index`` of the random suite of ``seed`` (``bench plan --random N --seed S``
+    with N > index draws the same task)."""
+    from rt_runtime.bench import random_tasks
+
+    return random_tasks(RIG, index + 1, seed)[index]
 
 
 def _fill_band_l(rig) -> tuple[float, float]:
@@ -1399,12 +1400,10 @@ def test_resumed_session_plans_the_same_next_dig_at_every_dig(
 ) -> None:
     import json
 
-    from rt_runtime.bench import random_tasks
-
     # D takes layers, walls and columns, random-11-21 a column along a lowered floor that
     # leaves no rest: a session restored from its state after any dig (a daemon restart)
     # plans the same next dig as the one that went on.
-    task = load_task(name, RIG) if len(name) == 1 else random_tasks(RIG, 22, 11)[21]
+    task = load_task(name, RIG) if len(name) == 1 else _random_task(11, 21)
     a = planner.start(task)
     while True:
         state = json.loads(json.dumps(a.state()))
@@ -1460,14 +1459,12 @@ def test_a_light_dig_and_the_dig_after_it_fill_one_bucket(
 def test_two_light_pieces_in_one_bucket_are_one_pass(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from rt_runtime.bench import random_tasks
-
     # 0.35 m x 0.20 m, walls 44/66 deg (random suite, seed 41): after one full dig the far
     # wall's pass (1.7 L), the bottom (1.3 L) and the near wall's pass (0.6 L) fill no bucket,
     # and were three passes. The bottom piece continues the far wall's bucket: still light,
     # but one dump and one pass. (Its start is the wall's exit: fitted to the bottom's line
     # alone, the short piece overshot its end into the near wall by 5.5 mm and was refused.)
-    task = random_tasks(RIG, 40, 41)[39]
+    task = _random_task(41, 39)
     plan = planner.plan(task)
     _check_fill_and_sections(plan)
     lo, _ = _fill_band_l(RIG)
@@ -1487,7 +1484,6 @@ def test_two_light_pieces_in_one_bucket_are_one_pass(
 def test_the_near_wall_is_taken_with_the_bucket_the_last_column_filled(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from rt_runtime.bench import random_tasks
     from rt_runtime.planning.trench import walls
 
     # 1.14 m x 0.037 m, near wall 60 deg, two sections (random suite, seed 41): the second
@@ -1496,7 +1492,7 @@ def test_the_near_wall_is_taken_with_the_bucket_the_last_column_filled(
     # dig climbs the wall from the column's exit to its top edge (a joined dig has no entry
     # into the ground, so the dig types' theta_p does not bound it); every other limit holds
     # as on any dig.
-    task = random_tasks(RIG, 178, 41)[177]
+    task = _random_task(41, 177)
     plan = planner.plan(task)
     _check_fill_and_sections(plan)
     top = np.array([task.start_x_m - task.length_m, RIG.ground_y_m])
@@ -1519,7 +1515,6 @@ def test_the_near_wall_is_taken_with_the_bucket_the_last_column_filled(
 def test_a_joined_dig_with_nothing_to_compare_leaves_no_strip(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from rt_runtime.bench import random_tasks
     from rt_runtime.planning.trench import fit
 
     # 0.69 m x 0.021 m (random suite, seed 13): the far wall's pass (0.03 L) ends 3.6 mm
@@ -1527,7 +1522,7 @@ def test_a_joined_dig_with_nothing_to_compare_leaves_no_strip(
     # the whole bottom from that exit, it left a strip under its rising start: 3.9 % of so
     # shallow a design. A joined dig with no unjoined fit to compare is taken only where it
     # leaves no more of the design along its line than the join's slack.
-    task = random_tasks(RIG, 169, 13)[168]
+    task = _random_task(13, 168)
     plan = planner.plan(task)
     _check_fill_and_sections(plan)
     assert plan.coverage_error < 0.03

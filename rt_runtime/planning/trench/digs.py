@@ -186,7 +186,7 @@ class DigsMixin(FitMixin):
             # Timed as a pass but carrying a full bucket on the polygon: a dig, in the
             # one-shot time window.
             self.planner.verifier.evaluate_into(row, out)
-            if _total_without_volume(out[0], best.joined) > 0.0:
+            if _total_without_volume(out[0], joined) > 0.0:
                 raise PlanningError(
                     f"dig {len(self.digs) + 1} was timed as a finishing pass ({T_s:.2f} s) but "
                     f"carries a full bucket; a dig keeps the time window "

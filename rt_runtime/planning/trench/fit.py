@@ -246,18 +246,25 @@ class FitMixin(CyclesMixin):
         left = np.clip(self.surface[span] - self.design_floor[span], 0.0, None)
         return float(np.sum(left)) * GRID_STEP_M
 
+    def _joinable_exit(self) -> FloatArray | None:
+        """The tip at the exit of the dig the next may continue (:attr:`joinable`; work-site
+        frame, m), None where none may be continued."""
+        if self.joinable is None:
+            return None
+        x, y = self.planner.arm.tip_xy(self.joinable[0])
+        return np.array([float(x) + self.machine_x, float(y)])
+
     def _join_at(self, a: FloatArray, b: FloatArray | None = None) -> _Join | None:
         """The last dig's exit as the start of a dig that begins at ``a`` (and ends at ``b``,
         work-site frame), where the session allows continuing it (:attr:`joinable`), the
         exit's tip lies within :data:`_JOIN_REACH_M` (scaled) of ``a`` and the material above
         the segment ``a``-``b`` (on the height field) is not above 1.25 times the bucket's
         room; else None."""
-        joinable = self.joinable
-        if joinable is None:
+        exit_ = self._joinable_exit()
+        if exit_ is None or self.joinable is None:
             return None
-        q, bucket = joinable
-        x, y = self.planner.arm.tip_xy(q)
-        gap = math.hypot(float(x) + self.machine_x - float(a[0]), float(y) - float(a[1]))
+        q, bucket = self.joinable
+        gap = math.hypot(float(exit_[0] - a[0]), float(exit_[1] - a[1]))
         if gap > _JOIN_REACH_M * self.planner.scale:
             return None
         if b is not None and abs(float(b[0]) - float(a[0])) > 1e-9:

@@ -106,11 +106,10 @@ class WallsMixin(LayersMixin):
         the last dig may not be continued, its exit is not on the bottom within
         :data:`_CORNER_RUN_M` (scaled) of the foot, nothing is left on the wall, or no such
         dig plans."""
-        if self.joinable is None:
+        exit_ = self._joinable_exit()
+        if exit_ is None:
             return None
         s = self.planner.scale
-        x, y = self.planner.arm.tip_xy(self.joinable[0])
-        exit_ = np.array([float(x) + self.machine_x, float(y)])
         run = float(exit_[0] - foot[0])
         if abs(float(exit_[1]) - self.bottom_y) > _JOIN_REACH_M * s or not (
             -_JOIN_REACH_M * s <= run <= _CORNER_RUN_M * s

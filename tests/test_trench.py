@@ -18,10 +18,12 @@ from rt_runtime.planning.trench import (
     COVERAGE_GOAL,
     OVERDIG_GOAL_M,
     OVERDIG_LIMIT_M,
+    TRANSITION_PENETRATION_M,
     Cycle,
     PlannedDig,
     PlanStatus,
     Stage,
+    TransitionKind,
     TravelMove,
     TrenchPlanner,
     TrenchSession,
@@ -663,14 +665,19 @@ def test_moves_are_within_the_joint_limits(plans: dict) -> None:
                 _, vel, acc = traj.at_time(float(t))
                 assert np.all(np.abs(vel) <= RIG.qd_max_rad_s * (1 + 1e-6))
                 assert np.all(np.abs(acc) <= RIG.qdd_max_rad_s2 * (1 + 1e-6))
-    # A cycle leads into every dig; a dig's joined pieces follow it with none between.
+    # A cycle leads into every dig; a dig's joined pieces follow it with none between, but
+    # for a carried piece's cycle (without a dump).
     steps = list(plan.steps)
-    assert sum(isinstance(s, Cycle) for s in steps) == len(plan.buckets)
+    carried = sum(d.carried for d in plan.digs)
+    assert sum(isinstance(s, Cycle) for s in steps) == len(plan.buckets) + carried
     at = 0
     for bucket in plan.buckets:
-        assert isinstance(steps[at], Cycle)
-        assert steps[at + 1 : at + 1 + len(bucket)] == list(bucket)
-        at += 1 + len(bucket)
+        for d in bucket:
+            if d is bucket[0] or d.carried:
+                assert isinstance(steps[at], Cycle)
+                at += 1
+            assert steps[at] is d
+            at += 1
     assert at == len(steps)
 
 
@@ -1042,10 +1049,25 @@ def _fill_band_l(rig) -> tuple[float, float]:
 
 
 def _no_joins(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Plan with no dig joined to the one before it."""
+    """Plan with no dig joined to the one before it, nor any bucket carried."""
     from rt_runtime.planning.trench import fit
 
     monkeypatch.setattr(fit, "_JOIN_REACH_M", -1.0)
+    _no_carries(monkeypatch)
+
+
+def _carry_attitude_max(rig) -> float:
+    """The largest bucket attitude (rad) that holds a carried load on ``rig``."""
+    from rt_runtime.planning.trench import cycles
+
+    return rig.trench.spoil.attitude_rad[0] - cycles._CARRY_ATTITUDE_MARGIN_RAD
+
+
+def _no_carries(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Plan with no bucket carried to the next dig: no attitude holds a load."""
+    from rt_runtime.planning.trench import cycles
+
+    monkeypatch.setattr(cycles, "_CARRY_ATTITUDE_MARGIN_RAD", 2.0 * math.pi)
 
 
 def _passes(plan, section: int | None = None) -> int:
@@ -1058,7 +1080,8 @@ def _check_fill_and_sections(plan) -> None:
     """Every dig that is not a finishing pass carries V_min..V_max of real material (a dig
     and the digs joined to it together: one bucket); the finishing passes are reported as
     such, with their section; a joined dig starts where the dig before it ended, in the
-    same section, with no move between them."""
+    same section, with no move between them, or a carried dig after a cycle from its exit
+    that does not dump and keeps the bucket at attitudes that hold the load."""
     lo, hi = _fill_band_l(RIG)
     report = plan.to_json()
     for d, row in zip(plan.digs, report["digs"], strict=True):
@@ -1073,8 +1096,18 @@ def _check_fill_and_sections(plan) -> None:
         if not bucket[0].finishing:
             assert lo - 1e-9 <= volume <= hi + 1e-9, (bucket[0].index, volume)
         for before, after in itertools.pairwise(bucket):
-            assert after.problem.q_start_rad == before.problem.q_end_rad
             at = next(i for i, st in enumerate(plan.steps) if st is before)
+            if after.carried:
+                carry = plan.steps[at + 1]
+                assert isinstance(carry, Cycle) and plan.steps[at + 2] is after
+                assert carry.after_dig and TransitionKind.DUMP not in carry.kinds
+                assert carry.waypoints_rad[0] == before.problem.q_end_rad
+                assert carry.waypoints_rad[-1] == after.problem.q_start_rad
+                assert carry.penetration_m <= TRANSITION_PENETRATION_M
+                held = np.sum(np.array(carry.waypoints_rad), axis=1)
+                assert np.all(held <= _carry_attitude_max(RIG) + 1e-12)
+                continue
+            assert after.problem.q_start_rad == before.problem.q_end_rad
             assert plan.steps[at + 1] is after
 
 
@@ -1415,11 +1448,12 @@ def test_resumed_session_plans_the_same_next_dig_at_every_dig(
             break
         assert other is not None
         np.testing.assert_allclose(other.tip_path_m, dig.tip_path_m, rtol=0, atol=1e-12)
-        assert (other.finishing, other.section, other.status, other.joined) == (
+        assert (other.finishing, other.section, other.status, other.joined, other.carried) == (
             dig.finishing,
             dig.section,
             dig.status,
             dig.joined,
+            dig.carried,
         )
         a.record(dig, dig.tip_path_m)
 
@@ -1433,7 +1467,7 @@ def test_a_light_dig_and_the_dig_after_it_fill_one_bucket(
     # two digs of two pieces each (0.47 + 3.95, 3.93 + 1.24 L), no moves between the pieces.
     plan = plans["B"]
     joined = [d for d in plan.digs if d.joined]
-    assert joined
+    assert joined and not any(d.carried for d in plan.digs)
     lo, hi = _fill_band_l(RIG)
     for d in joined:
         before = plan.digs[d.index - 1]
@@ -1615,3 +1649,48 @@ def test_where_the_next_dig_may_continue_the_last_is_session_state(
     ):
         with pytest.raises(ConfigurationError, match="joinable"):
             TrenchSession.restore(planner, task, {**state, "joinable": bad})
+
+
+def test_a_light_bucket_is_carried_to_the_next_pass_without_a_dump(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # 0.92 m x 0.09 m, walls 84/35 deg (random suite, seed 11): the second section's bottom,
+    # after its full column, went in three light passes (1.13, 0.62 + 0.05 joined, 0.51 L).
+    # The last pass's bucket is carried from the exit before it: its cycle lifts out and
+    # enters without a dump, the bucket curled enough to hold the load all the way and through
+    # the dig; two passes.
+    task = _random_task(11, 31)
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    lo, _ = _fill_band_l(RIG)
+    limit = _carry_attitude_max(RIG)
+    carried = [d for d in plan.digs if d.carried]
+    assert carried
+    for d in carried:
+        before = plan.digs[d.index - 1]
+        assert before.section == d.section and d.joined
+        bucket = next(b for b in plan.buckets if d in b)
+        held = sum(p.volume_m3 for p in bucket[: bucket.index(d)]) * 1e3
+        assert 0.0 < held < lo
+        at = next(i for i, st in enumerate(plan.steps) if st is d)
+        carry = plan.steps[at - 1]
+        assert isinstance(carry, Cycle)
+        poses = [np.array(carry.waypoints_rad)]
+        for m in carry.moves:
+            traj = m.trajectory(RIG)
+            poses += [traj.at_time(float(t))[0] for t in np.linspace(0.0, traj.duration, 50)]
+        if carry.blended:
+            traj = carry.trajectory(RIG)
+            poses.append(traj.sample(np.linspace(0.0, traj.duration_s, 400)))
+        sextic = d.trajectory()
+        poses += [sextic.sample(float(t))[0] for t in np.linspace(0.0, d.T_s, 50)]
+        attitudes = np.concatenate([np.reshape(q, (-1, 3)) for q in poses]).sum(axis=1)
+        assert np.all(attitudes <= limit + 1e-9), math.degrees(float(np.max(attitudes)))
+        # It enters the ground: the dig type's theta_p range holds.
+        lo_tp, hi_tp = oneshot.theta_p_range(oneshot.require_planning(RIG), int(d.dig_type))
+        assert lo_tp <= d.theta_p_rad <= hi_tp
+    assert _passes(plan, 1) <= 2 and plan.overdig_max_m <= OVERDIG_LIMIT_M
+    _no_carries(monkeypatch)
+    alone = planner.plan(task)
+    assert _passes(alone, 1) > _passes(plan, 1)
+    assert len(alone.buckets) > len(plan.buckets)

@@ -35,10 +35,13 @@ class Candidate:
         envelope: A fitted dig's lowest reach on the height field's grid (m, work-site
             frame: the surface it leaves is the minimum of this and the material's); None
             for network digs.
-        joined: A fitted dig that continues the dig before it: it starts at that dig's
-            exit, at rest, with no moves between.
+        joined: A fitted dig that continues the bucket of the dig before it: it starts at
+            that dig's exit, at rest, with no moves between, or (``carried``) at its own
+            entry, the bucket carried there.
         bucket_m3: Material already in a joined dig's bucket (m^3), which counts toward its
             fill; 0 otherwise.
+        carried: A joined dig that enters the ground at its own entry: the light bucket of
+            the dig before it is carried there by a cycle without a dump.
     """
 
     kind: DigType
@@ -56,6 +59,7 @@ class Candidate:
     envelope: FloatArray | None = field(default=None, repr=False, compare=False)
     joined: bool = False
     bucket_m3: float = 0.0
+    carried: bool = False
 
 
 def difference_lowered(c: Candidate) -> float:

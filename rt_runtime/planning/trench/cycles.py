@@ -154,6 +154,17 @@ _FURTHER_BLENDS = ("more_knots", "vertical", "enter", "straight")
 # Two corners closer than this in every joint are one (rad): the generator refuses repeats.
 _SAME_POSE_RAD = 1e-9
 
+#: A bucket carrying a load from one dig to the next (a carried dig) keeps its attitude this
+#: far below the spoil zone's lowest (rad). The profiles' lowest dump attitude (-100 deg) is
+#: where the bucket empties: its floor slopes down to the cutting edge by 45 deg. A light load
+#: (below the fill band: the only one carried) lies on the floor and slides out where the
+#: floor slopes more than soil's friction on steel (~30 deg); 25 deg more curled leaves it a
+#: 20 deg slope at most (-125 deg: a backward dig's entries go to -135 deg).
+_CARRY_ATTITUDE_MARGIN_RAD = math.radians(25.0)
+
+# Samples of a carry cycle's blended trajectory and of each of its moves in the load check.
+_CARRY_SAMPLES = 200
+
 
 def spoil_poses(
     rig: Rig, arm: kinematics.FastArm, x_max_m: float = math.inf
@@ -207,14 +218,70 @@ def home_pose(rig: Rig, arm: kinematics.FastArm) -> FloatArray:
 class CyclesMixin(MovesMixin):
     """The blended cycles between a session's digs (see the module)."""
 
+    #: The carry cycle into the carried dig last checked (:meth:`_carry_cycle`).
+    _carry_checked: tuple[PlannedDig, Cycle] | None = None
+
     @_stage("transitions")
     def _append_transitions(self, dig: PlannedDig) -> None:
-        """The moves into ``dig``: a dig cycle from the previous dig's exit, or the approach
-        from the home pose (the start of a task or section)."""
-        if self.q_now is not None:
+        """The moves into ``dig``: a dig cycle from the previous dig's exit (without the dump
+        into a carried dig: the one its check planned), or the approach from the home pose
+        (the start of a task or section)."""
+        checked = self._carry_checked
+        self._carry_checked = None
+        if dig.carried:
+            if checked is None or checked[0] is not dig:
+                raise PlanningError("a carried dig's cycle was not checked with the dig")
+            self.steps.append(checked[1])
+        elif self.q_now is not None:
             self.steps.append(self.cycle(self.q_now, dig, after_dig=True))
         else:
             self.steps.append(self.cycle(self.planner.home_pose_rad, dig, dump=False))
+
+    def carry_attitude_max(self) -> float:
+        """The largest bucket attitude (rad, the joints' sum) that holds a carried load: the
+        spoil zone's lowest less :data:`_CARRY_ATTITUDE_MARGIN_RAD`."""
+        return self.rig.trench.spoil.attitude_rad[0] - _CARRY_ATTITUDE_MARGIN_RAD
+
+    def holds_load(self, q: FloatArray) -> bool:
+        """Whether the bucket holds a carried load at every joint pose ``(n, 3)``: its
+        attitude at most :meth:`carry_attitude_max`."""
+        return bool(np.all(np.sum(q, axis=-1) <= self.carry_attitude_max()))
+
+    @_stage("transitions")
+    def _carry_cycle(self, dig: PlannedDig) -> Cycle:
+        """The cycle that carries the last dig's bucket from its exit (:attr:`q_now`) into the
+        carried ``dig``'s entry without a dump (:meth:`cycle`), its sampled poses and the
+        dig's holding the load (:meth:`holds_load`); kept for :meth:`_append_transitions`.
+
+        Raises:
+            PlanningError: No clear cycle, or one or the dig tilts the bucket past the
+                attitudes that hold the load.
+        """
+        if self.q_now is None:
+            raise PlanningError("a carried dig needs the exit of the dig before it")
+        cyc = self.cycle(self.q_now, dig, dump=False, after_dig=True)
+        if cyc.penetration_m > TRANSITION_PENETRATION_M:
+            raise PlanningError(
+                f"the carry into dig {dig.index + 1} goes {cyc.penetration_m * 1e3:.1f} mm into "
+                "the material"
+            )
+        mover = self.planner.mover
+        poses = [np.asarray(cyc.waypoints_rad, dtype=np.float64)]
+        for m in cyc.moves:
+            traj = mover.move(m.q_from_rad, m.q_to_rad)
+            poses.append(mover.poses(traj, np.linspace(0.0, traj.duration, _CARRY_SAMPLES)))
+        if cyc.blended:
+            traj = cyc.trajectory(self.rig)
+            poses.append(traj.sample(np.linspace(0.0, traj.duration_s, _CARRY_SAMPLES)))
+        q1 = np.asarray(dig.problem.q_start_rad, dtype=np.float64)
+        q2 = np.asarray(dig.problem.q_end_rad, dtype=np.float64)
+        K = -np.asarray(dig.a6, dtype=np.float64) * dig.T_s**6
+        planner = self.planner
+        poses.append(q1 + planner.full_qf[:, None] * (q2 - q1) + planner.full_pf[:, None] * K)
+        if not self.holds_load(np.concatenate(poses)):
+            raise PlanningError(f"the carry into dig {dig.index + 1} would spill its load")
+        self._carry_checked = (dig, cyc)
+        return cyc
 
     def cycle(
         self,

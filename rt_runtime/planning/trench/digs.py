@@ -4,6 +4,7 @@ material left (over-dig of the region it removes, the fill band) before it is ac
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from typing import Any
@@ -44,16 +45,36 @@ class DigsMixin(FitMixin):
 
         The PINN plans exactly what was screened; another planner (the PSO) finds its own
         optimum for the same poses, which may cut too deep or take more than the bucket: then
-        the next candidate is tried.
+        the next candidate is tried. A carried dig whose carry is refused (:meth:`_carry_cycle`)
+        or that fails its checks is tried again as the same dig with a bucket of its own.
         """
         for best in ranked:
-            try:
-                dig = self._plan_chosen(best, remaining, (time.perf_counter() - t0) * 1e6)
-                self._check_transition_poses(dig)
-            except PlanningError:
-                continue
-            return dig
+            tries = [best]
+            while tries:
+                chosen = tries.pop()
+                try:
+                    dig = self._plan_chosen(chosen, remaining, (time.perf_counter() - t0) * 1e6)
+                    self._check_transition_poses(dig)
+                    if dig.carried:
+                        self._carry_cycle(dig)
+                except PlanningError:
+                    if chosen.carried:
+                        tries.extend(c for c in [self._uncarried(chosen)] if c is not None)
+                    continue
+                return dig
         return None
+
+    def _uncarried(self, carried: Candidate) -> Candidate | None:
+        """The fitted ``carried`` dig with a bucket of its own (checked again: its fill, the
+        bucket's room and its time window change), None where it does not plan so."""
+        x7 = carried.x7
+        K = -np.asarray(carried.a6, dtype=np.float64) * carried.T_s**6
+        n_fit = self.planner.fit_qf.shape[0]
+        cost = carried.fit_rms_m**2 * n_fit
+        (found,) = self._checked_fits(carried.kind, [(x7[0:3], x7[3:6], K, cost)], n_fit)
+        if found is None:
+            return None
+        return dataclasses.replace(found, may_underfill=carried.may_underfill)
 
     def _count_pass(self, dig: PlannedDig | None) -> bool:
         """Count ``dig`` against the section's finishing passes: a finishing pass that starts
@@ -125,7 +146,7 @@ class DigsMixin(FitMixin):
         verifier = self.planner.verifier_for(best.pass_window)
         path = np.zeros((1, verifier.n_samples, 2))
         verifier.evaluate_into(row, out, path=path)
-        joined = best.joined
+        joined = best.joined and not best.carried  # no entry: no theta_p range
         violation = _total_without_volume(out[0], joined) if real_fill else out[0, COL_TOTAL]
         if violation > 0.0 and T_s != res.T_s:  # the slower plan fails: keep the verified one
             a6, T_s = res.a6, res.T_s
@@ -214,4 +235,5 @@ class DigsMixin(FitMixin):
             section=self.section,
             joined=best.joined,
             pass_window=finishing_pass,
+            carried=best.carried,
         )

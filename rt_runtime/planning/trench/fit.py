@@ -73,11 +73,13 @@ _JOIN_SAVING_SLACK = 0.003
 
 @dataclass(frozen=True, slots=True)
 class _Join:
-    """A profile dig being fitted to continue the last dig: its exit pose ``q_rad`` (arm
-    frame) as the start, and the material ``bucket_m3`` (m^3) already in the bucket."""
+    """A profile dig being fitted to continue the last dig's bucket: its exit pose ``q_rad``
+    (arm frame) as the start, and the material ``bucket_m3`` (m^3) already in the bucket; or
+    (``carried``) from the dig's own start, the bucket carried there."""
 
     q_rad: FloatArray
     bucket_m3: float
+    carried: bool = False
 
 
 def _solve_spd3(A: FloatArray, rhs: FloatArray) -> FloatArray:
@@ -111,7 +113,8 @@ class FitMixin(CyclesMixin):
     #: The last dig's exit and its bucket's content where the next dig may continue it
     #: (:meth:`~rt_runtime.planning.trench.session.TrenchSession.record`), else None.
     joinable: tuple[FloatArray, float] | None = None
-    #: Set while a profile dig is fitted from the joined exit (:meth:`_fit_profile`).
+    #: Set while a profile dig is fitted from the joined exit, or with the last dig's bucket
+    #: carried to its own start (:meth:`_fit_profile`).
     _joining: _Join | None = None
 
     def _bottom_passes(self, far: tuple[float, float], near: tuple[float, float]) -> list[_Pass]:
@@ -230,13 +233,64 @@ class FitMixin(CyclesMixin):
                 if own is not None:
                     if difference_lowered(joined) >= difference_lowered(own) - slack:
                         return joined
-                    return own
+                    return self._carried_fit(kind, a, b, edges, atts, (), good_cost) or own
                 # Nothing to compare with: the joined dig is taken where it leaves no more of
                 # the design along its line than the slack (a start above the line it cannot
                 # lower leaves a strip along it).
                 if self._design_left_along(a, b) - joined.useful_m2 <= slack:
                     return joined
+        carried = self._carried_fit(kind, a, b, edges, atts, offsets, good_cost)
+        if carried is not None:
+            return carried
         return self._fit_profile_from(kind, a, b, edges, atts, offsets, good_cost)
+
+    def _carried_fit(
+        self,
+        kind: DigType,
+        a: FloatArray,
+        b: FloatArray,
+        edges: FloatArray,
+        atts: tuple[tuple[float, ...], tuple[float, ...]],
+        offsets: tuple[float, ...],
+        good_cost: float | None,
+    ) -> Candidate | None:
+        """:meth:`_fit_profile_from` with the last dig's light bucket carried to the dig's own
+        start (:meth:`_carry_from`; its load counts toward the fill and the bucket's room), the
+        fit's start and end poses at attitudes that hold the load (:meth:`holds_load`); None
+        where the bucket may not be carried or no such fit plans. The moves there are planned
+        and checked when the dig is (:meth:`_carry_cycle`)."""
+        carry = self._carry_from()
+        if carry is None:
+            return None
+        # The attitude tables' ends clipped to the attitudes that hold the load.
+        most = math.degrees(self.carry_attitude_max())
+        if any(min(v) > most for v in atts):
+            return None
+        held = (
+            (min(atts[0][0], most), min(atts[0][-1], most)),
+            (min(atts[1][0], most), min(atts[1][-1], most)),
+        )
+        self._joining = carry
+        try:
+            found = self._fit_profile_from(kind, a, b, edges, held, offsets, good_cost)
+        finally:
+            self._joining = None
+        if found is None or not self.holds_load(np.reshape(found.x7[:6], (2, 3))):
+            return None
+        return found
+
+    def _carry_from(self) -> _Join | None:
+        """The last dig's bucket to carry to the next dig's own start: where the session
+        allows continuing it (:attr:`joinable`), the bucket is below the fill band (a light
+        bucket: a full one is dumped) and the exit's attitude holds its load; else None."""
+        if self.joinable is None:
+            return None
+        q, bucket = self.joinable
+        if bucket <= 0.0 or bucket / self.width_m >= self._fill_band()[0]:
+            return None
+        if not self.holds_load(np.asarray(q, dtype=np.float64)[None]):
+            return None
+        return _Join(np.asarray(q, dtype=np.float64), bucket, carried=True)
 
     def _design_left_along(self, a: FloatArray, b: FloatArray) -> float:
         """The design material left (m^2, on the height field) between the abscissae of
@@ -357,7 +411,10 @@ class FitMixin(CyclesMixin):
         # Every table pair fitted on the outline itself; the best few shifted inwards just
         # enough that the path's farthest sample outside the outline is _FIT_OUTSIDE_M out
         # (a least-squares path crosses the outline both ways), and refitted.
-        mid = [(v[0], v[-1], *np.linspace(v[0], v[-1], 5)[1:-1].tolist()) for v in atts]
+        mid = [
+            tuple(dict.fromkeys((v[0], v[-1], *np.linspace(v[0], v[-1], 5)[1:-1].tolist())))
+            for v in atts
+        ]
         found = self._fit_shifted(kind, a, b, n_a, n_b, mid, edges, fitted, first_planned)
         if found is not None:
             return found
@@ -427,7 +484,7 @@ class FitMixin(CyclesMixin):
                 continue  # a path that far off the outline leaves a layer behind: the next
             if shift > 0.0:
                 # A joined start stays where the dig before it ended.
-                q1s = q1 if self._joining is not None else arm.ik(
+                q1s = q1 if self._joined_start() else arm.ik(
                     float(a[0] + shift * n_a[0] - m),
                     float(a[1] + shift * n_a[1]),
                     float(np.sum(q1)),
@@ -454,18 +511,23 @@ class FitMixin(CyclesMixin):
 
     def _theta_p_range(self, kind: DigType) -> tuple[float, float]:
         """The theta_p range of a fit of ``kind`` (rad): the type's, or
-        :data:`JOINED_THETA_P_RAD` while a joined dig is fitted (:attr:`_joining`)."""
-        if self._joining is not None:
+        :data:`JOINED_THETA_P_RAD` while a joined dig is fitted from the exit it continues
+        (:attr:`_joining`, not carried)."""
+        if self._joined_start():
             return JOINED_THETA_P_RAD
         lo, hi = oneshot.theta_p_range(self.planning, int(kind))
         return float(lo), float(hi)
 
     def _starts(self, point: FloatArray, attitudes_deg: tuple[float, ...]) -> list[FloatArray]:
-        """A profile dig's start poses: the joined exit alone while :attr:`_joining` is set,
-        else :meth:`_pass_pose`."""
-        if self._joining is not None:
+        """A profile dig's start poses: the joined exit alone while a dig is fitted from it
+        (:attr:`_joining`, not carried), else :meth:`_pass_pose`."""
+        if self._joining is not None and not self._joining.carried:
             return [np.asarray(self._joining.q_rad, dtype=np.float64)]
         return self._pass_pose(point, attitudes_deg)
+
+    def _joined_start(self) -> bool:
+        """Whether the dig being fitted starts at the exit of the dig it continues."""
+        return self._joining is not None and not self._joining.carried
 
     def _pass_pose(self, point: FloatArray, attitudes_deg: tuple[float, ...]) -> list[FloatArray]:
         """Joint poses of a pass end at the table's attitudes; where one is out of reach or
@@ -684,7 +746,7 @@ class FitMixin(CyclesMixin):
                 retimed[sel] = r_time
         for j, i in enumerate(rows):
             if not np.isfinite(retimed[j, 3]) or _total_without_volume(
-                result[j], self._joining is not None
+                result[j], self._joined_start()
             ) > 0.0:
                 continue
             r = retimed[j]
@@ -700,5 +762,6 @@ class FitMixin(CyclesMixin):
                 envelope=envelopes[i],
                 joined=self._joining is not None,
                 bucket_m3=bucket * self.width_m,
+                carried=self._joining is not None and self._joining.carried,
             )
         return out

@@ -64,6 +64,7 @@ def _step_to_json(step: PlannedDig | Cycle | Transition | TravelMove) -> dict[st
             "section": step.section,
             "joined": step.joined,
             "pass_window": step.pass_window,
+            "carried": step.carried,
         }
     if isinstance(step, Cycle):
         return {
@@ -138,6 +139,7 @@ def _step_from_json(item: dict[str, Any]) -> PlannedDig | Cycle | Transition | T
             section=int(item.get("section", 0)),
             joined=bool(item.get("joined", False)),
             pass_window=bool(item.get("pass_window", item.get("finishing", False))),
+            carried=bool(item.get("carried", False)),
         )
     if kind == "transition":
         return Transition(

@@ -54,7 +54,10 @@ class PlannedDig:
             joined to it are one bucket (one fill, one dump): they fill the band together,
             or are one finishing pass together. Every hard limit holds on it as on any dig;
             the dig types' theta_p ranges, which bound an entry into the ground, do not
-            apply.
+            apply (except to a carried dig).
+        carried: A joined dig that enters the ground at its own entry: the bucket of the dig
+            before it, light, is carried there by a cycle without a dump (the cycle before
+            it in the steps), at attitudes that hold the load. Its theta_p range applies.
         pass_window: Timed and verified in the finishing passes' time window: a finishing
             pass, or a piece of a joined dig planned as one before the dig joined to it
             filled the bucket.
@@ -81,6 +84,7 @@ class PlannedDig:
     section: int = 0
     joined: bool = False
     pass_window: bool = False
+    carried: bool = False
 
     @property
     def dig_type(self) -> DigType:
@@ -407,6 +411,7 @@ class TrenchPlan:
                 "finishing": d.finishing,
                 "section": d.section,
                 "joined": d.joined,
+                "carried": d.carried,
                 "bucket": k,
                 "pass_window": d.pass_window,
             }

@@ -170,7 +170,7 @@ class TrenchSession(PersistMixin):
             dig = self._next_in_section(remaining, t0)
         if dig is None:
             return None
-        if not dig.joined:
+        if not dig.joined or dig.carried:
             self._append_transitions(dig)
         self.pending = dig
         return dig

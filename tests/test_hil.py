@@ -75,6 +75,33 @@ def test_one_dig_tracks_within_the_goal(one_dig: HilReport) -> None:
     assert report.energy_Wh > 0.0
 
 
+def test_a_carried_bucket_runs_through_the_executor_within_the_goal(tmp_path: Path) -> None:
+    # 0.49 m x 0.07 m (random suite, seed 5): the last pass's bucket is carried from the exit
+    # of the joined pass before it, its cycle without a dump, in the closed loop on the
+    # measured paths as in the plan.
+    from rt_runtime.bench import random_tasks
+
+    task = random_tasks(load_rig("scale_model"), 200, 5)[59]
+    path = tmp_path / "task.toml"
+    path.write_text(
+        f"length_m = {task.length_m!r}\ndepth_m = {task.depth_m!r}\n"
+        f"beta1_deg = {math.degrees(task.beta1_rad)!r}\n"
+        f"beta2_deg = {math.degrees(task.beta2_rad)!r}\nstart_x_m = {task.start_x_m!r}\n"
+    )
+    report = run_scenario(Scenario(task=str(path))).report
+    assert report.status == "done", report.fault
+    assert report.overruns == 0
+    carried = [d for d in report.digs if d.carried]
+    assert carried and all(d.joined for d in carried)
+    for axis in AXES:
+        fig = report.tracking[axis]
+        assert 0.0 < fig.max_mm <= 1.0, (axis, fig)
+        assert 0.0 < fig.rms_mm <= 0.3, (axis, fig)
+    assert report.tip_error_max_mm <= 3.0
+    for dig in carried:
+        assert dig.measured_volume_L == pytest.approx(dig.cut_volume_L, rel=0.02)
+
+
 def test_lockstep_runs_are_deterministic(one_dig_run: HilRun, tmp_path: Path) -> None:
     again = run_scenario(Scenario(task="A", max_digs=1, start_at_entry=True, keep_frames=True))
     first, second = one_dig_run.frames, again.frames

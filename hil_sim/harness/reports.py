@@ -62,6 +62,8 @@ class DigResult:
         planned_ahead: Planned while the dig before it ran (a planner process only).
         energy_Wh: The plant's drive energy over the dig's cycles (Wh; Yao's W_E reading, as
             the plan's), NaN where the truth no longer holds them.
+        joined, carried: The dig continues the bucket of the one before it, from its exit or
+            (``carried``) carried to its own entry without a dump.
     """
 
     index: int
@@ -74,6 +76,8 @@ class DigResult:
     plan_us: float
     planned_ahead: bool = False
     energy_Wh: float = math.nan
+    joined: bool = False
+    carried: bool = False
 
     def to_json(self) -> dict[str, Any]:
         """The dig's keys, as the attributes."""
@@ -88,6 +92,8 @@ class DigResult:
             "plan_us": self.plan_us,
             "planned_ahead": self.planned_ahead,
             "energy_Wh": self.energy_Wh,
+            "joined": self.joined,
+            "carried": self.carried,
         }
 
 

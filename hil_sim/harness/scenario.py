@@ -691,6 +691,8 @@ def run_scenario(sc: Scenario) -> HilRun:
                 planned_energy_Wh=r.planned_energy_j / 3600.0,
                 plan_us=r.plan_us,
                 planned_ahead=r.planned_ahead,
+                joined=r.joined,
+                carried=r.carried,
                 energy_Wh=dig_energy_j.get(r.index, math.nan) / 3600.0,
             )
             for r in (result.digs if result is not None else ())

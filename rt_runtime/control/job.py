@@ -178,6 +178,8 @@ class DigRecord:
         planned_ahead: The dig was planned while the one before it ran
             (:attr:`~rt_runtime.control.planner_worker.DigPlan.planned_ahead`; ``plan_us`` is
             then the check against the measured material).
+        joined, carried: The dig continues the bucket of the one before it
+            (:attr:`~rt_runtime.planning.trench.PlannedDig.joined`, ``carried``).
     """
 
     index: int
@@ -192,6 +194,8 @@ class DigRecord:
     sync_last: int = -1
     planned_energy_j: float = math.nan
     planned_ahead: bool = False
+    joined: bool = False
+    carried: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -316,6 +320,8 @@ class _Planning:
                 sync_last=last,
                 planned_energy_j=dig.energy_j if dig is not None else math.nan,
                 planned_ahead=plan.planned_ahead if plan is not None else False,
+                joined=dig.joined if dig is not None else False,
+                carried=dig.carried if dig is not None else False,
             )
         self.plan_out = False
         self.plan_us += reply.plan_us

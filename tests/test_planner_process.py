@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from rt_runtime import actuation
+from rt_runtime.bench import random_tasks
 from rt_runtime.control.planner_worker import (
     DigPlan,
     PlannerSpec,
@@ -25,6 +26,7 @@ from rt_runtime.planning.trench import (
     TRANSITION_PENETRATION_M,
     Cycle,
     PlannedDig,
+    TransitionKind,
     TrenchPlanner,
     TrenchSession,
     load_task,
@@ -113,7 +115,7 @@ def test_a_plan_made_ahead_is_taken_where_the_measured_material_allows() -> None
         # within a fraction of a mm.
         assert _same_dig(pa, pb) and not pb.planned_ahead
         assert pa.dig is not None and pb.dig is not None
-        if pa.dig.joined:
+        if pa.dig.joined and not pa.dig.carried:
             # It continues the dig before it from its exit: no moves into it either way.
             assert pb.dig.joined and pa.cycle is None and pb.cycle is None
         else:
@@ -201,3 +203,39 @@ def test_the_planner_process_rebuilds_every_built_in_one_shot_planner(name: str)
         first = ours.recv()
         assert isinstance(first, DigPlan) and first.dig is not None
         assert first.dig.planner == name
+
+
+def _at_a_carried_dig() -> tuple[TrenchPlanner, TrenchSession]:
+    """random-11-31 planned open loop up to its first carried dig, pending."""
+    planner = TrenchPlanner(RIG)
+    s = planner.start(random_tasks(RIG, 200, 11)[31])
+    while True:
+        dig = s.next_dig()
+        assert dig is not None, "no carried dig"
+        if dig.carried:
+            return planner, s
+        s.record(dig, dig.tip_path_m)
+
+
+def test_a_resumed_carried_dig_keeps_its_carry_at_the_exit_and_dumps_away_from_it() -> None:
+    planner, s = _at_a_carried_dig()
+    exit_ = np.asarray(s.q_now)
+    assert s.joinable is not None and s.joinable[1] > 0.0
+    # The job resumed with the arm where the dig before it ended: the session's carry cycle
+    # (no dump), and the load it carries counts in the bucket.
+    at_exit = TrenchSession.restore(planner, s.task, s.state())
+    plan = SessionDriver(at_exit, PERIOD_S).plan(exit_)
+    assert plan.dig is not None and plan.dig.carried and plan.cycle is not None
+    assert TransitionKind.DUMP not in plan.cycle.kinds
+    np.testing.assert_array_equal(plan.cycle.waypoints_rad[0], exit_)
+    assert at_exit.joinable is not None
+    # Resumed with the arm stopped on the way (at the top of the carry's lift): the cycle
+    # from there dumps, and the dig's record counts no load held from the dig before it.
+    lifted = np.asarray(plan.cycle.waypoints_rad[1])
+    away = TrenchSession.restore(planner, s.task, s.state())
+    plan = SessionDriver(away, PERIOD_S).plan(lifted)
+    assert plan.dig is not None and plan.dig.carried and plan.cycle is not None
+    assert TransitionKind.DUMP in plan.cycle.kinds
+    assert away.joinable is None
+    removed = away.record(away.pending, plan.dig.tip_path_m)
+    assert away.joinable is not None and away.joinable[1] == pytest.approx(removed)

@@ -465,7 +465,7 @@ def _fit_cost(
     d0 = np.einsum("pij,pj->pi", jac0, 10.0 * (q2 - q1) + K)
     ang = np.arctan2(-d0[:, 1], np.abs(d0[:, 0]))
     lo, hi = (float(v) for v in oneshot.theta_p_range(session.planning, int(kind)))
-    if session._joining is not None:
+    if session._joining is not None and not session._joining.carried:
         lo, hi = JOINED_THETA_P_RAD  # a joined dig has no entry: its first direction is free
     for bound, up in ((lo + 0.02, False), (hi - 0.02, True)):
         g = -d0[:, 1] * math.cos(bound) - np.abs(d0[:, 0]) * math.sin(bound)
@@ -569,9 +569,10 @@ def test_every_dig_satisfies_every_hard_limit_at_every_sample(
             # V_p is defined against a flat surface; these are judged on the material left
             # (the fill band on the real cut, test_every_dig_fills_the_bucket).
             v[VOLUME_COLS] = 0.0
-        if d.joined:
+        if d.joined and not d.carried:
             # A joined dig starts in the material at the exit of the dig before it: it has
-            # no entry, and its first direction is free (up the near wall, say).
+            # no entry, and its first direction is free (up the near wall, say). A carried
+            # one enters the ground.
             v[ENTRY_COLS] = 0.0
         assert np.all(v <= 1e-9), (d.index, d.status, v)
         # The sextic's parameter T, re-evaluated by the verifier whose time window it keeps
@@ -614,7 +615,7 @@ def test_finishing_passes_are_timed_by_the_joint_limits(plans: dict) -> None:
             verifier.evaluate_into(row, out)
             v = out[0, COL_VIOLATIONS : COL_VIOLATIONS + len(oneshot.CONSTRAINT_NAMES)].copy()
             v[VOLUME_COLS] = 0.0
-            if d.joined:
+            if d.joined and not d.carried:
                 v[ENTRY_COLS] = 0.0
             broken = {oneshot.CONSTRAINT_NAMES[i] for i in np.flatnonzero(v > 1e-9)}
             assert broken <= {"time_min"}, (name, d.index, broken)
@@ -1530,7 +1531,11 @@ def test_the_near_wall_is_taken_with_the_bucket_the_last_column_filled(
     plan = planner.plan(task)
     _check_fill_and_sections(plan)
     top = np.array([task.start_x_m - task.length_m, RIG.ground_y_m])
-    climbs = [d for d in plan.digs if d.joined and np.hypot(*(d.tip_path_m[-1] - top)) < 0.01]
+    climbs = [
+        d
+        for d in plan.digs
+        if d.joined and not d.carried and np.hypot(*(d.tip_path_m[-1] - top)) < 0.01
+    ]
     assert climbs, [(d.index, d.tip_path_m[-1].tolist()) for d in plan.digs]
     for d in climbs:
         assert d.tip_path_m[0, 1] < RIG.ground_y_m - 0.8 * task.depth_m  # from the bottom
@@ -1655,10 +1660,11 @@ def test_a_light_bucket_is_carried_to_the_next_pass_without_a_dump(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # 0.92 m x 0.09 m, walls 84/35 deg (random suite, seed 11): the second section's bottom,
-    # after its full column, went in three light passes (1.13, 0.62 + 0.05 joined, 0.51 L).
-    # The last pass's bucket is carried from the exit before it: its cycle lifts out and
-    # enters without a dump, the bucket curled enough to hold the load all the way and through
-    # the dig; two passes.
+    # after its full column, takes three light passes (1.13, 0.62 + 0.05 joined, 0.51 L),
+    # three buckets and dumps where no bucket is carried. Carried, the last pass takes the
+    # bucket of the one before it from its exit: its cycle lifts out and enters without a
+    # dump, the bucket curled enough to hold the load all the way and through the dig; two
+    # passes.
     task = _random_task(11, 31)
     plan = planner.plan(task)
     _check_fill_and_sections(plan)

@@ -119,6 +119,10 @@ PLANNER_NICE = 10
 #: A measured pose this close to a pose (largest stroke difference) is at it: a dig starts
 #: directly from its entry, and the arm at the home pose needs no dump.
 AT_ENTRY_TOLERANCE_M = 5e-4
+#: A dig planned ahead that continues the bucket is taken where the load the measured path
+#: left differs from the planned path's by at most this fraction of V_max (the difference of
+#: the two paths' cuts, the drives tracking within a fraction of a mm: ~0.1 % of it).
+_AHEAD_LOAD_TOLERANCE = 0.01
 
 
 @dataclass(frozen=True, slots=True)
@@ -132,8 +136,9 @@ class DigPlan:
             on the first request planned from the measured pose (a lift where the bucket is in
             or near the material, a dump unless the arm is at the home pose), later the
             session's cycle from the previous dig's exit (lift out, dump, approach, enter,
-            blended where clear), checked against the material before the dig; None when the
-            arm is at the dig's entry (or no dig).
+            blended where clear; no dump into a carried dig, whose cycle is kept on the first
+            request too where the arm is at that exit), checked against the material before
+            the dig; None when the arm is at the dig's entry (or no dig).
         exit: Lift-out and dump to the home pose (:meth:`TrenchSession.exit_transitions`):
             after the dig, checked against the material its planned path leaves (they are
             planned before it runs); with no dig, from where the arm is. The executor streams
@@ -613,8 +618,17 @@ class SessionDriver:
         if s.digs[-1].index != ahead.index:
             return None
         copy = ahead.driver.session
-        delta = float(np.max(np.abs(s.surface - copy.surface)))
         plan = ahead.plan
+        if plan.dig is not None and plan.dig.joined:
+            # A dig that continues the bucket was fitted to the load the planned path left:
+            # taken where the measured path left that load, within _AHEAD_LOAD_TOLERANCE.
+            held, planned = s.joinable, copy.joinable
+            if held is None or planned is None:
+                return None
+            if abs(held[1] - planned[1]) > _AHEAD_LOAD_TOLERANCE * s.v_max_m3:
+                return None
+            copy.joinable = held
+        delta = float(np.max(np.abs(s.surface - copy.surface)))
         limit = TRANSITION_PENETRATION_M - 2.0 * delta
         copy.material, copy.surface = s.material, s.surface.copy()
         cycle, exits = plan.cycle, plan.exit
@@ -669,12 +683,12 @@ class SessionDriver:
         s = self.session
         if (
             q_from_rad is not None
-            and s.pending is None
             and s.joinable is not None
             and not self._at(np.asarray(q_from_rad, dtype=np.float64), s.joinable[0])
         ):
-            # The arm left the last dig's exit (a job that ended there dumped its bucket):
-            # the next dig starts a bucket of its own.
+            # The arm left the last dig's exit (a job that ended there dumped its bucket, the
+            # cycle from the measured pose dumps): the next dig, or the pending one, holds no
+            # load of the dig before it.
             s.joinable = None
         dig = s.pending if s.pending is not None else s.next_dig()
         tail: list[Any] = []
@@ -691,6 +705,13 @@ class SessionDriver:
             self._end_rad = q0
             if dig is not None and self._at(q0, np.asarray(dig.problem.q_start_rad)):
                 cycle = None
+            elif (
+                dig is not None
+                and dig.carried
+                and cycle is not None
+                and self._at(q0, np.asarray(cycle.waypoints_rad[0], dtype=np.float64))
+            ):
+                pass  # at the exit the load is carried from: the session's carry cycle
             elif dig is not None:
                 cycle = s.cycle(q0, dig, dump=not self._at(q0, home))
         if dig is not None:

@@ -159,8 +159,13 @@ _SAME_POSE_RAD = 1e-9
 #: where the bucket empties: its floor slopes down to the cutting edge by 45 deg. A light load
 #: (below the fill band: the only one carried) lies on the floor and slides out where the
 #: floor slopes more than soil's friction on steel (~30 deg); 25 deg more curled leaves it a
-#: 20 deg slope at most (-125 deg: a backward dig's entries go to -135 deg).
+#: 20 deg slope at most (-125 deg; the backward digs' entry tables reach -135 to -150 deg, the
+#: downward digs' only -100 to -120 deg, so no load is carried to a downward dig).
 _CARRY_ATTITUDE_MARGIN_RAD = math.radians(25.0)
+
+#: The largest load a bucket carries, as a fraction of its struck volume: the attitude rule
+#: holds for a layer on the bucket's floor, not for a bucket near full.
+_CARRY_LOAD_MAX = 0.5
 
 # Samples of a carry cycle's blended trajectory and of each of its moves in the load check.
 _CARRY_SAMPLES = 200
@@ -242,6 +247,11 @@ class CyclesMixin(MovesMixin):
         spoil zone's lowest less :data:`_CARRY_ATTITUDE_MARGIN_RAD`."""
         return self.rig.trench.spoil.attitude_rad[0] - _CARRY_ATTITUDE_MARGIN_RAD
 
+    def carry_load_max_m3(self) -> float:
+        """The largest load a bucket carries to a carried dig (m^3): :data:`_CARRY_LOAD_MAX`
+        of the struck volume."""
+        return _CARRY_LOAD_MAX * self.rig.bucket.capacity_m3
+
     def holds_load(self, q: FloatArray) -> bool:
         """Whether the bucket holds a carried load at every joint pose ``(n, 3)``: its
         attitude at most :meth:`carry_attitude_max`."""
@@ -305,7 +315,8 @@ class CyclesMixin(MovesMixin):
         Args:
             q_from_rad: Start pose ``(3,)``: a dig's exit, the home pose or a measured pose.
             dig: The dig to enter.
-            dump: Go through the spoil zone (False: the arm is there already).
+            dump: Go through the spoil zone (False: the arm is there already, or the bucket's
+                load is carried to a carried dig).
             after_dig: The start is the previous dig's exit (a dig cycle, in the report).
 
         Raises:

@@ -282,11 +282,14 @@ class FitMixin(CyclesMixin):
     def _carry_from(self) -> _Join | None:
         """The last dig's bucket to carry to the next dig's own start: where the session
         allows continuing it (:attr:`joinable`), the bucket is below the fill band (a light
-        bucket: a full one is dumped) and the exit's attitude holds its load; else None."""
+        bucket: a full one is dumped) and holds no more than :meth:`carry_load_max_m3`, and
+        the exit's attitude holds its load; else None."""
         if self.joinable is None:
             return None
         q, bucket = self.joinable
         if bucket <= 0.0 or bucket / self.width_m >= self._fill_band()[0]:
+            return None
+        if bucket > self.carry_load_max_m3():
             return None
         if not self.holds_load(np.asarray(q, dtype=np.float64)[None]):
             return None

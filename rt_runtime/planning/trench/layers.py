@@ -522,7 +522,8 @@ class LayersMixin(RoughMixin):
     ) -> PlannedDig | None:
         """The first of the bottom columns ``ends`` (:meth:`_column_ends`: the start, then
         the ends, best first) that plans (:meth:`_plan_column`); ``shorter``: adaptive fits
-        only; ``joined_only``: only a column joined to the last dig. None where none does."""
+        only; ``joined_only``: only a column that continues the last dig's bucket (joined at
+        its exit, or the bucket carried to it). None where none does."""
         if not ends:
             return None
         atts = _COLUMN_ATTITUDES_DEG[DigType.BACKWARD]

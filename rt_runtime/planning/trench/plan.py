@@ -166,7 +166,8 @@ class Transition:
 @dataclass(frozen=True, slots=True)
 class Cycle:
     """The moves into a dig from where the arm is: after a dig (lift out, dump, approach,
-    enter) or from the home pose (approach, enter), through their corners.
+    enter; no dump into a carried dig) or from the home pose (approach, enter), through their
+    corners.
 
     Blended (:attr:`piece_durations_s` given): one minimum time-jerk trajectory through the
     corners (Zhao eq 3, :mod:`rt_runtime.trajectory.timejerk`) at rest only at both ends, within

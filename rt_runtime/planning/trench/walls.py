@@ -119,7 +119,7 @@ class WallsMixin(LayersMixin):
             return None
         line = np.array([exit_, foot, top]) if run > 0.002 * s else np.array([exit_, top])
         found = self._fit_pass(DigType.BACKWARD, line, _NEAR_CORNER_ATTS)
-        if found is None or not found.joined:
+        if found is None or not found.joined or found.carried:
             return None
         return self._plan_profile(found, remaining, t0)
 

@@ -239,3 +239,34 @@ def test_a_resumed_carried_dig_keeps_its_carry_at_the_exit_and_dumps_away_from_i
     assert away.joinable is None
     removed = away.record(away.pending, plan.dig.tip_path_m)
     assert away.joinable is not None and away.joinable[1] == pytest.approx(removed)
+
+
+@pytest.mark.parametrize("boom_offset_rad", [0.004, -0.004])
+def test_a_joined_dig_planned_ahead_is_dropped_where_the_measured_load_differs(
+    monkeypatch: pytest.MonkeyPatch, boom_offset_rad: float
+) -> None:
+    # Task A's third bucket: a wall's pass, then a dig joined at its exit. The pass's path ~2
+    # mm off its plan leaves a load 0.8 % of V_max from the planned one (0.35 or 0.44 L
+    # against 0.39 L): the joined dig made ahead was fitted to the planned load, and is
+    # planned again on the measured one; without the bound it would be taken.
+    from rt_runtime.control import planner_worker
+
+    planner = TrenchPlanner(RIG)
+    k = next(d.index for d in planner.plan(load_task("A", RIG)).digs if d.joined)
+
+    def to_the_joined_dig() -> tuple[DigPlan, SessionDriver]:
+        driver = SessionDriver(planner.start(load_task("A", RIG)), PERIOD_S)
+        plan = driver.plan(np.asarray(planner.home_pose_rad))
+        while plan.dig is not None and plan.dig.index < k:
+            assert driver.lookahead()
+            offset = boom_offset_rad if plan.dig.index == k - 1 else 0.0
+            driver.record(_strokes(plan.dig, offset))
+            plan = driver.plan(None)
+        return plan, driver
+
+    plan, driver = to_the_joined_dig()
+    assert plan.dig is not None and plan.dig.joined and not plan.planned_ahead
+    assert driver.session.joinable is not None
+    monkeypatch.setattr(planner_worker, "_AHEAD_LOAD_TOLERANCE", 1.0)
+    plan, _ = to_the_joined_dig()
+    assert plan.dig is not None and plan.dig.joined and plan.planned_ahead

@@ -933,7 +933,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     print(f"  {report['n_digs']} digs ({report['n_pieces']} pieces; + marks a piece joined to the one before it, the same bucket; ~ a piece the bucket is carried to, without a dump)")
     print("   #  type       T [s]  V real [L]  V_p [L]  W_E [Wh]  theta_p [deg]  over [mm]  plan [us]  how")
     for d in report["digs"]:
-        mark = "~" if d.get("carried") else "+" if d["joined"] else " "
+        mark = "~" if d["carried"] else "+" if d["joined"] else " "
         print(f"  {d['bucket'] + 1:2d}{mark} {d['type']:<9} {d['T_s']:6.2f}  {d['volume_L']:10.2f}  {d['predicted_volume_L']:7.2f}  {d['energy_Wh']:8.4f}  {d['theta_p_deg']:13.1f}  {d['overdig_mm']:9.1f}  {d['plan_us']:9.0f}  {d['status']}")
     yao = report.get("yao_fig14")
     yao_text = f"; Yao {yao['coverage_error']:.1%}" if yao else ""

@@ -72,7 +72,7 @@ from numpy.typing import ArrayLike
 
 from rt_runtime import kinematics
 from rt_runtime.errors import ConfigurationError, PlanningError
-from rt_runtime.planning.trench.geometry import FloatArray
+from rt_runtime.planning.trench.geometry import FloatArray, sextic_bulge
 from rt_runtime.planning.trench.moves import (
     _COARSE_STEP_M,
     _LIFT_CLEAR_M,
@@ -285,9 +285,7 @@ class CyclesMixin(MovesMixin):
             poses.append(traj.sample(np.linspace(0.0, traj.duration_s, _CARRY_SAMPLES)))
         q1 = np.asarray(dig.problem.q_start_rad, dtype=np.float64)
         q2 = np.asarray(dig.problem.q_end_rad, dtype=np.float64)
-        K = -np.asarray(dig.a6, dtype=np.float64) * dig.T_s**6
-        planner = self.planner
-        poses.append(q1 + planner.full_qf[:, None] * (q2 - q1) + planner.full_pf[:, None] * K)
+        poses.append(self.planner.sextic_path(q1, q2, sextic_bulge(dig.a6, dig.T_s)))
         if not self.holds_load(np.concatenate(poses)):
             raise PlanningError(f"the carry into dig {dig.index + 1} would spill its load")
         self._carry_checked = (dig, cyc)

@@ -20,6 +20,7 @@ from rt_runtime.planning.trench.geometry import (
     OVERDIG_LIMIT_M,
     _swept_polygon,
     _total_without_volume,
+    sextic_bulge,
 )
 from rt_runtime.planning.trench.plan import PlannedDig
 from rt_runtime.planning.trench.planners import OneShotResult, PinnOneShot
@@ -68,7 +69,8 @@ class DigsMixin(FitMixin):
         """The fitted ``carried`` dig with a bucket of its own (checked again: its fill, the
         bucket's room and its time window change), None where it does not plan so."""
         x7 = carried.x7
-        K = -np.asarray(carried.a6, dtype=np.float64) * carried.T_s**6
+        assert carried.a6 is not None  # fitted
+        K = sextic_bulge(carried.a6, carried.T_s)
         n_fit = self.planner.fit_qf.shape[0]
         cost = carried.fit_rms_m**2 * n_fit
         (found,) = self._checked_fits(carried.kind, [(x7[0:3], x7[3:6], K, cost)], n_fit)
@@ -102,7 +104,7 @@ class DigsMixin(FitMixin):
         """
         q1 = np.asarray(problem.q_start_rad)
         D = np.asarray(problem.q_end_rad) - q1
-        K = -np.asarray(a6) * T_s**6
+        K = sextic_bulge(a6, T_s)
         qdd = self.planner.fine_qf2[:, None] * D + self.planner.fine_pf2[:, None] * K
         ratio = float(np.max(np.abs(qdd) / self.planner.qdd_max)) / T_s**2
         if ratio <= 1.0:

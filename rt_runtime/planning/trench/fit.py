@@ -461,7 +461,6 @@ class FitMixin(CyclesMixin):
         refitted there, and the first that plans returned (``first_planned``)."""
         arm = self.planner.arm
         m = self.machine_x
-        qf_full, pf_full = self.planner.full_qf, self.planner.full_pf
         starts = [self._starts(a, table[0]), self._pass_pose(b, table[1])]
         pairs = [(qs, qe) for qs in starts[0] for qe in starts[1]]
         results = fitted([p[0] for p in pairs], [p[1] for p in pairs], 0.0)
@@ -473,7 +472,7 @@ class FitMixin(CyclesMixin):
         fits.sort(key=lambda f: f[0])
         tries: list[_Try] = []
         for cost, q1, q2, K in fits[:_N_FIT_SHIFTS]:
-            qp = q1 + qf_full[:, None] * (q2 - q1) + pf_full[:, None] * K
+            qp = self.planner.sextic_path(q1, q2, K)
             px, py = arm.tip_xy(qp)
             x = px + m
             inside = np.min(
@@ -524,7 +523,7 @@ class FitMixin(CyclesMixin):
     def _starts(self, point: FloatArray, attitudes_deg: tuple[float, ...]) -> list[FloatArray]:
         """A profile dig's start poses: the joined exit alone while a dig is fitted from it
         (:attr:`_joining`, not carried), else :meth:`_pass_pose`."""
-        if self._joining is not None and not self._joining.carried:
+        if self._joining is not None and self._joined_start():
             return [np.asarray(self._joining.q_rad, dtype=np.float64)]
         return self._pass_pose(point, attitudes_deg)
 
@@ -679,15 +678,10 @@ class FitMixin(CyclesMixin):
         limit and otherwise checked by :meth:`_pass_candidates` (all at once), each with the
         fit's RMS distance (``fit_rms_m``); None where refused."""
         arm = self.planner.arm
-        qf_full, pf_full = self.planner.full_qf, self.planner.full_pf
         q1 = np.array([t[0] for t in tries])
         q2 = np.array([t[1] for t in tries])
         K = np.array([t[2] for t in tries])
-        qp = (
-            q1[:, None, :]
-            + qf_full[None, :, None] * (q2 - q1)[:, None, :]
-            + pf_full[None, :, None] * K[:, None, :]
-        )
+        qp = self.planner.sextic_path(q1, q2, K)
         px, py = arm.tip_xy(qp)
         tips = np.stack([px + self.machine_x, py], axis=2)
         out: list[Candidate | None] = [None] * len(tries)

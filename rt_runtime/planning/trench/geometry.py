@@ -125,6 +125,13 @@ def _sextic_shapes(n: int) -> tuple[FloatArray, FloatArray]:
     return 10 * s**3 - 15 * s**4 + 6 * s**5, s**3 * (1 - s) ** 3
 
 
+def sextic_bulge(a6: ArrayLike, T_s: float) -> FloatArray:
+    """The bulge ``K`` (rad, ``(..., 3)``) of a sextic with sixth-order coefficients ``a6``
+    (rad/s^6) over ``T_s`` (s): ``-a6 T^6``, the path's shape whatever its timing."""
+    K: FloatArray = -np.asarray(a6, dtype=np.float64) * T_s**6
+    return K
+
+
 _VOLUME_COLUMNS = (
     oneshot.CONSTRAINT_NAMES.index("volume_min"),
     oneshot.CONSTRAINT_NAMES.index("volume_max"),

@@ -23,7 +23,7 @@ from rt_runtime.planning.trench.candidates import (
 )
 from rt_runtime.planning.trench.cycles import home_pose
 from rt_runtime.planning.trench.fit import _FIT_SAMPLES
-from rt_runtime.planning.trench.geometry import _sextic_shapes
+from rt_runtime.planning.trench.geometry import FloatArray, _sextic_shapes
 from rt_runtime.planning.trench.motion import _Mover
 from rt_runtime.planning.trench.plan import PlannedDig, TrenchPlan
 from rt_runtime.planning.trench.planners import OneShotPlanner, PinnOneShot, PsoOneShot
@@ -207,6 +207,16 @@ class TrenchPlanner:
         #: Where the arm starts a task and where the moves after its last dig end: the spoil
         #: zone's point nearest the machine (joint angles; :func:`cycles.home_pose`).
         self.home_pose_rad = home_pose(rig, self.arm)
+
+    def sextic_path(self, q1: FloatArray, q2: FloatArray, K: FloatArray) -> FloatArray:
+        """Joint poses (rad) of sextics from ``q1`` to ``q2`` with bulge ``K`` (each
+        ``(..., 3)``) on the verifier's samples: ``(..., n, 3)``."""
+        path: FloatArray = (
+            q1[..., None, :]
+            + self.full_qf[:, None] * (q2 - q1)[..., None, :]
+            + self.full_pf[:, None] * K[..., None, :]
+        )
+        return path
 
     def verifier_for(self, pass_window: bool) -> Verifier:
         """:attr:`pass_verifier` for a dig timed in the finishing passes' window, else

@@ -419,6 +419,46 @@ def test_c_profile_fits_equal_the_numpy_reference_bit_for_bit(monkeypatch) -> No
     assert len(calls) > 10 and max(calls) > 1 and min(calls) == 1
 
 
+def test_a_line_is_fitted_once_on_one_material_and_again_on_a_new_one(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A dig's choice fits the same line more than once (joined and alone, the ends of each
+    column it tries): on one material the bulges are fitted once and the same candidate comes
+    back; once a dig is recorded (a new material) the line is fitted again, on it."""
+    from rt_runtime.planning.trench import layers
+    from rt_runtime.planning.trench.fit import FitMixin
+
+    session = TrenchSession(planner, load_task("A", RIG))
+    fits: list[int] = []
+    fit_bulges = FitMixin._fit_bulges
+
+    def counted(self: TrenchSession, *args: Any) -> tuple[np.ndarray, np.ndarray]:
+        fits.append(args[0].shape[0])
+        return fit_bulges(self, *args)
+
+    monkeypatch.setattr(FitMixin, "_fit_bulges", counted)
+    x_hi = session._bottom_span()[1]
+    line = np.array([(x_hi, session.bottom_y + 0.002), (x_hi - 0.25, session.bottom_y)])
+    atts = layers._COLUMN_ATTITUDES_DEG[oneshot.DigType.BACKWARD]
+    first = session._fit_pass(oneshot.DigType.BACKWARD, line, atts)
+    made = len(fits)
+    assert made > 0
+    assert session._fit_pass(oneshot.DigType.BACKWARD, line, atts) is first
+    assert len(fits) == made
+    dig = session.next_dig()
+    assert dig is not None
+    session.record(dig, dig.tip_path_m)
+    fits.clear()
+    after = session._fit_pass(oneshot.DigType.BACKWARD, line, atts)
+    assert fits
+    # On the new material the fit is the one a fresh session on it makes.
+    fresh = TrenchSession.restore(planner, session.task, session.state())
+    again = fresh._fit_pass(oneshot.DigType.BACKWARD, line, atts)
+    assert (after is None) == (again is None)
+    if after is not None and again is not None:
+        assert np.array_equal(after.x7, again.x7) and after.a6 == again.a6
+
+
 def test_the_fits_step_solver_solves_damped_normal_equations() -> None:
     from rt_runtime.planning.trench.fit import _solve_spd3
 

@@ -8,7 +8,7 @@ import dataclasses
 import itertools
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -82,6 +82,17 @@ class _Join:
     carried: bool = False
 
 
+@dataclass(frozen=True, slots=True)
+class _FitMemo:
+    """What :meth:`FitMixin._fit_profile_from` computed in one fit context on one material:
+    bulges by offset and end poses, candidates by end poses, bulge and cost, results by ends,
+    attitude table and fixed shifts."""
+
+    fits: dict[bytes, list[tuple[float, FloatArray] | None]] = field(default_factory=dict)
+    candidates: dict[bytes, Candidate | None] = field(default_factory=dict)
+    results: dict[tuple[Any, ...], Candidate | None] = field(default_factory=dict)
+
+
 def _solve_spd3(A: FloatArray, rhs: FloatArray) -> FloatArray:
     """``x`` ``(P, 3)`` of the damped 3 x 3 systems ``A x = rhs`` (``A`` ``(P, 3, 3)``
     symmetric positive definite: a fit's normal equations plus mu I) by Cholesky, written out
@@ -116,6 +127,11 @@ class FitMixin(CyclesMixin):
     #: Set while a profile dig is fitted from the joined exit, or with the last dig's bucket
     #: carried to its own start (:meth:`_fit_profile`).
     _joining: _Join | None = None
+    #: The fits made on one material (:meth:`_fits_on_material`): the height field, the
+    #: polygon and the machine's position they were made for, and per fit context (dig type,
+    #: outline, joined start, good cost) the bulges fitted, the candidates checked and the
+    #: results of :meth:`_fit_profile_from`.
+    _fits_kept: tuple[Any, Any, float, dict[tuple[Any, ...], _FitMemo]] | None = None
 
     def _bottom_passes(self, far: tuple[float, float], near: tuple[float, float]) -> list[_Pass]:
         """Backward passes along the straight line from ``far`` to ``near`` (the bottom, or a
@@ -359,10 +375,15 @@ class FitMixin(CyclesMixin):
             return -edges[k, 0:2]
 
         n_a, n_b = inward(a), inward(b)
-        # Fits and candidates by their inputs: the fixed shifts start with the adaptive
-        # search's unshifted fit, and nothing they depend on changes within this call.
-        fits_seen: dict[bytes, list[tuple[float, FloatArray] | None]] = {}
-        candidates_seen: dict[bytes, Candidate | None] = {}
+        # Fits and candidates by their inputs, kept while the material is the same: the fixed
+        # shifts start with the adaptive search's unshifted fit, and a dig's choice fits the
+        # same line more than once (joined and alone, the column's ends of each try).
+        memo = self._fits_on_material(kind, edges, good)
+        key_r = (a.tobytes(), b.tobytes(), atts, offsets)
+        if key_r in memo.results:
+            return memo.results[key_r]
+        fits_seen = memo.fits
+        candidates_seen = memo.candidates
 
         def first_planned(tries: list[_Try]) -> Candidate | None:
             """The first of ``tries`` that plans, in their order: the first alone (it most
@@ -418,27 +439,53 @@ class FitMixin(CyclesMixin):
             tuple(dict.fromkeys((v[0], v[-1], *np.linspace(v[0], v[-1], 5)[1:-1].tolist())))
             for v in atts
         ]
+
+        def fixed_shifts() -> Candidate | None:
+            """The fixed shifts in turn (``offsets``), where the adaptive one found nothing."""
+            for offset in offsets:
+                a_s = a + offset * n_a
+                b_s = b + offset * n_b
+                starts = [self._starts(a_s, mid[0]), self._pass_pose(b_s, mid[1])]
+                pairs = [(qs, qe) for qs in starts[0] for qe in starts[1]]
+                results = fitted([p[0] for p in pairs], [p[1] for p in pairs], offset)
+                # Table pairs that fit well first, in their order; the others by cost.
+                good_fits: list[_Try] = []
+                fits: list[_Try] = []
+                for (q1, q2), got in zip(pairs, results, strict=True):
+                    if got is not None:
+                        cost, K = got
+                        (good_fits if cost < good else fits).append((q1, q2, K, cost))
+                found = first_planned(good_fits + sorted(fits, key=lambda f: f[3]))
+                if found is not None:
+                    return found
+            return None
+
         found = self._fit_shifted(kind, a, b, n_a, n_b, mid, edges, fitted, first_planned)
-        if found is not None:
-            return found
-        # Fixed shifts as before where the adaptive one found nothing.
-        for offset in offsets:
-            a_s = a + offset * n_a
-            b_s = b + offset * n_b
-            starts = [self._starts(a_s, mid[0]), self._pass_pose(b_s, mid[1])]
-            pairs = [(qs, qe) for qs in starts[0] for qe in starts[1]]
-            results = fitted([p[0] for p in pairs], [p[1] for p in pairs], offset)
-            # Table pairs that fit well first, in their order; the others by cost.
-            good_fits: list[_Try] = []
-            fits: list[_Try] = []
-            for (q1, q2), got in zip(pairs, results, strict=True):
-                if got is not None:
-                    cost, K = got
-                    (good_fits if cost < good else fits).append((q1, q2, K, cost))
-            found = first_planned(good_fits + sorted(fits, key=lambda f: f[3]))
-            if found is not None:
-                return found
-        return None
+        if found is None:
+            found = fixed_shifts()
+        memo.results[key_r] = found
+        return found
+
+    def _fits_on_material(self, kind: DigType, edges: FloatArray, good: float) -> _FitMemo:
+        """What :meth:`_fit_profile_from` computed for fits of ``kind`` to ``edges`` (good cost
+        ``good``) from the same start (its own, or the joined or carried bucket's) on this
+        material: the height field, the polygon and the machine's position it was computed
+        for (each replaced, never changed in place, when the material or the stand changes).
+        A new material drops all of it."""
+        kept = self._fits_kept
+        if (
+            kept is None
+            or kept[0] is not self.surface
+            or kept[1] is not self.material
+            or kept[2] != self.machine_x
+        ):
+            kept = (self.surface, self.material, self.machine_x, {})
+            self._fits_kept = kept
+        j = self._joining
+        start = None
+        if j is not None:
+            start = (np.asarray(j.q_rad, dtype=np.float64).tobytes(), j.bucket_m3, j.carried)
+        return kept[3].setdefault((int(kind), edges.tobytes(), start, good), _FitMemo())
 
     def _fit_shifted(
         self,

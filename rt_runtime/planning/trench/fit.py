@@ -64,6 +64,13 @@ _Try = tuple[FloatArray, FloatArray, FloatArray, float]
 _JOIN_REACH_M = 0.02
 
 
+#: A carried dig's start attitudes are this much (deg) more curled than the most that holds
+#: the load (:meth:`~rt_runtime.planning.trench.cycles.CyclesMixin.carry_attitude_max`): the
+#: moves into the entry run in joint space between poses at the entry's attitude, and the
+#: attitude strays between them, past an entry at the limit itself (R8s).
+_CARRY_ENTRY_MARGIN_DEG = 5.0
+
+
 #: A joined profile dig is taken where it lowers the difference of dug and design (R8l) by no
 #: less than the same dig from its own start, less this fraction of the design's area; where
 #: it fills the bucket a finishing pass began (a dig saved), less the larger fraction.
@@ -272,18 +279,21 @@ class FitMixin(CyclesMixin):
     ) -> Candidate | None:
         """:meth:`_fit_profile_from` with the last dig's light bucket carried to the dig's own
         start (:meth:`_carry_from`; its load counts toward the fill and the bucket's room), the
-        fit's start and end poses at attitudes that hold the load (:meth:`holds_load`); None
+        fit's start and end poses at attitudes that hold the load (:meth:`holds_load`), the
+        start :data:`_CARRY_ENTRY_MARGIN_DEG` more curled than the least that does; None
         where the bucket may not be carried or no such fit plans. The moves there are planned
         and checked when the dig is (:meth:`_carry_cycle`)."""
         carry = self._carry_from()
         if carry is None:
             return None
-        # The attitude tables' ends clipped to the attitudes that hold the load.
+        # The attitude tables' ends clipped to the attitudes that hold the load, the start's
+        # with a margin for the moves into it.
         most = math.degrees(self.carry_attitude_max())
         if any(min(v) > most for v in atts):
             return None
+        enter = most - _CARRY_ENTRY_MARGIN_DEG
         held = (
-            (min(atts[0][0], most), min(atts[0][-1], most)),
+            (min(atts[0][0], enter), min(atts[0][-1], enter)),
             (min(atts[1][0], most), min(atts[1][-1], most)),
         )
         self._joining = carry

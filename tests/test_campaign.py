@@ -15,6 +15,7 @@ resumed and done, not lost. The full matrix (>= 500 cases) is the command's.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import math
 import os
@@ -640,6 +641,69 @@ def test_a_changed_model_latches_and_a_reset_says_why_until_it_is_back(
         assert runner.fault() == ""
         assert len(store.get(job.id).digs) == 2
     finally:
+        assert runner.shutdown(30.0)
+        store.close()
+        hil.close()
+
+
+def test_a_model_change_noticed_only_at_the_last_dig_s_record_fails_the_job_not_done(
+    rig: Rig, tmp_path: Path
+) -> None:
+    """A planner process that notices its changed model only when the job's last dig
+    (``max_digs``) asks for its record (held stopped here, as a busy machine's niced process
+    is held back) ends in place of that record: the job is not ``done`` with its last dig
+    unrecorded, the runner latches why, and after a reset with the verified bytes back the
+    dig is dug again and the job ends with both."""
+    from hil_sim.harness.campaign import _change_model, _dead, lockstep_config, wait_for
+    from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR
+    from rt_runtime.service.jobstore import JobStatus, JobStore
+    from rt_runtime.service.runner import RigRunner
+
+    models = tmp_path / "models"
+    shutil.copytree(DEFAULT_MODEL_DIR, models)
+    cfg = lockstep_config(tmp_path / "state", "scale_model", models)
+    planner = TrenchPlanner(rig, model_dir=models)
+    hil = LockstepHil(rig, planner.home_pose_rad, vcu=False)
+    store = JobStore(cfg.paths.state_dir)
+    store.start()
+    runner = RigRunner(cfg, rig, planner, hil.master_bus, store, hil.clock, hil.reopen_master_bus)
+
+    def progress() -> dict[str, Any]:
+        return runner.progress() or {}
+
+    pid: int | None = None
+    try:
+        runner.start()
+        wait_for(lambda: runner.health()[0], "holding")
+        job = store.submit(dict(CASE_TASK), "pinn", max_digs=2)
+        store.changed.set()
+        # The second dig streams: its plan is in; the process is held from here on.
+        wait_for(
+            lambda: progress().get("digs_done", 0) >= 1 and progress().get("phase") == "dig",
+            "the last dig",
+        )
+        pid = runner.planner_pid()
+        assert pid is not None
+        os.kill(pid, signal.SIGSTOP)
+        undo = _change_model(models)
+        # The last dig and its exit moves ran: the job waits for nothing but the record.
+        wait_for(lambda: progress().get("phase") == "wait", "the record alone outstanding")
+        os.kill(pid, signal.SIGCONT)
+        wait_for(lambda: _dead(pid), "the planner process ending", 30.0)
+        wait_for(lambda: runner.state().endswith("waiting for reset-fault"), "the latch")
+        assert "pinn_downward.onnx changed on disk" in runner.fault(), runner.fault()
+        assert store.get(job.id).status is JobStatus.FAILED
+        assert len(store.get(job.id).digs) == 1
+        undo()
+        number = runner.reset_fault()
+        wait_for(lambda: runner.resets_done >= number, "the reset")
+        wait_for(lambda: store.get(job.id).status is JobStatus.DONE, "the job")
+        assert runner.fault() == ""
+        assert len(store.get(job.id).digs) == 2
+    finally:
+        if pid is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
         assert runner.shutdown(30.0)
         store.close()
         hil.close()

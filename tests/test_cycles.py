@@ -290,3 +290,20 @@ def test_the_last_dig_s_exit_streams_where_the_planner_fails() -> None:
     motions.clear()
     planning.take(PlannerError("no dig"), motions, stopping=True)
     assert not motions
+
+
+def test_a_planner_error_in_place_of_the_last_dig_s_record_ends_the_job_with_it() -> None:
+    # The last dig (max_digs) ran and the job would end done once its record is back; the
+    # planner process ends instead (its models changed on disk, a slow process noticing only
+    # at that record): the job is not done, its last dig is not recorded.
+    planning = _Planning(link=None)  # type: ignore[arg-type]
+    planning.final = (ExecStatus.DONE, "")
+    planning.record_out = True
+    planning.take(PlannerError("the planner process ended"), deque(), stopping=False)
+    assert planning.final == (ExecStatus.PLANNING_ERROR, "the planner process ended")
+    assert not planning.record_out
+    # With the record back first, the job is done and a later error changes nothing.
+    planning = _Planning(link=None)  # type: ignore[arg-type]
+    planning.final = (ExecStatus.DONE, "")
+    planning.take(PlannerError("the planner process ended"), deque(), stopping=False)
+    assert planning.final == (ExecStatus.DONE, "")

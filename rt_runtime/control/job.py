@@ -292,11 +292,13 @@ class _Planning:
     def take(self, reply: Any, motions: deque[SampledMotion], stopping: bool) -> DigRecord | None:
         """Book a reply: a plan's motions onto ``motions`` (none while ``stopping`` or ending),
         a record as the :class:`DigRecord` returned, an error as the job's final status (after
-        the last dig's exit moves)."""
+        the last dig's exit moves). An error in place of the last dig's record ends the job
+        with it, not ``done``: the dig ran but is not recorded (a restart digs it again)."""
         if isinstance(reply, PlannerError):
+            lost = self.record_out and self.final is not None and self.final[0] is ExecStatus.DONE
             self.plan_out = False
             self.record_out = False
-            if self.final is None:
+            if self.final is None or lost:
                 if not stopping:
                     self.release_exit(motions)
                 self.final = (ExecStatus.PLANNING_ERROR, reply.message)

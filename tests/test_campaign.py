@@ -594,17 +594,13 @@ def test_a_real_disk_fault_latches_keeps_the_store_whole_and_resumes_once_mended
         subprocess.run(["umount", "-l", str(state)], capture_output=True, check=False)
 
 
-def test_a_changed_model_latches_and_a_reset_says_why_until_it_is_back(
-    rig: Rig, tmp_path: Path
-) -> None:
-    """Other bytes deployed over a model under a running job: its planner process names the
-    file and ends, the runner latches; a reset while the file stays changed fails the planner's
-    start, saying which file and why; with the verified bytes back the job resumes to its end."""
-    import shutil
-
-    from hil_sim.harness.campaign import _change_model, _dead, lockstep_config, wait_for
+def _runner_on_own_models(rig: Rig, tmp_path: Path) -> tuple[Path, LockstepHil, Any, Any]:
+    """A runner on the lockstep HIL planning from a copy of the shipped models (the
+    directory under ``tmp_path``, which a test may change): ``(models, hil, store, runner)``,
+    the store started, the runner not."""
+    from hil_sim.harness.campaign import lockstep_config
     from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR
-    from rt_runtime.service.jobstore import JobStatus, JobStore
+    from rt_runtime.service.jobstore import JobStore
     from rt_runtime.service.runner import RigRunner
 
     models = tmp_path / "models"
@@ -615,6 +611,31 @@ def test_a_changed_model_latches_and_a_reset_says_why_until_it_is_back(
     store = JobStore(cfg.paths.state_dir)
     store.start()
     runner = RigRunner(cfg, rig, planner, hil.master_bus, store, hil.clock, hil.reopen_master_bus)
+    return models, hil, store, runner
+
+
+def _reset_to_the_end(runner: Any, store: Any, job_id: int, digs: int) -> None:
+    """``reset-fault`` with the cause mended: the latch clears and the job resumes to its end,
+    ``digs`` digs recorded."""
+    from hil_sim.harness.campaign import wait_for
+    from rt_runtime.service.jobstore import JobStatus
+
+    number = runner.reset_fault()
+    wait_for(lambda: runner.resets_done >= number, "the reset")
+    wait_for(lambda: store.get(job_id).status is JobStatus.DONE, "the job")
+    assert runner.fault() == ""
+    assert len(store.get(job_id).digs) == digs
+
+
+def test_a_changed_model_latches_and_a_reset_says_why_until_it_is_back(
+    rig: Rig, tmp_path: Path
+) -> None:
+    """Other bytes deployed over a model under a running job: its planner process names the
+    file and ends, the runner latches; a reset while the file stays changed fails the planner's
+    start, saying which file and why; with the verified bytes back the job resumes to its end."""
+    from hil_sim.harness.campaign import _change_model, _dead, wait_for
+
+    models, hil, store, runner = _runner_on_own_models(rig, tmp_path)
     try:
         runner.start()
         wait_for(lambda: runner.health()[0], "holding")
@@ -635,11 +656,7 @@ def test_a_changed_model_latches_and_a_reset_says_why_until_it_is_back(
         assert "could not start" in fault and "pinn_downward.onnx" in fault, fault
         assert "corrupt or was replaced" in fault, fault
         undo()
-        number = runner.reset_fault()
-        wait_for(lambda: runner.resets_done >= number, "the second reset")
-        wait_for(lambda: store.get(job.id).status is JobStatus.DONE, "the job")
-        assert runner.fault() == ""
-        assert len(store.get(job.id).digs) == 2
+        _reset_to_the_end(runner, store, job.id, digs=2)
     finally:
         assert runner.shutdown(30.0)
         store.close()
@@ -654,19 +671,10 @@ def test_a_model_change_noticed_only_at_the_last_dig_s_record_fails_the_job_not_
     is held back) ends in place of that record: the job is not ``done`` with its last dig
     unrecorded, the runner latches why, and after a reset with the verified bytes back the
     dig is dug again and the job ends with both."""
-    from hil_sim.harness.campaign import _change_model, _dead, lockstep_config, wait_for
-    from rt_runtime.planning.pinn import DEFAULT_MODEL_DIR
-    from rt_runtime.service.jobstore import JobStatus, JobStore
-    from rt_runtime.service.runner import RigRunner
+    from hil_sim.harness.campaign import _change_model, _dead, wait_for
+    from rt_runtime.service.jobstore import JobStatus
 
-    models = tmp_path / "models"
-    shutil.copytree(DEFAULT_MODEL_DIR, models)
-    cfg = lockstep_config(tmp_path / "state", "scale_model", models)
-    planner = TrenchPlanner(rig, model_dir=models)
-    hil = LockstepHil(rig, planner.home_pose_rad, vcu=False)
-    store = JobStore(cfg.paths.state_dir)
-    store.start()
-    runner = RigRunner(cfg, rig, planner, hil.master_bus, store, hil.clock, hil.reopen_master_bus)
+    models, hil, store, runner = _runner_on_own_models(rig, tmp_path)
 
     def progress() -> dict[str, Any]:
         return runner.progress() or {}
@@ -695,11 +703,7 @@ def test_a_model_change_noticed_only_at_the_last_dig_s_record_fails_the_job_not_
         assert store.get(job.id).status is JobStatus.FAILED
         assert len(store.get(job.id).digs) == 1
         undo()
-        number = runner.reset_fault()
-        wait_for(lambda: runner.resets_done >= number, "the reset")
-        wait_for(lambda: store.get(job.id).status is JobStatus.DONE, "the job")
-        assert runner.fault() == ""
-        assert len(store.get(job.id).digs) == 2
+        _reset_to_the_end(runner, store, job.id, digs=2)
     finally:
         if pid is not None:
             with contextlib.suppress(ProcessLookupError):

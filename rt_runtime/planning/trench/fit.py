@@ -449,30 +449,24 @@ class FitMixin(CyclesMixin):
             tuple(dict.fromkeys((v[0], v[-1], *np.linspace(v[0], v[-1], 5)[1:-1].tolist())))
             for v in atts
         ]
-
-        def fixed_shifts() -> Candidate | None:
-            """The fixed shifts in turn (``offsets``), where the adaptive one found nothing."""
-            for offset in offsets:
-                a_s = a + offset * n_a
-                b_s = b + offset * n_b
-                starts = [self._starts(a_s, mid[0]), self._pass_pose(b_s, mid[1])]
-                pairs = [(qs, qe) for qs in starts[0] for qe in starts[1]]
-                results = fitted([p[0] for p in pairs], [p[1] for p in pairs], offset)
-                # Table pairs that fit well first, in their order; the others by cost.
-                good_fits: list[_Try] = []
-                fits: list[_Try] = []
-                for (q1, q2), got in zip(pairs, results, strict=True):
-                    if got is not None:
-                        cost, K = got
-                        (good_fits if cost < good else fits).append((q1, q2, K, cost))
-                found = first_planned(good_fits + sorted(fits, key=lambda f: f[3]))
-                if found is not None:
-                    return found
-            return None
-
         found = self._fit_shifted(kind, a, b, n_a, n_b, mid, edges, fitted, first_planned)
-        if found is None:
-            found = fixed_shifts()
+        # The fixed shifts in turn where the adaptive one found nothing.
+        for offset in offsets if found is None else ():
+            a_s = a + offset * n_a
+            b_s = b + offset * n_b
+            starts = [self._starts(a_s, mid[0]), self._pass_pose(b_s, mid[1])]
+            pairs = [(qs, qe) for qs in starts[0] for qe in starts[1]]
+            results = fitted([p[0] for p in pairs], [p[1] for p in pairs], offset)
+            # Table pairs that fit well first, in their order; the others by cost.
+            good_fits: list[_Try] = []
+            fits: list[_Try] = []
+            for (q1, q2), got in zip(pairs, results, strict=True):
+                if got is not None:
+                    cost, K = got
+                    (good_fits if cost < good else fits).append((q1, q2, K, cost))
+            found = first_planned(good_fits + sorted(fits, key=lambda f: f[3]))
+            if found is not None:
+                break
         memo.results[key_r] = found
         return found
 

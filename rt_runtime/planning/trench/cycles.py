@@ -641,7 +641,7 @@ class CyclesMixin(MovesMixin):
             out: FloatArray = traj.sample(t)
             return out
 
-        allow = self._bucket_depth(qe[None], surface, np.inf)[0]
+        allow, exact = self._entry_allowance(qe, surface)
         depths = [self._depth_along(poses, times(0.0, t1), *self._carry(q0, surface))]
         if t2 > t1:
             for a, b in ((t1, 0.5 * (t1 + t2)), (0.5 * (t1 + t2), t2)):
@@ -650,7 +650,8 @@ class CyclesMixin(MovesMixin):
                 depths.append(depth if self._ground_clear(poses(middle)) else math.inf)
         else:
             depths += [0.0, 0.0]
-        depths.append(self._depth_along(poses, times(max(t1, t2), t_end), surface, allow))
+        enter = times(max(t1, t2), t_end)
+        depths.append(self._depth_along(poses, enter, surface, allow, exact))
         part = int(np.argmax(depths))
         return float(depths[part]), part
 

@@ -67,6 +67,10 @@ _THIN_COLUMN_MAX_M = 0.75
 #: fills no bucket with the top of the layer below (scale model, m; tried in this order).
 _DEEPEN_M = (0.005, 0.01, 0.015, 0.02, 0.025, 0.03)
 
+#: How far beyond the run where the layer below would be too thick a pass that must take
+#: the rest of an upper layer reaches (scale model, m).
+_MUST_PAD_M = 0.05
+
 #: Longest piece of a rest taken under-filled (scale model, m).
 _PARTIAL_MAX_M = 0.25
 #: Fraction of V_max a column aims at.
@@ -343,25 +347,37 @@ class LayersMixin(RoughMixin):
     def _next_layer_column(self, remaining: Any, t0: float) -> PlannedDig | None:
         """The next column of the current layer (above the bottom one): a dig along the
         layer's floor, and down the far wall or up the near wall where the column reaches
-        them (:meth:`_fit_profile` on the layer's outline), carrying a full bucket. Where
-        what is left fills none but is too much to leave to the next layer (a quarter of
-        V_min), a full column along the floor lowered by :data:`_DEEPEN_M` (scaled, the
-        least first: the rest and the top of the layer below), else the rest under-filled.
-        A full column of an upper layer that would leave such a rest behind it gives way
-        to the first full column along a lowered floor whose fit leaves none. None when the
-        layer is done."""
+        them (:meth:`_fit_profile` on the layer's outline), carrying a full bucket; after
+        the layer's far-wall piece (``walls``), first the column that continues its bucket.
+        Where what is left fills none (a quarter of V_min or more), a full column along the
+        floor lowered by :data:`_DEEPEN_M` (scaled, the least first: the rest and the top of
+        the layer below); where there is none and the rest is too much to leave to the next
+        layer (:meth:`_layer_must_be_taken`), the rest under-filled, else nothing (the next
+        layer takes it). A rest over a wall's slope is never too much to leave, and a later
+        section's layers under it found it too thick to cut beneath: one such section ended
+        with 22 % of the design left. A full column of an upper layer that would leave such
+        a rest behind it gives way to the first full column along a lowered floor whose fit
+        leaves none. None when the layer is done."""
         floor = self._layer_floor
         y_floor = self.layer_y
         walls = self._layer_walls
         upper = self.layer < len(self.layer_floors)
+        if self._wall_piece == 2:
+            # The layer's far-wall pass (``walls``) was planned for this column to continue.
+            self._wall_piece = 1
+            dig = self._joined_layer_column(remaining, t0)
+            if dig is not None:
+                return dig
         dig = self._layer_column(floor, y_floor, walls, False, remaining, t0)
         planned = self._planned_region
         if dig is not None and not (upper and planned and self._leaves_rest(floor, planned[1])):
             return dig
+        must = True
         if dig is None and upper:
             rest = self._column_ends(floor, self.section_lo, self._reach_hi(), True)
-            if not rest or not self._layer_must_be_taken():
+            if not rest:
                 return None
+            must = self._layer_must_be_taken()
         if upper:
 
             def leaves_none(c: Candidate) -> bool:
@@ -378,7 +394,32 @@ class LayersMixin(RoughMixin):
             if dig is not None:
                 self._planned_region = planned  # record() reuses the dig's region
                 return dig
+            if not must:
+                return None
         return self._layer_column(floor, y_floor, walls, True, remaining, t0)
+
+    def _joined_layer_column(self, remaining: Any, t0: float) -> PlannedDig | None:
+        """The current layer's next full column, continuing the last dig's bucket (joined
+        at its exit, which lies at the column's start), its ends chosen for the fill with
+        the bucket's content; None where the last dig may not be continued there or no
+        such column plans."""
+        if self.joinable is None:
+            return None
+        floor = self._layer_floor
+        ends = self._column_ends(floor, self.section_lo, self._reach_hi())
+        if not ends:
+            return None
+        a = np.array([ends[0], float(np.interp(ends[0], self.grid, floor))])
+        if self._join_at(a) is None:
+            return None
+        bucket = self.joinable[1] / self.width_m
+
+        def joined(c: Candidate) -> bool:
+            return c.joined and not c.carried
+
+        return self._layer_column(
+            floor, self.layer_y, self._layer_walls, False, remaining, t0, joined, bucket
+        )
 
     def _leaves_rest(self, floor: FloatArray, envelope: FloatArray) -> bool:
         """Whether a dig reaching down to ``envelope`` (on the grid) leaves above ``floor``
@@ -400,6 +441,7 @@ class LayersMixin(RoughMixin):
         remaining: Any,
         t0: float,
         keep: Callable[[Candidate], bool] | None = None,
+        bucket: float = 0.0,
     ) -> PlannedDig | None:
         """A column of the material above ``floor`` (on the grid; ``y_floor`` its level
         and ``walls`` the outline's half-planes with the floor's row at it): a full bucket,
@@ -407,11 +449,54 @@ class LayersMixin(RoughMixin):
         (:meth:`_layer_must_be_taken`); None where none plans. Where an upper layer's whole
         rest does not plan as one full column, shorter full ones (:meth:`_column_ends` with
         ``shorter``). ``keep``: where given, only fits it keeps are planned (and no shorter
-        columns are tried)."""
+        columns are tried). ``bucket``: material already in the bucket (m^2 of
+        cross-section, :meth:`_column_ends`)."""
+        lo, hi = self.section_lo, self._reach_hi()
+        thick = runs(self._too_thick_below()) if partial else []
+        if not thick:
+            return self._layer_column_in(
+                floor, y_floor, walls, partial, remaining, t0, (lo, hi), keep, bucket
+            )
+        # The rest is taken because it must be: a pass along the whole rest where it leaves
+        # nothing too thick below, else one where the layer below would be too thick (the
+        # far run of it, with a margin): a long pass that grazes that run left most of it,
+        # and the same pass was taken again and again.
+
+        def clears(c: Candidate) -> bool:
+            if keep is not None and not keep(c):
+                return False
+            after = self.surface if c.envelope is None else np.minimum(self.surface, c.envelope)
+            return not bool(np.any(self._too_thick_below(after)))
+
+        dig = self._layer_column_in(
+            floor, y_floor, walls, partial, remaining, t0, (lo, hi), clears, bucket
+        )
+        if dig is not None:
+            return dig
+        i0, i1 = thick[-1]
+        pad = _MUST_PAD_M * self.planner.scale
+        span = (max(lo, float(self.grid[i0]) - pad), min(hi, float(self.grid[i1 - 1]) + pad))
+        return self._layer_column_in(
+            floor, y_floor, walls, partial, remaining, t0, span, keep, bucket
+        )
+
+    def _layer_column_in(
+        self,
+        floor: FloatArray,
+        y_floor: float,
+        walls: FloatArray,
+        partial: bool,
+        remaining: Any,
+        t0: float,
+        span: tuple[float, float],
+        keep: Callable[[Candidate], bool] | None,
+        bucket: float,
+    ) -> PlannedDig | None:
+        """:meth:`_layer_column` of the material within ``span`` (x range, work-site m)."""
         lo_d, hi_d = oneshot.theta_p_range(self.planning, int(DigType.DOWNWARD))
         steep = float(lo_d) + 0.02 <= self.task.beta1_rad <= float(hi_d)
         rise = 0.005 * self.planner.scale
-        ends = self._column_ends(floor, self.section_lo, self._reach_hi(), partial)
+        ends = self._column_ends(floor, span[0], span[1], partial, bucket=bucket)
         if not ends:
             return None
         if partial and not self._layer_must_be_taken():

@@ -11,6 +11,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
+import shapely
 from numpy.typing import ArrayLike
 
 from rt_runtime import kinematics
@@ -295,6 +296,40 @@ class MovesMixin(MaterialMixin):
             self._refusal("entry", (xe + self.machine_x, ye, ze), refused, "no approach pose")
         )
 
+    def _entry_allowance(
+        self, q_entry: FloatArray, surface: FloatArray
+    ) -> tuple[FloatArray, bool]:
+        """How deep each point of the bucket outline ``(m,)`` may go on the enter into a dig
+        (m): its depth at the entry pose ``q_entry`` on ``surface``; and whether the enter is
+        measured on the material's polygon instead (with the allowance from it).
+
+        A height field holds one surface a column, so a slot cut down a steep wall narrower
+        than the bucket measures its sides deeper than they are (5.6 mm against 1.1 mm at a
+        tip entering such a slot), and an allowance from it let the enter go 8.7 mm into the
+        material. Where ``surface`` is the current height field and any point's depth on it
+        exceeds that on the polygon by more than half a grid step, the enter is measured on
+        the polygon (:meth:`_polygon_depth`)."""
+        allow: FloatArray = self._bucket_depth(q_entry[None], surface, np.inf)[0]
+        if surface is not self.surface:
+            return allow, False
+        exact = self._polygon_depth(q_entry[None])[0]
+        if np.all(allow - exact <= 0.5 * GRID_STEP_M):
+            return allow, False
+        return exact, True
+
+    def _polygon_depth(self, q: FloatArray) -> FloatArray:
+        """How deep each point of the bucket outline is in the material's polygon, poses
+        ``(n, 3)`` -> ``(n, m)`` (m: the distance to the polygon's boundary, 0 outside)."""
+        bx, by = self.planner.mover.bucket_xy(q)
+        x = (bx + self.machine_x).ravel()
+        y = by.ravel()
+        inside = shapely.contains_xy(self.material, x, y)
+        depth = np.zeros(x.shape)
+        if np.any(inside):
+            points = shapely.points(x[inside], y[inside])
+            depth[inside] = shapely.distance(points, self.material.boundary)
+        return depth.reshape(bx.shape)
+
     def _entries(
         self, q_entry: FloatArray, surface: FloatArray, refused: list[Transition]
     ) -> Iterator[tuple[FloatArray, Transition]]:
@@ -304,7 +339,7 @@ class MovesMixin(MaterialMixin):
         arm = mover.arm
         s = self.planner.scale
         xe, ye, ze = arm.tip(q_entry)
-        allow = self._bucket_depth(q_entry[None], surface, np.inf)[0]
+        allow, exact = self._entry_allowance(q_entry, surface)
         clear = _LIFT_CLEAR_M * s
         # The enter's direction of travel: straight down, else along the bucket's axis.
         for ux, uy in ((0.0, -1.0), (math.cos(ze), math.sin(ze))):
@@ -316,7 +351,9 @@ class MovesMixin(MaterialMixin):
                 bx, by = mover.bucket_xy(q_above)
                 if np.any(by < np.interp(bx + self.machine_x, self.grid, surface) + clear):
                     continue
-                enter = self._checked(TransitionKind.ENTER, q_above, q_entry, surface, allow)
+                enter = self._checked(
+                    TransitionKind.ENTER, q_above, q_entry, surface, allow, exact
+                )
                 if enter.penetration_m > TRANSITION_PENETRATION_M:
                     refused.append(enter)
                     continue
@@ -345,6 +382,7 @@ class MovesMixin(MaterialMixin):
         qb: FloatArray,
         surface: FloatArray,
         allow: FloatArray | None = None,
+        exact: bool = False,
     ) -> Transition:
         """The ruckig move ``qa -> qb`` with its penetration (:meth:`_move_depth`)."""
         traj = self.planner.mover.move(qa, qb)
@@ -354,7 +392,7 @@ class MovesMixin(MaterialMixin):
             q_to_rad=(float(qb[0]), float(qb[1]), float(qb[2])),
             duration_s=float(traj.duration),
             machine_x_m=self.machine_x,
-            penetration_m=self._move_depth(traj, qa, qb, surface, allow),
+            penetration_m=self._move_depth(traj, qa, qb, surface, allow, exact),
         )
 
     def _move_depth(
@@ -364,16 +402,20 @@ class MovesMixin(MaterialMixin):
         qb: FloatArray,
         surface: FloatArray,
         allow: FloatArray | None,
+        exact: bool = False,
     ) -> float:
         """The deepest any point of the bucket outline goes into the material under
         ``surface`` (:func:`_depth_below`) on the move ``traj`` from ``qa`` to ``qb``, less
         ``allow`` ``(m,)`` per outline point where given (m, >= 0): :meth:`_depth_along` on
-        samples that no point of the bucket moves :data:`_COARSE_STEP_M` between."""
+        samples that no point of the bucket moves :data:`_COARSE_STEP_M` between (``exact``:
+        on the material's polygon)."""
         tables = self._piece_tables(traj)
         times = np.linspace(
             0.0, float(traj.duration), self.planner.mover.n_samples(qa, qb, _COARSE_STEP_M)
         )
-        return self._depth_along(lambda t: self._move_poses(traj, tables, t), times, surface, allow)
+        return self._depth_along(
+            lambda t: self._move_poses(traj, tables, t), times, surface, allow, exact
+        )
 
     def _depth_along(
         self,
@@ -381,6 +423,7 @@ class MovesMixin(MaterialMixin):
         times: FloatArray,
         surface: FloatArray,
         allow: FloatArray | None,
+        exact: bool = False,
     ) -> float:
         """The deepest any point of the bucket outline goes into the material under
         ``surface`` (:func:`_depth_below`) along a motion whose poses at times ``(n,)`` are
@@ -394,7 +437,9 @@ class MovesMixin(MaterialMixin):
         :data:`_MOVE_STEP_M` of the bucket's travel with the whole outline. Between samples and
         outline points a point can be deeper by at most half their spacing (a point's depth
         changes no faster than the point moves). Depths beyond :data:`_DEPTH_CAP_M` (past
-        ``allow``) count as that.
+        ``allow``) count as that. ``exact``: the fine samples' depths on the material's
+        polygon (:meth:`_polygon_depth`; ``surface`` the current height field, whose surface
+        lies on or above the polygon's, so the coarse samples it clears are clear).
         """
         mover = self.planner.mover
         h = GRID_STEP_M
@@ -415,7 +460,11 @@ class MovesMixin(MaterialMixin):
         frac = np.arange(k + 1) / k
         fine = np.unique(times[near, None] + (times[near + 1] - times[near])[:, None] * frac)
         poses = poses_at(fine)
-        if allow is None:
+        if exact:
+            depth = self._polygon_depth(poses)
+            if allow is not None:
+                depth -= allow
+        elif allow is None:
             depth = self._bucket_depth(poses, surface)
         else:
             depth = self._bucket_depth(poses, surface, allow + _DEPTH_CAP_M)

@@ -184,7 +184,9 @@ class TrenchSession(PersistMixin):
             if stage is Stage.ROUGH:
                 dig = self._next_rough(remaining, t0)
             elif stage is Stage.LAYER:
-                dig = self._next_layer_column(remaining, t0)
+                dig = self._layer_far_wall(remaining, t0) or self._next_layer_column(
+                    remaining, t0
+                )
             elif stage is Stage.BOTTOM:
                 dig = self._next_column(remaining, t0)
             else:

@@ -116,6 +116,9 @@ class SessionState:
     layer_floors: tuple[float, ...]
     layer: int
     stage: Stage
+    #: In a wall's stage, the halves of the wall's pieces done; in an upper layer's columns,
+    #: 0 before the layer's far-wall piece was tried, 2 while the column that continues it
+    #: is next, else 1.
     _wall_piece: int
     layer_y: float
     layer_design: Any

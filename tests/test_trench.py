@@ -1039,6 +1039,31 @@ def test_a_steep_far_walls_piece_begins_each_layers_columns(
     assert len(before.buckets) == 5 and _passes(before) == 2
 
 
+def test_a_steep_far_walls_piece_is_taken_where_the_layers_column_starts_away_from_it(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rt_runtime.planning.trench import walls
+
+    # 0.62 m x 0.18 m, far wall 74 deg, one upper layer (random suite, seed 11): the layer's
+    # first column starts 2.1 cm from the wall's foot (it enters just beyond the material's
+    # face), beyond the 2 cm reach of a joined dig, so the wall's piece was not tried and the
+    # layer ended with two passes. Fitted with end
+    # attitudes that hold a load, the piece ends where the column starts after all (the
+    # column continues it at its exit): one full bucket of two pieces, 5 buckets and one
+    # pass, against 7 and 3.
+    task = _random_task(11, 173)
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    first, column = plan.buckets[0]
+    assert first.problem.dig_type is oneshot.DigType.DOWNWARD
+    assert float(np.ptp(first.tip_path_m[:, 0])) < 0.03
+    assert column.joined and not first.finishing and not column.finishing
+    assert len(plan.buckets) == 5 and _passes(plan) == 1
+    monkeypatch.setattr(walls, "_LAYER_WALL_MIN_DEG", 90.0)
+    before = planner.plan(task)
+    assert len(before.buckets) == 7 and _passes(before) == 3
+
+
 def test_a_rest_that_must_be_taken_is_taken_where_the_layer_below_would_be_too_thick(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:

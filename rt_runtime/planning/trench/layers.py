@@ -365,7 +365,7 @@ class LayersMixin(RoughMixin):
         if self._wall_piece == 2:
             # The layer's far-wall pass (``walls``) was planned for this column to continue.
             self._wall_piece = 1
-            dig = self._joined_layer_column(remaining, t0)
+            dig = self._continuing_layer_column(remaining, t0)
             if dig is not None:
                 return dig
         dig = self._layer_column(floor, y_floor, walls, False, remaining, t0)
@@ -398,11 +398,11 @@ class LayersMixin(RoughMixin):
                 return None
         return self._layer_column(floor, y_floor, walls, True, remaining, t0)
 
-    def _joined_layer_column(self, remaining: Any, t0: float) -> PlannedDig | None:
-        """The current layer's next full column, continuing the last dig's bucket (joined
-        at its exit, which lies at the column's start), its ends chosen for the fill with
-        the bucket's content; None where the last dig may not be continued there or no
-        such column plans."""
+    def _continuing_layer_column(self, remaining: Any, t0: float) -> PlannedDig | None:
+        """The current layer's next full column, continuing the last dig's bucket: joined at
+        its exit where that lies at the column's start, else carried to the column; its ends
+        chosen for the fill with the bucket's content. None where the last dig may not be
+        continued or no such column plans."""
         if self.joinable is None:
             return None
         floor = self._layer_floor
@@ -410,15 +410,14 @@ class LayersMixin(RoughMixin):
         if not ends:
             return None
         a = np.array([ends[0], float(np.interp(ends[0], self.grid, floor))])
-        if self._join_at(a) is None:
-            return None
+        at_exit = self._join_at(a) is not None
         bucket = self.joinable[1] / self.width_m
 
-        def joined(c: Candidate) -> bool:
-            return c.joined and not c.carried
+        def continues(c: Candidate) -> bool:
+            return c.joined and c.carried is not at_exit
 
         return self._layer_column(
-            floor, self.layer_y, self._layer_walls, False, remaining, t0, joined, bucket
+            floor, self.layer_y, self._layer_walls, False, remaining, t0, continues, bucket
         )
 
     def _leaves_rest(self, floor: FloatArray, envelope: FloatArray) -> bool:

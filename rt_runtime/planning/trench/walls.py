@@ -108,13 +108,16 @@ class WallsMixin(LayersMixin):
         ``_wall_piece``), the far wall's piece within the layer, from the layer above's floor
         (or the ground) down to the layer's floor, as a downward dig along the wall; a full
         dig where it fills the bucket, else a finishing pass that the layer's first column
-        continues (:meth:`_joined_layer_column`), taken only where that column plans on the
-        material the pass leaves. A downward column from the wall leaves a wedge along a
-        steep wall below its entry, which took a pass of its own at the layer's end.
+        continues (:meth:`_continuing_layer_column`), taken only where that column plans on
+        the material the pass leaves. A downward column from the wall leaves a wedge along a
+        steep wall below its entry, which took a pass of its own at the layer's end. Where
+        the layer's first column starts beyond a joined dig's reach of the piece's foot (the
+        layer's network digs took the far part, or the column enters beyond the material's
+        face), the piece's end attitudes are those that hold a load, so that the column may
+        take it carried (or joined, where the fitted piece ends at the column's start).
 
         None where the wall is shallower than :data:`_LAYER_WALL_MIN_DEG` or too shallow for
-        a downward dig, the layer's first column does not start at the piece's foot, nothing
-        is left on the piece or no such dig plans."""
+        a downward dig, nothing is left on the piece or no such dig plans."""
         if self._wall_piece or self.section != 0 or self.layer >= len(self.layer_floors):
             return None
         self._wall_piece = 1
@@ -138,9 +141,17 @@ class WallsMixin(LayersMixin):
         if self._material_above(line) < _COLUMN_EDGE_M * s:
             return None
         ends = self._column_ends(self._layer_floor, self.section_lo, self._reach_hi())
-        if not ends or abs(ends[0] - float(line[1, 0])) > _JOIN_REACH_M * s:
+        if not ends:
             return None
-        found = self._fit_pass(DigType.DOWNWARD, line, _WALL_ATTITUDES_DEG[DigType.DOWNWARD])
+        atts = _WALL_ATTITUDES_DEG[DigType.DOWNWARD]
+        if abs(ends[0] - float(line[1, 0])) > _JOIN_REACH_M * s:
+            # The layer's first column starts away from the piece's foot: the piece ends
+            # curled enough to hold its load, which may be carried to that column.
+            most = math.degrees(self.carry_attitude_max())
+            if min(atts[1]) > most:
+                return None
+            atts = (atts[0], (min(atts[1][0], most), min(atts[1][-1], most)))
+        found = self._fit_pass(DigType.DOWNWARD, line, atts)
         if found is None:
             return None
         dig = self._first_plannable([found], remaining, t0)
@@ -155,7 +166,7 @@ class WallsMixin(LayersMixin):
 
     def _continued_after(self, dig: PlannedDig, t0: float) -> bool:
         """Whether the layer's first column continues ``dig``'s bucket
-        (:meth:`_joined_layer_column`) on the material ``dig`` leaves as planned; the
+        (:meth:`_continuing_layer_column`) on the material ``dig`` leaves as planned; the
         session is left as it was."""
         planned = self._planned_region
         assert planned is not None  # dig was just planned
@@ -168,7 +179,7 @@ class WallsMixin(LayersMixin):
         bucket = (float(saved[1].area) - float(self.material.area)) * self.width_m
         self.joinable = (np.asarray(dig.problem.q_end_rad, dtype=np.float64), bucket)
         try:
-            column = self._joined_layer_column(self.remaining_design(), t0)
+            column = self._continuing_layer_column(self.remaining_design(), t0)
         finally:
             (
                 self.surface,

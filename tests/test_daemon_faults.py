@@ -216,6 +216,50 @@ def test_the_runner_latches_a_bus_error_lives_and_resets_on_a_reopened_bus(
         gc.unfreeze()
 
 
+def test_a_job_keeps_the_words_its_fault_latched_with(tmp_path: Path) -> None:
+    """A job's fault latches when its stop begins, with the drives' report of then (a stale
+    axis "its last report"); by the time the stop ends the drives may answer again. The job
+    keeps the latched words: its stored fault is the latch's, not a second report (the
+    daemon's end-to-end test found the two apart after a host stall)."""
+    from types import SimpleNamespace
+
+    from rt_runtime.canbus import CycleStatus
+    from rt_runtime.control.job import ExecStatus
+
+    rig, config, hil = _lockstep_bench(tmp_path)
+    store = JobStore(config.paths.state_dir)
+    runner = RigRunner(config, rig, TrenchPlanner(rig), hil.master_bus, store, hil.clock)
+    try:
+        job = store.submit({"name": "A"}, "pinn")
+        cause = "stale feedback: no TPDO1 from the boom drive for 10 cycles"
+        then = "cycle status STALE; boom (node 1): OPERATION_ENABLED (its last report)"
+        now = SimpleNamespace(
+            describe=lambda status: "cycle status OK; boom (node 1): OPERATION_ENABLED",
+            feedback=SimpleNamespace(status=CycleStatus.OK),
+        )
+        runner._parts = SimpleNamespace(drives=now)  # type: ignore[assignment]
+        latched = f"job {job.id}: fault: {cause}; drives: {then}"
+        runner._latch(latched, job.id)
+        running = SimpleNamespace(job=job, planner=None)
+        runner._record_outcome(running, ExecStatus.FAULT, cause)  # type: ignore[arg-type]
+        stored = store.get(job.id)
+        assert stored.status is JobStatus.FAILED
+        assert stored.fault == f"fault: {cause}; drives: {then}"
+        assert runner.fault() == latched
+        # A job that failed with no fault latched for it latches its own words.
+        other = store.submit({"name": "B"}, "pinn")
+        runner._fault, runner._fault_job = "", None
+        runner._record_outcome(
+            SimpleNamespace(job=other, planner=None), ExecStatus.FAULT, cause  # type: ignore[arg-type]
+        )
+        words = f"fault: {cause}; drives: cycle status OK; boom (node 1): OPERATION_ENABLED"
+        assert store.get(other.id).fault == words
+        assert runner.fault() == f"job {other.id}: {words}"
+    finally:
+        store.close()
+        hil.close()
+
+
 def test_a_shutdown_right_after_a_job_keeps_its_report(tmp_path: Path) -> None:
     """The runner on the lockstep HIL digs one dig and is shut down the moment the job is done:
     the job's report (its telemetry file) is written before the shutdown returns, not cut

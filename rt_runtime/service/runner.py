@@ -1065,8 +1065,14 @@ class RigRunner:
         if st in (ExecStatus.STOPPED, ExecStatus.PLANNING_ERROR):
             self._fail_job(job, self._fault)
             return
-        text = self._job_fault_text(st, fault)
-        self._latch(f"job {job.id}: {text}", job.id)
+        prefix = f"job {job.id}: "
+        if self._fault_job == job.id and self._fault.startswith(prefix):
+            # Latched when the job began its stop (:meth:`_on_cycle`), with the drives' report
+            # of then: the job keeps the same words (the drives may answer again by now).
+            text = self._fault[len(prefix) :]
+        else:
+            text = self._job_fault_text(st, fault)
+            self._latch(prefix + text, job.id)
         self._fail_job(job, text)
 
     def _job_fault_text(self, st: ExecStatus, fault: str) -> str:

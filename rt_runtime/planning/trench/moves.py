@@ -50,6 +50,9 @@ _MOVE_STEP_M = 0.002
 
 _COARSE_STEP_M = 0.01
 
+# Outline points asked of the polygon at once (:meth:`MovesMixin._polygon_depth_beyond`).
+_POLYGON_CHUNK = 256
+
 # Depth into the material beyond which a move's check stops measuring (m): it is refused anyway.
 _DEPTH_CAP_M = 0.05
 
@@ -319,16 +322,20 @@ class MovesMixin(MaterialMixin):
 
     def _polygon_depth(self, q: FloatArray) -> FloatArray:
         """How deep each point of the bucket outline is in the material's polygon, poses
-        ``(n, 3)`` -> ``(n, m)`` (m: the distance to the polygon's boundary, 0 outside)."""
+        ``(n, 3)`` -> ``(n, m)`` (m: :meth:`_polygon_depth_at`)."""
         bx, by = self.planner.mover.bucket_xy(q)
-        x = (bx + self.machine_x).ravel()
-        y = by.ravel()
-        inside = shapely.contains_xy(self.material, x, y)
-        depth = np.zeros(x.shape)
+        return self._polygon_depth_at(bx + self.machine_x, by)
+
+    def _polygon_depth_at(self, x: FloatArray, y: FloatArray) -> FloatArray:
+        """How deep points (work-site frame, any shape) are in the material's polygon (m: the
+        distance to its boundary, 0 outside)."""
+        xf, yf = np.ravel(x), np.ravel(y)
+        inside = shapely.contains_xy(self.material, xf, yf)
+        depth = np.zeros(xf.shape)
         if np.any(inside):
-            points = shapely.points(x[inside], y[inside])
+            points = shapely.points(xf[inside], yf[inside])
             depth[inside] = shapely.distance(points, self.material.boundary)
-        return depth.reshape(bx.shape)
+        return depth.reshape(np.shape(x))
 
     def _entries(
         self, q_entry: FloatArray, surface: FloatArray, refused: list[Transition]
@@ -438,8 +445,8 @@ class MovesMixin(MaterialMixin):
         outline points a point can be deeper by at most half their spacing (a point's depth
         changes no faster than the point moves). Depths beyond :data:`_DEPTH_CAP_M` (past
         ``allow``) count as that. ``exact``: the fine samples' depths on the material's
-        polygon (:meth:`_polygon_depth`; ``surface`` the current height field, whose surface
-        lies on or above the polygon's, so the coarse samples it clears are clear).
+        polygon (:meth:`_polygon_depth_beyond`; ``surface`` the current height field, whose
+        surface lies on or above the polygon's, so the coarse samples it clears are clear).
         """
         mover = self.planner.mover
         h = GRID_STEP_M
@@ -460,16 +467,40 @@ class MovesMixin(MaterialMixin):
         frac = np.arange(k + 1) / k
         fine = np.unique(times[near, None] + (times[near + 1] - times[near])[:, None] * frac)
         poses = poses_at(fine)
-        if exact:
-            depth = self._polygon_depth(poses)
-            if allow is not None:
-                depth -= allow
-        elif allow is None:
+        if allow is None:
             depth = self._bucket_depth(poses, surface)
         else:
             depth = self._bucket_depth(poses, surface, allow + _DEPTH_CAP_M)
             depth -= allow
+        if exact:
+            return self._polygon_depth_beyond(poses, depth, allow)
         return max(0.0, float(np.max(depth)))
+
+    def _polygon_depth_beyond(
+        self, poses: FloatArray, field: FloatArray, allow: FloatArray | None
+    ) -> float:
+        """The deepest any point of the bucket outline at ``poses`` ``(n, 3)`` goes into the
+        material's polygon less ``allow`` ``(m,)`` (m, >= 0), given each point's depth on the
+        current height field less ``allow`` (``field``, ``(n, m)``, as :meth:`_depth_along`
+        caps it). No point is deeper in the polygon than on the field by a grid step (the
+        field's surface lies on or above the polygon's; its depths are sought on the grid's
+        columns): the polygon is asked for the points in the order of that bound, in chunks,
+        until no point left can be deeper than the deepest found (an enter into a slot had
+        some 25,000 points near its allowance, 0.25 s a move asked all at once)."""
+        bound = field.ravel() + GRID_STEP_M
+        order = np.argsort(-bound, kind="stable")
+        order = order[bound[order] > 0.0]
+        bx, by = self.planner.mover.bucket_xy(poses)
+        x, y = (bx + self.machine_x).ravel(), by.ravel()
+        less = np.zeros(x.shape) if allow is None else np.broadcast_to(allow, bx.shape).ravel()
+        deepest = 0.0
+        for k in range(0, order.size, _POLYGON_CHUNK):
+            idx = order[k : k + _POLYGON_CHUNK]
+            if bound[idx[0]] <= deepest:
+                break
+            found = self._polygon_depth_at(x[idx], y[idx]) - less[idx]
+            deepest = max(deepest, float(np.max(found)))
+        return deepest
 
     def _piece_tables(self, traj: Any) -> FloatArray | None:
         """A rest-to-rest move's constant-jerk pieces as the C geometry's ``move_poses`` takes

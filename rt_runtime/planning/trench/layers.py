@@ -102,6 +102,13 @@ _COLUMN_ATTITUDES_DEG = {DigType.BACKWARD: ((-110.0, -135.0), (-150.0, -175.0))}
 class LayersMixin(RoughMixin):
     """A session's layers, columns and walls' digs (see the module)."""
 
+    def _downward_wall(self, beta_rad: float) -> bool:
+        """Whether a downward dig enters a wall of angle ``beta_rad`` (its theta_p range, the
+        lower end with 0.02 rad to spare): the walls' digs and the columns that reach a wall
+        are downward there, backward on a shallower wall."""
+        lo_d, hi_d = oneshot.theta_p_range(self.planning, int(DigType.DOWNWARD))
+        return float(lo_d) + 0.02 <= beta_rad <= float(hi_d)
+
     def _digs_for(self, area: float, spare: float) -> float:
         """Full buckets an area takes (``spare``: the fraction of the fill band's ends kept
         free, for what the digs' shapes miss); inf when no whole number of them fits."""
@@ -441,6 +448,7 @@ class LayersMixin(RoughMixin):
         t0: float,
         keep: Callable[[Candidate], bool] | None = None,
         bucket: float = 0.0,
+        span: tuple[float, float] | None = None,
     ) -> PlannedDig | None:
         """A column of the material above ``floor`` (on the grid; ``y_floor`` its level
         and ``walls`` the outline's half-planes with the floor's row at it): a full bucket,
@@ -449,51 +457,34 @@ class LayersMixin(RoughMixin):
         rest does not plan as one full column, shorter full ones (:meth:`_column_ends` with
         ``shorter``). ``keep``: where given, only fits it keeps are planned (and no shorter
         columns are tried). ``bucket``: material already in the bucket (m^2 of
-        cross-section, :meth:`_column_ends`)."""
-        lo, hi = self.section_lo, self._reach_hi()
-        thick = runs(self._too_thick_below()) if partial else []
-        if not thick:
-            return self._layer_column_in(
-                floor, y_floor, walls, partial, remaining, t0, (lo, hi), keep, bucket
-            )
-        # The rest is taken because it must be: a pass along the whole rest where it leaves
-        # nothing too thick below, else one where the layer below would be too thick (the
-        # far run of it, with a margin): a long pass that grazes that run left most of it,
-        # and the same pass was taken again and again.
+        cross-section, :meth:`_column_ends`). ``span``: the material within this x range
+        (work-site m) alone; by default the section's, and for a rest that must be taken a
+        pass along the whole rest where it leaves nothing too thick below, else one over
+        the far run of what is too thick, :data:`_MUST_PAD_M` (scaled) beyond it each side:
+        a long pass that grazes that run left most of it, and the same pass was taken again
+        and again."""
+        if span is None:
+            lo, hi = self.section_lo, self._reach_hi()
+            thick = runs(self._too_thick_below()) if partial else []
+            if thick:
 
-        def clears(c: Candidate) -> bool:
-            if keep is not None and not keep(c):
-                return False
-            after = self.surface if c.envelope is None else np.minimum(self.surface, c.envelope)
-            return not bool(np.any(self._too_thick_below(after)))
+                def clears(c: Candidate) -> bool:
+                    if keep is not None and not keep(c):
+                        return False
+                    env = c.envelope
+                    after = self.surface if env is None else np.minimum(self.surface, env)
+                    return not bool(np.any(self._too_thick_below(after)))
 
-        dig = self._layer_column_in(
-            floor, y_floor, walls, partial, remaining, t0, (lo, hi), clears, bucket
-        )
-        if dig is not None:
-            return dig
-        i0, i1 = thick[-1]
-        pad = _MUST_PAD_M * self.planner.scale
-        span = (max(lo, float(self.grid[i0]) - pad), min(hi, float(self.grid[i1 - 1]) + pad))
-        return self._layer_column_in(
-            floor, y_floor, walls, partial, remaining, t0, span, keep, bucket
-        )
-
-    def _layer_column_in(
-        self,
-        floor: FloatArray,
-        y_floor: float,
-        walls: FloatArray,
-        partial: bool,
-        remaining: Any,
-        t0: float,
-        span: tuple[float, float],
-        keep: Callable[[Candidate], bool] | None,
-        bucket: float,
-    ) -> PlannedDig | None:
-        """:meth:`_layer_column` of the material within ``span`` (x range, work-site m)."""
-        lo_d, hi_d = oneshot.theta_p_range(self.planning, int(DigType.DOWNWARD))
-        steep = float(lo_d) + 0.02 <= self.task.beta1_rad <= float(hi_d)
+                args = (floor, y_floor, walls, partial, remaining, t0)
+                dig = self._layer_column(*args, clears, bucket, (lo, hi))
+                if dig is not None:
+                    return dig
+                i0, i1 = thick[-1]
+                pad = _MUST_PAD_M * self.planner.scale
+                lo = max(lo, float(self.grid[i0]) - pad)
+                hi = min(hi, float(self.grid[i1 - 1]) + pad)
+            span = (lo, hi)
+        steep = self._downward_wall(self.task.beta1_rad)
         rise = 0.005 * self.planner.scale
         ends = self._column_ends(floor, span[0], span[1], partial, bucket=bucket)
         if not ends:

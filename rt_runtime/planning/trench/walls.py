@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from rt_runtime.planning import oneshot
 from rt_runtime.planning.oneshot import DigType
 from rt_runtime.planning.trench.candidates import Candidate
 from rt_runtime.planning.trench.fit import _JOIN_REACH_M
@@ -74,8 +74,7 @@ class WallsMixin(LayersMixin):
         # ``_wall_piece`` counts the halves done.
         span = foot - top
         n = max(1, math.ceil(float(np.hypot(*span)) / (_COLUMN_MAX_M * self.planner.scale)))
-        lo_d, hi_d = oneshot.theta_p_range(self.planning, int(DigType.DOWNWARD))
-        kind = DigType.DOWNWARD if float(lo_d) + 0.02 <= beta <= float(hi_d) else DigType.BACKWARD
+        kind = DigType.DOWNWARD if self._downward_wall(beta) else DigType.BACKWARD
         atts = _WALL_ATTITUDES_DEG[kind]
         # The last piece stops short of the corner: a path that reaches into it cuts past the
         # bottom before the bottom's columns have opened it (and the columns start there).
@@ -122,10 +121,7 @@ class WallsMixin(LayersMixin):
             return None
         self._wall_piece = 1
         t = self.task
-        lo_d, hi_d = oneshot.theta_p_range(self.planning, int(DigType.DOWNWARD))
-        if t.beta1_rad < math.radians(_LAYER_WALL_MIN_DEG) or not (
-            float(lo_d) + 0.02 <= t.beta1_rad <= float(hi_d)
-        ):
+        if t.beta1_rad < math.radians(_LAYER_WALL_MIN_DEG) or not self._downward_wall(t.beta1_rad):
             return None
         g = self.ground_y
         y_top = self.layer_floors[self.layer - 1] if self.layer else g
@@ -154,14 +150,9 @@ class WallsMixin(LayersMixin):
         found = self._fit_pass(DigType.DOWNWARD, line, atts)
         if found is None:
             return None
-        dig = self._first_plannable([found], remaining, t0)
-        if dig is not None:
-            return dig
-        dig = self._first_plannable([dataclasses.replace(found, may_underfill=True)], remaining, t0)
-        if dig is None or not self._continued_after(dig, t0):
-            return None
-        self._count_pass(dig)
-        self._wall_piece = 2
+        dig = self._plan_profile(found, remaining, t0, lambda d: self._continued_after(d, t0))
+        if dig is not None and dig.finishing:
+            self._wall_piece = 2
         return dig
 
     def _continued_after(self, dig: PlannedDig, t0: float) -> bool:
@@ -172,8 +163,8 @@ class WallsMixin(LayersMixin):
         assert planned is not None  # dig was just planned
         saved = (self.surface, self.material, self.joinable, planned, self._carry_checked)
         counts = (self.finishing_used, self.finish_passes)
-        _, env, swept = planned
-        self.surface = np.minimum(self.surface, env)
+        swept = planned[2]
+        self.surface = self._surface_after(dig)
         if swept is not None:
             self.material = self.material.difference(swept)
         bucket = (float(saved[1].area) - float(self.material.area)) * self.width_m
@@ -239,14 +230,23 @@ class WallsMixin(LayersMixin):
         found = self._fit_pass(kind, np.array([a + shift, b + shift]), atts)
         return None if found is None else self._plan_profile(found, remaining, t0)
 
-    def _plan_profile(self, found: Candidate, remaining: Any, t0: float) -> PlannedDig | None:
+    def _plan_profile(
+        self,
+        found: Candidate,
+        remaining: Any,
+        t0: float,
+        accept: Callable[[PlannedDig], bool] | None = None,
+    ) -> PlannedDig | None:
         """A fitted profile dig planned as a full dig, or else (when the section's finishing
-        passes allow) as a finishing pass."""
+        passes allow) as a finishing pass; ``accept``: where given, a pass it refuses is not
+        taken (nor counted)."""
         dig = self._first_plannable([found], remaining, t0)
         if dig is None:
             dig = self._first_plannable(
                 [dataclasses.replace(found, may_underfill=True)], remaining, t0
             )
+            if dig is not None and accept is not None and not accept(dig):
+                return None
             self._count_pass(dig)
         return dig
 

@@ -1047,10 +1047,9 @@ def test_a_steep_far_walls_piece_is_taken_where_the_layers_column_starts_away_fr
     # 0.62 m x 0.18 m, far wall 74 deg, one upper layer (random suite, seed 11): the layer's
     # first column starts 2.1 cm from the wall's foot (it enters just beyond the material's
     # face), beyond the 2 cm reach of a joined dig, so the wall's piece was not tried and the
-    # layer ended with two passes. Fitted with end
-    # attitudes that hold a load, the piece ends where the column starts after all (the
-    # column continues it at its exit): one full bucket of two pieces, 5 buckets and one
-    # pass, against 7 and 3.
+    # layer ended with two passes. Fitted with end attitudes that hold a load, the piece
+    # ends where the column starts after all (the column continues it at its exit): one
+    # full bucket of two pieces, 5 buckets and one pass, against 7 and 3.
     task = _random_task(11, 173)
     plan = planner.plan(task)
     _check_fill_and_sections(plan)

@@ -232,28 +232,38 @@ def front_state(planner: PinnPlanner) -> np.ndarray:
     return np.concatenate([planner._row[0], planner._out[0], planner._retimed[0], planner._scale])
 
 
-def max_sync_gap_s(trace_dir: Path) -> float:
-    """The largest gap between the SYNCs a master sent, over the closed BLF traces in
-    ``trace_dir`` (s)."""
+def max_sync_gap_s(trace_dir: Path, arbitration_id: int = 0x080) -> float:
+    """The largest gap between the frames of one id (by default the SYNCs a master sent) over
+    the closed BLF traces in ``trace_dir`` (s)."""
     gap = 0.0
     for path in sorted(trace_dir.glob("*.blf")):
         stamps = np.array(
-            [m.timestamp for m in can.BLFReader(str(path)) if m.arbitration_id == 0x080]
+            [m.timestamp for m in can.BLFReader(str(path)) if m.arbitration_id == arbitration_id]
         )
         if stamps.size > 1:
             gap = max(gap, float(np.diff(stamps).max()))
     return gap
 
 
-def host_stall(fault: str, trace_dir: Path, rig: Rig) -> str | None:
-    """Why a daemon's latched ``fault`` is the host's doing, from the daemon's own evidence;
-    None where it is not.
+def host_stall(
+    fault: str,
+    trace_dir: Path,
+    rig: Rig,
+    hil_process: dict[str, Any] | None = None,
+    stale_window_s: float | None = None,
+) -> str | None:
+    """Why a daemon's latched ``fault`` is the host's doing, from the daemon's own evidence
+    and the HIL process's; None where it is not.
 
     The host's doing: the drives' SYNC watchdog EMCY while the daemon's trace (closed, in
     ``trace_dir``) shows the master sent no SYNC for longer than that watchdog, or the loop's
-    own overrun stop (it measured that many cycles in a row started late). A shared build
-    machine stops processes for tens of milliseconds at times; the daemon is right to stop the
-    arm then, and a test that runs it against the real-time HIL runs its scenario again.
+    own overrun stop (it measured that many cycles in a row started late). Also stale feedback
+    (no TPDO1 for the loop's ``stale_window_s``) while the real-time HIL's own statistics
+    (``hil_process``, :meth:`RealtimeHilProcess.finish`) show it answered a SYNC that long or
+    longer after the master sent it: the drives' stand-in was stopped, which drive firmware on
+    a rig never is. A shared build machine stops processes for tens of milliseconds at times;
+    the daemon is right to stop the arm then, and a test that runs it against the real-time
+    HIL runs its scenario again.
     """
     gap_s = max_sync_gap_s(trace_dir)
     watchdog_s = rig.drives.sync_timeout_s
@@ -264,4 +274,12 @@ def host_stall(fault: str, trace_dir: Path, rig: Rig) -> str | None:
         )
     if "overrun_stop" in fault:
         return f"the loop's overrun stop (largest SYNC gap {gap_s * 1e3:.1f} ms): {fault[:200]}"
+    if "stale feedback" in fault and hil_process is not None and stale_window_s is not None:
+        late_s = float(hil_process["sync_handling_us"]["max"]) * 1e-6
+        if late_s >= stale_window_s:
+            return (
+                f"the HIL process answered a SYNC {late_s * 1e3:.1f} ms after the master sent "
+                f"it (the stale window {stale_window_s * 1e3:.0f} ms; largest SYNC gap "
+                f"{gap_s * 1e3:.1f} ms): {fault[:200]}"
+            )
     return None

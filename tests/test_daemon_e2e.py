@@ -28,12 +28,15 @@ round trips) are printed, not asserted. Skipped, with the reason, only if the HI
 
 Host stalls. The drives' watchdog is right to stop the arm when the master falls silent for longer
 than it, and a shared build machine can stop any process for tens of milliseconds. A latched
-fault is therefore judged on the daemon's own evidence (:func:`conftest.host_stall`): if its
-trace shows the master sent no SYNC for longer than the drives' watchdog and the fault is that
-watchdog's EMCY, or the fault is the loop's own overrun stop, the host stalled the master and
-the daemon did what it must (fault latched, daemon up and answering, the job marked failed
+fault is therefore judged on the daemon's and the HIL's own evidence (:func:`conftest.host_stall`):
+if the daemon's trace shows the master sent no SYNC for longer than the drives' watchdog and the
+fault is that watchdog's EMCY, or the fault is the loop's own overrun stop, the host stalled the
+master; if the fault is stale feedback and the HIL process's statistics show it answered a SYNC
+the stale window or more after the master sent it, the host stalled the drives' stand-in. Either
+way the daemon did what it must (fault latched, daemon up and answering, the job marked failed
 with the fault); that attempt is printed and the scenario runs again with a new HIL, up to
-``STALL_ATTEMPTS`` times. Any other fault fails the test at once.
+``STALL_ATTEMPTS`` times. Any other fault fails the test at once, with the TPDO1 gaps of the
+daemon's trace and the HIL's statistics.
 """
 
 from __future__ import annotations
@@ -343,9 +346,17 @@ class HostStall(Exception):
     """A fault that is the host's doing (:func:`conftest.host_stall`)."""
 
 
-def _judge_failure(daemon: Daemon, sock: Path, trace_dir: Path, rig: Rig, fault: str) -> None:
+def _judge_failure(
+    daemon: Daemon,
+    sock: Path,
+    trace_dir: Path,
+    rig: Rig,
+    fault: str,
+    hil: RealtimeHilProcess,
+    config: DaemonConfig,
+) -> None:
     """A latched fault: raise :class:`HostStall` where it is the host's doing
-    (:func:`conftest.host_stall`); fail otherwise.
+    (:func:`conftest.host_stall`, with the HIL process's statistics); fail otherwise.
 
     The daemon has stayed up and answered on its socket with the fault; the job is marked
     ``failed`` with the fault's text (a ``reset-fault`` would queue it again).
@@ -359,10 +370,14 @@ def _judge_failure(daemon: Daemon, sock: Path, trace_dir: Path, rig: Rig, fault:
     job = request(sock, {"cmd": "status", "id": 1})["job"]
     assert job["status"] == "failed" and job["fault"] and job["fault"] in fault, (job, fault)
     assert daemon.stop() == 0, daemon.log()  # closes the trace
-    why = host_stall(fault, trace_dir, rig)
+    hil_process = hil.finish()[3]["hil_process"]
+    stale_window_s = config.stale_cycles * config.loop.period_s
+    why = host_stall(fault, trace_dir, rig, hil_process, stale_window_s)
     if why is not None:
         raise HostStall(why)
-    pytest.fail(f"fault (largest SYNC gap {max_sync_gap_s(trace_dir) * 1e3:.1f} ms): {fault}\n"
+    tpdo1_gaps = {node: max_sync_gap_s(trace_dir, 0x180 + node) * 1e3 for node in NODES}
+    pytest.fail(f"fault (largest SYNC gap {max_sync_gap_s(trace_dir) * 1e3:.1f} ms, TPDO1 "
+                f"gaps by node {tpdo1_gaps} ms, HIL process {hil_process}): {fault}\n"
                 f"{daemon.log()}")  # fmt: skip
 
 
@@ -438,7 +453,9 @@ def _scenario(hil: RealtimeHilProcess, tmp_path: Path) -> str:
         def in_second_dig() -> bool:
             st = request(sock, {"cmd": "status"})
             if st["daemon"]["fault"]:
-                _judge_failure(first, sock, trace.parent, rig, st["daemon"]["fault"])
+                _judge_failure(
+                    first, sock, trace.parent, rig, st["daemon"]["fault"], hil, loaded
+                )
             progress = st.get("progress") or {}
             return progress.get("phase") == "dig" and progress.get("dig") == 1
 
@@ -464,7 +481,7 @@ def _scenario(hil: RealtimeHilProcess, tmp_path: Path) -> str:
             fault = request(sock, {"cmd": "status"})["daemon"]["fault"]
             if fault:
                 assert second is not None
-                _judge_failure(second, sock, trace.parent, rig, fault)
+                _judge_failure(second, sock, trace.parent, rig, fault, hil, loaded)
             return bool(_job(store)["status"] == "done")
 
         _until(finished, 200.0, "job 1 done", second)
@@ -497,3 +514,23 @@ def _scenario(hil: RealtimeHilProcess, tmp_path: Path) -> str:
         f"store parsed {poller.reads} times; total {time.monotonic() - t0:.1f} s; "
         f"{extra['hil_process']}"
     )
+
+
+def test_stale_feedback_is_the_hosts_doing_only_where_the_hil_answered_that_late(
+    tmp_path: Path,
+) -> None:
+    """The judge of a stale-feedback fault: a host stall where the HIL's own statistics show a
+    SYNC answered the stale window or more after it was sent; the daemon's fault otherwise (and
+    without the HIL's statistics)."""
+    rig = load_rig(RIG)
+    fault = "job 1: fault: stale feedback: no TPDO1 from the boom drive for 10 cycles"
+
+    def stats(max_us: float) -> dict[str, Any]:
+        return {"sync_handling_us": {"p50": 300.0, "p99": 900.0, "max": max_us}}
+
+    why = host_stall(fault, tmp_path, rig, stats(24_000.0), 0.020)
+    assert why is not None and "24.0 ms" in why and "stale window 20 ms" in why, why
+    assert host_stall(fault, tmp_path, rig, stats(19_000.0), 0.020) is None
+    assert host_stall(fault, tmp_path, rig) is None
+    other = "job 1: fault: following error on the boom drive"
+    assert host_stall(other, tmp_path, rig, stats(50_000.0), 0.020) is None

@@ -463,6 +463,8 @@ def _scenario(hil: RealtimeHilProcess, tmp_path: Path) -> str:
         time.sleep(1.5)  # well inside the dig (a dig lasts ~5 s)
         assert request(sock, {"cmd": "status"})["progress"]["phase"] == "dig"
         assert first.stop() == 0, first.log()
+        # Every native object freed before the interpreter's end (nanobind reports leaks).
+        assert "nanobind: leaked" not in first.log(), first.log()[-3000:]
         assert any(m.startswith("STOPPING=1") for m in first.messages), first.messages
         assert "WATCHDOG=1" in first.messages
         assert any(m.startswith("STATUS=running job 1") for m in first.messages)
@@ -492,6 +494,7 @@ def _scenario(hil: RealtimeHilProcess, tmp_path: Path) -> str:
         st = request(sock, {"cmd": "status"})
         assert st["daemon"]["healthy"], st
         assert second.stop() == 0, second.log()
+        assert "nanobind: leaked" not in second.log(), second.log()[-3000:]
         figures2 = check_trace(trace, rig, _enable_syncs(second))
         assert (trace.parent / "can.1.blf").exists()  # the first run's trace is kept
     finally:

@@ -908,6 +908,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         recorder.close()
         if helpers is not None:
             helpers.restore()
+        # What was frozen is garbage now: collect it, so the native extensions' objects
+        # (ruckig's) are freed before the interpreter tears their modules down.
+        gc.unfreeze()
+        gc.collect()
         for h in logging.getLogger().handlers:
             h.flush()
 

@@ -230,8 +230,9 @@ class _Worker:
 
     def __init__(self, name: str) -> None:
         self.name = name
-        self._queue: queue.SimpleQueue[tuple[Any, tuple[Any, ...]]] = queue.SimpleQueue()
-        threading.Thread(target=self._run, name=name, daemon=True).start()
+        self._queue: queue.SimpleQueue[tuple[Any, tuple[Any, ...]] | None] = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
 
     def submit(self, fn: Any, *args: Any) -> None:
         """Queue ``fn(*args)`` (loop safe: a queue put)."""
@@ -243,9 +244,16 @@ class _Worker:
         self.submit(done.set)
         return done.wait(timeout_s)
 
+    def stop(self, timeout_s: float) -> bool:
+        """Run what is queued, then end the thread (at most ``timeout_s``); True if it ended.
+        Nothing may be submitted after."""
+        self._queue.put(None)
+        self._thread.join(timeout_s)
+        return not self._thread.is_alive()
+
     def _run(self) -> None:
-        while True:
-            fn, args = self._queue.get()
+        while (item := self._queue.get()) is not None:
+            fn, args = item
             try:
                 fn(*args)
             except Exception:
@@ -273,8 +281,23 @@ class _Preparation:
         self.worker = _Worker("prepare")
         #: Work after a job: its report, closing a controller that never ran.
         self.after = _Worker("job-after")
-        self.records: queue.SimpleQueue[tuple[int, DigRecord]] = queue.SimpleQueue()
-        threading.Thread(target=self._record_loop, name="dig-records", daemon=True).start()
+        self.records: queue.SimpleQueue[tuple[int, DigRecord] | None] = queue.SimpleQueue()
+        self._recorder = threading.Thread(
+            target=self._record_loop, name="dig-records", daemon=True
+        )
+        self._recorder.start()
+
+    def stop(self, timeout_s: float) -> bool:
+        """Record the dig records queued, run the work queued after jobs and before them, and
+        end the three threads (at most ``timeout_s`` in all); True if they ended. Their
+        references (the planners, the store) go with them."""
+        end = time.monotonic() + timeout_s
+        self.records.put(None)
+        self._recorder.join(timeout_s)
+        ended = not self._recorder.is_alive()
+        for worker in (self.after, self.worker):
+            ended = worker.stop(max(end - time.monotonic(), 0.0)) and ended
+        return ended
 
     def busy(self) -> bool:
         """A preparation is queued or runs."""
@@ -386,8 +409,8 @@ class _Preparation:
         """Each dig's record: its summary and the session state into the store (its writer
         thread persists), the log line. A failure is logged; the thread goes on."""
         store = self.runner.store
-        while True:
-            job_id, rec = self.records.get()
+        while (item := self.records.get()) is not None:
+            job_id, rec = item
             try:
                 # A taught cycle has no material accounting: its volumes are null.
                 fields = {k: _null_if_nan(getattr(rec, k)) for k in DIG_KEYS}
@@ -512,7 +535,7 @@ class RigRunner:
         # The last job's report (its planner closed, its telemetry file) runs on a daemon
         # thread that the process's exit would cut short.
         left = min(max(end - time.monotonic(), 0.0), AFTERMATH_TIMEOUT_S)
-        if not self._prep.after.drain(left):
+        if not self._prep.stop(left):
             log.warning("the last job's report did not finish within %.1f s", left)
         return True
 

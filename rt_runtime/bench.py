@@ -838,6 +838,8 @@ class TaskPlanBench:
         plan_per_dig_ms: The same per dig (ms).
         dig_plan_per_dig_ms: The same without the dig cycles' planning (stage ``transitions``):
             each dig's choice, plan and checks (ms).
+        dig_plan_each_ms: Each dig's own planning over the passes (its choice, plan and
+            checks, :attr:`TrenchPlan.dig_plan_us`; ms; p50, p99, p999, max).
         fill_L: Real volume of each dig (L).
         finishing: Finishing passes.
         travel_moves: Travel moves.
@@ -860,6 +862,7 @@ class TaskPlanBench:
     plan_us: Distribution
     plan_per_dig_ms: Distribution
     dig_plan_per_dig_ms: Distribution
+    dig_plan_each_ms: Distribution
     fill_L: tuple[float, ...]
     finishing: int
     travel_moves: int
@@ -899,6 +902,7 @@ class TaskPlanBench:
             "plan_us": self.plan_us.to_json(),
             "plan_per_dig_ms": self.plan_per_dig_ms.to_json(),
             "dig_plan_per_dig_ms": self.dig_plan_per_dig_ms.to_json(),
+            "dig_plan_each_ms": self.dig_plan_each_ms.to_json(),
             "fill_L": list(self.fill_L),
             "finishing": self.finishing,
             "travel_moves": self.travel_moves,
@@ -979,6 +983,8 @@ class TrenchBench:
         cycles: The dig cycles of every task's plan.
         dig_plan_per_dig_ms: ``plan_per_dig_ms`` without the dig cycles' planning (the tasks'
             ``dig_plan_per_dig_ms`` medians), None without a task.
+        dig_plan_each_ms: Each dig's own planning, every dig of every task and pass (ms; p50,
+            p99, p999, max), None without a dig.
     """
 
     geometry: str
@@ -989,10 +995,14 @@ class TrenchBench:
     plan_per_dig_over_pinn_plan: float | None
     cycles: CycleFigures | None = None
     dig_plan_per_dig_ms: Distribution | None = None
+    dig_plan_each_ms: Distribution | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The block's keys (README ``bench plan``)."""
         return {
+            "dig_plan_each_ms": (
+                self.dig_plan_each_ms.to_json() if self.dig_plan_each_ms is not None else None
+            ),
             "dig_plan_per_dig_ms": (
                 self.dig_plan_per_dig_ms.to_json() if self.dig_plan_per_dig_ms is not None else None
             ),
@@ -1088,16 +1098,19 @@ def bench_plan(
     out: dict[str, TaskPlanBench] = {}
     all_us: list[float] = []
     all_ref: list[float] = []
+    all_each_ms: list[float] = []
     for name in tasks:
         task = load_task(name, rig)
         times: list[float] = []
         ref_times: list[float] = []
         stages: list[dict[str, float]] = []
+        each_ms: list[float] = []
         plan = ref_plan = None
         for _ in range(max(1, passes)):
             plan = pinn.plan(task)
             times.append(plan.plan_total_us)
             stages.append(plan.stage_us)
+            each_ms += [t / 1e3 for t in plan.dig_plan_us]
             ref_plan = ref.plan(task)
             ref_times.append(ref_plan.plan_total_us)
         assert plan is not None and ref_plan is not None
@@ -1105,6 +1118,7 @@ def bench_plan(
         report = plan.to_json()
         all_us += times
         all_ref += ref_times
+        all_each_ms += each_ms
         task_time = report["dig_time_s"] + report["transition_time_s"]
         before = FIRST_DESIGN_TASK_TIME_S.get(name)
         versus: PsoTrench | None = None
@@ -1125,6 +1139,7 @@ def bench_plan(
                     for t, st in zip(times, stages, strict=True)
                 ]
             ),
+            dig_plan_each_ms=Distribution.spread(each_ms),
             fill_L=tuple(v * 1e3 for v in plan.bucket_volumes_m3),
             finishing=sum(b[0].finishing for b in plan.buckets),
             travel_moves=len(report["travel"]),
@@ -1166,6 +1181,7 @@ def bench_plan(
             ),
             cycles=CycleFigures.of([c for e in out.values() for c in e.pinn.to_json()["cycles"]]),
             dig_plan_per_dig_ms=Distribution.of(dig_per_dig) if dig_per_dig else None,
+            dig_plan_each_ms=Distribution.of(all_each_ms, tails=True) if all_each_ms else None,
         ),
     )
 
@@ -1555,6 +1571,8 @@ class RandomSuite:
         plan_per_dig_ms: Plan time per dig (ms; p50, p99).
         dig_plan_per_dig_ms: The same without the dig cycles' planning (stage ``transitions``):
             each dig's choice, plan and checks (ms; p50, p99).
+        dig_plan_each_ms: Each dig's own planning, every dig of every planned task (its
+            choice, plan and checks, :attr:`TrenchPlan.dig_plan_us`; ms; p50, p99, p999, max).
         status_done: Fraction of the tasks done.
         reference: One PINN plan call of the same run, None without a roughing dig.
         plan_per_dig_over_pinn_plan: Median plan time per dig over the reference's median.
@@ -1582,6 +1600,7 @@ class RandomSuite:
     cycles: CycleFigures | None = None
     sections_within_finishing_goal: float | None = None
     dig_plan_per_dig_ms: Distribution | None = None
+    dig_plan_each_ms: Distribution | None = None
 
     @property
     def error_tasks(self) -> tuple[RandomTask, ...]:
@@ -1621,6 +1640,7 @@ class RandomSuite:
             "plan_ms": opt(self.plan_ms),
             "plan_per_dig_ms": opt(self.plan_per_dig_ms),
             "dig_plan_per_dig_ms": opt(self.dig_plan_per_dig_ms),
+            "dig_plan_each_ms": opt(self.dig_plan_each_ms),
             "status_done": self.status_done,
             "errors": self.errors,
             "error_tasks": [t.to_json() for t in self.error_tasks],
@@ -1669,6 +1689,7 @@ def bench_plan_random(
     records: list[RandomTask] = []
     all_cycles: list[dict[str, Any]] = []
     fills: list[float] = []
+    each_ms: list[float] = []
     finishing_max = 0
     first_problem: Any = None
     for task in tasks:
@@ -1688,6 +1709,7 @@ def bench_plan_random(
             records.append(RandomTask(**values, error=f"{type(e).__name__}: {e}"))
             continue
         buckets = plan.buckets
+        each_ms += [t / 1e3 for t in plan.dig_plan_us]
         fills += [
             v * 1e3
             for v, b in zip(plan.bucket_volumes_m3, buckets, strict=True)
@@ -1763,6 +1785,7 @@ def bench_plan_random(
         plan_ms=Distribution.of([r.plan_ms for r in planned_tasks]) if planned_tasks else None,
         plan_per_dig_ms=Distribution.of(per_dig) if per_dig else None,
         dig_plan_per_dig_ms=Distribution.of(dig_per_dig) if dig_per_dig else None,
+        dig_plan_each_ms=Distribution.of(each_ms, tails=True) if each_ms else None,
         sections_within_finishing_goal=(
             sum(k <= MAX_FINISHING_PER_SECTION for k in sections) / len(sections)
             if sections

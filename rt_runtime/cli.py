@@ -1046,6 +1046,9 @@ def _print_bench_random(q: RandomSuite) -> None:
     dig_part = q.dig_plan_per_dig_ms
     dig_text = f" (without the dig cycles {dig_part.p50:.2f} ms, p99 {dig_part.p99:.2f} ms)" if dig_part is not None else ""
     print(f"  plan per task p50 {q.plan_ms.p50:.1f} ms, p99 {q.plan_ms.p99:.1f} ms; per dig p50 {per_dig}{dig_text}{ref_text}")
+    each = q.dig_plan_each_ms
+    if each is not None:
+        print(f"  each dig's choice, plan and checks over all digs: p50 {each.p50:.2f} ms, p99 {each.p99:.2f} ms, max {each.max:.1f} ms")
     print("  worst:  task              L [m]  D [m]  beta1  beta2  x [m]  coverage  over [mm]  digs  status")
     for w in q.worst:
         if w.planned is not None:
@@ -1089,6 +1092,9 @@ def _print_bench_plan(
     dd = tr.dig_plan_per_dig_ms
     if dd is not None:
         print(f"  of it the dig's choice, plan and checks (without the dig cycles): p50 {dd.p50:.1f} ms, p99 {dd.p99:.1f} ms")
+    each = tr.dig_plan_each_ms
+    if each is not None:
+        print(f"  each dig's choice, plan and checks over all digs: p50 {each.p50:.2f} ms, p99 {each.p99:.2f} ms, max {each.max:.1f} ms")
     print("  task  fill of each dig [L] (* finishing)                      finishing  travels  digs+moves  vs first design (goal <= 60 %)")
     for name, e in tasks.items():
         fills = " ".join(f"{v:.2f}{'*' if d[0].finishing else ''}" for v, d in zip(e.fill_L, e.pinn.buckets, strict=True))

@@ -74,6 +74,15 @@ def test_bench_plan_compares_pinn_and_pso_on_the_same_dig_problems() -> None:
     assert 0.0 < e.dig_plan_per_dig_ms.p50 < e.plan_per_dig_ms.p50
     assert j["dig_plan_per_dig_ms"] == e.dig_plan_per_dig_ms.to_json()
     assert r.to_json()["trench"]["dig_plan_per_dig_ms"] is not None
+    # Each dig's own planning (next_dig less the moves into it): one time per dig, together
+    # no more than the whole plan less its moves and the material updates.
+    each = e.pinn.dig_plan_us
+    assert len(each) == len(e.pinn.digs) and min(each) > 0.0
+    st = e.pinn.stage_us
+    assert sum(each) <= e.pinn.plan_total_us - st["transitions"] - st["record"]
+    assert e.pinn.to_json()["dig_plan_us"] == list(each)
+    assert j["dig_plan_each_ms"]["max"] == pytest.approx(max(each) / 1e3)
+    assert set(r.to_json()["trench"]["dig_plan_each_ms"]) == {"p50", "p99", "p999", "max"}
     assert r.trench.geometry == "c"
     # The dig cycles, per task as the plan reports them and over the tasks.
     cycles = j["cycles"]
@@ -105,7 +114,7 @@ def test_random_suite_is_seeded_and_has_every_key() -> None:
         "digs", "fill", "finishing_per_section_max", "transition_penetration_max_mm",
         "plan_ms", "plan_per_dig_ms", "status_done", "errors", "error_tasks", "worst",
         "reference", "plan_per_dig_over_pinn_plan", "per_task", "cycles",
-        "dig_plan_per_dig_ms", "sections_within_finishing_goal",
+        "dig_plan_per_dig_ms", "sections_within_finishing_goal", "dig_plan_each_ms",
     }  # fmt: skip
     assert keys <= set(r)
     assert set(r["cycles"]) == {"cycles", "moves_per_cycle_s", "moves_vs_bound", "fallbacks"}
@@ -117,6 +126,9 @@ def test_random_suite_is_seeded_and_has_every_key() -> None:
         assert set(r[key]) == {"p50", "max"}
     for key in ("plan_ms", "plan_per_dig_ms", "dig_plan_per_dig_ms"):
         assert set(r[key]) == {"p50", "p99"} and r[key]["p50"] > 0.0
+    each = r["dig_plan_each_ms"]
+    assert set(each) == {"p50", "p99", "p999", "max"}
+    assert 0.0 < each["p50"] <= each["p99"] <= each["p999"] <= each["max"]
     # The dig's own planning is the whole plan less the dig cycles' (stage transitions).
     tasks_json = r["per_task"]
     assert all(0.0 < t["cycles_plan_ms"] < t["plan_ms"] for t in tasks_json)

@@ -332,6 +332,9 @@ class TrenchPlan:
             ``transitions`` (the moves between digs and their checks), ``record`` (the
             material update), ``finish`` (this plan's coverage and over-dig), ``other`` (the
             rest: entries, layers, the remaining design).
+        dig_plan_us: Each dig's planning (its choice, plan and checks in
+            :meth:`TrenchSession.next_dig`, without the moves into it) (us), in the order of
+            the digs the session planned (a resumed session's: those after the resume).
         planning_error: What stopped the planning before the planner found the task finished
             (the message of the PlanningError: no dig removes the rest, the bound on the digs),
             or None when it ran to its end; the plan then holds the digs before it.
@@ -356,6 +359,7 @@ class TrenchPlan:
     stage_us: dict[str, float] = field(default_factory=dict)
     planning_error: str | None = None
     screening: str = "network"
+    dig_plan_us: tuple[float, ...] = ()
     soil: str | None = None
 
     @property
@@ -448,6 +452,7 @@ class TrenchPlan:
             "design_L": self.design_m3 * 1e3,
             "plan_total_us": self.plan_total_us,
             "stage_us": dict(self.stage_us),
+            "dig_plan_us": list(self.dig_plan_us),
             "dig_time_s": sum(d.T_s for d in self.digs),
             "transition_time_s": sum(t.duration_s for t in moves),
             "transition_penetration_max_mm": max(

@@ -112,6 +112,9 @@ class TrenchSession(PersistMixin):
         self._begin_section(0)
         #: Time spent per stage so far (us; TrenchPlan.stage_us).
         self.stage_us: dict[str, float] = dict.fromkeys(_STAGES, 0.0)
+        #: Each dig's planning in :meth:`next_dig` without the moves into it (us; in the
+        #: order of the digs this session planned; TrenchPlan.dig_plan_us).
+        self.dig_plan_us: list[float] = []
         #: The pending dig's planned tip path, its envelope and swept region (for record()).
         self._planned_region: tuple[FloatArray, FloatArray, Any] | None = None
         #: Transitions planned lately: key -> (the height field they were checked on, moves).
@@ -148,6 +151,8 @@ class TrenchSession(PersistMixin):
         """
         if self.pending is not None:
             raise PlanningError("record() the executed path of the previous dig first")
+        t_call = time.perf_counter()
+        moves_us = self.stage_us["transitions"]
         remaining = self.remaining_design()
         left = float(remaining.area)
         # Done when the design of the sections still ahead (this one and those nearer the
@@ -173,6 +178,9 @@ class TrenchSession(PersistMixin):
         if not dig.joined or dig.carried:
             self._append_transitions(dig)
         self.pending = dig
+        self.dig_plan_us.append(
+            (time.perf_counter() - t_call) * 1e6 - (self.stage_us["transitions"] - moves_us)
+        )
         return dig
 
     def _next_in_section(self, remaining: Any, t0: float) -> PlannedDig | None:
@@ -322,6 +330,7 @@ class TrenchSession(PersistMixin):
             removed_m3=removed,
             design_m3=self.design_area * self.width_m,
             plan_total_us=plan_total_us,
+            dig_plan_us=tuple(self.dig_plan_us),
             screening=self.planner.screening,
             soil=self.planner.soil,
         )

@@ -1063,6 +1063,25 @@ def test_a_steep_far_walls_piece_is_taken_where_the_layers_column_starts_away_fr
     assert len(before.buckets) == 7 and _passes(before) == 3
 
 
+def test_a_bottom_column_fills_the_light_bucket_of_the_pass_before_it(
+    planner: TrenchPlanner,
+) -> None:
+    # 0.70 m x 0.045 m, walls 70/72 deg (random suite, seed 13): the bottom holds ~1.8 buckets.
+    # No full column fitted, so its far part went as a pass (3.3 L, below the fill band) and
+    # the rest as a second pass: three passes in the section with the far wall's. The rest
+    # is sized with the light bucket it joins (what it holds counts): the pass and the
+    # joined column fill one bucket in the band, and the section keeps two passes.
+    task = _random_task(13, 99)
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    lo, hi = _fill_band_l(RIG)
+    full = [b for b in plan.buckets if len(b) == 2 and b[1].joined and not b[0].finishing]
+    assert full, [[(d.volume_m3 * 1e3, d.finishing, d.joined) for d in b] for b in plan.buckets]
+    pass_part, column = full[0]
+    assert pass_part.volume_m3 * 1e3 < lo <= (pass_part.volume_m3 + column.volume_m3) * 1e3 <= hi
+    assert _passes(plan) == 2 and plan.status is PlanStatus.DONE
+
+
 def test_a_rest_that_must_be_taken_is_taken_where_the_layer_below_would_be_too_thick(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -562,12 +562,16 @@ class LayersMixin(RoughMixin):
         tries = [(False, False), (False, True)] if self._thin_bottom() else [(False, False)]
         # Where the column may start at the last dig's exit (joined), first the full columns
         # that fill the bucket it holds: the first two sizes (each is fitted joined and
-        # alone), taken only joined.
-        first = self._column_ends(self.design_floor, x_lo, x_hi) if self.joinable else []
-        if first and self._join_at(np.array([first[0], self.bottom_y + 0.002])) is not None:
-            assert self.joinable is not None
+        # alone), taken only joined. A light bucket (below the fill band) counts where the
+        # column is sized: the rest may fill it with what it holds, and alone would not.
+        floor = self.design_floor
+        first: list[float] = []
+        if self.joinable is not None:
             bucket = self.joinable[1] / self.width_m
-            ends = self._column_ends(self.design_floor, x_lo, x_hi, bucket=bucket)
+            light = bucket < self._fill_band()[0]
+            first = self._column_ends(floor, x_lo, x_hi, bucket=bucket if light else 0.0)
+        if first and self._join_at(np.array([first[0], self.bottom_y + 0.002])) is not None:
+            ends = first if light else self._column_ends(floor, x_lo, x_hi, bucket=bucket)
             dig = self._bottom_column(ends[:3], False, False, remaining, t0, joined_only=True)
             if dig is not None:
                 return dig

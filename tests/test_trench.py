@@ -1082,6 +1082,32 @@ def test_a_bottom_column_fills_the_light_bucket_of_the_pass_before_it(
     assert _passes(plan) == 2 and plan.status is PlanStatus.DONE
 
 
+def test_a_joined_bottom_column_is_not_given_up_for_the_flat_one_from_its_own_start(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rt_runtime.planning.trench.fit import FitMixin
+
+    # 0.31 m x 0.20 m, walls 56/80 deg (random suite, seed 29): the far wall's piece (1.1 L)
+    # was continued by a bottom column along the tilted line, chosen joined over the same
+    # column from its own start; then the column along the bottom itself, from its own
+    # start, replaced it for removing a little more design material, and the wall's piece,
+    # the bottom and the near wall went as passes (three). A flat column from its own start
+    # replaces a joined one only where it lowers the difference by more than the joined
+    # dig's slack: one bucket of three pieces in the band, one pass in all.
+    task = _random_task(29, 126)
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    lo, hi = _fill_band_l(RIG)
+    last = plan.buckets[-1]
+    assert len(last) == 3 and all(d.joined for d in last[1:])
+    assert not any(d.finishing for d in last)
+    assert lo <= sum(d.volume_m3 for d in last) * 1e3 <= hi
+    assert _passes(plan) == 1 and plan.status is PlanStatus.DONE
+    monkeypatch.setattr(FitMixin, "_flat_kept", lambda self, t, f: f.useful_m2 > t.useful_m2)
+    before = planner.plan(task)
+    assert _passes(before) == 3
+
+
 def test_a_rest_that_must_be_taken_is_taken_where_the_layer_below_would_be_too_thick(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -184,9 +184,19 @@ class FitMixin(CyclesMixin):
             # fitted to the bottom itself as well, the one that removes more design material
             # is kept.
             flat = self._fit_profile(kind, a, b, self._walls[[2]], atts, shifts)
-            if flat is not None and (found is None or flat.useful_m2 > found.useful_m2):
+            if flat is not None and (found is None or self._flat_kept(found, flat)):
                 found = flat
         return found
+
+    def _flat_kept(self, tilted: Candidate, flat: Candidate) -> bool:
+        """Whether the bottom pass fitted to the bottom itself (``flat``) replaces the one
+        along the tilted line (``tilted``): where it removes more design material; but a flat
+        pass from its own start replaces a joined tilted one only where it lowers the
+        difference of dug and design by more than the joined dig's slack
+        (:meth:`_join_slack`), as the joined dig was chosen over its own start."""
+        if tilted.joined and not flat.joined:
+            return difference_lowered(flat) - self._join_slack() > difference_lowered(tilted)
+        return flat.useful_m2 > tilted.useful_m2
 
     def _inward_normal(self, a: FloatArray, b: FloatArray) -> FloatArray:
         """The unit normal of the segment ``a``-``b`` (work-site frame) that points towards
@@ -247,12 +257,7 @@ class FitMixin(CyclesMixin):
                 self._joining = None
             if joined is not None:
                 own = self._fit_profile_from(kind, a, b, edges, atts, (), good_cost)
-                # A joined dig that continues a finishing pass's bucket saves a cycle, and a
-                # pass where the bucket stays light.
-                saves = bool(self.digs) and self.digs[-1].finishing
-                slack = (
-                    _JOIN_SAVING_SLACK if saves else _JOIN_DIFFERENCE_SLACK
-                ) * self.design_area
+                slack = self._join_slack()
                 if own is not None:
                     if difference_lowered(joined) >= difference_lowered(own) - slack:
                         return joined
@@ -266,6 +271,14 @@ class FitMixin(CyclesMixin):
         if carried is not None:
             return carried
         return self._fit_profile_from(kind, a, b, edges, atts, offsets, good_cost)
+
+    def _join_slack(self) -> float:
+        """How much less a joined dig may lower the difference of dug and design than the same
+        dig from its own start and still be taken (m^2): :data:`_JOIN_DIFFERENCE_SLACK` of the
+        design, or :data:`_JOIN_SAVING_SLACK` where the bucket it continues is a finishing
+        pass's (a cycle saved, and a pass where the bucket stays light)."""
+        saves = bool(self.digs) and self.digs[-1].finishing
+        return (_JOIN_SAVING_SLACK if saves else _JOIN_DIFFERENCE_SLACK) * self.design_area
 
     def _carried_fit(
         self,

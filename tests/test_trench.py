@@ -1108,6 +1108,27 @@ def test_a_joined_bottom_column_is_not_given_up_for_the_flat_one_from_its_own_st
     assert _passes(before) == 3
 
 
+def test_a_finishing_pass_that_continues_the_last_bucket_comes_first(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rt_runtime.planning.trench import finishing
+
+    # 0.52 m x 0.11 m, walls 70/53 deg (random suite, seed 11): after the bottom's pass
+    # (1.4 L, a light bucket) the section's last pass took 0.03 L along the far part of the
+    # bottom from its own start, a bucket of its own. A pass that continues the last bucket
+    # (here carried to a line nearer the machine, 0.03 L as well) is tried first: three
+    # buckets and one pass, against four and two.
+    task = _random_task(11, 181)
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    last = plan.buckets[-1]
+    assert len(last) == 2 and last[1].joined and last[1].carried and last[1].finishing
+    assert len(plan.buckets) == 3 and _passes(plan) == 1 and plan.status is PlanStatus.DONE
+    monkeypatch.setattr(finishing, "_pass_rank", lambda c: (False, -c.useful_m2))
+    before = planner.plan(task)
+    assert len(before.buckets) == 4 and _passes(before) == 2
+
+
 def test_a_rest_that_must_be_taken_is_taken_where_the_layer_below_would_be_too_thick(
     planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -1569,8 +1590,9 @@ def test_passes_beyond_two_stop_where_the_material_comes_back(planner: TrenchPla
     x = session.grid
     heap = np.abs(x - float(np.mean(x[session.design_floor <= session.bottom_y + 1e-9]))) < 0.1
     slumped = np.where(heap, np.maximum(session.surface, session.bottom_y + 0.012), session.surface)
-    # A digs one finishing pass: the slump takes the second the section may take.
-    for _ in range(3):
+    # A digs one finishing pass: the slump's passes continue its bucket while it may be
+    # continued (they start no bucket), then take the second the section may take.
+    for _ in range(8):
         if session.finishing_used >= 2:
             break
         session.observe_surface(x, slumped)

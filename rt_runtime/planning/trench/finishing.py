@@ -47,6 +47,13 @@ _NEAR_WALL_ATTS = ((-80.0, -100.0), (-100.0, -130.0))
 _LAYER_M = 0.05
 
 
+def _pass_rank(c: Candidate) -> tuple[bool, float]:
+    """The order of the finishing passes that lower the difference enough: first those that
+    continue the last dig's bucket (joined, or carried to it), which take no bucket of their
+    own, then the others; each by the design material it removes, the most first."""
+    return (not c.joined, -c.useful_m2)
+
+
 class FinishingMixin(WallsMixin):
     """A session's finishing passes (see the module)."""
 
@@ -93,7 +100,7 @@ class FinishingMixin(WallsMixin):
         # less what it cuts outside the design) by more than next to nothing (a thousandth of
         # the section's design: what is left there is within the coverage budget's rounding).
         found = [c for c in found if difference_lowered(c) >= least]
-        found.sort(key=lambda c: -c.useful_m2)
+        found.sort(key=_pass_rank)
         if beyond:
             # Taken for the coverage goal: the one that lowers the difference most first.
             found.sort(key=lambda c: -difference_lowered(c))

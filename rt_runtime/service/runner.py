@@ -532,11 +532,16 @@ class RigRunner:
         self._thread.join(timeout_s)
         if self._thread.is_alive():
             return False
-        # The last job's report (its planner closed, its telemetry file) runs on a daemon
-        # thread that the process's exit would cut short.
+        # The last dig records and the last job's report (its planner closed, its telemetry
+        # file) run on helper threads that the process's exit would cut short; a preparation
+        # still running is waited for as long as the time left allows.
         left = min(max(end - time.monotonic(), 0.0), AFTERMATH_TIMEOUT_S)
         if not self._prep.stop(left):
-            log.warning("the last job's report did not finish within %.1f s", left)
+            log.warning(
+                "the dig records, the last job's report or a preparation did not finish "
+                "within %.1f s",
+                left,
+            )
         return True
 
     def alive(self) -> bool:

@@ -1124,9 +1124,35 @@ def test_a_finishing_pass_that_continues_the_last_bucket_comes_first(
     last = plan.buckets[-1]
     assert len(last) == 2 and last[1].joined and last[1].carried and last[1].finishing
     assert len(plan.buckets) == 3 and _passes(plan) == 1 and plan.status is PlanStatus.DONE
-    monkeypatch.setattr(finishing, "_pass_rank", lambda c: (False, -c.useful_m2))
+    monkeypatch.setattr(finishing, "_pass_rank", lambda c, beyond: (False, -c.useful_m2))
     before = planner.plan(task)
     assert len(before.buckets) == 4 and _passes(before) == 2
+
+
+def test_a_pass_beyond_two_for_the_coverage_goal_continues_the_last_bucket_first(
+    planner: TrenchPlanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rt_runtime.planning.trench import finishing
+    from rt_runtime.planning.trench.candidates import difference_lowered
+
+    # 0.52 m x 0.23 m, walls 71/61 deg (random suite, seed 3): the section had spent its two
+    # passes (the far wall, the bottom's rest: a light bucket of 1.9 L) and needed a third
+    # for the coverage goal; the one that lowered the difference most was taken, a bucket
+    # of its own. Beyond the two as well, a pass that continues the last bucket (here
+    # carried) comes first: two passes in the section, against three.
+    task = _random_task(3, 11)
+    plan = planner.plan(task)
+    _check_fill_and_sections(plan)
+    last = plan.buckets[-1]
+    assert len(last) == 2 and last[0].finishing and last[1].carried and last[1].finishing
+    assert _passes(plan) == 2 and plan.status is PlanStatus.DONE
+
+    def by_difference(c, beyond):
+        return (False, -(difference_lowered(c) if beyond else c.useful_m2))
+
+    monkeypatch.setattr(finishing, "_pass_rank", by_difference)
+    before = planner.plan(task)
+    assert _passes(before) == 3 and before.status is PlanStatus.DONE
 
 
 def test_a_rest_that_must_be_taken_is_taken_where_the_layer_below_would_be_too_thick(
@@ -1636,8 +1662,13 @@ def test_the_finishing_stages_bound_counts_its_own_passes(planner: TrenchPlanner
         session.record(dig, dig.tip_path_m)
         state = json.loads(json.dumps(session.state()))
         assert state["finish_passes"] == session.finish_passes <= session.finishing_used
-    # The same session as if its layers had taken the bound's worth of passes more.
-    many = {**state, "finishing_used": state["finishing_used"] + MAX_FINISHING_HARD}
+    # The same session as if its layers had taken the bound's worth of passes more, its last
+    # bucket dumped (so the slump's pass starts a bucket of its own, and counts).
+    many = {
+        **state,
+        "finishing_used": state["finishing_used"] + MAX_FINISHING_HARD,
+        "joinable": None,
+    }
     x = session.grid
     heap = np.abs(x - float(np.mean(x[session.design_floor <= session.bottom_y + 1e-9]))) < 0.1
     slumped = np.where(heap, np.maximum(session.surface, session.bottom_y + 0.012), session.surface)

@@ -47,11 +47,13 @@ _NEAR_WALL_ATTS = ((-80.0, -100.0), (-100.0, -130.0))
 _LAYER_M = 0.05
 
 
-def _pass_rank(c: Candidate) -> tuple[bool, float]:
+def _pass_rank(c: Candidate, beyond: bool) -> tuple[bool, float]:
     """The order of the finishing passes that lower the difference enough: first those that
     continue the last dig's bucket (joined, or carried to it), which take no bucket of their
-    own, then the others; each by the design material it removes, the most first."""
-    return (not c.joined, -c.useful_m2)
+    own, then the others; each by the design material it removes, the most first, or with
+    ``beyond`` (passes beyond the section's two, taken for the coverage goal) by how much it
+    lowers the difference of dug and design."""
+    return (not c.joined, -(difference_lowered(c) if beyond else c.useful_m2))
 
 
 class FinishingMixin(WallsMixin):
@@ -100,10 +102,7 @@ class FinishingMixin(WallsMixin):
         # less what it cuts outside the design) by more than next to nothing (a thousandth of
         # the section's design: what is left there is within the coverage budget's rounding).
         found = [c for c in found if difference_lowered(c) >= least]
-        found.sort(key=_pass_rank)
-        if beyond:
-            # Taken for the coverage goal: the one that lowers the difference most first.
-            found.sort(key=lambda c: -difference_lowered(c))
+        found.sort(key=lambda c: _pass_rank(c, beyond))
         dig = self._first_plannable(found, remaining, t0)
         if self._count_pass(dig):
             self.finish_passes += 1

@@ -334,7 +334,8 @@ class TrenchPlan:
             rest: entries, layers, the remaining design).
         dig_plan_us: Each dig's planning (its choice, plan and checks in
             :meth:`TrenchSession.next_dig`, without the moves into it) (us), in the order of
-            the digs the session planned (a resumed session's: those after the resume).
+            the digs planned since the plan's start (after a resume from a state: those
+            planned after it).
         planning_error: What stopped the planning before the planner found the task finished
             (the message of the PlanningError: no dig removes the rest, the bound on the digs),
             or None when it ran to its end; the plan then holds the digs before it.

@@ -112,8 +112,8 @@ class TrenchSession(PersistMixin):
         self._begin_section(0)
         #: Time spent per stage so far (us; TrenchPlan.stage_us).
         self.stage_us: dict[str, float] = dict.fromkeys(_STAGES, 0.0)
-        #: Each dig's planning in :meth:`next_dig` without the moves into it (us; in the
-        #: order of the digs this session planned; TrenchPlan.dig_plan_us).
+        #: Each dig's planning in :meth:`next_dig` without the moves into it (us; one per
+        #: dig :meth:`next_dig` returned, in order; TrenchPlan.dig_plan_us).
         self.dig_plan_us: list[float] = []
         #: The pending dig's planned tip path, its envelope and swept region (for record()).
         self._planned_region: tuple[FloatArray, FloatArray, Any] | None = None

@@ -284,7 +284,7 @@ def test_a_shutdown_right_after_a_job_keeps_its_report(tmp_path: Path) -> None:
     assert (config.paths.state_dir / "telemetry" / f"job-{job.id}.npz").is_file()
     # The shutdown ends the runner's helper threads too: nothing holds the planner after it.
     prep = runner._prep
-    threads = (prep._recorder, prep.worker._thread, prep.after._thread)
+    threads = (prep.recorder._thread, prep.worker._thread, prep.after._thread)
     assert not any(t.is_alive() for t in threads), [t.name for t in threads if t.is_alive()]
 
 

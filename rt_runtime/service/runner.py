@@ -281,21 +281,16 @@ class _Preparation:
         self.worker = _Worker("prepare")
         #: Work after a job: its report, closing a controller that never ran.
         self.after = _Worker("job-after")
-        self.records: queue.SimpleQueue[tuple[int, DigRecord] | None] = queue.SimpleQueue()
-        self._recorder = threading.Thread(
-            target=self._record_loop, name="dig-records", daemon=True
-        )
-        self._recorder.start()
+        #: Each dig's record into the store (:meth:`_record`), off the loop's thread.
+        self.recorder = _Worker("dig-records")
 
     def stop(self, timeout_s: float) -> bool:
         """Record the dig records queued, run the work queued after jobs and before them, and
         end the three threads (at most ``timeout_s`` in all); True if they ended. Their
         references (the planners, the store) go with them."""
         end = time.monotonic() + timeout_s
-        self.records.put(None)
-        self._recorder.join(timeout_s)
-        ended = not self._recorder.is_alive()
-        for worker in (self.after, self.worker):
+        ended = True
+        for worker in (self.recorder, self.after, self.worker):
             ended = worker.stop(max(end - time.monotonic(), 0.0)) and ended
         return ended
 
@@ -361,7 +356,7 @@ class _Preparation:
                 max_digs=None if job.max_digs is None else job.max_digs - done,
             )
             t_max = rig.planning.t_max_s if rig.planning is not None else 10.0
-            records = self.records
+            recorder = self.recorder
             link: ProcessPlanner | PathLink
             if job.taught is not None:
                 # A taught trench resumes at its first undone cycle (each cycle streamed to
@@ -390,7 +385,7 @@ class _Preparation:
                 rig,
                 parts.drives.axes,
                 parts.drives.describe,
-                lambda rec: records.put((job.id, rec)),
+                lambda rec: recorder.submit(self._record, job.id, rec),
                 int(2.0 * t_max / period) + 16,
             )
             first = controller.start(held_m)
@@ -405,33 +400,30 @@ class _Preparation:
         gc.freeze()
         self.prepared = _PreparedJob(job, controller, link, first, telemetry, parts.boot)
 
-    def _record_loop(self) -> None:
-        """Each dig's record: its summary and the session state into the store (its writer
-        thread persists), the log line. A failure is logged; the thread goes on."""
-        store = self.runner.store
-        while (item := self.records.get()) is not None:
-            job_id, rec = item
-            try:
-                # A taught cycle has no material accounting: its volumes are null.
-                fields = {k: _null_if_nan(getattr(rec, k)) for k in DIG_KEYS}
-                fields["planned_ahead"] = rec.planned_ahead
-                store.record_dig(job_id, fields, rec.session_state)
-            except Exception:  # a bug must not end the thread silently
-                log.exception("job %d: dig %d not recorded", job_id, rec.index)
-                continue
-            if rec.dig_type == CYCLE_STEP:
-                log.info("job %d: taught cycle %d done (%.1f s)", job_id, rec.index + 1, rec.T_s)
-                continue
-            log.info(
-                "job %d: dig %d done (%s, planned %.2f L, measured %.2f L; planned in %.0f ms%s)",
-                job_id,
-                rec.index,
-                rec.dig_type,
-                rec.planned_volume_m3 * 1e3,
-                rec.measured_volume_m3 * 1e3,
-                rec.plan_us / 1e3,
-                ", ahead" if rec.planned_ahead else "",
-            )
+    def _record(self, job_id: int, rec: DigRecord) -> None:
+        """One dig's record (on :attr:`recorder`'s thread): its summary and the session state
+        into the store (its writer thread persists), the log line. A failure is logged."""
+        try:
+            # A taught cycle has no material accounting: its volumes are null.
+            fields = {k: _null_if_nan(getattr(rec, k)) for k in DIG_KEYS}
+            fields["planned_ahead"] = rec.planned_ahead
+            self.runner.store.record_dig(job_id, fields, rec.session_state)
+        except Exception:  # a bug must not end the thread silently
+            log.exception("job %d: dig %d not recorded", job_id, rec.index)
+            return
+        if rec.dig_type == CYCLE_STEP:
+            log.info("job %d: taught cycle %d done (%.1f s)", job_id, rec.index + 1, rec.T_s)
+            return
+        log.info(
+            "job %d: dig %d done (%s, planned %.2f L, measured %.2f L; planned in %.0f ms%s)",
+            job_id,
+            rec.index,
+            rec.dig_type,
+            rec.planned_volume_m3 * 1e3,
+            rec.measured_volume_m3 * 1e3,
+            rec.plan_us / 1e3,
+            ", ahead" if rec.planned_ahead else "",
+        )
 
 
 def _null_if_nan(value: Any) -> Any:

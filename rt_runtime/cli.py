@@ -25,6 +25,7 @@ from rt_runtime.service.config import PLANNERS
 
 if TYPE_CHECKING:
     from rt_runtime.bench import LongTrenches, RandomSuite, TaskPlanBench, TrenchBench
+    from rt_runtime.reports import Distribution
 
 #: Entry-point group of the commands other packages add to ``excavator-rt`` (a callable taking
 #: the sub-parsers): the HIL's ``hil`` and ``demo``.
@@ -1046,9 +1047,7 @@ def _print_bench_random(q: RandomSuite) -> None:
     dig_part = q.dig_plan_per_dig_ms
     dig_text = f" (without the dig cycles {dig_part.p50:.2f} ms, p99 {dig_part.p99:.2f} ms)" if dig_part is not None else ""
     print(f"  plan per task p50 {q.plan_ms.p50:.1f} ms, p99 {q.plan_ms.p99:.1f} ms; per dig p50 {per_dig}{dig_text}{ref_text}")
-    each = q.dig_plan_each_ms
-    if each is not None:
-        print(f"  each dig's choice, plan and checks over all digs: p50 {each.p50:.2f} ms, p99 {each.p99:.2f} ms, max {each.max:.1f} ms")
+    _print_each_dig(q.dig_plan_each_ms)
     print("  worst:  task              L [m]  D [m]  beta1  beta2  x [m]  coverage  over [mm]  digs  status")
     for w in q.worst:
         if w.planned is not None:
@@ -1092,9 +1091,7 @@ def _print_bench_plan(
     dd = tr.dig_plan_per_dig_ms
     if dd is not None:
         print(f"  of it the dig's choice, plan and checks (without the dig cycles): p50 {dd.p50:.1f} ms, p99 {dd.p99:.1f} ms")
-    each = tr.dig_plan_each_ms
-    if each is not None:
-        print(f"  each dig's choice, plan and checks over all digs: p50 {each.p50:.2f} ms, p99 {each.p99:.2f} ms, max {each.max:.1f} ms")
+    _print_each_dig(tr.dig_plan_each_ms)
     print("  task  fill of each dig [L] (* finishing)                      finishing  travels  digs+moves  vs first design (goal <= 60 %)")
     for name, e in tasks.items():
         fills = " ".join(f"{v:.2f}{'*' if d[0].finishing else ''}" for v, d in zip(e.fill_L, e.pinn.buckets, strict=True))
@@ -1105,6 +1102,12 @@ def _print_bench_plan(
         cf = CycleFigures.of(e.pinn.to_json()["cycles"])
         if cf.cycles and cf.moves_per_cycle_s is not None and cf.moves_vs_bound_mean is not None and cf.moves_vs_bound_max is not None:
             print(f"  {name:<4}  {cf.cycles:10d}  {cf.moves_per_cycle_s:11.2f} s  {cf.moves_vs_bound_mean:18.3f}  {cf.moves_vs_bound_max:5.3f}  {cf.fallbacks:12d}")
+
+
+def _print_each_dig(each: Distribution | None) -> None:
+    """The line of each dig's own planning time over every dig (``dig_plan_each_ms``)."""
+    if each is not None and each.max is not None:
+        print(f"  each dig's choice, plan and checks over all digs: p50 {each.p50:.2f} ms, p99 {each.p99:.2f} ms, max {each.max:.1f} ms")
 
 
 def _signed_pct(value: float | None) -> str:

@@ -1662,7 +1662,7 @@ def test_the_finishing_stages_bound_counts_its_own_passes(planner: TrenchPlanner
         session.record(dig, dig.tip_path_m)
         state = json.loads(json.dumps(session.state()))
         assert state["finish_passes"] == session.finish_passes <= session.finishing_used
-    # The same session as if its layers had taken the bound's worth of passes more, its last
+    # The same state as if its layers had taken the bound's worth of passes more, its last
     # bucket dumped (so the slump's pass starts a bucket of its own, and counts).
     many = {
         **state,
